@@ -1,0 +1,31 @@
+# The two set-up commands: `make demo` (the bundled default scene) and `make test`.
+# Both create the virtual environment on first use. DOLFINX=system uses Debian's DOLFINx.
+VENV    ?= .venv
+DOLFINX ?= wheel
+PY      := $(VENV)/bin/python
+# The wheel ships MPICH's mpiexec in the venv; Debian's DOLFINx uses the system one.
+MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
+STAMP   := $(VENV)/.lungmech-installed
+
+.PHONY: demo test test-serial test-mpi bench clean
+
+$(STAMP): pyproject.toml
+	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
+	touch $@
+
+demo: $(STAMP)
+	$(VENV)/bin/lungmech run -o results/default
+
+test: test-serial test-mpi
+
+test-serial: $(STAMP)
+	$(PY) -m pytest -m "not mpi" tests
+
+test-mpi: $(STAMP)
+	$(MPIEXEC) -n 2 $(PY) -m pytest -m mpi -p no:cacheprovider tests
+
+bench: $(STAMP)
+	$(PY) benchmarks/run.py
+
+clean:
+	rm -rf results benchmarks/results

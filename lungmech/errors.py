@@ -1,0 +1,21 @@
+"""Errors meant for people: the CLI prints their message and exits non-zero, no traceback."""
+
+
+class LungmechError(Exception):
+    """Base class of every error lungmech raises on bad input or a failed computation."""
+
+
+class ParameterError(LungmechError, ValueError):
+    """A physical or numerical parameter is out of its admissible range."""
+
+
+class GeometryError(LungmechError):
+    """A mesh file is missing or unreadable, or a boundary name is unknown."""
+
+
+class SceneError(LungmechError):
+    """A scene file has an unknown key or a bad value."""
+
+
+class SolverError(LungmechError):
+    """A nonlinear solve failed even at the smallest allowed load step."""

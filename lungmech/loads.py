@@ -1,0 +1,62 @@
+"""External loads as potentials (conservative) or virtual works (follower loads).
+
+A load is a frozen description: a value, where it acts, and a :class:`Ramp`. The model gives it
+the current value as a UFL ``Constant`` (``ramp(t) · value``), so a load step recompiles nothing.
+Conservative loads define ``potential(u, geometry, value)`` (the energy of the load, −work);
+follower loads define ``virtual_work(u, v, geometry, value)`` only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import ufl
+
+from lungmech.kinematics import deformation_gradient
+from lungmech.ramp import Ramp
+
+
+@dataclass(frozen=True)
+class BodyForce:
+    """Dead body force per unit reference volume (e.g. ρ₀ g)."""
+
+    value: Sequence[float]
+    ramp: Ramp = field(default_factory=Ramp)
+
+    def potential(self, u, geometry, value):
+        return -ufl.dot(value, u) * ufl.dx(domain=geometry.mesh)
+
+
+@dataclass(frozen=True)
+class Traction:
+    """Dead traction per unit reference area on a named boundary."""
+
+    boundary: str
+    value: Sequence[float]
+    ramp: Ramp = field(default_factory=Ramp)
+
+    def potential(self, u, geometry, value):
+        return -ufl.dot(value, u) * geometry.ds(self.boundary)
+
+
+@dataclass(frozen=True)
+class FollowerPressure:
+    """Pressure on the deformed boundary, pushing against its outward normal: t = −p n da.
+
+    Pulled back to the reference surface with Nanson's formula, n da = J F⁻ᵀ N dA. A positive
+    value on the inner surface of a cavity inflates it; a negative one on the outer surface of a
+    body (pleural suction) pulls it outwards.
+    """
+
+    boundary: str
+    value: float
+    ramp: Ramp = field(default_factory=Ramp)
+
+    def virtual_work(self, u, v, geometry, value):
+        F = deformation_gradient(u)
+        N = ufl.FacetNormal(geometry.mesh)
+        return -value * ufl.dot(ufl.det(F) * ufl.inv(F).T * N, v) * geometry.ds(self.boundary)
+
+
+Load = BodyForce | Traction | FollowerPressure

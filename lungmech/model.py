@@ -1,0 +1,164 @@
+"""A finite-strain boundary-value problem: a law, loads and imposed displacements on a geometry.
+
+The model is the sum of the terms it is given and nothing more: its total potential is
+Π = ∫ ψ dx + Σ (load potentials), its residual is δΠ minus the virtual work of follower loads,
+and its Jacobian is the exact derivative of the residual. Every load value, imposed
+displacement and material parameter lives in a ``Constant`` or ``Function``, so changing the time
+or a parameter recompiles nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+
+import basix.ufl
+import numpy as np
+import ufl
+from dolfinx import fem
+
+from lungmech import constraints as _constraints
+from lungmech.constraints import Displacement
+from lungmech.errors import ParameterError
+from lungmech.kinematics import deformation_gradient
+from lungmech.loads import Load
+from lungmech.materials import Material, VolumetricSplit, with_constants
+
+
+class Model:
+    """Unknowns, forms and boundary data of one problem.
+
+    Args:
+        geometry: mesh with named boundaries (:mod:`lungmech.geometry`).
+        material: a strain-energy law (:mod:`lungmech.materials`).
+        degree: Lagrange degree of the displacement.
+        mixed: Taylor–Hood displacement–pressure formulation (P``degree``–P``degree-1``), for
+            nearly or exactly incompressible laws with a volumetric split.
+        loads: body forces, tractions, follower pressures (:mod:`lungmech.loads`).
+        constraints: imposed displacements (:mod:`lungmech.constraints`).
+        quadrature_degree: overrides the law's own choice.
+    """
+
+    def __init__(
+        self,
+        geometry,
+        material: Material,
+        *,
+        degree: int = 1,
+        mixed: bool = False,
+        loads: Sequence[Load] = (),
+        constraints: Sequence[Displacement] = (),
+        quadrature_degree: int | None = None,
+    ):
+        mesh = geometry.mesh
+        self.geometry = geometry
+        self.material = with_constants(material, mesh)
+        self.degree, self.mixed = degree, mixed
+        self.loads, self.constraints = tuple(loads), tuple(constraints)
+        _check_formulation(material, degree, mixed)
+
+        cell, gdim = mesh.basix_cell(), mesh.geometry.dim
+        element_u = basix.ufl.element("Lagrange", cell, degree, shape=(gdim,))
+        if mixed:
+            element_p = basix.ufl.element("Lagrange", cell, degree - 1)
+            self.space = fem.functionspace(mesh, basix.ufl.mixed_element([element_u, element_p]))
+            self.displacement_space = self.space.sub(0)
+        else:
+            self.space = fem.functionspace(mesh, element_u)
+            self.displacement_space = self.space
+        self.state = fem.Function(self.space, name="state")
+        if mixed:
+            self.u, self.p = ufl.split(self.state)
+        else:
+            self.u, self.p = self.state, None
+
+        self.F = deformation_gradient(self.u)
+        self.energy_density = _energy_density(self.material, self.F, self.p)
+        q = quadrature_degree if quadrature_degree is not None else self._default_quadrature_degree()
+        self.dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": q})
+
+        v = ufl.TestFunction(self.space)
+        v_u = ufl.split(v)[0] if mixed else v
+        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
+        self.potential = self.energy_density * self.dx
+        virtual_work = []
+        for load, value in zip(self.loads, self._load_values):
+            if hasattr(load, "potential"):
+                self.potential += load.potential(self.u, geometry, value)
+            else:
+                virtual_work.append(load.virtual_work(self.u, v_u, geometry, value))
+        self.residual = ufl.derivative(self.potential, self.state, v)
+        for work in virtual_work:
+            self.residual -= work
+        self.jacobian = ufl.derivative(self.residual, self.state, ufl.TrialFunction(self.space))
+
+        self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]
+        self.bcs = [imposed.bc for imposed in self._imposed]
+        self.time = 0.0
+        self.set_time(0.0)
+
+    def set_time(self, t: float) -> None:
+        """Set every load and imposed displacement to its ramped value at time t."""
+        self.time = t
+        for load, value in zip(self.loads, self._load_values):
+            value.value = load.ramp(t) * np.asarray(load.value, dtype=float)
+        for imposed in self._imposed:
+            imposed.set_time(t)
+
+    @property
+    def breakpoints(self) -> list[float]:
+        """Times where some ramp has a kink: the solver lands on them exactly."""
+        ramps = [load.ramp for load in self.loads] + [c.ramp for c in self.constraints]
+        return sorted({t for ramp in ramps for t in ramp.times})
+
+    def first_piola(self) -> ufl.core.expr.Expr:
+        """P = ∂(energy density)/∂F, including the pressure of the mixed formulation."""
+        return ufl.diff(self.energy_density, self.F)
+
+    def cauchy(self) -> ufl.core.expr.Expr:
+        """σ = P Fᵀ / J (σ = P for a small-strain law)."""
+        if getattr(self.material, "small_strain", False):
+            return self.first_piola()
+        return self.first_piola() * self.F.T / ufl.det(self.F)
+
+    def displacement(self) -> fem.Function:
+        """The displacement as a Function of its own (collapsed) space: a copy."""
+        if not self.mixed:
+            return self.state.copy()
+        return self.state.sub(0).collapse()
+
+    def _default_quadrature_degree(self) -> int:
+        mesh = self.geometry.mesh
+        affine = mesh.topology.cell_name() in ("interval", "triangle", "tetrahedron")
+        gradient_degree = self.degree - 1 if affine else self.degree
+        gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
+        return self.material.quadrature_degree(gradient_degree)
+
+
+def _energy_density(material: Material, F, p) -> ufl.core.expr.Expr:
+    """ψ(F), or ψ_iso(F) − p g(J) − p²/(2 bulk) in the mixed formulation."""
+    if p is None:
+        return material.psi(F)
+    density = material.psi_iso(F) - p * material.volumetric(ufl.det(F))
+    bulk = material.bulk
+    if not (isinstance(bulk, numbers.Real) and math.isinf(bulk)):
+        density -= p**2 / (2 * bulk)
+    return density
+
+
+def _check_formulation(material: Material, degree: int, mixed: bool) -> None:
+    if not isinstance(degree, int) or degree < 1:
+        raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
+    if mixed:
+        if degree < 2:
+            raise ParameterError("the mixed formulation is Taylor–Hood: it needs degree >= 2")
+        if not isinstance(material, VolumetricSplit):
+            raise ParameterError(
+                f"law '{material.name}' has no volumetric split, so no mixed formulation; "
+                "use neo_hookean, stable_neo_hookean or mooney_rivlin"
+            )
+    elif isinstance(material, VolumetricSplit):
+        bulk = material.bulk
+        if isinstance(bulk, numbers.Real) and math.isinf(bulk):
+            raise ParameterError(f"the incompressible law '{material.name}' needs the mixed formulation")

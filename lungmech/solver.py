@@ -1,0 +1,276 @@
+"""Newton's method (PETSc SNES) with line search and adaptive load stepping.
+
+A step that fails (no convergence, a NaN, a linear-solver breakdown) is undone: the last
+converged state is restored and the step is cut. Easy steps make the next one longer. Below the
+minimum step the solve stops with a :class:`SolverError` that says where and why. An unconverged
+state is never returned as a result.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from dolfinx.fem.petsc import NonlinearProblem
+from petsc4py import PETSc
+
+from lungmech.errors import ParameterError, SolverError
+
+log = logging.getLogger("lungmech")
+
+_REASONS = {
+    getattr(PETSc.SNES.ConvergedReason, name): name
+    for name in dir(PETSc.SNES.ConvergedReason)
+    if name.isupper() or name.startswith(("CONVERGED", "DIVERGED", "ITERATING"))
+}
+_prefixes = itertools.count()
+
+
+@dataclass(frozen=True)
+class NewtonOptions:
+    """Nonlinear and linear solver settings.
+
+    ``linear_solver`` is "direct" (MUMPS LU, robust, the default) or "iterative" (GMRES with
+    smoothed-aggregation AMG and the rigid-body near-nullspace, for large displacement-only
+    problems). ``petsc_options`` overrides or extends any PETSc option.
+    """
+
+    linear_solver: str = "direct"
+    rtol: float = 1e-10
+    atol: float = 1e-12
+    stol: float = 1e-12
+    max_iterations: int = 25
+    line_search: str = "bt"
+    petsc_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.linear_solver not in ("direct", "iterative"):
+            raise ParameterError(f"linear_solver must be 'direct' or 'iterative' (got {self.linear_solver!r})")
+        if self.line_search not in ("bt", "l2", "cp", "basic", "none"):
+            raise ParameterError(f"line_search must be bt, l2, cp, basic or none (got {self.line_search!r})")
+        if not (self.rtol > 0 and self.atol >= 0 and self.max_iterations >= 1):
+            raise ParameterError("need rtol > 0, atol >= 0 and max_iterations >= 1")
+
+    def petsc(self) -> dict:
+        options = {
+            "snes_type": "newtonls",
+            "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
+            "snes_rtol": self.rtol,
+            "snes_atol": self.atol,
+            "snes_stol": self.stol,
+            "snes_max_it": self.max_iterations,
+            "snes_max_funcs": 10 * self.max_iterations + 100,
+        }
+        if self.linear_solver == "direct":
+            options |= {
+                "ksp_type": "preonly",
+                "pc_type": "lu",
+                "pc_factor_mat_solver_type": "mumps",
+                "mat_mumps_icntl_14": 200,  # room for pivoting in saddle-point (mixed) systems
+            }
+        else:
+            options |= {
+                "ksp_type": "gmres",
+                "ksp_rtol": 1e-9,
+                "ksp_max_it": 500,
+                "pc_type": "gamg",
+                "pc_gamg_type": "agg",
+                "mg_levels_ksp_type": "chebyshev",
+                "mg_levels_pc_type": "jacobi",
+            }
+        return options | self.petsc_options
+
+
+@dataclass(frozen=True)
+class Stepping:
+    """Adaptive pseudo-time stepping from ``start`` to ``end``.
+
+    Steps grow by ``growth`` after a step that took at most ``easy_iterations`` Newton
+    iterations and are halved after a failure; ``times`` (and every ramp breakpoint) are hit
+    exactly, so outputs can be requested there.
+    """
+
+    end: float = 1.0
+    start: float = 0.0
+    initial_step: float = 0.25
+    min_step: float = 1e-5
+    max_step: float = 1.0
+    growth: float = 1.5
+    easy_iterations: int = 5
+    times: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        if not self.end > self.start:
+            raise ParameterError(f"stepping: end ({self.end}) must be after start ({self.start})")
+        if not 0 < self.min_step <= self.initial_step <= self.max_step:
+            raise ParameterError("stepping: need 0 < min_step <= initial_step <= max_step")
+        if not self.growth >= 1:
+            raise ParameterError("stepping: growth must be >= 1")
+
+
+@dataclass(frozen=True)
+class StepReport:
+    time: float
+    step: float
+    iterations: int
+    residuals: tuple[float, ...]
+    reason: str
+    seconds: float
+    converged: bool
+
+
+@dataclass
+class SolveReport:
+    """Every attempted step, accepted or not, and the totals."""
+
+    steps: list[StepReport] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def accepted(self) -> list[StepReport]:
+        return [s for s in self.steps if s.converged]
+
+    @property
+    def newton_iterations(self) -> int:
+        return sum(s.iterations for s in self.steps)
+
+    @property
+    def failures(self) -> int:
+        return sum(not s.converged for s in self.steps)
+
+
+class NewtonSolver:
+    """One SNES for one model: forms are compiled once, then reused for every step."""
+
+    def __init__(self, model, options: NewtonOptions | None = None):
+        self.model = model
+        self.options = options or NewtonOptions()
+        if self.options.linear_solver == "iterative" and model.mixed:
+            raise ParameterError(
+                "the iterative linear solver handles the displacement formulation only; "
+                "use the direct solver with the mixed formulation"
+            )
+        self.problem = NonlinearProblem(
+            model.residual,
+            model.state,
+            bcs=model.bcs,
+            J=model.jacobian,
+            petsc_options_prefix=f"lungmech_{next(_prefixes)}_",
+            petsc_options=self.options.petsc(),
+        )
+        if self.options.linear_solver == "iterative":
+            self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
+        self._residuals: list[float] = []
+        self.problem.solver.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
+
+    def solve(self) -> tuple[bool, int, tuple[float, ...], str]:
+        """One Newton solve from the current state: (converged, iterations, residuals, reason)."""
+        self._residuals.clear()
+        snes = self.problem.solver
+        try:
+            self.problem.solve()
+            reason = snes.getConvergedReason()
+        except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
+            return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}"
+        converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
+        return bool(converged), snes.getIterationNumber(), tuple(self._residuals), _REASONS.get(reason, str(reason))
+
+    def destroy(self) -> None:
+        self.problem.solver.destroy()
+
+
+def solve(
+    model,
+    stepping: Stepping | None = None,
+    options: NewtonOptions | None = None,
+    on_step: Callable[[StepReport], None] | None = None,
+    solver: NewtonSolver | None = None,
+) -> SolveReport:
+    """Drive ``model`` from ``stepping.start`` to ``stepping.end`` with adaptive steps.
+
+    ``on_step`` is called after every accepted step (outputs, P–V curves, snapshots). Pass a
+    ``solver`` to reuse its compiled forms across calls. Raises :class:`SolverError` when a step
+    below ``stepping.min_step`` still fails; the model then holds the last converged state.
+    """
+    stepping = stepping or Stepping()
+    solver = solver or NewtonSolver(model, options)
+    state = model.state.x.array
+    targets = sorted({t for t in (*stepping.times, *model.breakpoints, stepping.end) if stepping.start < t <= stepping.end})
+    report = SolveReport()
+    started = time.perf_counter()
+
+    t, dt = stepping.start, stepping.initial_step
+    model.set_time(t)
+    last, previous, previous_dt = state.copy(), None, None
+    for target in targets:
+        while t < target - 1e-12 * (stepping.end - stepping.start):
+            dt = min(dt, stepping.max_step, target - t)
+            if previous is not None:  # linear predictor from the last two converged states
+                state[:] = last + (dt / previous_dt) * (last - previous)
+            model.set_time(t + dt)
+            tic = time.perf_counter()
+            converged, iterations, residuals, reason = solver.solve()
+            step = StepReport(t + dt, dt, iterations, residuals, reason, time.perf_counter() - tic, converged)
+            report.steps.append(step)
+            _log_step(step)
+            if converged:
+                previous, previous_dt, last = last, dt, state.copy()
+                t += dt
+                if on_step is not None:
+                    on_step(step)
+                if iterations <= stepping.easy_iterations:
+                    dt *= stepping.growth
+                continue
+            state[:] = last
+            model.state.x.scatter_forward()
+            if dt <= stepping.min_step * (1 + 1e-12):
+                model.set_time(t)
+                report.seconds = time.perf_counter() - started
+                raise SolverError(_failure_message(t, dt, step))
+            dt = max(dt / 2, stepping.min_step)
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _log_step(step: StepReport) -> None:
+    final = f"{step.residuals[-1]:.2e}" if step.residuals else "n/a"
+    status = "ok" if step.converged else f"FAILED ({step.reason}), cutting the step"
+    log.info(
+        "t = %.6g  dt = %.3g  Newton %2d  |R| %s  %.2f s  %s",
+        step.time, step.step, step.iterations, final, step.seconds, status,
+    )
+
+
+def _failure_message(t: float, dt: float, step: StepReport) -> str:
+    history = ", ".join(f"{r:.3e}" for r in step.residuals[-6:]) or "none"
+    return (
+        f"Newton did not converge from t = {t:.6g} even with the minimum step {dt:.3g} "
+        f"(reason {step.reason}; last residual norms: {history}). The last converged state, at "
+        f"t = {t:.6g}, is kept. Try a smaller min_step, a different line search, or check the "
+        "loads and material parameters (an element may be inverting)."
+    )
+
+
+def rigid_body_modes(space) -> PETSc.NullSpace:
+    """The 6 rigid-body modes of a 3-D vector space, orthonormalised: AMG's near-nullspace."""
+    index_map, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+    n = index_map.size_local
+    x = space.tabulate_dof_coordinates()[:n]
+    x = x - x.mean(axis=0)  # better conditioned rotations
+    modes = np.zeros((6, n, bs))
+    for i in range(3):
+        modes[i, :, i] = 1.0
+        modes[3 + i] = np.cross(np.eye(3)[i], x)
+    comm = space.mesh.comm
+    vectors = []
+    for mode in modes:
+        vec = PETSc.Vec().createWithArray(mode.ravel().copy(), bsize=bs, comm=comm)
+        for other in vectors:  # Gram–Schmidt with global inner products
+            vec.axpy(-vec.dot(other), other)
+        vec.normalize()
+        vectors.append(vec)
+    return PETSc.NullSpace().create(vectors=vectors, comm=comm)

@@ -1,0 +1,14 @@
+import gc
+
+import pytest
+from mpi4py import MPI
+
+import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
+
+
+@pytest.fixture(autouse=True)
+def _collective_teardown():
+    """PETSc objects are destroyed collectively: collect them on every rank together."""
+    yield
+    gc.collect()
+    MPI.COMM_WORLD.Barrier()
