@@ -44,7 +44,8 @@ class Probe:
         owner = comm.allreduce(np.where(found, comm.rank, comm.size), op=MPI.MIN)
         missing = np.flatnonzero(owner == comm.size)
         if missing.size:
-            raise ParameterError(f"probe point {list(self.points[missing[0]])} lies outside the mesh")
+            point = ", ".join(f"{v:g}" for v in self.points[missing[0]])
+            raise ParameterError(f"probe point ({point}) lies outside the mesh")
         self._mine = np.flatnonzero(owner == comm.rank)
         self._cells = np.array([colliding.links(i)[0] for i in self._mine], dtype=np.int32)
         self._comm = comm

@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -70,7 +71,6 @@ class NewtonOptions:
                 "ksp_type": "preonly",
                 "pc_type": "lu",
                 "pc_factor_mat_solver_type": "mumps",
-                "mat_mumps_icntl_14": 200,  # room for pivoting in saddle-point (mixed) systems
             }
         else:
             options |= {
@@ -154,12 +154,17 @@ class NewtonSolver:
                 "the iterative linear solver handles the displacement formulation only; "
                 "use the direct solver with the mixed formulation"
             )
+        prefix = f"lungmech_{next(_prefixes)}_"
+        if self.options.linear_solver == "direct":
+            # Read by MUMPS at the first factorisation, after dolfinx has already removed the
+            # options it was given: so it lives in the database for the solver's lifetime.
+            _persistent_options(self, prefix, {"mat_mumps_icntl_14": 200})  # room for pivoting (mixed)
         self.problem = NonlinearProblem(
             model.residual,
             model.state,
             bcs=model.bcs,
             J=model.jacobian,
-            petsc_options_prefix=f"lungmech_{next(_prefixes)}_",
+            petsc_options_prefix=prefix,
             petsc_options=self.options.petsc(),
         )
         if self.options.linear_solver == "iterative":
@@ -181,6 +186,14 @@ class NewtonSolver:
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
+
+
+def _persistent_options(owner, prefix: str, options: dict) -> None:
+    """Set PETSc options that stay until ``owner`` is garbage-collected."""
+    database = PETSc.Options()
+    for key, value in options.items():
+        database[prefix + key] = value
+    weakref.finalize(owner, lambda: [database.delValue(prefix + key) for key in options])
 
 
 def solve(

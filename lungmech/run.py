@@ -1,0 +1,98 @@
+"""Run a scene: build what it declares, solve with load stepping, write the outputs atomically."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+from lungmech.model import Model
+from lungmech.output import FieldWriter, atomic_folder, write_json
+from lungmech.quantities import Probe, deformed_volume, strain_energy
+from lungmech.scene import Scene, build_geometry
+from lungmech.solver import NewtonSolver, StepReport, solve
+
+
+def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
+    """The model a scene declares, and nothing else."""
+    geometry = build_geometry(scene.geometry, comm)
+    return Model(
+        geometry,
+        scene.material,
+        degree=scene.degree,
+        mixed=scene.mixed,
+        loads=scene.loads,
+        constraints=scene.constraints,
+    )
+
+
+def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
+    """Solve ``scene`` and write summary.json, history.csv and (optionally) VTX fields to ``out``.
+
+    ``out`` is replaced only when the run succeeds. Returns the summary.
+    """
+    timings = {}
+    tic = time.perf_counter()
+    model = build_model(scene, comm)
+    timings["build"] = time.perf_counter() - tic
+
+    with atomic_folder(Path(out), comm) as staging:
+        tic = time.perf_counter()
+        solver = NewtonSolver(model, scene.newton)
+        volume, energy = deformed_volume(model), strain_energy(model)
+        probe = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else None
+        writer = FieldWriter(model, staging) if scene.output.fields else None
+        timings["compile"] = time.perf_counter() - tic
+
+        history = []
+
+        def record(step: StepReport | None) -> None:
+            row = {"time": model.time, "volume": volume(), "energy": energy()}
+            if step is not None:
+                row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
+            if probe is not None:
+                for i, value in enumerate(probe(model.state)):
+                    row |= {f"probe{i}_u{axis}": value[c] for c, axis in enumerate("xyz")}
+            history.append(row)
+            if writer is not None:
+                writer.write(model.time)
+
+        try:
+            record(None)
+            report = solve(model, scene.stepping, solver=solver, on_step=record)
+        finally:  # ADIOS2 must let go of its files before a failed staging folder is removed
+            if writer is not None:
+                writer.close()
+        timings["solve"] = report.seconds
+
+        mesh = model.geometry.mesh
+        summary = {
+            "title": scene.title,
+            "mpi_ranks": comm.size,
+            "dofs": model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs,
+            "cells": mesh.topology.index_map(mesh.topology.dim).size_global,
+            "law": scene.material.name,
+            "degree": scene.degree,
+            "mixed": scene.mixed,
+            "steps": len(report.accepted),
+            "failed_steps": report.failures,
+            "newton_iterations": report.newton_iterations,
+            "timings_seconds": timings,
+            "reference_volume": model.geometry.volume(),
+            "deformed_volume": history[-1]["volume"],
+            "strain_energy": history[-1]["energy"],
+            "probes": {
+                "points": [list(p) for p in scene.output.probes],
+                "displacement": probe(model.state)[:, :3].tolist() if probe is not None else [],
+            },
+        }
+        write_json(staging / "summary.json", summary, comm)
+        if comm.rank == 0:
+            with open(staging / "history.csv", "w", newline="") as stream:
+                columns = list(dict.fromkeys(k for row in history for k in row))
+                writer_csv = csv.DictWriter(stream, fieldnames=columns)
+                writer_csv.writeheader()
+                writer_csv.writerows(history)
+    return summary

@@ -1,0 +1,220 @@
+"""Scene files (TOML): what to model, read and validated into lungmech objects.
+
+A scene declares its geometry, law, formulation, constraints, loads, stepping, solver and
+outputs; only what it declares is built. Every unknown key or bad value is a :class:`SceneError`
+naming the key, e.g. ``material.nuu: unknown key (expected one of: E, nu)``.
+"""
+
+from __future__ import annotations
+
+import inspect
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lungmech import geometry as _geometry
+from lungmech.constraints import Displacement, clamp, symmetry
+from lungmech.errors import LungmechError, SceneError
+from lungmech.loads import BodyForce, FollowerPressure, Traction
+from lungmech.materials import LAWS, Material, Sum
+from lungmech.ramp import Ramp
+from lungmech.solver import NewtonOptions, Stepping
+
+SECTIONS = ("title", "geometry", "material", "formulation", "constraints", "loads", "stepping", "solver", "output")
+BUILDERS: dict[str, Callable] = {
+    "box": _geometry.box,
+    "sphere": _geometry.sphere,
+    "ellipsoid": _geometry.ellipsoid,
+    "lung_phantom": _geometry.lung_phantom,
+}
+LOADS = {"body_force": BodyForce, "traction": Traction, "follower_pressure": FollowerPressure}
+CONSTRAINTS = {"clamp": clamp, "symmetry": symmetry, "displacement": Displacement}
+
+
+@dataclass(frozen=True)
+class Output:
+    """What a run writes besides summary.json and history.csv."""
+
+    fields: bool = True
+    probes: tuple[tuple[float, float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class Scene:
+    geometry: dict[str, Any]
+    material: Material
+    degree: int = 1
+    mixed: bool = False
+    constraints: tuple = ()
+    loads: tuple = ()
+    stepping: Stepping = field(default_factory=Stepping)
+    newton: NewtonOptions = field(default_factory=NewtonOptions)
+    output: Output = field(default_factory=Output)
+    title: str = ""
+    folder: Path = Path(".")
+
+
+def load(path: str | Path) -> Scene:
+    """Read and validate a scene file."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"scene file '{path}' not found")
+    try:
+        table = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise SceneError(f"{path}: not valid TOML ({error})") from None
+    return parse(table, folder=path.parent)
+
+
+def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
+    """Validate a scene given as a dictionary (the parsed TOML)."""
+    _no_unknown_keys(table, SECTIONS, "scene")
+    for required in ("geometry", "material"):
+        if required not in table:
+            raise SceneError(f"scene: missing section [{required}]")
+    formulation = _section(table, "formulation")
+    _no_unknown_keys(formulation, ("degree", "mixed"), "formulation")
+    output = _section(table, "output")
+    return Scene(
+        geometry=_geometry_spec(_section(table, "geometry"), folder),
+        material=material(_section(table, "material")),
+        degree=_typed(formulation.get("degree", 1), int, "formulation.degree"),
+        mixed=_typed(formulation.get("mixed", False), bool, "formulation.mixed"),
+        constraints=tuple(_entries(table, "constraints", CONSTRAINTS)),
+        loads=tuple(_entries(table, "loads", LOADS)),
+        stepping=_call(Stepping, _with_tuple(_section(table, "stepping"), "times"), "stepping"),
+        newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
+        output=_call(Output, _with_tuple(output, "probes"), "output"),
+        title=_typed(table.get("title", ""), str, "title"),
+        folder=folder,
+    )
+
+
+def material(table: dict[str, Any], where: str = "material") -> Material:
+    """A law from ``{law = name, <parameters>}``.
+
+    Parameters are the law's own (e.g. mu, lmbda or c0, c1, c2), or E and nu (plus the law's
+    optional shares), or ``incompressible = true`` with the shear parameters. ``law = "sum"``
+    takes a list ``terms`` of such tables.
+    """
+    table = dict(table)
+    name = table.pop("law", None)
+    if name == "sum":
+        _no_unknown_keys(table, ("terms",), where)
+        terms = table.get("terms")
+        if not isinstance(terms, list) or not terms:
+            raise SceneError(f"{where}.terms: a sum needs a non-empty list of laws")
+        return Sum(tuple(material(t, f"{where}.terms[{i}]") for i, t in enumerate(terms)))
+    if name not in LAWS:
+        raise SceneError(f"{where}.law: unknown law {name!r} (available: {', '.join([*LAWS, 'sum'])})")
+    cls = LAWS[name]
+    if table.pop("incompressible", False):
+        if not hasattr(cls, "incompressible"):
+            raise SceneError(f"{where}.incompressible: law '{name}' has no incompressible variant")
+        return _call(cls.incompressible, table, where)
+    if "E" in table or "nu" in table:
+        if not hasattr(cls, "from_young"):
+            raise SceneError(f"{where}: law '{name}' is not defined by E and nu")
+        return _call(cls.from_young, table, where)
+    return _call(cls, table, where)
+
+
+def build_geometry(spec: dict[str, Any], comm) -> _geometry.Geometry:
+    """The mesh a scene's [geometry] section describes."""
+    spec = dict(spec)
+    if "file" in spec:
+        return _geometry.from_file(spec.pop("file"), comm, spec.pop("boundaries", None))
+    builder = BUILDERS[spec.pop("builder")]
+    return builder(comm, **spec)
+
+
+def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
+    if ("file" in table) == ("builder" in table):
+        raise SceneError("geometry: give exactly one of 'builder' (a generated mesh) or 'file' (a mesh file)")
+    if "file" in table:
+        _no_unknown_keys(table, ("file", "boundaries"), "geometry")
+        path = Path(table["file"])
+        path = path if path.is_absolute() else folder / path
+        if not path.is_file():
+            raise SceneError(f"geometry.file: mesh file '{path}' not found")
+        return {**table, "file": str(path)}
+    name = table["builder"]
+    if name not in BUILDERS:
+        raise SceneError(f"geometry.builder: unknown builder {name!r} (available: {', '.join(BUILDERS)})")
+    parameters = {k: v for k, v in table.items() if k != "builder"}
+    _check_signature(BUILDERS[name], parameters, "geometry", skip=("comm",))
+    return {"builder": name, **{k: tuple(v) if isinstance(v, list) else v for k, v in parameters.items()}}
+
+
+def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) -> list:
+    entries = table.get(section, [])
+    if not isinstance(entries, list):
+        raise SceneError(f"{section}: expected a list of tables ([[{section}]])")
+    built = []
+    for i, entry in enumerate(entries):
+        where = f"{section}[{i}]"
+        if not isinstance(entry, dict):
+            raise SceneError(f"{where}: expected a table")
+        entry = dict(entry)
+        kind = entry.pop("type", None)
+        if kind not in kinds:
+            raise SceneError(f"{where}.type: unknown type {kind!r} (available: {', '.join(kinds)})")
+        if "ramp" in entry:
+            ramp = entry["ramp"]
+            if not isinstance(ramp, dict):
+                raise SceneError(f"{where}.ramp: expected a table {{times = [...], values = [...]}}")
+            entry["ramp"] = _call(Ramp, ramp, f"{where}.ramp")
+        if isinstance(entry.get("value"), list):
+            entry["value"] = tuple(entry["value"])
+        built.append(_call(kinds[kind], entry, where))
+    return built
+
+
+def _section(table: dict[str, Any], name: str) -> dict[str, Any]:
+    section = table.get(name, {})
+    if not isinstance(section, dict):
+        raise SceneError(f"{name}: expected a table [{name}]")
+    return section
+
+
+def _with_tuple(table: dict[str, Any], key: str) -> dict[str, Any]:
+    if key in table and isinstance(table[key], list):
+        return {**table, key: tuple(tuple(v) if isinstance(v, list) else v for v in table[key])}
+    return table
+
+
+def _typed(value, kind: type, where: str):
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise SceneError(f"{where}: expected {kind.__name__} (got {value!r})")
+    return value
+
+
+def _no_unknown_keys(table: dict[str, Any], allowed, where: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise SceneError(f"{where}.{key}: unknown key (expected one of: {', '.join(allowed)})")
+
+
+def _check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=()) -> None:
+    parameters = inspect.signature(func).parameters
+    allowed = [p for p in parameters if p not in skip and p != "self"]
+    _no_unknown_keys(kwargs, allowed, where)
+    missing = [
+        p for p, spec in parameters.items()
+        if p not in skip and spec.default is inspect.Parameter.empty and p not in kwargs
+    ]
+    if missing:
+        raise SceneError(f"{where}: missing key(s) {', '.join(missing)}")
+
+
+def _call(func: Callable, kwargs: dict[str, Any], where: str):
+    """func(**kwargs), with unknown/missing keys and bad values reported against ``where``."""
+    _check_signature(func, kwargs, where)
+    try:
+        return func(**kwargs)
+    except LungmechError as error:
+        raise SceneError(f"{where}: {error}") from None
+    except (TypeError, ValueError) as error:
+        raise SceneError(f"{where}: bad value ({error})") from None

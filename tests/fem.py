@@ -1,0 +1,65 @@
+"""Finite-element set-ups shared by the tests (homogeneous states on a box)."""
+
+from __future__ import annotations
+
+import numpy as np
+import ufl
+from mpi4py import MPI
+
+from lungmech.constraints import Displacement, symmetry
+from lungmech.geometry import box
+from lungmech.model import Model
+from lungmech.quantities import integral
+from lungmech.solver import NewtonOptions, Stepping, solve
+
+
+def mean_cauchy(model: Model) -> np.ndarray:
+    """Volume average of the Cauchy stress over the reference configuration."""
+    comm = model.geometry.mesh.comm
+    sigma = model.cauchy()
+    volume = model.geometry.volume()
+    return np.array([[integral(sigma[i, j] * model.dx, comm)() / volume for j in range(3)] for i in range(3)])
+
+
+def imposed_gradient(F: np.ndarray):
+    """u(X) = (F − I) X, as a callable for an imposed displacement."""
+    G = np.asarray(F, dtype=float) - np.eye(3)
+    return lambda x: G @ x
+
+
+def homogeneous(law, F: np.ndarray, degree: int = 1, mixed: bool = False, comm=MPI.COMM_WORLD) -> Model:
+    """u = (F − I)X imposed on the whole boundary of the unit cube, solved."""
+    geometry = box(comm, cells=(2, 2, 2))
+    constraints = [Displacement(name, imposed_gradient(F)) for name in ("x0", "x1", "y0", "y1", "z0", "z1")]
+    model = Model(geometry, law, degree=degree, mixed=mixed, constraints=constraints)
+    solve(model, Stepping(initial_step=1.0))
+    return model
+
+
+def uniaxial(law, stretch: float, degree: int = 1, mixed: bool = False, biaxial: bool = False,
+             stepping: Stepping | None = None, comm=MPI.COMM_WORLD) -> Model:
+    """Stretch along x (and y when ``biaxial``) with symmetry planes; the other faces are free."""
+    geometry = box(comm, cells=(1, 1, 1))
+    constraints = [symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z"),
+                   Displacement("x1", stretch - 1.0, "x")]
+    if biaxial:
+        constraints.append(Displacement("y1", stretch - 1.0, "y"))
+    model = Model(geometry, law, degree=degree, mixed=mixed, constraints=constraints)
+    solve(model, stepping or Stepping(initial_step=0.25), NewtonOptions())
+    return model
+
+
+def lateral_stretch(model: Model) -> float:
+    """1 + u_y at the corner (1, 1, 1) of a box model."""
+    comm = model.geometry.mesh.comm
+    u = model.u
+    area = model.geometry.area("y1")
+    return 1.0 + integral(u[1] * model.geometry.ds("y1"), comm)() / area
+
+
+def relative_error(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
+
+
+def x_coordinate(model: Model):
+    return ufl.SpatialCoordinate(model.geometry.mesh)

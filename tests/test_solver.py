@@ -1,0 +1,92 @@
+"""Newton: quadratic convergence (exact tangent), cut-back and restore, clear failures."""
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lungmech.constraints import Displacement, clamp, symmetry
+from lungmech.errors import ParameterError, SolverError
+from lungmech.geometry import box
+from lungmech.loads import BodyForce, FollowerPressure, Traction
+from lungmech.materials import NeoHookean, SaintVenantKirchhoff
+from lungmech.model import Model
+from lungmech.quantities import deformed_volume
+from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+
+
+def bent_block(loads_scale: float = 1.0) -> Model:
+    """A clamped block under shear traction, gravity and a follower pressure: a non-trivial state."""
+    geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2))
+    return Model(
+        geometry,
+        NeoHookean.from_young(10.0, 0.3),
+        degree=2,
+        constraints=[clamp("x0")],
+        loads=[
+            Traction("x1", (0.0, 0.0, -0.5 * loads_scale)),
+            BodyForce((0.0, 0.1 * loads_scale, 0.0)),
+            FollowerPressure("z1", 0.3 * loads_scale),
+        ],
+    )
+
+
+def test_newton_converges_quadratically():
+    """From a converged state, one load increment: r_{k+1} ≲ C r_k² (exact tangent)."""
+    model = bent_block(0.1)
+    solver = NewtonSolver(model, NewtonOptions(line_search="none"))
+    solve(model, Stepping(end=0.5), solver=solver)
+    model.set_time(1.0)
+    converged, _, residuals, _ = solver.solve()
+    r = np.array(residuals) / residuals[0]
+    assert converged and len(r) >= 4, r
+    pairs = [(a, b) for a, b in zip(r[:-1], r[1:]) if a < 1e-2 and b > 1e-13]
+    assert pairs, r
+    for a, b in pairs:
+        assert b < 10 * a**2, f"not quadratic: relative residuals {r}"
+
+
+def test_adaptive_stepping_cuts_back_and_recovers():
+    """A full step of a large load fails (an element inverts); cutting back gets there."""
+    model = bent_block(1.0)
+    report = solve(model, Stepping(initial_step=1.0), NewtonOptions(line_search="none"))
+    assert report.failures >= 1
+    assert report.accepted[-1].time == pytest.approx(1.0)
+    # The same end state as a cautious run with small steps.
+    cautious = bent_block(1.0)
+    solve(cautious, Stepping(initial_step=0.1, growth=1.0))
+    assert np.allclose(model.state.x.array, cautious.state.x.array, atol=1e-9)
+
+
+def test_failure_is_reported_and_last_state_kept():
+    """An impossible load (compression beyond a SVK limit point) stops with a clear error."""
+    geometry = box(MPI.COMM_WORLD, cells=(1, 1, 1))
+    law = SaintVenantKirchhoff.from_young(1.0, 0.3)
+    model = Model(geometry, law, constraints=[clamp("x0")], loads=[Traction("x1", (-5.0, 0.0, 0.0))])
+    converged = []
+    with pytest.raises(SolverError, match="did not converge") as error:
+        solve(model, Stepping(initial_step=0.5, min_step=0.01), on_step=lambda s: converged.append(s.time))
+    assert "last converged state" in str(error.value)
+    assert np.all(np.isfinite(model.state.x.array))
+    assert model.time == pytest.approx(converged[-1] if converged else 0.0)
+
+
+def test_iterative_solver_matches_direct():
+    direct, iterative = bent_block(), bent_block()
+    solve(direct)
+    solve(iterative, options=NewtonOptions(linear_solver="iterative"))
+    assert np.allclose(iterative.state.x.array, direct.state.x.array, rtol=0, atol=1e-8 * np.abs(direct.state.x.array).max())
+
+
+def test_iterative_solver_refuses_mixed():
+    from lungmech.geometry import box as make_box
+
+    model = Model(make_box(MPI.COMM_WORLD, cells=(1, 1, 1)), NeoHookean(1.0, 100.0), degree=2, mixed=True)
+    with pytest.raises(ParameterError, match="iterative"):
+        NewtonSolver(model, NewtonOptions(linear_solver="iterative"))
+
+
+def test_bad_solver_options():
+    with pytest.raises(ParameterError, match="linear_solver"):
+        NewtonOptions(linear_solver="magic")
+    with pytest.raises(ParameterError, match="min_step"):
+        Stepping(initial_step=1e-9)
