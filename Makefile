@@ -22,7 +22,8 @@ test-serial: $(STAMP)
 	$(PY) -m pytest -m "not mpi" tests
 
 test-mpi: $(STAMP)
-	$(MPIEXEC) -n 2 $(PY) -m pytest -m mpi -p no:cacheprovider tests
+	# A test failing on one rank only would leave the other waiting: bound the run.
+	timeout 1200 $(MPIEXEC) -n 2 $(PY) -m pytest -m mpi -p no:cacheprovider tests
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py

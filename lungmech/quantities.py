@@ -41,7 +41,8 @@ class Probe:
         found = np.array([len(colliding.links(i)) > 0 for i in range(len(self.points))])
         comm = mesh.comm
         # The lowest rank holding a point answers for it.
-        owner = comm.allreduce(np.where(found, comm.rank, comm.size), op=MPI.MIN)
+        owner = np.empty(len(self.points), dtype=np.int64)
+        comm.Allreduce(np.where(found, comm.rank, comm.size).astype(np.int64), owner, op=MPI.MIN)
         missing = np.flatnonzero(owner == comm.size)
         if missing.size:
             point = ", ".join(f"{v:g}" for v in self.points[missing[0]])
@@ -55,4 +56,6 @@ class Probe:
         values = np.zeros((len(self.points), function.function_space.value_size))
         if self._mine.size:
             values[self._mine] = function.eval(self.points[self._mine], self._cells).reshape(len(self._mine), -1)
-        return self._comm.allreduce(values, op=MPI.SUM)
+        total = np.empty_like(values)
+        self._comm.Allreduce(values, total, op=MPI.SUM)
+        return total

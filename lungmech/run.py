@@ -53,7 +53,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             if step is not None:
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
             if probe is not None:
-                for i, value in enumerate(probe(model.state)):
+                for i, value in enumerate(probe(model.displacement())):
                     row |= {f"probe{i}_u{axis}": value[c] for c, axis in enumerate("xyz")}
             history.append(row)
             if writer is not None:
@@ -85,7 +85,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             "strain_energy": history[-1]["energy"],
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
-                "displacement": probe(model.state)[:, :3].tolist() if probe is not None else [],
+                "displacement": probe(model.displacement()).tolist() if probe is not None else [],
             },
         }
         write_json(staging / "summary.json", summary, comm)

@@ -1,0 +1,126 @@
+"""Scenes and the command line: bad input gives one clear message and a non-zero exit."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lungmech import scene as scenes
+from lungmech.cli import main
+from lungmech.errors import SceneError
+from lungmech.run import run
+
+TINY = """
+title = "tiny"
+[geometry]
+builder = "box"
+cells = [2, 1, 1]
+lengths = [2.0, 1.0, 1.0]
+[material]
+law = "neo_hookean"
+E = 1.0e3
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "traction"
+boundary = "x1"
+value = [0.0, 0.0, -10.0]
+[output]
+fields = false
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    return path
+
+
+BAD = {
+    "unknown law": (TINY.replace('"neo_hookean"', '"rubber"'), "material.law: unknown law 'rubber'"),
+    "nu too large": (TINY.replace("nu = 0.3", "nu = 0.5"), "-1 < nu < 0.5"),
+    "E not positive": (TINY.replace("E = 1.0e3", "E = -1.0"), "E must be > 0"),
+    "unknown key": (TINY.replace("nu = 0.3", "nu = 0.3\nnuu = 0.2"), "material.nuu: unknown key"),
+    "missing mesh file": (
+        TINY.replace('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', 'file = "nowhere.msh"'),
+        "nowhere.msh' not found",
+    ),
+    "unknown boundary": (TINY.replace('boundary = "x0"', 'boundary = "hilum"'), "unknown boundary 'hilum'"),
+    "unknown section": (TINY + "\n[physics]\ngravity = 1\n", "scene.physics: unknown key"),
+    "bad load type": (TINY.replace('type = "traction"', 'type = "wind"'), "loads[0].type: unknown type 'wind'"),
+    "incompressible without mixed": (
+        TINY.replace("E = 1.0e3\nnu = 0.3", "incompressible = true\nmu = 1.0"),
+        "needs the mixed formulation",
+    ),
+    "bad ramp": (TINY.replace('value = [0.0, 0.0, -10.0]', 'value = [0.0, 0.0, -10.0]\nramp = { times = [0, 1], values = [0] }'),
+                 "loads[0].ramp"),
+    "not toml": ("[geometry\nbuilder = 1", "not valid TOML"),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_bad_scene_gives_one_clear_error(case, tmp_path, capsys):
+    text, message = BAD[case]
+    code = main(["run", str(write(tmp_path, text)), "-o", str(tmp_path / "out"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_scene_file(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "none.toml")]) == 2
+    assert "scene file" in capsys.readouterr().err
+
+
+def test_run_writes_outputs(tmp_path):
+    summary = run(scenes.load(write(tmp_path, TINY)), tmp_path / "out")
+    written = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert written == json.loads(json.dumps(summary))
+    assert summary["steps"] >= 1 and summary["newton_iterations"] >= summary["steps"]
+    assert (tmp_path / "out" / "history.csv").read_text().startswith("time,volume,energy")
+
+
+def test_failed_run_keeps_previous_results(tmp_path):
+    good = tmp_path / "out"
+    run(scenes.load(write(tmp_path, TINY)), good)
+    before = (good / "summary.json").read_text()
+    impossible = TINY.replace("-10.0]", "-1.0e6]") + "\n[stepping]\ninitial_step = 0.5\nmin_step = 0.1\n"
+    assert main(["run", str(write(tmp_path, impossible)), "-o", str(good), "-q"]) == 2
+    assert (good / "summary.json").read_text() == before
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out")] == []
+
+
+def test_only_declared_physics_is_built():
+    scene = scenes.parse(scenes.tomllib.loads(TINY))
+    assert scene.mixed is False and [type(load).__name__ for load in scene.loads] == ["Traction"]
+
+
+def test_every_bundled_scene_parses():
+    from importlib import resources
+
+    for path in resources.files("lungmech.scenes").iterdir():
+        if path.name.endswith(".toml"):
+            scenes.load(path)
+
+
+def test_scene_error_names_nested_key():
+    with pytest.raises(SceneError, match=r"material.terms\[1\].law"):
+        scenes.material({"law": "sum", "terms": [{"law": "ciarlet_geymonat", "c0": 1.0}, {"law": "x"}]})
+
+
+def test_cli_subprocess_exit_code_and_info(tmp_path):
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    bad = write(tmp_path, TINY.replace("nu = 0.3", "nu = 0.7"))
+    result = subprocess.run([sys.executable, "-m", "lungmech.cli", "run", str(bad)], capture_output=True, text=True, env=env)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("lungmech: error:") and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    info = subprocess.run([sys.executable, "-m", "lungmech.cli", "info"], capture_output=True, text=True, env=env)
+    assert info.returncode == 0 and "DOLFINx 0.11" in info.stdout and "neo_hookean" in info.stdout

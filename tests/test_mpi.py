@@ -1,0 +1,87 @@
+"""The same problem on MPI.COMM_WORLD and on one rank gives the same answer.
+
+Run under ``mpiexec -n 2`` by ``make test`` (they also pass serially, trivially).
+"""
+
+import json
+
+import numpy as np
+import pytest
+import ufl
+from mpi4py import MPI
+
+from lungmech import scene as scenes
+from lungmech.constraints import clamp, symmetry
+from lungmech.geometry import box, sphere
+from lungmech.loads import BodyForce, FollowerPressure, Traction
+from lungmech.materials import NeoHookean
+from lungmech.model import Model
+from lungmech.quantities import Probe, deformed_volume, integral, strain_energy
+from lungmech.run import run
+from lungmech.solver import Stepping, solve
+
+pytestmark = pytest.mark.mpi
+RTOL = 1e-10
+
+
+def bent_block(comm) -> np.ndarray:
+    geometry = box(comm, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2))
+    model = Model(
+        geometry,
+        NeoHookean.from_young(10.0, 0.3),
+        degree=2,
+        constraints=[clamp("x0")],
+        loads=[Traction("x1", (0.0, 0.0, -0.2)), BodyForce((0.0, 0.05, 0.0)), FollowerPressure("z1", 0.1)],
+    )
+    solve(model, Stepping(initial_step=0.25, growth=1.0))
+    tip = Probe(geometry.mesh, [[3.0, 0.5, 0.5], [1.5, 1.0, 1.0]])(model.state)
+    return np.concatenate([[deformed_volume(model)(), strain_energy(model)()], tip.ravel()])
+
+
+def test_block_same_on_all_ranks_as_on_one():
+    parallel, serial = bent_block(MPI.COMM_WORLD), bent_block(MPI.COMM_SELF)
+    assert np.allclose(parallel, serial, rtol=RTOL, atol=RTOL * np.abs(serial).max())
+
+
+def inflated_sphere(comm) -> float:
+    geometry = sphere(comm, 1.0, 2.0, mesh_size=0.5, octant=True, order=2)
+    model = Model(
+        geometry,
+        NeoHookean.incompressible(1.0),
+        degree=2,
+        mixed=True,
+        constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
+        loads=[FollowerPressure("inner", 0.25)],
+    )
+    solve(model, Stepping(initial_step=0.5, growth=1.0))
+    x = ufl.SpatialCoordinate(geometry.mesh)
+    return integral(ufl.dot(x + model.u, x + model.u) * geometry.ds("inner"), comm)()
+
+
+def test_mixed_sphere_same_on_all_ranks_as_on_one():
+    assert inflated_sphere(MPI.COMM_WORLD) == pytest.approx(inflated_sphere(MPI.COMM_SELF), rel=RTOL)
+
+
+SCENE = {
+    "geometry": {"builder": "box", "lengths": [2.0, 1.0, 1.0], "cells": [4, 2, 2]},
+    "material": {"law": "mooney_rivlin", "E": 1.0e3, "nu": 0.45},
+    "formulation": {"degree": 2, "mixed": True},
+    "constraints": [{"type": "clamp", "boundary": "x0"}],
+    "loads": [{"type": "traction", "boundary": "x1", "value": [0.0, 0.0, -5.0]}],
+    "stepping": {"initial_step": 0.5, "growth": 1.0},
+    "output": {"fields": True, "probes": [[2.0, 0.5, 0.5]]},
+}
+
+
+def test_scene_run_same_on_all_ranks_as_on_one(tmp_path):
+    comm = MPI.COMM_WORLD
+    folder = comm.bcast(tmp_path, root=0)
+    scene = scenes.parse(SCENE)
+    parallel = run(scene, folder / "parallel", comm)
+    serial = run(scene, tmp_path / "serial", MPI.COMM_SELF)
+    assert parallel["dofs"] == serial["dofs"] and parallel["mpi_ranks"] == comm.size
+    assert parallel["deformed_volume"] == pytest.approx(serial["deformed_volume"], rel=RTOL)
+    assert np.allclose(parallel["probes"]["displacement"], serial["probes"]["displacement"], rtol=1e-8)
+    written = json.loads((folder / "parallel" / "summary.json").read_text())
+    assert written["deformed_volume"] == parallel["deformed_volume"]
+    assert (folder / "parallel" / "displacement.bp").is_dir()
