@@ -17,7 +17,7 @@ import dataclasses
 import math
 import numbers
 from dataclasses import dataclass
-from typing import ClassVar, Protocol, runtime_checkable
+from typing import ClassVar, Protocol, Self, runtime_checkable
 
 import ufl
 
@@ -117,6 +117,17 @@ def _nonpolynomial_degree(gradient_degree: int) -> int:
 # --- laws --------------------------------------------------------------------------------------
 
 
+class _Lame:
+    """Laws parametrised by the Lamé constants (mu, lmbda): validation and (E, ν) constructor."""
+
+    def __post_init__(self):
+        _check_lame(self)
+
+    @classmethod
+    def from_young(cls, E: float, nu: float) -> Self:
+        return cls(*lame_from_young(E, nu))
+
+
 class _Split:
     """ψ = ψ_iso + bulk/2 g(J)² for laws that define psi_iso, volumetric and bulk."""
 
@@ -132,20 +143,13 @@ class _Split:
 
 
 @dataclass(frozen=True, slots=True)
-class LinearElastic:
+class LinearElastic(_Lame):
     """ψ = μ ε:ε + λ/2 (tr ε)², ε = sym(∇u): small-strain elasticity (not frame-indifferent)."""
 
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "linear"
     small_strain: ClassVar[bool] = True  # its stress ∂ψ/∂F is σ itself: no finite-strain push-forward
-
-    def __post_init__(self):
-        _check_lame(self)
-
-    @classmethod
-    def from_young(cls, E: float, nu: float) -> LinearElastic:
-        return cls(*lame_from_young(E, nu))
 
     def psi(self, F):
         eps = small_strain(F)
@@ -156,19 +160,12 @@ class LinearElastic:
 
 
 @dataclass(frozen=True, slots=True)
-class SaintVenantKirchhoff:
+class SaintVenantKirchhoff(_Lame):
     """ψ = μ E:E + λ/2 (tr E)², E = ½(C − I). Softens and fails under strong compression."""
 
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "saint_venant_kirchhoff"
-
-    def __post_init__(self):
-        _check_lame(self)
-
-    @classmethod
-    def from_young(cls, E: float, nu: float) -> SaintVenantKirchhoff:
-        return cls(*lame_from_young(E, nu))
 
     def psi(self, F):
         E = green_lagrange(F)
@@ -179,19 +176,12 @@ class SaintVenantKirchhoff:
 
 
 @dataclass(frozen=True, slots=True)
-class NeoHookean(_Split):
+class NeoHookean(_Lame, _Split):
     """ψ = μ/2 (I1 − 3) − μ ln J + λ/2 (ln J)²  (compressible; λ = inf: incompressible)."""
 
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "neo_hookean"
-
-    def __post_init__(self):
-        _check_lame(self)
-
-    @classmethod
-    def from_young(cls, E: float, nu: float) -> NeoHookean:
-        return cls(*lame_from_young(E, nu))
 
     @classmethod
     def incompressible(cls, mu: float) -> NeoHookean:
@@ -210,7 +200,7 @@ class NeoHookean(_Split):
 
 
 @dataclass(frozen=True, slots=True)
-class StableNeoHookean(_Split):
+class StableNeoHookean(_Lame, _Split):
     """Smith, de Goes & Kim (2018): ψ = μ'/2 (I1 − 3) + λ'/2 (J − a)² − μ'/2 ln(I1 + 1).
 
     Built from the Lamé parameters (μ, λ) it matches in the small-strain limit:
@@ -221,13 +211,6 @@ class StableNeoHookean(_Split):
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "stable_neo_hookean"
-
-    def __post_init__(self):
-        _check_lame(self)
-
-    @classmethod
-    def from_young(cls, E: float, nu: float) -> StableNeoHookean:
-        return cls(*lame_from_young(E, nu))
 
     @classmethod
     def incompressible(cls, mu: float) -> StableNeoHookean:

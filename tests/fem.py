@@ -7,7 +7,9 @@ import ufl
 from mpi4py import MPI
 
 from lungmech.constraints import Displacement, symmetry
-from lungmech.geometry import box
+from lungmech.geometry import box, sphere
+from lungmech.loads import FollowerPressure
+from lungmech.materials import NeoHookean
 from lungmech.model import Model
 from lungmech.quantities import integral
 from lungmech.solver import NewtonOptions, Stepping, solve
@@ -61,5 +63,23 @@ def relative_error(a, b) -> float:
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
 
 
-def x_coordinate(model: Model):
-    return ufl.SpatialCoordinate(model.geometry.mesh)
+def inflated_sphere(comm, mesh_size: float, pressure: float, stepping: Stepping) -> Model:
+    """Octant of the thick sphere A = 1, B = 2, incompressible neo-Hookean (μ = 1), P2–P1, solved."""
+    model = Model(
+        sphere(comm, 1.0, 2.0, mesh_size=mesh_size, octant=True, order=2),
+        NeoHookean.incompressible(1.0),
+        degree=2,
+        mixed=True,
+        constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
+        loads=[FollowerPressure("inner", pressure)],
+    )
+    solve(model, stepping)
+    return model
+
+
+def mean_inner_radius(model: Model) -> float:
+    """Mean deformed distance from the centre of the points of the cavity surface."""
+    geometry = model.geometry
+    x = ufl.SpatialCoordinate(geometry.mesh)
+    radius = ufl.sqrt(ufl.dot(x + model.u, x + model.u))
+    return integral(radius * geometry.ds("inner"), geometry.mesh.comm)() / geometry.area("inner")
