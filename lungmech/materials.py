@@ -142,6 +142,14 @@ class _Split:
         return _nonpolynomial_degree(gradient_degree)
 
 
+class _LameSplit(_Lame, _Split):
+    """A Lamé-parametrised law with a volumetric split: λ = inf is its incompressible limit."""
+
+    @classmethod
+    def incompressible(cls, mu: float) -> Self:
+        return cls(mu, math.inf)
+
+
 @dataclass(frozen=True, slots=True)
 class LinearElastic(_Lame):
     """ψ = μ ε:ε + λ/2 (tr ε)², ε = sym(∇u): small-strain elasticity (not frame-indifferent)."""
@@ -176,16 +184,12 @@ class SaintVenantKirchhoff(_Lame):
 
 
 @dataclass(frozen=True, slots=True)
-class NeoHookean(_Lame, _Split):
+class NeoHookean(_LameSplit):
     """ψ = μ/2 (I1 − 3) − μ ln J + λ/2 (ln J)²  (compressible; λ = inf: incompressible)."""
 
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "neo_hookean"
-
-    @classmethod
-    def incompressible(cls, mu: float) -> NeoHookean:
-        return cls(mu, math.inf)
 
     @property
     def bulk(self) -> Param:
@@ -200,7 +204,7 @@ class NeoHookean(_Lame, _Split):
 
 
 @dataclass(frozen=True, slots=True)
-class StableNeoHookean(_Lame, _Split):
+class StableNeoHookean(_LameSplit):
     """Smith, de Goes & Kim (2018): ψ = μ'/2 (I1 − 3) + λ'/2 (J − a)² − μ'/2 ln(I1 + 1).
 
     Built from the Lamé parameters (μ, λ) it matches in the small-strain limit:
@@ -211,10 +215,6 @@ class StableNeoHookean(_Lame, _Split):
     mu: Param
     lmbda: Param
     name: ClassVar[str] = "stable_neo_hookean"
-
-    @classmethod
-    def incompressible(cls, mu: float) -> StableNeoHookean:
-        return cls(mu, math.inf)
 
     @property
     def bulk(self) -> Param:
