@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import ufl
+from ufl.core.expr import Expr
 
 from lungmech.kinematics import deformation_gradient
 from lungmech.ramp import Ramp
@@ -24,7 +25,7 @@ class BodyForce:
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
 
-    def potential(self, u, geometry, value):
+    def potential(self, u: Expr, geometry, value: Expr) -> ufl.Form:
         return -ufl.dot(value, u) * ufl.dx(domain=geometry.mesh)
 
 
@@ -36,7 +37,7 @@ class Traction:
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
 
-    def potential(self, u, geometry, value):
+    def potential(self, u: Expr, geometry, value: Expr) -> ufl.Form:
         return -ufl.dot(value, u) * geometry.ds(self.boundary)
 
 
@@ -53,7 +54,7 @@ class FollowerPressure:
     value: float
     ramp: Ramp = field(default_factory=Ramp)
 
-    def virtual_work(self, u, v, geometry, value):
+    def virtual_work(self, u: Expr, v: Expr, geometry, value: Expr) -> ufl.Form:
         F = deformation_gradient(u)
         N = ufl.FacetNormal(geometry.mesh)
         return -value * ufl.dot(ufl.det(F) * ufl.inv(F).T * N, v) * geometry.ds(self.boundary)
