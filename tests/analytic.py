@@ -959,3 +959,53 @@ def cantilever_mode_shape(x: npt.ArrayLike, n: int, L: float) -> Array:
     k = (math.cosh(bl) + math.cos(bl)) / (math.sinh(bl) + math.sin(bl))
     x = np.asarray(x, dtype=float)
     return np.cosh(b * x) - np.cos(b * x) - k * (np.sinh(b * x) - np.sin(b * x))
+
+
+# ============================================================================================
+# Lung poromechanics (Patte, Genet & Chapelle 2022): homogeneous inflation
+# ============================================================================================
+
+
+@dataclass(frozen=True)
+class LungParams:
+    """Skeleton α(e^{γ(J²−1−2lnJ)} − 1) + c1(I1−3−2lnJ) + c2(I2−3−4lnJ); bulk κ(Φs/Φs0 − 1 − ln(Φs/Φs0))."""
+
+    alpha: float = 0.16
+    gamma: float = 0.5
+    c1: float = 0.2
+    c2: float = 0.4
+    kappa: float = 100.0
+    phi_s0: float = 0.5
+
+
+def lung_skeleton_stress(J: float, p: LungParams) -> float:
+    """Cauchy stress σ_skel of the skeleton under isotropic stretch λ = J^(1/3) (VERIFICATION.md).
+
+    σ_skel(J) = (2/J)(c1 λ² + 2 c2 λ⁴) − (2c1 + 4c2)/J + αγ e^{γ(J²−1−2lnJ)} (2J − 2/J).
+    """
+    lam = J ** (1.0 / 3.0)
+    return (
+        2.0 / J * (p.c1 * lam**2 + 2.0 * p.c2 * lam**4)
+        - (2.0 * p.c1 + 4.0 * p.c2) / J
+        + p.alpha * p.gamma * math.exp(p.gamma * (J**2 - 1.0 - 2.0 * math.log(J))) * (2.0 * J - 2.0 / J)
+    )
+
+
+def lung_inflation(p_f: float, p: LungParams) -> dict[str, float]:
+    """Homogeneous free inflation of a lung sample by the alveolar (fluid) pressure p_f.
+
+    The skeleton balances the fluid pressure, σ_skel(J) = p_f; the solid fraction solves
+    ∂W_bulk/∂Φs + p_f = 0, i.e. Φs = 1/(1/Φs0 + p_f/κ). Returns the volume ratio J, the
+    Green–Lagrange strain E_ii = (J^(2/3) − 1)/2, Φs, Φf = J − Φs and φs = Φs/J.
+    """
+    J = 1.0
+    if p_f != 0.0:
+        # σ_skel increases with J: grow a bracket from J = 1 towards the root (no overflow).
+        factor = 1.25 if p_f > 0 else 0.8
+        end = factor
+        while (lung_skeleton_stress(end, p) - p_f) * (0.0 - p_f) > 0:
+            end *= factor
+        J = brentq(lambda j: lung_skeleton_stress(j, p) - p_f, min(1.0, end), max(1.0, end),
+                   xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    phi_s = 1.0 / (1.0 / p.phi_s0 + p_f / p.kappa)
+    return {"J": J, "E": 0.5 * (J ** (2.0 / 3.0) - 1.0), "phi_s": phi_s, "phi_f": J - phi_s, "phi_s_current": phi_s / J}

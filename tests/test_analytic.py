@@ -493,3 +493,35 @@ def test_cantilever_frequencies_by_rayleigh_quotient() -> None:
         slope_scale = abs(phi(L) - phi(0.0)) / L
         assert abs(phi(0.0)) < 1e-12 and abs((phi(d) - phi(-d)) / (2 * d)) < 1e-4 * slope_scale
         assert abs(d2(n, L)) < 1e-4 * abs(d2(n, 0.0))  # free end: no moment
+
+
+# --- lung poromechanics ------------------------------------------------------------------------
+
+
+def test_lung_inflation_cross_code_reference():
+    """The dolfin_mech unit-cube values of VERIFICATION.md (p_f = 0.5), to the 1e-4 of the brief.
+
+    The closed form σ_skel(J) = p_f gives J = 1.2142257, 7e-6 above the cross-code 1.214217
+    (at which σ_skel = 0.49998): the two references agree to well inside that tolerance.
+    """
+    state = an.lung_inflation(0.5, an.LungParams())
+    expected = {"J": 1.214217, "E": 0.0690725, "phi_s": 0.498753, "phi_f": 0.715464, "phi_s_current": 0.410761}
+    for key, value in expected.items():
+        assert state[key] == pytest.approx(value, rel=1e-4), key
+    assert an.lung_skeleton_stress(state["J"], an.LungParams()) == pytest.approx(0.5, rel=1e-12)
+
+
+def test_lung_skeleton_stress_is_energy_derivative():
+    """σ_skel = dW/dJ for the isotropic state (W per reference volume, F = J^(1/3) I)."""
+    p = an.LungParams()
+
+    def energy(J: float) -> float:
+        lam = J ** (1 / 3)
+        I1, I2 = 3 * lam**2, 3 * lam**4
+        lnJ = math.log(J)
+        return (p.alpha * (math.exp(p.gamma * (J**2 - 1 - 2 * lnJ)) - 1)
+                + p.c1 * (I1 - 3 - 2 * lnJ) + p.c2 * (I2 - 3 - 4 * lnJ))
+
+    for J in (0.7, 1.0, 1.3, 2.0):
+        h = 1e-6
+        assert an.lung_skeleton_stress(J, p) == pytest.approx((energy(J + h) - energy(J - h)) / (2 * h), rel=1e-7, abs=1e-9)
