@@ -9,8 +9,6 @@ or a parameter recompiles nothing.
 
 from __future__ import annotations
 
-import math
-import numbers
 from collections.abc import Sequence
 
 import basix.ufl
@@ -22,8 +20,9 @@ from lungmech import constraints as _constraints
 from lungmech.constraints import Displacement
 from lungmech.errors import ParameterError
 from lungmech.kinematics import deformation_gradient
+from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.loads import Load
-from lungmech.materials import Material, VolumetricSplit, with_constants
+from lungmech.materials import Material, with_constants
 
 
 class Model:
@@ -33,8 +32,10 @@ class Model:
         geometry: mesh with named boundaries (:mod:`lungmech.geometry`).
         material: a strain-energy law (:mod:`lungmech.materials`).
         degree: Lagrange degree of the displacement.
-        mixed: Taylor–Hood displacement–pressure formulation (P``degree``–P``degree-1``), for
-            nearly or exactly incompressible laws with a volumetric split.
+        mixed: shorthand for ``formulation=TaylorHood()``: displacement–pressure
+            (P``degree``–P``degree-1``), for nearly or exactly incompressible laws with a
+            volumetric split.
+        formulation: how the unknowns are discretised (:mod:`lungmech.formulations`).
         loads: body forces, tractions, follower pressures (:mod:`lungmech.loads`).
         constraints: imposed displacements (:mod:`lungmech.constraints`).
         quadrature_degree: overrides the law's own choice.
@@ -47,6 +48,7 @@ class Model:
         *,
         degree: int = 1,
         mixed: bool = False,
+        formulation: Formulation | None = None,
         loads: Sequence[Load] = (),
         constraints: Sequence[Displacement] = (),
         quadrature_degree: int | None = None,
@@ -54,32 +56,34 @@ class Model:
         mesh = geometry.mesh
         self.geometry = geometry
         self.material = with_constants(material, mesh)
-        self.degree, self.mixed = degree, mixed
+        self.formulation = formulation or (TaylorHood() if mixed else PureDisplacement())
+        self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
-        _check_formulation(material, degree, mixed)
+        if not isinstance(degree, int) or degree < 1:
+            raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
+        self.formulation.check(material, degree)
 
+        q = quadrature_degree if quadrature_degree is not None else self._default_quadrature_degree()
+        self.dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": q})
         cell, gdim = mesh.basix_cell(), mesh.geometry.dim
         element_u = basix.ufl.element("Lagrange", cell, degree, shape=(gdim,))
-        if mixed:
-            element_p = basix.ufl.element("Lagrange", cell, degree - 1)
-            self.space = fem.functionspace(mesh, basix.ufl.mixed_element([element_u, element_p]))
+        extra = self.formulation.elements(cell, degree, q)
+        if extra:
+            self.space = fem.functionspace(mesh, basix.ufl.mixed_element([element_u, *extra]))
             self.displacement_space = self.space.sub(0)
         else:
             self.space = fem.functionspace(mesh, element_u)
             self.displacement_space = self.space
         self.state = fem.Function(self.space, name="state")
-        if mixed:
-            self.u, self.p = ufl.split(self.state)
-        else:
-            self.u, self.p = self.state, None
+        unknowns = ufl.split(self.state) if extra else (self.state,)
+        self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
+        self.u = self.fields["u"]
 
         self.F = deformation_gradient(self.u)
-        self.energy_density = _energy_density(self.material, self.F, self.p)
-        q = quadrature_degree if quadrature_degree is not None else self._default_quadrature_degree()
-        self.dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": q})
+        self.energy_density = self.formulation.energy_density(self.material, self.F, self.fields)
 
         v = ufl.TestFunction(self.space)
-        v_u = ufl.split(v)[0] if mixed else v
+        v_u = ufl.split(v)[0] if self.mixed else v
         self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
         self.potential = self.energy_density * self.dx
         virtual_work = []
@@ -105,6 +109,11 @@ class Model:
             value.value = load.ramp(t) * np.asarray(load.value, dtype=float)
         for imposed in self._imposed:
             imposed.set_time(t)
+
+    @property
+    def mixed(self) -> bool:
+        """Whether the state holds fields besides the displacement."""
+        return bool(self.formulation.fields)
 
     @property
     def breakpoints(self) -> list[float]:
@@ -134,31 +143,3 @@ class Model:
         gradient_degree = self.degree - 1 if affine else self.degree
         gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
         return self.material.quadrature_degree(gradient_degree)
-
-
-def _energy_density(material: Material, F, p) -> ufl.core.expr.Expr:
-    """ψ(F), or ψ_iso(F) − p g(J) − p²/(2 bulk) in the mixed formulation."""
-    if p is None:
-        return material.psi(F)
-    density = material.psi_iso(F) - p * material.volumetric(ufl.det(F))
-    bulk = material.bulk
-    if not (isinstance(bulk, numbers.Real) and math.isinf(bulk)):
-        density -= p**2 / (2 * bulk)
-    return density
-
-
-def _check_formulation(material: Material, degree: int, mixed: bool) -> None:
-    if not isinstance(degree, int) or degree < 1:
-        raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
-    if mixed:
-        if degree < 2:
-            raise ParameterError("the mixed formulation is Taylor–Hood: it needs degree >= 2")
-        if not isinstance(material, VolumetricSplit):
-            raise ParameterError(
-                f"law '{material.name}' has no volumetric split, so no mixed formulation; "
-                "use neo_hookean, stable_neo_hookean or mooney_rivlin"
-            )
-    elif isinstance(material, VolumetricSplit):
-        bulk = material.bulk
-        if isinstance(bulk, numbers.Real) and math.isinf(bulk):
-            raise ParameterError(f"the incompressible law '{material.name}' needs the mixed formulation")
