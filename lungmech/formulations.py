@@ -28,6 +28,8 @@ class Formulation(Protocol):
 
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr: ...
 
+    def initial_values(self) -> dict[str, float]: ...
+
 
 def _incompressible(material: Material) -> bool:
     bulk = getattr(material, "bulk", None)
@@ -49,6 +51,9 @@ class PureDisplacement:
 
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
         return material.psi(F)
+
+    def initial_values(self) -> dict[str, float]:
+        return {}
 
 
 @dataclass(frozen=True)
@@ -75,3 +80,6 @@ class TaylorHood:
         if not _incompressible(material):
             density -= p**2 / (2 * material.bulk)
         return density
+
+    def initial_values(self) -> dict[str, float]:
+        return {}

@@ -2,8 +2,9 @@
 
 A load is a frozen description: a value, where it acts, and a :class:`Ramp`. The model gives it
 the current value as a UFL ``Constant`` (``ramp(t) · value``), so a load step recompiles nothing.
-Conservative loads define ``potential(u, geometry, value)`` (the energy of the load, −work);
-follower loads define ``virtual_work(u, v, geometry, value)`` only.
+Conservative loads define ``potential(model, value)`` (the energy of the load, −work); follower
+loads define ``virtual_work(model, v, value)`` only. Both read the model's kinematics (u, F,
+the formulation's fields, its dx), so a load may act on any field, not only on u.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from dataclasses import dataclass, field
 import ufl
 from ufl.core.expr import Expr
 
-from lungmech.kinematics import deformation_gradient
 from lungmech.ramp import Ramp
 
 
@@ -25,8 +25,8 @@ class BodyForce:
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
 
-    def potential(self, u: Expr, geometry, value: Expr) -> ufl.Form:
-        return -ufl.dot(value, u) * ufl.dx(domain=geometry.mesh)
+    def potential(self, model, value: Expr) -> ufl.Form:
+        return -ufl.dot(value, model.u) * ufl.dx(domain=model.geometry.mesh)
 
 
 @dataclass(frozen=True)
@@ -37,8 +37,8 @@ class Traction:
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
 
-    def potential(self, u: Expr, geometry, value: Expr) -> ufl.Form:
-        return -ufl.dot(value, u) * geometry.ds(self.boundary)
+    def potential(self, model, value: Expr) -> ufl.Form:
+        return -ufl.dot(value, model.u) * model.geometry.ds(self.boundary)
 
 
 @dataclass(frozen=True)
@@ -54,10 +54,10 @@ class FollowerPressure:
     value: float
     ramp: Ramp = field(default_factory=Ramp)
 
-    def virtual_work(self, u: Expr, v: Expr, geometry, value: Expr) -> ufl.Form:
-        F = deformation_gradient(u)
-        N = ufl.FacetNormal(geometry.mesh)
-        return -value * ufl.dot(ufl.det(F) * ufl.inv(F).T * N, v) * geometry.ds(self.boundary)
+    def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
+        F = model.F
+        N = ufl.FacetNormal(model.geometry.mesh)
+        return -value * ufl.dot(ufl.det(F) * ufl.inv(F).T * N, v) * model.geometry.ds(self.boundary)
 
 
 Load = BodyForce | Traction | FollowerPressure

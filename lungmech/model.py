@@ -75,6 +75,10 @@ class Model:
             self.space = fem.functionspace(mesh, element_u)
             self.displacement_space = self.space
         self.state = fem.Function(self.space, name="state")
+        initial = self.formulation.initial_values()
+        for index, name in enumerate(self.formulation.fields, start=1):
+            if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
+                self.state.x.array[self.space.sub(index).collapse()[1]] = initial[name]
         unknowns = ufl.split(self.state) if extra else (self.state,)
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
         self.u = self.fields["u"]
@@ -89,9 +93,9 @@ class Model:
         virtual_work = []
         for load, value in zip(self.loads, self._load_values):
             if hasattr(load, "potential"):
-                self.potential += load.potential(self.u, geometry, value)
+                self.potential += load.potential(self, value)
             else:
-                virtual_work.append(load.virtual_work(self.u, v_u, geometry, value))
+                virtual_work.append(load.virtual_work(self, v_u, value))
         self.residual = ufl.derivative(self.potential, self.state, v)
         for work in virtual_work:
             self.residual -= work

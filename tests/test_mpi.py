@@ -73,3 +73,16 @@ def test_scene_run_same_on_all_ranks_as_on_one(tmp_path):
     written = json.loads((folder / "parallel" / "summary.json").read_text())
     assert written["deformed_volume"] == parallel["deformed_volume"]
     assert (folder / "parallel" / "displacement.bp").is_dir()
+
+
+def test_lung_model_same_on_all_ranks_as_on_one():
+    from test_lung import averages, unit_cube
+
+    def state(comm) -> dict:
+        model = unit_cube(0.5, comm=comm)
+        solve(model, Stepping(initial_step=0.25, growth=1.0))
+        return averages(model)
+
+    parallel, serial = state(MPI.COMM_WORLD), state(MPI.COMM_SELF)
+    for key in serial:
+        assert parallel[key] == pytest.approx(serial[key], rel=RTOL), key

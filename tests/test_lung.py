@@ -1,0 +1,99 @@
+"""The poromechanical lung model against the cross-code unit cube and the closed form."""
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+import analytic as an
+from lungmech.constraints import symmetry
+from lungmech.errors import ParameterError
+from lungmech.geometry import box
+from lungmech.kinematics import green_lagrange
+from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
+from lungmech.model import Model
+from lungmech.quantities import deformed_volume, integral
+from lungmech.ramp import Ramp
+from lungmech.solver import Stepping, solve
+
+PARAMS = an.LungParams()  # α = 0.16, γ = 0.5, c1 = 0.2, c2 = 0.4, κ = 100, Φs0 = 0.5
+
+
+def unit_cube(pressure: float, ramp: Ramp = Ramp(), comm=MPI.COMM_WORLD) -> Model:
+    """VERIFICATION.md: symmetry on the three faces through the origin, the others free."""
+    return Model(
+        box(comm, cells=(2, 2, 2)),
+        skeleton(PARAMS.alpha, PARAMS.gamma, PARAMS.c1, PARAMS.c2),
+        formulation=Poromechanics(PARAMS.kappa, PARAMS.phi_s0),
+        constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
+        loads=[AlveolarPressure(pressure, ramp)],
+    )
+
+
+def averages(model: Model) -> dict[str, float]:
+    comm = model.geometry.mesh.comm
+    J = ufl.det(model.F)
+    phi_s = model.fields["phi_s"]
+    mean = lambda expr: integral(expr * model.dx, comm)()  # noqa: E731  (unit reference volume)
+    return {
+        "J": deformed_volume(model)(),
+        "E": mean(green_lagrange(model.F)[0, 0]),
+        "phi_s": mean(phi_s),
+        "phi_f": mean(J - phi_s),
+        "phi_s_current": mean(phi_s / J),
+    }
+
+
+def test_unit_cube_cross_code_reference():
+    model = unit_cube(0.5)
+    solve(model, Stepping(initial_step=0.25))
+    state = averages(model)
+    cross_code = {"J": 1.214217, "E": 0.0690725, "phi_s": 0.498753, "phi_f": 0.715464, "phi_s_current": 0.410761}
+    for key, value in cross_code.items():
+        assert state[key] == pytest.approx(value, rel=1e-4), key
+    exact = an.lung_inflation(0.5, PARAMS)
+    for key in cross_code:
+        assert state[key] == pytest.approx(exact[key], rel=1e-10), key
+
+
+def test_skeleton_stress_balances_alveolar_pressure_along_a_ramp():
+    """σ_skel(J) = p_f at every step of an inspiration–expiration ramp (≥ 5 P–V points)."""
+    ramp = Ramp((0.0, 1.0, 2.0), (0.0, 1.0, 0.2))
+    model = unit_cube(0.8, ramp)
+    volume = deformed_volume(model)
+    curve = []
+    solve(model, Stepping(end=2.0, initial_step=0.2, max_step=0.2), on_step=lambda s: curve.append((0.8 * ramp(s.time), volume())))
+    assert len(curve) >= 10
+    for pressure, v in curve:
+        assert v == pytest.approx(an.lung_inflation(pressure, PARAMS)["J"], rel=1e-10)
+
+
+def test_residual_is_the_derivative_of_the_total_energy():
+    """Central finite differences of Π along random directions equal the assembled residual."""
+    model = unit_cube(0.5)
+    solve(model, Stepping(end=0.5, initial_step=0.25))  # a non-trivial state, not an equilibrium of t = 1
+    model.set_time(1.0)
+    energy = fem.form(model.potential)
+    residual = fem.form(model.residual)
+    state = model.state.x.array
+    base = state.copy()
+    rng = np.random.default_rng(1)
+    r = fem.assemble_vector(residual).array
+    for _ in range(3):
+        direction = rng.standard_normal(base.shape)
+        h = 1e-6
+        values = []
+        for sign in (1, -1):
+            state[:] = base + sign * h * direction
+            values.append(fem.assemble_scalar(energy))
+        state[:] = base
+        n = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+        assert (values[0] - values[1]) / (2 * h) == pytest.approx(r[:n] @ direction[:n], rel=1e-6)
+
+
+def test_bad_lung_parameters():
+    with pytest.raises(ParameterError, match="kappa"):
+        Poromechanics(0.0, 0.5)
+    with pytest.raises(ParameterError, match="phi_s0"):
+        Poromechanics(100.0, 1.5)
