@@ -22,7 +22,7 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
         geometry,
         scene.material,
         degree=scene.degree,
-        mixed=scene.mixed,
+        formulation=scene.formulation,
         loads=scene.loads,
         constraints=scene.constraints,
     )
@@ -75,7 +75,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             "cells": mesh.topology.index_map(mesh.topology.dim).size_global,
             "law": scene.material.name,
             "degree": scene.degree,
-            "mixed": scene.mixed,
+            "formulation": type(scene.formulation).__name__,
             "steps": len(report.accepted),
             "failed_steps": report.failures,
             "newton_iterations": report.newton_iterations,

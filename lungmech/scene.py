@@ -17,7 +17,9 @@ from typing import Any
 from lungmech import geometry as _geometry
 from lungmech.constraints import Displacement, clamp, symmetry
 from lungmech.errors import LungmechError, SceneError
+from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.loads import BodyForce, FollowerPressure, Traction
+from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.materials import LAWS, Material, Sum
 from lungmech.ramp import Ramp
 from lungmech.solver import NewtonOptions, Stepping
@@ -29,7 +31,15 @@ BUILDERS: dict[str, Callable] = {
     "ellipsoid": _geometry.ellipsoid,
     "lung_phantom": _geometry.lung_phantom,
 }
-LOADS = {"body_force": BodyForce, "traction": Traction, "follower_pressure": FollowerPressure}
+LOADS = {
+    "body_force": BodyForce,
+    "traction": Traction,
+    "follower_pressure": FollowerPressure,
+    "alveolar_pressure": AlveolarPressure,
+}
+FORMULATIONS = {"displacement": PureDisplacement, "mixed": TaylorHood, "poromechanics": Poromechanics}
+# Laws made of other laws, by name (their parameters are the builder's arguments).
+COMPOSITE_LAWS = {"lung_skeleton": skeleton}
 CONSTRAINTS = {"clamp": clamp, "symmetry": symmetry, "displacement": Displacement}
 
 
@@ -46,7 +56,7 @@ class Scene:
     geometry: dict[str, Any]
     material: Material
     degree: int = 1
-    mixed: bool = False
+    formulation: Formulation = field(default_factory=PureDisplacement)
     constraints: tuple = ()
     loads: tuple = ()
     stepping: Stepping = field(default_factory=Stepping)
@@ -74,14 +84,17 @@ def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
     for required in ("geometry", "material"):
         if required not in table:
             raise SceneError(f"scene: missing section [{required}]")
-    formulation = _section(table, "formulation")
-    _no_unknown_keys(formulation, ("degree", "mixed"), "formulation")
+    formulation = dict(_section(table, "formulation"))
+    degree = _typed(formulation.pop("degree", 1), int, "formulation.degree")
+    kind = formulation.pop("type", "displacement")
+    if kind not in FORMULATIONS:
+        raise SceneError(f"formulation.type: unknown type {kind!r} (available: {', '.join(FORMULATIONS)})")
     output = _section(table, "output")
     return Scene(
         geometry=_geometry_spec(_section(table, "geometry"), folder),
         material=material(_section(table, "material")),
-        degree=_typed(formulation.get("degree", 1), int, "formulation.degree"),
-        mixed=_typed(formulation.get("mixed", False), bool, "formulation.mixed"),
+        degree=degree,
+        formulation=_call(FORMULATIONS[kind], formulation, "formulation"),
         constraints=tuple(_entries(table, "constraints", CONSTRAINTS)),
         loads=tuple(_entries(table, "loads", LOADS)),
         stepping=_call(Stepping, _with_tuple(_section(table, "stepping"), "times"), "stepping"),
@@ -101,6 +114,8 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
     """
     table = dict(table)
     name = table.pop("law", None)
+    if name in COMPOSITE_LAWS:
+        return _call(COMPOSITE_LAWS[name], table, where)
     if name == "sum":
         _no_unknown_keys(table, ("terms",), where)
         terms = table.get("terms")
@@ -108,7 +123,8 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
             raise SceneError(f"{where}.terms: a sum needs a non-empty list of laws")
         return Sum(tuple(material(t, f"{where}.terms[{i}]") for i, t in enumerate(terms)))
     if name not in LAWS:
-        raise SceneError(f"{where}.law: unknown law {name!r} (available: {', '.join([*LAWS, 'sum'])})")
+        available = ", ".join([*LAWS, *COMPOSITE_LAWS, "sum"])
+        raise SceneError(f"{where}.law: unknown law {name!r} (available: {available})")
     cls = LAWS[name]
     if table.pop("incompressible", False):
         if not hasattr(cls, "incompressible"):

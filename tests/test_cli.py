@@ -99,7 +99,7 @@ def test_failed_run_keeps_previous_results(tmp_path):
 
 def test_only_declared_physics_is_built():
     scene = scenes.parse(scenes.tomllib.loads(TINY))
-    assert scene.mixed is False and [type(load).__name__ for load in scene.loads] == ["Traction"]
+    assert type(scene.formulation).__name__ == "PureDisplacement" and [type(load).__name__ for load in scene.loads] == ["Traction"]
 
 
 def test_every_bundled_scene_parses():

@@ -97,3 +97,35 @@ def test_bad_lung_parameters():
         Poromechanics(0.0, 0.5)
     with pytest.raises(ParameterError, match="phi_s0"):
         Poromechanics(100.0, 1.5)
+
+
+def test_lung_scene_reproduces_the_closed_form(tmp_path):
+    from lungmech import scene as scenes
+    from lungmech.run import run
+
+    scene = scenes.parse({
+        "geometry": {"builder": "box", "cells": [1, 1, 1]},
+        "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4},
+        "formulation": {"type": "poromechanics", "kappa": 100.0, "phi_s0": 0.5},
+        "constraints": [{"type": "symmetry", "boundary": b, "component": c} for b, c in (("x0", "x"), ("y0", "y"), ("z0", "z"))],
+        "loads": [{"type": "alveolar_pressure", "value": 0.5}],
+        "output": {"fields": False},
+    })
+    summary = run(scene, tmp_path / "out")
+    assert summary["deformed_volume"] == pytest.approx(an.lung_inflation(0.5, PARAMS)["J"], rel=1e-10)
+    assert summary["formulation"] == "Poromechanics"
+
+
+def test_lung_scene_errors():
+    from lungmech import scene as scenes
+    from lungmech.errors import SceneError
+
+    base = {"geometry": {"builder": "box"}, "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4}}
+    with pytest.raises(SceneError, match="formulation.type: unknown type 'poro'"):
+        scenes.parse({**base, "formulation": {"type": "poro"}})
+    with pytest.raises(SceneError, match="formulation: missing key"):
+        scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0}})
+    with pytest.raises(SceneError, match="phi_s0"):
+        scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0, "phi_s0": 2.0}})
+    with pytest.raises(SceneError, match="material: missing key"):
+        scenes.parse({**base, "material": {"law": "lung_skeleton", "alpha": 0.16}})

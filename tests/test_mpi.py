@@ -53,7 +53,7 @@ def test_mixed_sphere_same_on_all_ranks_as_on_one():
 SCENE = {
     "geometry": {"builder": "box", "lengths": [2.0, 1.0, 1.0], "cells": [4, 2, 2]},
     "material": {"law": "mooney_rivlin", "E": 1.0e3, "nu": 0.45},
-    "formulation": {"degree": 2, "mixed": True},
+    "formulation": {"degree": 2, "type": "mixed"},
     "constraints": [{"type": "clamp", "boundary": "x0"}],
     "loads": [{"type": "traction", "boundary": "x1", "value": [0.0, 0.0, -5.0]}],
     "stepping": {"initial_step": 0.5, "growth": 1.0},
