@@ -10,7 +10,7 @@ from pathlib import Path
 
 from lungmech.errors import LungmechError
 
-DEFAULT_SCENE = "default.toml"
+DEFAULT_SCENE = "lung_breathing.toml"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,10 +6,12 @@ import csv
 import time
 from pathlib import Path
 
+import numpy as np
 from mpi4py import MPI
 
 from lungmech.model import Model
 from lungmech.output import FieldWriter, atomic_folder, write_json
+from lungmech.plot import pressure_volume
 from lungmech.quantities import Probe, deformed_volume, strain_energy
 from lungmech.scene import Scene, build_geometry
 from lungmech.solver import NewtonSolver, StepReport, solve
@@ -28,8 +30,19 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
     )
 
 
+def load_values(scene: Scene, t: float) -> list[tuple[str, float]]:
+    """The current values of the scene's scalar (pressure) loads, named by type and boundary."""
+    values = []
+    for i, load in enumerate(scene.loads):
+        if np.ndim(load.value) == 0:
+            where = getattr(load, "boundary", "")
+            values.append((f"{type(load).__name__}{'_' + where if where else ''}_{i}", load.ramp(t) * load.value))
+    return values
+
+
 def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
-    """Solve ``scene`` and write summary.json, history.csv and (optionally) VTX fields to ``out``.
+    """Solve ``scene`` and write summary.json, history.csv, (optionally) VTX fields and, when the
+    scene has pressure loads, pressure_volume.png (volume against the first of them) to ``out``.
 
     ``out`` is replaced only when the run succeeds. Returns the summary.
     """
@@ -50,6 +63,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
 
         def record(step: StepReport | None) -> None:
             row = {"time": model.time, "volume": volume(), "energy": energy()}
+            row |= {name: value for name, value in load_values(scene, model.time)}
             if step is not None:
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
             if probe is not None:
@@ -89,6 +103,12 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             },
         }
         write_json(staging / "summary.json", summary, comm)
+        pressures = [name for name, _ in load_values(scene, 0.0)]
+        if pressures and comm.rank == 0:
+            pressure_volume(
+                [row[pressures[0]] for row in history], [row["volume"] for row in history],
+                staging / "pressure_volume.png", pressures[0],
+            )
         if comm.rank == 0:
             with open(staging / "history.csv", "w", newline="") as stream:
                 columns = list(dict.fromkeys(k for row in history for k in row))

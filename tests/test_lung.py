@@ -114,6 +114,7 @@ def test_lung_scene_reproduces_the_closed_form(tmp_path):
     summary = run(scene, tmp_path / "out")
     assert summary["deformed_volume"] == pytest.approx(an.lung_inflation(0.5, PARAMS)["J"], rel=1e-10)
     assert summary["formulation"] == "Poromechanics"
+    assert (tmp_path / "out" / "pressure_volume.png").stat().st_size > 0
 
 
 def test_lung_scene_errors():
