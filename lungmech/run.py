@@ -11,7 +11,7 @@ from mpi4py import MPI
 
 from lungmech.model import Model
 from lungmech.output import FieldWriter, atomic_folder, write_json
-from lungmech.plot import pressure_volume
+from lungmech.plot import deformed_body, pressure_volume
 from lungmech.quantities import Probe, deformed_volume, strain_energy
 from lungmech.scene import Scene, build_geometry
 from lungmech.solver import NewtonSolver, StepReport, solve
@@ -41,8 +41,9 @@ def load_values(scene: Scene, t: float) -> list[tuple[str, float]]:
 
 
 def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
-    """Solve ``scene`` and write summary.json, history.csv, (optionally) VTX fields and, when the
-    scene has pressure loads, pressure_volume.png (volume against the first of them) to ``out``.
+    """Solve ``scene`` and write summary.json, history.csv, (optionally) VTX fields,
+    deformed.png (the body at its largest volume, coloured by J) and, when the scene has
+    pressure loads, pressure_volume.png (volume against the first of them) to ``out``.
 
     ``out`` is replaced only when the run succeeds. Returns the summary.
     """
@@ -60,6 +61,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
         timings["compile"] = time.perf_counter() - tic
 
         history = []
+        largest = {"volume": -np.inf, "state": None, "time": 0.0}  # pictured at the end
 
         def record(step: StepReport | None) -> None:
             row = {"time": model.time, "volume": volume(), "energy": energy()}
@@ -70,6 +72,8 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
                 for i, value in enumerate(probe(model.displacement())):
                     row |= {f"probe{i}_u{axis}": value[c] for c, axis in enumerate("xyz")}
             history.append(row)
+            if row["volume"] > largest["volume"]:
+                largest.update(volume=row["volume"], state=model.state.x.array.copy(), time=model.time)
             if writer is not None:
                 writer.write(model.time)
 
@@ -103,6 +107,10 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             },
         }
         write_json(staging / "summary.json", summary, comm)
+        final = model.state.x.array.copy()
+        model.state.x.array[:] = largest["state"]
+        deformed_body(model, staging / "deformed.png", f"{scene.title}\nlargest volume, t = {largest['time']:.3g}")
+        model.state.x.array[:] = final
         pressures = [name for name, _ in load_values(scene, 0.0)]
         if pressures and comm.rank == 0:
             pressure_volume(
