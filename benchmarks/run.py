@@ -216,7 +216,7 @@ def parse_args() -> argparse.Namespace:
     return parser.parse_args()
 
 
-def header(args, total: float, done: bool, v: dict, u_ref: float, reused: int) -> list[str]:
+def header(args, total: float, done: bool, v: dict, u_ref: float, reused: int, cases_seconds: float = 0.0) -> list[str]:
     nu, P = args.nu, args.pressure
     if args.reuse:
         cache = "- JIT cache: as recorded per case (--reuse: some cases come from an earlier run); the JIT+setup column says cold or warm."
@@ -247,7 +247,8 @@ def header(args, total: float, done: bool, v: dict, u_ref: float, reused: int) -
         "- Errors: inner radius = mean of |X + u| − A over the inner surface vs u_ref(A); L2 = ‖u − u_ref‖/‖u_ref‖ over "
         "the mesh, u_ref(R) X/R as a UFL expression (Chebyshev series of the reference, quadrature degree 8).",
         (
-            "- Table rebuilt from results/raw/ (--measured-only); per-case wall times are in the CSV (case_wall_seconds)."
+            "- Table rebuilt from results/raw/ (--measured-only); per-case wall times are in the CSV (case_wall_seconds); "
+            f"the cases in this table took {cases_seconds / 60:.1f} min in total (sum of their process wall times)."
             if args.measured_only
             else f"- Total benchmark wall time: {total / 60:.1f} min{' (--quick)' if args.quick else ''}"
             f"{f' (--max-dofs {args.max_dofs})' if args.max_dofs else ''}"
@@ -304,7 +305,8 @@ def main() -> None:
         rows.append(row(lm, hw))
         write(rows, header(args, time.perf_counter() - started, False, v, u_ref, reused))
 
-    table = write(rows, header(args, time.perf_counter() - started, True, v, u_ref, reused))
+    cases_seconds = sum(float(r[k] or 0.0) for r in rows for k in ("case_wall_seconds", "hw_case_wall_seconds"))
+    table = write(rows, header(args, time.perf_counter() - started, True, v, u_ref, reused, cases_seconds))
     print()
     print(table)
 

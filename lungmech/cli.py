@@ -56,7 +56,8 @@ def _run(args) -> int:
     if comm.rank == 0:
         print(
             f"lungmech: done in {summary['steps']} steps, {summary['newton_iterations']} Newton iterations; "
-            f"deformed volume {summary['deformed_volume']:.6g} (reference {summary['reference_volume']:.6g}); "
+            f"volume {summary['reference_volume']:.6g} -> largest {summary['largest_volume']['volume']:.6g} "
+            f"(t = {summary['largest_volume']['time']:.3g}) -> final {summary['deformed_volume']:.6g}; "
             f"outputs in {Path(args.output).resolve()}"
         )
     return 0

@@ -100,6 +100,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
             "timings_seconds": timings,
             "reference_volume": model.geometry.volume(),
             "deformed_volume": history[-1]["volume"],
+            "largest_volume": {"volume": largest["volume"], "time": largest["time"]},
             "strain_energy": history[-1]["energy"],
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
