@@ -16,6 +16,7 @@ displacements on affine cells J is constant per cell, so DG0 is exact there.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -73,3 +74,25 @@ class AlveolarPressure:
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -value * (ufl.det(model.F) - model.fields["phi_s"]) * model.dx
+
+
+def averages(model) -> dict[str, Callable[[], float]]:
+    """Reference-volume averages of the lung's fractions and strain, compiled once.
+
+    Φs (solid), Φf = J − Φs (air) per reference volume, φs = Φs/J (current solid fraction),
+    and the mean Green–Lagrange strain tr(E)/3.
+    """
+    from lungmech.kinematics import green_lagrange
+    from lungmech.quantities import integral
+
+    comm = model.geometry.mesh.comm
+    volume = model.geometry.volume()
+    J, phi_s = ufl.det(model.F), model.fields["phi_s"]
+    expressions = {
+        "phi_s": phi_s,
+        "phi_f": J - phi_s,
+        "phi_s_current": phi_s / J,
+        "green_lagrange_mean": ufl.tr(green_lagrange(model.F)) / 3,
+    }
+    means = {name: integral(expr * model.dx, comm) for name, expr in expressions.items()}
+    return {name: (lambda f=f: f() / volume) for name, f in means.items()}

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
+from lungmech import lung
 from lungmech.model import Model
 from lungmech.output import FieldWriter, atomic_folder, write_json
 from lungmech.plot import deformed_body, pressure_volume
@@ -56,6 +57,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
         tic = time.perf_counter()
         solver = NewtonSolver(model, scene.newton)
         volume, energy = deformed_volume(model), strain_energy(model)
+        fractions = lung.averages(model) if "phi_s" in model.fields else {}
         probe = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else None
         writer = FieldWriter(model, staging) if scene.output.fields else None
         timings["compile"] = time.perf_counter() - tic
@@ -66,6 +68,7 @@ def run(scene: Scene, out: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> dict:
         def record(step: StepReport | None) -> None:
             row = {"time": model.time, "volume": volume(), "energy": energy()}
             row |= {name: value for name, value in load_values(scene, model.time)}
+            row |= {name: mean() for name, mean in fractions.items()}
             if step is not None:
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
             if probe is not None:
