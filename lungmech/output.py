@@ -51,10 +51,7 @@ class FieldWriter:
         ]
 
     def write(self, t: float) -> None:
-        if self._model.mixed:
-            self._u.x.array[:] = self._model.state.sub(0).collapse().x.array
-        else:
-            self._u.x.array[:] = self._model.state.x.array
+        self._u.x.array[:] = self._model.displacement().x.array
         for function, expression in self._fields:
             function.interpolate(expression)
         for writer in self._writers:
