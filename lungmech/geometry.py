@@ -17,7 +17,7 @@ import contextlib
 import json
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -74,9 +74,10 @@ class Geometry:
         """Process-local indices of the facets on boundary ``name``."""
         return self.facet_tags.find(self.tag(name))
 
-    def ds(self, name: str) -> ufl.Measure:
-        """Surface measure restricted to boundary ``name``, e.g. ``p * v * geometry.ds("pleura")``."""
-        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)(self.tag(name))
+    def ds(self, name: str | Sequence[str]) -> ufl.Measure:
+        """Surface measure on boundary ``name`` (or on several), e.g. ``p * v * geometry.ds("pleura")``."""
+        tags = self.tag(name) if isinstance(name, str) else tuple(self.tag(n) for n in name)
+        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)(tags)
 
     def volume(self) -> float:
         """Volume of the (reference) mesh."""

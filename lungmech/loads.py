@@ -3,19 +3,32 @@
 A load is a frozen description: a value, where it acts, and a :class:`Ramp`. The model gives it
 the current value as a UFL ``Constant`` (``ramp(t) · value``), so a load step recompiles nothing.
 Conservative loads define ``potential(model, value)`` (the energy of the load, −work); follower
-loads define ``virtual_work(model, v, value)`` only. Both read the model's kinematics (u, F,
+loads define ``virtual_work(model, v, value)``; a load may define both (its virtual work may be
+a :class:`StateDependentWork`). Both read the model's kinematics (u, F,
 the formulation's fields, its dx), so a load may act on any field, not only on u.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import ufl
 from ufl.core.expr import Expr
 
 from lungmech.ramp import Ramp
+
+
+class StateDependentWork(NamedTuple):
+    """A virtual work whose coefficients are global functionals of the state.
+
+    The model calls ``update()`` before every residual evaluation, so the coefficients always
+    belong to the state the residual is evaluated at.
+    """
+
+    form: ufl.Form
+    update: Callable[[], None]
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from lungmech.constraints import Displacement
 from lungmech.errors import ParameterError
 from lungmech.kinematics import deformation_gradient
 from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
-from lungmech.loads import Load
+from lungmech.loads import Load, StateDependentWork
 from lungmech.materials import Material, with_constants
 
 
@@ -90,12 +90,16 @@ class Model:
         v_u = ufl.split(v)[0] if self.mixed else v
         self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
         self.potential = self.energy_density * self.dx
-        virtual_work = []
+        virtual_work, self._updates = [], []
         for load, value in zip(self.loads, self._load_values):
             if hasattr(load, "potential"):
                 self.potential += load.potential(self, value)
-            else:
-                virtual_work.append(load.virtual_work(self, v_u, value))
+            work = load.virtual_work(self, v_u, value) if hasattr(load, "virtual_work") else None
+            if isinstance(work, StateDependentWork):
+                self._updates.append(work.update)
+                work = work.form
+            if work is not None:
+                virtual_work.append(work)
         self.residual = ufl.derivative(self.potential, self.state, v)
         for work in virtual_work:
             self.residual -= work
@@ -113,6 +117,16 @@ class Model:
             value.value = load.ramp(t) * np.asarray(load.value, dtype=float)
         for imposed in self._imposed:
             imposed.set_time(t)
+
+    @property
+    def state_dependent(self) -> bool:
+        """Whether some load coefficients are global functionals of the state (see :meth:`update`)."""
+        return bool(self._updates)
+
+    def update(self) -> None:
+        """Recompute the state-dependent load coefficients from the current state."""
+        for update in self._updates:
+            update()
 
     @property
     def mixed(self) -> bool:

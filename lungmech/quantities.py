@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
+import basix.ufl
 import numpy as np
 import ufl
-from dolfinx import fem, geometry as dgeometry
+from dolfinx import fem, geometry as dgeometry, la
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError
@@ -16,6 +18,32 @@ def integral(form: ufl.Form, comm: MPI.Comm) -> Callable[[], float]:
     """A function returning the global value of a scalar form (compiled once, summed over ranks)."""
     compiled = fem.form(form)
     return lambda: comm.allreduce(fem.assemble_scalar(compiled), op=MPI.SUM)
+
+
+def vector_integral(expr: ufl.core.expr.Expr, measure: ufl.Measure, mesh) -> Callable[[], np.ndarray]:
+    """A function returning the global integral of a vector or tensor expression, all components at once.
+
+    One compiled form instead of one per component: the expression is tested against a
+    piecewise-constant field with as many components, whose cell values are then summed.
+    """
+    shape = expr.ufl_shape
+    flat = ufl.as_vector([expr[index] for index in np.ndindex(shape)]) if len(shape) != 1 else expr
+    size = flat.ufl_shape[0]
+    space = fem.functionspace(mesh, basix.ufl.element("DG", mesh.basix_cell(), 0, shape=(size,)))
+    compiled = fem.form(ufl.inner(flat, ufl.TestFunction(space)) * measure)
+    vector = fem.Function(space).x
+    owned = space.dofmap.index_map.size_local * size
+
+    def evaluate() -> np.ndarray:
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, compiled)
+        vector.scatter_reverse(la.InsertMode.add)  # ghost cells' contributions go to their owners
+        local = vector.array[:owned].reshape(-1, size).sum(axis=0)
+        total = np.empty_like(local)
+        mesh.comm.Allreduce(local, total, op=MPI.SUM)
+        return total.reshape(shape)
+
+    return evaluate
 
 
 def deformed_volume(model) -> Callable[[], float]:
@@ -59,3 +87,40 @@ class Probe:
         total = np.empty_like(values)
         self._comm.Allreduce(values, total, op=MPI.SUM)
         return total
+
+
+class Reaction(NamedTuple):
+    force: np.ndarray  # resultant, shape (3,)
+    moment: np.ndarray  # about the origin, with the nodes at their current positions
+
+
+def reaction(model, boundary: str) -> Callable[[], Reaction]:
+    """The force and moment the supports exert on ``boundary``, from the residual at its nodes.
+
+    At equilibrium the residual vanishes except at imposed dofs, where it is the support's
+    nodal force; so the reaction balances every other force on the body, and measures what a
+    held region (the hilum) carries.
+    """
+    space = model.displacement_space
+    collapsed, parent = space.collapse() if model.mixed else (space, np.arange(len(model.state.x.array)))
+    bs = collapsed.dofmap.index_map_bs
+    fdim = model.geometry.mesh.topology.dim - 1
+    blocks = fem.locate_dofs_topological(collapsed, fdim, model.geometry.facets(boundary))
+    blocks = blocks[blocks < collapsed.dofmap.index_map.size_local]  # each node counted once, by its owner
+    dofs = np.asarray(parent)[blocks[:, None] * bs + np.arange(bs)]  # (nodes, components) in the state
+    nodes = collapsed.tabulate_dof_coordinates()[blocks, :bs]
+    residual = fem.form(model.residual)
+    vector = fem.Function(model.space).x
+
+    def evaluate() -> Reaction:
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, residual)
+        vector.scatter_reverse(la.InsertMode.add)
+        forces = vector.array[dofs]
+        positions = nodes + model.state.x.array[dofs]
+        local = np.concatenate([forces.sum(axis=0), np.cross(positions, forces).sum(axis=0)])
+        total = np.empty_like(local)
+        model.geometry.mesh.comm.Allreduce(local, total, op=MPI.SUM)
+        return Reaction(total[:3], total[3:])
+
+    return evaluate

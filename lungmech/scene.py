@@ -18,6 +18,7 @@ from lungmech import geometry as _geometry
 from lungmech.constraints import Displacement, clamp, symmetry
 from lungmech.errors import LungmechError, SceneError
 from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
+from lungmech.gravity import Gravity
 from lungmech.loads import BodyForce, FollowerPressure, Traction
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.materials import LAWS, Material, Sum
@@ -36,6 +37,7 @@ LOADS = {
     "traction": Traction,
     "follower_pressure": FollowerPressure,
     "alveolar_pressure": AlveolarPressure,
+    "gravity": Gravity,
 }
 FORMULATIONS = {"displacement": PureDisplacement, "mixed": TaylorHood, "poromechanics": Poromechanics}
 # Laws made of other laws, by name (their parameters are the builder's arguments).

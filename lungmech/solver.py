@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from dolfinx.fem.petsc import NonlinearProblem
+from dolfinx.fem.petsc import NonlinearProblem, assign
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError, SolverError
@@ -167,6 +167,8 @@ class NewtonSolver:
             petsc_options_prefix=prefix,
             petsc_options=self.options.petsc(),
         )
+        if model.state_dependent:
+            _update_before_residual(self.problem.solver, model)
         if self.options.linear_solver == "iterative":
             self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
         self._residuals: list[float] = []
@@ -186,6 +188,19 @@ class NewtonSolver:
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
+
+
+def _update_before_residual(snes: PETSc.SNES, model) -> None:
+    """Make every residual evaluation first refresh the model's state-dependent coefficients."""
+    b, (assemble, args, kwargs) = snes.getFunction()
+
+    def residual(snes, x, b, *args, **kwargs):
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        assign(x, model.state)
+        model.update()
+        assemble(snes, x, b, *args, **kwargs)
+
+    snes.setFunction(residual, b, args=args, kargs=kwargs)
 
 
 def _persistent_options(owner, prefix: str, options: dict) -> None:

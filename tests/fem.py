@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import ufl
 from mpi4py import MPI
@@ -13,6 +15,8 @@ from lungmech.materials import NeoHookean
 from lungmech.model import Model
 from lungmech.quantities import integral
 from lungmech.solver import NewtonOptions, Stepping, solve
+
+MESHES = Path(__file__).resolve().parents[1] / "meshes"
 
 
 def mean_cauchy(model: Model) -> np.ndarray:

@@ -14,8 +14,8 @@ import dolfinx
 import ufl
 from lungmech.errors import GeometryError
 from lungmech.geometry import Geometry, box, ellipsoid, from_file, lung_phantom, sphere, write
+from fem import MESHES
 
-MESHES = Path(__file__).resolve().parents[1] / "meshes"
 LUNG_NAMES = {"pleura", "diaphragm", "mediastinum", "hilum"}
 OCTANT_1_2 = 4 / 3 * math.pi * (2**3 - 1**3) / 8  # an eighth of the shell 1 < r < 2
 # Collective calls must come in the same order on every rank: never loop over a set of strings
