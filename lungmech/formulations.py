@@ -22,6 +22,10 @@ from lungmech.materials import Material, VolumetricSplit
 class Formulation(Protocol):
     fields: ClassVar[tuple[str, ...]]  # the unknowns after u, in order
 
+    def bind(self, mesh) -> Formulation:
+        """The formulation with its data (e.g. fields given per cell) placed on ``mesh``."""
+        ...
+
     def check(self, material: Material, degree: int) -> None: ...
 
     def elements(self, cell: str, degree: int, quadrature_degree: int) -> list: ...
@@ -42,6 +46,9 @@ class PureDisplacement:
 
     fields: ClassVar[tuple[str, ...]] = ()
 
+    def bind(self, mesh) -> PureDisplacement:
+        return self
+
     def check(self, material: Material, degree: int) -> None:
         if _incompressible(material):
             raise ParameterError(f"the incompressible law '{material.name}' needs the mixed formulation")
@@ -61,6 +68,9 @@ class TaylorHood:
     """u in P_k, pressure p in P_{k−1}: ψ_iso(F) − p g(J) − p²/(2 bulk) (the last term vanishes for bulk = inf)."""
 
     fields: ClassVar[tuple[str, ...]] = ("p",)
+
+    def bind(self, mesh) -> TaylorHood:
+        return self
 
     def check(self, material: Material, degree: int) -> None:
         if degree < 2:

@@ -56,7 +56,7 @@ class Model:
         mesh = geometry.mesh
         self.geometry = geometry
         self.material = with_constants(material, mesh)
-        self.formulation = formulation or (TaylorHood() if mixed else PureDisplacement())
+        self.formulation = (formulation or (TaylorHood() if mixed else PureDisplacement())).bind(mesh)
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
         if not isinstance(degree, int) or degree < 1:
@@ -78,7 +78,13 @@ class Model:
         initial = self.formulation.initial_values()
         for index, name in enumerate(self.formulation.fields, start=1):
             if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
-                self.state.x.array[self.space.sub(index).collapse()[1]] = initial[name]
+                subspace, dofs = self.space.sub(index).collapse()
+                start = fem.Function(subspace)
+                if isinstance(initial[name], fem.Function):
+                    start.interpolate(initial[name])
+                else:
+                    start.x.array[:] = initial[name]
+                self.state.x.array[dofs] = start.x.array
         unknowns = ufl.split(self.state) if extra else (self.state,)
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
         self.u = self.fields["u"]

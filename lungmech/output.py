@@ -15,16 +15,21 @@ from dolfinx import fem
 from dolfinx.io import VTXWriter
 from mpi4py import MPI
 
+from lungmech import lung
+
 
 def cell_fields(model) -> dict[str, ufl.core.expr.Expr]:
-    """Cellwise scalar fields worth looking at: J, von Mises and mean Cauchy stress."""
+    """Cellwise scalar fields worth looking at: J, von Mises and mean Cauchy stress (plus the lung's)."""
     sigma = model.cauchy()
     deviator = ufl.dev(sigma)
-    return {
+    fields = {
         "J": ufl.det(model.F),
         "von_mises": ufl.sqrt(1.5 * ufl.inner(deviator, deviator)),
         "mean_stress": ufl.tr(sigma) / 3,
     }
+    if isinstance(model.formulation, lung.Poromechanics):
+        fields |= lung.fields(model)
+    return fields
 
 
 class FieldWriter:

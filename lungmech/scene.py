@@ -91,6 +91,11 @@ def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
     kind = formulation.pop("type", "displacement")
     if kind not in FORMULATIONS:
         raise SceneError(f"formulation.type: unknown type {kind!r} (available: {', '.join(FORMULATIONS)})")
+    if isinstance(formulation.get("phi_s0"), str):  # a file of cell values, next to the scene
+        path = folder / formulation["phi_s0"]
+        if not path.is_file():
+            raise SceneError(f"formulation.phi_s0: file '{path}' not found")
+        formulation["phi_s0"] = str(path)
     output = _section(table, "output")
     return Scene(
         geometry=_geometry_spec(_section(table, "geometry"), folder),

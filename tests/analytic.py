@@ -1009,3 +1009,33 @@ def lung_inflation(p_f: float, p: LungParams) -> dict[str, float]:
                    xtol=1e-15, rtol=4 * np.finfo(float).eps)
     phi_s = 1.0 / (1.0 / p.phi_s0 + p_f / p.kappa)
     return {"J": J, "E": 0.5 * (J ** (2.0 / 3.0) - 1.0), "phi_s": phi_s, "phi_f": J - phi_s, "phi_s_current": phi_s / J}
+
+
+def pore_barrier_derivative(phi_f: float, phi_s0: float, eta: float, lower: float, upper: float) -> float:
+    """dW_pore/dΦf of W_pore = η(lower/r − 1)² (r < lower), η(r/upper − 1)² (r > upper), else 0; r = Φf/(1 − Φs0)."""
+    phi_f0 = 1.0 - phi_s0
+    r = phi_f / phi_f0
+    if r < lower:
+        return 2.0 * eta * (lower / r - 1.0) * (-lower / r**2) / phi_f0
+    if r > upper:
+        return 2.0 * eta * (r / upper - 1.0) / upper / phi_f0
+    return 0.0
+
+
+def lung_inflation_with_pore_barrier(p_f: float, p: LungParams, eta: float, lower: float, upper: float) -> dict[str, float]:
+    """Homogeneous inflation with the porosity barrier: two scalar equations for (J, Φs).
+
+    u-equation: σ_skel(J) + W_pore'(J − Φs) − p_f = 0;  Φs-equation: κ(1/Φs0 − 1/Φs) − W_pore'(J − Φs) + p_f = 0.
+    """
+    from scipy.optimize import fsolve
+
+    def equations(z):
+        J, phi_s = z
+        w = pore_barrier_derivative(J - phi_s, p.phi_s0, eta, lower, upper)
+        return [lung_skeleton_stress(J, p) + w - p_f, p.kappa * (1.0 / p.phi_s0 - 1.0 / phi_s) - w + p_f]
+
+    start = lung_inflation(p_f, p)
+    (J, phi_s), info, ok, message = fsolve(equations, [start["J"], start["phi_s"]], xtol=1e-14, full_output=True)
+    if ok != 1:
+        raise RuntimeError(message)
+    return {"J": J, "phi_s": phi_s, "phi_f": J - phi_s}

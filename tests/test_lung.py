@@ -1,5 +1,8 @@
 """The poromechanical lung model against the cross-code unit cube and the closed form."""
 
+import math
+
+import dolfinx.mesh
 import numpy as np
 import pytest
 from dolfinx import fem
@@ -19,12 +22,12 @@ from lungmech.solver import Stepping, solve
 PARAMS = an.LungParams()  # α = 0.16, γ = 0.5, c1 = 0.2, c2 = 0.4, κ = 100, Φs0 = 0.5
 
 
-def unit_cube(pressure: float, ramp: Ramp = Ramp(), comm=MPI.COMM_WORLD) -> Model:
+def unit_cube(pressure: float, ramp: Ramp = Ramp(), comm=MPI.COMM_WORLD, **formulation) -> Model:
     """VERIFICATION.md: symmetry on the three faces through the origin, the others free."""
     return Model(
         box(comm, cells=(2, 2, 2)),
         skeleton(PARAMS.alpha, PARAMS.gamma, PARAMS.c1, PARAMS.c2),
-        formulation=Poromechanics(PARAMS.kappa, PARAMS.phi_s0),
+        formulation=Poromechanics(PARAMS.kappa, formulation.pop("phi_s0", PARAMS.phi_s0), **formulation),
         constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
         loads=[AlveolarPressure(pressure, ramp)],
     )
@@ -46,6 +49,10 @@ def test_unit_cube_cross_code_reference():
     exact = an.lung_inflation(0.5, PARAMS)
     for key in cross_code:
         assert state[key] == pytest.approx(exact[key], rel=1e-10), key
+    # Free faces: the total stress vanishes; the skeleton carries p_f, the solid bulk −p_f.
+    assert state["mean_stress_skeleton"] == pytest.approx(0.5, rel=1e-10)
+    assert state["mean_stress_bulk"] == pytest.approx(-0.5, rel=1e-10)
+    assert abs(state["mean_stress_total"]) < 1e-10
 
 
 def test_skeleton_stress_balances_alveolar_pressure_along_a_ramp():
@@ -81,6 +88,63 @@ def test_residual_is_the_derivative_of_the_total_energy():
         state[:] = base
         n = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
         assert (values[0] - values[1]) / (2 * h) == pytest.approx(r[:n] @ direction[:n], rel=1e-6)
+
+
+@pytest.mark.parametrize(("pressure", "bounds"), [(0.5, (0.5, 1.2)), (-0.3, (0.9, math.inf))])
+def test_porosity_barrier_matches_the_closed_form(pressure, bounds):
+    """Overdistension (inflated past r = 1.2) and collapse (deflated below r = 0.9) are resisted."""
+    model = unit_cube(pressure, pore_barrier=0.1, pore_range=bounds)
+    solve(model, Stepping(initial_step=0.25))
+    state = averages(model)
+    exact = an.lung_inflation_with_pore_barrier(pressure, PARAMS, 0.1, *bounds)
+    free = an.lung_inflation(pressure, PARAMS)
+    assert abs(exact["J"] - free["J"]) > 1e-3  # the barrier is active
+    for key in ("J", "phi_s", "phi_f"):
+        assert state[key] == pytest.approx(exact[key], rel=1e-9), key
+
+
+def test_skeleton_scaled_by_the_solid_fraction():
+    """W = Φs0 W_skel: the cube inflates like one whose α, c1, c2 are multiplied by Φs0."""
+    model = unit_cube(0.2, scale_skeleton=True)
+    solve(model, Stepping(initial_step=0.25))
+    scaled = an.LungParams(alpha=0.5 * PARAMS.alpha, c1=0.5 * PARAMS.c1, c2=0.5 * PARAMS.c2)
+    assert averages(model)["J"] == pytest.approx(an.lung_inflation(0.2, scaled)["J"], rel=1e-10)
+
+
+def _solid_fraction(x):
+    return 0.35 + 0.3 * x[0] * x[1]
+
+
+def test_heterogeneous_reference_fraction_from_a_function_and_from_a_file(tmp_path):
+    """Φs solves ∂W_bulk/∂Φs = −p_f in every cell: Φs = 1/(1/Φs0 + p_f/κ), whatever the deformation."""
+    model = unit_cube(0.3, phi_s0=_solid_fraction)
+    solve(model, Stepping(initial_step=0.5))
+    phi_s0 = model.formulation.phi_s0.x.array
+    phi_s = model.state.sub(1).collapse().x.array
+    assert np.ptp(phi_s0) > 0.1
+    assert phi_s == pytest.approx(1 / (1 / phi_s0 + 0.3 / PARAMS.kappa), rel=1e-10)
+
+    # The same field from a file, one value per cell in the mesh's input order.
+    mesh = model.geometry.mesh
+    midpoints = dolfinx.mesh.compute_midpoints(mesh, 3, np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32))
+    values = np.empty(mesh.topology.index_map(3).size_global)
+    values[mesh.topology.original_cell_index[: len(midpoints)]] = _solid_fraction(midpoints.T)
+    np.save(tmp_path / "phi_s0.npy", values)
+    from_file = lung.reference_fraction(str(tmp_path / "phi_s0.npy"), mesh)
+    assert from_file.x.array == pytest.approx(phi_s0, rel=1e-14)
+
+
+def test_bad_reference_fractions(tmp_path):
+    mesh = box(MPI.COMM_SELF, cells=(1, 1, 1)).mesh
+    with pytest.raises(ParameterError, match=r"phi_s0 must lie in \(0, 1\) \(got values in \[0.75, 1.25\]\)"):
+        lung.reference_fraction(lambda x: 0.5 + x[0], mesh)
+    np.save(tmp_path / "short.npy", np.full(3, 0.5))
+    with pytest.raises(ParameterError, match="has 3 values; the mesh has 6 cells"):
+        lung.reference_fraction(str(tmp_path / "short.npy"), mesh)
+    with pytest.raises(ParameterError, match="not found"):
+        lung.reference_fraction(str(tmp_path / "missing.npy"), mesh)
+    with pytest.raises(ParameterError, match="pore_range"):
+        Poromechanics(1.0, 0.5, pore_range=(1.2, 2.0))
 
 
 def test_bad_lung_parameters():
