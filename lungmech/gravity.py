@@ -14,9 +14,9 @@ x_G at the volume centroid, B = 0 and b = L M g/|ω|: the hydrostatic pressure o
 lung's mean density. The moment condition needs the quadratic term otherwise, since a
 pressure linear in x has the moment of a buoyant body about the volume centroid.
 
-The coefficients are global functionals of the state; the Newton Jacobian differentiates q
-through x and the surface, not through the coefficients, so Newton converges linearly (fast:
-the weight is a small load) towards the exactly balanced equilibrium.
+The coefficients are global functionals of the state. The solver freezes them for a Newton
+solve (exact, quadratic: it differentiates q through x and the surface) and updates them
+between solves until they settle, so the converged state is balanced exactly.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ class Gravity:
         if not self.balanced_on:
             return None
         geometry = model.geometry
-        mesh, comm = geometry.mesh, geometry.mesh.comm
+        mesh = geometry.mesh
         length = geometry.size
         X = ufl.SpatialCoordinate(mesh)
         x = X + model.u
@@ -100,17 +100,27 @@ class Gravity:
             surface,
             mesh,
         )
-        mass = comm.allreduce(fem.assemble_scalar(fem.form(self.density * model.dx)))
-        first_moment = vector_integral(self.density * x, model.dx, mesh)
+        # [mass, first moment]: recomputed with the rest, as the reference itself may move (inverse problem)
+        moments = vector_integral(self.density * ufl.as_vector([1, *x]), model.dx, mesh)
 
-        def update() -> None:
-            centre.value = first_moment() / mass
+        def evaluate() -> np.ndarray:
+            """(x_G / L, coefficients) of the current state."""
+            mass, first_moment = np.split(moments(), [1])
+            previous = centre.value.copy()
+            centre.value = first_moment / mass  # the response is measured about the new centre
             weight = mass * np.asarray(value.value, dtype=float)
             # The pressure's force cancels the weight; its moment about x_G is zero, like the weight's.
-            coefficients.value = _least_correction(response(), np.concatenate([-weight, np.zeros(3)]))
+            balanced = _least_correction(response(), np.concatenate([-weight, np.zeros(3)]))
+            centre.value = previous
+            return np.concatenate([first_moment / mass / length, balanced])
+
+        def assign(theta: np.ndarray) -> None:
+            centre.value = theta[:3] * length
+            coefficients.value = theta[3:]
 
         # Can these boundaries balance a weight along g at all? Checked once, on the reference.
-        centre.value = first_moment() / mass
+        mass, first_moment = np.split(moments(), [1])
+        centre.value = first_moment / mass
         direction = np.asarray(self.acceleration, dtype=float)
         A = response()
         target = np.concatenate([-mass * direction, np.zeros(3)])
@@ -119,7 +129,7 @@ class Gravity:
                 f"gravity: no pressure on {', '.join(self.balanced_on)} can balance the weight's force "
                 "and moment; name the boundaries that surround the body (e.g. pleura, diaphragm, mediastinum)"
             )
-        return StateDependentWork(-q * ufl.dot(n_da, v) * surface, update)
+        return StateDependentWork(-q * ufl.dot(n_da, v) * surface, evaluate, assign)
 
 
 def _least_correction(A: np.ndarray, target: np.ndarray) -> np.ndarray:

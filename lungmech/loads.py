@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import numpy as np
 import ufl
 from ufl.core.expr import Expr
 
@@ -21,14 +22,16 @@ from lungmech.ramp import Ramp
 
 
 class StateDependentWork(NamedTuple):
-    """A virtual work whose coefficients are global functionals of the state.
+    """A virtual work whose coefficients θ are global functionals of the state, θ = G(u).
 
-    The model calls ``update()`` before every residual evaluation, so the coefficients always
-    belong to the state the residual is evaluated at.
+    ``evaluate()`` returns G(u) for the current state without touching the form;
+    ``assign(θ)`` sets the coefficients the form uses. The solver freezes θ during a Newton
+    solve and iterates θ ← G(u(θ)) (accelerated) until it settles.
     """
 
     form: ufl.Form
-    update: Callable[[], None]
+    evaluate: Callable[[], np.ndarray]
+    assign: Callable[[np.ndarray], None]
 
 
 @dataclass(frozen=True)

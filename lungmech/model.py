@@ -75,16 +75,7 @@ class Model:
             self.space = fem.functionspace(mesh, element_u)
             self.displacement_space = self.space
         self.state = fem.Function(self.space, name="state")
-        initial = self.formulation.initial_values()
-        for index, name in enumerate(self.formulation.fields, start=1):
-            if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
-                subspace, dofs = self.space.sub(index).collapse()
-                start = fem.Function(subspace)
-                if isinstance(initial[name], fem.Function):
-                    start.interpolate(initial[name])
-                else:
-                    start.x.array[:] = initial[name]
-                self.state.x.array[dofs] = start.x.array
+        self.reset()
         unknowns = ufl.split(self.state) if extra else (self.state,)
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
         self.u = self.fields["u"]
@@ -96,13 +87,13 @@ class Model:
         v_u = ufl.split(v)[0] if self.mixed else v
         self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
         self.potential = self.energy_density * self.dx
-        virtual_work, self._updates = [], []
+        virtual_work, self._state_dependent = [], []
         for load, value in zip(self.loads, self._load_values):
             if hasattr(load, "potential"):
                 self.potential += load.potential(self, value)
             work = load.virtual_work(self, v_u, value) if hasattr(load, "virtual_work") else None
             if isinstance(work, StateDependentWork):
-                self._updates.append(work.update)
+                self._state_dependent.append(work)
                 work = work.form
             if work is not None:
                 virtual_work.append(work)
@@ -116,6 +107,20 @@ class Model:
         self.time = 0.0
         self.set_time(0.0)
 
+    def reset(self) -> None:
+        """Back to the unloaded state: u = 0 and every other field at its initial value."""
+        self.state.x.array[:] = 0.0
+        initial = self.formulation.initial_values()
+        for index, name in enumerate(self.formulation.fields, start=1):
+            if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
+                subspace, dofs = self.space.sub(index).collapse()
+                start = fem.Function(subspace)
+                if isinstance(initial[name], fem.Function):
+                    start.interpolate(initial[name])
+                else:
+                    start.x.array[:] = initial[name]
+                self.state.x.array[dofs] = start.x.array
+
     def set_time(self, t: float) -> None:
         """Set every load and imposed displacement to its ramped value at time t."""
         self.time = t
@@ -125,14 +130,9 @@ class Model:
             imposed.set_time(t)
 
     @property
-    def state_dependent(self) -> bool:
-        """Whether some load coefficients are global functionals of the state (see :meth:`update`)."""
-        return bool(self._updates)
-
-    def update(self) -> None:
-        """Recompute the state-dependent load coefficients from the current state."""
-        for update in self._updates:
-            update()
+    def state_dependent(self) -> list[StateDependentWork]:
+        """Load terms whose coefficients are global functionals of the state (solver-managed)."""
+        return self._state_dependent
 
     @property
     def mixed(self) -> bool:

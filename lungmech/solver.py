@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from dolfinx.fem.petsc import NonlinearProblem, assign
+from dolfinx.fem.petsc import NonlinearProblem
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError, SolverError
@@ -167,15 +167,46 @@ class NewtonSolver:
             petsc_options_prefix=prefix,
             petsc_options=self.options.petsc(),
         )
-        if model.state_dependent:
-            _update_before_residual(self.problem.solver, model)
         if self.options.linear_solver == "iterative":
             self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
         self._residuals: list[float] = []
         self.problem.solver.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
 
     def solve(self) -> tuple[bool, int, tuple[float, ...], str]:
-        """One Newton solve from the current state: (converged, iterations, residuals, reason)."""
+        """One Newton solve from the current state: (converged, iterations, residuals, reason).
+
+        Loads whose coefficients depend on the whole state (balanced gravity) are frozen during
+        a Newton solve, which then converges quadratically, and updated between solves until
+        they stop changing: a fixed point around an exact Newton method.
+        """
+        terms = self.model.state_dependent
+        if not terms:
+            return self._newton()
+        splits = np.cumsum([len(term.evaluate()) for term in terms])[:-1]
+
+        def assign(theta: np.ndarray) -> None:
+            for term, part in zip(terms, np.split(theta, splits)):
+                term.assign(part)
+
+        theta = np.concatenate([term.evaluate() for term in terms])
+        assign(theta)
+        converged, iterations, residuals, reason = self._newton()
+        anderson = _Anderson()
+        for _ in range(self.options.max_iterations):
+            if not converged:
+                break
+            image = np.concatenate([term.evaluate() for term in terms])
+            if np.linalg.norm(image - theta) <= self.options.rtol * max(np.linalg.norm(image), 1e-300):
+                break
+            theta = anderson.next(theta, image)
+            assign(theta)
+            converged, more, further, reason = self._newton()
+            iterations, residuals = iterations + more, residuals + further
+        else:
+            converged, reason = False, "state-dependent load coefficients did not settle"
+        return converged, iterations, residuals, reason
+
+    def _newton(self) -> tuple[bool, int, tuple[float, ...], str]:
         self._residuals.clear()
         snes = self.problem.solver
         try:
@@ -190,17 +221,21 @@ class NewtonSolver:
         self.problem.solver.destroy()
 
 
-def _update_before_residual(snes: PETSc.SNES, model) -> None:
-    """Make every residual evaluation first refresh the model's state-dependent coefficients."""
-    b, (assemble, args, kwargs) = snes.getFunction()
+class _Anderson:
+    """Anderson acceleration of a fixed point θ = G(θ): the next iterate from the last few."""
 
-    def residual(snes, x, b, *args, **kwargs):
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        assign(x, model.state)
-        model.update()
-        assemble(snes, x, b, *args, **kwargs)
+    def __init__(self, depth: int = 5):
+        self.depth, self.thetas, self.images = depth, [], []
 
-    snes.setFunction(residual, b, args=args, kargs=kwargs)
+    def next(self, theta: np.ndarray, image: np.ndarray) -> np.ndarray:
+        self.thetas, self.images = [*self.thetas, theta][-self.depth - 1 :], [*self.images, image][-self.depth - 1 :]
+        if len(self.thetas) == 1:
+            return image
+        residuals = np.array(self.images) - np.array(self.thetas)  # rows: G(θ_i) − θ_i
+        dF = np.diff(residuals, axis=0).T
+        dG = np.diff(np.array(self.images), axis=0).T
+        gamma = np.linalg.lstsq(dF, residuals[-1], rcond=None)[0]
+        return image - dG @ gamma
 
 
 def _persistent_options(owner, prefix: str, options: dict) -> None:

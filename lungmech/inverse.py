@@ -1,0 +1,127 @@
+"""The inverse problem: the unloaded reference configuration of an imaged, loaded body.
+
+A lung is imaged under load (at end-expiration the pleural pressure already pulls on it).
+Given that geometry x̂ and the loads at the imaging time, find the reference X whose deformed
+configuration X + u(X) is x̂. We use the backward-displacement fixed point (Sellier 2011;
+Bols et al. 2013): from X_0 = x̂, solve the direct problem on X_k and correct the reference by
+the mismatch, X_{k+1} = X_k + ω_k (x̂ − X_k − u_k), with Aitken's dynamic relaxation ω_k
+(Küttler & Wall 2008). Every iteration is a direct solve with the model's own forms — the
+mesh nodes move, nothing is recompiled — started from the previous iteration's displacement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+from time import perf_counter
+
+from lungmech.errors import ParameterError, SolverError
+from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+
+
+@dataclass
+class InverseReport:
+    """Mismatch max |X + u − x̂| / size after each iteration, and the totals."""
+
+    mismatch: list[float] = field(default_factory=list)
+    newton_iterations: int = 0
+    seconds: float = 0.0
+
+    @property
+    def iterations(self) -> int:
+        return len(self.mismatch)
+
+
+def node_displacements(model) -> fem.Function:
+    """A function that returns u at the mesh's geometry nodes (owned and ghost), shape (nodes, 3)."""
+    mesh = model.geometry.mesh
+    degree = mesh.geometry.cmap.degree
+    space = fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
+    # The node of every dof: both numberings enumerate the same points cell by cell.
+    node_of_dof = np.empty(space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts, dtype=np.int64)
+    node_of_dof[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    dof_of_node = np.empty_like(node_of_dof)
+    dof_of_node[node_of_dof] = np.arange(node_of_dof.size)
+    at_nodes = fem.Function(space)
+
+    def evaluate() -> np.ndarray:
+        at_nodes.interpolate(model.displacement())
+        return at_nodes.x.array.reshape(-1, mesh.geometry.dim)[dof_of_node]
+
+    return evaluate
+
+
+def unloaded_reference(
+    model,
+    time: float = 0.0,
+    tolerance: float = 1e-9,
+    max_iterations: int = 50,
+    stepping: Stepping | None = None,
+    options: NewtonOptions | None = None,
+    solver: NewtonSolver | None = None,
+) -> InverseReport:
+    """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
+
+    On return the mesh holds the reference X and ``model.state`` the loaded state at ``time``,
+    whose nodes X + u match the imaged ones to ``tolerance`` × the body's size. ``stepping``
+    drives the first direct solve from the unloaded state (default: from 0 to ``time``).
+    Raises :class:`SolverError` when the iteration does not converge.
+    """
+    if not 0 < tolerance < 1:
+        raise ParameterError(f"inverse: tolerance must lie in (0, 1) (got {tolerance})")
+    if not (isinstance(max_iterations, int) and max_iterations >= 1):
+        raise ParameterError(f"inverse: max_iterations must be a positive integer (got {max_iterations!r})")
+    tic = perf_counter()
+    mesh = model.geometry.mesh
+    gdim, comm = mesh.geometry.dim, mesh.comm
+    nodes = mesh.geometry.x[:, :gdim]  # a view: assigning to it moves the mesh
+    imaged = nodes.copy()
+    owned = mesh.geometry.index_map().size_local
+    size = model.geometry.size
+    displacement = node_displacements(model)
+    solver = solver or NewtonSolver(model, options)
+    report = InverseReport()
+
+    def dot(a: np.ndarray, b: np.ndarray) -> float:
+        return comm.allreduce(float(np.sum(a[:owned] * b[:owned])), op=MPI.SUM)
+
+    model.reset()
+    if time > 0:
+        steps = solve(model, stepping or Stepping(end=time, initial_step=time / 4, max_step=time), solver=solver)
+        report.newton_iterations += steps.newton_iterations
+    else:
+        model.set_time(time)
+        report.newton_iterations += _newton(solver)
+    relaxation, previous = 1.0, None
+    while True:
+        residual = imaged - nodes - displacement()
+        worst = comm.allreduce(float(np.abs(residual[:owned]).max(initial=0.0)), op=MPI.MAX) / size
+        report.mismatch.append(worst)
+        if worst <= tolerance:
+            break
+        if report.iterations >= max_iterations:
+            raise SolverError(
+                f"inverse: no unloaded reference within {max_iterations} iterations (mismatch "
+                f"{worst:.2e} of the body's size, asked {tolerance:.0e}); the loads may be too large "
+                "for the material, or the imaged geometry is not a deformed state of it"
+            )
+        if previous is not None:  # Aitken: the relaxation that would have cancelled the last change
+            change = residual - previous
+            relaxation = -relaxation * dot(previous, change) / dot(change, change)
+        nodes += relaxation * residual
+        previous = residual
+        model.set_time(time)
+        report.newton_iterations += _newton(solver)
+    report.seconds = perf_counter() - tic
+    return report
+
+
+def _newton(solver: NewtonSolver) -> int:
+    converged, iterations, residuals, reason = solver.solve()
+    if not converged:
+        raise SolverError(f"inverse: the direct solve on the corrected reference failed ({reason})")
+    return iterations
+
