@@ -38,7 +38,7 @@ class InverseReport:
 def node_displacements(model) -> fem.Function:
     """A function that returns u at the mesh's geometry nodes (owned and ghost), shape (nodes, 3)."""
     mesh = model.geometry.mesh
-    degree = mesh.geometry.cmap.degree
+    degree = mesh.geometry.cmaps[0].degree
     space = fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
     # The node of every dof: both numberings enumerate the same points cell by cell.
     node_of_dof = np.empty(space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts, dtype=np.int64)
@@ -54,26 +54,36 @@ def node_displacements(model) -> fem.Function:
     return evaluate
 
 
+@dataclass(frozen=True)
+class InverseOptions:
+    """Stop when max |X + u − x̂| ≤ ``tolerance`` × the body's size, or fail after ``max_iterations``."""
+
+    tolerance: float = 1e-9
+    max_iterations: int = 50
+
+    def __post_init__(self):
+        if not 0 < self.tolerance < 1:
+            raise ParameterError(f"inverse: tolerance must lie in (0, 1) (got {self.tolerance})")
+        if isinstance(self.max_iterations, bool) or not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
+            raise ParameterError(f"inverse: max_iterations must be a positive integer (got {self.max_iterations!r})")
+
+
 def unloaded_reference(
     model,
     time: float = 0.0,
-    tolerance: float = 1e-9,
-    max_iterations: int = 50,
+    options: InverseOptions = InverseOptions(),
     stepping: Stepping | None = None,
-    options: NewtonOptions | None = None,
+    newton: NewtonOptions | None = None,
     solver: NewtonSolver | None = None,
 ) -> InverseReport:
     """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
 
     On return the mesh holds the reference X and ``model.state`` the loaded state at ``time``,
-    whose nodes X + u match the imaged ones to ``tolerance`` × the body's size. ``stepping``
-    drives the first direct solve from the unloaded state (default: from 0 to ``time``).
+    whose nodes X + u match the imaged ones to ``options.tolerance`` × the body's size. ``stepping``
+    raises the loads of ``time`` from zero (a load factor from 0 to 1) for the first direct solve;
+    imposed displacements keep their values at ``time``.
     Raises :class:`SolverError` when the iteration does not converge.
     """
-    if not 0 < tolerance < 1:
-        raise ParameterError(f"inverse: tolerance must lie in (0, 1) (got {tolerance})")
-    if not (isinstance(max_iterations, int) and max_iterations >= 1):
-        raise ParameterError(f"inverse: max_iterations must be a positive integer (got {max_iterations!r})")
     tic = perf_counter()
     mesh = model.geometry.mesh
     gdim, comm = mesh.geometry.dim, mesh.comm
@@ -82,30 +92,26 @@ def unloaded_reference(
     owned = mesh.geometry.index_map().size_local
     size = model.geometry.size
     displacement = node_displacements(model)
-    solver = solver or NewtonSolver(model, options)
+    solver = solver or NewtonSolver(model, newton)
     report = InverseReport()
 
     def dot(a: np.ndarray, b: np.ndarray) -> float:
         return comm.allreduce(float(np.sum(a[:owned] * b[:owned])), op=MPI.SUM)
 
-    model.reset()
-    if time > 0:
-        steps = solve(model, stepping or Stepping(end=time, initial_step=time / 4, max_step=time), solver=solver)
-        report.newton_iterations += steps.newton_iterations
-    else:
-        model.set_time(time)
-        report.newton_iterations += _newton(solver)
+    model.reset()  # first direct solve: the loads of ``time``, raised from zero
+    first = solve(model, stepping or Stepping(initial_step=0.25), solver=solver, drive=lambda s: model.set_time(time, s))
+    report.newton_iterations += first.newton_iterations
     relaxation, previous = 1.0, None
     while True:
         residual = imaged - nodes - displacement()
         worst = comm.allreduce(float(np.abs(residual[:owned]).max(initial=0.0)), op=MPI.MAX) / size
         report.mismatch.append(worst)
-        if worst <= tolerance:
+        if worst <= options.tolerance:
             break
-        if report.iterations >= max_iterations:
+        if report.iterations >= options.max_iterations:
             raise SolverError(
-                f"inverse: no unloaded reference within {max_iterations} iterations (mismatch "
-                f"{worst:.2e} of the body's size, asked {tolerance:.0e}); the loads may be too large "
+                f"inverse: no unloaded reference within {options.max_iterations} iterations (mismatch "
+                f"{worst:.2e} of the body's size, asked {options.tolerance:.0e}); the loads may be too large "
                 "for the material, or the imaged geometry is not a deformed state of it"
             )
         if previous is not None:  # Aitken: the relaxation that would have cancelled the last change

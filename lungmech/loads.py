@@ -66,9 +66,13 @@ class FollowerPressure:
     body (pleural suction) pulls it outwards.
     """
 
-    boundary: str
+    boundary: str | tuple[str, ...]  # one boundary, or several under the same pressure
     value: float
     ramp: Ramp = field(default_factory=Ramp)
+
+    def __post_init__(self):
+        if not isinstance(self.boundary, str):
+            object.__setattr__(self, "boundary", tuple(self.boundary))
 
     def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
         F = model.F

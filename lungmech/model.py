@@ -121,11 +121,15 @@ class Model:
                     start.x.array[:] = initial[name]
                 self.state.x.array[dofs] = start.x.array
 
-    def set_time(self, t: float) -> None:
-        """Set every load and imposed displacement to its ramped value at time t."""
+    def set_time(self, t: float, load_factor: float = 1.0) -> None:
+        """Set every load and imposed displacement to its ramped value at time t.
+
+        ``load_factor`` scales the loads (not the imposed displacements): a path to the loads
+        of time t from zero, as the inverse problem needs.
+        """
         self.time = t
         for load, value in zip(self.loads, self._load_values):
-            value.value = load.ramp(t) * np.asarray(load.value, dtype=float)
+            value.value = load_factor * load.ramp(t) * np.asarray(load.value, dtype=float)
         for imposed in self._imposed:
             imposed.set_time(t)
 

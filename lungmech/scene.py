@@ -19,13 +19,16 @@ from lungmech.constraints import Displacement, clamp, symmetry
 from lungmech.errors import LungmechError, SceneError
 from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.gravity import Gravity
+from lungmech.inverse import InverseOptions
 from lungmech.loads import BodyForce, FollowerPressure, Traction
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.materials import LAWS, Material, Sum
 from lungmech.ramp import Ramp
 from lungmech.solver import NewtonOptions, Stepping
 
-SECTIONS = ("title", "geometry", "material", "formulation", "constraints", "loads", "stepping", "solver", "output")
+SECTIONS = (
+    "title", "geometry", "material", "formulation", "constraints", "loads", "stepping", "solver", "inverse", "output",
+)
 BUILDERS: dict[str, Callable] = {
     "box": _geometry.box,
     "sphere": _geometry.sphere,
@@ -64,6 +67,7 @@ class Scene:
     stepping: Stepping = field(default_factory=Stepping)
     newton: NewtonOptions = field(default_factory=NewtonOptions)
     output: Output = field(default_factory=Output)
+    inverse: InverseOptions | None = None  # the geometry is imaged under the loads of stepping.start
     title: str = ""
     folder: Path = Path(".")
 
@@ -107,6 +111,7 @@ def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
         stepping=_call(Stepping, _with_tuple(_section(table, "stepping"), "times"), "stepping"),
         newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
         output=_call(Output, _with_tuple(output, "probes"), "output"),
+        inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
         title=_typed(table.get("title", ""), str, "title"),
         folder=folder,
     )

@@ -252,29 +252,34 @@ def solve(
     options: NewtonOptions | None = None,
     on_step: Callable[[StepReport], None] | None = None,
     solver: NewtonSolver | None = None,
+    drive: Callable[[float], None] | None = None,
 ) -> SolveReport:
     """Drive ``model`` from ``stepping.start`` to ``stepping.end`` with adaptive steps.
 
     ``on_step`` is called after every accepted step (outputs, P–V curves, snapshots). Pass a
-    ``solver`` to reuse its compiled forms across calls. Raises :class:`SolverError` when a step
-    below ``stepping.min_step`` still fails; the model then holds the last converged state.
+    ``solver`` to reuse its compiled forms across calls. The stepped variable is the time,
+    unless ``drive(s)`` is given to apply it otherwise (e.g. as a load factor). Raises
+    :class:`SolverError` when a step below ``stepping.min_step`` still fails; the model then
+    holds the last converged state.
     """
     stepping = stepping or Stepping()
     solver = solver or NewtonSolver(model, options)
     state = model.state.x.array
-    targets = sorted({t for t in (*stepping.times, *model.breakpoints, stepping.end) if stepping.start < t <= stepping.end})
+    breakpoints = model.breakpoints if drive is None else []
+    drive = drive or model.set_time
+    targets = sorted({t for t in (*stepping.times, *breakpoints, stepping.end) if stepping.start < t <= stepping.end})
     report = SolveReport()
     started = time.perf_counter()
 
     t, dt = stepping.start, stepping.initial_step
-    model.set_time(t)
+    drive(t)
     last, previous, previous_dt = state.copy(), None, None
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
             dt = min(dt, stepping.max_step, target - t)
             if previous is not None:  # linear predictor from the last two converged states
                 state[:] = last + (dt / previous_dt) * (last - previous)
-            model.set_time(t + dt)
+            drive(t + dt)
             tic = time.perf_counter()
             converged, iterations, residuals, reason = solver.solve()
             step = StepReport(t + dt, dt, iterations, residuals, reason, time.perf_counter() - tic, converged)
@@ -291,7 +296,7 @@ def solve(
             state[:] = last
             model.state.x.scatter_forward()
             if dt <= stepping.min_step * (1 + 1e-12):
-                model.set_time(t)
+                drive(t)
                 report.seconds = time.perf_counter() - started
                 raise SolverError(_failure_message(t, dt, step))
             dt = max(dt / 2, stepping.min_step)

@@ -9,7 +9,7 @@ from lungmech.constraints import clamp
 from lungmech.errors import ParameterError, SolverError
 from lungmech.geometry import from_file
 from lungmech.gravity import Gravity
-from lungmech.inverse import node_displacements, unloaded_reference
+from lungmech.inverse import InverseOptions, node_displacements, unloaded_reference
 from lungmech.loads import FollowerPressure
 from lungmech.lung import Poromechanics, skeleton
 from lungmech.model import Model
@@ -51,6 +51,8 @@ def test_inverse_then_direct_recovers_the_imaged_nodes():
 def test_inverse_errors():
     model = end_expiration_lung(MPI.COMM_SELF)
     with pytest.raises(ParameterError, match="tolerance"):
-        unloaded_reference(model, tolerance=0.0)
+        InverseOptions(tolerance=0.0)
+    with pytest.raises(ParameterError, match="max_iterations"):
+        InverseOptions(max_iterations=0)
     with pytest.raises(SolverError, match="no unloaded reference within 1 iterations"):
-        unloaded_reference(model, time=1.0, max_iterations=1)
+        unloaded_reference(model, time=1.0, options=InverseOptions(max_iterations=1))

@@ -86,3 +86,16 @@ def test_lung_model_same_on_all_ranks_as_on_one():
     parallel, serial = state(MPI.COMM_WORLD), state(MPI.COMM_SELF)
     for key in serial:
         assert parallel[key] == pytest.approx(serial[key], rel=RTOL), key
+
+
+def test_inverse_with_balanced_gravity_same_on_all_ranks_as_on_one():
+    from lungmech.inverse import unloaded_reference
+    from test_inverse import end_expiration_lung
+
+    def reference(comm) -> tuple[float, float]:
+        model = end_expiration_lung(comm)
+        unloaded_reference(model, time=1.0)
+        return model.geometry.volume(), deformed_volume(model)()
+
+    parallel, serial = reference(MPI.COMM_WORLD), reference(MPI.COMM_SELF)
+    assert parallel == pytest.approx(serial, rel=1e-8)
