@@ -63,9 +63,9 @@ class InverseOptions:
 
     def __post_init__(self):
         if not 0 < self.tolerance < 1:
-            raise ParameterError(f"inverse: tolerance must lie in (0, 1) (got {self.tolerance})")
+            raise ParameterError(f"tolerance must lie in (0, 1) (got {self.tolerance})")
         if isinstance(self.max_iterations, bool) or not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
-            raise ParameterError(f"inverse: max_iterations must be a positive integer (got {self.max_iterations!r})")
+            raise ParameterError(f"max_iterations must be a positive integer (got {self.max_iterations!r})")
 
 
 def unloaded_reference(

@@ -17,6 +17,7 @@ HERE = Path(__file__).resolve().parent
 def main() -> None:
     meshes = {
         "lung_phantom_right.msh": lambda path: lung_phantom(MPI.COMM_SELF, side="right", msh_file=path),
+        "lung_phantom_left.msh": lambda path: lung_phantom(MPI.COMM_SELF, side="left", msh_file=path),
         "sphere_octant.msh": lambda path: sphere(MPI.COMM_SELF, 1.0, 2.0, octant=True, msh_file=path),
     }
     for name, make in meshes.items():

@@ -41,6 +41,14 @@ def write(tmp_path: Path, text: str) -> Path:
     return path
 
 
+GRAVITY = """
+[[loads]]
+type = "gravity"
+density = 1.0
+acceleration = [0.0, 0.0, -9.81]
+"""
+
+
 BAD = {
     "unknown law": (TINY.replace('"neo_hookean"', '"rubber"'), "material.law: unknown law 'rubber'"),
     "nu too large": (TINY.replace("nu = 0.3", "nu = 0.5"), "-1 < nu < 0.5"),
@@ -60,6 +68,9 @@ BAD = {
     "bad ramp": (TINY.replace('value = [0.0, 0.0, -10.0]', 'value = [0.0, 0.0, -10.0]\nramp = { times = [0, 1], values = [0] }'),
                  "loads[0].ramp"),
     "not toml": ("[geometry\nbuilder = 1", "not valid TOML"),
+    "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
+    "inverse unknown key": (TINY + "[inverse]\ntol = 1e-6\n", "inverse.tol: unknown key"),
+    "gravity in 2-D": (TINY + GRAVITY.replace("[0.0, 0.0, -9.81]", "[0.0, -9.81]"), "loads[1]: gravity: acceleration needs 3 components"),
 }
 
 
@@ -97,9 +108,41 @@ def test_failed_run_keeps_previous_results(tmp_path):
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".out")] == []
 
 
+def _built(text: str):
+    """The model a scene builds, and what its residual integrates over: {(type, subdomain)}."""
+    from lungmech.run import build_model
+
+    model = build_model(scenes.parse(scenes.tomllib.loads(text)))
+    domains = {(i.integral_type(), i.subdomain_id()) for i in model.residual.integrals()}
+    return model, domains
+
+
+
+
 def test_only_declared_physics_is_built():
-    scene = scenes.parse(scenes.tomllib.loads(TINY))
-    assert type(scene.formulation).__name__ == "PureDisplacement" and [type(load).__name__ for load in scene.loads] == ["Traction"]
+    model, domains = _built(TINY)
+    x1 = model.geometry.tag("x1")
+    # A pure-displacement box: one unknown field, the volume and the loaded face, nothing else.
+    assert list(model.fields) == ["u"] and not model.mixed and not model.state_dependent
+    assert domains == {("cell", "everywhere"), ("exterior_facet", x1)}
+    assert len(model.loads) == 1 and model.constraints[0].boundary == "x0"
+
+    # Gravity declared: its potential joins the volume integral; no pressure unless balanced_on.
+    model, domains = _built(TINY + GRAVITY)
+    assert domains == {("cell", "everywhere"), ("exterior_facet", x1)} and not model.state_dependent
+    balanced = GRAVITY + 'balanced_on = ["x1", "y0", "y1", "z0", "z1"]\n'
+    model, domains = _built(TINY + balanced)
+    assert len(model.state_dependent) == 1
+    assert domains == {("cell", "everywhere")} | {("exterior_facet", model.geometry.tag(b)) for b in ("x1", "y0", "y1", "z0", "z1")}
+
+    # The lung model adds exactly one field (Φs), and no porosity barrier unless asked for.
+    lung = TINY.replace('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "lung_skeleton"\nalpha = 1.0\ngamma = 0.5\nc1 = 1.0\nc2 = 1.0')
+    lung += '[formulation]\ntype = "poromechanics"\nkappa = 100.0\nphi_s0 = 0.3\n'
+    model, _ = _built(lung)
+    assert list(model.fields) == ["u", "phi_s"]
+    assert "conditional" not in repr(model.energy_density).lower()
+    model, _ = _built(lung + "pore_barrier = 1.0\n")
+    assert "conditional" in repr(model.energy_density).lower()
 
 
 def test_every_bundled_scene_parses():

@@ -203,6 +203,7 @@ def test_write_and_read_back(tmp_path, lungs):
     ("filename", "names", "volume"),
     [
         ("lung_phantom_right.msh", LUNG_NAMES, (1.5e-3, 3e-3)),
+        ("lung_phantom_left.msh", LUNG_NAMES, (1.5e-3, 3e-3)),
         ("sphere_octant.msh", {"inner", "outer", "x0", "y0", "z0"}, (0.98 * OCTANT_1_2, OCTANT_1_2)),
     ],
 )
