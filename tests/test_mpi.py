@@ -99,3 +99,12 @@ def test_inverse_with_balanced_gravity_same_on_all_ranks_as_on_one():
 
     parallel, serial = reference(MPI.COMM_WORLD), reference(MPI.COMM_SELF)
     assert parallel == pytest.approx(serial, rel=1e-8)
+
+
+def test_modal_frequencies_same_on_all_ranks_as_on_one():
+    from lungmech.modal import modal_analysis
+    from test_modal import cantilever
+
+    parallel = modal_analysis(cantilever(MPI.COMM_WORLD), 4).eigenvalues
+    serial = modal_analysis(cantilever(MPI.COMM_SELF), 4).eigenvalues
+    assert parallel == pytest.approx(serial, rel=1e-8)
