@@ -4,13 +4,12 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech.constraints import Displacement, clamp, symmetry
+from lungmech.constraints import clamp
 from lungmech.errors import ParameterError, SolverError
 from lungmech.geometry import box
 from lungmech.loads import BodyForce, FollowerPressure, Traction
 from lungmech.materials import NeoHookean, SaintVenantKirchhoff
 from lungmech.model import Model
-from lungmech.quantities import deformed_volume
 from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
 
 
