@@ -144,9 +144,13 @@ class SolveReport:
 
 
 class NewtonSolver:
-    """One SNES for one model: forms are compiled once, then reused for every step."""
+    """One SNES for one model: forms are compiled once, then reused for every step.
 
-    def __init__(self, model, options: NewtonOptions | None = None):
+    ``residual`` and ``jacobian`` replace the model's own forms (same unknowns), e.g. the
+    incremental potential of a time step (:mod:`lungmech.dynamics`).
+    """
+
+    def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
         self.model = model
         self.options = options or NewtonOptions()
         if self.options.linear_solver == "iterative" and model.mixed:
@@ -160,10 +164,10 @@ class NewtonSolver:
             # options it was given: so it lives in the database for the solver's lifetime.
             _persistent_options(self, prefix, {"mat_mumps_icntl_14": 200})  # room for pivoting (mixed)
         self.problem = NonlinearProblem(
-            model.residual,
+            model.residual if residual is None else residual,
             model.state,
             bcs=model.bcs,
-            J=model.jacobian,
+            J=model.jacobian if jacobian is None else jacobian,
             petsc_options_prefix=prefix,
             petsc_options=self.options.petsc(),
         )
@@ -172,41 +176,16 @@ class NewtonSolver:
         self._residuals: list[float] = []
         self.problem.solver.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
 
-    def solve(self) -> tuple[bool, int, tuple[float, ...], str]:
+    def solve(self) -> NewtonResult:
         """One Newton solve from the current state: (converged, iterations, residuals, reason).
 
         Loads whose coefficients depend on the whole state (balanced gravity) are frozen during
         a Newton solve, which then converges quadratically, and updated between solves until
         they stop changing: a fixed point around an exact Newton method.
         """
-        terms = self.model.state_dependent
-        if not terms:
-            return self._newton()
-        splits = np.cumsum([len(term.evaluate()) for term in terms])[:-1]
+        return settle_state_dependent(self.model, self._newton, self.options)
 
-        def assign(theta: np.ndarray) -> None:
-            for term, part in zip(terms, np.split(theta, splits)):
-                term.assign(part)
-
-        theta = np.concatenate([term.evaluate() for term in terms])
-        assign(theta)
-        converged, iterations, residuals, reason = self._newton()
-        anderson = _Anderson()
-        for _ in range(self.options.max_iterations):
-            if not converged:
-                break
-            image = np.concatenate([term.evaluate() for term in terms])
-            if np.linalg.norm(image - theta) <= self.options.rtol * max(np.linalg.norm(image), 1e-300):
-                break
-            theta = anderson.next(theta, image)
-            assign(theta)
-            converged, more, further, reason = self._newton()
-            iterations, residuals = iterations + more, residuals + further
-        else:
-            converged, reason = False, "state-dependent load coefficients did not settle"
-        return converged, iterations, residuals, reason
-
-    def _newton(self) -> tuple[bool, int, tuple[float, ...], str]:
+    def _newton(self) -> NewtonResult:
         self._residuals.clear()
         snes = self.problem.solver
         try:
@@ -219,6 +198,40 @@ class NewtonSolver:
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
+
+
+NewtonResult = tuple[bool, int, tuple[float, ...], str]  # converged, iterations, residuals, reason
+
+
+def settle_state_dependent(model, newton: Callable[[], NewtonResult], options: NewtonOptions) -> NewtonResult:
+    """Run ``newton`` with the state-dependent load coefficients frozen, update them from the
+    solution and repeat (Anderson-accelerated) until they stop changing (relative ``rtol``)."""
+    terms = model.state_dependent
+    if not terms:
+        return newton()
+    splits = np.cumsum([len(term.evaluate()) for term in terms])[:-1]
+
+    def assign(theta: np.ndarray) -> None:
+        for term, part in zip(terms, np.split(theta, splits)):
+            term.assign(part)
+
+    theta = np.concatenate([term.evaluate() for term in terms])
+    assign(theta)
+    converged, iterations, residuals, reason = newton()
+    anderson = _Anderson()
+    for _ in range(options.max_iterations):
+        if not converged:
+            break
+        image = np.concatenate([term.evaluate() for term in terms])
+        if np.linalg.norm(image - theta) <= options.rtol * max(np.linalg.norm(image), 1e-300):
+            break
+        theta = anderson.next(theta, image)
+        assign(theta)
+        converged, more, further, reason = newton()
+        iterations, residuals = iterations + more, residuals + further
+    else:
+        converged, reason = False, "state-dependent load coefficients did not settle"
+    return converged, iterations, residuals, reason
 
 
 class _Anderson:

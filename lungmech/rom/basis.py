@@ -1,0 +1,175 @@
+"""A reduced basis: vectors of the model's state space, orthonormal in a chosen inner product.
+
+The vectors are the owned rows of a distributed n × k matrix (numpy, one block per rank), so a
+product with a PETSc operator is one MatMatMult and a reduction to k × k is a local product and
+an Allreduce. Each basis carries what it is (kind, inner product, mesh fingerprint, source) and
+the importance of its vectors (singular values, eigenvalues), so it can be truncated later
+without recomputing anything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lungmech.errors import ParameterError
+
+INNER_PRODUCTS = ("l2", "mass", "energy")
+
+
+@dataclass(frozen=True)
+class Basis:
+    """k vectors of a model's state space (owned rows), orthonormal in ``inner_product``.
+
+    ``values`` rank the vectors (POD singular values, eigenvalues); the first ones matter most.
+    """
+
+    vectors: np.ndarray  # (owned dofs, k)
+    values: np.ndarray  # (k,)
+    kind: str  # "modal", "pod", "polynomial", "modal+derivatives", "enriched"
+    inner_product: str
+    fingerprint: str
+    source: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return self.vectors.shape[1]
+
+    def truncate(self, size: int | None = None, energy: float | None = None) -> Basis:
+        """The first ``size`` vectors, or the fewest whose squared values keep the fraction
+        ``energy`` of the total (POD: the captured snapshot energy)."""
+        if (size is None) == (energy is None):
+            raise ParameterError("truncate: give either size or energy")
+        if energy is not None:
+            if not 0 < energy <= 1:
+                raise ParameterError(f"truncate: energy must lie in (0, 1] (got {energy})")
+            if self.kind != "pod":
+                raise ParameterError(f"truncate by energy needs a POD basis (this one is {self.kind})")
+            captured = np.cumsum(self.values**2) / np.sum(self.values**2)
+            size = int(np.searchsorted(captured, energy * (1 - 1e-14)) + 1)
+        if not (isinstance(size, int | np.integer) and 1 <= size <= self.size):
+            raise ParameterError(f"truncate: size must be an integer in [1, {self.size}] (got {size!r})")
+        return replace(self, vectors=self.vectors[:, :size].copy(), values=self.values[:size].copy())
+
+
+def inner_product(model, kind: str) -> PETSc.Mat | None:
+    """The Gram operator W of ``kind`` on the state space (None for l2, i.e. W = I).
+
+    mass: ∫ Σ_fields a·b dX; energy: the second variation of the stored energy ∫ψ at the
+    unloaded state (positive definite for a stable law with enough imposed displacements).
+    Imposed dofs get 1 on the diagonal: basis vectors vanish there anyway.
+    """
+    if kind not in INNER_PRODUCTS:
+        raise ParameterError(f"inner product must be one of {', '.join(INNER_PRODUCTS)} (got {kind!r})")
+    if kind == "l2":
+        return None
+    a, b = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
+    if kind == "mass":
+        pairs = zip(ufl.split(a), ufl.split(b)) if model.mixed else [(a, b)]
+        form = sum(ufl.inner(x, y) for x, y in pairs) * model.dx
+    else:
+        stored = model.energy_density * model.dx
+        form = ufl.derivative(ufl.derivative(stored, model.state, b), model.state, a)
+    current = model.state.x.array.copy()
+    model.reset()
+    W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
+    W.assemble()
+    model.state.x.array[:] = current
+    return W
+
+
+def apply(A: PETSc.Mat | None, vectors: np.ndarray, comm: MPI.Comm) -> np.ndarray:
+    """A · V for a distributed PETSc matrix and the owned rows V (one MatMatMult)."""
+    if A is None:
+        return vectors
+    rows, k = vectors.shape
+    dense = PETSc.Mat().createDense(((rows, None), (None, k)), array=np.ascontiguousarray(vectors), comm=comm)
+    product = A.matMult(dense)
+    result = product.getDenseArray().copy()
+    product.destroy()
+    dense.destroy()
+    return result
+
+
+def gram(left: np.ndarray, right: np.ndarray, comm: MPI.Comm) -> np.ndarray:
+    """Lᵀ R over all ranks."""
+    local = np.ascontiguousarray(left.T @ right)
+    total = np.empty_like(local)
+    comm.Allreduce(local, total, op=MPI.SUM)
+    return total
+
+
+def orthonormalise(
+    vectors: np.ndarray, W: PETSc.Mat | None, comm: MPI.Comm, tolerance: float = 1e-10
+) -> tuple[np.ndarray, np.ndarray]:
+    """W-orthonormal vectors spanning the columns of ``vectors``, in order (Gram–Schmidt, twice).
+
+    A column whose remainder is below ``tolerance`` × its own norm adds nothing new and is
+    dropped. Returns the vectors and the indices of the columns that were kept.
+    """
+    kept = []
+    result, weighted = np.zeros((vectors.shape[0], 0)), np.zeros((vectors.shape[0], 0))  # V and W·V
+    for j in range(vectors.shape[1]):
+        v = vectors[:, [j]].copy()
+        norm0 = np.sqrt(max(gram(v, apply(W, v, comm), comm)[0, 0], 0.0))
+        if not norm0 > 0:
+            continue
+        for _ in range(2):  # "twice is enough" (Kahan–Parlett)
+            v -= result @ gram(weighted, v, comm)
+        wv = apply(W, v, comm)
+        norm = np.sqrt(max(gram(v, wv, comm)[0, 0], 0.0))
+        if norm > tolerance * norm0:
+            result, weighted = np.hstack([result, v / norm]), np.hstack([weighted, wv / norm])
+            kept.append(j)
+    return result, np.array(kept, dtype=int)
+
+
+def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
+    """One basis spanning all of ``bases`` (in order), re-orthonormalised; repeats are dropped."""
+    if not bases:
+        raise ParameterError("enrich: give at least one basis")
+    inner = inner or bases[0].inner_product
+    if len({b.fingerprint for b in bases}) > 1:
+        raise ParameterError("enrich: the bases belong to different meshes or spaces")
+    comm = model.geometry.mesh.comm
+    W = inner_product(model, inner)
+    vectors, kept = orthonormalise(np.hstack([b.vectors for b in bases]), W, comm)
+    if W is not None:
+        W.destroy()
+    values = np.concatenate([b.values for b in bases])[kept]
+    kinds = "+".join(dict.fromkeys(b.kind for b in bases))
+    source = {"parts": [{"kind": b.kind, "size": b.size, **b.source} for b in bases]}
+    return Basis(vectors, values, "enriched" if len(bases) > 1 else kinds, inner, bases[0].fingerprint, source)
+
+
+def zero_imposed(model, vectors: np.ndarray) -> np.ndarray:
+    """The vectors with every imposed (Dirichlet) dof set to 0: the homogeneous directions."""
+    owned = vectors.shape[0]
+    for bc in model.bcs:
+        dofs, _ = bc.dof_indices()
+        vectors[dofs[dofs < owned]] = 0.0
+    return vectors
+
+
+def reference_state(model) -> np.ndarray:
+    """The model's unloaded state (u = 0, other fields at their initial values), as an array."""
+    current = model.state.x.array.copy()
+    model.reset()
+    reference = model.state.x.array.copy()
+    model.state.x.array[:] = current
+    return reference
+
+
+def origin(model, reference: np.ndarray) -> np.ndarray:
+    """The affine offset of the reduced state at the model's time: the unloaded state with the
+    imposed displacements set, so that origin + V q meets them for every q."""
+    x = reference.copy()
+    for bc in model.bcs:
+        bc.set(x)
+    return x

@@ -1,0 +1,125 @@
+"""Reduced Galerkin solves: the full model's residual projected on a basis, Newton in k unknowns.
+
+The state is x = x₀ + V q, where x₀ is the unloaded state with the imposed displacements and V
+vanishes on imposed dofs. Newton solves Vᵀ R(x₀ + V q) = 0 with the reduced tangent Vᵀ K V
+(K V is one PETSc MatMatMult with the distributed dense basis) and a backtracking line search
+on the reduced residual. Without hyper-reduction each iteration still assembles the full
+residual and tangent, which dominates the online cost; the k × k solve is negligible.
+
+A :class:`ReducedSolver` has the interface of :class:`lungmech.solver.NewtonSolver`, so the
+same load stepping (:func:`lungmech.solver.solve`), outputs and state-dependent loads work.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from dolfinx import fem, la
+from dolfinx.fem.petsc import assemble_matrix, create_matrix
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lungmech.errors import ParameterError
+from lungmech.rom.basis import Basis, apply, gram, inner_product, origin, reference_state
+from lungmech.rom.layout import layout
+from lungmech.solver import NewtonOptions, NewtonResult, settle_state_dependent
+
+
+class ReducedSolver:
+    """Newton on Vᵀ R(x₀ + V q) = 0 for one model and one basis; forms are compiled once.
+
+    ``residual`` and ``jacobian`` replace the model's own forms, as for NewtonSolver.
+    """
+
+    def __init__(self, model, basis: Basis, options: NewtonOptions | None = None, residual=None, jacobian=None):
+        fingerprint = layout(model.space).fingerprint
+        if basis.fingerprint != fingerprint:
+            raise ParameterError(
+                f"the basis was built on another mesh or space (fingerprint {basis.fingerprint}, "
+                f"this model has {fingerprint})"
+            )
+        self.model, self.basis = model, basis
+        self.options = options or NewtonOptions()
+        self.comm = model.geometry.mesh.comm
+        self.owned = basis.vectors.shape[0]
+        self.V = np.ascontiguousarray(basis.vectors)
+        W = inner_product(model, basis.inner_product)
+        self.dual = apply(W, self.V, self.comm)  # q = (W V)ᵀ (x − x₀): V is W-orthonormal
+        if W is not None:
+            W.destroy()
+        self.reference = reference_state(model)
+        self._residual = fem.form(model.residual if residual is None else residual)
+        self._jacobian = fem.form(model.jacobian if jacobian is None else jacobian)
+        self._vector = fem.Function(model.space).x
+        self._matrix = create_matrix(self._jacobian)
+        self.coordinates = np.zeros(basis.size)
+        self.iterations_total = 0
+
+    def solve(self) -> NewtonResult:
+        """One reduced Newton solve from (the projection of) the current state."""
+        return settle_state_dependent(self.model, self._newton, self.options)
+
+    def project(self) -> np.ndarray:
+        """Coordinates q of the model's current state: (W V)ᵀ (x − x₀)."""
+        x = self.model.state.x.array[: self.owned] - origin(self.model, self.reference)[: self.owned]
+        return gram(self.dual, x[:, None], self.comm)[:, 0]
+
+    def reconstruct(self, q: np.ndarray) -> None:
+        """Set the model's state to x₀ + V q."""
+        state = self.model.state.x
+        state.array[:] = origin(self.model, self.reference)
+        state.array[: self.owned] += self.V @ q
+        state.scatter_forward()
+
+    def reduced_residual(self, q: np.ndarray) -> np.ndarray:
+        """Vᵀ R(x₀ + V q) (sets the model's state)."""
+        self.reconstruct(q)
+        vector = self._vector
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, self._residual)
+        vector.scatter_reverse(la.InsertMode.add)
+        return gram(self.V, vector.array[: self.owned, None], self.comm)[:, 0]
+
+    def reduced_jacobian(self) -> np.ndarray:
+        """Vᵀ K V at the model's current state."""
+        A = self._matrix
+        A.zeroEntries()
+        assemble_matrix(A, self._jacobian)
+        A.assemble()
+        return gram(self.V, apply(A, self.V, self.comm), self.comm)
+
+    def _newton(self) -> NewtonResult:
+        options = self.options
+        q = self.project()
+        r = self.reduced_residual(q)
+        residuals = [float(np.linalg.norm(r))]
+        for iteration in range(1, options.max_iterations + 1):
+            if not np.isfinite(residuals[-1]):
+                return self._finish(q, False, iteration - 1, residuals, "DIVERGED_NANORINF")
+            if residuals[-1] <= options.atol or (iteration > 1 and residuals[-1] <= options.rtol * residuals[0]):
+                return self._finish(q, True, iteration - 1, residuals, "CONVERGED_FNORM")
+            try:
+                step = np.linalg.solve(self.reduced_jacobian(), -r)
+            except np.linalg.LinAlgError:
+                return self._finish(q, False, iteration - 1, residuals, "DIVERGED_LINEAR_SOLVE")
+            alpha, trial = 1.0, None
+            while True:
+                trial = self.reduced_residual(q + alpha * step)
+                norm = float(np.linalg.norm(trial))
+                if options.line_search in ("none", "basic") or norm <= (1 - 1e-4 * alpha) * residuals[-1] or alpha < 2**-10:
+                    break
+                alpha /= 2
+            q, r = q + alpha * step, trial
+            residuals.append(norm)
+            if alpha * np.linalg.norm(step) <= options.stol * np.linalg.norm(q) and norm <= 1e-3 * residuals[0]:
+                return self._finish(q, True, iteration, residuals, "CONVERGED_SNORM_RELATIVE")
+        return self._finish(q, False, options.max_iterations, residuals, "DIVERGED_MAX_IT")
+
+    def _finish(self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str) -> NewtonResult:
+        if converged:
+            self.coordinates = q
+        self.iterations_total += iterations
+        converged = converged and bool(np.all(np.isfinite(self.model.state.x.array)))
+        return converged, iterations, tuple(residuals), reason
+
+    def destroy(self) -> None:
+        self._matrix.destroy()

@@ -1,0 +1,89 @@
+"""Proper orthogonal decomposition of full-order snapshots (method of snapshots)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from lungmech.errors import ParameterError
+from lungmech.rom.basis import Basis, apply, gram, inner_product, orthonormalise, origin, reference_state, zero_imposed
+from lungmech.rom.layout import layout
+from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+
+
+def snapshots(
+    model,
+    stepping: Stepping,
+    scales: Sequence[float | Sequence[float]] = (1.0,),
+    options: NewtonOptions | None = None,
+    solver: NewtonSolver | None = None,
+) -> np.ndarray:
+    """Full-order states minus the unloaded state, at every accepted step of one run per scale.
+
+    A scale multiplies the loads (a number: all of them; a sequence: one factor per load), so
+    the training set spans load amplitudes as well as the load history. Returns the owned rows,
+    shape (owned dofs, snapshots); the model is left reset.
+    """
+    if not scales:
+        raise ParameterError("snapshots: give at least one load scale")
+    solver = solver or NewtonSolver(model, options)
+    reference = reference_state(model)
+    owned = _owned(model)
+    stepping = replace(stepping, times=(*stepping.times, *model.breakpoints))  # drive() hides them
+    columns = []
+    for scale in scales:
+        model.reset()
+        model.state.x.scatter_forward()
+        solve(
+            model,
+            stepping,
+            solver=solver,
+            drive=lambda t, scale=scale: model.set_time(t, load_factor=scale),
+            on_step=lambda step: columns.append((model.state.x.array - origin(model, reference))[:owned].copy()),
+        )
+    model.reset()
+    model.set_time(stepping.start)
+    return np.column_stack(columns)
+
+
+def pod(
+    model,
+    data: np.ndarray,
+    inner: str = "mass",
+    size: int | None = None,
+    energy: float | None = None,
+    source: dict | None = None,
+) -> Basis:
+    """The POD basis of the snapshot columns ``data``, orthonormal in ``inner``.
+
+    Method of snapshots: C = Sᵀ W S = Q Σ² Qᵀ, modes S Q Σ⁻¹. Directions below 1e-7 of the
+    largest singular value are numerical noise of C and are dropped; ``size`` or ``energy``
+    (fraction of Σσ² to keep) truncates further. ``values`` are the singular values.
+    """
+    comm = model.geometry.mesh.comm
+    if data.ndim != 2 or data.shape[0] != _owned(model):
+        raise ParameterError("pod: snapshots must be (owned dofs of the model, number of snapshots)")
+    data = zero_imposed(model, data.copy())
+    W = inner_product(model, inner)
+    correlation = gram(data, apply(W, data, comm), comm)
+    eigenvalues, vectors = np.linalg.eigh(correlation)
+    order = np.argsort(eigenvalues)[::-1]
+    eigenvalues, vectors = eigenvalues[order], vectors[:, order]
+    if not eigenvalues[0] > 0:
+        raise ParameterError("pod: the snapshots are all zero (did the loads act?)")
+    singular = np.sqrt(np.clip(eigenvalues, 0.0, None))
+    keep = singular > 1e-7 * singular[0]
+    modes, kept = orthonormalise(data @ vectors[:, keep] / singular[keep], W, comm)
+    if W is not None:
+        W.destroy()
+    source = (source or {}) | {"snapshots": data.shape[1], "singular_values": singular.tolist()}
+    basis = Basis(modes, singular[keep][kept], "pod", inner, layout(model.space).fingerprint, source)
+    if size is not None or energy is not None:
+        basis = basis.truncate(size=size if size is None else min(size, basis.size), energy=energy)
+    return basis
+
+
+def _owned(model) -> int:
+    return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
