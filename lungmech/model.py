@@ -121,17 +121,19 @@ class Model:
                     start.x.array[:] = initial[name]
                 self.state.x.array[dofs] = start.x.array
 
-    def set_time(self, t: float, load_factor: float | Sequence[float] = 1.0) -> None:
+    def set_time(self, t: float, load_factor: float | Sequence[float] = 1.0, about: float | None = None) -> None:
         """Set every load and imposed displacement to its ramped value at time t.
 
         ``load_factor`` scales the loads (not the imposed displacements), all alike or one
-        factor per load: a path to the loads of time t from zero, as the inverse problem needs,
-        or a load amplitude to train a reduced model on.
+        factor per load: a path to the loads of time t from zero, as the inverse problem needs.
+        With ``about`` = t₀ it scales only their change since t₀ (ramp(t₀) + f (ramp(t) −
+        ramp(t₀))): a deeper or shallower breath from the same end-expiration, say.
         """
         self.time = t
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor in zip(self.loads, self._load_values, factors):
-            value.value = factor * load.ramp(t) * np.asarray(load.value, dtype=float)
+            base = 0.0 if about is None else load.ramp(about)
+            value.value = (base + factor * (load.ramp(t) - base)) * np.asarray(load.value, dtype=float)
         for imposed in self._imposed:
             imposed.set_time(t)
 

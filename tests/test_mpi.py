@@ -108,3 +108,43 @@ def test_modal_frequencies_same_on_all_ranks_as_on_one():
     parallel = modal_analysis(cantilever(MPI.COMM_WORLD), 4).eigenvalues
     serial = modal_analysis(cantilever(MPI.COMM_SELF), 4).eigenvalues
     assert parallel == pytest.approx(serial, rel=1e-8)
+
+
+def test_dof_layout_is_the_same_on_all_ranks_as_on_one():
+    from lungmech.rom import layout
+
+    def canonical(comm):
+        model = Model(box(comm, cells=(3, 2, 2)), NeoHookean.from_young(1.0, 0.3), degree=2)
+        f = model.state
+        f.interpolate(lambda x: np.array([x[0] + x[1] ** 2, x[2] * x[0], np.sin(x[1])]))
+        where = layout(model.space)
+        return where.fingerprint, where.gather(f.x.array[: len(where.index)])
+
+    (parallel_print, parallel), (serial_print, serial) = canonical(MPI.COMM_WORLD), canonical(MPI.COMM_SELF)
+    assert parallel_print == serial_print
+    assert parallel == pytest.approx(serial, abs=1e-14)
+
+
+def test_reduced_model_same_on_all_ranks_and_portable(tmp_path):
+    """Built and solved on N ranks = built and solved on one; a file saved on N loads on one."""
+    from lungmech import rom
+    from test_rom import STEPPING, TRAINING, beam, run
+
+    path = MPI.COMM_WORLD.bcast(str(tmp_path / "beam.npz"))
+
+    def reduced(comm, saved=None):
+        model = beam(comm)
+        if saved is None:
+            basis = rom.pod(model, rom.snapshots(model, STEPPING, TRAINING), size=5)
+            if comm.size > 1:
+                rom.save(path, model, basis)
+        else:
+            basis, _, _ = rom.load(saved, model)
+        run(model, rom.ReducedSolver(model, basis), 1.25)
+        return np.array([deformed_volume(model)(), strain_energy(model)()])
+
+    parallel = reduced(MPI.COMM_WORLD)
+    serial = reduced(MPI.COMM_SELF)
+    loaded = reduced(MPI.COMM_SELF, saved=path)
+    assert parallel == pytest.approx(serial, rel=1e-8)
+    assert loaded == pytest.approx(parallel, rel=1e-10)

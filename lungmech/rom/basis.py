@@ -72,7 +72,7 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     a, b = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
     if kind == "mass":
         pairs = zip(ufl.split(a), ufl.split(b)) if model.mixed else [(a, b)]
-        form = sum(ufl.inner(x, y) for x, y in pairs) * model.dx
+        form = sum(ufl.inner(x, y) for x, y in pairs) * ufl.dx(domain=model.geometry.mesh)  # exact quadrature
     else:
         stored = model.energy_density * model.dx
         form = ufl.derivative(ufl.derivative(stored, model.state, b), model.state, a)

@@ -27,10 +27,20 @@ from lungmech.solver import NewtonOptions, NewtonResult, settle_state_dependent
 class ReducedSolver:
     """Newton on Vᵀ R(x₀ + V q) = 0 for one model and one basis; forms are compiled once.
 
+    ``start`` is the state the basis is relative to (x₀ without the imposed displacements;
+    default: the unloaded state), e.g. the imaged end-expiration state of a lung.
     ``residual`` and ``jacobian`` replace the model's own forms, as for NewtonSolver.
     """
 
-    def __init__(self, model, basis: Basis, options: NewtonOptions | None = None, residual=None, jacobian=None):
+    def __init__(
+        self,
+        model,
+        basis: Basis,
+        options: NewtonOptions | None = None,
+        residual=None,
+        jacobian=None,
+        start: np.ndarray | None = None,
+    ):
         fingerprint = layout(model.space).fingerprint
         if basis.fingerprint != fingerprint:
             raise ParameterError(
@@ -46,12 +56,13 @@ class ReducedSolver:
         self.dual = apply(W, self.V, self.comm)  # q = (W V)ᵀ (x − x₀): V is W-orthonormal
         if W is not None:
             W.destroy()
-        self.reference = reference_state(model)
+        self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self._residual = fem.form(model.residual if residual is None else residual)
         self._jacobian = fem.form(model.jacobian if jacobian is None else jacobian)
         self._vector = fem.Function(model.space).x
         self._matrix = create_matrix(self._jacobian)
         self.coordinates = np.zeros(basis.size)
+        self.description = f"reduced Galerkin: {basis.kind} basis of {basis.size} vectors"
         self.iterations_total = 0
 
     def solve(self) -> NewtonResult:

@@ -64,6 +64,7 @@ def layout(space: fem.FunctionSpace) -> Layout:
     offset = sum(len(k) for k in comm.allgather(keys)[: comm.rank])
     digest = hashlib.sha256(str(space.ufl_element()).encode())
     digest.update(np.ascontiguousarray(everything[order]).tobytes())
+    digest.update(_cell_midpoints(space.mesh, grid).tobytes())  # the connectivity, not only the nodes
     return Layout(position[offset : offset + owned], len(order), digest.hexdigest()[:16], comm)
 
 
@@ -82,3 +83,12 @@ def _diameter(mesh) -> float:
     bounds = np.empty_like(local)
     mesh.comm.Allreduce(local, bounds, op=MPI.MIN)
     return float(np.linalg.norm(-bounds[3:] - bounds[:3]))
+
+
+def _cell_midpoints(mesh, grid: float) -> np.ndarray:
+    """Quantised midpoints of every cell, sorted (identical on any partition)."""
+    cells = mesh.topology.index_map(mesh.topology.dim).size_local
+    nodes = mesh.geometry.dofmaps[0][:cells]
+    midpoints = np.round(mesh.geometry.x[nodes].mean(axis=1) / grid).astype(np.int64)
+    everything = np.concatenate(mesh.comm.allgather(midpoints))
+    return np.ascontiguousarray(everything[np.lexsort(everything.T[::-1])])

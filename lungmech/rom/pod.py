@@ -19,31 +19,32 @@ def snapshots(
     scales: Sequence[float | Sequence[float]] = (1.0,),
     options: NewtonOptions | None = None,
     solver: NewtonSolver | None = None,
+    start: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Full-order states minus the unloaded state, at every accepted step of one run per scale.
+    """Full-order states minus the start state, at every accepted step of one run per scale.
 
-    A scale multiplies the loads (a number: all of them; a sequence: one factor per load), so
-    the training set spans load amplitudes as well as the load history. Returns the owned rows,
-    shape (owned dofs, snapshots); the model is left reset.
+    Each run starts from ``start`` (a state array; default: unloaded) at ``stepping.start``. A
+    scale multiplies the loads' change since then (a number: all loads; a sequence: one factor
+    per load), so the training set spans load amplitudes as well as the load history. Returns
+    the owned rows, shape (owned dofs, snapshots); the model is left at the start state.
     """
     if not scales:
         raise ParameterError("snapshots: give at least one load scale")
     solver = solver or NewtonSolver(model, options)
-    reference = reference_state(model)
+    start = reference_state(model) if start is None else start.copy()
     owned = _owned(model)
     stepping = replace(stepping, times=(*stepping.times, *model.breakpoints))  # drive() hides them
     columns = []
     for scale in scales:
-        model.reset()
-        model.state.x.scatter_forward()
+        model.state.x.array[:] = start
         solve(
             model,
             stepping,
             solver=solver,
-            drive=lambda t, scale=scale: model.set_time(t, load_factor=scale),
-            on_step=lambda step: columns.append((model.state.x.array - origin(model, reference))[:owned].copy()),
+            drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
+            on_step=lambda step: columns.append((model.state.x.array - origin(model, start))[:owned].copy()),
         )
-    model.reset()
+    model.state.x.array[:] = start
     model.set_time(stepping.start)
     return np.column_stack(columns)
 

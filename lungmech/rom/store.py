@@ -50,32 +50,38 @@ def save(path: str | Path, model, basis: Basis, extra: dict | None = None, array
     return path
 
 
-def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray]]:
-    """Read a reduced model for ``model``: (basis, extra metadata, other arrays).
-
-    Refused with a :class:`ParameterError` when the file is not a lungmech reduced model or was
-    built on another mesh or space.
-    """
+def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """The metadata and arrays of a reduced-model file, checked to be one (any mesh)."""
     path = Path(path)
     if not path.is_file():
         raise ParameterError(f"reduced model file not found: {path}")
     try:
         with np.load(path, allow_pickle=False) as data:
             metadata = json.loads(str(data["metadata"]))
-            contents = {name: data[name] for name in data.files if name != "metadata"}
+            arrays = {name: data[name] for name in data.files if name != "metadata"}
     except (OSError, ValueError, KeyError) as error:
         raise ParameterError(f"{path} is not a lungmech reduced model ({error})") from None
     if metadata.get("format") != FORMAT:
         raise ParameterError(f"{path} is not a lungmech reduced model (format {metadata.get('format')!r})")
+    return metadata, arrays
+
+
+def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray]]:
+    """Read a reduced model for ``model``: (basis, extra metadata, other arrays).
+
+    Refused with a :class:`ParameterError` when the file is not a lungmech reduced model or was
+    built on another mesh or space.
+    """
+    metadata, arrays = read(path)
     where = layout(model.space)
     if metadata["fingerprint"] != where.fingerprint or metadata["dofs"] != where.size:
         raise ParameterError(
             f"{path} was built on another mesh or discretisation ({metadata['dofs']} dofs, fingerprint "
             f"{metadata['fingerprint']}); this model has {where.size} dofs, fingerprint {where.fingerprint}"
         )
-    vectors, values = contents.pop("vectors"), contents.pop("values")
+    vectors, values = arrays.pop("vectors"), arrays.pop("values")
     basis = Basis(
         where.scatter(vectors), values, metadata["kind"], metadata["inner_product"], where.fingerprint,
         metadata["source"],
     )
-    return basis, metadata["extra"], contents
+    return basis, metadata["extra"], arrays

@@ -1,0 +1,149 @@
+"""Reduced models of a scene: built offline from full-order runs, solved online like a scene.
+
+Offline (:func:`build`): build the scene's model; if it has [inverse], unload the imaged mesh
+once; run the full model for each training load scale and collect snapshots; make the basis;
+save it with the start state, the reference mesh nodes and the offline timings. Online
+(:func:`reduced_order`): the ``prepare`` step of :func:`lungmech.run.run` that puts the stored
+reference and start state in place and returns a :class:`ReducedSolver`, so a reduced run
+writes the same outputs as a full one.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from lungmech.errors import ParameterError
+from lungmech.inverse import unloaded_reference
+from lungmech.rom import store
+from lungmech.rom.basis import Basis, enrich
+from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.layout import layout
+from lungmech.rom.modes import modal_basis, with_modal_derivatives
+from lungmech.rom.pod import pod, snapshots
+from lungmech.rom.polynomial import polynomial_basis
+from lungmech.run import Scale, build_model, check_scale
+from lungmech.scene import Scene
+from lungmech.solver import NewtonSolver
+
+KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
+
+
+def build(
+    scene: Scene,
+    path: str | Path,
+    kind: str = "pod",
+    size: int = 20,
+    scales: Sequence[Scale] = (0.5, 1.0, 1.5),
+    inner: str = "mass",
+    order: int = 2,
+    density: float = 1.0,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    scene_path: str | Path | None = None,
+) -> dict:
+    """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
+
+    ``kind``: pod (of full runs at the load ``scales``), modal (K y = λ M y at the start
+    state), modal+derivatives, polynomial (of ``order``), or pod+modal (enriched). ``size`` caps
+    the number of vectors (POD may keep fewer: only directions above its noise level).
+    """
+    if kind not in KINDS:
+        raise ParameterError(f"basis kind must be one of {', '.join(KINDS)} (got {kind!r})")
+    if not (isinstance(size, int) and size >= 1):
+        raise ParameterError(f"basis size must be a positive integer (got {size!r})")
+    for scale in scales:
+        check_scale(scene, scale)
+    timings = {}
+    tic = time.perf_counter()
+    model = build_model(scene, comm)
+    imaged = layout(model.space).fingerprint
+    solver = NewtonSolver(model, scene.newton)
+    timings["build_and_compile"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    if scene.inverse is not None:
+        unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver)
+    else:
+        model.set_time(scene.stepping.start)
+    start = model.state.x.array.copy()
+    timings["inverse"] = time.perf_counter() - tic
+
+    parts: list[Basis] = []
+    if kind in ("pod", "pod+modal"):
+        tic = time.perf_counter()
+        data = snapshots(model, scene.stepping, scales, solver=solver, start=start)
+        timings["snapshots"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        parts.append(pod(model, data, inner=inner, size=size, source={"scales": _plain(scales)}))
+        timings["svd"] = time.perf_counter() - tic
+    if kind in ("modal", "modal+derivatives", "pod+modal"):
+        tic = time.perf_counter()
+        modes = modal_basis(model, size, density=density)
+        parts.append(with_modal_derivatives(model, modes) if kind == "modal+derivatives" else modes)
+        timings["eigensolve"] = time.perf_counter() - tic
+    if kind == "polynomial":
+        tic = time.perf_counter()
+        parts.append(polynomial_basis(model, order, inner=inner))
+        timings["basis"] = time.perf_counter() - tic
+    basis = enrich(model, *parts) if len(parts) > 1 else parts[0]
+    basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
+
+    arrays = {"start": layout(model.space).gather(start[: basis.vectors.shape[0]])}
+    if scene.inverse is not None:
+        arrays["reference_nodes"] = _gather_nodes(model.geometry.mesh)
+    extra = {
+        "scene": str(Path(scene_path).resolve()) if scene_path else None,
+        "title": scene.title,
+        "imaged_fingerprint": imaged,
+        "loads": len(scene.loads),
+        "offline_seconds": timings,
+    }
+    store.save(path, model, basis, extra=extra, arrays=arrays)
+    return {"kind": basis.kind, "size": basis.size, "dofs": layout(model.space).size, "values": basis.values.tolist(),
+            "offline_seconds": timings}
+
+
+def reduced_order(path: str | Path):
+    """The ``prepare`` of :func:`lungmech.run.run` for the reduced model stored at ``path``."""
+    return partial(_prepare, Path(path))
+
+
+def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
+    metadata, arrays = store.read(path)
+    extra = metadata["extra"]
+    if layout(model.space).fingerprint != extra["imaged_fingerprint"]:
+        raise ParameterError(f"{path} was built for another mesh or discretisation than this scene's")
+    if extra["loads"] != len(scene.loads):
+        raise ParameterError(f"{path} was built for a scene with {extra['loads']} loads; this one has {len(scene.loads)}")
+    if "reference_nodes" in arrays:  # the unloaded reference found offline
+        _scatter_nodes(model.geometry.mesh, arrays["reference_nodes"])
+    basis, _, arrays = store.load(path, model)
+    owned = basis.vectors.shape[0]
+    model.state.x.array[:owned] = layout(model.space).scatter(arrays["start"])
+    model.state.x.scatter_forward()
+    model.set_time(scene.stepping.start)
+    solver = ReducedSolver(model, basis, scene.newton, start=model.state.x.array.copy())
+    return solver, {"reference": "from the reduced model"} if "reference_nodes" in arrays else None
+
+
+def _gather_nodes(mesh) -> np.ndarray:
+    """Geometry node coordinates in the mesh file's node order (every rank gets all)."""
+    owned = mesh.geometry.index_map().size_local
+    pieces = mesh.comm.allgather((mesh.geometry.input_global_indices[:owned], mesh.geometry.x[:owned]))
+    nodes = np.empty((sum(len(i) for i, _ in pieces), 3))
+    for index, x in pieces:
+        nodes[index] = x
+    return nodes
+
+
+def _scatter_nodes(mesh, nodes: np.ndarray) -> None:
+    """Move this rank's geometry nodes (owned and ghost) to ``nodes`` (mesh file's order)."""
+    mesh.geometry.x[:] = nodes[np.asarray(mesh.geometry.input_global_indices)]
+
+
+def _plain(scales) -> list:
+    return [np.asarray(s, dtype=float).tolist() for s in scales]
