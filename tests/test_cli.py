@@ -167,3 +167,35 @@ def test_cli_subprocess_exit_code_and_info(tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1
     info = subprocess.run([sys.executable, "-m", "lungmech.cli", "info"], capture_output=True, text=True, env=env)
     assert info.returncode == 0 and "DOLFINx 0.11" in info.stdout and "neo_hookean" in info.stdout
+
+
+def test_reduced_model_from_the_command_line(tmp_path, capsys):
+    """rom build → rom solve at an unseen load scale = the full run at that scale; same outputs."""
+    scene = write(tmp_path, TINY.replace("cells = [2, 1, 1]", "cells = [4, 2, 2]"))
+    model = tmp_path / "tiny.npz"
+    args = ["--scales", "0.5,1.5", "--size", "8", "-q"]
+    assert main(["rom", "build", str(scene), "-o", str(model), *args]) == 0
+    assert main(["rom", "solve", str(model), "-o", str(tmp_path / "reduced"), "--scale", "1.2", "-q"]) == 0
+    assert main(["run", str(scene), "-o", str(tmp_path / "full"), "--scale", "1.2", "-q"]) == 0
+    reduced, full = (json.loads((tmp_path / name / "summary.json").read_text()) for name in ("reduced", "full"))
+    assert reduced["solver"].startswith("reduced Galerkin: pod") and full["solver"] == "full order"
+    assert reduced["deformed_volume"] == pytest.approx(full["deformed_volume"], rel=1e-8)
+    assert reduced["probes"] == full["probes"] and reduced["load_scale"] == 1.2
+    assert sorted(os.listdir(tmp_path / "reduced")) == sorted(os.listdir(tmp_path / "full"))
+    assert main(["rom", "build", str(scene), "-o", str(tmp_path / "modal.npz"), "--basis", "modal", "--size", "4", "-q"]) == 0
+    capsys.readouterr()
+
+    other = tmp_path / "other" / "scene.toml"
+    other.parent.mkdir()
+    other.write_text(TINY)
+    errors = {
+        ("rom", "solve", str(model), str(other), "-o", str(tmp_path / "x")): "another mesh",
+        ("rom", "solve", str(tmp_path / "none.npz"), "-o", str(tmp_path / "x")): "not found",
+        ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--basis", "wavelet"): "basis kind must be",
+        ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--scales", "1:2"): "one factor or one per load",
+        ("run", str(scene), "-o", str(tmp_path / "x"), "--scale", "1,2"): "--scale takes one value",
+    }
+    for command, message in errors.items():
+        assert main(list(command)) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y.npz").exists()
