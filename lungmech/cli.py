@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     build.add_argument("scene", nargs="?", help="scene file (.toml; default: the bundled scene)")
     build.add_argument("-o", "--output", required=True, help="reduced model file (.npz)")
     build.add_argument("--basis", default="pod", help="pod, modal, modal+derivatives, polynomial or pod+modal")
-    build.add_argument("--size", type=int, default=20, help="number of basis vectors (at most)")
+    build.add_argument("--size", type=int, default=20, help="number of basis vectors, at most (modes, for modal+derivatives)")
     build.add_argument("--scales", default="0.5,1,1.5", type=_scales,
                        help="training load scales, comma-separated; one factor per load joined by ':' (e.g. 0.5:1,1.5:1)")
     build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")

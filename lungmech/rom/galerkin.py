@@ -15,8 +15,6 @@ from __future__ import annotations
 import numpy as np
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
-from mpi4py import MPI
-from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
 from lungmech.rom.basis import Basis, apply, gram, inner_product, origin, reference_state
