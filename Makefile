@@ -7,7 +7,7 @@ PY      := $(VENV)/bin/python
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
 
-.PHONY: demo test test-serial test-mpi bench clean
+.PHONY: demo test test-serial test-mpi bench bench-rom clean
 
 $(STAMP): pyproject.toml
 	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
@@ -27,6 +27,9 @@ test-mpi: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
+
+bench-rom: $(STAMP)
+	$(PY) benchmarks/rom.py
 
 clean:
 	rm -rf results benchmarks/results
