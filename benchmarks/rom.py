@@ -25,6 +25,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from machine import cpu_and_memory  # benchmarks/ is the script folder, first on sys.path
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 RESULTS = HERE / "results"
@@ -936,17 +938,7 @@ def versions() -> dict:
     import dolfinx
     import slepc4py
 
-    cpu = "unknown CPU"
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    memory = "?"
-    try:
-        kb = next(int(line.split()[1]) for line in open("/proc/meminfo") if line.startswith("MemTotal"))
-        memory = f"{kb / 2**20:.0f} GiB RAM"
-    except (OSError, StopIteration):
-        pass
+    cpu, memory = cpu_and_memory()
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "lungmech"], capture_output=True,
                            text=True).stdout.strip()

@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from machine import cpu_and_memory  # benchmarks/ is the script folder, first on sys.path
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 RESULTS = HERE / "results"
@@ -166,17 +168,7 @@ def versions() -> dict:
         "print(dolfinx.__version__, '.'.join(map(str, PETSc.Sys.getVersion())))"
     )
     out = subprocess.run([PYTHON, "-c", code], capture_output=True, text=True).stdout.split()
-    cpu = "unknown CPU"
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    memory = "unknown memory"
-    try:
-        kb = next(int(line.split()[1]) for line in open("/proc/meminfo") if line.startswith("MemTotal"))
-        memory = f"{kb / 2**20:.0f} GiB RAM"
-    except (OSError, StopIteration):
-        pass
+    cpu, memory = cpu_and_memory()
     return {
         "dolfinx": out[0] if out else "?",
         "petsc": out[1] if len(out) > 1 else "?",
