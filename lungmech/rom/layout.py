@@ -57,11 +57,12 @@ def layout(space: fem.FunctionSpace) -> Layout:
             seen[rows] = True
     assert seen.all(), "every owned dof belongs to exactly one field"
 
-    everything = np.concatenate(comm.allgather(keys))
+    pieces = comm.allgather(keys)
+    everything = np.concatenate(pieces)
     order = np.lexsort(everything.T[::-1])
     position = np.empty(len(order), dtype=np.int64)
     position[order] = np.arange(len(order))
-    offset = sum(len(k) for k in comm.allgather(keys)[: comm.rank])
+    offset = sum(len(k) for k in pieces[: comm.rank])
     digest = hashlib.sha256(str(space.ufl_element()).encode())
     digest.update(np.ascontiguousarray(everything[order]).tobytes())
     digest.update(_cell_midpoints(space.mesh, grid).tobytes())  # the connectivity, not only the nodes

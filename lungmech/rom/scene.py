@@ -61,7 +61,7 @@ def build(
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm)
-    imaged = layout(model.space).fingerprint
+    where = layout(model.space)  # its dof order stays valid when [inverse] moves the nodes
     solver = NewtonSolver(model, scene.newton)
     timings["build_and_compile"] = time.perf_counter() - tic
     tic = time.perf_counter()
@@ -92,18 +92,18 @@ def build(
     basis = enrich(model, *parts) if len(parts) > 1 else parts[0]
     basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
 
-    arrays = {"start": layout(model.space).gather(start[: basis.vectors.shape[0]])}
+    arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}
     if scene.inverse is not None:
         arrays["reference_nodes"] = _gather_nodes(model.geometry.mesh)
     extra = {
         "scene": str(Path(scene_path).resolve()) if scene_path else None,
         "title": scene.title,
-        "imaged_fingerprint": imaged,
+        "imaged_fingerprint": where.fingerprint,
         "loads": len(scene.loads),
         "offline_seconds": timings,
     }
     store.save(path, model, basis, extra=extra, arrays=arrays)
-    return {"kind": basis.kind, "size": basis.size, "dofs": layout(model.space).size, "values": basis.values.tolist(),
+    return {"kind": basis.kind, "size": basis.size, "dofs": where.size, "values": basis.values.tolist(),
             "offline_seconds": timings}
 
 
@@ -115,7 +115,8 @@ def reduced_order(path: str | Path):
 def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
     metadata, arrays = store.read(path)
     extra = metadata["extra"]
-    if layout(model.space).fingerprint != extra["imaged_fingerprint"]:
+    where = layout(model.space)  # of the imaged mesh; its dof order survives moving the nodes
+    if where.fingerprint != extra["imaged_fingerprint"]:
         raise ParameterError(f"{path} was built for another mesh or discretisation than this scene's")
     if extra["loads"] != len(scene.loads):
         raise ParameterError(f"{path} was built for a scene with {extra['loads']} loads; this one has {len(scene.loads)}")
@@ -123,7 +124,7 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolv
         _scatter_nodes(model.geometry.mesh, arrays["reference_nodes"])
     basis, _, arrays = store.load(path, model)
     owned = basis.vectors.shape[0]
-    model.state.x.array[:owned] = layout(model.space).scatter(arrays["start"])
+    model.state.x.array[:owned] = where.scatter(arrays["start"])
     model.state.x.scatter_forward()
     model.set_time(scene.stepping.start)
     solver = ReducedSolver(model, basis, scene.newton, start=model.state.x.array.copy())
