@@ -19,3 +19,11 @@ class SceneError(LungmechError):
 
 class SolverError(LungmechError):
     """A nonlinear solve failed even at the smallest allowed load step."""
+
+
+class ImageError(LungmechError):
+    """An image file is missing or unreadable, or its mask is not a usable 3-D segmentation."""
+
+
+class RegistrationError(LungmechError):
+    """A shape registration or a shape-mode library cannot be computed from its input."""

@@ -1,0 +1,382 @@
+"""Segmented 3-D images with their physical geometry.
+
+An :class:`Image` is a boolean mask (a segmentation, e.g. of a lung in a CT scan) together with
+the affine map that places its voxels in space, so that a mesh can be registered to it. Images
+come from :func:`from_array` or from a file (:func:`read`) and go to a file with :func:`write`:
+NIfTI (``.nii``, ``.nii.gz``) through nibabel, MetaImage and NRRD (``.mha``, ``.mhd``,
+``.nrrd``, ``.nhdr``) through SimpleITK when it is installed, and lungmech's own ``.npz``.
+
+Conventions:
+
+* Coordinates are lungmech's: metres, x towards the patient's right, y anterior, z superior.
+  That is the RAS+ world space of NIfTI and nibabel, so NIfTI affines are used as they are,
+  only converted from the file's unit (millimetres, usually) to metres. DICOM, ITK and
+  SimpleITK (hence MetaImage and NRRD read through it) use LPS+: x towards the left, y
+  posterior, z superior, in millimetres by convention; their points are converted by flipping
+  the signs of x and y.
+* ``mask[i, j, k]`` is voxel (i, j, k), and ``affine @ (i, j, k, 1)`` is the position of its
+  centre, as in NIfTI and ITK: voxel (0, 0, 0) covers the indices -0.5 to 0.5 on each axis.
+"""
+
+from __future__ import annotations
+
+import itertools
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from lungmech.errors import ImageError
+
+__all__ = ["Image", "from_array", "read", "write"]
+
+# Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
+_NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
+_UNITS = {"m": 1.0, "mm": 1e-3}
+_SUFFIXES = {
+    ".nii": "nifti",
+    ".nii.gz": "nifti",
+    ".npz": "npz",
+    ".mha": "itk",
+    ".mhd": "itk",
+    ".nrrd": "itk",
+    ".nhdr": "itk",
+}
+_LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value
+class Image:
+    """A 3-D segmentation placed in space.
+
+    Args:
+        mask: Boolean array of shape (n0, n1, n2) indexed ``[i, j, k]``, with at least one
+            voxel set.
+        affine: (4, 4) map from voxel indices ``(i, j, k, 1)`` (voxel centres) to lungmech
+            coordinates in metres.
+
+    Both arrays are exposed read-only: an image does not change once made (use
+    :meth:`with_mask` for another segmentation on the same grid).
+    """
+
+    mask: npt.NDArray[np.bool_]
+    affine: npt.NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        mask = self.mask
+        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.ndim != 3:
+            found = f"{mask.ndim}-D {mask.dtype}" if isinstance(mask, np.ndarray) else type(mask).__name__
+            raise ImageError(f"an image mask must be a 3-D boolean array, got {found}")
+        if not mask.any():
+            raise ImageError(f"the mask is empty (shape {mask.shape}): no voxel is set")
+        affine = np.array(self.affine, dtype=np.float64)
+        if affine.shape != (4, 4) or not np.isfinite(affine).all():
+            raise ImageError(f"an image affine must be a finite 4x4 matrix, got shape {affine.shape}")
+        if not np.array_equal(affine[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ImageError(f"the last row of an image affine must be (0, 0, 0, 1), got {affine[3]}")
+        if np.linalg.cond(affine[:3, :3]) > 1e12:
+            raise ImageError(f"the image affine is singular: {affine.tolist()}")
+        # Read-only views: the caller's arrays stay writable, but not through the image.
+        mask = mask.view()
+        mask.flags.writeable = False
+        affine.flags.writeable = False
+        object.__setattr__(self, "mask", mask)
+        object.__setattr__(self, "affine", affine)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Number of voxels along i, j and k."""
+        n0, n1, n2 = self.mask.shape
+        return n0, n1, n2
+
+    @property
+    def spacing(self) -> npt.NDArray[np.float64]:
+        """Distance between neighbouring voxel centres along i, j and k, in metres."""
+        return np.linalg.norm(self.affine[:3, :3], axis=0)
+
+    @property
+    def voxel_volume(self) -> float:
+        """Volume of one voxel, in cubic metres."""
+        return float(abs(np.linalg.det(self.affine[:3, :3])))
+
+    @property
+    def volume(self) -> float:
+        """Volume of the segmented region (the voxels set in the mask), in cubic metres."""
+        return np.count_nonzero(self.mask) * self.voxel_volume
+
+    def points(self, index: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Positions in metres of voxel indices (fractional allowed), of shape (..., 3)."""
+        index = np.asarray(index, dtype=np.float64)
+        return index @ self.affine[:3, :3].T + self.affine[:3, 3]
+
+    def index(self, points: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Fractional voxel indices of positions in metres, of shape (..., 3); inverse of :meth:`points`.
+
+        ``np.rint(image.index(p)).astype(int)`` is the voxel containing ``p`` (when inside the image).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        return (points - self.affine[:3, 3]) @ np.linalg.inv(self.affine[:3, :3]).T
+
+    def centres(self) -> npt.NDArray[np.float64]:
+        """Positions in metres of all voxel centres, shape (n0 * n1 * n2, 3), in C order of the mask.
+
+        This materialises every voxel; for the segmented voxels only, use
+        ``image.points(np.argwhere(image.mask))``.
+        """
+        return self.points(np.indices(self.shape).reshape(3, -1).T)
+
+    def bounds(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Lower and upper corners in metres of the axis-aligned box around the whole image.
+
+        The box covers the voxels themselves, not just their centres (an oblique image's box
+        is the box around its eight rotated corners).
+        """
+        corners = self.points(list(itertools.product(*[(-0.5, n - 0.5) for n in self.shape])))
+        return corners.min(axis=0), corners.max(axis=0)
+
+    def with_mask(self, mask: npt.ArrayLike) -> Image:
+        """The same grid with another mask (boolean or 0/1, of the same shape)."""
+        mask = _binary(np.asarray(mask), None, "the new mask")
+        if mask.shape != self.shape:
+            raise ImageError(f"the new mask has shape {mask.shape}, the image has {self.shape}")
+        return Image(mask, self.affine)
+
+
+def from_array(
+    mask: npt.ArrayLike,
+    spacing: npt.ArrayLike = (0.001, 0.001, 0.001),
+    origin: npt.ArrayLike = (0.0, 0.0, 0.0),
+    direction: npt.ArrayLike | None = None,
+) -> Image:
+    """An image from a 3-D array on a regular grid, with ITK-style geometry in lungmech axes.
+
+    Args:
+        mask: Boolean or 0/1 array indexed ``[i, j, k]``.
+        spacing: Distance between voxel centres along i, j and k, in metres.
+        origin: Position in metres of the centre of voxel (0, 0, 0).
+        direction: Orthogonal 3x3 matrix whose columns are the directions of the i, j and k
+            axes in lungmech coordinates; identity by default.
+    """
+    data = _spatial(np.asarray(mask), "the array")
+    spacing = np.asarray(spacing, dtype=np.float64)
+    origin = np.asarray(origin, dtype=np.float64)
+    direction = np.eye(3) if direction is None else np.asarray(direction, dtype=np.float64)
+    if spacing.shape != (3,) or not (np.isfinite(spacing).all() and (spacing > 0).all()):
+        raise ImageError(f"spacing must be three positive lengths in metres, got {spacing}")
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise ImageError(f"origin must be a finite 3-D point, got {origin}")
+    if direction.shape != (3, 3) or not np.allclose(direction.T @ direction, np.eye(3), atol=1e-6):
+        raise ImageError(f"direction must be an orthogonal 3x3 matrix (axis columns), got {direction.tolist()}")
+    return Image(_binary(data, None, "the array"), _affine(direction * spacing, origin))
+
+
+def read(path: str | Path, *, label: int | None = None, unit: str | None = None) -> Image:
+    """Read a segmentation from a file.
+
+    Args:
+        path: A ``.nii`` or ``.nii.gz`` file (NIfTI, affine as nibabel chooses it from the
+            sform and qform), a ``.mha``, ``.mhd``, ``.nrrd`` or ``.nhdr`` file (needs
+            SimpleITK), or a ``.npz`` file from :func:`write`.
+        label: Select the voxels with this value. Without it, the image must be binary
+            (boolean, or values 0 and 1 only).
+        unit: Length unit of the file's geometry, ``"m"`` or ``"mm"``, overriding what the file
+            says. By default, NIfTI's header unit is used (millimetres when it is unset), and
+            ITK formats are taken as millimetres. Ignored for ``.npz``, which is always in metres.
+
+    Raises:
+        ImageError: The file is missing, unreadable or not a usable 3-D segmentation.
+    """
+    path = Path(path)
+    kind = _kind(path)
+    if unit is not None and unit not in _UNITS:
+        raise ImageError(f"unknown unit {unit!r} for image '{path}'; use 'm' or 'mm'")
+    if not path.is_file():
+        raise ImageError(f"image file '{path}' not found")
+    what = f"image '{path}'"
+    scale = None if unit is None else _UNITS[unit]
+    if kind == "nifti":
+        data, affine = _read_nifti(path, scale)
+    elif kind == "itk":
+        data, affine = _read_itk(path, scale)
+    else:
+        data, affine = _read_npz(path)
+    mask = _binary(data, label, what)
+    try:
+        return Image(np.ascontiguousarray(mask), affine)
+    except ImageError as e:
+        raise ImageError(f"{what}: {e}") from None
+
+
+def write(image: Image, path: str | Path) -> None:
+    """Write an image to a file, creating parent folders; the format follows the suffix.
+
+    NIfTI files get uint8 data and a millimetre affine as both sform and qform (code 1,
+    scanner). NIfTI-1 stores the affine in single precision (about 7 digits, tens of
+    nanometres across a chest), so only affines read from NIfTI come back exactly; ``.npz``,
+    ``.mha`` and ``.nrrd`` keep double precision. ITK formats (needs SimpleITK) cannot store a
+    sheared affine.
+    """
+    path = Path(path)
+    kind = _kind(path)
+    nib = _nibabel(path) if kind == "nifti" else None  # imported first, to fail before touching the disk
+    sitk = _simpleitk(path) if kind == "itk" else None
+    data = image.mask.astype(np.uint8)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if kind == "nifti":
+            affine = _scaled(image.affine, 1e3)
+            nifti = nib.Nifti1Image(data, affine)
+            nifti.set_sform(affine, code=1)
+            nifti.set_qform(affine, code=1)
+            nifti.header.set_xyzt_units(xyz="mm")
+            nib.save(nifti, path)
+        elif kind == "itk":
+            origin, spacing, direction = _itk_geometry(image.affine, path)
+            # ITK arrays are indexed [k, j, i].
+            itk = sitk.GetImageFromArray(np.ascontiguousarray(data.transpose(2, 1, 0)))
+            itk.SetOrigin(origin.tolist())
+            itk.SetSpacing(spacing.tolist())
+            itk.SetDirection(direction.ravel().tolist())
+            sitk.WriteImage(itk, str(path), True)  # True: compress
+        else:
+            np.savez_compressed(path, mask=image.mask, affine=image.affine)
+    except ImageError:
+        raise
+    except Exception as e:
+        raise ImageError(f"cannot write image '{path}': {_one_line(e)}") from e
+
+
+def _kind(path: Path) -> str:
+    name = path.name.lower()
+    for suffix, kind in _SUFFIXES.items():
+        if name.endswith(suffix):
+            return kind
+    raise ImageError(f"image '{path}' has an unknown suffix; use one of {', '.join(_SUFFIXES)}")
+
+
+def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+    nib = _nibabel(path)
+    try:
+        nifti = nib.load(path)
+        if not isinstance(nifti, nib.Nifti1Image):  # Nifti2Image is a subclass
+            raise TypeError(f"not a NIfTI image but {type(nifti).__name__}")
+        data = np.asanyarray(nifti.dataobj)  # applies scl_slope/inter, if any
+        affine = np.array(nifti.affine, dtype=np.float64)
+        unit = nifti.header.get_xyzt_units()[0]
+    except Exception as e:  # nibabel raises many kinds (ImageFileError, OSError, EOFError, zlib.error...)
+        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+    data = _spatial(data, f"image '{path}'")
+    return data, _scaled(affine, _NIFTI_UNITS.get(unit, 1e-3) if scale is None else scale)
+
+
+def _read_itk(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+    sitk = _simpleitk(path)
+    try:
+        itk = sitk.ReadImage(str(path))
+        components = itk.GetNumberOfComponentsPerPixel()
+        dim = itk.GetDimension()
+        data = sitk.GetArrayFromImage(itk).transpose()  # ITK arrays are [k, j, i]
+        origin = np.array(itk.GetOrigin())[:3]
+        spacing = np.array(itk.GetSpacing())[:3]
+        direction = np.array(itk.GetDirection()).reshape(dim, dim)[:3, :3]
+    except Exception as e:
+        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+    if components != 1:
+        raise ImageError(f"image '{path}' has {components} values per voxel; a segmentation has one")
+    data = _spatial(data, f"image '{path}'")
+    scale = 1e-3 if scale is None else scale
+    return data, _affine(_LPS @ direction * spacing * scale, _LPS @ origin * scale)
+
+
+def _read_npz(path: Path) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+    # Checked first: np.load takes anything else for a pickle and complains about that.
+    if not zipfile.is_zipfile(path):
+        raise ImageError(f"cannot read image '{path}': not a .npz archive")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data, affine = npz["mask"], npz["affine"]
+    except Exception as e:
+        reason = f"{_one_line(e)} (expected arrays 'mask' and 'affine')"
+        raise ImageError(f"cannot read image '{path}': {reason}") from e
+    return _spatial(data, f"image '{path}'"), affine
+
+
+def _nibabel(path: Path) -> Any:
+    try:
+        import nibabel as nib
+    except ImportError:
+        raise ImageError(f"image '{path}' needs nibabel for its format: pip install nibabel") from None
+    return nib
+
+
+def _simpleitk(path: Path) -> Any:
+    try:
+        import SimpleITK as sitk
+    except ImportError:
+        raise ImageError(f"image '{path}' needs SimpleITK for its format: pip install SimpleITK") from None
+    return sitk
+
+
+def _itk_geometry(affine: npt.NDArray[np.float64], path: Path) -> tuple[npt.NDArray[np.float64], ...]:
+    """Origin, spacing and direction of an affine, in ITK's LPS millimetres."""
+    axes = _LPS @ affine[:3, :3] * 1e3
+    spacing = np.linalg.norm(axes, axis=0)
+    direction = axes / spacing
+    if not np.allclose(direction.T @ direction, np.eye(3), atol=1e-6):
+        raise ImageError(f"cannot write image '{path}': its affine is sheared, which ITK cannot store")
+    return _LPS @ affine[:3, 3] * 1e3, spacing, direction
+
+
+def _spatial(data: npt.NDArray[Any], what: str) -> npt.NDArray[Any]:
+    """The 3-D array, dropping trailing axes of length 1 (e.g. a NIfTI time axis)."""
+    shape = data.shape
+    while data.ndim > 3 and data.shape[-1] == 1:
+        data = data[..., 0]
+    if data.ndim != 3:
+        raise ImageError(f"{what} is {len(shape)}-D (shape {shape}); a segmentation must be 3-D")
+    return data
+
+
+def _binary(data: npt.NDArray[Any], label: int | None, what: str) -> npt.NDArray[np.bool_]:
+    """The boolean mask of ``data``: the voxels equal to ``label``, or of a 0/1 image."""
+    if label is not None:
+        mask = data == label
+        if not mask.any():
+            raise ImageError(f"{what} has no voxel labelled {label}; its labels are {_labels(data)}")
+        return mask
+    if data.dtype == np.bool_:
+        mask = data
+    else:
+        mask = data != 0
+        if not (data[mask] == 1).all():
+            raise ImageError(f"{what} is not binary (its labels are {_labels(data)}); choose one with label=")
+    if not mask.any():
+        raise ImageError(f"{what} is empty (shape {data.shape}): no voxel is set")
+    return mask
+
+
+def _labels(data: npt.NDArray[Any], most: int = 10) -> str:
+    values = np.unique(data)
+    shown = ", ".join(str(v) for v in values[:most].tolist())
+    return shown if len(values) <= most else f"{shown}, ... ({len(values)} values)"
+
+
+def _affine(axes: npt.NDArray[np.float64], origin: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    affine = np.eye(4)
+    affine[:3, :3] = axes
+    affine[:3, 3] = origin
+    return affine
+
+
+def _scaled(affine: npt.NDArray[np.float64], factor: float) -> npt.NDArray[np.float64]:
+    """The affine with positions multiplied by ``factor`` (a change of length unit)."""
+    return np.diag([factor, factor, factor, 1.0]) @ affine
+
+
+def _one_line(error: Exception) -> str:
+    # SimpleITK's messages span lines and end with the useful part.
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return lines[-1].removeprefix("sitk::ERROR: ") if lines else type(error).__name__
