@@ -1,0 +1,204 @@
+"""Shape registration: the image function, the shape derivative, similarity fits and the
+registration itself, against analytic references."""
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from lungmech import geometry
+from lungmech.errors import ParameterError, RegistrationError
+from lungmech.registration import align, field, metrics
+from lungmech.registration.image import from_array
+from lungmech.registration.nodes import deformed
+from lungmech.registration.sobolev import Options, ShapeEnergy, register
+
+
+def ellipsoid_image(axes, spacing, transform=align.Similarity(), margin=0.012):
+    """The voxelised ellipsoid transform({|x / axes| < 1})."""
+    axes = np.asarray(axes, dtype=float)
+    reach = transform.scale * axes.max() + margin
+    lo = transform.translation - reach
+    n = np.ceil(2 * reach / spacing).astype(int) + 1
+    points = lo + np.indices((n, n, n)).reshape(3, -1).T * spacing
+    local = transform.inverse()(points)
+    mask = (np.sum((local / axes) ** 2, axis=1) < 1.0).reshape(n, n, n)
+    return from_array(mask, spacing=(spacing,) * 3, origin=lo)
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh():
+    return geometry.ellipsoid(MPI.COMM_SELF, (0.05, 0.05, 0.05), mesh_size=0.012).mesh
+
+
+def _rotation(axis, degrees):
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.radians(degrees)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+# --- the image function ----------------------------------------------------------------------
+
+
+def test_trilinear_sampling_reproduces_linear_fields_and_extends_outside_the_box():
+    affine = np.array([[0.002, 0.0005, 0, -0.01], [0, 0.0025, 0, 0.02], [0.0003, 0, 0.0015, 0.0], [0, 0, 0, 1]])
+    index = np.indices((12, 10, 9)).reshape(3, -1).T
+    points = index @ affine[:3, :3].T + affine[:3, 3]
+    a, b = np.array([1.5, -2.0, 0.7]), 0.3
+    linear = field.ImageFunction((points @ a + b).reshape(12, 10, 9), affine, distance_outside=True)
+    rng = np.random.default_rng(1)
+    inside = (rng.uniform(0, 1, (200, 3)) * [11, 9, 8]) @ affine[:3, :3].T + affine[:3, 3]
+    value, gradient = linear(inside)
+    assert np.allclose(value, inside @ a + b, atol=1e-12)
+    assert np.allclose(gradient, a, atol=1e-10)
+    # Outside: the value at the nearest box point plus the distance to the box.
+    corner = affine[:3, 3]
+    away = corner - 0.01 * affine[:3, 0] / np.linalg.norm(affine[:3, 0])
+    value, _ = linear(away[None])
+    assert value[0] == pytest.approx(corner @ a + b + 0.01, abs=1e-12)
+    binary = field.ImageFunction(np.zeros((12, 10, 9)), affine, distance_outside=False)
+    value, gradient = binary(away[None])
+    assert value[0] == 1.0 and not gradient.any()
+
+
+def test_signed_distance_of_a_ball_is_the_distance_to_its_sphere():
+    radius, h = 0.03, 0.002
+    image = ellipsoid_image([radius] * 3, h)
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(300, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    distances = rng.uniform(-0.02, 0.03, 300)
+    points = directions * (radius + distances)[:, None]
+    for smoothing in (0.0, 1.0):
+        value, gradient = field.signed_distance(image, smoothing)(points)
+        assert np.max(np.abs(value - distances)) < 0.75 * h
+        near = np.abs(distances) > 3 * h  # away from the staircase: a unit outward gradient
+        assert np.median(np.sum(gradient[near] * directions[near], axis=1)) > 0.95
+    binary = field.binary(image)(points)[0]
+    assert np.all(binary[distances > h] == 1.0) and np.all(binary[distances < -h] == -1.0)
+    with pytest.raises(ParameterError, match="smoothing"):
+        field.signed_distance(image, -1.0)
+
+
+# --- the energy and its shape derivative -----------------------------------------------------
+
+
+def _energy(mesh, image_function, options=Options()):
+    u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))))
+    energy = ShapeEnergy(u, 1.0 / 0.05**2, options)
+    energy.use(image_function)
+    return u, energy
+
+
+def test_shape_derivative_passes_the_taylor_test(sphere_mesh):
+    """Ψ(u + t v) − Ψ(u) − t DΨ(u)[v] = O(t²), for a linear image function (exactly sampled)."""
+    affine = np.diag([0.004, 0.004, 0.004, 1.0])
+    affine[:3, 3] = -0.1
+    points = np.indices((51, 51, 51)).reshape(3, -1).T * 0.004 - 0.1
+    a = np.array([2.0, -1.0, 3.0])
+    linear = field.ImageFunction((points @ a + 0.01).reshape(51, 51, 51), affine, distance_outside=True)
+    u, energy = _energy(sphere_mesh, linear)
+    try:
+        u.interpolate(lambda x: np.stack([0.1 * x[1] ** 2 / 0.05, 0.05 * x[0], 0.2 * x[2] * x[0] / 0.05]))
+        start = energy.state()
+        v = fem.Function(u.function_space)
+        v.interpolate(lambda x: np.stack([np.sin(40 * x[2]), x[0] * x[1] / 0.05**2, np.cos(30 * x[0])]) * 0.01)
+        direction = v.x.array[: energy.owned]
+        psi0 = energy.value()
+        slope = energy.dot(energy.derivative(), direction)
+        remainders = []
+        for t in (0.4, 0.2, 0.1, 0.05):
+            energy.set_state(start + t * direction)
+            remainders.append(abs(energy.value() - psi0 - t * slope))
+        rates = np.log2(np.array(remainders[:-1]) / remainders[1:])
+        assert np.all(rates > 1.9), rates
+    finally:
+        energy.destroy()
+
+
+def test_binary_energy_measures_the_symmetric_difference(sphere_mesh):
+    """With the ±1 image, Ψ(ω) − Ψ(S) = |ω Δ S|, Ψ(S) = −|S|: for ω ⊃ S, |ω| − 2|S|."""
+    h = 0.0015
+    for radius in (0.04, 0.055):  # the 0.05 ball strictly contains / lies in the image's ball
+        image = ellipsoid_image([radius] * 3, h)
+        u, energy = _energy(sphere_mesh, field.binary(image), Options(quadrature_degree=4))
+        try:
+            psi = energy.value()
+        finally:
+            energy.destroy()
+        mesh_volume = metrics_volume(sphere_mesh)
+        symmetric = abs(mesh_volume - image.volume)  # one contains the other
+        assert psi + image.volume == pytest.approx(symmetric, rel=0.03)
+
+
+def metrics_volume(mesh):
+    return mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ufl.dx(domain=mesh))), op=MPI.SUM)
+
+
+# --- similarity transforms -------------------------------------------------------------------
+
+
+def test_procrustes_recovers_a_similarity_and_its_removal_leaves_nothing():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(50, 3))
+    weights = rng.uniform(0.5, 2.0, 50)
+    truth = align.Similarity(1.3, _rotation([1, 2, 0.5], 35), np.array([0.1, -0.2, 0.3]))
+    fit = align.procrustes(points, truth(points), weights)
+    assert fit.scale == pytest.approx(1.3, rel=1e-12)
+    assert np.allclose(fit.rotation, truth.rotation, atol=1e-12)
+    assert np.allclose(fit.inverse()(truth(points)), points, atol=1e-12)
+    from lungmech.registration.library import without_similarity
+
+    shape_change = 0.01 * np.sin(points)
+    moved = truth(points + shape_change) - points
+    residual = without_similarity(points, moved, weights)
+    # Removing the similarity leaves a shape change, up to the similarity that best fits it.
+    again = without_similarity(points, shape_change, weights)
+    assert np.allclose(residual, again, atol=1e-12)
+    assert np.allclose(without_similarity(points, truth(points) - points, weights), 0.0, atol=1e-12)
+    with pytest.raises(RegistrationError):
+        align.procrustes(points, points[:10])
+
+
+def test_moments_fit_recovers_a_rotated_scaled_shifted_ellipsoid():
+    mesh = geometry.ellipsoid(MPI.COMM_SELF, (0.06, 0.045, 0.03), mesh_size=0.01).mesh
+    truth = align.Similarity(1.15, _rotation([0.3, 1.0, 0.2], 20), np.array([0.01, -0.02, 0.015]))
+    image = ellipsoid_image([0.06, 0.045, 0.03], 0.0015, truth)
+    fit = align.moments_fit(mesh, image)
+    # Mesh faceting and voxel staircase limit the moments to about a percent.
+    assert fit.scale == pytest.approx(truth.scale, rel=0.01)
+    assert np.allclose(fit.translation, truth.translation, atol=0.5 * 0.0015)
+    angle = np.degrees(np.arccos(np.clip((np.trace(fit.rotation.T @ truth.rotation) - 1) / 2, -1, 1)))
+    assert angle < 1.0
+    no_rotation = align.moments_fit(mesh, image, rotation=False)
+    assert np.allclose(no_rotation.rotation, np.eye(3))
+
+
+# --- registration ----------------------------------------------------------------------------
+
+
+def test_registering_a_sphere_to_an_ellipsoid_meets_the_targets(sphere_mesh):
+    h = 0.002
+    transform = align.Similarity(1.0, _rotation([0, 0, 1], 10), np.array([0.01, -0.005, 0.02]))
+    image = ellipsoid_image([0.06, 0.045, 0.08], h, transform)
+    result = register(sphere_mesh, image)
+    assert result.converged and result.min_jacobian > 0.2
+    with deformed(result.displacement) as mesh:
+        report = metrics.report(mesh, image)
+    assert report["dice"] >= 0.97
+    assert report["mean_surface_distance"] <= h
+    assert report["hd95"] <= 2 * h
+    summary = result.summary()
+    assert summary["iterations"] == sum(s["iterations"] for s in summary["stages"])
+    assert np.allclose(sphere_mesh.geometry.x.min(axis=0), -0.05, atol=2e-3)  # the reference is untouched
+
+
+def test_registration_options_are_checked():
+    with pytest.raises(ParameterError, match="image_function"):
+        Options(image_function="mutual information")
+    with pytest.raises(ParameterError, match="min_jacobian"):
+        Options(min_jacobian=1.5)
+    with pytest.raises(ParameterError, match="stages"):
+        Options(stages=())
