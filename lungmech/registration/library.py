@@ -1,0 +1,254 @@
+"""From a library of mappings of one reference mesh to shape modes, and back to new geometries.
+
+Every mapping φ_j = Id + u_j of the reference Ω (one per patient, from :func:`register`) is
+written in one node order (the canonical, partition-independent order of
+:mod:`lungmech.rom.layout`). The similarity part of each mapping (position, orientation, size)
+is removed by composition, φ̃_j = S_j⁻¹ ∘ φ_j with S_j its mass-weighted Procrustes fit; the rest
+is centred on the sample mean and reduced by a POD in the mass inner product
+(u, v)_M = (1/|Ω|) ∫_Ω u·v dX with lumped nodal masses, so that norms read as RMS displacements
+in metres. Coefficients of a shape are in standard deviations of the library.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from dolfinx import fem
+
+from lungmech.errors import RegistrationError
+from lungmech.geometry import Geometry
+from lungmech.registration import metrics, nodes
+from lungmech.registration.align import procrustes
+from lungmech.registration.image import Image
+from lungmech.registration.sobolev import Options, register
+
+__all__ = ["Library", "ShapeModes", "leave_one_out", "mapping_library", "shape_modes", "without_similarity"]
+
+FORMAT = "lungmech-shape-modes/1"
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Library:
+    """Mappings of one reference mesh onto several images (nodes in canonical order).
+
+    Attributes:
+        names: One per image.
+        reference: Reference node positions (n, 3).
+        weights: Normalised lumped nodal masses (n,).
+        displacements: The mappings' displacements (N, n, 3), similarity included.
+        fingerprint: Of the reference mesh's node layout.
+        reports: Registration summary and metrics per image.
+    """
+
+    names: tuple[str, ...]
+    reference: np.ndarray
+    weights: np.ndarray
+    displacements: np.ndarray
+    fingerprint: str
+    reports: tuple[dict, ...]
+
+    def shape_changes(self) -> np.ndarray:
+        """The displacements with each mapping's similarity removed (N, n, 3)."""
+        return np.array([without_similarity(self.reference, u, self.weights) for u in self.displacements])
+
+    def modes(self) -> ShapeModes:
+        return shape_modes(self.reference, self.shape_changes(), self.weights, self.fingerprint, self.names)
+
+    def leave_one_out(self) -> np.ndarray:
+        return leave_one_out(self.shape_changes(), self.weights)
+
+
+def mapping_library(
+    mesh, images: Mapping[str, Image], options: Options = Options(), on_each: Callable | None = None
+) -> Library:
+    """Register ``mesh`` (left unchanged) onto every image (collective).
+
+    ``on_each(name, registration, report)`` is called after each image, the mesh deformed.
+    """
+    if len(images) < 2:
+        raise RegistrationError(f"a mapping library needs at least 2 images, got {len(images)}")
+    space, where = nodes.displacement_space(mesh)
+    reference = nodes.gather(_coordinates(space), where)
+    weights = nodes.masses(space, where)
+    displacements, reports = [], []
+    for name, image in images.items():
+        result = register(mesh, image, options)
+        with nodes.deformed(result.displacement) as mapped:
+            report = {"name": name} | metrics.report(mapped, image) | result.summary()
+            if on_each is not None:
+                on_each(name, result, report)
+        log.info("%s: Dice %.4f, mean surface distance %.2f voxels, min det F %.3f, %d iterations",
+                 name, report["dice"], report["mean_surface_distance_voxels"], report["min_det_F"],
+                 report["iterations"])
+        displacements.append(nodes.gather(result.displacement, where))
+        reports.append(report)
+    return Library(tuple(images), reference, weights, np.array(displacements), where.fingerprint, tuple(reports))
+
+
+def _coordinates(space: fem.FunctionSpace) -> fem.Function:
+    """The identity map X as a nodal field."""
+    identity = fem.Function(space)
+    identity.interpolate(lambda x: x)
+    return identity
+
+
+def without_similarity(reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The displacement of S⁻¹ ∘ φ, φ = Id + displacement, S the best similarity fit of φ."""
+    mapped = reference + displacement
+    fit = procrustes(reference, mapped, weights)
+    return fit.inverse()(mapped) - reference
+
+
+@dataclass(frozen=True)
+class ShapeModes:
+    """Mean shape and modes of a library of mappings of one reference mesh (nodes canonical).
+
+    Attributes:
+        reference: Reference node positions (n, 3).
+        weights: Normalised lumped nodal masses (n,).
+        mean: Mean displacement (n, 3).
+        modes: M-orthonormal modes (m, n, 3).
+        singular_values: Of the centred, mass-weighted library (m,), metres.
+        coefficients: Of each library member on the modes (N, m), in standard deviations.
+        fingerprint: Of the reference mesh's layout; a mesh with another refuses the modes.
+        names: Library members.
+    """
+
+    reference: np.ndarray
+    weights: np.ndarray
+    mean: np.ndarray
+    modes: np.ndarray
+    singular_values: np.ndarray
+    coefficients: np.ndarray
+    fingerprint: str
+    names: tuple[str, ...]
+
+    @property
+    def deviations(self) -> np.ndarray:
+        """Standard deviation of the library along each mode (RMS metres)."""
+        return self.singular_values / np.sqrt(max(len(self.names) - 1, 1))
+
+    def compactness(self) -> np.ndarray:
+        """Fraction of the library's variance captured by the first 1, 2, ... modes."""
+        energy = self.singular_values**2
+        return np.cumsum(energy) / energy.sum()
+
+    def displacement(self, coefficients: Sequence[float]) -> np.ndarray:
+        """Mean + Σ c_k σ_k mode_k, c in standard deviations (fewer than the modes: the rest 0)."""
+        c = np.asarray(coefficients, dtype=float)
+        if c.ndim != 1 or len(c) > len(self.modes):
+            raise RegistrationError(f"give at most {len(self.modes)} shape coefficients, got {c.size}")
+        return self.mean + np.einsum("k,knd->nd", c * self.deviations[: len(c)], self.modes[: len(c)])
+
+    def geometry(self, reference: Geometry, coefficients: Sequence[float]) -> Geometry:
+        """A new geometry: ``reference`` (a fresh copy, its nodes are moved) mapped by a shape.
+
+        The boundary names and tags are the reference's, so a scene's loads and constraints apply.
+        """
+        space, where = nodes.displacement_space(reference.mesh)
+        if where.fingerprint != self.fingerprint:
+            raise RegistrationError(
+                "the mesh is not the reference these shape modes were built on "
+                f"(fingerprint {where.fingerprint}, modes {self.fingerprint})"
+            )
+        u = fem.Function(space)
+        nodes.scatter(self.displacement(coefficients), u, where)
+        nodes.move_nodes(u)
+        return reference
+
+    def save(self, path: str | Path) -> None:
+        """Write to ``.npz`` (arrays plus JSON metadata); call on one rank."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise RegistrationError(f"shape modes are saved as .npz, not {path.suffix!r}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        metadata = {"format": FORMAT, "fingerprint": self.fingerprint, "names": list(self.names)}
+        np.savez(
+            path, reference=self.reference, weights=self.weights, mean=self.mean, modes=self.modes,
+            singular_values=self.singular_values, coefficients=self.coefficients, metadata=json.dumps(metadata),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> ShapeModes:
+        path = Path(path)
+        if not path.is_file():
+            raise RegistrationError(f"shape modes file '{path}' not found")
+        try:
+            with np.load(path) as data:
+                metadata = json.loads(str(data["metadata"]))
+                arrays = {k: data[k] for k in ("reference", "weights", "mean", "modes", "singular_values", "coefficients")}
+        except (OSError, ValueError, KeyError) as error:
+            raise RegistrationError(f"'{path}' is not a shape-modes file ({error})") from None
+        if metadata.get("format") != FORMAT:
+            raise RegistrationError(f"'{path}' is not a shape-modes file (format {metadata.get('format')!r})")
+        return cls(**arrays, fingerprint=metadata["fingerprint"], names=tuple(metadata["names"]))
+
+
+def shape_modes(
+    reference: np.ndarray,
+    displacements: Sequence[np.ndarray],
+    weights: np.ndarray,
+    fingerprint: str,
+    names: Sequence[str] | None = None,
+) -> ShapeModes:
+    """Mass-weighted POD, centred on the mean, of similarity-free displacements (n, 3) each."""
+    data = np.asarray(displacements, dtype=float)
+    if data.ndim != 3 or data.shape[1:] != reference.shape or len(data) < 2:
+        raise RegistrationError(f"need at least 2 displacements of shape {reference.shape}, got {data.shape}")
+    mean = data.mean(axis=0)
+    modes, singular, coefficients = _pod(data - mean, weights)
+    names = tuple(names) if names is not None else tuple(f"shape_{j}" for j in range(len(data)))
+    deviations = singular / np.sqrt(len(data) - 1)
+    return ShapeModes(reference, weights, mean, modes, singular, coefficients / deviations, fingerprint, names)
+
+
+def _pod(centred: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """M-orthonormal modes, singular values and coefficients (N, m) of centred samples (N, n, 3).
+
+    Directions with σ below 1e-10 σ₁ are round-off (a centred library has rank N − 1 at most).
+    """
+    root = np.sqrt(weights)[None, :, None]
+    matrix = (centred * root).reshape(len(centred), -1)  # rows: samples in the M-weighted basis
+    left, singular, right = np.linalg.svd(matrix, full_matrices=False)
+    keep = singular > 1e-10 * singular[0] if singular[0] > 0 else np.zeros(len(singular), bool)
+    modes = right[keep].reshape(-1, *centred.shape[1:]) / root
+    return modes, singular[keep], left[:, keep] * singular[keep]
+
+
+def leave_one_out(displacements: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """RMS generalisation error (metres) against the number of modes 0, 1, ..., N − 2.
+
+    Each member is left out in turn, modes are built from the others, and the member's distance
+    from the span of (mean + modes) is measured in the mass norm.
+    """
+    data = np.asarray(displacements, dtype=float)
+    count = len(data)
+    if count < 3:
+        raise RegistrationError(f"leave-one-out needs at least 3 shapes, got {count}")
+    errors = np.zeros((count, count - 1))
+    for j in range(count):
+        others = np.delete(data, j, axis=0)
+        mean = others.mean(axis=0)
+        modes, _, _ = _pod(others - mean, weights)
+        residual = data[j] - mean
+        errors[j, 0] = _norm(residual, weights)
+        for m, mode in enumerate(modes[: count - 2], start=1):
+            residual = residual - _inner(residual, mode, weights) * mode
+            errors[j, m] = _norm(residual, weights)
+        errors[j, len(modes) + 1 :] = errors[j, len(modes)]
+    return np.sqrt(np.mean(errors**2, axis=0))
+
+
+def _inner(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> float:
+    return float(np.einsum("n,nd,nd->", weights, a, b))
+
+
+def _norm(a: np.ndarray, weights: np.ndarray) -> float:
+    return np.sqrt(_inner(a, a, weights))
