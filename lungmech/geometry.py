@@ -34,6 +34,7 @@ import dolfinx.io
 import dolfinx.mesh
 import ufl
 from lungmech.errors import GeometryError
+from lungmech.lung_shape import LungShape
 
 __all__ = ["Geometry", "box", "ellipsoid", "from_file", "lung_phantom", "sphere", "write"]
 
@@ -395,6 +396,7 @@ def lung_phantom(
     order: int = 1,
     *,
     msh_file: str | Path | None = None,
+    shape: LungShape | None = None,
 ) -> Geometry:
     """A generic adult lung, in metres.
 
@@ -403,30 +405,28 @@ def lung_phantom(
     The body is an egg-like ellipsoid, tapered towards the apex; a sphere from below carves
     the diaphragmatic dome; the left lung has a cardiac notch (part of ``mediastinum``).
 
+    ``shape`` gives the lung's full description (:class:`lungmech.lung_shape.LungShape`:
+    apex taper, dome height, mediastinal flattening, cardiac notch); ``height``, ``width``,
+    ``depth`` and ``side`` then stay at their defaults or repeat the shape's values.
+
     Boundaries: ``pleura`` (costal and apical surface), ``diaphragm``, ``mediastinum``
     (medial face without the hilum), ``hilum`` (an elliptic patch on the medial face at about
     60 % of the height). Cells are tagged 1, named ``lung``.
     """
-    if side not in ("right", "left"):
-        raise GeometryError(f"side must be 'right' or 'left', got {side!r}")
-    if not (height > 0 and width > 0 and depth > 0):
-        raise GeometryError(f"lung dimensions must be positive, got {height=}, {width=}, {depth=}")
+    if shape is None:
+        shape = LungShape(height, width, depth, side)
+    else:  # the size and side arguments may keep their defaults or repeat the shape's values
+        given, default = {"height": height, "width": width, "depth": depth, "side": side}, LungShape()
+        clash = [f"{k}={v!r}" for k, v in given.items() if v not in (getattr(default, k), getattr(shape, k))]
+        if clash:
+            raise GeometryError(f"lung_phantom got a shape and {', '.join(clash)}, which differ from it")
     _check_order(order)
-    h = _check_mesh_size(mesh_size, 0.16 * min(height, width, depth))
-    s = 1.0 if side == "right" else -1.0  # the left lung mirrors the right one in x = 0
-    H, W, D = height, width, depth
-
-    # The body: two half-ellipsoids sharing an equator low down, the upper one taller (apex).
-    a, b = 0.75 * W, 0.5 * D
-    body_centre = np.array([s * (W - a), 0.0, 0.3 * H])
-    upper_axes = np.array([a, b, H - body_centre[2]])
-    lower_axes = np.array([a, b, 0.5 * H])
-    # The dome peaks at 0.2 H and meets the body at z ~ 0, 80 % of the way out (costophrenic recess).
-    rim, peak = 0.8 * min(a, b), 0.2 * H
-    dome_radius = (rim**2 + peak**2) / (2 * peak)
-    dome_centre = np.array([body_centre[0], 0.0, peak - dome_radius])
-    hilum_centre, hilum_radii = np.array([0.0, -0.05 * D, 0.6 * H]), np.array([0.08 * H, 0.09 * D])  # (z, y)
-    notch_centre, notch_radius = np.array([-s * 0.05 * W, 0.32 * D, 0.35 * H]), 0.45 * W
+    H, W, D = shape.height, shape.width, shape.depth
+    h = _check_mesh_size(mesh_size, 0.16 * min(H, W, D))
+    body_centre, upper_axes, lower_axes = shape.body_centre, shape.upper_axes, shape.lower_axes
+    dome_centre, dome_radius = shape.dome_centre, shape.dome_radius
+    notch_centre, notch_radius = shape.notch_centre, shape.notch_radius
+    hilum_centre, hilum_radii = shape.hilum_centre, shape.hilum_radii  # radii along (z, y)
 
     def build(occ: Any) -> tuple[int, dict[str, _Rule], str]:
         up = occ.addSphere(*body_centre, 1.0, angle1=0.0)
@@ -436,10 +436,10 @@ def lung_phantom(
         [(_, lung)], _ = occ.fuse([(3, up)], [(3, down)])
         big = 2.0 * max(H, W, D)
         # Everything on the far side of the mediastinal plane x = 0 goes.
-        midline = occ.addBox(-big if side == "right" else 0.0, -big / 2, -big / 2, big, big, 2 * big)
+        midline = occ.addBox(-big if shape.side == "right" else 0.0, -big / 2, -big / 2, big, big, 2 * big)
         dome = occ.addSphere(*dome_centre, dome_radius)
         tools = [(3, midline), (3, dome)]
-        if side == "left":
+        if notch_radius > 0:
             tools.append((3, occ.addSphere(*notch_centre, notch_radius)))
         [(_, lung)], _ = occ.cut([(3, lung)], tools)
         # Imprint the hilum on the mediastinal face; OCC wants the major axis first.
@@ -461,7 +461,7 @@ def lung_phantom(
         rules: dict[str, _Rule] = {
             "pleura": lambda x: upper(x) or lower(x),
             "diaphragm": _all_on(_ellipsoid_surface([dome_radius] * 3, dome_centre)),
-            "mediastinum": lambda x: (medial(x) and not hilum(x)) or (side == "left" and notch(x)),
+            "mediastinum": lambda x: (medial(x) and not hilum(x)) or (notch_radius > 0 and notch(x)),
             "hilum": hilum,
         }
         return lung, rules, "lung"
