@@ -1,4 +1,5 @@
-"""Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve`` and ``lungmech info``."""
+"""Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve``, ``lungmech register``,
+``lungmech shape-modes``, ``lungmech shape``, ``lungmech phantom`` and ``lungmech info``."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from importlib import resources
 from pathlib import Path
 
 from lungmech.errors import LungmechError, ParameterError
+from lungmech.registration import commands as registration
 
 DEFAULT_SCENE = "lung_breathing.toml"
 
@@ -35,11 +37,14 @@ def main(argv: list[str] | None = None) -> int:
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
     solve.add_argument("scene", nargs="?", help="scene file (default: the one the model was built from)")
     _common(solve)
+    registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
     args = parser.parse_args(argv)
     try:
         if args.command == "info":
             return _info()
+        if args.command in registration.COMMANDS:
+            return registration.run(args)
         if args.command == "rom" and args.action == "build":
             return _rom_build(args)
         return _run(args)

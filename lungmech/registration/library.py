@@ -75,7 +75,7 @@ def mapping_library(
     if len(images) < 2:
         raise RegistrationError(f"a mapping library needs at least 2 images, got {len(images)}")
     space, where = nodes.displacement_space(mesh)
-    reference = nodes.gather(_coordinates(space), where)
+    reference = nodes.positions(space, where)
     weights = nodes.masses(space, where)
     displacements, reports = [], []
     for name, image in images.items():
@@ -90,13 +90,6 @@ def mapping_library(
         displacements.append(nodes.gather(result.displacement, where))
         reports.append(report)
     return Library(tuple(images), reference, weights, np.array(displacements), where.fingerprint, tuple(reports))
-
-
-def _coordinates(space: fem.FunctionSpace) -> fem.Function:
-    """The identity map X as a nodal field."""
-    identity = fem.Function(space)
-    identity.interpolate(lambda x: x)
-    return identity
 
 
 def without_similarity(reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ from dolfinx import fem, la
 
 from lungmech.rom.layout import Layout, layout
 
-__all__ = ["deformed", "displacement_space", "gather", "masses", "move_nodes", "scatter"]
+__all__ = ["deformed", "displacement_space", "gather", "masses", "move_nodes", "positions", "scatter"]
 
 
 def displacement_space(mesh) -> tuple[fem.FunctionSpace, Layout]:
@@ -31,6 +31,13 @@ def gather(function: fem.Function, where: Layout) -> np.ndarray:
     owned = function.function_space.dofmap.index_map.size_local * 3
     # Canonical dofs are sorted by (component, node): all x components, then y, then z.
     return where.gather(function.x.array[:owned]).reshape(3, -1).T
+
+
+def positions(space: fem.FunctionSpace, where: Layout) -> np.ndarray:
+    """The nodes' current positions (nodes, 3) in canonical order, on every rank (collective)."""
+    identity = fem.Function(space)
+    identity.interpolate(lambda x: x)
+    return gather(identity, where)
 
 
 def scatter(values: np.ndarray, function: fem.Function, where: Layout) -> None:

@@ -68,6 +68,9 @@ class Options:
             ``window`` iterations (V the segmented volume, h the voxel size).
         first_step, max_step: The largest nodal move of the first trial step, and of any step.
         memory: Number of L-BFGS correction pairs (0: plain Sobolev-gradient descent).
+        regularisation: Weight of the shape-distortion energy ∫_Ω ψ_iso(F) dX, in voxels for
+            the signed distance (0: the bare Ψ; then how nodes slide along the surface depends
+            on the descent's path).
         relax_below: When min det F falls below this, the interior is re-placed by the elastic
             extension of the boundary displacement (if that helps).
         similarity, rotation: Start from the moments fit; with the principal-axes rotation.
@@ -86,6 +89,7 @@ class Options:
     first_step: float = 2.0
     max_step: float = 4.0
     memory: int = 10
+    regularisation: float = 1.0
     relax_below: float = 0.5
     similarity: bool = True
     rotation: bool = True
@@ -99,6 +103,8 @@ class Options:
             raise ParameterError(f"stages must be non-negative smoothings (voxels), got {list(self.stages)}")
         if self.smoothing_length is not None and not self.smoothing_length > 0:
             raise ParameterError(f"smoothing_length must be positive (metres), got {self.smoothing_length}")
+        if not (np.isfinite(self.regularisation) and self.regularisation >= 0):
+            raise ParameterError(f"regularisation must be non-negative, got {self.regularisation}")
         if not 0 < self.min_jacobian < 1:
             raise ParameterError(f"min_jacobian must lie in (0, 1), got {self.min_jacobian}")
         if self.memory < 0:
@@ -150,11 +156,16 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
     try:
         for smoothing in options.stages:
             build = image_field.signed_distance if options.image_function == "distance" else image_field.binary
-            energy.use(build(image, smoothing))
+            # I is a length (distance) or a number (binary): weigh the distortion alike.
+            scale = voxel if options.image_function == "distance" else 1.0
+            energy.use(build(image, smoothing), options.regularisation * scale)
             stage = _descend(energy, options, voxel, image.volume, history)
             stages.append({"smoothing": smoothing} | stage)
             log.info("registration stage (smoothing %g voxels): %d iterations, %s, min det F %.3f",
                      smoothing, stage["iterations"], stage["reason"], stage["min_det_F"])
+        # The interior as a function of the boundary alone: mappings of different images are
+        # then comparable node by node, whatever path each descent took.
+        canonical = energy.relax(gain=-np.inf, floor=options.min_jacobian)
         psi = energy.value()
         jacobian = energy.min_jacobian()
     finally:
@@ -282,13 +293,21 @@ class ShapeEnergy:
         v = ufl.TestFunction(u.function_space)
         g = ufl.TrialFunction(u.function_space)
         I, dI = self.image, self.image_gradient
-        self.psi = fem.form(I * J * dx)
-        self.derivative_form = fem.form((ufl.dot(dI, v) + I * ufl.inner(ufl.inv(F).T, ufl.grad(v))) * J * dx)
+        # A shape-distortion energy (isochoric neo-Hookean: zero for any similarity map) picks,
+        # among the mappings of one boundary, the least distorted one: without it, how nodes
+        # slide along the surface depends on the path of the descent.
+        self.weight = fem.Constant(mesh, 0.0)
+        distortion = 0.5 * (J ** (-2.0 / 3.0) * ufl.tr(F.T * F) - 3.0)
+        exact = ufl.dx(domain=mesh)
+        self.psi = fem.form(I * J * dx + self.weight * distortion * exact)
+        self.derivative_form = fem.form(
+            (ufl.dot(dI, v) + I * ufl.inner(ufl.inv(F).T, ufl.grad(v))) * J * dx
+            + self.weight * ufl.derivative(distortion, u, v) * exact
+        )
 
         def eps(w):  # the symmetric gradient on the current configuration
             return ufl.sym(ufl.grad(w) * ufl.inv(F))
 
-        exact = ufl.dx(domain=mesh)  # polynomial integrand for straight cells: exact quadrature
         self.inner = fem.form((2.0 * ufl.inner(eps(g), eps(v)) + alpha * ufl.inner(g, v)) * J * exact)
         self.matrix = fem_petsc.create_matrix(self.inner)
         self.rhs = fem_petsc.create_vector(u.function_space)
@@ -317,8 +336,10 @@ class ShapeEnergy:
         for key in options.solver:
             del opts[prefix + key]
 
-    def use(self, image_function: image_field.ImageFunction) -> None:
+    def use(self, image_function: image_field.ImageFunction, distortion: float = 0.0) -> None:
+        """Minimise ∫_ω I dx + distortion · ∫_Ω ψ_iso(F) dX from now on."""
         self.field = image_function
+        self.weight.value = distortion
 
     def _sample(self, with_gradient: bool) -> None:
         x = self.positions.eval(self.u.function_space.mesh, self.cells).reshape(-1, 3)
@@ -328,15 +349,17 @@ class ShapeEnergy:
             blocked = self.image_gradient.x.array.reshape(-1, 3)
             blocked[self.image_gradient.function_space.dofmap.list[self.cells].ravel()] = gradient
 
-    def relax(self, gain: float = 0.05) -> bool:
+    def relax(self, gain: float = 0.05, floor: float = 0.0) -> bool:
         """Re-place the interior nodes by the linear elastic extension, from the reference, of
-        the boundary displacement; keep it if that raises min det F. Ψ depends on the mapped
-        boundary only, so this undoes the interior distortion that the descent accumulates
-        (affine maps, the initial similarity among them, are extended exactly)."""
+        the boundary displacement; keep it if min det F rises by ``gain`` and stays above
+        ``floor``. Ψ depends on the mapped boundary only, so this undoes the interior distortion
+        that the descent accumulates (affine maps, the initial similarity among them, are
+        extended exactly)."""
         before, jacobian = self.state(), self.min_jacobian()
         self.extension.solve()
         self.set_state(self.relaxed.x.array[: self.owned])
-        if self.min_jacobian() > jacobian + gain:
+        relaxed = self.min_jacobian()
+        if relaxed > jacobian + gain and relaxed >= floor:
             return True
         self.set_state(before)
         return False
