@@ -8,8 +8,8 @@ from mpi4py import MPI
 from lungmech.errors import RegistrationError
 from lungmech.geometry import sphere
 from lungmech.registration.image import from_array
+from lungmech.registration.metrics import boundary_triangles
 from lungmech.registration.pictures import (
-    boundary_triangles,
     plane_section,
     registration_slices,
     shape_spectrum,

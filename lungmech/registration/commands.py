@@ -58,7 +58,7 @@ def _image_options(command: argparse.ArgumentParser) -> None:
 
 
 def _descent_options(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--stages", help="image smoothings in voxels, coarse to fine, comma-separated (default 2,0.5)")
+    command.add_argument("--stages", help="image smoothings in voxels, coarse to fine, comma-separated (default 2,1)")
     command.add_argument("--image-function", choices=("distance", "binary"), default="distance")
     command.add_argument("--min-jacobian", type=float, default=0.25, help="reject steps making det F smaller")
     command.add_argument("--max-iterations", type=int, default=200, help="per stage")

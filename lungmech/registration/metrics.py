@@ -32,7 +32,7 @@ import dolfinx.mesh
 from lungmech.errors import RegistrationError
 from lungmech.registration.image import Image
 
-__all__ = ["dice", "report", "surface_distances", "voxelise"]
+__all__ = ["boundary_triangles", "dice", "report", "surface_distances", "voxelise"]
 
 _HD_PERCENTILE = 95.0
 
@@ -95,7 +95,7 @@ def surface_distances(mesh: dolfinx.mesh.Mesh, image: Image) -> dict[str, float]
     fraction of a voxel apart (about 0.2 voxel in the mean), which fades for surfaces more
     than a voxel apart. Collective.
     """
-    return _distances(_boundary(mesh), image, mesh.comm)
+    return _distances(boundary_triangles(mesh), image, mesh.comm)
 
 
 def report(
@@ -116,7 +116,7 @@ def report(
         ``spacing`` (the smallest voxel spacing, m), all floats. Collective.
     """
     voxels = voxelise(mesh, image) if dice_mask is None else np.asarray(dice_mask, dtype=bool)
-    triangles = _boundary(mesh)
+    triangles = boundary_triangles(mesh)
     distances = _distances(triangles, image, mesh.comm)
     spacing = float(np.min(image.spacing))
     return {
@@ -226,8 +226,8 @@ def _in_tetrahedra(
     return inside & (total <= 1.0 + tol)
 
 
-def _boundary(mesh: dolfinx.mesh.Mesh) -> npt.NDArray[np.float64]:
-    """Vertex coordinates (m, 3, 3) of all the mesh's boundary triangles, on every rank.
+def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> npt.NDArray[np.float64]:
+    """Vertex coordinates (m, 3, 3) of all the mesh's boundary triangles, on every rank (collective).
 
     Triangles are oriented outwards and listed in a canonical order (each starting at its
     lexicographically smallest vertex, then sorted), so the result does not depend on how the

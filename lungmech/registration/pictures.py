@@ -5,8 +5,7 @@
 - :func:`shape_spectrum`: singular values and compactness of a shape-mode library, and its
   leave-one-out generalisation error.
 
-:func:`boundary_triangles` and :func:`plane_section` are the geometry behind the slices, public
-for reuse.
+:func:`plane_section` is the geometry behind the slices, public for reuse.
 """
 
 from __future__ import annotations
@@ -28,24 +27,15 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from lungmech.errors import RegistrationError  # noqa: E402
 from lungmech.registration.image import Image  # noqa: E402
+from lungmech.registration.metrics import boundary_triangles  # noqa: E402
 
-__all__ = ["boundary_triangles", "plane_section", "registration_slices", "shape_spectrum"]
+__all__ = ["plane_section", "registration_slices", "shape_spectrum"]
 
 _DPI = 150
 _MASK_GREY = "0.72"
 _MESH_COLOUR = "tab:red"
 _REFERENCE_COLOUR = "tab:blue"
 _AXES = "ijk"
-
-
-def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> npt.NDArray[np.float64]:
-    """Vertex coordinates (n, 3, 3) of the mesh's exterior triangles, on every rank (collective).
-
-    The coordinates are the mesh's current ones (``mesh.geometry.x``). The order of the triangles
-    and of their vertices depends on how the mesh is distributed; curved facets of higher-order
-    meshes are replaced by the flat triangles through their vertices.
-    """
-    return np.concatenate(mesh.comm.allgather(_owned_triangles(mesh))).reshape(-1, 3, 3)
 
 
 def plane_section(
@@ -95,6 +85,7 @@ def registration_slices(
     *,
     title: str = "",
     reference: npt.ArrayLike | None = None,
+    reference_label: str = "reference",
 ) -> None:
     """A PNG of three orthogonal slices through ``image`` with the cut of the mesh's boundary.
 
@@ -105,14 +96,13 @@ def registration_slices(
     position, is drawn dashed. Parent folders are created. Collective: only rank 0 draws (and
     needs ``reference``).
     """
-    local = _owned_triangles(mesh)
-    pieces = mesh.comm.gather(local, root=0)
+    triangles = boundary_triangles(mesh)
     if mesh.comm.rank != 0:
         return
-    surfaces = [(np.concatenate(pieces).reshape(-1, 3, 3), _MESH_COLOUR, "-", "mesh")]
+    surfaces = [(triangles, _MESH_COLOUR, "-", "mesh")]
     if reference is not None:
         reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3, 3)
-        surfaces.append((reference, _REFERENCE_COLOUR, "--", "reference"))
+        surfaces.append((reference, _REFERENCE_COLOUR, "--", reference_label))
 
     voxels = np.argwhere(image.mask)
     centre = np.rint(voxels.mean(axis=0)).astype(int)
@@ -204,18 +194,6 @@ def shape_spectrum(
         fig.suptitle(title)
     fig.tight_layout()
     _save(fig, path)
-
-
-def _owned_triangles(mesh: dolfinx.mesh.Mesh) -> npt.NDArray[np.float64]:
-    """Vertex coordinates (n, 3, 3) of this rank's exterior facets (owned only: no duplicates)."""
-    if mesh.topology.cell_type != dolfinx.mesh.CellType.tetrahedron:
-        raise RegistrationError(f"need a tetrahedral mesh, got {mesh.topology.cell_type.name} cells")
-    tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim - 1, tdim)
-    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-    facets = facets[facets < mesh.topology.index_map(tdim - 1).size_local]
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets)
-    return mesh.geometry.x[nodes[:, :3]]  # the vertices come first, also in curved facets
 
 
 def _chains(links: npt.NDArray[np.intp], n: int) -> list[list[int]]:

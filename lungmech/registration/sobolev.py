@@ -78,7 +78,7 @@ class Options:
         solver: PETSc options of the Sobolev-gradient solve (default: direct LU).
     """
 
-    stages: Sequence[float] = (2.0, 0.5)
+    stages: Sequence[float] = (2.0, 1.0)
     image_function: str = "distance"
     smoothing_length: float | None = None
     min_jacobian: float = 0.25

@@ -44,12 +44,13 @@ def register_image(
     result = register(geometry.mesh, image, options)
     space, where = nodes.displacement_space(geometry.mesh)
     reference_nodes = nodes.positions(space, where)
-    initial = result.similarity(pictures.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
+    initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
     with atomic_folder(Path(out), comm) as staging:
         with nodes.deformed(result.displacement) as mesh:
             report = {"reference": str(reference)} | metrics.report(mesh, image) | result.summary()
             geometries.write(geometry, staging / "registered.xdmf")
             pictures.registration_slices(mesh, image, staging / "registration.png", reference=initial,
+                                         reference_label="start (similarity fit)",
                                          title=f"Dice {report['dice']:.3f}, mean distance "
                                                f"{1e3 * report['mean_surface_distance']:.2f} mm")
         report["total_seconds"] = time.perf_counter() - start
