@@ -1,0 +1,68 @@
+"""The registration commands: phantom → register → shape-modes → shape, and their errors."""
+
+import json
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lungmech import geometry
+from lungmech.cli import main
+from lungmech.lung_shape import LungShape
+from lungmech.registration import image
+
+REFERENCE = "meshes/lung_phantom_right.msh"
+
+
+def test_phantom_register_and_outputs(tmp_path, capsys):
+    target = tmp_path / "patient.nii.gz"
+    assert main(["phantom", "-o", str(target), "--height", "0.22", "--dome", "0.22", "--spacing", "2.5"]) == 0
+    segmentation = image.read(target)
+    assert segmentation.volume == pytest.approx(LungShape(height=0.22, dome=0.22).volume(), rel=0.01)
+    out = tmp_path / "fit"
+    assert main(["register", str(target), "--reference", REFERENCE, "-o", str(out), "-q"]) == 0
+    assert "Dice" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["dice"] >= 0.97 and report["mean_surface_distance_voxels"] <= 1.0 and report["min_det_F"] > 0.2
+    assert (out / "registration.png").stat().st_size > 10_000
+    mapped = geometry.from_file(out / "registered.xdmf", MPI.COMM_WORLD)
+    assert set(mapped.boundaries) >= {"pleura", "diaphragm", "mediastinum", "hilum"}
+    assert mapped.volume() == pytest.approx(report["volume_mesh"], rel=1e-9)
+    with np.load(out / "mapping.npz") as mapping:
+        assert mapping["reference"].shape == mapping["displacement"].shape
+
+
+def test_shape_modes_of_a_synthetic_cohort_and_a_new_shape(tmp_path):
+    out = tmp_path / "modes"
+    args = ["shape-modes", "--synthetic", "4", "--latent", "1", "--spacing", "2.5", "--reference", REFERENCE]
+    assert main([*args, "-o", str(out), "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["images"] == 4 and len(report["leave_one_out_rms"]) == 3
+    assert report["compactness"][-1] == pytest.approx(1.0)
+    assert (out / "singular_values.png").is_file()
+    new = tmp_path / "new.xdmf"
+    assert main(["shape", str(out / "shape_modes.npz"), "--reference", REFERENCE, "-c", "1.5", "-o", str(new)]) == 0
+    assert geometry.from_file(new, MPI.COMM_WORLD).volume() > 0
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["register", "missing.nii.gz", "--reference", REFERENCE], "not found"),
+        (["register", "{npz}", "--reference", "missing.msh"], "not found"),
+        (["register", "{npz}", "--reference", REFERENCE, "--stages", "2,x"], "--stages"),
+        (["register", "{npz}", "--reference", REFERENCE, "--min-jacobian", "2"], "min_jacobian"),
+        (["shape-modes", "{npz}", "--synthetic", "3", "--reference", REFERENCE], "not both"),
+        (["shape", "missing.npz", "--reference", REFERENCE, "-c", "1", "-o", "x.xdmf"], "not found"),
+        (["phantom", "-o", "{tmp}/p.nii.gz", "--dome", "0.9"], "dome"),
+    ],
+)
+def test_bad_input_gives_one_clear_error(argv, message, tmp_path, capsys):
+    npz = tmp_path / "labels.npz"
+    labels = np.zeros((10, 10, 10), dtype=np.uint8)
+    labels[3:7, 3:7, 3:7] = 1
+    image.write(image.from_array(labels, spacing=(0.002,) * 3), npz)
+    argv = [a.format(npz=npz, tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lungmech: error:") and message in err and "Traceback" not in err
