@@ -36,7 +36,7 @@ import ufl
 from lungmech.errors import GeometryError
 from lungmech.lung_shape import LungShape
 
-__all__ = ["Geometry", "box", "ellipsoid", "from_file", "lung_phantom", "sphere", "write"]
+__all__ = ["Geometry", "box", "diameter", "ellipsoid", "from_file", "lung_phantom", "sphere", "write"]
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: compared and hashed by identity, like the mesh
@@ -91,14 +91,17 @@ class Geometry:
     @property
     def size(self) -> float:
         """Characteristic length: the diagonal of the mesh's bounding box."""
-        x = self.mesh.geometry.x
-        # A rank may own no nodes; +-inf leave the reduction untouched.
-        lo = x.min(axis=0) if len(x) else np.full(3, np.inf)
-        hi = x.max(axis=0) if len(x) else np.full(3, -np.inf)
-        lo_all, hi_all = np.empty(3), np.empty(3)
-        self.mesh.comm.Allreduce(np.ascontiguousarray(lo, dtype=np.float64), lo_all, op=MPI.MIN)
-        self.mesh.comm.Allreduce(np.ascontiguousarray(hi, dtype=np.float64), hi_all, op=MPI.MAX)
-        return float(np.linalg.norm(hi_all - lo_all))
+        return diameter(self.mesh)
+
+
+def diameter(mesh: dolfinx.mesh.Mesh) -> float:
+    """The diagonal of the mesh's bounding box (collective)."""
+    x = mesh.geometry.x
+    # A rank may own no nodes; +-inf leave the reduction untouched.
+    local = np.concatenate([x.min(axis=0), -x.max(axis=0)]) if len(x) else np.full(6, np.inf)
+    bounds = np.empty_like(local)
+    mesh.comm.Allreduce(np.ascontiguousarray(local, dtype=np.float64), bounds, op=MPI.MIN)
+    return float(np.linalg.norm(-bounds[3:] - bounds[:3]))
 
 
 def _integrate(mesh: dolfinx.mesh.Mesh, measure: ufl.Measure) -> float:

@@ -43,6 +43,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError, RegistrationError
+from lungmech.geometry import diameter
 from lungmech.registration import field as image_field
 from lungmech.registration.align import Similarity, moments_fit
 from lungmech.registration.image import Image
@@ -150,7 +151,7 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
     similarity = moments_fit(mesh, image, options.rotation) if options.similarity else Similarity()
     u.interpolate(lambda x: (similarity(x.T) - x.T).T)
     voxel = float(image.spacing.min())
-    length = options.smoothing_length or 0.25 * _diameter(mesh)
+    length = options.smoothing_length or 0.25 * diameter(mesh)
     energy = ShapeEnergy(u, 1.0 / length**2, options)
     stages, history = [], []
     try:
@@ -420,13 +421,3 @@ class ShapeEnergy:
         self.matrix.destroy()
         self.rhs.destroy()
         self.gradient.destroy()
-
-
-def _diameter(mesh) -> float:
-    x = mesh.geometry.x
-    lo = x.min(axis=0) if len(x) else np.full(3, np.inf)
-    hi = x.max(axis=0) if len(x) else np.full(3, -np.inf)
-    lo_all, hi_all = np.empty(3), np.empty(3)
-    mesh.comm.Allreduce(np.ascontiguousarray(lo, dtype=float), lo_all, op=MPI.MIN)
-    mesh.comm.Allreduce(np.ascontiguousarray(hi, dtype=float), hi_all, op=MPI.MAX)
-    return float(np.linalg.norm(hi_all - lo_all))

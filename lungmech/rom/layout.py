@@ -15,6 +15,8 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
+from lungmech.geometry import diameter
+
 _RESOLUTION = 1e-9  # coordinates are compared on a grid of 1e-9 × the mesh diameter
 
 
@@ -46,7 +48,7 @@ def layout(space: fem.FunctionSpace) -> Layout:
     owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
     keys = np.zeros((owned, 5), dtype=np.int64)
     seen = np.zeros(owned, dtype=bool)
-    grid = _RESOLUTION * _diameter(space.mesh)
+    grid = _RESOLUTION * diameter(space.mesh)
     for field, (collapsed, parent) in enumerate(field_dofs(space)):
         bs = collapsed.dofmap.index_map_bs
         nodes = collapsed.dofmap.index_map.size_local
@@ -76,14 +78,6 @@ def field_dofs(space: fem.FunctionSpace) -> list[tuple[fem.FunctionSpace, np.nda
         return [(space, np.arange(space.dofmap.index_map.size_local * space.dofmap.index_map_bs))]
     fields = [space.sub(i).collapse() for i in range(space.ufl_element().num_sub_elements)]
     return [(collapsed, np.asarray(parent).ravel()) for collapsed, parent in fields]
-
-
-def _diameter(mesh) -> float:
-    x = mesh.geometry.x
-    local = np.concatenate([x.min(axis=0), -x.max(axis=0)]) if len(x) else np.full(6, np.inf)
-    bounds = np.empty_like(local)
-    mesh.comm.Allreduce(local, bounds, op=MPI.MIN)
-    return float(np.linalg.norm(-bounds[3:] - bounds[:3]))
 
 
 def _cell_midpoints(mesh, grid: float) -> np.ndarray:
