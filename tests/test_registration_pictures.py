@@ -13,6 +13,7 @@ from lungmech.registration.pictures import (
     plane_section,
     registration_slices,
     shape_spectrum,
+    surface_sections,
 )
 
 R = 0.03  # ball radius (m)
@@ -128,6 +129,16 @@ def test_shape_spectrum_with_and_without_leave_one_out(tmp_path):
     assert share(alone, GREEN) == 0.0
     with pytest.raises(RegistrationError):
         shape_spectrum([0.0, 0.0], tmp_path / "zero.png")
+
+
+def test_surface_sections_draw_every_surface(mesh, tmp_path):
+    triangles = boundary_triangles(mesh)
+    path = tmp_path / "sections.png"
+    surface_sections({"ball": triangles, "bigger": 1.2 * triangles, "shifted": triangles + 0.005}, path, title="t")
+    pixels = matplotlib.image.imread(path)[..., :3]
+    assert path.stat().st_size > 10_000 and pixels.shape[1] > 2 * pixels.shape[0]
+    with pytest.raises(RegistrationError, match="no surface"):
+        surface_sections({}, path)
 
 
 @pytest.mark.mpi

@@ -4,6 +4,8 @@
   boundary (and optionally a reference surface, e.g. the starting position) cut by each slice.
 - :func:`shape_spectrum`: singular values and compactness of a shape-mode library, and its
   leave-one-out generalisation error.
+- :func:`surface_sections`: several surfaces (e.g. a mean shape and its modes) cut by three
+  orthogonal planes.
 
 :func:`plane_section` is the geometry behind the slices, public for reuse.
 """
@@ -29,7 +31,7 @@ from lungmech.errors import RegistrationError  # noqa: E402
 from lungmech.registration.image import Image  # noqa: E402
 from lungmech.registration.metrics import boundary_triangles  # noqa: E402
 
-__all__ = ["plane_section", "registration_slices", "shape_spectrum"]
+__all__ = ["plane_section", "registration_slices", "shape_spectrum", "surface_sections"]
 
 _DPI = 150
 _MASK_GREY = "0.72"
@@ -193,6 +195,38 @@ def shape_spectrum(
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    _save(fig, path)
+
+
+def surface_sections(
+    surfaces: dict[str, npt.ArrayLike], path: str | Path, *, title: str = ""
+) -> None:
+    """A PNG of surfaces (label -> triangles (n, 3, 3), metres) cut by the planes x, y and z =
+    const through the first surface's centroid, e.g. a mean shape and its modes (one rank)."""
+    if not surfaces:
+        raise RegistrationError("no surface to draw")
+    meshes = {label: np.asarray(t, dtype=np.float64).reshape(-1, 3, 3) for label, t in surfaces.items()}
+    centre = next(iter(meshes.values())).reshape(-1, 3).mean(axis=0)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 5.2))
+    for ax, normal_axis in zip(axes, (2, 1, 0)):
+        p, q = [a for a in range(3) if a != normal_axis]
+        for (label, triangles), colour in zip(meshes.items(), colours):
+            normal = np.eye(3)[normal_axis]
+            curves = [1e3 * c[:, [p, q]] for c in plane_section(triangles, normal, centre[normal_axis])]
+            style = "-" if label == next(iter(meshes)) else "--"
+            ax.add_collection(LineCollection(curves, colors=colour, linestyles=style, linewidths=1.5, label=label))
+        ax.autoscale()
+        ax.set_aspect("equal")
+        ax.set_title(f"{'xyz'[normal_axis]} = {1e3 * centre[normal_axis]:.0f} mm")
+        ax.set_xlabel(f"{'xyz'[p]} (mm)")
+        ax.set_ylabel(f"{'xyz'[q]} (mm)")
+    handles = [Line2D([], [], color=c, linestyle="-" if i == 0 else "--", label=label)
+               for i, (label, c) in enumerate(zip(meshes, colours))]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
     _save(fig, path)
 
 
