@@ -15,10 +15,16 @@ and the descent direction is the Sobolev gradient g, the Riesz representative of
 
 which is smooth even where DΨ is not: the boundary is pushed "in the right direction" while the
 interior follows like an elastic body. α = 1/ℓ² sets the length ℓ below which the update is
-smoothed; by default ℓ is a quarter of the mesh's diagonal.
+smoothed; by default ℓ is a quarter of the mesh's diagonal. The Riesz map of this inner product
+preconditions L-BFGS, whose first step is the plain Sobolev gradient.
+
+Ψ depends on the mapped boundary only, so nodes may slide along the surface at no cost, and
+how far they slide would depend on the path of the descent. A small shape-distortion energy
+(isochoric neo-Hookean, zero for similarity maps) picks the least distorted mapping instead.
 
 Steps are controlled by backtracking (Armijo), and every step is rejected that would make
-det F fall below ``min_jacobian`` anywhere. The descent stops when an accepted step moves no
+det F fall below ``min_jacobian`` anywhere; when det F gets low, the interior nodes are re-placed
+by the elastic extension of the boundary displacement. The descent stops when an accepted step moves no
 node by more than ``step_tolerance`` voxels, or when Ψ stagnates (for a ±1 image the gradient
 never vanishes, so its norm is no criterion). It starts from a moments-based similarity fit, and
 optionally goes coarse to fine through a sequence of image smoothings. Everything is collective
@@ -120,7 +126,8 @@ class Options:
 
 @dataclass
 class Registration:
-    """The result of :func:`register`: the mapping Φ = Id + displacement of the reference mesh."""
+    """The result of :func:`register`: the mapping Φ = Id + displacement of the reference mesh,
+    and ``psi``, the final objective (Ψ plus the distortion term)."""
 
     displacement: fem.Function
     similarity: Similarity
@@ -164,9 +171,6 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
             stages.append({"smoothing": smoothing} | stage)
             log.info("registration stage (smoothing %g voxels): %d iterations, %s, min det F %.3f",
                      smoothing, stage["iterations"], stage["reason"], stage["min_det_F"])
-        # The interior as a function of the boundary alone: mappings of different images are
-        # then comparable node by node, whatever path each descent took.
-        canonical = energy.relax(gain=-np.inf, floor=options.min_jacobian)
         psi = energy.value()
         jacobian = energy.min_jacobian()
     finally:
@@ -350,17 +354,16 @@ class ShapeEnergy:
             blocked = self.image_gradient.x.array.reshape(-1, 3)
             blocked[self.image_gradient.function_space.dofmap.list[self.cells].ravel()] = gradient
 
-    def relax(self, gain: float = 0.05, floor: float = 0.0) -> bool:
+    def relax(self, gain: float = 0.05) -> bool:
         """Re-place the interior nodes by the linear elastic extension, from the reference, of
-        the boundary displacement; keep it if min det F rises by ``gain`` and stays above
-        ``floor``. Ψ depends on the mapped boundary only, so this undoes the interior distortion
+        the boundary displacement; keep it if min det F rises by ``gain``. Ψ depends on the
+        mapped boundary only, so this undoes the interior distortion
         that the descent accumulates (affine maps, the initial similarity among them, are
         extended exactly)."""
         before, jacobian = self.state(), self.min_jacobian()
         self.extension.solve()
         self.set_state(self.relaxed.x.array[: self.owned])
-        relaxed = self.min_jacobian()
-        if relaxed > jacobian + gain and relaxed >= floor:
+        if self.min_jacobian() > jacobian + gain:
             return True
         self.set_state(before)
         return False
