@@ -82,7 +82,8 @@ class Options:
             extension of the boundary displacement (if that helps).
         similarity, rotation: Start from the moments fit; with the principal-axes rotation.
         quadrature_degree: For the image terms.
-        solver: PETSc options of the Sobolev-gradient solve (default: direct LU).
+        solver: PETSc options of the Sobolev-gradient solve and of the elastic extension
+            (default: MUMPS LU, 2-7× faster than PETSc's own LU here).
     """
 
     stages: Sequence[float] = (2.0, 1.0)
@@ -101,7 +102,9 @@ class Options:
     similarity: bool = True
     rotation: bool = True
     quadrature_degree: int = 2
-    solver: dict = field(default_factory=lambda: {"ksp_type": "preonly", "pc_type": "lu"})
+    solver: dict = field(
+        default_factory=lambda: {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}
+    )
 
     def __post_init__(self) -> None:
         if self.image_function not in ("distance", "binary"):
@@ -324,22 +327,15 @@ class ShapeEnergy:
         boundary = fem.locate_dofs_topological(u.function_space, tdim - 1, dmesh.exterior_facet_indices(mesh.topology))
         self.relaxed = fem.Function(u.function_space)
         w = ufl.TrialFunction(u.function_space)
-        elastic = (2.0 * ufl.inner(ufl.sym(ufl.grad(w)), ufl.sym(ufl.grad(v))) + ufl.div(w) * ufl.div(v)) * exact
-        self.extension = fem_petsc.LinearProblem(
-            elastic, ufl.inner(fem.Constant(mesh, np.zeros(3)), v) * exact, u=self.relaxed,
-            bcs=[fem.dirichletbc(u, boundary)], petsc_options_prefix=f"lungmech_extension_{id(self)}_",
-            petsc_options=dict(options.solver),
+        # The reference never moves: one matrix, factorised once.
+        self.elastic = fem.form(
+            (2.0 * ufl.inner(ufl.sym(ufl.grad(w)), ufl.sym(ufl.grad(v))) + ufl.div(w) * ufl.div(v)) * exact
         )
-        self.ksp = PETSc.KSP().create(mesh.comm)
-        self.ksp.setOperators(self.matrix)
-        prefix = f"lungmech_registration_{id(self)}_"
-        self.ksp.setOptionsPrefix(prefix)
-        opts = PETSc.Options()
-        for key, value in options.solver.items():
-            opts[prefix + key] = value
-        self.ksp.setFromOptions()
-        for key in options.solver:
-            del opts[prefix + key]
+        self.boundary = [fem.dirichletbc(u, boundary)]  # the current boundary displacement
+        self.extension_matrix = fem_petsc.assemble_matrix(self.elastic, bcs=self.boundary)
+        self.extension_matrix.assemble()
+        self.extension = _direct_solver(self.extension_matrix, options.solver, f"lungmech_extension_{id(self)}_")
+        self.ksp = _direct_solver(self.matrix, options.solver, f"lungmech_registration_{id(self)}_")
 
     def use(self, image_function: image_field.ImageFunction, distortion: float = 0.0) -> None:
         """Minimise ∫_ω I dx + distortion · ∫_Ω ψ_iso(F) dX from now on."""
@@ -361,7 +357,12 @@ class ShapeEnergy:
         that the descent accumulates (affine maps, the initial similarity among them, are
         extended exactly)."""
         before, jacobian = self.state(), self.min_jacobian()
-        self.extension.solve()
+        with self.rhs.localForm() as local:
+            local.set(0.0)
+        fem_petsc.apply_lifting(self.rhs, [self.elastic], bcs=[self.boundary])
+        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.set_bc(self.rhs, self.boundary)
+        self.extension.solve(self.rhs, self.relaxed.x.petsc_vec)
         self.set_state(self.relaxed.x.array[: self.owned])
         if self.min_jacobian() > jacobian + gain:
             return True
@@ -420,7 +421,22 @@ class ShapeEnergy:
 
     def destroy(self) -> None:
         self.ksp.destroy()
-        self.extension.solver.destroy()
+        self.extension.destroy()
+        self.extension_matrix.destroy()
         self.matrix.destroy()
         self.rhs.destroy()
         self.gradient.destroy()
+
+
+def _direct_solver(matrix: PETSc.Mat, settings: dict, prefix: str) -> PETSc.KSP:
+    """A KSP on ``matrix`` configured from ``settings`` (PETSc options, set under ``prefix``)."""
+    ksp = PETSc.KSP().create(matrix.getComm())
+    ksp.setOperators(matrix)
+    ksp.setOptionsPrefix(prefix)
+    opts = PETSc.Options()
+    for key, value in settings.items():
+        opts[prefix + key] = value
+    ksp.setFromOptions()
+    for key in settings:
+        del opts[prefix + key]
+    return ksp
