@@ -7,7 +7,7 @@ PY      := $(VENV)/bin/python
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
 
-.PHONY: demo test test-serial test-mpi bench bench-rom clean
+.PHONY: demo test test-serial test-mpi bench bench-rom bench-registration clean
 
 $(STAMP): pyproject.toml
 	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
@@ -30,6 +30,9 @@ bench: $(STAMP)
 
 bench-rom: $(STAMP)
 	$(PY) benchmarks/rom.py
+
+bench-registration: $(STAMP)
+	$(PY) benchmarks/registration.py
 
 clean:
 	rm -rf results benchmarks/results
