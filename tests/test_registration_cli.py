@@ -52,7 +52,7 @@ def test_shape_modes_of_a_synthetic_cohort_and_a_new_shape(tmp_path):
         (["register", "{npz}", "--reference", "missing.msh"], "not found"),
         (["register", "{npz}", "--reference", REFERENCE, "--stages", "2,x"], "--stages"),
         (["register", "{npz}", "--reference", REFERENCE, "--min-jacobian", "2"], "min_jacobian"),
-        (["shape-modes", "{npz}", "--synthetic", "3", "--reference", REFERENCE], "not both"),
+        (["shape-modes", "{npz}", "--synthetic", "3", "--reference", REFERENCE], "one of the two"),
         (["shape", "missing.npz", "--reference", REFERENCE, "-c", "1", "-o", "x.xdmf"], "not found"),
         (["phantom", "-o", "{tmp}/p.nii.gz", "--dome", "0.9"], "dome"),
     ],
@@ -66,3 +66,28 @@ def test_bad_input_gives_one_clear_error(argv, message, tmp_path, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("lungmech: error:") and message in err and "Traceback" not in err
+
+
+@pytest.mark.mpi
+def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
+    """Every rank takes part (collective volumes, one writer per file) and nothing hangs."""
+    comm = MPI.COMM_WORLD
+    folder = comm.bcast(tmp_path, root=0)  # one folder for all ranks
+    reference = folder / "ball.xdmf"
+    geometry.write(geometry.ellipsoid(comm, (0.03, 0.03, 0.03), mesh_size=0.01), reference)
+    if comm.rank == 0:
+        for j, axes in enumerate([(0.03, 0.035, 0.04), (0.032, 0.03, 0.036), (0.035, 0.033, 0.03)]):
+            h = 0.0025
+            n = 40
+            x = (np.indices((n, n, n)).reshape(3, -1).T - n / 2) * h
+            mask = (np.sum((x / axes) ** 2, axis=1) < 1).reshape(n, n, n)
+            image.write(image.from_array(mask, spacing=(h,) * 3, origin=(-n / 2 * h,) * 3), folder / "images" / f"e{j}.npz")
+    comm.Barrier()
+    out = folder / "modes"
+    assert main(["shape-modes", str(folder / "images"), "--reference", str(reference), "-o", str(out), "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["images"] == 3 and report["worst"]["dice"] >= 0.97
+    assert (out / "singular_values.png").stat().st_size > 10_000
+    new = folder / "new.xdmf"
+    assert main(["shape", str(out / "shape_modes.npz"), "--reference", str(reference), "-c", "1,-1", "-o", str(new)]) == 0
+    assert geometry.from_file(new, comm).volume() > 0

@@ -54,11 +54,9 @@ class Moments:
 def mesh_moments(mesh) -> Moments:
     """Moments of a tetrahedral mesh in its current configuration (collective; vertices only,
     so exact for straight-sided cells)."""
-    tdim = mesh.topology.dim
-    owned = mesh.topology.index_map(tdim).size_local
-    nodes = mesh.geometry.dofmaps[0][:owned, :4]  # the vertices come first in every cell
-    x = mesh.geometry.x[nodes]  # (cells, 4, 3)
-    volume = np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) / 6.0
+    owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    x = mesh.geometry.x[mesh.geometry.dofmaps[0][:owned, :4]]  # (cells, 4, 3)
+    volume = np.abs(cell_volumes(mesh))
     # ∫ x dx = V mean(vertices); ∫ x xᵀ dx = V/20 (Σ x_i x_iᵀ + (Σ x_i)(Σ x_i)ᵀ)
     total = x.sum(axis=1)
     first = (volume[:, None] * total / 4.0).sum(axis=0)
@@ -66,6 +64,13 @@ def mesh_moments(mesh) -> Moments:
     sums = np.concatenate([[volume.sum()], first, second.ravel()])
     mesh.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     return _moments(sums[0], sums[1:4], sums[4:].reshape(3, 3))
+
+
+def cell_volumes(mesh) -> np.ndarray:
+    """Signed volumes of this rank's owned cells (their vertices; the sign is the orientation)."""
+    owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    x = mesh.geometry.x[mesh.geometry.dofmaps[0][:owned, :4]]  # the vertices come first in every cell
+    return np.linalg.det(x[:, 1:] - x[:, :1]) / 6.0
 
 
 def image_moments(image: Image) -> Moments:

@@ -111,7 +111,7 @@ def _shape_modes(args, comm) -> int:
 
     options = _options(args)
     if (args.synthetic is None) == (not args.images):
-        raise ParameterError("give image files/folders or --synthetic N, not both")
+        raise ParameterError("give either image files/folders or --synthetic N (one of the two)")
     if args.synthetic is not None:
         cohort = phantom.cohort(args.synthetic, args.latent, seed=args.seed, side=args.side)
         sources = {f"patient_{j:03d}": im for j, im in enumerate(cohort.images(spacing=1e-3 * args.spacing))}
@@ -139,8 +139,9 @@ def _shape(args, comm) -> int:
     modes = ShapeModes.load(args.modes)
     new = modes.geometry(geometry.from_file(args.reference, comm), coefficients)
     geometry.write(new, args.output)
+    volume = new.volume()  # collective
     if comm.rank == 0:
-        print(f"lungmech: shape {coefficients} written to {Path(args.output).resolve()} (volume {new.volume():.6g})")
+        print(f"lungmech: shape {coefficients} written to {Path(args.output).resolve()} (volume {volume:.6g})")
     return 0
 
 
@@ -148,6 +149,7 @@ def _phantom(args, comm) -> int:
     from lungmech.lung_shape import LungShape
     from lungmech.registration import image, phantom
 
+    image.kind(Path(args.output))  # a bad suffix fails on every rank, before any work
     fields = {f.name for f in dataclasses.fields(LungShape)}
     given = {k: v for k, v in vars(args).items() if k in fields and v is not None}
     shape = LungShape(**given)

@@ -53,6 +53,8 @@ class ImageFunction:
         upper = np.array(self.values.shape) - 1.0
         clamped = np.clip(index, 0.0, upper)
         value, gradient_index = _trilinear(self.values, clamped)
+        # Along a clamped axis the value no longer changes with the interior field.
+        gradient_index[index != clamped] = 0.0
         # d/dx = A^-T d/d(index), for index = A^-1 (x - shift)
         gradient = np.linalg.solve(linear.T, gradient_index.T).T
         outside = np.any(index != clamped, axis=1)
@@ -72,10 +74,16 @@ def signed_distance(image: Image, smoothing: float = 1.0) -> ImageFunction:
     Gaussian of standard deviation ``smoothing`` voxels (0: none)."""
     _check_smoothing(smoothing)
     spacing = image.spacing
-    # Distances between voxel centres; the surface lies half a voxel from the last centre inside.
-    outside = ndimage.distance_transform_edt(~image.mask, sampling=spacing)
-    inside = ndimage.distance_transform_edt(image.mask, sampling=spacing)
-    half = 0.5 * spacing.min()
+    # Distances between voxel centres. The surface lies about half a voxel short of the nearest
+    # centre on the other side, half a voxel measured across the surface: with n the unit vector
+    # towards that centre, ½ Σ_k h_k n_k², which is h_k / 2 for a face normal to axis k.
+    outside, to_inside = ndimage.distance_transform_edt(~image.mask, sampling=spacing, return_indices=True)
+    inside, to_outside = ndimage.distance_transform_edt(image.mask, sampling=spacing, return_indices=True)
+    nearest = np.where(image.mask, to_outside, to_inside)
+    offset = (nearest - np.indices(image.shape)) * spacing[:, None, None, None]  # metres, per axis
+    length2 = np.sum(offset**2, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        half = np.where(length2 > 0, 0.5 * np.einsum("k,k...->...", spacing, offset**2) / length2, 0.0)
     values = np.where(image.mask, half - inside, outside - half)
     return ImageFunction(_smooth(values, smoothing), image.affine.copy(), distance_outside=True)
 
@@ -88,7 +96,7 @@ def binary(image: Image, smoothing: float = 0.0) -> ImageFunction:
 
 
 def _smooth(values: np.ndarray, smoothing: float) -> np.ndarray:
-    # Beyond the border the field continues by reflection, like the extension outside the box.
+    # Beyond the border the field continues with its edge values.
     return ndimage.gaussian_filter(values, smoothing, mode="nearest") if smoothing > 0 else values
 
 

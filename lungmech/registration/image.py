@@ -31,12 +31,12 @@ import numpy.typing as npt
 
 from lungmech.errors import ImageError
 
-__all__ = ["Image", "from_array", "read", "write"]
+__all__ = ["SUFFIXES", "Image", "from_array", "kind", "read", "stem", "write"]
 
 # Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
 _NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
 _UNITS = {"m": 1.0, "mm": 1e-3}
-_SUFFIXES = {
+SUFFIXES = {
     ".nii": "nifti",
     ".nii.gz": "nifti",
     ".npz": "npz",
@@ -72,7 +72,10 @@ class Image:
             raise ImageError(f"an image mask must be a 3-D boolean array, got {found}")
         if not mask.any():
             raise ImageError(f"the mask is empty (shape {mask.shape}): no voxel is set")
-        affine = np.array(self.affine, dtype=np.float64)
+        try:
+            affine = np.array(self.affine, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ImageError(f"an image affine must be a 4x4 matrix of numbers, got {self.affine!r}") from None
         if affine.shape != (4, 4) or not np.isfinite(affine).all():
             raise ImageError(f"an image affine must be a finite 4x4 matrix, got shape {affine.shape}")
         if not np.array_equal(affine[3], [0.0, 0.0, 0.0, 1.0]):
@@ -190,16 +193,16 @@ def read(path: str | Path, *, label: int | None = None, unit: str | None = None)
         ImageError: The file is missing, unreadable or not a usable 3-D segmentation.
     """
     path = Path(path)
-    kind = _kind(path)
+    format_ = kind(path)
     if unit is not None and unit not in _UNITS:
         raise ImageError(f"unknown unit {unit!r} for image '{path}'; use 'm' or 'mm'")
     if not path.is_file():
         raise ImageError(f"image file '{path}' not found")
     what = f"image '{path}'"
     scale = None if unit is None else _UNITS[unit]
-    if kind == "nifti":
+    if format_ == "nifti":
         data, affine = _read_nifti(path, scale)
-    elif kind == "itk":
+    elif format_ == "itk":
         data, affine = _read_itk(path, scale)
     else:
         data, affine = _read_npz(path)
@@ -220,20 +223,20 @@ def write(image: Image, path: str | Path) -> None:
     sheared affine.
     """
     path = Path(path)
-    kind = _kind(path)
-    nib = _nibabel(path) if kind == "nifti" else None  # imported first, to fail before touching the disk
-    sitk = _simpleitk(path) if kind == "itk" else None
+    format_ = kind(path)
+    nib = _nibabel(path) if format_ == "nifti" else None  # imported first, to fail before touching the disk
+    sitk = _simpleitk(path) if format_ == "itk" else None
     data = image.mask.astype(np.uint8)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        if kind == "nifti":
+        if format_ == "nifti":
             affine = _scaled(image.affine, 1e3)
             nifti = nib.Nifti1Image(data, affine)
             nifti.set_sform(affine, code=1)
             nifti.set_qform(affine, code=1)
             nifti.header.set_xyzt_units(xyz="mm")
             nib.save(nifti, path)
-        elif kind == "itk":
+        elif format_ == "itk":
             origin, spacing, direction = _itk_geometry(image.affine, path)
             # ITK arrays are indexed [k, j, i].
             itk = sitk.GetImageFromArray(np.ascontiguousarray(data.transpose(2, 1, 0)))
@@ -249,12 +252,22 @@ def write(image: Image, path: str | Path) -> None:
         raise ImageError(f"cannot write image '{path}': {_one_line(e)}") from e
 
 
-def _kind(path: Path) -> str:
+def kind(path: Path) -> str:
+    """The format of an image file from its suffix (any case): nifti, npz or itk."""
     name = path.name.lower()
-    for suffix, kind in _SUFFIXES.items():
+    for suffix, format_ in SUFFIXES.items():
         if name.endswith(suffix):
-            return kind
-    raise ImageError(f"image '{path}' has an unknown suffix; use one of {', '.join(_SUFFIXES)}")
+            return format_
+    raise ImageError(f"image '{path}' has an unknown suffix; use one of {', '.join(SUFFIXES)}")
+
+
+def stem(path: Path) -> str | None:
+    """The file name without its image suffix (any case), or None for a non-image."""
+    name = path.name
+    for suffix in SUFFIXES:
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return None
 
 
 def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:

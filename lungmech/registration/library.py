@@ -13,16 +13,17 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from dolfinx import fem
+from mpi4py import MPI
 
-from lungmech.errors import RegistrationError
+from lungmech.errors import ParameterError, RegistrationError
 from lungmech.geometry import Geometry
-from lungmech.registration import metrics, nodes
+from lungmech.registration import align, metrics, nodes
 from lungmech.registration.align import procrustes
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
@@ -65,13 +66,8 @@ class Library:
         return leave_one_out(self.shape_changes(), self.weights)
 
 
-def mapping_library(
-    mesh, images: Mapping[str, Image], options: Options = Options(), on_each: Callable | None = None
-) -> Library:
-    """Register ``mesh`` (left unchanged) onto every image (collective).
-
-    ``on_each(name, registration, report)`` is called after each image, the mesh deformed.
-    """
+def mapping_library(mesh, images: Mapping[str, Image], options: Options = Options()) -> Library:
+    """Register ``mesh`` (left unchanged) onto every image (collective)."""
     if len(images) < 2:
         raise RegistrationError(f"a mapping library needs at least 2 images, got {len(images)}")
     space, where = nodes.displacement_space(mesh)
@@ -82,8 +78,6 @@ def mapping_library(
         result = register(mesh, image, options)
         with nodes.deformed(result.displacement) as mapped:
             report = {"name": name} | metrics.report(mapped, image) | result.summary()
-            if on_each is not None:
-                on_each(name, result, report)
         log.info("%s: Dice %.4f, mean surface distance %.2f voxels, min det F %.3f, %d iterations",
                  name, report["dice"], report["mean_surface_distance_voxels"], report["min_det_F"],
                  report["iterations"])
@@ -123,6 +117,13 @@ class ShapeModes:
     fingerprint: str
     names: tuple[str, ...]
 
+    def __post_init__(self) -> None:
+        n, m = len(self.reference), len(self.singular_values)
+        shapes = {"weights": (n,), "mean": (n, 3), "modes": (m, n, 3), "coefficients": (len(self.names), m)}
+        for name, shape in shapes.items():
+            if np.shape(getattr(self, name)) != shape:
+                raise RegistrationError(f"shape modes: '{name}' has shape {np.shape(getattr(self, name))}, expected {shape}")
+
     @property
     def deviations(self) -> np.ndarray:
         """Standard deviation of the library along each mode (RMS metres)."""
@@ -136,14 +137,17 @@ class ShapeModes:
     def displacement(self, coefficients: Sequence[float]) -> np.ndarray:
         """Mean + Σ c_k σ_k mode_k, c in standard deviations (fewer than the modes: the rest 0)."""
         c = np.asarray(coefficients, dtype=float)
+        if not np.all(np.isfinite(c)):
+            raise ParameterError(f"shape coefficients must be finite numbers, got {list(c)}")
         if c.ndim != 1 or len(c) > len(self.modes):
             raise RegistrationError(f"give at most {len(self.modes)} shape coefficients, got {c.size}")
         return self.mean + np.einsum("k,knd->nd", c * self.deviations[: len(c)], self.modes[: len(c)])
 
     def geometry(self, reference: Geometry, coefficients: Sequence[float]) -> Geometry:
-        """A new geometry: ``reference`` (a fresh copy, its nodes are moved) mapped by a shape.
+        """``reference`` mapped by a shape: its nodes are moved in place, and it is returned.
 
-        The boundary names and tags are the reference's, so a scene's loads and constraints apply.
+        Pass a freshly read reference. The boundary names and tags are the reference's, so a
+        scene's loads and constraints apply. A shape that inverts a cell is refused.
         """
         space, where = nodes.displacement_space(reference.mesh)
         if where.fingerprint != self.fingerprint:
@@ -153,7 +157,12 @@ class ShapeModes:
             )
         u = fem.Function(space)
         nodes.scatter(self.displacement(coefficients), u, where)
+        before = align.cell_volumes(reference.mesh)
         nodes.move_nodes(u)
+        ratio = align.cell_volumes(reference.mesh) / before
+        smallest = reference.mesh.comm.allreduce(float(ratio.min()) if len(ratio) else np.inf, op=MPI.MIN)
+        if smallest <= 0.0:
+            raise RegistrationError(f"shape {list(coefficients)} inverts cells of the mesh: too far from the library")
         return reference
 
     def save(self, path: str | Path) -> None:
@@ -174,14 +183,15 @@ class ShapeModes:
         if not path.is_file():
             raise RegistrationError(f"shape modes file '{path}' not found")
         try:
-            with np.load(path) as data:
+            with np.load(path, allow_pickle=False) as data:
                 metadata = json.loads(str(data["metadata"]))
                 arrays = {k: data[k] for k in ("reference", "weights", "mean", "modes", "singular_values", "coefficients")}
-        except (OSError, ValueError, KeyError) as error:
-            raise RegistrationError(f"'{path}' is not a shape-modes file ({error})") from None
-        if metadata.get("format") != FORMAT:
-            raise RegistrationError(f"'{path}' is not a shape-modes file (format {metadata.get('format')!r})")
-        return cls(**arrays, fingerprint=metadata["fingerprint"], names=tuple(metadata["names"]))
+            if metadata["format"] != FORMAT:
+                raise ValueError(f"format {metadata['format']!r}")
+            modes = cls(**arrays, fingerprint=str(metadata["fingerprint"]), names=tuple(metadata["names"]))
+        except Exception as error:  # numpy, zipfile and json raise many kinds
+            raise RegistrationError(f"'{path}' is not a shape-modes file ({type(error).__name__}: {error})") from None
+        return modes
 
 
 def shape_modes(

@@ -27,8 +27,9 @@ det F fall below ``min_jacobian`` anywhere; when det F gets low, the interior no
 by the elastic extension of the boundary displacement. The descent stops when an accepted step moves no
 node by more than ``step_tolerance`` voxels, or when Ψ stagnates (for a ±1 image the gradient
 never vanishes, so its norm is no criterion). It starts from a moments-based similarity fit, and
-optionally goes coarse to fine through a sequence of image smoothings. Everything is collective
-and gives the same result on any number of MPI ranks.
+optionally goes coarse to fine through a sequence of image smoothings. Everything is collective.
+On any number of MPI ranks the registered surface is the same; node positions agree to a
+fraction of a voxel, as round-off differs and flat directions of Ψ let the descent amplify it.
 """
 
 from __future__ import annotations
@@ -72,7 +73,8 @@ class Options:
         max_iterations: Per stage.
         step_tolerance: Converged when an accepted step moves no node by more than this.
         stagnation: Converged when Ψ fell by less than ``stagnation`` · V · h over the last
-            ``window`` iterations (V the segmented volume, h the voxel size).
+            ``window`` iterations (V the segmented volume, h the voxel size; V alone for the
+            ±1 image, where Ψ is a volume).
         first_step, max_step: The largest nodal move of the first trial step, and of any step.
         memory: Number of L-BFGS correction pairs (0: plain Sobolev-gradient descent).
         regularisation: Weight of the shape-distortion energy ∫_Ω ψ_iso(F) dX, in voxels for
@@ -153,9 +155,9 @@ class Registration:
 def register(mesh, image: Image, options: Options = Options()) -> Registration:
     """Map ``mesh`` (the reference Ω) onto the segmentation in ``image`` (collective)."""
     start = time.perf_counter()
-    if mesh.topology.cell_type.name != "tetrahedron" or mesh.geometry.dim != 3:
-        raise RegistrationError("registration needs a 3-D tetrahedral mesh")
-    degree = mesh.geometry.cmaps[0].degree
+    if mesh.topology.cell_type.name != "tetrahedron" or mesh.geometry.dim != 3 or mesh.geometry.cmaps[0].degree != 1:
+        raise RegistrationError("registration needs a 3-D mesh of straight (order 1) tetrahedra")
+    degree = 1
     space = fem.functionspace(mesh, ("Lagrange", degree, (3,)))
     u = fem.Function(space, name="displacement")
     similarity = moments_fit(mesh, image, options.rotation) if options.similarity else Similarity()
@@ -170,7 +172,7 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
             # I is a length (distance) or a number (binary): weigh the distortion alike.
             scale = voxel if options.image_function == "distance" else 1.0
             energy.use(build(image, smoothing), options.regularisation * scale)
-            stage = _descend(energy, options, voxel, image.volume, history)
+            stage = _descend(energy, options, voxel, image.volume * scale, history)
             stages.append({"smoothing": smoothing} | stage)
             log.info("registration stage (smoothing %g voxels): %d iterations, %s, min det F %.3f",
                      smoothing, stage["iterations"], stage["reason"], stage["min_det_F"])
@@ -184,7 +186,7 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
     )
 
 
-def _descend(energy: ShapeEnergy, options: Options, voxel: float, volume: float, history: list) -> dict:
+def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, history: list) -> dict:
     """Backtracking descent on one image function, along L-BFGS directions preconditioned by
     the Sobolev inner product (the first direction is the Sobolev gradient itself)."""
     x, psi = energy.state(), energy.value()
@@ -246,11 +248,11 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, volume: float,
         if moved < options.step_tolerance * voxel:
             reason = "step"
             break
-        if len(psis) > options.window and psis[-options.window - 1] - psi < options.stagnation * volume * voxel:
+        if len(psis) > options.window and psis[-options.window - 1] - psi < options.stagnation * scale:
             reason = "stagnation"
             break
     return {
-        "iterations": iterations, "reason": reason, "converged": reason != "max_iterations",
+        "iterations": iterations, "reason": reason, "converged": reason in ("step", "stagnation", "stationary"),
         "psi": psi, "min_det_F": energy.min_jacobian(),
     }
 

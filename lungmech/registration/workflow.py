@@ -26,8 +26,6 @@ from lungmech.registration.sobolev import Options, register
 
 __all__ = ["build_shape_modes", "read_images", "register_image"]
 
-IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr", ".npz")
-
 
 def register_image(
     reference: str | Path,
@@ -95,8 +93,8 @@ def build_shape_modes(
     with atomic_folder(Path(out), comm) as staging:
         if comm.rank == 0:
             modes.save(staging / "shape_modes.npz")
-        pictures.shape_spectrum(modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
-                                title=f"Shape modes of {len(sources)} mappings")
+            pictures.shape_spectrum(modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
+                                    title=f"Shape modes of {len(sources)} mappings")
         write_json(staging / "report.json", report, comm)
     return report
 
@@ -106,21 +104,13 @@ def read_images(paths: list[str | Path], label: int | None = None, unit: str | N
     files: list[Path] = []
     for path in map(Path, paths):
         if path.is_dir():
-            found = sorted(p for p in path.iterdir() if p.name.endswith(IMAGE_SUFFIXES))
+            found = sorted(p for p in path.iterdir() if images.stem(p) is not None)
             if not found:
-                raise ImageError(f"folder '{path}' holds no image ({', '.join(IMAGE_SUFFIXES)})")
+                raise ImageError(f"folder '{path}' holds no image ({', '.join(images.SUFFIXES)})")
             files += found
         else:
             files.append(path)
-    names = [_stem(p) for p in files]
+    names = [images.stem(p) or p.name for p in files]
     if len(set(names)) != len(names):
         raise ImageError("two images share a name: " + ", ".join(sorted({n for n in names if names.count(n) > 1})))
     return {name: images.read(p, label=label, unit=unit) for name, p in zip(names, files)}
-
-
-def _stem(path: Path) -> str:
-    name = path.name
-    for suffix in IMAGE_SUFFIXES:
-        if name.endswith(suffix):
-            return name[: -len(suffix)]
-    return path.stem
