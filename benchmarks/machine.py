@@ -1,6 +1,15 @@
-"""What machine a benchmark ran on, for the header of its table."""
+"""What machine a benchmark ran on, for the header of its table, and how it runs on N ranks."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+_MPI_ENVIRONMENT = ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")
+STARTED = time.perf_counter()
 
 
 def cpu_and_memory() -> tuple[str, str]:
@@ -16,3 +25,49 @@ def cpu_and_memory() -> tuple[str, str]:
     except (OSError, StopIteration):
         pass
     return cpu, memory
+
+
+def relaunch(ranks: int, script: str, command_variable: str) -> None:
+    """Re-run ``script`` under ``mpiexec -n ranks`` (without ``--ranks``) unless already under MPI;
+    the original arguments go to the environment variable ``command_variable``."""
+    if ranks <= 1 or any(k in os.environ for k in _MPI_ENVIRONMENT):
+        return
+    mpiexec = Path(sys.executable).parent / "mpiexec"
+    argv, skip = [], False
+    for a in sys.argv[1:]:
+        if skip:
+            skip = False
+            continue
+        if a == "--ranks":
+            skip = True
+            continue
+        if a.startswith("--ranks="):
+            continue
+        argv.append(a)
+    command = [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(ranks), sys.executable, script, *argv]
+    env = os.environ | {command_variable: " ".join(sys.argv[1:])}
+    sys.exit(subprocess.run(command, env=env).returncode)
+
+
+def say(*parts) -> None:
+    """Progress on rank 0, with the minutes since the start."""
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"[{(time.perf_counter() - STARTED) / 60:5.1f} min]", *parts, flush=True)
+
+
+def tic() -> float:
+    """A start time, all ranks together."""
+    from mpi4py import MPI
+
+    MPI.COMM_WORLD.Barrier()
+    return time.perf_counter()
+
+
+def toc(start: float) -> float:
+    """Seconds since ``tic``, all ranks together, rank 0's clock."""
+    from mpi4py import MPI
+
+    MPI.COMM_WORLD.Barrier()
+    return MPI.COMM_WORLD.bcast(time.perf_counter() - start, root=0)

@@ -24,7 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from machine import cpu_and_memory  # benchmarks/ is the script folder, first on sys.path
+from machine import STARTED, cpu_and_memory, relaunch, say, tic, toc  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -62,29 +62,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def relaunch(args: argparse.Namespace) -> None:
-    """Run this script under mpiexec -n args.ranks unless already under MPI (as benchmarks/rom.py)."""
-    if args.ranks <= 1 or any(k in os.environ for k in ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")):
-        return
-    mpiexec = Path(sys.executable).parent / "mpiexec"
-    argv, skip = [], False
-    for a in sys.argv[1:]:
-        if skip:
-            skip = False
-            continue
-        if a == "--ranks":
-            skip = True
-            continue
-        if a.startswith("--ranks="):
-            continue
-        argv.append(a)
-    command = [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(args.ranks), sys.executable, __file__, *argv]
-    env = os.environ | {"REGISTRATION_BENCH_COMMAND": " ".join(sys.argv[1:])}
-    sys.exit(subprocess.run(command, env=env).returncode)
-
-
 ARGS = parse_args()
-relaunch(ARGS)
+relaunch(ARGS.ranks, __file__, "REGISTRATION_BENCH_COMMAND")
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
@@ -114,22 +93,6 @@ from lungmech.registration.sobolev import Options, register  # noqa: E402
 COMM = MPI.COMM_WORLD
 RANK0 = COMM.rank == 0
 logging.getLogger("lungmech").setLevel(logging.WARNING)
-STARTED = time.perf_counter()
-
-
-def say(*parts) -> None:
-    if RANK0:
-        print(f"[{(time.perf_counter() - STARTED) / 60:5.1f} min]", *parts, flush=True)
-
-
-def tic() -> float:
-    COMM.Barrier()
-    return time.perf_counter()
-
-
-def toc(start: float) -> float:
-    COMM.Barrier()
-    return COMM.bcast(time.perf_counter() - start, root=0)
 
 
 # --- memory: the peak of each case -------------------------------------------------------------

@@ -25,7 +25,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from machine import cpu_and_memory  # benchmarks/ is the script folder, first on sys.path
+from machine import STARTED, cpu_and_memory, relaunch, say, tic, toc  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -63,29 +63,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def relaunch(args: argparse.Namespace) -> None:
-    """Run this script under mpiexec -n args.ranks unless already under MPI."""
-    if args.ranks <= 1 or any(k in os.environ for k in ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")):
-        return
-    mpiexec = Path(sys.executable).parent / "mpiexec"
-    argv, skip = [], False
-    for a in sys.argv[1:]:
-        if skip:
-            skip = False
-            continue
-        if a == "--ranks":
-            skip = True
-            continue
-        if a.startswith("--ranks="):
-            continue
-        argv.append(a)
-    command = [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(args.ranks), sys.executable, __file__, *argv]
-    env = os.environ | {"ROM_BENCH_COMMAND": " ".join(sys.argv[1:])}
-    sys.exit(subprocess.run(command, env=env).returncode)
-
-
 ARGS = parse_args()
-relaunch(ARGS)
+relaunch(ARGS.ranks, __file__, "ROM_BENCH_COMMAND")
 # One BLAS thread per process: NumPy's OpenBLAS otherwise spins threads that fight MPI ranks and
 # other work for the cores (measured: reduced_jacobian at k = 20 became 2-10x slower on a busy machine).
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -123,22 +102,6 @@ from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve  # noqa
 COMM = MPI.COMM_WORLD
 RANK0 = COMM.rank == 0
 logging.getLogger("lungmech").setLevel(logging.WARNING)
-STARTED = time.perf_counter()
-
-
-def say(*parts) -> None:
-    if RANK0:
-        print(f"[{(time.perf_counter() - STARTED) / 60:5.1f} min]", *parts, flush=True)
-
-
-def tic() -> float:
-    COMM.Barrier()
-    return time.perf_counter()
-
-
-def toc(start: float) -> float:
-    COMM.Barrier()
-    return COMM.bcast(time.perf_counter() - start, root=0)
 
 
 # --- cases -------------------------------------------------------------------------------------
