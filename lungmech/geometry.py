@@ -36,7 +36,7 @@ import ufl
 from lungmech.errors import GeometryError
 from lungmech.lung_shape import LungShape
 
-__all__ = ["Geometry", "box", "diameter", "ellipsoid", "from_file", "lung_phantom", "sphere", "write"]
+__all__ = ["Geometry", "box", "diameter", "ellipsoid", "from_file", "lung_phantom", "node_dofs", "sphere", "write"]
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: compared and hashed by identity, like the mesh
@@ -102,6 +102,17 @@ def diameter(mesh: dolfinx.mesh.Mesh) -> float:
     bounds = np.empty_like(local)
     mesh.comm.Allreduce(np.ascontiguousarray(local, dtype=np.float64), bounds, op=MPI.MIN)
     return float(np.linalg.norm(-bounds[3:] - bounds[:3]))
+
+
+def node_dofs(space: dolfinx.fem.FunctionSpace) -> npt.NDArray[np.int64]:
+    """The dof (block) of every geometry node, owned and ghost, for a Lagrange space of the
+    mesh's own degree: both numberings enumerate the same points cell by cell."""
+    mesh = space.mesh
+    node_of_dof = np.empty(space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts, dtype=np.int64)
+    node_of_dof[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    dof_of_node = np.empty_like(node_of_dof)
+    dof_of_node[node_of_dof] = np.arange(node_of_dof.size)
+    return dof_of_node
 
 
 def _integrate(mesh: dolfinx.mesh.Mesh, measure: ufl.Measure) -> float:

@@ -19,6 +19,7 @@ from mpi4py import MPI
 from time import perf_counter
 
 from lungmech.errors import ParameterError, SolverError
+from lungmech.geometry import node_dofs
 from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
 
 
@@ -40,11 +41,7 @@ def node_displacements(model) -> fem.Function:
     mesh = model.geometry.mesh
     degree = mesh.geometry.cmaps[0].degree
     space = fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
-    # The node of every dof: both numberings enumerate the same points cell by cell.
-    node_of_dof = np.empty(space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts, dtype=np.int64)
-    node_of_dof[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
-    dof_of_node = np.empty_like(node_of_dof)
-    dof_of_node[node_of_dof] = np.arange(node_of_dof.size)
+    dof_of_node = node_dofs(space)
     at_nodes = fem.Function(space)
 
     def evaluate() -> np.ndarray:

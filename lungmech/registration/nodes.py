@@ -15,6 +15,7 @@ import numpy as np
 import ufl
 from dolfinx import fem, la
 
+from lungmech.geometry import node_dofs
 from lungmech.rom.layout import Layout, layout
 
 __all__ = ["deformed", "displacement_space", "gather", "masses", "move_nodes", "positions", "scatter"]
@@ -61,12 +62,7 @@ def move_nodes(displacement: fem.Function) -> None:
     """Move the mesh's nodes by the displacement (in place: the mesh becomes Φ(Ω))."""
     mesh = displacement.function_space.mesh
     displacement.x.scatter_forward()
-    # Cell by cell, geometry nodes and displacement dofs correspond (the same Lagrange element).
-    nodes = mesh.geometry.dofmaps[0].ravel()
-    dofs = displacement.function_space.dofmap.list.ravel()
-    x = mesh.geometry.x
-    # The right-hand side is evaluated before assigning, so nodes shared by cells move once.
-    x[nodes, :3] = x[nodes, :3] + displacement.x.array.reshape(-1, 3)[dofs]
+    mesh.geometry.x[:, :3] += displacement.x.array.reshape(-1, 3)[node_dofs(displacement.function_space)]
 
 
 @contextlib.contextmanager
