@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from dolfinx import fem
 
+from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.ramp import Ramp
 
@@ -28,6 +30,16 @@ class Displacement:
     ramp: Ramp = field(default_factory=Ramp)
 
     def __post_init__(self):
+        if not isinstance(self.boundary, str) or not self.boundary:
+            raise ParameterError(f"boundary must be a boundary name (got {self.boundary!r})")
+        if not isinstance(self.ramp, Ramp):
+            raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
+        if not callable(self.value):
+            scalar = isinstance(self.value, numbers.Real) and not isinstance(self.value, bool)
+            value = checks.real("value", self.value) if scalar else checks.vector("value", self.value)
+            object.__setattr__(self, "value", value)
+        if isinstance(self.component, bool):
+            raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")
         if isinstance(self.component, str):
             if self.component not in AXES:
                 raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")

@@ -23,13 +23,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from ufl.core.expr import Expr
 
+from lungmech import checks
 from lungmech.errors import ParameterError
-from lungmech.loads import StateDependentWork
+from lungmech.loads import Named, StateDependentWork
 from lungmech.quantities import vector_integral
 from lungmech.ramp import Ramp
 
@@ -44,7 +47,7 @@ _NORM = np.diag([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
 
 
 @dataclass(frozen=True)
-class Gravity:
+class Gravity(Named):
     """The weight ρ0 g per unit reference volume, optionally balanced by pleural pressure.
 
     Args:
@@ -60,15 +63,23 @@ class Gravity:
     acceleration: Sequence[float]
     balanced_on: tuple[str, ...] = ()
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "gravity"
 
     def __post_init__(self):
-        if not self.density > 0:
-            raise ParameterError(f"gravity: density must be > 0 (got {self.density})")
-        if np.shape(self.acceleration) != (3,):
-            raise ParameterError(f"gravity: acceleration needs 3 components (got {self.acceleration!r})")
-        balanced_on = (self.balanced_on,) if isinstance(self.balanced_on, str) else tuple(self.balanced_on)
-        object.__setattr__(self, "balanced_on", balanced_on)
-        object.__setattr__(self, "acceleration", tuple(float(g) for g in self.acceleration))
+        checks.real("gravity: density", self.density, positive=True)
+        try:
+            object.__setattr__(self, "acceleration", checks.vector("acceleration", self.acceleration))
+        except ParameterError:
+            raise ParameterError(f"gravity: acceleration needs 3 components (got {self.acceleration!r})") from None
+        balanced_on = (self.balanced_on,) if isinstance(self.balanced_on, str) else self.balanced_on
+        if isinstance(balanced_on, bytes) or not isinstance(balanced_on, Sequence) or not all(
+            isinstance(b, str) and b for b in balanced_on
+        ):
+            raise ParameterError(f"gravity: balanced_on must be a list of boundary names (got {self.balanced_on!r})")
+        object.__setattr__(self, "balanced_on", tuple(balanced_on))
+        if not isinstance(self.ramp, Ramp) or not isinstance(self.name, str):
+            raise ParameterError("gravity: ramp must be a Ramp and name a string")
 
     @property
     def value(self) -> Sequence[float]:

@@ -11,6 +11,7 @@ mesh nodes move, nothing is recompiled — started from the previous iteration's
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +19,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from time import perf_counter
 
+from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.geometry import node_dofs
 from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
@@ -59,6 +61,7 @@ class InverseOptions:
     max_iterations: int = 50
 
     def __post_init__(self):
+        checks.real("tolerance", self.tolerance)
         if not 0 < self.tolerance < 1:
             raise ParameterError(f"tolerance must lie in (0, 1) (got {self.tolerance})")
         if isinstance(self.max_iterations, bool) or not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
@@ -72,14 +75,15 @@ def unloaded_reference(
     stepping: Stepping | None = None,
     newton: NewtonOptions | None = None,
     solver: NewtonSolver | None = None,
+    monitor: Callable[[InverseReport], None] | None = None,
 ) -> InverseReport:
     """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
 
     On return the mesh holds the reference X and ``model.state`` the loaded state at ``time``,
     whose nodes X + u match the imaged ones to ``options.tolerance`` × the body's size. ``stepping``
     raises the loads of ``time`` from zero (a load factor from 0 to 1) for the first direct solve;
-    imposed displacements keep their values at ``time``.
-    Raises :class:`SolverError` when the iteration does not converge.
+    imposed displacements keep their values at ``time``. ``monitor(report)`` is called after
+    every iteration (progress). Raises :class:`SolverError` when the iteration does not converge.
     """
     tic = perf_counter()
     mesh = model.geometry.mesh
@@ -96,13 +100,16 @@ def unloaded_reference(
         return comm.allreduce(float(np.sum(a[:owned] * b[:owned])), op=MPI.SUM)
 
     model.reset()  # first direct solve: the loads of ``time``, raised from zero
-    first = solve(model, stepping or Stepping(initial_step=0.25), solver=solver, drive=lambda s: model.set_time(time, s))
+    first = solve(model, stepping or Stepping(initial_step=0.25), solver=solver, drive=lambda s: model.set_time(time, s),
+                  monitor=None if monitor is None else lambda step: None)
     report.newton_iterations += first.newton_iterations
     relaxation, previous = 1.0, None
     while True:
         residual = imaged - nodes - displacement()
         worst = comm.allreduce(float(np.abs(residual[:owned]).max(initial=0.0)), op=MPI.MAX) / size
         report.mismatch.append(worst)
+        if monitor is not None:
+            monitor(report)
         if worst <= options.tolerance:
             break
         if report.iterations >= options.max_iterations:

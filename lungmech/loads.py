@@ -12,12 +12,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import ufl
 from ufl.core.expr import Expr
 
+from lungmech import checks
+from lungmech.errors import ParameterError
 from lungmech.ramp import Ramp
 
 
@@ -34,31 +36,72 @@ class StateDependentWork(NamedTuple):
     assign: Callable[[np.ndarray], None]
 
 
+class Named:
+    """A load's label for outputs and messages: its ``name``, or what it is and where it acts.
+
+    Subclasses are frozen dataclasses with a ``name`` field and a ``kind`` (e.g. "traction").
+    """
+
+    kind: ClassVar[str]
+
+    @property
+    def label(self) -> str:
+        where = getattr(self, "boundary", None)
+        where = (where,) if isinstance(where, str) else where
+        return self.name or (f"{self.kind} on {'+'.join(where)}" if where else self.kind)
+
+    def _check(self, value_size: int | None) -> None:
+        """Validate name, ramp and value (a number, or ``value_size`` numbers), and the boundary."""
+        if not isinstance(self.name, str):
+            raise ParameterError(f"name must be a string (got {self.name!r})")
+        if not isinstance(self.ramp, Ramp):
+            raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
+        value = checks.real("value", self.value) if value_size is None else checks.vector("value", self.value, value_size)
+        object.__setattr__(self, "value", value)
+        if hasattr(self, "boundary"):
+            names = (self.boundary,) if isinstance(self.boundary, str) else self.boundary
+            if isinstance(names, str | bytes) or not isinstance(names, Sequence) or not names or not all(
+                isinstance(n, str) and n for n in names
+            ):
+                raise ParameterError(f"boundary must be a boundary name or a list of them (got {self.boundary!r})")
+            object.__setattr__(self, "boundary", self.boundary if isinstance(self.boundary, str) else tuple(names))
+
+
 @dataclass(frozen=True)
-class BodyForce:
+class BodyForce(Named):
     """Dead body force per unit reference volume (e.g. ρ₀ g)."""
 
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "body force"
+
+    def __post_init__(self):
+        self._check(3)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -ufl.dot(value, model.u) * ufl.dx(domain=model.geometry.mesh)
 
 
 @dataclass(frozen=True)
-class Traction:
+class Traction(Named):
     """Dead traction per unit reference area on a named boundary."""
 
     boundary: str
     value: Sequence[float]
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "traction"
+
+    def __post_init__(self):
+        self._check(3)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -ufl.dot(value, model.u) * model.geometry.ds(self.boundary)
 
 
 @dataclass(frozen=True)
-class FollowerPressure:
+class FollowerPressure(Named):
     """Pressure on the deformed boundary, pushing against its outward normal: t = −p n da.
 
     Pulled back to the reference surface with Nanson's formula, n da = J F⁻ᵀ N dA. A positive
@@ -69,10 +112,11 @@ class FollowerPressure:
     boundary: str | tuple[str, ...]  # one boundary, or several under the same pressure
     value: float
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "follower pressure"
 
     def __post_init__(self):
-        if not isinstance(self.boundary, str):
-            object.__setattr__(self, "boundary", tuple(self.boundary))
+        self._check(None)
 
     def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
         F = model.F

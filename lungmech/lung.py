@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import ClassVar
@@ -30,13 +30,21 @@ from dolfinx import fem
 from mpi4py import MPI
 from ufl.core.expr import Expr
 
+from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.loads import Named
 from lungmech.materials import CiarletGeymonat, ExponentialCiarletGeymonat, Material, Sum
 from lungmech.ramp import Ramp
 
 
 def skeleton(alpha: float, gamma: float, c1: float, c2: float) -> Sum:
     """W_skel: the exponential Ciarlet–Geymonat bulk term plus the CGNHMR shear terms."""
+    for name, value in (("alpha", alpha), ("gamma", gamma)):
+        checks.real(name, value, positive=True)
+    for name, value in (("c1", c1), ("c2", c2)):
+        checks.real(name, value, nonnegative=True)
+    if c1 + c2 == 0:
+        raise ParameterError("the skeleton needs shear stiffness: c1 + c2 must be > 0")
     return Sum((ExponentialCiarletGeymonat(alpha, gamma), CiarletGeymonat(0.0, c1, c2)))
 
 
@@ -68,13 +76,19 @@ class Poromechanics:
     fields: ClassVar[tuple[str, ...]] = ("phi_s",)
 
     def __post_init__(self):
-        if not self.kappa > 0:
-            raise ParameterError(f"lung bulk modulus kappa must be > 0 (got {self.kappa})")
-        if isinstance(self.phi_s0, numbers.Real) and not 0 < self.phi_s0 < 1:
-            raise ParameterError(f"reference solid fraction phi_s0 must lie in (0, 1) (got {self.phi_s0})")
-        if not self.pore_barrier >= 0:
-            raise ParameterError(f"pore_barrier must be >= 0 (got {self.pore_barrier})")
-        lower, upper = self.pore_range
+        checks.real("lung bulk modulus kappa", self.kappa, positive=True)
+        if isinstance(self.phi_s0, numbers.Real | bool):
+            checks.real("phi_s0", self.phi_s0)
+            if not 0 < self.phi_s0 < 1:
+                raise ParameterError(f"reference solid fraction phi_s0 must lie in (0, 1) (got {self.phi_s0})")
+        elif not (callable(self.phi_s0) or isinstance(self.phi_s0, str | Path | fem.Function)):
+            raise ParameterError(f"phi_s0 must be a number or a file of cell values (got {self.phi_s0!r})")
+        checks.boolean("scale_skeleton", self.scale_skeleton)
+        checks.real("pore_barrier", self.pore_barrier, nonnegative=True)
+        if isinstance(self.pore_range, str) or not isinstance(self.pore_range, Sequence) or len(self.pore_range) != 2:
+            raise ParameterError(f"pore_range must be two numbers [lower, upper] (got {self.pore_range!r})")
+        lower = checks.real("pore_range[0]", self.pore_range[0])
+        upper = checks.real("pore_range[1]", self.pore_range[1], infinite=True)
         if not 0 <= lower < 1 < upper:
             raise ParameterError(f"pore_range must satisfy 0 <= lower < 1 < upper (got {self.pore_range})")
         object.__setattr__(self, "pore_range", (float(lower), float(upper)))
@@ -131,6 +145,8 @@ def reference_fraction(value: ReferenceFraction, mesh) -> fem.Function:
     else:
         phi_s0.x.array[:] = _cell_values(Path(value), mesh)
     local = phi_s0.x.array[: space.dofmap.index_map.size_local]
+    if not mesh.comm.allreduce(bool(np.isfinite(local).all()), op=MPI.LAND):
+        raise ParameterError("reference solid fraction phi_s0 has values that are not finite numbers (nan or inf)")
     low = mesh.comm.allreduce(local.min() if local.size else np.inf, op=MPI.MIN)
     high = mesh.comm.allreduce(local.max() if local.size else -np.inf, op=MPI.MAX)
     if not 0 < low <= high < 1:
@@ -142,8 +158,16 @@ def _cell_values(path: Path, mesh) -> np.ndarray:
     """One value per cell from a file in the mesh's input cell order, for this rank's cells."""
     if not path.is_file():
         raise ParameterError(f"phi_s0 file '{path}' not found")
-    values = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=1)
-    values = np.asarray(values, dtype=float).ravel()
+    try:
+        values = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, ndmin=1)
+        values = np.asarray(values, dtype=float).ravel()
+    except (ValueError, TypeError, OSError, EOFError) as e:
+        message = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ParameterError(f"phi_s0 file '{path}' is not a list of numbers ({message})") from None
+    if not np.isfinite(values).all():
+        bad = int(np.flatnonzero(~np.isfinite(values))[0])
+        raise ParameterError(f"phi_s0 file '{path}' holds values that are not finite numbers (first: {values[bad]} "
+                             f"for cell {bad})")
     total = mesh.topology.index_map(mesh.topology.dim).size_global
     if values.size != total:
         raise ParameterError(f"phi_s0 file '{path}' has {values.size} values; the mesh has {total} cells")
@@ -153,11 +177,16 @@ def _cell_values(path: Path, mesh) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class AlveolarPressure:
+class AlveolarPressure(Named):
     """Air pressure p_f in the alveoli ("internal" loading): the potential −p_f Φf = −p_f (J − Φs)."""
 
     value: float
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "alveolar pressure"
+
+    def __post_init__(self):
+        self._check(None)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -value * (ufl.det(model.F) - model.fields["phi_s"]) * model.dx

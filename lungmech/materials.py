@@ -21,6 +21,7 @@ from typing import ClassVar, Protocol, Self, runtime_checkable
 
 import ufl
 
+from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.kinematics import green_lagrange, invariants, small_strain
 
@@ -73,8 +74,10 @@ def lame_from_young(E: float, nu: float) -> tuple[float, float]:
 
 
 def _check_real(name: str, value: object) -> None:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or math.isnan(value):
-        raise ParameterError(f"parameter '{name}' must be a real number (got {value!r})")
+    """A finite real number; only a bulk modulus may be +inf (the incompressible limit)."""
+    checks.real(f"parameter '{name}'", value, infinite=name in ("bulk", "lmbda"))
+    if math.isinf(value) and value < 0:
+        raise ParameterError(f"parameter '{name}' must be a finite number or +inf (got {value})")
 
 
 def _require(law: object, condition: bool, message: str) -> None:
@@ -85,6 +88,9 @@ def _require(law: object, condition: bool, message: str) -> None:
 def _numbers(law: object) -> dict[str, float] | None:
     """The law's parameters when all are plain numbers (validation is skipped for UFL values)."""
     values = {f.name: getattr(law, f.name) for f in dataclasses.fields(law)}
+    for name, v in values.items():
+        if isinstance(v, bool) or not isinstance(v, numbers.Real | ufl.core.expr.Expr):
+            raise ParameterError(f"parameter '{name}' must be a number (got {v!r})")
     if not all(isinstance(v, numbers.Real) for v in values.values()):
         return None
     for name, v in values.items():
@@ -345,6 +351,7 @@ def _check_lame(law) -> None:
         return
     mu, lmbda = p["mu"], p["lmbda"]
     _require(law, mu > 0, f"shear modulus mu must be > 0 (got {mu})")
+    _require(law, math.isfinite(lmbda) or isinstance(law, _Split), "lmbda must be finite (this law has no incompressible limit)")
     _require(law, 3 * lmbda + 2 * mu > 0, f"bulk modulus lmbda + 2 mu/3 must be > 0 (got lmbda = {lmbda})")
 
 

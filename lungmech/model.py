@@ -9,7 +9,8 @@ or a parameter recompiles nothing.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 
 import basix.ufl
 import numpy as np
@@ -59,8 +60,14 @@ class Model:
         self.formulation = (formulation or (TaylorHood() if mixed else PureDisplacement())).bind(mesh)
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
-        if not isinstance(degree, int) or degree < 1:
+        if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
             raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
+        if degree < mesh.geometry.cmaps[0].degree:
+            raise ParameterError(
+                f"degree {degree} displacements on a mesh of order {mesh.geometry.cmaps[0].degree} (curved cells) "
+                "cannot move the body rigidly: rotations would strain it. Use degree >= the mesh order, or a "
+                "straight (order 1) mesh"
+            )
         self.formulation.check(material, degree)
 
         q = quadrature_degree if quadrature_degree is not None else self._default_quadrature_degree()
@@ -133,9 +140,23 @@ class Model:
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor in zip(self.loads, self._load_values, factors):
             base = 0.0 if about is None else load.ramp(about)
-            value.value = (base + factor * (load.ramp(t) - base)) * np.asarray(load.value, dtype=float)
+            current = (base + factor * (load.ramp(t) - base)) * np.asarray(load.value, dtype=float)
+            if not np.all(np.isfinite(current)):
+                label = getattr(load, "label", type(load).__name__)
+                raise ParameterError(f"load '{label}' is not a finite number at t = {t:g} (value {current}, factor {factor})")
+            value.value = current
         for imposed in self._imposed:
             imposed.set_time(t)
+
+    @contextlib.contextmanager
+    def kept_state(self) -> Iterator[None]:
+        """Whatever the block does to the state, it is restored afterwards (also on an error)."""
+        saved = self.state.x.array.copy()
+        try:
+            yield
+        finally:
+            self.state.x.array[:] = saved
+            self.state.x.scatter_forward()
 
     @property
     def state_dependent(self) -> list[StateDependentWork]:

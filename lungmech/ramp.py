@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lungmech import checks
 from lungmech.errors import ParameterError
 
 
@@ -22,14 +23,18 @@ class Ramp:
     values: Sequence[float] = (0.0, 1.0)
 
     def __post_init__(self):
-        times = np.asarray(self.times, dtype=float)
-        values = np.asarray(self.values, dtype=float)
-        if times.ndim != 1 or times.size < 1 or times.shape != values.shape:
+        for name in ("times", "values"):
+            given = getattr(self, name)
+            if isinstance(given, str) or not isinstance(given, Sequence):
+                raise ParameterError(f"ramp {name} must be a list of numbers (got {given!r})")
+        times = np.array([checks.real(f"ramp times[{i}]", t) for i, t in enumerate(self.times)])
+        values = np.array([checks.real(f"ramp values[{i}]", v) for i, v in enumerate(self.values)])
+        if times.size == 0:
+            raise ParameterError("a ramp needs at least one (time, value) point (got empty times and values)")
+        if times.shape != values.shape:
             raise ParameterError(
                 f"a ramp needs as many times as values (got {times.size} times, {values.size} values)"
             )
-        if not (np.all(np.isfinite(times)) and np.all(np.isfinite(values))):
-            raise ParameterError("ramp times and values must be finite numbers")
         if np.any(np.diff(times) <= 0):
             raise ParameterError(f"ramp times must increase strictly (got {list(times)})")
         object.__setattr__(self, "times", tuple(times))

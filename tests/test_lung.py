@@ -172,7 +172,7 @@ def test_lung_scene_reproduces_the_closed_form(tmp_path):
     assert (tmp_path / "out" / "pressure_volume.png").stat().st_size > 0
     last = (tmp_path / "out" / "history.csv").read_text().splitlines()
     header, row = last[0].split(","), dict(zip(last[0].split(","), last[-1].split(",")))
-    assert "phi_s" in header and float(row["phi_s"]) == pytest.approx(an.lung_inflation(0.5, PARAMS)["phi_s"], rel=1e-10)
+    assert "phi_s [1]" in header and float(row["phi_s [1]"]) == pytest.approx(an.lung_inflation(0.5, PARAMS)["phi_s"], rel=1e-10)
 
 
 def test_lung_scene_errors():
@@ -186,5 +186,5 @@ def test_lung_scene_errors():
         scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0}})
     with pytest.raises(SceneError, match="phi_s0"):
         scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0, "phi_s0": 2.0}})
-    with pytest.raises(SceneError, match="material: missing key"):
+    with pytest.raises(SceneError, match=r"material \(law 'lung_skeleton'\): missing key"):
         scenes.parse({**base, "material": {"law": "lung_skeleton", "alpha": 0.16}})
