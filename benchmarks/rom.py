@@ -166,7 +166,8 @@ def lung_case(args) -> Case:
     step = args.lung_step
     stepping = dataclasses.replace(
         scene.stepping, initial_step=step, max_step=step, min_step=1e-3, easy_iterations=args.lung_easy,
-        times=tuple(sorted({*scene.stepping.times, *outputs, *model.breakpoints})),
+        times=tuple(sorted(t for t in {*scene.stepping.times, *outputs, *model.breakpoints}
+                           if scene.stepping.start < t <= scene.stepping.end)),
     )
     train = [(float(s), 1.0) for s in args.lung_train.split(",")]
     top = max(s for s, _ in train)

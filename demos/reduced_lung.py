@@ -13,7 +13,6 @@ errors and times, and writes reduced_lung.png (P–V loops, full against reduced
 
 import argparse
 import time
-from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 
@@ -38,13 +37,14 @@ SWING = 500.0  # Pa: the scene's pleural pressure goes −500 → −1000 → �
 def breathe(model, solver, scene, depth: float) -> tuple[np.ndarray, float]:
     """One breath at ``depth`` × the scene's swing from the imaged state: (pressure, volume) rows."""
     volume = deformed_volume(model)
-    stepping = replace(scene.stepping, times=(*scene.stepping.times, *model.breakpoints))
+    stepping = scene.stepping
     ramp = scene.loads[0].ramp
     curve = [(SWING, volume())]
     record = lambda step: curve.append((SWING * (1 + depth * (ramp(step.time) - 1)), volume()))  # noqa: E731
     tic = time.perf_counter()
     solve(model, stepping, solver=solver, on_step=record,
-          drive=lambda t: model.set_time(t, load_factor=(depth, 1.0), about=stepping.start))
+          drive=lambda t: model.set_time(t, load_factor=(depth, 1.0), about=stepping.start),
+          breakpoints=model.breakpoints)
     return np.array(curve), time.perf_counter() - tic
 
 

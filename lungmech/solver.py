@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from dolfinx.fem.petsc import NonlinearProblem
 from petsc4py import PETSc
 
+from lungmech import checks, convergence, limits
 from lungmech.errors import ParameterError, SolverError
 
 log = logging.getLogger("lungmech")
@@ -37,13 +39,17 @@ class NewtonOptions:
 
     ``linear_solver`` is "direct" (MUMPS LU, robust, the default) or "iterative" (GMRES with
     smoothed-aggregation AMG and the rigid-body near-nullspace, for large displacement-only
-    problems). ``petsc_options`` overrides or extends any PETSc option.
+    problems). ``petsc_options`` overrides or extends any PETSc option; one PETSc refuses or
+    does not use is an error.
+
+    A Newton solve has converged when every field's residual has fallen by ``rtol`` from its
+    largest value in the solve, or to ``atol`` (in the residual's own unit; 0: no absolute test),
+    or quadratically to its round-off floor (see :mod:`lungmech.convergence`).
     """
 
     linear_solver: str = "direct"
     rtol: float = 1e-10
-    atol: float = 1e-12
-    stol: float = 1e-12
+    atol: float = 0.0
     max_iterations: int = 25
     line_search: str = "bt"
     petsc_options: dict = field(default_factory=dict)
@@ -53,16 +59,19 @@ class NewtonOptions:
             raise ParameterError(f"linear_solver must be 'direct' or 'iterative' (got {self.linear_solver!r})")
         if self.line_search not in ("bt", "l2", "cp", "basic", "none"):
             raise ParameterError(f"line_search must be bt, l2, cp, basic or none (got {self.line_search!r})")
-        if not (self.rtol > 0 and self.atol >= 0 and self.max_iterations >= 1):
-            raise ParameterError("need rtol > 0, atol >= 0 and max_iterations >= 1")
+        checks.real("rtol", self.rtol, positive=True)
+        checks.real("atol", self.atol, nonnegative=True)
+        checks.integer("max_iterations", self.max_iterations, minimum=1)
+        if not isinstance(self.petsc_options, dict):
+            raise ParameterError(f"petsc_options must be a table of PETSc options (got {self.petsc_options!r})")
+        for key, value in self.petsc_options.items():
+            if not isinstance(value, str | bool | int | float) or (isinstance(value, float) and not math.isfinite(value)):
+                raise ParameterError(f"petsc_options.{key}: expected a string, number or boolean (got {value!r})")
 
     def petsc(self) -> dict:
         options = {
             "snes_type": "newtonls",
             "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
-            "snes_rtol": self.rtol,
-            "snes_atol": self.atol,
-            "snes_stol": self.stol,
             "snes_max_it": self.max_iterations,
             "snes_max_funcs": 10 * self.max_iterations + 100,
         }
@@ -71,6 +80,7 @@ class NewtonOptions:
                 "ksp_type": "preonly",
                 "pc_type": "lu",
                 "pc_factor_mat_solver_type": "mumps",
+                "mat_mumps_icntl_14": 200,  # room for pivoting (mixed)
             }
         else:
             options |= {
@@ -104,12 +114,22 @@ class Stepping:
     times: tuple[float, ...] = ()
 
     def __post_init__(self):
+        for name in ("end", "start", "initial_step", "min_step", "max_step", "growth"):
+            checks.real(name, getattr(self, name))
+        checks.integer("easy_iterations", self.easy_iterations, minimum=0)
+        if not isinstance(self.times, tuple):
+            raise ParameterError(f"times must be a list of output times (got {self.times!r})")
+        object.__setattr__(self, "times", tuple(checks.real(f"times[{i}]", t) for i, t in enumerate(self.times)))
         if not self.end > self.start:
-            raise ParameterError(f"stepping: end ({self.end}) must be after start ({self.start})")
+            raise ParameterError(f"end ({self.end}) must be after start ({self.start})")
+        if outside := [t for t in self.times if not self.start < t <= self.end]:
+            raise ParameterError(f"times {outside} lie outside (start, end] = ({self.start:g}, {self.end:g}]: "
+                                 "outputs can only be asked for inside the run")
         if not 0 < self.min_step <= self.initial_step <= self.max_step:
-            raise ParameterError("stepping: need 0 < min_step <= initial_step <= max_step")
+            raise ParameterError(f"need 0 < min_step <= initial_step <= max_step (got {self.min_step:g}, "
+                                 f"{self.initial_step:g}, {self.max_step:g})")
         if not self.growth >= 1:
-            raise ParameterError("stepping: growth must be >= 1")
+            raise ParameterError(f"growth must be >= 1 (got {self.growth:g})")
 
 
 @dataclass(frozen=True)
@@ -159,22 +179,23 @@ class NewtonSolver:
                 "use the direct solver with the mixed formulation"
             )
         prefix = f"lungmech_{next(_prefixes)}_"
-        if self.options.linear_solver == "direct":
-            # Read by MUMPS at the first factorisation, after dolfinx has already removed the
-            # options it was given: so it lives in the database for the solver's lifetime.
-            _persistent_options(self, prefix, {"mat_mumps_icntl_14": 200})  # room for pivoting (mixed)
         self.problem = NonlinearProblem(
             model.residual if residual is None else residual,
             model.state,
             bcs=model.bcs,
             J=model.jacobian if jacobian is None else jacobian,
             petsc_options_prefix=prefix,
-            petsc_options=self.options.petsc(),
         )
+        _configure(self, self.problem.solver, prefix, self.options.petsc())
         if self.options.linear_solver == "iterative":
             self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
         self._residuals: list[float] = []
-        self.problem.solver.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
+        snes = self.problem.solver
+        snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
+        self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
+        snes.setConvergenceTest(
+            lambda snes, it, norms: self.test(snes.getFunction()[0], it, snes.getJacobian()[0], snes.getSolution())
+        )
 
     def solve(self) -> NewtonResult:
         """One Newton solve from the current state: (converged, iterations, residuals, reason).
@@ -187,6 +208,7 @@ class NewtonSolver:
 
     def _newton(self) -> NewtonResult:
         self._residuals.clear()
+        self.test.start()
         snes = self.problem.solver
         try:
             self.problem.solve()
@@ -194,7 +216,20 @@ class NewtonSolver:
         except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
             return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}"
         converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
-        return bool(converged), snes.getIterationNumber(), tuple(self._residuals), _REASONS.get(reason, str(reason))
+        name = _REASONS.get(reason, str(reason))
+        if not converged:
+            name = f"{name}: {self.test.describe()}"
+        return bool(converged), snes.getIterationNumber(), tuple(self._residuals), name
+
+    @property
+    def residual_form(self):
+        """The compiled residual form."""
+        return self.problem.F
+
+    @property
+    def jacobian_form(self):
+        """The compiled Jacobian form."""
+        return self.problem.J
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
@@ -251,6 +286,24 @@ class _Anderson:
         return image - dG @ gamma
 
 
+def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict) -> None:
+    """Set ``options`` on ``snes`` (and its KSP and PC) for ``owner``'s lifetime. A value PETSc
+    refuses, or a snes_/ksp_/pc_ option it does not use, is a :class:`SolverError` naming it
+    (other options, such as mat_* or mg_levels_*, are read later, at the first factorisation
+    or preconditioner set-up, and cannot be checked here)."""
+    _persistent_options(owner, prefix, options)
+    database = PETSc.Options()
+    try:
+        snes.setFromOptions()
+    except PETSc.Error as error:
+        lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
+        raise SolverError(f"solver.petsc_options: PETSc refused them: {lines[-1] if lines else error}") from None
+    unknown = [key for key in options if key.startswith(("snes_", "ksp_", "pc_")) and not database.used(prefix + key)]
+    if unknown:
+        raise SolverError(f"solver.petsc_options: PETSc does not use {', '.join(unknown)} here (misspelt, or an "
+                          "option of another solver type)")
+
+
 def _persistent_options(owner, prefix: str, options: dict) -> None:
     """Set PETSc options that stay until ``owner`` is garbage-collected."""
     database = PETSc.Options()
@@ -266,19 +319,24 @@ def solve(
     on_step: Callable[[StepReport], None] | None = None,
     solver: NewtonSolver | None = None,
     drive: Callable[[float], None] | None = None,
+    monitor: Callable[[StepReport], None] | None = None,
+    breakpoints: Sequence[float] | None = None,
 ) -> SolveReport:
     """Drive ``model`` from ``stepping.start`` to ``stepping.end`` with adaptive steps.
 
-    ``on_step`` is called after every accepted step (outputs, P–V curves, snapshots). Pass a
+    ``on_step`` is called after every accepted step (outputs, P–V curves, snapshots), and
+    ``monitor`` after every attempt, accepted or cut back (default: a log line). Pass a
     ``solver`` to reuse its compiled forms across calls. The stepped variable is the time,
-    unless ``drive(s)`` is given to apply it otherwise (e.g. as a load factor). Raises
+    unless ``drive(s)`` is given to apply it otherwise (e.g. as a load factor). Steps land on
+    ``breakpoints`` (default: the model's ramp breakpoints, unless ``drive`` is given). Raises
     :class:`SolverError` when a step below ``stepping.min_step`` still fails; the model then
     holds the last converged state.
     """
     stepping = stepping or Stepping()
     solver = solver or NewtonSolver(model, options)
     state = model.state.x.array
-    breakpoints = model.breakpoints if drive is None else []
+    if breakpoints is None:
+        breakpoints = model.breakpoints if drive is None else []
     drive = drive or model.set_time
     targets = sorted({t for t in (*stepping.times, *breakpoints, stepping.end) if stepping.start < t <= stepping.end})
     report = SolveReport()
@@ -286,6 +344,7 @@ def solve(
 
     t, dt = stepping.start, stepping.initial_step
     drive(t)
+    first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
     last, previous, previous_dt = state.copy(), None, None
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
@@ -297,7 +356,7 @@ def solve(
             converged, iterations, residuals, reason = solver.solve()
             step = StepReport(t + dt, dt, iterations, residuals, reason, time.perf_counter() - tic, converged)
             report.steps.append(step)
-            _log_step(step)
+            (monitor or _log_step)(step)
             if converged:
                 previous, previous_dt, last = last, dt, state.copy()
                 t += dt
@@ -306,12 +365,15 @@ def solve(
                 if iterations <= stepping.easy_iterations:
                     dt *= stepping.growth
                 continue
+            final = dt <= stepping.min_step * (1 + 1e-12)
+            smallest_J = limits.min_jacobian(model)() if final else None  # of the failed iterate
             state[:] = last
             model.state.x.scatter_forward()
-            if dt <= stepping.min_step * (1 + 1e-12):
+            if final:
                 drive(t)
+                cause = limits.diagnose(model, solver, drive, t, (first, stepping.start), smallest_J)
                 report.seconds = time.perf_counter() - started
-                raise SolverError(_failure_message(t, dt, step))
+                raise SolverError(_failure_message(t, dt, step, cause))
             dt = max(dt / 2, stepping.min_step)
     report.seconds = time.perf_counter() - started
     return report
@@ -319,21 +381,21 @@ def solve(
 
 def _log_step(step: StepReport) -> None:
     final = f"{step.residuals[-1]:.2e}" if step.residuals else "n/a"
-    status = "ok" if step.converged else f"FAILED ({step.reason}), cutting the step"
+    status = "ok" if step.converged else f"not converged ({step.reason}): step cut back"
     log.info(
         "t = %.6g  dt = %.3g  Newton %2d  |R| %s  %.2f s  %s",
         step.time, step.step, step.iterations, final, step.seconds, status,
     )
 
 
-def _failure_message(t: float, dt: float, step: StepReport) -> str:
-    history = ", ".join(f"{r:.3e}" for r in step.residuals[-6:]) or "none"
-    return (
-        f"Newton did not converge from t = {t:.6g} even with the minimum step {dt:.3g} "
-        f"(reason {step.reason}; last residual norms: {history}). The last converged state, at "
-        f"t = {t:.6g}, is kept. Try a smaller min_step, a different line search, or check the "
-        "loads and material parameters (an element may be inverting)."
-    )
+def _failure_message(t: float, dt: float, step: StepReport, cause: str) -> str:
+    where = f"the load path stopped at t = {t:.6g} s"
+    if cause:
+        return (f"{where}: {cause}. Newton could not take even the minimum step ({dt:.3g} s) beyond it "
+                f"({step.reason}). The last converged state, at t = {t:.6g} s, is kept.")
+    return (f"{where}: the minimum step ({dt:.3g} s) was reached and Newton still did not converge ({step.reason}). "
+            "The last converged state is kept. Try a smaller min_step or another line search, or check the loads "
+            "and material parameters.")
 
 
 def rigid_body_modes(space) -> PETSc.NullSpace:

@@ -76,11 +76,10 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     else:
         stored = model.energy_density * model.dx
         form = ufl.derivative(ufl.derivative(stored, model.state, b), model.state, a)
-    current = model.state.x.array.copy()
-    model.reset()
-    W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
-    W.assemble()
-    model.state.x.array[:] = current
+    with model.kept_state():
+        model.reset()
+        W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
+        W.assemble()
     return W
 
 
@@ -159,11 +158,9 @@ def zero_imposed(model, vectors: np.ndarray) -> np.ndarray:
 
 def reference_state(model) -> np.ndarray:
     """The model's unloaded state (u = 0, other fields at their initial values), as an array."""
-    current = model.state.x.array.copy()
-    model.reset()
-    reference = model.state.x.array.copy()
-    model.state.x.array[:] = current
-    return reference
+    with model.kept_state():
+        model.reset()
+        return model.state.x.array.copy()
 
 
 def origin(model, reference: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ import numpy as np
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
+from lungmech.convergence import Fields
 from lungmech.errors import ParameterError
 from lungmech.rom.basis import Basis, apply, gram, inner_product, origin, reference_state
 from lungmech.rom.layout import layout
@@ -59,6 +60,7 @@ class ReducedSolver:
         self._jacobian = fem.form(model.jacobian if jacobian is None else jacobian)
         self._vector = fem.Function(model.space).x
         self._matrix = create_matrix(self._jacobian)
+        self._fields = Fields(model)
         self.coordinates = np.zeros(basis.size)
         self.description = f"reduced Galerkin: {basis.kind} basis of {basis.size} vectors"
         self.iterations_total = 0
@@ -100,14 +102,17 @@ class ReducedSolver:
         options = self.options
         q = self.project()
         r = self.reduced_residual(q)
-        residuals = [float(np.linalg.norm(r))]
+        residuals, floor = [float(np.linalg.norm(r))], 0.0
         for iteration in range(1, options.max_iterations + 1):
             if not np.isfinite(residuals[-1]):
                 return self._finish(q, False, iteration - 1, residuals, "DIVERGED_NANORINF")
-            if residuals[-1] <= options.atol or (iteration > 1 and residuals[-1] <= options.rtol * residuals[0]):
+            if iteration > 1 and residuals[-1] <= max(options.rtol * max(residuals), options.atol, floor):
                 return self._finish(q, True, iteration - 1, residuals, "CONVERGED_FNORM")
             try:
-                step = np.linalg.solve(self.reduced_jacobian(), -r)
+                jacobian = self.reduced_jacobian()
+                if iteration == 1:  # the round-off floor of Vᵀ R, from the first tangent
+                    floor = self._floor()
+                step = np.linalg.solve(jacobian, -r)
             except np.linalg.LinAlgError:
                 return self._finish(q, False, iteration - 1, residuals, "DIVERGED_LINEAR_SOLVE")
             alpha, trial = 1.0, None
@@ -119,9 +124,16 @@ class ReducedSolver:
                 alpha /= 2
             q, r = q + alpha * step, trial
             residuals.append(norm)
-            if alpha * np.linalg.norm(step) <= options.stol * np.linalg.norm(q) and norm <= 1e-3 * residuals[0]:
-                return self._finish(q, True, iteration, residuals, "CONVERGED_SNORM_RELATIVE")
-        return self._finish(q, False, options.max_iterations, residuals, "DIVERGED_MAX_IT")
+        return self._finish(q, False, options.max_iterations, residuals,
+                            f"DIVERGED_MAX_IT: reduced residual {residuals[-1]:.2e} > "
+                            f"{max(options.rtol * max(residuals), options.atol, floor):.2e}")
+
+    def _floor(self) -> float:
+        """‖|V|ᵀ ε|K|s‖: the round-off floor of Vᵀ R (see :mod:`lungmech.convergence`)."""
+        rounding = self._fields.rounding(self._matrix, self.model.state.x.petsc_vec)
+        floor = float(np.linalg.norm(gram(np.abs(self.V), rounding.getArray(readonly=True)[: self.owned, None], self.comm)))
+        rounding.destroy()
+        return floor
 
     def _finish(self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str) -> NewtonResult:
         if converged:
@@ -129,6 +141,16 @@ class ReducedSolver:
         self.iterations_total += iterations
         converged = converged and bool(np.all(np.isfinite(self.model.state.x.array)))
         return converged, iterations, tuple(residuals), reason
+
+    @property
+    def residual_form(self):
+        """The compiled residual form of the full model."""
+        return self._residual
+
+    @property
+    def jacobian_form(self):
+        """The compiled Jacobian form of the full model."""
+        return self._jacobian
 
     def destroy(self) -> None:
         self._matrix.destroy()

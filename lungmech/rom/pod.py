@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -33,7 +32,6 @@ def snapshots(
     solver = solver or NewtonSolver(model, options)
     start = reference_state(model) if start is None else start.copy()
     owned = _owned(model)
-    stepping = replace(stepping, times=(*stepping.times, *model.breakpoints))  # drive() hides them
     columns = []
     for scale in scales:
         model.state.x.array[:] = start
@@ -42,6 +40,7 @@ def snapshots(
             stepping,
             solver=solver,
             drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
+            breakpoints=model.breakpoints,  # drive() hides them
             on_step=lambda step: columns.append((model.state.x.array - origin(model, start))[:owned].copy()),
         )
     model.state.x.array[:] = start
