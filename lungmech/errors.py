@@ -27,3 +27,22 @@ class ImageError(LungmechError):
 
 class RegistrationError(LungmechError):
     """A shape registration or a shape-mode library cannot be computed from its input."""
+
+
+class OutputError(LungmechError):
+    """An output folder or file cannot be written without risking what is there, or at all."""
+
+
+class ModelFileError(LungmechError):
+    """A reduced-model file is missing, unreadable, or made for other physics than the scene's."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by a signal (SIGINT: Ctrl-C, or SIGTERM); ``signum`` says which."""
+
+    def __init__(self, signum: int):
+        import signal
+
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+        super().__init__(f"interrupted by {self.name}")

@@ -36,7 +36,10 @@ import ufl
 from lungmech.errors import GeometryError
 from lungmech.lung_shape import LungShape
 
-__all__ = ["Geometry", "box", "diameter", "ellipsoid", "from_file", "lung_phantom", "node_dofs", "sphere", "write"]
+__all__ = [
+    "Geometry", "box", "companions", "diameter", "ellipsoid", "from_file", "is_lungmech_mesh", "lung_phantom",
+    "node_dofs", "sphere", "write",
+]
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: compared and hashed by identity, like the mesh
@@ -48,12 +51,14 @@ class Geometry:
         facet_tags: Integer markers on (some of) the facets.
         boundaries: Boundary name -> facet tag value.
         cell_tags: Optional integer markers on cells.
+        source: Where the mesh came from, for messages (e.g. "mesh file 'lung.msh'").
     """
 
     mesh: dolfinx.mesh.Mesh
     facet_tags: dolfinx.mesh.MeshTags
     boundaries: Mapping[str, int]
     cell_tags: dolfinx.mesh.MeshTags | None = None
+    source: str = ""
 
     def __post_init__(self) -> None:
         fdim = self.mesh.topology.dim - 1
@@ -69,7 +74,7 @@ class Geometry:
             return self.boundaries[name]
         except KeyError:
             available = ", ".join(self.boundaries) or "(no named boundaries)"
-            raise GeometryError(f"unknown boundary {name!r}; this geometry has: {available}") from None
+            raise GeometryError(f"unknown boundary {name!r}; {self.source or 'this geometry'} has: {available}") from None
 
     def facets(self, name: str) -> npt.NDArray[np.int32]:
         """Process-local indices of the facets on boundary ``name``."""
@@ -512,7 +517,35 @@ def from_file(
                 f"tags present: {', '.join(map(str, sorted(present)))}"
             )
     names |= {str(tag): tag for tag in sorted(present - set(names.values()))}
-    return Geometry(geometry.mesh, geometry.facet_tags, names, geometry.cell_tags)
+    source = f"mesh file '{path}'"
+    if path.suffix == ".xdmf" and boundaries is None and not _sidecar(path).is_file():
+        source += (f" (its boundary names, '{_sidecar(path).name}', are missing, so its boundaries go by tag number; "
+                   "name them in [geometry] boundaries = {{name = tag, ...}})")
+    return Geometry(geometry.mesh, geometry.facet_tags, names, geometry.cell_tags, source)
+
+
+def _check_solid(mesh: dolfinx.mesh.Mesh, path: Path) -> None:
+    """A 3-D body with finite node coordinates (collective)."""
+    if mesh.topology.dim != 3:
+        raise GeometryError(f"mesh file '{path}' holds a {mesh.topology.dim}-D mesh ({mesh.topology.cell_name()} "
+                            "cells); lungmech solves 3-D bodies only (tetrahedra or hexahedra)")
+    finite = mesh.comm.allreduce(bool(np.isfinite(mesh.geometry.x).all()), op=MPI.LAND)
+    if not finite:
+        raise GeometryError(f"mesh file '{path}' has node coordinates that are not finite numbers (nan or inf)")
+
+
+def companions(path: str | Path) -> list[Path]:
+    """The files that go with a mesh file: an .xdmf's .h5 data and .tags.json boundary names."""
+    path = Path(path)
+    return [path.with_suffix(".h5"), _sidecar(path)] if path.suffix == ".xdmf" else []
+
+
+def is_lungmech_mesh(path: str | Path) -> bool:
+    """Whether ``path`` is an .xdmf mesh that lungmech wrote (its boundary-names file says so)."""
+    try:
+        return Path(path).suffix == ".xdmf" and "boundaries" in json.loads(_sidecar(Path(path)).read_text())
+    except (OSError, ValueError, TypeError):
+        return False
 
 
 def _global_values(tags: dolfinx.mesh.MeshTags, comm: MPI.Comm) -> set[int]:
@@ -542,6 +575,7 @@ def _to_geometry(path: Path, read: Callable[[], Any]) -> Geometry:
         data = read()
     except RuntimeError as e:  # raised on all ranks alike (model_to_mesh broadcasts its checks)
         raise GeometryError(f"cannot read mesh file '{path}': {e}") from e
+    _check_solid(data.mesh, path)
     if data.facet_tags is None:
         raise GeometryError(f"mesh file '{path}' has no facet tags (no 2D physical groups)")
     return _geometry(data)
@@ -556,11 +590,18 @@ def _read_xdmf(path: Path, comm: MPI.Comm) -> Geometry:
         raise GeometryError(f"mesh file '{path}' has no grid named 'mesh'")
     if "facet_tags" not in grids:
         raise GeometryError(f"mesh file '{path}' has no facet tags (no grid named 'facet_tags')")
-    with dolfinx.io.XDMFFile(comm, str(path), "r") as file:
-        mesh = file.read_mesh(name="mesh")
-        mesh.topology.create_connectivity(mesh.topology.dim - 1, mesh.topology.dim)
-        facet_tags = file.read_meshtags(mesh, name="facet_tags")
-        cell_tags = file.read_meshtags(mesh, name="cell_tags") if "cell_tags" in grids else None
+    for data in _data_files(path):
+        if not data.is_file():
+            raise GeometryError(f"mesh file '{path}': its data file '{data}' is missing")
+    try:
+        with dolfinx.io.XDMFFile(comm, str(path), "r") as file:
+            mesh = file.read_mesh(name="mesh")
+            mesh.topology.create_connectivity(mesh.topology.dim - 1, mesh.topology.dim)
+            facet_tags = file.read_meshtags(mesh, name="facet_tags")
+            cell_tags = file.read_meshtags(mesh, name="cell_tags") if "cell_tags" in grids else None
+    except RuntimeError as e:  # HDF5 or XDMF errors, raised on every rank alike
+        raise GeometryError(f"cannot read mesh file '{path}': {str(e).strip().splitlines()[-1]}") from None
+    _check_solid(mesh, path)
 
     boundaries: dict[str, int] = {}
     sidecar = _sidecar(path)
@@ -571,6 +612,13 @@ def _read_xdmf(path: Path, comm: MPI.Comm) -> Geometry:
             message = f"""expected {{"boundaries": {{name: tag, ...}}}} ({e!r})"""
             raise GeometryError(f"cannot read boundary names from '{sidecar}': {message}") from None
     return Geometry(mesh, facet_tags, boundaries, cell_tags)
+
+
+def _data_files(path: Path) -> set[Path]:
+    """The HDF5 files an XDMF file refers to (``file.h5:/dataset``), relative to it."""
+    names = {item.text.strip().split(":")[0] for item in ET.parse(path).iter("DataItem")
+             if item.get("Format") == "HDF" and item.text}
+    return {path.parent / name for name in names}
 
 
 def _sidecar(path: Path) -> Path:
@@ -605,5 +653,6 @@ def write(geometry: Geometry, path: str | Path) -> None:
             with _named(geometry.cell_tags, "cell_tags"):
                 file.write_meshtags(geometry.cell_tags, mesh.geometry)
     if comm.rank == 0:
-        _sidecar(path).write_text(json.dumps({"boundaries": dict(geometry.boundaries)}, indent=2) + "\n")
+        names = {"boundaries": dict(geometry.boundaries), "written_by": "lungmech"}
+        _sidecar(path).write_text(json.dumps(names, indent=2) + "\n")
     comm.Barrier()  # so that no rank reads the sidecar before it exists

@@ -1,29 +1,64 @@
-"""Run a scene: build what it declares, solve with load stepping, write the outputs atomically."""
+"""Run a scene: build what it declares, solve with load stepping, write the outputs safely.
+
+A run writes into a staging folder that replaces its output folder only when everything has
+succeeded (see :mod:`lungmech.destination`). Files, with SI units throughout:
+
+* ``summary.json``: the run's numbers, a ``units`` table naming the unit of each, and its
+  ``provenance`` (lungmech version, the scene file and its SHA-256, MPI ranks, date);
+* ``history.csv``: one row per accepted step, columns ``name [unit]``;
+* ``fields.pvd`` with ``.vtu`` files (or ADIOS2 ``.bp`` folders): fields at every step;
+* ``deformed.png``: the body at its largest volume, coloured by J;
+* ``pressure_volume.png`` when the scene has pressure loads: volume against the transpulmonary
+  pressure of a lung (or against the first pressure load of another body);
+* ``reference.xdmf`` for a scene with [inverse]: the unloaded reference it found.
+"""
 
 from __future__ import annotations
 
 import csv
+import datetime
+import hashlib
+import json
+import platform
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
+import lungmech
 from lungmech import lung
+from lungmech.console import Progress, litres
+from lungmech.console import pressure as show_pressure
+from lungmech.destination import output_folder
 from lungmech.errors import ParameterError
 from lungmech.geometry import write as write_geometry
-from lungmech.inverse import unloaded_reference
+from lungmech.inverse import InverseReport, unloaded_reference
+from lungmech.loads import FollowerPressure
 from lungmech.model import Model
-from lungmech.output import FieldWriter, atomic_folder, write_json
+from lungmech.output import FieldWriter, write_json
+from lungmech.parallel import on_root
 from lungmech.plot import deformed_body, pressure_volume
 from lungmech.quantities import Probe, deformed_volume, strain_energy
 from lungmech.scene import Scene, build_geometry
 from lungmech.solver import NewtonSolver, StepReport, solve
 
-
 Scale = float | Sequence[float]
+
+# Units of the summary's numbers (dotted paths) and of history.csv's columns.
+SUMMARY_UNITS = {
+    "dofs": "1", "cells": "1", "degree": "1", "mpi_ranks": "1", "steps": "1", "cut_steps": "1",
+    "newton_iterations": "1", "timings_seconds": "s", "start_volume": "m^3", "reference_volume": "m^3",
+    "deformed_volume": "m^3", "largest_volume.volume": "m^3", "largest_volume.time": "s", "strain_energy": "J",
+    "load_scale": "1", "probes.points": "m", "probes.displacement": "m", "inverse.iterations": "1",
+    "inverse.mismatch": "1 (fraction of the body's size)", "inverse.newton_iterations": "1", "inverse.seconds": "s",
+    "inverse.imaged_volume": "m^3", "inverse.reference_volume": "m^3",
+}
+_COLUMN_UNITS = {
+    "time": "s", "volume": "m^3", "strain_energy": "J", "newton_iterations": "1", "step_seconds": "s",
+    "phi_s": "1", "phi_f": "1", "phi_s_current": "1", "green_lagrange_mean": "1",
+}
 
 
 def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
@@ -39,27 +74,47 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
     )
 
 
-def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> list[tuple[str, float]]:
-    """The current values of the scene's scalar (pressure) loads, named by type and boundary;
-    ``scale`` multiplies their change since the start, as in :meth:`Model.set_time`."""
-    values = []
+def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> dict[str, float]:
+    """The current values (Pa) of the scene's scalar (pressure) loads, by label; ``scale``
+    multiplies their change since the start, as in :meth:`Model.set_time`."""
+    values = {}
     factors = np.broadcast_to(np.asarray(scale, dtype=float), (len(scene.loads),))
-    for i, (load, factor) in enumerate(zip(scene.loads, factors)):
+    for load, factor in zip(scene.loads, factors):
         if np.ndim(load.value) == 0:
-            where = getattr(load, "boundary", "")
-            where = where if isinstance(where, str) else "+".join(where)
             base = load.ramp(scene.stepping.start)
-            value = (base + factor * (load.ramp(t) - base)) * load.value
-            values.append((f"{type(load).__name__}{'_' + where if where else ''}_{i}", value))
+            values[load.label] = (base + factor * (load.ramp(t) - base)) * load.value
     return values
 
 
+def pressure_axis(scene: Scene) -> tuple[str, Callable[[dict[str, float]], float], list[str]] | None:
+    """The pressure of the P–V curve: its name, its value from the load values by label, and
+    what it is made of. For a lung (the lung model, an alveolar pressure, or a follower pressure
+    on the pleura), the transpulmonary pressure p_alv − p_pl (p_pl: the follower pressure on the
+    pleura, or the first one); otherwise the first pressure load. None without pressure loads."""
+    scalars = [load for load in scene.loads if np.ndim(load.value) == 0]
+    if not scalars:
+        return None
+    alveolar = [load.label for load in scalars if isinstance(load, lung.AlveolarPressure)]
+    followers = [load for load in scalars if isinstance(load, FollowerPressure)]
+    on_pleura = [load for load in followers if "pleura" in ((load.boundary,) if isinstance(load.boundary, str) else load.boundary)]
+    pleural = [load.label for load in (on_pleura or followers)[:1]]
+    if alveolar or on_pleura or isinstance(scene.formulation, lung.Poromechanics):
+        parts = [f"p_pl: {' + '.join(pleural) or 'none (0)'}", f"p_alv: {' + '.join(alveolar) or 'atmospheric (0)'}"]
+        return ("transpulmonary pressure p_alv − p_pl",
+                lambda v: sum(v[a] for a in alveolar) - sum(v[p] for p in pleural), parts)
+    first = scalars[0].label
+    return first, lambda v: v[first], []
+
+
 def check_scale(scene: Scene, scale: Scale) -> Scale:
-    """``scale`` as given, if it is one positive factor or one per load of the scene."""
-    factors = np.atleast_1d(np.asarray(scale, dtype=float))
+    """``scale`` as given, if it is one finite factor or one per load of the scene."""
+    try:
+        factors = np.atleast_1d(np.asarray(scale, dtype=float))
+    except (TypeError, ValueError):
+        factors = np.array([np.nan])
     if factors.ndim != 1 or len(factors) not in (1, len(scene.loads)) or not np.all(np.isfinite(factors)):
         raise ParameterError(
-            f"load scale: give one factor or one per load ({len(scene.loads)} in this scene), got {scale!r}"
+            f"load scale: give one finite factor or one per load ({len(scene.loads)} in this scene), got {scale!r}"
         )
     return scale
 
@@ -73,7 +128,20 @@ def full_order(model: Model, scene: Scene, folder: Path) -> tuple[NewtonSolver, 
 def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> dict:
     """Replace the (imaged) mesh by its unloaded reference; write it; report how it went."""
     imaged_volume = model.geometry.volume()
-    report = unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver)
+    progress = Progress("unloading the imaged lung" if _is_lung(scene) else "finding the unloaded reference")
+    first = [None]
+    tolerance, most = scene.inverse.tolerance, scene.inverse.max_iterations
+
+    def show(report: InverseReport) -> None:
+        mismatch = report.mismatch[-1]
+        first[0] = first[0] or mismatch
+        done = np.log(first[0] / max(mismatch, tolerance)) / np.log(first[0] / tolerance) if first[0] > tolerance else 1.0
+        progress.update(done, f"iteration {report.iterations}/{most}: mismatch {mismatch:.2e} of the lung's size "
+                              f"(target {tolerance:.0e})")
+
+    report = unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver, monitor=show)
+    progress.close(f"unloaded reference found in {report.iterations} iterations, volume {litres(model.geometry.volume())} "
+                   f"(imaged {litres(imaged_volume)})")
     write_geometry(model.geometry, folder / "reference.xdmf")
     return {
         "iterations": report.iterations,
@@ -85,6 +153,12 @@ def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> d
     }
 
 
+def _is_lung(scene: Scene) -> bool:
+    return isinstance(scene.formulation, lung.Poromechanics) or any(
+        isinstance(load, lung.AlveolarPressure) for load in scene.loads
+    )
+
+
 def run(
     scene: Scene,
     out: str | Path,
@@ -92,27 +166,28 @@ def run(
     *,
     scale: Scale = 1.0,
     prepare: Callable[[Model, Scene, Path], tuple[NewtonSolver, dict | None]] = full_order,
+    inputs: Sequence[str | Path] = (),
 ) -> dict:
-    """Solve ``scene`` and write summary.json, history.csv, (optionally) VTX fields,
-    deformed.png (the body at its largest volume, coloured by J) and, when the scene has
-    pressure loads, pressure_volume.png (volume against the first of them) to ``out``.
-    A scene with [inverse] first moves its (imaged) mesh to the unloaded reference and writes
-    it to reference.xdmf; stepping then starts from the imaged state.
+    """Solve ``scene`` and write its results into the folder ``out`` (see the module's doc).
 
-    ``scale`` multiplies the loads' change from the start (one factor, or one per load): a
-    deeper breath from the same end-expiration. ``prepare(model, scene, folder)`` returns the
-    solver (default :func:`full_order`; a reduced model's is in :mod:`lungmech.rom.scene`) and
-    what it did to the reference (the inverse problem's report, or None).
+    A scene with [inverse] first moves its (imaged) mesh to the unloaded reference; stepping
+    then starts from the imaged state. ``scale`` multiplies the loads' change from the start
+    (one factor, or one per load): a deeper breath from the same end-expiration.
+    ``prepare(model, scene, folder)`` returns the solver (default :func:`full_order`; a reduced
+    model's is in :mod:`lungmech.rom.scene`) and what it did to the reference (the inverse
+    problem's report, or None). ``inputs`` are further files the run reads (beyond the scene's
+    own), which ``out`` must not hold.
 
-    ``out`` is replaced only when the run succeeds. Returns the summary.
+    ``out`` is checked before any work (see :func:`lungmech.destination.output_folder`) and
+    replaced only when the run succeeds. Collective. Returns the summary.
     """
     check_scale(scene, scale)
     timings = {}
-    tic = time.perf_counter()
-    model = build_model(scene, comm)
-    timings["build"] = time.perf_counter() - tic
-
-    with atomic_folder(Path(out), comm) as staging:
+    command = f"lungmech run {scene.source}" if scene.source else "lungmech.run.run"
+    with output_folder(out, comm, inputs=[*scene.inputs, *inputs], command=command) as staging:
+        tic = time.perf_counter()
+        model = build_model(scene, comm)
+        timings["build"] = time.perf_counter() - tic
         tic = time.perf_counter()
         solver, inverse = prepare(model, scene, staging)
         timings["prepare"] = time.perf_counter() - tic
@@ -120,42 +195,59 @@ def run(
         volume, energy = deformed_volume(model), strain_energy(model)
         fractions = lung.averages(model) if "phi_s" in model.fields else {}
         probe = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else None
-        writer = FieldWriter(model, staging) if scene.output.fields else None
+        writer = FieldWriter(model, staging, scene.output.format) if scene.output.fields else None
         timings["compile"] = time.perf_counter() - tic
 
+        axis = pressure_axis(scene)
+        stepping = scene.stepping
+        progress = Progress("breathing" if axis and axis[0].startswith("transpulmonary") else "loading")
         history = []
         largest = {"volume": -np.inf, "state": None, "time": 0.0}  # pictured at the end
 
         def record(step: StepReport | None) -> None:
-            row = {"time": model.time, "volume": volume(), "energy": energy()}
-            row |= {name: value for name, value in load_values(scene, model.time, scale)}
+            row = {"time": model.time, "volume": volume(), "strain_energy": energy()}
+            loads = load_values(scene, model.time, scale)
+            row |= loads
             row |= {name: mean() for name, mean in fractions.items()}
             if step is not None:
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
             if probe is not None:
                 for i, value in enumerate(probe(model.displacement())):
-                    row |= {f"probe{i}_u{axis}": value[c] for c, axis in enumerate("xyz")}
+                    row |= {f"probe{i}_u{letter}": value[c] for c, letter in enumerate("xyz")}
             history.append(row)
             if row["volume"] > largest["volume"]:
                 largest.update(volume=row["volume"], state=model.state.x.array.copy(), time=model.time)
             if writer is not None:
                 writer.write(model.time)
+            shown = f"  {'P_L' if axis[0].startswith('transpulmonary') else 'p'} {show_pressure(axis[1](loads))}" if axis else ""
+            newton = f"  {step.iterations} Newton" if step is not None else ""
+            progress.update((model.time - stepping.start) / (stepping.end - stepping.start),
+                            f"step {len(history) - 1}  t = {model.time:.3g}/{stepping.end:g} s{shown}  "
+                            f"volume {litres(row['volume'])}{newton}")
+
+        def cut(step: StepReport) -> None:
+            if not step.converged:
+                progress.note(f"t = {step.time:.4g} s: Newton did not converge ({step.reason}); step cut back to "
+                              f"dt = {step.step / 2:.3g} s (normal adaptivity)")
 
         try:
             record(None)
-            stepping = replace(scene.stepping, times=(*scene.stepping.times, *model.breakpoints))
             report = solve(
-                model, stepping, solver=solver, on_step=record,
-                drive=lambda t: model.set_time(t, load_factor=scale, about=scene.stepping.start),
+                model, stepping, solver=solver, on_step=record, monitor=cut,
+                drive=lambda t: model.set_time(t, load_factor=scale, about=stepping.start),
+                breakpoints=model.breakpoints,
             )
         finally:  # ADIOS2 must let go of its files before a failed staging folder is removed
             if writer is not None:
                 writer.close()
+        progress.close(f"{len(report.accepted)} steps ({report.failures} cut back), {report.newton_iterations} "
+                       "Newton iterations")
         timings["solve"] = report.seconds
 
         mesh = model.geometry.mesh
         summary = {
             "title": scene.title,
+            "provenance": provenance(scene, comm),
             "mpi_ranks": comm.size,
             "dofs": model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs,
             "cells": mesh.topology.index_map(mesh.topology.dim).size_global,
@@ -163,13 +255,14 @@ def run(
             "degree": scene.degree,
             "formulation": type(scene.formulation).__name__,
             "steps": len(report.accepted),
-            "failed_steps": report.failures,
+            "cut_steps": report.failures,
             "newton_iterations": report.newton_iterations,
             "timings_seconds": timings,
+            "start_volume": history[0]["volume"],
             "reference_volume": model.geometry.volume(),
             "deformed_volume": history[-1]["volume"],
             "largest_volume": {"volume": largest["volume"], "time": largest["time"]},
-            "strain_energy": history[-1]["energy"],
+            "strain_energy": history[-1]["strain_energy"],
             "inverse": inverse,
             "load_scale": np.asarray(scale, dtype=float).tolist(),
             "solver": getattr(solver, "description", "full order"),
@@ -177,22 +270,58 @@ def run(
                 "points": [list(p) for p in scene.output.probes],
                 "displacement": probe(model.displacement()).tolist() if probe is not None else [],
             },
+            "units": SUMMARY_UNITS,
         }
         write_json(staging / "summary.json", summary, comm)
-        final = model.state.x.array.copy()
-        model.state.x.array[:] = largest["state"]
-        deformed_body(model, staging / "deformed.png", f"{scene.title}\nlargest volume, t = {largest['time']:.3g}")
-        model.state.x.array[:] = final
-        pressures = [name for name, _ in load_values(scene, 0.0)]
-        if pressures and comm.rank == 0:
-            pressure_volume(
-                [row[pressures[0]] for row in history], [row["volume"] for row in history],
-                staging / "pressure_volume.png", pressures[0],
-            )
-        if comm.rank == 0:
-            with open(staging / "history.csv", "w", newline="") as stream:
-                columns = list(dict.fromkeys(k for row in history for k in row))
-                writer_csv = csv.DictWriter(stream, fieldnames=columns)
-                writer_csv.writeheader()
-                writer_csv.writerows(history)
+        with model.kept_state():
+            model.state.x.array[:] = largest["state"]
+            model.state.x.scatter_forward()
+            deformed_body(model, staging / "deformed.png",
+                          f"{scene.title}\nlargest volume {litres(largest['volume'])}, t = {largest['time']:.3g} s")
+        on_root(comm, lambda: _write_tables(scene, history, axis, staging))
     return summary
+
+
+def _write_tables(scene: Scene, history: list[dict], axis, folder: Path) -> None:
+    """history.csv (columns with units) and the P–V picture (rank 0)."""
+    if axis is not None:
+        label, value, parts = axis
+        pressure_volume([value(row) for row in history], [row["volume"] for row in history],
+                        folder / "pressure_volume.png", label, title=scene.title, note=parts)
+    labels = {load.label for load in scene.loads}
+    columns = list(dict.fromkeys(k for row in history for k in row))
+    header = [f"{k} [{_column_unit(k, labels)}]" for k in columns]
+    with open(folder / "history.csv", "w", newline="") as stream:
+        table = csv.writer(stream)
+        table.writerow(header)
+        table.writerows([[row.get(k, "") for k in columns] for row in history])
+
+
+def _column_unit(key: str, loads: set[str]) -> str:
+    if key in _COLUMN_UNITS:
+        return _COLUMN_UNITS[key]
+    if key in loads or key.startswith("mean_stress"):
+        return "Pa"
+    if key.startswith("probe"):
+        return "m"
+    return "1"
+
+
+def provenance(scene: Scene, comm: MPI.Comm) -> dict:
+    """Where a result comes from: versions, the scene and its SHA-256, ranks, host and date."""
+    import dolfinx
+
+    if scene.source is not None and Path(scene.source).is_file():
+        digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
+    else:
+        digest = hashlib.sha256(json.dumps(scene.table, sort_keys=True, default=str).encode()).hexdigest()
+    return {
+        "lungmech": lungmech.__version__,
+        "dolfinx": dolfinx.__version__,
+        "python": platform.python_version(),
+        "scene": str(Path(scene.source).resolve()) if scene.source else None,
+        "scene_sha256": digest,
+        "mpi_ranks": comm.size,
+        "host": platform.node(),
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+    }

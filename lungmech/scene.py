@@ -7,22 +7,28 @@ naming the key, e.g. ``material.nuu: unknown key (expected one of: E, nu)``.
 
 from __future__ import annotations
 
+import copy
+import hashlib
 import inspect
+import json
+import math
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lungmech import checks
 from lungmech import geometry as _geometry
 from lungmech.constraints import Displacement, clamp, symmetry
-from lungmech.errors import LungmechError, SceneError
+from lungmech.errors import LungmechError, ParameterError, SceneError
 from lungmech.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.gravity import Gravity
 from lungmech.inverse import InverseOptions
 from lungmech.loads import BodyForce, FollowerPressure, Traction
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.materials import LAWS, Material, Sum
+from lungmech.output import FORMATS as FIELD_FORMATS
 from lungmech.ramp import Ramp
 from lungmech.solver import NewtonOptions, Stepping
 
@@ -54,6 +60,15 @@ class Output:
 
     fields: bool = True
     probes: tuple[tuple[float, float, float], ...] = ()
+    format: str = "vtk"  # of the fields: "vtk" (.pvd/.vtu, read by every viewer) or "vtx" (ADIOS2 .bp)
+
+    def __post_init__(self):
+        checks.boolean("fields", self.fields)
+        if self.format not in FIELD_FORMATS:
+            raise ParameterError(f"format must be one of {', '.join(FIELD_FORMATS)} (got {self.format!r})")
+        if not isinstance(self.probes, Sequence) or isinstance(self.probes, str):
+            raise ParameterError(f"probes must be a list of points [x, y, z] (got {self.probes!r})")
+        object.__setattr__(self, "probes", tuple(checks.vector(f"probes[{i}]", p) for i, p in enumerate(self.probes)))
 
 
 @dataclass(frozen=True)
@@ -70,23 +85,52 @@ class Scene:
     inverse: InverseOptions | None = None  # the geometry is imaged under the loads of stepping.start
     title: str = ""
     folder: Path = Path(".")
+    source: Path | None = None  # the scene file, when read from one
+    table: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)  # as written (parsed TOML)
+
+    @property
+    def inputs(self) -> list[Path]:
+        """The files this scene reads: itself, its mesh (with the mesh's companion files) and data."""
+        files = [self.source] if self.source is not None else []
+        if "file" in self.geometry:
+            mesh = Path(self.geometry["file"])
+            files += [mesh] + [p for p in _geometry.companions(mesh) if p.exists()]
+        phi_s0 = getattr(self.formulation, "phi_s0", None)
+        if isinstance(phi_s0, str | Path):
+            files.append(Path(phi_s0))
+        return files
 
 
 def load(path: str | Path) -> Scene:
-    """Read and validate a scene file."""
+    """Read and validate a scene file (UTF-8 TOML)."""
     path = Path(path)
+    if path.is_dir():
+        raise SceneError(f"scene file '{path}' is a folder; name a .toml file")
     if not path.is_file():
         raise SceneError(f"scene file '{path}' not found")
     try:
-        table = tomllib.loads(path.read_text())
+        data = path.read_bytes()
+    except OSError as error:
+        raise SceneError(f"cannot read scene file '{path}': {error.strerror or error}") from None
+    if b"\0" in data:
+        raise SceneError(f"scene file '{path}' is not a text file (it holds binary data); a scene is TOML text")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise SceneError(f"scene file '{path}' is not UTF-8 text (byte 0x{data[error.start]:02x} on line {line}); "
+                         "save it as UTF-8") from None
+    try:
+        table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: not valid TOML ({error})") from None
-    return parse(table, folder=path.parent)
+    return parse(table, folder=path.parent, source=path)
 
 
-def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
+def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None = None) -> Scene:
     """Validate a scene given as a dictionary (the parsed TOML)."""
     _no_unknown_keys(table, SECTIONS, "scene")
+    _finite_numbers(table)
     for required in ("geometry", "material"):
         if required not in table:
             raise SceneError(f"scene: missing section [{required}]")
@@ -114,7 +158,50 @@ def parse(table: dict[str, Any], folder: Path = Path(".")) -> Scene:
         inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
         title=_typed(table.get("title", ""), str, "title"),
         folder=folder,
+        source=source,
+        table=copy.deepcopy(table),
     )
+
+
+def physics(scene: Scene) -> dict[str, Any]:
+    """What a scene models, as plain values: its mesh's boundary names, law, formulation,
+    constraints, loads, start time and [inverse]. Two scenes with the same physics may differ
+    in title, outputs, stepping (but its start) and solver settings. Numbers are floats, and a
+    file of cell values is named by its SHA-256 (a mesh is checked by its own fingerprint)."""
+    table = scene.table
+    described = {key: table[key] for key in ("material", "formulation", "constraints", "loads", "inverse") if key in table}
+    described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
+    described["stepping.start"] = scene.stepping.start
+    phi_s0 = getattr(scene.formulation, "phi_s0", None)
+    if isinstance(phi_s0, str | Path):
+        described["formulation"] = {**described["formulation"], "phi_s0": _sha256(Path(phi_s0))}
+    return json.loads(json.dumps(described, default=str), parse_int=float)
+
+
+def differences(built: dict[str, Any], given: dict[str, Any]) -> list[str]:
+    """Where two physics descriptions (:func:`physics`) differ, one line each."""
+    left, right = _flatten(built), _flatten(given)
+    lines = []
+    for key in sorted(set(left) | set(right)):
+        if key not in right:
+            lines.append(f"{key} = {left[key]!r} only in the model's scene")
+        elif key not in left:
+            lines.append(f"{key} = {right[key]!r} only in this scene")
+        elif left[key] != right[key]:
+            lines.append(f"{key}: {left[key]!r} in the model's scene, {right[key]!r} here")
+    return lines
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        return {k: v for key, item in value.items() for k, v in _flatten(item, f"{prefix}.{key}" if prefix else key).items()}
+    if isinstance(value, list) and any(isinstance(v, dict | list) for v in value):
+        return {k: v for i, item in enumerate(value) for k, v in _flatten(item, f"{prefix}[{i}]").items()}
+    return {prefix: value}
+
+
+def _sha256(path: Path) -> str:
+    return "sha256:" + hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def material(table: dict[str, Any], where: str = "material") -> Material:
@@ -127,7 +214,7 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
     table = dict(table)
     name = table.pop("law", None)
     if name in COMPOSITE_LAWS:
-        return _call(COMPOSITE_LAWS[name], table, where)
+        return _call(COMPOSITE_LAWS[name], table, f"{where} (law '{name}')")
     if name == "sum":
         _no_unknown_keys(table, ("terms",), where)
         terms = table.get("terms")
@@ -155,7 +242,10 @@ def build_geometry(spec: dict[str, Any], comm) -> _geometry.Geometry:
     if "file" in spec:
         return _geometry.from_file(spec.pop("file"), comm, spec.pop("boundaries", None))
     builder = BUILDERS[spec.pop("builder")]
-    return builder(comm, **spec)
+    try:
+        return builder(comm, **spec)
+    except (TypeError, ValueError) as error:  # e.g. a string where a length belongs
+        raise SceneError(f"geometry: bad value for the {builder.__name__} builder ({error})") from None
 
 
 def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
@@ -163,6 +253,11 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
         raise SceneError("geometry: give exactly one of 'builder' (a generated mesh) or 'file' (a mesh file)")
     if "file" in table:
         _no_unknown_keys(table, ("file", "boundaries"), "geometry")
+        _typed(table["file"], str, "geometry.file")
+        names = table.get("boundaries", {})
+        if not isinstance(names, dict) or not all(isinstance(v, int) and not isinstance(v, bool) for v in names.values()):
+            raise SceneError("geometry.boundaries: expected a table of boundary names and facet tags, "
+                             "e.g. { hilum = 4, pleura = 1 }")
         path = Path(table["file"])
         path = path if path.is_absolute() else folder / path
         if not path.is_file():
@@ -198,6 +293,25 @@ def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) ->
             entry["value"] = tuple(entry["value"])
         built.append(_call(kinds[kind], entry, where))
     return built
+
+
+# Keys where TOML's inf is meaningful (an open range); nan is never a value.
+_INFINITY_ALLOWED = ("formulation.pore_range",)
+
+
+def _finite_numbers(table: Any, where: str = "") -> None:
+    """Refuse nan anywhere in the scene, and inf except where it means 'no bound'."""
+    if isinstance(table, dict):
+        for key, value in table.items():
+            _finite_numbers(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(table, list):
+        for i, value in enumerate(table):
+            _finite_numbers(value, f"{where}[{i}]")
+    elif isinstance(table, float) and not math.isfinite(table):
+        if math.isnan(table):
+            raise SceneError(f"{where}: nan is not a value; give a number")
+        if not (where.startswith(_INFINITY_ALLOWED) and table > 0):
+            raise SceneError(f"{where}: {table} is not allowed here; give a finite number")
 
 
 def _section(table: dict[str, Any], name: str) -> dict[str, Any]:

@@ -95,7 +95,7 @@ def test_run_writes_outputs(tmp_path):
     written = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert written == json.loads(json.dumps(summary))
     assert summary["steps"] >= 1 and summary["newton_iterations"] >= summary["steps"]
-    assert (tmp_path / "out" / "history.csv").read_text().startswith("time,volume,energy")
+    assert (tmp_path / "out" / "history.csv").read_text().startswith("time [s],volume [m^3],strain_energy [J]")
 
 
 def test_failed_run_keeps_previous_results(tmp_path):
@@ -189,10 +189,10 @@ def test_reduced_model_from_the_command_line(tmp_path, capsys):
     other.parent.mkdir()
     other.write_text(TINY)
     errors = {
-        ("rom", "solve", str(model), str(other), "-o", str(tmp_path / "x")): "another mesh",
+        ("rom", "solve", str(model), str(other), "-o", str(tmp_path / "x")): "other physics than this scene's: geometry.cells",
         ("rom", "solve", str(tmp_path / "none.npz"), "-o", str(tmp_path / "x")): "not found",
         ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--basis", "wavelet"): "basis kind must be",
-        ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--scales", "1:2"): "one factor or one per load",
+        ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--scales", "1:2"): "one finite factor or one per load",
         ("run", str(scene), "-o", str(tmp_path / "x"), "--scale", "1,2"): "--scale takes one value",
     }
     for command, message in errors.items():

@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 from lungmech import rom
 from lungmech.constraints import clamp
-from lungmech.errors import ParameterError
+from lungmech.errors import ModelFileError, ParameterError
 from lungmech.geometry import box
 from lungmech.loads import BodyForce, FollowerPressure
 from lungmech.materials import LinearElastic, NeoHookean, SaintVenantKirchhoff
@@ -190,18 +190,18 @@ def test_save_load_round_trip_and_mesh_check(trained, tmp_path):
     assert np.array_equal(loaded.vectors, basis.vectors) and np.array_equal(loaded.values, basis.values)
     assert (loaded.kind, loaded.inner_product, loaded.fingerprint) == ("pod", "energy", basis.fingerprint)
     assert loaded.source == basis.source and extra == {"note": "test"} and np.array_equal(arrays["start"], np.arange(3.0))
-    with pytest.raises(ParameterError, match="another mesh"):
+    with pytest.raises(ModelFileError, match="another mesh"):
         rom.load(path, beam(cells=(8, 2, 1)))
     moved = beam()
     moved.geometry.mesh.geometry.x[:, 0] *= 1.001  # same topology, other nodes
-    with pytest.raises(ParameterError, match="another mesh"):
+    with pytest.raises(ModelFileError, match="another mesh"):
         rom.load(path, moved)
     with pytest.raises(ParameterError, match="another mesh"):
         rom.ReducedSolver(moved, basis)
     (tmp_path / "junk.npz").write_bytes(b"not a model")
-    with pytest.raises(ParameterError, match="not a lungmech reduced model"):
+    with pytest.raises(ModelFileError, match="not a lungmech reduced model"):
         rom.load(tmp_path / "junk.npz", model)
-    with pytest.raises(ParameterError, match="not found"):
+    with pytest.raises(ModelFileError, match="not found"):
         rom.load(tmp_path / "missing.npz", model)
     with pytest.raises(ParameterError, match=".npz"):
         rom.save(tmp_path / "beam.h5", model, basis)

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 
+from lungmech.console import litres
+from lungmech.destination import output_file
 from lungmech.errors import ParameterError
+from lungmech.parallel import on_root
 
 COMMANDS = ("register", "shape-modes", "shape", "phantom")
 
@@ -15,14 +19,16 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     register = commands.add_parser("register", help="map a reference mesh onto a segmented 3-D image")
     register.add_argument("image", help="segmentation (.nii, .nii.gz, .mha, .nrrd or .npz)")
     _reference(register)
-    register.add_argument("-o", "--output", default="registration", help="output folder (replaced only on success)")
+    register.add_argument("-o", "--output", help="output folder (default results/<image name>); replaced only on "
+                          "success, and only if it is empty or lungmech's own")
     _image_options(register)
     _descent_options(register)
 
     modes = commands.add_parser("shape-modes", help="register a reference onto many images and build shape modes")
     modes.add_argument("images", nargs="*", help="image files or folders of images")
     _reference(modes)
-    modes.add_argument("-o", "--output", default="shape_modes", help="output folder (replaced only on success)")
+    modes.add_argument("-o", "--output", default="results/shape_modes", help="output folder (default "
+                       "results/shape_modes); replaced only on success, and only if it is empty or lungmech's own")
     modes.add_argument("--synthetic", type=int, metavar="N", help="use N synthetic patients instead of images")
     modes.add_argument("--latent", type=int, default=2, help="latent shape parameters of the synthetic cohort (1-5)")
     modes.add_argument("--seed", type=int, default=0, help="random seed of the synthetic cohort")
@@ -62,6 +68,11 @@ def _descent_options(command: argparse.ArgumentParser) -> None:
     command.add_argument("--image-function", choices=("distance", "binary"), default="distance")
     command.add_argument("--min-jacobian", type=float, default=0.25, help="reject steps making det F smaller")
     command.add_argument("--max-iterations", type=int, default=200, help="per stage")
+    command.add_argument("--accept-unconverged", action="store_true",
+                         help="keep a registration whose descent did not converge (refused by default)")
+    command.add_argument("--accept-implausible", action="store_true",
+                         help="register a target whose size is far from the reference's (refused by default: "
+                              "the image's length unit is likely wrong)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,6 +87,10 @@ def run(args: argparse.Namespace) -> int:
     return {"register": _register, "shape-modes": _shape_modes, "shape": _shape, "phantom": _phantom}[args.command](
         args, comm
     )
+
+
+def _accepted(args) -> tuple[str, ...]:
+    return tuple(doubt for doubt in ("unconverged", "implausible") if getattr(args, f"accept_{doubt}"))
 
 
 def _options(args):
@@ -96,13 +111,15 @@ def _register(args, comm) -> int:
 
     options = _options(args)
     target = image.read(args.image, label=args.label, unit=args.unit)
-    report = workflow.register_image(args.reference, target, args.output, options, comm)
+    output = args.output or f"results/{image.stem(Path(args.image))}"
+    report = workflow.register_image(args.reference, target, output, options, comm, accept=_accepted(args))
     if comm.rank == 0:
+        converged = "yes" if report["converged"] else "no (kept: --accept-unconverged)"
         print(f"lungmech: registered {args.reference} onto {args.image} in {report['iterations']} iterations "
-              f"({report['total_seconds']:.1f} s): Dice {report['dice']:.4f}, mean surface distance "
-              f"{1e3 * report['mean_surface_distance']:.2f} mm ({report['mean_surface_distance_voxels']:.2f} voxels), "
-              f"hd95 {1e3 * report['hd95']:.2f} mm, min det F {report['min_det_F']:.3f}; "
-              f"outputs in {Path(args.output).resolve()}")
+              f"({report['total_seconds']:.1f} s), converged: {converged}; Dice {report['dice']:.4f}, mean surface "
+              f"distance {1e3 * report['mean_surface_distance']:.2f} mm ({report['mean_surface_distance_voxels']:.2f} "
+              f"voxels), hd95 {1e3 * report['hd95']:.2f} mm, min det F {report['min_det_F']:.3f}; "
+              f"outputs in {Path(output).resolve()}")
     return 0
 
 
@@ -117,12 +134,14 @@ def _shape_modes(args, comm) -> int:
         sources = {f"patient_{j:03d}": im for j, im in enumerate(cohort.images(spacing=1e-3 * args.spacing))}
     else:
         sources = workflow.read_images(args.images, label=args.label, unit=args.unit)
-    report = workflow.build_shape_modes(args.reference, sources, args.output, options, comm)
+    report = workflow.build_shape_modes(args.reference, sources, args.output, options, comm, accept=_accepted(args))
     if comm.rank == 0:
         worst = report["worst"]
         compact = report["compactness"]
-        print(f"lungmech: {report['images']} mappings (worst Dice {worst['dice']:.4f}, min det F "
-              f"{worst['min_det_F']:.3f}) -> {len(compact)} shape modes; the first 3 capture "
+        unconverged = [m["name"] for m in report["members"] if not m["converged"]]
+        converged = "yes" if not unconverged else f"no for {', '.join(unconverged)} (kept: --accept-unconverged)"
+        print(f"lungmech: {report['images']} mappings, converged: {converged} (worst Dice {worst['dice']:.4f}, "
+              f"min det F {worst['min_det_F']:.3f}) -> {len(compact)} shape modes; the first 3 capture "
               + ", ".join(f"{100 * c:.1f} %" for c in compact[:3])
               + f" of the variance; outputs in {Path(args.output).resolve()}")
     return 0
@@ -136,12 +155,18 @@ def _shape(args, comm) -> int:
         coefficients = [float(c) for c in args.coefficients.split(",")]
     except ValueError:
         raise ParameterError(f"--coefficients: not a list of numbers: {args.coefficients!r}") from None
-    modes = ShapeModes.load(args.modes)
-    new = modes.geometry(geometry.from_file(args.reference, comm), coefficients)
-    geometry.write(new, args.output)
-    volume = new.volume()  # collective
+    if Path(args.output).suffix != ".xdmf":
+        raise ParameterError(f"-o {args.output}: a shape is written as an .xdmf mesh (e.g. -o new_lung.xdmf)")
+    inputs = [args.modes, args.reference, *geometry.companions(args.reference)]
+    with output_file(args.output, comm, inputs=inputs, ours=geometry.is_lungmech_mesh,
+                     companions=[p.name for p in geometry.companions(args.output)]) as path:
+        modes = ShapeModes.load(args.modes)
+        new = modes.geometry(geometry.from_file(args.reference, comm), coefficients)
+        geometry.write(new, path)
+        volume = new.volume()  # collective
     if comm.rank == 0:
-        print(f"lungmech: shape {coefficients} written to {Path(args.output).resolve()} (volume {volume:.6g})")
+        print(f"lungmech: shape {coefficients} (standard deviations) written to {Path(args.output).resolve()} "
+              f"(volume {litres(volume)})")
     return 0
 
 
@@ -152,10 +177,13 @@ def _phantom(args, comm) -> int:
     image.kind(Path(args.output))  # a bad suffix fails on every rank, before any work
     fields = {f.name for f in dataclasses.fields(LungShape)}
     given = {k: v for k, v in vars(args).items() if k in fields and v is not None}
-    shape = LungShape(**given)
-    target = phantom.voxelise(shape, 1e-3 * args.spacing)
+    if not (math.isfinite(args.spacing) and args.spacing > 0):
+        raise ParameterError(f"--spacing must be a positive voxel size in mm (got {args.spacing})")
+    with output_file(args.output, comm, ours=image.written_by_lungmech) as path:
+        shape = LungShape(**given)
+        target = phantom.voxelise(shape, 1e-3 * args.spacing)
+        on_root(comm, lambda: image.write(target, path))
     if comm.rank == 0:
-        image.write(target, args.output)
         print(f"lungmech: {shape.side} lung phantom, {target.shape} voxels of {args.spacing} mm, "
-              f"volume {target.volume * 1e3:.3f} L -> {Path(args.output).resolve()}")
+              f"volume {litres(target.volume)} -> {Path(args.output).resolve()}")
     return 0

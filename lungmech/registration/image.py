@@ -31,7 +31,7 @@ import numpy.typing as npt
 
 from lungmech.errors import ImageError
 
-__all__ = ["SUFFIXES", "Image", "from_array", "kind", "read", "stem", "write"]
+__all__ = ["SUFFIXES", "Image", "from_array", "kind", "read", "stem", "write", "written_by_lungmech"]
 
 # Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
 _NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
@@ -46,6 +46,7 @@ SUFFIXES = {
     ".nhdr": "itk",
 }
 _LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
+_SIGNATURE = "lungmech image"  # in the header of the images lungmech writes
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value
@@ -64,6 +65,7 @@ class Image:
 
     mask: npt.NDArray[np.bool_]
     affine: npt.NDArray[np.float64]
+    source: Path | None = None  # the file it was read from, if any
 
     def __post_init__(self) -> None:
         mask = self.mask
@@ -208,7 +210,7 @@ def read(path: str | Path, *, label: int | None = None, unit: str | None = None)
         data, affine = _read_npz(path)
     mask = _binary(data, label, what)
     try:
-        return Image(np.ascontiguousarray(mask), affine)
+        return Image(np.ascontiguousarray(mask), affine, path)
     except ImageError as e:
         raise ImageError(f"{what}: {e}") from None
 
@@ -235,6 +237,7 @@ def write(image: Image, path: str | Path) -> None:
             nifti.set_sform(affine, code=1)
             nifti.set_qform(affine, code=1)
             nifti.header.set_xyzt_units(xyz="mm")
+            nifti.header["descrip"] = _SIGNATURE
             nib.save(nifti, path)
         elif format_ == "itk":
             origin, spacing, direction = _itk_geometry(image.affine, path)
@@ -243,13 +246,36 @@ def write(image: Image, path: str | Path) -> None:
             itk.SetOrigin(origin.tolist())
             itk.SetSpacing(spacing.tolist())
             itk.SetDirection(direction.ravel().tolist())
+            itk.SetMetaData("written_by", _SIGNATURE)
             sitk.WriteImage(itk, str(path), True)  # True: compress
         else:
-            np.savez_compressed(path, mask=image.mask, affine=image.affine)
+            np.savez_compressed(path, mask=image.mask, affine=image.affine, written_by=_SIGNATURE)
     except ImageError:
         raise
     except Exception as e:
         raise ImageError(f"cannot write image '{path}': {_one_line(e)}") from e
+
+
+def written_by_lungmech(path: str | Path) -> bool:
+    """Whether the image file ``path`` was written by :func:`write` (its header says so)."""
+    path = Path(path)
+    try:
+        format_ = kind(path)
+        if format_ == "nifti":
+            import nibabel as nib
+
+            return nib.load(path).header["descrip"].item().decode(errors="replace").strip() == _SIGNATURE
+        if format_ == "itk":
+            import SimpleITK as sitk
+
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(path))
+            reader.ReadImageInformation()
+            return reader.HasMetaDataKey("written_by") and reader.GetMetaData("written_by") == _SIGNATURE
+        with np.load(path, allow_pickle=False) as npz:
+            return str(npz["written_by"]) == _SIGNATURE
+    except Exception:  # any reader's failure: not a file lungmech can vouch for
+        return False
 
 
 def kind(path: Path) -> str:

@@ -9,15 +9,17 @@ modes, their spectrum and leave-one-out error. Outputs replace a folder only on 
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
 from lungmech import geometry as geometries
-from lungmech.errors import ImageError
-from lungmech.output import atomic_folder, write_json
+from lungmech.errors import ImageError, RegistrationError
+from lungmech.destination import output_folder
+from lungmech.output import write_json
+from lungmech.parallel import on_root
 from lungmech.registration import image as images
 from lungmech.registration import metrics, nodes, pictures
 from lungmech.registration.image import Image
@@ -33,17 +35,25 @@ def register_image(
     out: str | Path,
     options: Options = Options(),
     comm: MPI.Comm = MPI.COMM_WORLD,
+    accept: Sequence[str] = (),
 ) -> dict:
     """Register the mesh file ``reference`` onto ``image``; write into the folder ``out``:
     ``registered.xdmf`` (the mapped mesh), ``mapping.npz`` (reference nodes and displacement in
-    canonical order), ``report.json`` (metrics and the descent) and ``registration.png``."""
-    geometry = geometries.from_file(reference, comm)
-    start = time.perf_counter()
-    result = register(geometry.mesh, image, options)
-    space, where = nodes.displacement_space(geometry.mesh)
-    reference_nodes = nodes.positions(space, where)
-    initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
-    with atomic_folder(Path(out), comm) as staging:
+    canonical order), ``report.json`` (metrics and the descent) and ``registration.png``.
+
+    Refused with a :class:`RegistrationError` (nothing written) unless ``accept`` names the
+    doubt: a target of a handful of voxels or of a size that points at a wrong length unit
+    ("implausible"), a descent that did not converge ("unconverged").
+    """
+    inputs = [reference, *([image.source] if image.source is not None else [])]
+    with output_folder(out, comm, inputs=inputs, command="lungmech register") as staging:
+        geometry = geometries.from_file(reference, comm)
+        check_target(geometry, image, "implausible" in accept)
+        start = time.perf_counter()
+        result = register(geometry.mesh, image, options)
+        space, where = nodes.displacement_space(geometry.mesh)
+        reference_nodes = nodes.positions(space, where)
+        initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
         with nodes.deformed(result.displacement) as mesh:
             report = {"reference": str(reference)} | metrics.report(mesh, image) | result.summary()
             geometries.write(geometry, staging / "registered.xdmf")
@@ -52,12 +62,49 @@ def register_image(
                                          title=f"Dice {report['dice']:.3f}, mean distance "
                                                f"{1e3 * report['mean_surface_distance']:.2f} mm")
         report["total_seconds"] = time.perf_counter() - start
+        check_converged(report, "unconverged" in accept)
         displacement = nodes.gather(result.displacement, where)
-        if comm.rank == 0:
-            np.savez(staging / "mapping.npz", reference=reference_nodes, displacement=displacement,
-                     fingerprint=where.fingerprint)
+        on_root(comm, lambda: np.savez(staging / "mapping.npz", reference=reference_nodes, displacement=displacement,
+                                       fingerprint=where.fingerprint))
         write_json(staging / "report.json", report, comm)
     return report
+
+
+# A target must span this many voxels along each axis, and be within this factor of the
+# reference's size (a millimetre image read as metres is 1000 times too large).
+MIN_VOXELS_ACROSS = 4
+SIZE_FACTOR = 10.0
+
+
+def check_target(reference: geometries.Geometry, image: Image, accept: bool = False) -> None:
+    """Refuse a segmentation that cannot be a fair target: a handful of voxels, or a size so
+    far from the reference mesh's that the image's length unit is likely wrong."""
+    name = f"image '{image.source}'" if image.source is not None else "the image"
+    index = np.argwhere(image.mask)
+    across = index.max(axis=0) - index.min(axis=0) + 1
+    if across.min() < MIN_VOXELS_ACROSS:
+        raise RegistrationError(f"{name}: the segmentation spans only {across.tolist()} voxels along its axes "
+                                f"({len(index)} voxels in all), too few to register a mesh onto")
+    extent = float(np.linalg.norm(image.points(index.max(axis=0)) - image.points(index.min(axis=0))))
+    ratio = extent / reference.size
+    if not 1 / SIZE_FACTOR <= ratio <= SIZE_FACTOR and not accept:
+        raise RegistrationError(
+            f"{name}: the segmentation is {extent:.3g} m across and the reference mesh {reference.size:.3g} m, a "
+            f"ratio of {ratio:.3g}; is the image's length unit right (--unit mm or m)? --accept-implausible "
+            "registers it anyway"
+        )
+
+
+def check_converged(report: dict, accept: bool = False) -> None:
+    """Refuse a registration whose descent did not converge (unless accepted)."""
+    if report["converged"] or accept:
+        return
+    reasons = ", ".join(s["reason"] for s in report["stages"])
+    raise RegistrationError(
+        f"the registration did not converge (stages ended by: {reasons}; Dice {report['dice']:.4f}, mean surface "
+        f"distance {1e3 * report['mean_surface_distance']:.2f} mm); raise --max-iterations, or "
+        "--accept-unconverged keeps the result"
+    )
 
 
 def build_shape_modes(
@@ -66,18 +113,33 @@ def build_shape_modes(
     out: str | Path,
     options: Options = Options(),
     comm: MPI.Comm = MPI.COMM_WORLD,
+    accept: Sequence[str] = (),
 ) -> dict:
     """Register the mesh file ``reference`` onto every image and reduce the mappings to shape
     modes; write ``shape_modes.npz``, ``report.json`` (per-image metrics, singular values,
-    compactness, leave-one-out error) and ``singular_values.png`` into the folder ``out``."""
-    geometry = geometries.from_file(reference, comm)
-    start = time.perf_counter()
-    library = mapping_library(geometry.mesh, sources, options)
+    compactness, leave-one-out error) and ``singular_values.png`` into the folder ``out``.
+    Every image is checked as in :func:`register_image` (``accept`` as there)."""
+    inputs = [reference, *(image.source for image in sources.values() if image.source is not None)]
+    with output_folder(out, comm, inputs=inputs, command="lungmech shape-modes") as staging:
+        geometry = geometries.from_file(reference, comm)
+        for image in sources.values():
+            check_target(geometry, image, "implausible" in accept)
+        start = time.perf_counter()
+        library = mapping_library(geometry.mesh, sources, options)
+        for member in library.reports:
+            try:
+                check_converged(member, "unconverged" in accept)
+            except RegistrationError as e:
+                raise RegistrationError(f"{member['name']}: {e}") from None
+        return _shape_modes(library, reference, len(sources), start, staging, comm)
+
+
+def _shape_modes(library, reference, count: int, start: float, staging: Path, comm: MPI.Comm) -> dict:
     modes = library.modes()
-    loo = library.leave_one_out() if len(sources) >= 3 else None
+    loo = library.leave_one_out() if count >= 3 else None
     report = {
         "reference": str(reference),
-        "images": len(sources),
+        "images": count,
         "singular_values": modes.singular_values,
         "deviations": modes.deviations,
         "compactness": modes.compactness(),
@@ -90,12 +152,14 @@ def build_shape_modes(
         },
         "seconds": time.perf_counter() - start,
     }
-    with atomic_folder(Path(out), comm) as staging:
-        if comm.rank == 0:
-            modes.save(staging / "shape_modes.npz")
-            pictures.shape_spectrum(modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
-                                    title=f"Shape modes of {len(sources)} mappings")
-        write_json(staging / "report.json", report, comm)
+
+    def write() -> None:
+        modes.save(staging / "shape_modes.npz")
+        pictures.shape_spectrum(modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
+                                title=f"Shape modes of {count} mappings")
+
+    on_root(comm, write)
+    write_json(staging / "report.json", report, comm)
     return report
 
 

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from lungmech.errors import ParameterError
+from lungmech.destination import output_file
+from lungmech.errors import ModelFileError, ParameterError
 from lungmech.inverse import unloaded_reference
 from lungmech.rom import store
 from lungmech.rom.basis import Basis, enrich
@@ -28,7 +29,7 @@ from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.polynomial import polynomial_basis
 from lungmech.run import Scale, build_model, check_scale
-from lungmech.scene import Scene
+from lungmech.scene import Scene, differences, physics
 from lungmech.solver import NewtonSolver
 
 KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
@@ -44,20 +45,30 @@ def build(
     order: int = 2,
     density: float = 1.0,
     comm: MPI.Comm = MPI.COMM_WORLD,
-    scene_path: str | Path | None = None,
 ) -> dict:
     """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
     ``kind``: pod (of full runs at the load ``scales``), modal (K y = λ M y at the start
     state), modal+derivatives, polynomial (of ``order``), or pod+modal (enriched). ``size`` caps
     the number of vectors (POD may keep fewer: only directions above its noise level).
+    ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
+    reduced model) and written only when the build succeeds.
     """
     if kind not in KINDS:
         raise ParameterError(f"basis kind must be one of {', '.join(KINDS)} (got {kind!r})")
-    if not (isinstance(size, int) and size >= 1):
+    if isinstance(size, bool) or not (isinstance(size, int) and size >= 1):
         raise ParameterError(f"basis size must be a positive integer (got {size!r})")
+    if not scales:
+        raise ParameterError("give at least one training load scale")
     for scale in scales:
         check_scale(scene, scale)
+    path = store._suffix(path)
+    with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
+        return _build(scene, staging, kind, size, scales, inner, order, density, comm)
+
+
+def _build(scene: Scene, path: Path, kind: str, size: int, scales, inner: str, order: int, density: float,
+           comm: MPI.Comm) -> dict:
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm)
@@ -96,13 +107,15 @@ def build(
     if scene.inverse is not None:
         arrays["reference_nodes"] = _gather_nodes(model.geometry.mesh)
     extra = {
-        "scene": str(Path(scene_path).resolve()) if scene_path else None,
+        "scene": str(Path(scene.source).resolve()) if scene.source else None,
         "title": scene.title,
+        "physics": physics(scene),
         "imaged_fingerprint": where.fingerprint,
         "loads": len(scene.loads),
+        "scales": _plain(scales),
         "offline_seconds": timings,
     }
-    store.save(path, model, basis, extra=extra, arrays=arrays)
+    store.write(path, model, basis, extra=extra, arrays=arrays)
     return {"kind": basis.kind, "size": basis.size, "dofs": where.size, "values": basis.values.tolist(),
             "offline_seconds": timings}
 
@@ -115,11 +128,10 @@ def reduced_order(path: str | Path):
 def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
     metadata, arrays = store.read(path)
     extra = metadata["extra"]
+    check_physics(path, extra, scene)
     where = layout(model.space)  # of the imaged mesh; its dof order survives moving the nodes
     if where.fingerprint != extra["imaged_fingerprint"]:
-        raise ParameterError(f"{path} was built for another mesh or discretisation than this scene's")
-    if extra["loads"] != len(scene.loads):
-        raise ParameterError(f"{path} was built for a scene with {extra['loads']} loads; this one has {len(scene.loads)}")
+        raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
     if "reference_nodes" in arrays:  # the unloaded reference found offline
         _scatter_nodes(model.geometry.mesh, arrays["reference_nodes"])
     basis, _, arrays = store.load(path, model)
@@ -129,6 +141,30 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolv
     model.set_time(scene.stepping.start)
     solver = ReducedSolver(model, basis, scene.newton, start=model.state.x.array.copy())
     return solver, {"reference": "from the reduced model"} if "reference_nodes" in arrays else None
+
+
+def check_physics(path: Path, extra: dict, scene: Scene) -> None:
+    """Refuse a reduced model made for other physics than ``scene``'s (law, parameters, loads,
+    boundaries, formulation, start), saying what differs."""
+    if "physics" not in extra:
+        raise ModelFileError(f"{path} predates lungmech's physics check; rebuild it with 'lungmech rom build'")
+    if lines := differences(extra["physics"], physics(scene)):
+        shown = "; ".join(lines[:4]) + (f"; and {len(lines) - 4} more" if len(lines) > 4 else "")
+        raise ModelFileError(f"{path} was built for other physics than this scene's: {shown}. Build a reduced model "
+                             "of this scene, or use --scale to change the loads' amplitude")
+
+
+def trained_range(extra: dict, scale) -> str | None:
+    """A note when ``scale`` lies outside the training scales of the model: it extrapolates."""
+    if not extra.get("scales"):
+        return None
+    trained = np.array([np.broadcast_to(np.asarray(s, dtype=float), (extra["loads"],)) for s in extra["scales"]])
+    given = np.broadcast_to(np.asarray(scale, dtype=float), (extra["loads"],))
+    low, high = trained.min(axis=0), trained.max(axis=0)
+    if np.all((low - 1e-12 <= given) & (given <= high + 1e-12)):
+        return None
+    return (f"load scale {np.asarray(scale).tolist()} lies outside the trained range "
+            f"[{low.tolist()}, {high.tolist()}]: the reduced model extrapolates")
 
 
 def _gather_nodes(mesh) -> np.ndarray:

@@ -7,26 +7,35 @@ any number of ranks loads on any other; the mesh fingerprint is checked on loadi
 from __future__ import annotations
 
 import json
-import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from lungmech.errors import ParameterError
+from lungmech.destination import output_file
+from lungmech.errors import ModelFileError, ParameterError
+from lungmech.parallel import on_root
 from lungmech.rom.basis import Basis
 from lungmech.rom.layout import layout
 
 FORMAT = "lungmech-rom/1"
 
 
-def save(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None) -> Path:
+def save(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None,
+         inputs=()) -> Path:
     """Write ``basis`` (and any ``extra`` metadata / named canonical ``arrays``) to ``path``.
 
-    Collective; rank 0 writes, atomically (a temporary file renamed into place).
+    Collective. The file is written to a staging name and moved into place; an existing file is
+    replaced only if it is a lungmech reduced model (see :mod:`lungmech.destination`).
     """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise ParameterError(f"reduced models are saved as .npz (got {path.name})")
+    path = _suffix(path)
+    with output_file(path, model.geometry.mesh.comm, inputs=inputs, ours=is_model) as staging:
+        write(staging, model, basis, extra, arrays)
+    return path
+
+
+def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None) -> None:
+    """Collective: write the model file at ``path`` as it is (no checks; :func:`save` checks)."""
     where = layout(model.space)
     if where.fingerprint != basis.fingerprint:
         raise ParameterError("save: the basis does not belong to this model's mesh and space")
@@ -41,45 +50,73 @@ def save(path: str | Path, model, basis: Basis, extra: dict | None = None, array
         "source": basis.source,
         "extra": extra or {},
     }
-    if where.comm.rank == 0:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        staging = path.with_name(f".{path.stem}.partial.npz")
-        np.savez(staging, vectors=vectors, values=basis.values, metadata=json.dumps(metadata), **(arrays or {}))
-        os.replace(staging, path)
-    where.comm.Barrier()
+    on_root(where.comm, lambda: np.savez(path, vectors=vectors, values=basis.values, metadata=json.dumps(metadata),
+                                         **(arrays or {})))
+
+
+def is_model(path: str | Path) -> bool:
+    """Whether ``path`` is a lungmech reduced-model file (any mesh)."""
+    try:
+        read(path)
+    except ModelFileError:
+        return False
+    return True
+
+
+def _suffix(path: str | Path) -> Path:
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise ParameterError(f"reduced models are saved as .npz (got {path.name})")
     return path
 
 
 def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a reduced-model file, checked to be one (any mesh)."""
     path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"reduced model '{path}' is a folder; name the .npz file 'lungmech rom build' wrote")
     if not path.is_file():
-        raise ParameterError(f"reduced model file not found: {path}")
+        raise ModelFileError(f"reduced model file not found: {path}")
+    if not zipfile.is_zipfile(path):
+        raise ModelFileError(f"'{path}' is not a lungmech reduced model (not an .npz archive, or a truncated one)")
     try:
         with np.load(path, allow_pickle=False) as data:
             metadata = json.loads(str(data["metadata"]))
+            if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
+                raise ValueError(f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, "
+                                 f"expected {FORMAT!r}")
             arrays = {name: data[name] for name in data.files if name != "metadata"}
-    except (OSError, ValueError, KeyError) as error:
-        raise ParameterError(f"{path} is not a lungmech reduced model ({error})") from None
-    if metadata.get("format") != FORMAT:
-        raise ParameterError(f"{path} is not a lungmech reduced model (format {metadata.get('format')!r})")
+        for key in ("vectors", "values"):
+            if key not in arrays:
+                raise KeyError(f"no array '{key}'")
+        for key in ("kind", "inner_product", "fingerprint", "dofs", "extra"):
+            if key not in metadata:
+                raise KeyError(f"no '{key}' in its metadata")
+    except Exception as error:  # zipfile, zlib, json and numpy raise many kinds on a damaged file
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise ModelFileError(f"'{path}' is not a lungmech reduced model, or is damaged ({reason})") from None
     return metadata, arrays
 
 
 def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray]]:
     """Read a reduced model for ``model``: (basis, extra metadata, other arrays).
 
-    Refused with a :class:`ParameterError` when the file is not a lungmech reduced model or was
-    built on another mesh or space.
+    Refused with a :class:`ModelFileError` when the file is not a lungmech reduced model, is
+    damaged, or was built on another mesh or space.
     """
     metadata, arrays = read(path)
     where = layout(model.space)
     if metadata["fingerprint"] != where.fingerprint or metadata["dofs"] != where.size:
-        raise ParameterError(
+        raise ModelFileError(
             f"{path} was built on another mesh or discretisation ({metadata['dofs']} dofs, fingerprint "
             f"{metadata['fingerprint']}); this model has {where.size} dofs, fingerprint {where.fingerprint}"
         )
     vectors, values = arrays.pop("vectors"), arrays.pop("values")
+    if vectors.ndim != 2 or vectors.shape[0] != where.size or values.shape != (vectors.shape[1],):
+        raise ModelFileError(f"'{path}' is damaged: its basis has shape {vectors.shape} and {values.size} values, "
+                             f"for {where.size} dofs")
+    if not (np.isfinite(vectors).all() and np.isfinite(values).all()):
+        raise ModelFileError(f"'{path}' is damaged: its basis holds values that are not finite numbers")
     basis = Basis(
         where.scatter(vectors), values, metadata["kind"], metadata["inner_product"], where.fingerprint,
         metadata["source"],
