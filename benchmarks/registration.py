@@ -513,7 +513,7 @@ def header(v: dict, load: tuple, done: bool, warmup: float, packages: dict, per_
         f"{f' (= mpiexec -n {COMM.size} python benchmarks/registration.py ...)' if COMM.size > 1 else ''}; "
         f"total wall time {(time.perf_counter() - STARTED) / 60:.1f} min.",
         "- Reference Ω: `lung_phantom(comm, mesh_size=h, side=\"right\")` (P1 tetrahedra; h = 0.0176 is the bundled "
-        "`meshes/lung_phantom_right.msh`). Target: `voxelise(LungShape("
+        "`lungmech/meshes/lung_phantom_right.msh`). Target: `voxelise(LungShape("
         + ", ".join(f"{k}={val:g}" for k, val in TARGET.items()) + f"), spacing, offset={OFFSET})` — exact ground truth, "
         "another shape than the reference's (taller, narrower, shallower, other apex and dome), moved by the offset.",
         f"- `register(mesh, image, Options())` with lungmech's defaults: stages {tuple(o.stages)} voxels of smoothing, "

@@ -155,7 +155,7 @@ def lung_case(args) -> Case:
     t0 = tic()
     if args.quick:
         model = build_model(scene, COMM)  # the scene's own mesh: lung_phantom at its default size (6.5k dofs)
-        mesh_note = "lung_phantom(side='right') at its default size, as the scene builds it (= meshes/lung_phantom_right.msh)"
+        mesh_note = "lung_phantom(side='right') at its default size, as the scene builds it (= lungmech/meshes/lung_phantom_right.msh)"
     else:
         geometry = lung_phantom(COMM, mesh_size=args.lung_mesh_size, side=scene.geometry.get("side", "right"))
         model = Model(geometry, scene.material, degree=scene.degree, formulation=scene.formulation,

@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from lungmech import geometry
+from lungmech import geometry, meshes
 from lungmech.lung_shape import LungShape
 from lungmech.registration import image, metrics, phantom, pictures, workflow
 from lungmech.registration.library import ShapeModes
 
-REFERENCE = Path(__file__).resolve().parents[1] / "meshes" / "lung_phantom_right.msh"
+REFERENCE = meshes.reference("lung_phantom_right")
 
 
 def main() -> None:

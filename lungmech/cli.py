@@ -115,11 +115,15 @@ def _interrupts() -> Iterator[None]:
     """SIGINT and SIGTERM raise :class:`Interrupted` (so staging folders are removed); a second
     one ends the process at once."""
 
+    from petsc4py import PETSc  # noqa: F401  (PETSc installs its own handlers when it starts: ours come after)
+
     def handler(signum, frame):
         for again in (signal.SIGINT, signal.SIGTERM):
             signal.signal(again, lambda s, f: os._exit(128 + s))
+        Interrupted.pending = signum
         raise Interrupted(signum)
 
+    Interrupted.pending = None
     try:
         previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread (e.g. called from a test runner's worker)
@@ -207,7 +211,7 @@ def _run(args) -> int:
     if len(args.scale) > 1:
         raise ParameterError("--scale takes one value (per-load factors are joined by ':', e.g. 1.2:1)")
     scale = args.scale[0]
-    output = args.output or RESULTS / (Path(args.model).stem if args.command == "rom" else path.stem)
+    output = args.output if args.output is not None else RESULTS / (Path(args.model).stem if args.command == "rom" else path.stem)
     if comm.rank == 0:
         how = " with the reduced model " + args.model if args.command == "rom" else ""
         print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)

@@ -57,7 +57,7 @@ class Fields:
         if len(names) == 1:
             parts = [np.arange(owned)]
         else:
-            parts = [np.asarray(space.sub(i).collapse()[1]) for i in range(len(names))]
+            parts = [np.asarray(space.sub(i).collapse()[1]).ravel() for i in range(len(names))]
         self.fields = [Field(name, units.get(name, "?"), np.setdiff1d(rows[rows < owned], np.flatnonzero(constrained)))
                        for name, rows in zip(names, parts)]
         self.constrained = np.flatnonzero(constrained)

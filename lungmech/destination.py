@@ -207,8 +207,8 @@ def _recover(target: Path) -> None:
             raise OutputError(f"'{sibling}' was left by a lungmech run on host {host}; "
                               "remove it if that run has ended")
         if pid is not None and pid != os.getpid() and _alive(pid):
-            raise OutputError(f"another lungmech run (process {pid}) is writing '{target}'; wait for it to "
-                              "finish or name another output")
+            raise OutputError(f"another lungmech run (process {pid}) is writing '{target}' (into '{sibling.name}'); "
+                              "wait for it to finish, or name another output")
         shutil.rmtree(sibling, ignore_errors=True)
         log.warning("lungmech: removed '%s', left by an interrupted run", sibling.name)
 
@@ -225,13 +225,18 @@ def _owner(staging: Path) -> tuple[str | None, int | None]:
 
 
 def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs, and (where /proc tells) runs Python: a reused pid does not count."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    try:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return True  # no /proc here: assume the worst
+    return b"python" in command or b"lungmech" in command
 
 
 @contextlib.contextmanager
@@ -249,10 +254,23 @@ def _signals_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-def _remove_staging(staging: Path | None, comm: MPI.Comm) -> None:
-    """Not collective: a failing or interrupted rank may be alone here."""
-    if staging is not None and comm.rank == 0:
+def _remove_staging(staging: Path | None, comm: MPI.Comm, everywhere: bool = False) -> None:
+    """Not collective: a failing or interrupted rank may be alone here. Rank 0 removes the
+    staging folder; on an interrupt any rank does (rank 0 may be stuck in a collective call)."""
+    if staging is not None and (comm.rank == 0 or everywhere):
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _unwritable(error: OSError, staging: Path, target: Path) -> str:
+    """The message of a failed write, naming the file as the user will know it."""
+    name = error.filename
+    if name is not None:
+        try:
+            name = target / Path(name).resolve().relative_to(staging.resolve())
+        except ValueError:
+            pass
+    what = f"'{name}'" if name is not None else f"'{target}'"
+    return f"cannot write {what}: {error.strerror or error}"
 
 
 # --- the two context managers ----------------------------------------------------------------
@@ -279,8 +297,11 @@ def output_folder(
     staging = comm.bcast(on_root(comm, prepare), root=0)
     try:
         yield staging
-    except BaseException:
+    except OSError as error:  # a full or read-only disk, say: name the file it would have been
         _remove_staging(staging, comm)
+        raise OutputError(_unwritable(error, staging, target)) from None
+    except BaseException as error:
+        _remove_staging(staging, comm, everywhere=isinstance(error, KeyboardInterrupt))
         raise
 
     def publish() -> None:
@@ -334,8 +355,11 @@ def output_file(
     staging = comm.bcast(on_root(comm, prepare), root=0)
     try:
         yield staging / target.name
-    except BaseException:
+    except OSError as error:
         _remove_staging(staging, comm)
+        raise OutputError(_unwritable(error, staging, target.parent)) from None
+    except BaseException as error:
+        _remove_staging(staging, comm, everywhere=isinstance(error, KeyboardInterrupt))
         raise
 
     def publish() -> None:

@@ -38,7 +38,15 @@ class ModelFileError(LungmechError):
 
 
 class Interrupted(KeyboardInterrupt):
-    """The run was stopped by a signal (SIGINT: Ctrl-C, or SIGTERM); ``signum`` says which."""
+    """The run was stopped by a signal (SIGINT: Ctrl-C, or SIGTERM); ``signum`` says which.
+
+    A signal that arrives while PETSc calls back into Python (assembling a residual, say) is
+    turned by petsc4py into a PETSc error; ``pending`` remembers it, and solvers call
+    :meth:`raise_pending` after PETSc returns, so an interrupt is never mistaken for a failed
+    Newton solve.
+    """
+
+    pending: int | None = None
 
     def __init__(self, signum: int):
         import signal
@@ -46,3 +54,8 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
         self.name = signal.Signals(signum).name
         super().__init__(f"interrupted by {self.name}")
+
+    @classmethod
+    def raise_pending(cls) -> None:
+        if cls.pending is not None:
+            raise cls(cls.pending)

@@ -520,7 +520,7 @@ def from_file(
     source = f"mesh file '{path}'"
     if path.suffix == ".xdmf" and boundaries is None and not _sidecar(path).is_file():
         source += (f" (its boundary names, '{_sidecar(path).name}', are missing, so its boundaries go by tag number; "
-                   "name them in [geometry] boundaries = {{name = tag, ...}})")
+                   "name them in [geometry] boundaries = {name = tag, ...})")
     return Geometry(geometry.mesh, geometry.facet_tags, names, geometry.cell_tags, source)
 
 
@@ -543,8 +543,8 @@ def companions(path: str | Path) -> list[Path]:
 def is_lungmech_mesh(path: str | Path) -> bool:
     """Whether ``path`` is an .xdmf mesh that lungmech wrote (its boundary-names file says so)."""
     try:
-        return Path(path).suffix == ".xdmf" and "boundaries" in json.loads(_sidecar(Path(path)).read_text())
-    except (OSError, ValueError, TypeError):
+        return Path(path).suffix == ".xdmf" and json.loads(_sidecar(Path(path)).read_text())["written_by"] == "lungmech"
+    except (OSError, ValueError, TypeError, KeyError):
         return False
 
 

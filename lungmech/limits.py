@@ -6,8 +6,8 @@ Two are recognised:
 * **an inverted cell**: J = det F ≤ 0 (or undefined) somewhere in the last Newton iterate — the
   load or the law drives an element through itself;
 * **a loss of stability**: the body's response to the load runs away — its tangent
-  compliance along the load, |K⁻¹ ∂R/∂t| on the displacement, has grown at least 20 times
-  since the start of the load path (Bergan's current stiffness parameter below 0.05): a limit
+  compliance along the load, |K⁻¹ ∂R/∂t| on the displacement, has grown at least 10 times
+  since the start of the load path (Bergan's current stiffness parameter below 0.1): a limit
   point, past which it cannot carry more of this load (an inflated rubber balloon, say); or the
   tangent stiffness K has (nearly) lost its smallest eigenvalue, |λ_min(K)| ≤ 5 % of its value
   at rest: a bifurcation.
@@ -27,10 +27,12 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 from petsc4py import PETSc
 
+from lungmech.linear import factorised, use_lu
+
 __all__ = ["RUNAWAY", "STABILITY_LOST", "compliance", "diagnose", "min_jacobian", "smallest_eigenvalue"]
 
 STABILITY_LOST = 0.05  # |λ_min| below this fraction of its value at rest
-RUNAWAY = 20.0  # the load path's compliance grew this many times
+RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
 def min_jacobian(model) -> Callable[[], float]:
@@ -72,10 +74,7 @@ def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     st = eps.getST()
     st.setType(SLEPc.ST.Type.SINVERT)
-    ksp = st.getKSP()
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    use_lu(st.getKSP())
     try:
         eps.solve()
         value = eps.getEigenvalue(0).real if eps.getConverged() > 0 else 0.0
@@ -109,16 +108,12 @@ def compliance(model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[f
     drive(t)
     K = assemble_matrix(jacobian, bcs=model.bcs, diag=1.0)
     K.assemble()
-    ksp = PETSc.KSP().create(model.geometry.mesh.comm)
-    ksp.setOperators(K)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    ksp = factorised(K)
     response = rate.duplicate()
     try:
         ksp.solve(rate, response)
         moved = response.getArray(readonly=True)[: owned]
-        displacement = np.asarray(model.space.sub(0).collapse()[1]) if model.mixed else np.arange(owned)
+        displacement = np.asarray(model.space.sub(0).collapse()[1]).ravel() if model.mixed else np.arange(owned)
         moved = moved[displacement[displacement < owned]]
         value = float(np.sqrt(model.geometry.mesh.comm.allreduce(float(moved @ moved))))
     finally:
@@ -168,7 +163,9 @@ def diagnose(
         return ""
     finally:
         drive(t)
+    if unloaded != 0 and loaded / unloaded < 0:
+        return "loss of stability: the tangent stiffness has an eigenvalue of the wrong sign (buckling, or a bifurcation)"
     if unloaded != 0 and loaded / unloaded < STABILITY_LOST:
-        return (f"loss of stability: the tangent stiffness kept {100 * max(loaded / unloaded, 0):.2g} % of its "
-                "smallest eigenvalue at rest (a bifurcation)")
+        return (f"loss of stability: the tangent stiffness kept {100 * loaded / unloaded:.2g} % of its smallest "
+                "eigenvalue at rest (buckling, or a bifurcation)")
     return ""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -159,7 +160,9 @@ def _cell_values(path: Path, mesh) -> np.ndarray:
     if not path.is_file():
         raise ParameterError(f"phi_s0 file '{path}' not found")
     try:
-        values = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, ndmin=1)
+        with warnings.catch_warnings():  # an empty file is reported below, not as a warning
+            warnings.simplefilter("ignore")
+            values = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, ndmin=1)
         values = np.asarray(values, dtype=float).ravel()
     except (ValueError, TypeError, OSError, EOFError) as e:
         message = str(e).splitlines()[0] if str(e) else type(e).__name__

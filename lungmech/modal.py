@@ -20,6 +20,7 @@ from petsc4py import PETSc
 from slepc4py import SLEPc
 
 from lungmech.errors import ParameterError, SolverError
+from lungmech.linear import use_lu
 
 
 @dataclass
@@ -81,10 +82,7 @@ def modal_analysis(model, count: int, density: float = 1.0, shift: float | None 
     st = eps.getST()
     st.setType(SLEPc.ST.Type.SINVERT)
     st.setShift(shift)
-    ksp = st.getKSP()
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    use_lu(st.getKSP())
     eps.solve()
     found = eps.getConverged()
     if found < count:

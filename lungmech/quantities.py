@@ -103,6 +103,7 @@ def reaction(model, boundary: str) -> Callable[[], Reaction]:
     """
     space = model.displacement_space
     collapsed, parent = space.collapse() if model.mixed else (space, np.arange(len(model.state.x.array)))
+    parent = np.asarray(parent).ravel()  # DOLFINx 0.11 gives the map as a list of one array
     bs = collapsed.dofmap.index_map_bs
     fdim = model.geometry.mesh.topology.dim - 1
     blocks = fem.locate_dofs_topological(collapsed, fdim, model.geometry.facets(boundary))

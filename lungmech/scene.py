@@ -115,7 +115,7 @@ def load(path: str | Path) -> Scene:
     if b"\0" in data:
         raise SceneError(f"scene file '{path}' is not a text file (it holds binary data); a scene is TOML text")
     try:
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")  # a byte-order mark, as some editors write, is not TOML
     except UnicodeDecodeError as error:
         line = data[: error.start].count(b"\n") + 1
         raise SceneError(f"scene file '{path}' is not UTF-8 text (byte 0x{data[error.start]:02x} on line {line}); "
@@ -260,6 +260,8 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
                              "e.g. { hilum = 4, pleura = 1 }")
         path = Path(table["file"])
         path = path if path.is_absolute() else folder / path
+        if path.is_dir():
+            raise SceneError(f"geometry.file: '{path}' is a folder; name a mesh file (.msh or .xdmf)")
         if not path.is_file():
             raise SceneError(f"geometry.file: mesh file '{path}' not found")
         return {**table, "file": str(path)}
@@ -296,7 +298,7 @@ def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) ->
 
 
 # Keys where TOML's inf is meaningful (an open range); nan is never a value.
-_INFINITY_ALLOWED = ("formulation.pore_range",)
+_INFINITY_ALLOWED = ("formulation.pore_range", "stepping.max_step")
 
 
 def _finite_numbers(table: Any, where: str = "") -> None:

@@ -18,10 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from dolfinx.fem.petsc import NonlinearProblem
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech import checks, convergence, limits
-from lungmech.errors import ParameterError, SolverError
+from lungmech.errors import Interrupted, ParameterError, SolverError
 
 log = logging.getLogger("lungmech")
 
@@ -114,8 +115,9 @@ class Stepping:
     times: tuple[float, ...] = ()
 
     def __post_init__(self):
-        for name in ("end", "start", "initial_step", "min_step", "max_step", "growth"):
+        for name in ("end", "start", "initial_step", "min_step", "growth"):
             checks.real(name, getattr(self, name))
+        checks.real("max_step", self.max_step, infinite=True)
         checks.integer("easy_iterations", self.easy_iterations, minimum=0)
         if not isinstance(self.times, tuple):
             raise ParameterError(f"times must be a list of output times (got {self.times!r})")
@@ -214,7 +216,9 @@ class NewtonSolver:
             self.problem.solve()
             reason = snes.getConvergedReason()
         except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
+            Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
             return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}"
+        Interrupted.raise_pending()
         converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
         name = _REASONS.get(reason, str(reason))
         if not converged:
@@ -286,11 +290,14 @@ class _Anderson:
         return image - dG @ gamma
 
 
+# Options of objects made at set-up (factorisation, multigrid levels, sub-solvers): read later.
+_READ_LATER = ("mat_", "mg_", "fieldsplit_", "sub_", "redundant_", "pc_factor_mat_solver")
+
+
 def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict) -> None:
     """Set ``options`` on ``snes`` (and its KSP and PC) for ``owner``'s lifetime. A value PETSc
-    refuses, or a snes_/ksp_/pc_ option it does not use, is a :class:`SolverError` naming it
-    (other options, such as mat_* or mg_levels_*, are read later, at the first factorisation
-    or preconditioner set-up, and cannot be checked here)."""
+    refuses, or an option it does not use, is a :class:`SolverError` naming it (options of the
+    objects made at set-up, such as mat_* or mg_levels_*, cannot be checked here)."""
     _persistent_options(owner, prefix, options)
     database = PETSc.Options()
     try:
@@ -298,7 +305,7 @@ def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict) -> None:
     except PETSc.Error as error:
         lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
         raise SolverError(f"solver.petsc_options: PETSc refused them: {lines[-1] if lines else error}") from None
-    unknown = [key for key in options if key.startswith(("snes_", "ksp_", "pc_")) and not database.used(prefix + key)]
+    unknown = [key for key in options if not key.startswith(_READ_LATER) and not database.used(prefix + key)]
     if unknown:
         raise SolverError(f"solver.petsc_options: PETSc does not use {', '.join(unknown)} here (misspelt, or an "
                           "option of another solver type)")
@@ -380,12 +387,8 @@ def solve(
 
 
 def _log_step(step: StepReport) -> None:
-    final = f"{step.residuals[-1]:.2e}" if step.residuals else "n/a"
     status = "ok" if step.converged else f"not converged ({step.reason}): step cut back"
-    log.info(
-        "t = %.6g  dt = %.3g  Newton %2d  |R| %s  %.2f s  %s",
-        step.time, step.step, step.iterations, final, step.seconds, status,
-    )
+    log.info("t = %.6g s  dt = %.3g s  Newton %2d  %.2f s  %s", step.time, step.step, step.iterations, step.seconds, status)
 
 
 def _failure_message(t: float, dt: float, step: StepReport, cause: str) -> str:
@@ -402,13 +405,15 @@ def rigid_body_modes(space) -> PETSc.NullSpace:
     """The 6 rigid-body modes of a 3-D vector space, orthonormalised: AMG's near-nullspace."""
     index_map, bs = space.dofmap.index_map, space.dofmap.index_map_bs
     n = index_map.size_local
+    comm = space.mesh.comm
     x = space.tabulate_dof_coordinates()[:n]
-    x = x - x.mean(axis=0)  # better conditioned rotations
+    # Rotations about one point for all ranks (the global centre: better conditioned than the origin).
+    total = comm.allreduce(np.concatenate([x.sum(axis=0), [len(x)]]), op=MPI.SUM)
+    x = x - total[:3] / total[3]
     modes = np.zeros((6, n, bs))
     for i in range(3):
         modes[i, :, i] = 1.0
         modes[3 + i] = np.cross(np.eye(3)[i], x)
-    comm = space.mesh.comm
     vectors = []
     for mode in modes:
         vec = PETSc.Vec().createWithArray(mode.ravel().copy(), bsize=bs, comm=comm)

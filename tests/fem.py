@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+import lungmech.meshes
 import ufl
 from mpi4py import MPI
 
@@ -16,7 +18,28 @@ from lungmech.model import Model
 from lungmech.quantities import integral
 from lungmech.solver import NewtonOptions, Stepping, solve
 
-MESHES = Path(__file__).resolve().parents[1] / "meshes"
+MESHES = Path(lungmech.meshes.__file__).parent  # the bundled meshes
+
+# A small scene: a 2 × 1 × 1 box of neo-Hookean rubber, clamped at x0 and pulled down at x1.
+TINY_SCENE = """title = "tiny"
+[geometry]
+builder = "box"
+cells = [2, 1, 1]
+lengths = [2.0, 1.0, 1.0]
+[material]
+law = "neo_hookean"
+E = 1.0e3
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "traction"
+boundary = "x1"
+value = [0.0, 0.0, -10.0]
+[output]
+fields = false
+"""
 
 
 def mean_cauchy(model: Model) -> np.ndarray:

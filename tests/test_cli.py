@@ -7,32 +7,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from fem import TINY_SCENE
 
 from lungmech import scene as scenes
 from lungmech.cli import main
 from lungmech.errors import SceneError
 from lungmech.run import run
 
-TINY = """
-title = "tiny"
-[geometry]
-builder = "box"
-cells = [2, 1, 1]
-lengths = [2.0, 1.0, 1.0]
-[material]
-law = "neo_hookean"
-E = 1.0e3
-nu = 0.3
-[[constraints]]
-type = "clamp"
-boundary = "x0"
-[[loads]]
-type = "traction"
-boundary = "x1"
-value = [0.0, 0.0, -10.0]
-[output]
-fields = false
-"""
+TINY = TINY_SCENE
 
 
 def write(tmp_path: Path, text: str) -> Path:

@@ -147,7 +147,7 @@ def test_label_selection(tmp_path):
     path = write_nifti(tmp_path / "lobes.nii.gz", data, np.eye(4))
     assert np.count_nonzero(read(path, label=7).mask) == 50
     assert np.array_equal(read(path, label=1).mask, data == 1)
-    with pytest.raises(ImageError, match=r"is not binary \(its labels are 0, 1, 7\); choose one with label="):
+    with pytest.raises(ImageError, match=r"is not binary \(its labels are 0, 1, 7\); choose one with --label"):
         read(path)
     with pytest.raises(ImageError, match="no voxel labelled 3; its labels are 0, 1, 7"):
         read(path, label=3)

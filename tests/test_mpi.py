@@ -154,3 +154,67 @@ def test_reduced_model_same_on_all_ranks_and_portable(tmp_path):
     loaded = reduced(MPI.COMM_SELF, saved=path)
     assert parallel == pytest.approx(serial, rel=1e-8)
     assert loaded == pytest.approx(parallel, rel=1e-10)
+
+
+def _scene_folder(tmp_path):
+    comm = MPI.COMM_WORLD
+    return comm.bcast(tmp_path, root=0)
+
+
+def test_a_failure_on_rank_0_is_raised_on_every_rank(tmp_path, monkeypatch):
+    """Rank 0 alone draws the picture and writes the tables: its failure reaches every rank
+    (no hang), the earlier result stays and the staging folder goes."""
+    from lungmech import plot
+    from lungmech.errors import LungmechError
+
+    comm = MPI.COMM_WORLD
+    folder = _scene_folder(tmp_path)
+    scene = scenes.parse({**SCENE, "output": {"fields": False}, "formulation": {"degree": 1},
+                          "material": {"law": "neo_hookean", "E": 1.0e3, "nu": 0.3}})
+    run(scene, folder / "out", comm)
+    before = {p.name: p.read_bytes() for p in (folder / "out").iterdir()}
+    real = plot._draw
+
+    def broken(*args, **kwargs):
+        if comm.rank == 0:
+            raise RuntimeError("no display")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(plot, "_draw", broken)
+    with pytest.raises((RuntimeError, LungmechError), match="no display"):
+        run(scene, folder / "out", comm)
+    comm.Barrier()
+    assert {p.name: p.read_bytes() for p in (folder / "out").iterdir()} == before
+    assert [p.name for p in folder.iterdir()] == ["out"]
+
+
+def test_a_bad_mesh_read_on_rank_0_is_an_error_on_every_rank(tmp_path):
+    from lungmech import geometry
+    from lungmech.errors import GeometryError
+
+    comm = MPI.COMM_WORLD
+    folder = _scene_folder(tmp_path)
+    if comm.rank == 0:
+        (folder / "cut.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2")
+    comm.Barrier()
+    with pytest.raises(GeometryError, match="cut.msh"):
+        geometry.from_file(folder / "cut.msh", comm)
+
+
+def test_rigid_body_modes_are_rigid_on_every_partition():
+    """The near-nullspace of AMG: each mode, as a displacement, strains nothing (global centre)."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix
+
+    from lungmech.materials import LinearElastic
+    from lungmech.solver import rigid_body_modes
+
+    geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2), origin=(5.0, -2.0, 1.0))
+    model = Model(geometry, LinearElastic.from_young(1.0, 0.3))
+    K = assemble_matrix(fem.form(model.jacobian))
+    K.assemble()
+    space = rigid_body_modes(model.space)
+    for mode in space.getVecs():
+        product = mode.duplicate()
+        K.mult(mode, product)
+        assert product.norm() <= 1e-12 * K.norm() * mode.norm()

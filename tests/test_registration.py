@@ -7,7 +7,7 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from lungmech import geometry
+from lungmech import geometry, meshes
 from lungmech.errors import ParameterError, RegistrationError
 from lungmech.registration import align, field, metrics
 from lungmech.registration.image import from_array
@@ -244,7 +244,7 @@ PHANTOMS = {  # reference mesh, target shape, voxel size, pose
 @pytest.mark.parametrize("case", PHANTOMS)
 def test_registering_the_reference_lung_to_phantoms_meets_the_targets(case):
     side, shape, spacing = PHANTOMS[case]
-    mesh = geometry.from_file(f"meshes/lung_phantom_{side}.msh", MPI.COMM_WORLD).mesh
+    mesh = geometry.from_file(meshes.reference(f"lung_phantom_{side}"), MPI.COMM_WORLD).mesh
     image = phantom.voxelise(shape, spacing, offset=(0.01, -0.02, 0.03))
     result = register(mesh, image)
     with deformed(result.displacement) as mapped:
@@ -258,7 +258,7 @@ def test_a_cohort_of_k_latent_parameters_gives_k_dominant_shape_modes():
     k = 2
     cohort = phantom.cohort(8, k, seed=1, size_spread=0.05, shift=0.01)
     images = {f"p{j}": im for j, im in enumerate(cohort.images(spacing=0.0025))}
-    mesh = geometry.from_file("meshes/lung_phantom_right.msh", MPI.COMM_WORLD).mesh
+    mesh = geometry.from_file(meshes.reference("lung_phantom_right"), MPI.COMM_WORLD).mesh
     library = mapping_library(mesh, images)
     assert min(r["dice"] for r in library.reports) >= 0.97
     modes = library.modes()

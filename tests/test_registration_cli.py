@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech import geometry
+from lungmech import geometry, meshes
 from lungmech.cli import main
 from lungmech.lung_shape import LungShape
 from lungmech.registration import image
 
-REFERENCE = "meshes/lung_phantom_right.msh"
+REFERENCE = str(meshes.reference("lung_phantom_right"))
 
 
 def test_phantom_register_and_outputs(tmp_path, capsys):

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech import geometry
+from lungmech import geometry, meshes
 from lungmech.errors import RegistrationError
 from lungmech.registration import align, nodes
 from lungmech.registration.library import Library, ShapeModes, leave_one_out
 
-LUNG = "meshes/lung_phantom_right.msh"
+LUNG = meshes.reference("lung_phantom_right")
 
 
 def _rotation(axis, degrees):
@@ -97,7 +97,7 @@ def test_shape_modes_round_trip_and_refuse_another_mesh(reference, tmp_path):
     for name in ("reference", "weights", "mean", "modes", "singular_values", "coefficients"):
         assert np.array_equal(getattr(modes, name), getattr(again, name))
     assert again.names == modes.names and again.fingerprint == modes.fingerprint
-    other = geometry.from_file("meshes/lung_phantom_left.msh", MPI.COMM_SELF)
+    other = geometry.from_file(meshes.reference("lung_phantom_left"), MPI.COMM_SELF)
     with pytest.raises(RegistrationError, match="not the reference"):
         modes.geometry(other, [1.0])
     with pytest.raises(RegistrationError, match="at most"):

@@ -54,7 +54,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def _reference(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--reference", required=True, help="reference mesh (.msh or .xdmf), e.g. meshes/lung_phantom_right.msh")
+    command.add_argument("--reference", default="lung_phantom_right", type=_mesh,
+                         help="reference mesh (.msh or .xdmf), or a bundled one by name: "
+                              "lung_phantom_right (default), lung_phantom_left")
+
+
+def _mesh(text: str) -> str:
+    from lungmech.meshes import resolve
+
+    return str(resolve(text))
 
 
 def _image_options(command: argparse.ArgumentParser) -> None:
@@ -83,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     comm = MPI.COMM_WORLD
     logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) or comm.rank else logging.INFO,
-                        format="%(message)s", stream=sys.stdout)
+                        format="%(message)s", stream=sys.stdout, force=True)
     return {"register": _register, "shape-modes": _shape_modes, "shape": _shape, "phantom": _phantom}[args.command](
         args, comm
     )
@@ -111,7 +119,7 @@ def _register(args, comm) -> int:
 
     options = _options(args)
     target = image.read(args.image, label=args.label, unit=args.unit)
-    output = args.output or f"results/{image.stem(Path(args.image))}"
+    output = args.output if args.output is not None else f"results/{image.stem(Path(args.image))}"
     report = workflow.register_image(args.reference, target, output, options, comm, accept=_accepted(args))
     if comm.rank == 0:
         converged = "yes" if report["converged"] else "no (kept: --accept-unconverged)"
@@ -141,8 +149,8 @@ def _shape_modes(args, comm) -> int:
         unconverged = [m["name"] for m in report["members"] if not m["converged"]]
         converged = "yes" if not unconverged else f"no for {', '.join(unconverged)} (kept: --accept-unconverged)"
         print(f"lungmech: {report['images']} mappings, converged: {converged} (worst Dice {worst['dice']:.4f}, "
-              f"min det F {worst['min_det_F']:.3f}) -> {len(compact)} shape modes; the first 3 capture "
-              + ", ".join(f"{100 * c:.1f} %" for c in compact[:3])
+              f"min det F {worst['min_det_F']:.3f}) -> {len(compact)} shape modes; the first "
+              f"{min(3, len(compact))} capture " + ", ".join(f"{100 * c:.1f} %" for c in compact[:3])
               + f" of the variance; outputs in {Path(args.output).resolve()}")
     return 0
 

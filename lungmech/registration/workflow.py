@@ -62,6 +62,7 @@ def register_image(
                                          title=f"Dice {report['dice']:.3f}, mean distance "
                                                f"{1e3 * report['mean_surface_distance']:.2f} mm")
         report["total_seconds"] = time.perf_counter() - start
+        report["units"] = REPORT_UNITS
         check_converged(report, "unconverged" in accept)
         displacement = nodes.gather(result.displacement, where)
         on_root(comm, lambda: np.savez(staging / "mapping.npz", reference=reference_nodes, displacement=displacement,
@@ -69,6 +70,18 @@ def register_image(
         write_json(staging / "report.json", report, comm)
     return report
 
+
+# Units of the numbers in report.json (registration) and of the shape-modes report.
+REPORT_UNITS = {
+    "dice": "1", "mean_surface_distance": "m", "mean_surface_distance_voxels": "voxel", "hd95": "m", "hausdorff": "m",
+    "volume_mesh": "m^3", "volume_image": "m^3", "spacing": "m", "psi": "m^4 (signed distance) or m^3 (binary)",
+    "min_det_F": "1", "iterations": "1", "seconds": "s", "total_seconds": "s",
+    "initial_similarity": "scale 1, rotation 1, translation m",
+}
+MODES_UNITS = {
+    "singular_values": "m (RMS displacement, mass-weighted)", "deviations": "m (RMS)", "compactness": "1",
+    "leave_one_out_rms": "m (RMS)", "members": "as in a registration report", "seconds": "s",
+}
 
 # A target must span this many voxels along each axis, and be within this factor of the
 # reference's size (a millimetre image read as metres is 1000 times too large).
@@ -151,6 +164,7 @@ def _shape_modes(library, reference, count: int, start: float, staging: Path, co
             "min_det_F": min(r["min_det_F"] for r in library.reports),
         },
         "seconds": time.perf_counter() - start,
+        "units": MODES_UNITS | {f"members[].{k}": v for k, v in REPORT_UNITS.items()},
     }
 
     def write() -> None:

@@ -6,9 +6,9 @@ import numpy as np
 import ufl
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix
-from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
+from lungmech.linear import factorised
 from lungmech.modal import modal_analysis
 from lungmech.rom.basis import Basis, enrich, zero_imposed
 from lungmech.rom.layout import layout
@@ -38,11 +38,7 @@ def modal_derivatives(model, basis: Basis) -> np.ndarray:
     third = fem.form(ufl.derivative(ufl.action(model.jacobian, phi_i), model.state, phi_j))
     K = assemble_matrix(fem.form(model.jacobian), bcs=model.bcs, diag=1.0)
     K.assemble()
-    ksp = PETSc.KSP().create(model.geometry.mesh.comm)
-    ksp.setOperators(K)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    ksp = factorised(K)
     owned = basis.vectors.shape[0]
     rhs, solution = fem.Function(model.space), fem.Function(model.space)
     columns = []

@@ -1,4 +1,4 @@
-"""Regenerate the meshes bundled in this folder: ``python meshes/make_meshes.py``.
+"""Regenerate the meshes bundled in this folder: ``python -m lungmech.meshes.make_meshes``.
 
 Gmsh runs single-threaded with a fixed seed, so the files come out the same on every run.
 """

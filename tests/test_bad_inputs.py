@@ -1,0 +1,573 @@
+"""Every bad input gets one clear line naming the key or file, a non-zero exit, no traceback,
+and nothing that existed before is lost or changed.
+
+Each case runs the command line in a workspace holding the user's files: a scene, notes, a
+folder of their own, a result lungmech wrote earlier, meshes, images and a reduced model. The
+check is the same for all: exit code 2, one line on standard error that starts with
+``lungmech: error:`` and says what is wrong, nothing on standard error that looks like a
+traceback, every file of the workspace unchanged (same bytes), and no staging folder left.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fem import TINY_SCENE
+from mpi4py import MPI
+
+from lungmech import geometry, meshes
+from lungmech.cli import main
+
+TINY = TINY_SCENE
+LUNG = """title = "lung cube"
+[geometry]
+builder = "box"
+cells = [2, 2, 2]
+[material]
+law = "lung_skeleton"
+alpha = 160.0
+gamma = 0.5
+c1 = 200.0
+c2 = 400.0
+[formulation]
+type = "poromechanics"
+kappa = 1.0e4
+phi_s0 = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "follower_pressure"
+boundary = ["x1", "y0", "y1", "z0", "z1"]
+value = -300.0
+[output]
+fields = false
+"""
+REFERENCE = str(meshes.reference("lung_phantom_right"))
+
+
+def swap(old: str, new: str, base: str = TINY) -> str:
+    assert old in base, old
+    return base.replace(old, new, 1)
+
+
+# (scene text, what the message must say). The scene is written to scene.toml and run into out/.
+SCENES = {
+    # numbers where numbers belong
+    "traction is a word": (swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'), "loads[0]: value must be 3 numbers"),
+    "traction component is a word": (swap("[0.0, 0.0, -10.0]", '["a", 0.0, -10.0]'), "value[0] must be a number"),
+    "traction of 2 components": (swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"), "value must be 3 numbers"),
+    "traction of 4 components": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -10.0, 1.0]"), "value must be 3 numbers"),
+    "traction is true": (swap("value = [0.0, 0.0, -10.0]", "value = true"), "value must be 3 numbers"),
+    "pressure is a word": (swap('type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+                                'type = "follower_pressure"\nboundary = "x1"\nvalue = "abc"'), "value must be a number"),
+    "pressure on no boundary": (swap('type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+                                     'type = "follower_pressure"\nboundary = []\nvalue = 1.0'), "boundary must be"),
+    "probes a word": (swap("fields = false", 'fields = false\nprobes = "abc"'), "probes must be a list of points"),
+    "probe coordinate a word": (swap("fields = false", 'fields = false\nprobes = [["a", 0.0, 0.0]]'),
+                                "probes[0][0] must be a number"),
+    "probe of 2 coordinates": (swap("fields = false", "fields = false\nprobes = [[1.0, 0.5]]"),
+                               "probes[0] must be 3 numbers"),
+    "probes a table": (swap("fields = false", "fields = false\nprobes = { x = 1.0 }"), "probes must be a list"),
+    "probe outside the body": (swap("fields = false", "fields = false\nprobes = [[9.0, 0.5, 0.5]]"),
+                               "probe point (9, 0.5, 0.5) lies outside the mesh"),
+    "E a word": (swap("E = 1.0e3", 'E = "1 kPa"'), "must be a number"),
+    "nu nan": (swap("nu = 0.3", "nu = nan"), "material.nu: nan is not a value"),
+    "E inf": (swap("E = 1.0e3", "E = inf"), "material.E: inf is not allowed"),
+    "E negative": (swap("E = 1.0e3", "E = -1.0"), "E must be > 0"),
+    "nu too large": (swap("nu = 0.3", "nu = 0.5"), "-1 < nu < 0.5"),
+    "mu inf": (swap("E = 1.0e3\nnu = 0.3", "mu = inf\nlmbda = 1.0"), "material.mu: inf is not allowed"),
+    "lambda a bool": (swap("E = 1.0e3\nnu = 0.3", "mu = 1.0\nlmbda = true"), "parameter 'lmbda' must be a number"),
+    "unknown law": (swap('"neo_hookean"', '"rubber"'), "material.law: unknown law 'rubber'"),
+    "unknown material key": (swap("nu = 0.3", "nu = 0.3\nnuu = 0.2"), "material.nuu: unknown key"),
+    "incompressible without mixed": (swap("E = 1.0e3\nnu = 0.3", "incompressible = true\nmu = 1.0"),
+                                     "needs the mixed formulation"),
+    "empty sum": (swap('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "sum"\nterms = []'), "non-empty list of laws"),
+    "kappa inf": (swap("kappa = 1.0e4", "kappa = inf", LUNG), "formulation.kappa: inf is not allowed"),
+    "kappa a word": (swap("kappa = 1.0e4", 'kappa = "abc"', LUNG), "kappa must be a number"),
+    "phi_s0 above one": (swap("phi_s0 = 0.3", "phi_s0 = 1.5", LUNG), "phi_s0 must lie in (0, 1)"),
+    "phi_s0 nan": (swap("phi_s0 = 0.3", "phi_s0 = nan", LUNG), "formulation.phi_s0: nan is not a value"),
+    "scale_skeleton a word": (swap("phi_s0 = 0.3", 'phi_s0 = 0.3\nscale_skeleton = "yes"', LUNG),
+                              "scale_skeleton must be true or false"),
+    "pore_range of one number": (swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_range = [0.5]", LUNG),
+                                 "pore_range must be two numbers"),
+    "pore barrier negative": (swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_barrier = -1.0", LUNG),
+                              "pore_barrier must be >= 0"),
+    "skeleton alpha negative": (swap("alpha = 160.0", "alpha = -1.0", LUNG),
+                                "material (law 'lung_skeleton'): alpha must be > 0"),
+    "skeleton gamma a word": (swap("gamma = 0.5", 'gamma = "abc"', LUNG), "gamma must be a number"),
+    "skeleton without shear": (swap("c1 = 200.0\nc2 = 400.0", "c1 = 0.0\nc2 = 0.0", LUNG), "c1 + c2 must be > 0"),
+    "skeleton missing keys": (swap("gamma = 0.5\nc1 = 200.0\nc2 = 400.0\n", "", LUNG),
+                              "material (law 'lung_skeleton'): missing key(s) gamma, c1, c2"),
+    "unknown formulation": (swap('type = "poromechanics"', 'type = "poro"', LUNG), "formulation.type: unknown type 'poro'"),
+    "degree a word": (TINY + '[formulation]\ndegree = "2"\n', "formulation.degree: expected int"),
+    "degree zero": (TINY + "[formulation]\ndegree = 0\n", "degree must be an integer >= 1"),
+    "mixed at degree one": (TINY + '[formulation]\ntype = "mixed"\n', "it needs degree >= 2"),
+    "gravity density inf": (TINY + '[[loads]]\ntype = "gravity"\ndensity = inf\nacceleration = [0.0, 0.0, -9.81]\n',
+                            "loads[1].density: inf is not allowed"),
+    "gravity in 2-D": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, -9.81]\n',
+                       "acceleration needs 3 components"),
+    "gravity nan": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, nan]\n',
+                    "loads[1].acceleration[2]: nan is not a value"),
+    "gravity unbalanceable": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, -9.81]\n'
+                              'balanced_on = ["x1"]\n', "no pressure on x1 can balance"),
+    "pressure nan": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, nan]"), "loads[0].value[2]: nan is not a value"),
+    "pressure -inf": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -inf]"), "loads[0].value[2]: -inf is not allowed"),
+    "unknown load type": (swap('type = "traction"', 'type = "wind"'), "loads[0].type: unknown type 'wind'"),
+    "unknown load key": (swap('boundary = "x1"', 'boundary = "x1"\npressure = 3.0'), "loads[0].pressure: unknown key"),
+    "loads not a list": (swap("[[loads]]\ntype = \"traction\"\nboundary = \"x1\"\nvalue = [0.0, 0.0, -10.0]\n", ""
+                              ).replace('title = "tiny"', 'title = "tiny"\nloads = 3'), "loads: expected a list of tables"),
+    "empty ramp": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [], values = [] }"),
+                   "at least one (time, value) point"),
+    "ramp time a word": (swap("value = [0.0, 0.0, -10.0]", 'value = [0.0, 0.0, -10.0]\nramp = { times = ["a"], values = [1.0] }'),
+                         "ramp times[0] must be a number"),
+    "ramp going back": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [1.0, 0.0], values = [0.0, 1.0] }"),
+                        "ramp times must increase strictly"),
+    "ramp lengths differ": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [0.0, 1.0], values = [0.0] }"),
+                            "as many times as values"),
+    "ramp not a table": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = 3"), "loads[0].ramp: expected a table"),
+    "constraint component w": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\ncomponent = "w"'),
+                               "component must be 0, 1, 2 or x, y, z"),
+    "constraint value nan": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = nan'),
+                             "constraints[0].value: nan is not a value"),
+    "constraint value of 2 components": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = [1.0, 2.0]'),
+                                         "value must be 3 numbers"),
+    "unknown boundary": (swap('boundary = "x0"', 'boundary = "hilum"'), "unknown boundary 'hilum'"),
+    "stepping end inf": (TINY + "[stepping]\nend = inf\n", "stepping.end: inf is not allowed"),
+    "stepping start -inf": (TINY + "[stepping]\nstart = -inf\n", "stepping.start: -inf is not allowed"),
+    "stepping end before start": (TINY + "[stepping]\nstart = 2.0\nend = 1.0\n", "end (1.0) must be after start (2.0)"),
+    "output time after the end": (TINY + "[stepping]\ntimes = [1.5]\n", "times [1.5] lie outside (start, end]"),
+    "output time before the start": (TINY + "[stepping]\ntimes = [-0.5]\n", "times [-0.5] lie outside (start, end]"),
+    "output times not a list": (TINY + "[stepping]\ntimes = 0.5\n", "times must be a list of output times"),
+    "output time nan": (TINY + "[stepping]\ntimes = [nan]\n", "stepping.times[0]: nan is not a value"),
+    "initial step zero": (TINY + "[stepping]\ninitial_step = 0.0\n", "need 0 < min_step <= initial_step <= max_step"),
+    "min step above initial": (TINY + "[stepping]\nmin_step = 0.5\ninitial_step = 0.1\n", "need 0 < min_step"),
+    "growth below one": (TINY + "[stepping]\ngrowth = 0.5\n", "growth must be >= 1"),
+    "growth inf": (TINY + "[stepping]\ngrowth = inf\n", "stepping.growth: inf is not allowed"),
+    "easy iterations fractional": (TINY + "[stepping]\neasy_iterations = 1.5\n", "easy_iterations must be an integer"),
+    "easy iterations nan": (TINY + "[stepping]\neasy_iterations = nan\n", "stepping.easy_iterations: nan"),
+    "unknown stepping key": (TINY + "[stepping]\ndt = 0.1\n", "stepping.dt: unknown key"),
+    "rtol zero": (TINY + "[solver]\nrtol = 0.0\n", "rtol must be > 0"),
+    "atol inf": (TINY + "[solver]\natol = inf\n", "solver.atol: inf is not allowed"),
+    "max iterations zero": (TINY + "[solver]\nmax_iterations = 0\n", "max_iterations must be >= 1"),
+    "max iterations fractional": (TINY + "[solver]\nmax_iterations = 2.5\n", "max_iterations must be an integer"),
+    "unknown line search": (TINY + '[solver]\nline_search = "fast"\n', "line_search must be"),
+    "unknown linear solver": (TINY + '[solver]\nlinear_solver = "cg"\n', "linear_solver must be"),
+    "iterative mixed": (TINY.replace("nu = 0.3", "nu = 0.4") + '[formulation]\ntype = "mixed"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
+                        "the iterative linear solver handles the displacement formulation only"),
+    "petsc options a word": (TINY + '[solver]\npetsc_options = "fast"\n', "petsc_options must be a table"),
+    "petsc option a table": (TINY + "[solver]\npetsc_options = { snes_type = { a = 1 } }\n",
+                             "petsc_options.snes_type: expected a string, number or boolean"),
+    "unknown SNES type": (TINY + '[solver]\npetsc_options = { snes_type = "nonsense" }\n',
+                          "PETSc refused them: Unable to find requested SNES type nonsense"),
+    "non-integer PETSc value": (TINY + '[solver]\npetsc_options = { snes_max_it = "abc" }\n',
+                                "PETSc refused them: Input string abc has no integer value"),
+    "unknown KSP type": (TINY + '[solver]\npetsc_options = { ksp_type = "bogus" }\n', "Unable to find requested KSP type bogus"),
+    "unknown PETSc option": (TINY + "[solver]\npetsc_options = { nonsense_option = 1 }\n",
+                             "PETSc does not use nonsense_option"),
+    "fields a word": (swap("fields = false", 'fields = "no"'), "fields must be true or false"),
+    "unknown field format": (swap("fields = false", 'fields = true\nformat = "bp5"'), "format must be one of vtk, vtx"),
+    "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
+    "inverse iterations zero": (TINY + "[inverse]\nmax_iterations = 0\n", "max_iterations must be a positive integer"),
+    "inverse unknown key": (TINY + "[inverse]\ntol = 1e-6\n", "inverse.tol: unknown key"),
+    "title a number": (swap('title = "tiny"', "title = 3"), "title: expected str"),
+    "unknown section": (TINY + "[physics]\ngravity = 1\n", "scene.physics: unknown key"),
+    "missing material": (TINY.split("[material]")[0], "missing section [material]"),
+    "unknown builder": (swap('builder = "box"', 'builder = "torus"'), "geometry.builder: unknown builder 'torus'"),
+    "box cells a word": (swap("cells = [2, 1, 1]", 'cells = ["a", 1, 1]'), "geometry: bad value for the box builder"),
+    "builder and file": (swap('builder = "box"', 'builder = "box"\nfile = "m.msh"'), "give exactly one of 'builder'"),
+    "mesh file a number": (swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', "file = 3"),
+                           "geometry.file: expected str"),
+    "boundary names a word": (swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]',
+                                   'file = "box.xdmf"\nboundaries = "x0"'), "geometry.boundaries: expected a table"),
+    "not TOML": ("[geometry\nbuilder = 1", "not valid TOML"),
+    "empty scene": ("", "missing section [geometry]"),
+}
+
+
+@pytest.fixture(scope="module")
+def assets(tmp_path_factory) -> Path:
+    """Files the cases read: meshes, images, a reduced model, a lungmech result; made once."""
+    from lungmech.lung_shape import LungShape
+    from lungmech.registration import image, phantom
+
+    root = tmp_path_factory.mktemp("assets")
+    (root / "scene.toml").write_text(TINY)
+    comm = MPI.COMM_SELF
+    geometry.write(geometry.box(comm, (2.0, 1.0, 1.0), (2, 1, 1)), root / "box.xdmf")
+    _square(root / "square.msh")
+    image.write(phantom.voxelise(LungShape(), 4e-3), root / "lung.nii.gz")
+    assert main(["rom", "build", str(root / "scene.toml"), "-o", str(root / "model.npz"), "--scales", "0.5,1.5",
+                 "--size", "4", "-q"]) == 0
+    assert main(["run", str(root / "scene.toml"), "-o", str(root / "result"), "-q"]) == 0
+    assert main(["shape-modes", "--synthetic", "3", "--latent", "1", "--spacing", "5", "--reference", REFERENCE,
+                 "-o", str(root / "modes"), "-q"]) == 0
+    return root
+
+
+def _square(path: Path) -> None:
+    """A unit square of triangles with named edges: a 2-D mesh."""
+    import gmsh
+
+    gmsh.initialize(interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.model.add("square")
+    gmsh.model.occ.addRectangle(0, 0, 0, 1, 1)
+    gmsh.model.occ.synchronize()
+    gmsh.model.addPhysicalGroup(1, [1, 2, 3, 4], 10, "x0")
+    gmsh.model.addPhysicalGroup(2, [1], 1, "square")
+    gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+    gmsh.model.mesh.generate(2)
+    gmsh.write(str(path))
+    gmsh.finalize()
+
+
+@pytest.fixture
+def workspace(tmp_path, assets, monkeypatch) -> Path:
+    """The user's folder: their scene and notes, a folder of theirs, an earlier lungmech result."""
+    for name in ("box.xdmf", "box.h5", "box.tags.json", "square.msh", "lung.nii.gz", "model.npz"):
+        shutil.copy(assets / name, tmp_path / name)
+    shutil.copytree(assets / "result", tmp_path / "result")
+    shutil.copytree(assets / "modes", tmp_path / "modes")
+    (tmp_path / "scene.toml").write_text(TINY)
+    (tmp_path / "notes.txt").write_text("patient 7: do not lose\n")
+    (tmp_path / "mydata").mkdir()
+    (tmp_path / "mydata" / "notes.txt").write_text("mine\n")
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _snapshot(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "folder"
+            for p in root.rglob("*")}
+
+
+def refused(argv: list[str], message: str, capsys, root: Path) -> None:
+    """``argv`` fails with exit 2 and one line saying ``message``; nothing in ``root`` changes."""
+    before = _snapshot(root)
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert code == 2, (code, err, out)
+    assert len(lines) == 1 and lines[0].startswith("lungmech: error: "), err
+    assert message in lines[0], lines[0]
+    assert "Traceback" not in out + err
+    after = _snapshot(root)
+    assert {k: v for k, v in after.items() if k in before} == before, "a file of the user's was lost or changed"
+    assert not [k for k in after if "lungmech-staging" in k or "lungmech-old" in k], "a staging folder was left"
+
+
+@pytest.mark.parametrize("case", SCENES)
+def test_bad_scene(case, workspace, capsys):
+    text, message = SCENES[case]
+    (workspace / "scene.toml").write_text(text)
+    refused(["run", "scene.toml", "-o", "out", "-q"], message, capsys, workspace)
+    assert not (workspace / "out").exists()
+
+
+def _write(name: str, data: bytes | str):
+    def make(root: Path) -> None:
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return make
+
+
+def _mesh_scene(mesh: str, extra: str = "") -> str:
+    return swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', f'file = "{mesh}"{extra}')
+
+
+def _phi(content: bytes | str, name: str = "phi.txt") -> tuple:
+    scene = swap("phi_s0 = 0.3", f'phi_s0 = "{name}"', LUNG.replace("cells = [2, 2, 2]", "cells = [1, 1, 1]"))
+    return [_write(name, content), _write("scene.toml", scene)]
+
+
+def _truncated(source: str, name: str, keep: int):
+    return lambda root: (root / name).write_bytes((root / source).read_bytes()[:keep])
+
+
+def _damaged_model(root: Path) -> None:
+    with np.load(root / "model.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["vectors"] = np.full_like(arrays["vectors"], np.nan)
+    np.savez(root / "nan_model.npz", **arrays)
+
+
+def _lung_result_with(change) -> callable:
+    def make(root: Path) -> None:
+        change(root / "result")
+    return make
+
+
+def _copy_mesh(folder: str):
+    def make(root: Path) -> None:
+        (root / folder).mkdir()
+        for suffix in (".xdmf", ".h5", ".tags.json"):
+            shutil.copy(root / f"box{suffix}", root / folder / f"box{suffix}")
+    return make
+
+
+def _symlink(root: Path) -> None:
+    (root / "link").symlink_to(root / "mydata")
+
+
+def _label_map(root: Path) -> None:
+    from lungmech.registration import image
+
+    mask = np.zeros((16, 16, 16), dtype=np.uint8)
+    mask[2:8, 2:8, 2:8], mask[9:14, 9:14, 9:14] = 1, 2
+    import nibabel
+
+    nibabel.save(nibabel.Nifti1Image(mask, np.diag([4.0, 4.0, 4.0, 1.0])), root / "labels.nii.gz")
+    assert image  # the module writes only binary masks: the label map is written with nibabel
+
+
+def _few_voxels(root: Path) -> None:
+    import nibabel
+
+    mask = np.zeros((32, 32, 32), dtype=np.uint8)
+    mask[10, 10, 10:13] = 1
+    nibabel.save(nibabel.Nifti1Image(mask, np.diag([2.0, 2.0, 2.0, 1.0])), root / "speck.nii.gz")
+
+
+def _four_d(root: Path) -> None:
+    import nibabel
+
+    nibabel.save(nibabel.Nifti1Image(np.ones((4, 4, 4, 2), dtype=np.uint8), np.eye(4)), root / "movie.nii.gz")
+
+
+def _other_physics(change: str, into: str) -> list:
+    return [_write("other/scene.toml", swap(change, into))]
+
+
+# (files to make, command line, what the message must say)
+COMMANDS = {
+    # scene files
+    "binary scene": ([_write("scene.toml", b"\x89PNG\r\n\x1a\n\0\0\0")], ["run", "scene.toml", "-o", "out"],
+                     "is not a text file"),
+    "latin-1 scene": ([_write("scene.toml", TINY.replace("tiny", "poumon é").encode("latin-1"))],
+                      ["run", "scene.toml", "-o", "out"], "is not UTF-8 text (byte 0xe9 on line 1)"),
+    "scene is a folder": ([lambda r: (r / "scenes").mkdir()], ["run", "scenes", "-o", "out"], "is a folder"),
+    "scene missing": ([], ["run", "none.toml", "-o", "out"], "scene file 'none.toml' not found"),
+    # meshes
+    "2-D mesh": ([_write("scene.toml", _mesh_scene("square.msh"))], ["run", "scene.toml", "-o", "out"],
+                 "holds a 2-D mesh (triangle cells); lungmech solves 3-D bodies only"),
+    "xdmf without its data": ([lambda r: (r / "box.h5").rename(r / "elsewhere.h5"), _write("scene.toml", _mesh_scene("box.xdmf"))],
+                              ["run", "scene.toml", "-o", "out"], "its data file"),
+    "xdmf without boundary names": ([lambda r: (r / "box.tags.json").rename(r / "names.json"),
+                                     _write("scene.toml", _mesh_scene("box.xdmf"))],
+                                    ["run", "scene.toml", "-o", "out"], "its boundary names, 'box.tags.json', are missing"),
+    "truncated msh": ([_truncated("square.msh", "cut.msh", 300), _write("scene.toml", _mesh_scene("cut.msh"))],
+                      ["run", "scene.toml", "-o", "out"], "mesh file"),
+    "mesh of another format": ([_write("lung.stl", "solid x\nendsolid x\n"), _write("scene.toml", _mesh_scene("lung.stl"))],
+                               ["run", "scene.toml", "-o", "out"], "suffix '.stl' is not .msh or .xdmf"),
+    "mesh file is a folder": ([lambda r: (r / "dir.msh").mkdir(), _write("scene.toml", _mesh_scene("dir.msh"))],
+                              ["run", "scene.toml", "-o", "out"], "is a folder; name a mesh file"),
+    "mesh file missing": ([_write("scene.toml", _mesh_scene("nowhere.msh"))], ["run", "scene.toml", "-o", "out"],
+                          "mesh file"),
+    "unknown tag name": ([_write("scene.toml", _mesh_scene("box.xdmf", "\nboundaries = { x0 = 99 }"))],
+                         ["run", "scene.toml", "-o", "out"], "boundary 'x0' has tag 99, which no facet carries"),
+    "phi_s0 file with nan": (_phi(b"0.3\n" * 5 + b"nan\n"), ["run", "scene.toml", "-o", "out"],
+                             "holds values that are not finite numbers"),
+    "phi_s0 file too short": (_phi(b"0.3\n0.3\n"), ["run", "scene.toml", "-o", "out"], "has 2 values; the mesh has 6 cells"),
+    "phi_s0 file of words": (_phi(b"zero\none\n"), ["run", "scene.toml", "-o", "out"], "is not a list of numbers"),
+    "phi_s0 file empty": (_phi(b""), ["run", "scene.toml", "-o", "out"], "has 0 values"),
+    "phi_s0 pickled": (_phi(b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (1,), }" + b" " * 60 + b"\n",
+                            "phi.npy"), ["run", "scene.toml", "-o", "out"], "is not a list of numbers"),
+    "phi_s0 file missing": ([_write("scene.toml", swap("phi_s0 = 0.3", 'phi_s0 = "none.npy"', LUNG))],
+                            ["run", "scene.toml", "-o", "out"], "phi_s0: file"),
+    "phi_s0 out of range": (_phi(b"0.3\n" * 5 + b"1.2\n"), ["run", "scene.toml", "-o", "out"], "must lie in (0, 1)"),
+    # outputs
+    "-o .": ([], ["run", "scene.toml", "-o", "."], "is the current folder"),
+    "-o empty": ([], ["run", "scene.toml", "-o", ""], "is the current folder"),
+    "-o a parent of the current folder": ([], ["run", "scene.toml", "-o", ".."], "holds the current folder"),
+    "-o the scene's folder": ([_write("proj/scene.toml", TINY)], ["run", "proj/scene.toml", "-o", "proj"],
+                              "holds the input"),
+    "-o the mesh's folder": ([_copy_mesh("m2"), _write("meshdir/scene.toml", _mesh_scene("../m2/box.xdmf"))],
+                             ["run", "meshdir/scene.toml", "-o", "m2"], "holds the input"),
+    "-o the user's folder": ([], ["run", "scene.toml", "-o", "mydata"], "is not empty and was not written by lungmech"),
+    "-o a link to the user's folder": ([_symlink], ["run", "scene.toml", "-o", "link"], "was not written by lungmech"),
+    "-o an existing file": ([], ["run", "scene.toml", "-o", "notes.txt"], "exists and is not a folder"),
+    "-o below a file": ([], ["run", "scene.toml", "-o", "notes.txt/out"], "cannot write into"),
+    "-o a result with a note added": ([_write("result/my_note.txt", "keep")], ["run", "scene.toml", "-o", "result"],
+                                      "holds 'my_note.txt', which lungmech did not write"),
+    "-o a result with a changed file": ([lambda r: (r / "result" / "history.csv").write_text("edited\n")],
+                                        ["run", "scene.toml", "-o", "result"], "was changed after lungmech wrote it"),
+    "-o a result with a folder added": ([lambda r: (r / "result" / "extra").mkdir()], ["run", "scene.toml", "-o", "result"],
+                                        "holds 'extra', which lungmech did not write"),
+    "rom build over a user file": ([_write("m.npz", b"mine")], ["rom", "build", "scene.toml", "-o", "m.npz"],
+                                   "exists and was not written by lungmech"),
+    "rom build over a folder": ([lambda r: (r / "dir.npz").mkdir()], ["rom", "build", "scene.toml", "-o", "dir.npz"],
+                                "is a folder"),
+    "rom build over the scene": ([], ["rom", "build", "scene.toml", "-o", "scene.toml"], "saved as .npz"),
+    "rom build of no scales": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--scales", "1,nan"],
+                               "load scales must be finite numbers"),
+    "rom build of a wrong basis": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--basis", "wavelet"],
+                                   "basis kind must be"),
+    "rom build of size zero": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],
+                               "basis size must be a positive integer"),
+    "phantom over a user image": ([lambda r: shutil.copy(r / "notes.txt", r / "patient.nii.gz")],
+                                  ["phantom", "-o", "patient.nii.gz"], "exists and was not written by lungmech"),
+    "phantom of zero spacing": ([], ["phantom", "-o", "p.nii.gz", "--spacing", "0"], "--spacing must be a positive"),
+    "phantom of another format": ([], ["phantom", "-o", "p.png"], "unknown suffix"),
+    "shape over a user mesh": ([lambda r: [(r / f"user{s}").write_text("theirs") for s in (".xdmf", ".h5")]],
+                               ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "user.xdmf"],
+                               "exists and was not written by lungmech"),
+    "shape next to a user h5": ([_write("new.h5", "theirs")],
+                                ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "new.xdmf"],
+                                "does not belong to a file lungmech wrote"),
+    "shape as another format": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "x.vtk"],
+                                "is written as an .xdmf mesh"),
+    "shape of too many coefficients": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "1,1,1,1",
+                                            "-o", "x.xdmf"], "give at most"),
+    "shape of nan": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "nan", "-o", "x.xdmf"],
+                     "must be finite numbers"),
+    "shape of a word": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "big", "-o", "x.xdmf"],
+                        "not a list of numbers"),
+    "shape modes that are not": ([], ["shape", "notes.txt", "--reference", REFERENCE, "-c", "1", "-o", "x.xdmf"],
+                                 "is not a shape-modes file"),
+    "shape on another mesh": ([], ["shape", "modes/shape_modes.npz", "--reference", "lung_phantom_left", "-c", "1",
+                                   "-o", "x.xdmf"], "not the reference these shape modes were built on"),
+    # reduced models
+    "model missing": ([], ["rom", "solve", "none.npz", "scene.toml", "-o", "out"], "reduced model file not found"),
+    "model truncated": ([_truncated("model.npz", "cut.npz", 200)], ["rom", "solve", "cut.npz", "scene.toml", "-o", "out"],
+                        "not an .npz archive, or a truncated one"),
+    "model of text": ([_write("text.npz", "hello")], ["rom", "solve", "text.npz", "scene.toml", "-o", "out"],
+                      "is not a lungmech reduced model"),
+    "model foreign": ([lambda r: np.savez(r / "foreign.npz", a=np.ones(3))], ["rom", "solve", "foreign.npz", "scene.toml", "-o", "out"],
+                      "is not a lungmech reduced model"),
+    "model is a folder": ([lambda r: (r / "m.npz").mkdir()], ["rom", "solve", "m.npz", "scene.toml", "-o", "out"], "is a folder"),
+    "model damaged": ([_damaged_model], ["rom", "solve", "nan_model.npz", "scene.toml", "-o", "out"],
+                      "holds values that are not finite numbers"),
+    "model of another law": (_other_physics('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3',
+                                            'law = "saint_venant_kirchhoff"\nE = 1.0e3\nnu = 0.3'),
+                             ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "material.law"),
+    "model of another clamp": (_other_physics('boundary = "x0"', 'boundary = "x1"'),
+                               ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "constraints[0].boundary"),
+    "model of another load": (_other_physics("[0.0, 0.0, -10.0]", "[0.0, -10.0, 0.0]"),
+                              ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "loads[0].value"),
+    "model of another stiffness": (_other_physics("E = 1.0e3", "E = 5.0e3"),
+                                   ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "material.E: 1000.0"),
+    "model of another mesh": (_other_physics("cells = [2, 1, 1]", "cells = [4, 1, 1]"),
+                              ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "geometry.cells"),
+    "model with two scales": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1,2"],
+                              "--scale takes one value"),
+    "model with a scale of letters": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "deep"],
+                                      "not a list of numbers"),
+    # images and registration
+    "register -o .": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "."], "is the current folder"),
+    "register into the image's folder": ([lambda r: (r / "ct").mkdir(), lambda r: shutil.copy(r / "lung.nii.gz", r / "ct")],
+                                         ["register", "ct/lung.nii.gz", "--reference", REFERENCE, "-o", "ct"], "holds the input"),
+    "register onto a speck": ([_few_voxels], ["register", "speck.nii.gz", "--reference", REFERENCE, "-o", "fit"],
+                              "spans only [1, 1, 3] voxels"),
+    "register in the wrong unit": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "--unit", "m", "-o", "fit"],
+                                   "is the image's length unit right"),
+    "register a 4-D image": ([_four_d], ["register", "movie.nii.gz", "--reference", REFERENCE, "-o", "fit"], "4-D"),
+    "register a label map": ([_label_map], ["register", "labels.nii.gz", "--reference", REFERENCE, "-o", "fit"],
+                             "choose one with --label"),
+    "register an unknown format": ([_write("scan.png", b"png")], ["register", "scan.png", "--reference", REFERENCE, "-o", "fit"],
+                                   "unknown suffix"),
+    "register without convergence": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "--max-iterations", "1",
+                                          "--stages", "1", "-o", "fit"], "did not converge"),
+    "register onto a 2-D reference": ([], ["register", "lung.nii.gz", "--reference", "square.msh", "-o", "fit"],
+                                      "holds a 2-D mesh"),
+    "register onto no reference": ([], ["register", "lung.nii.gz", "--reference", "none.msh", "-o", "fit"], "not found"),
+    "register the user's folder": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "mydata"],
+                                   "was not written by lungmech"),
+    # the command line itself
+    "unknown command": ([], ["simulate", "scene.toml"], "invalid choice: 'simulate'"),
+    "missing -o for a model": ([], ["rom", "build", "scene.toml"], "the following arguments are required: -o/--output"),
+    "size of letters": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "big"], "invalid int value: 'big'"),
+}
+
+
+@pytest.mark.parametrize("case", COMMANDS)
+def test_bad_command(case, workspace, capsys):
+    makers, argv, message = COMMANDS[case]
+    for make in makers:
+        make(workspace)
+    refused(argv, message, capsys, workspace)
+
+
+def test_the_suite_is_large_enough():
+    assert len(SCENES) + len(COMMANDS) >= 100
+
+
+def test_full_disk(workspace, capsys, monkeypatch):
+    """A write that fails for lack of space (ENOSPC) is one error naming the file; the earlier
+    result stays, and the staging folder goes."""
+    import lungmech.output
+
+    real = lungmech.output.write_json
+
+    def full(path, data, comm=MPI.COMM_WORLD):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(lungmech.output, "write_json", full)
+    monkeypatch.setattr("lungmech.run.write_json", full)
+    refused(["run", "scene.toml", "-o", "result", "-q"], "cannot write", capsys, workspace)
+    monkeypatch.setattr("lungmech.run.write_json", real)
+    assert json.loads((workspace / "result" / "summary.json").read_text())["steps"] >= 1
+
+
+def _mount(*args: str) -> bool:
+    return subprocess.run(["mount", *args], capture_output=True).returncode == 0
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 64 kB file system (tmpfs), or a skip where mounting is not allowed."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or not _mount("-t", "tmpfs", "-o", "size=64k", "tmpfs", str(disk)):
+        pytest.skip("mounting a small tmpfs needs root")
+    yield disk
+    subprocess.run(["umount", "-l", str(disk)])
+
+
+def test_really_full_disk(workspace, tiny_disk, capsys):
+    (tiny_disk / "keep.txt").write_text("the user's\n")
+    scene = swap("fields = false", "fields = true")
+    (workspace / "scene.toml").write_text(scene.replace("cells = [2, 1, 1]", "cells = [16, 8, 8]"))
+    before = _snapshot(tiny_disk)
+    refused(["run", "scene.toml", "-o", str(tiny_disk / "out"), "-q"], "No space left on device", capsys, workspace)
+    assert _snapshot(tiny_disk) == before
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """A read-only folder holding an earlier result (a read-only bind mount), or a skip."""
+    folder = tmp_path / "ro"
+    (folder / "old").mkdir(parents=True)
+    (folder / "old" / "summary.json").write_text("{}")
+    if os.geteuid() != 0 or not _mount("--bind", str(folder), str(folder)):
+        pytest.skip("a read-only bind mount needs root")
+    if not _mount("-o", "remount,ro,bind", str(folder)):
+        subprocess.run(["umount", "-l", str(folder)])
+        pytest.skip("cannot remount read-only")
+    yield folder
+    subprocess.run(["umount", "-l", str(folder)])
+
+
+def test_read_only_folder(workspace, read_only, capsys):
+    before = _snapshot(read_only)
+    refused(["run", "scene.toml", "-o", str(read_only / "out"), "-q"], "Read-only file system", capsys, workspace)
+    refused(["rom", "build", "scene.toml", "-o", str(read_only / "m.npz"), "-q"], "Read-only file system", capsys, workspace)
+    assert _snapshot(read_only) == before
+
+
+def test_zipfile_is_not_enough_to_be_a_model(workspace, capsys):
+    """An .npz with lungmech's keys but a foreign format tag is refused, and not overwritten."""
+    with zipfile.ZipFile(workspace / "fake.npz", "w") as z:
+        z.writestr("metadata.npy", b"not numpy")
+    refused(["rom", "solve", "fake.npz", "scene.toml", "-o", "out"], "is not a lungmech reduced model", capsys, workspace)
+    refused(["rom", "build", "scene.toml", "-o", "fake.npz"], "exists and was not written by lungmech", capsys, workspace)

@@ -1,0 +1,120 @@
+"""Signals and MPI failures, from outside: the command line as a user runs it.
+
+Ctrl-C (SIGINT) and SIGTERM stop a run with one line and exit 130 / 143; the staging folder is
+removed and the earlier result is intact. A run killed outright (SIGKILL) leaves its staging
+folder, which the next run into the same place removes. Under ``mpiexec -n 2``, a failure on
+one rank ends the run on all of them: no rank waits forever (each run here has a timeout).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from fem import TINY_SCENE
+
+pytestmark = pytest.mark.slow
+BIN = Path(sys.executable).parent
+MPIEXEC = str(BIN / "mpiexec") if (BIN / "mpiexec").exists() else "mpiexec"
+QUICK = TINY_SCENE.replace('"tiny"', '"quick"')
+# About a second per step and a hundred steps: long enough to be interrupted.
+SLOW = QUICK.replace("cells = [2, 1, 1]", "cells = [12, 6, 6]").replace(
+    "[output]", "[formulation]\ndegree = 2\n[stepping]\ninitial_step = 0.01\nmax_step = 0.01\n[output]"
+)
+ENV = {**os.environ, "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1"}
+
+
+def lungmech(*args: str, ranks: int = 1, cwd: Path) -> list[str]:
+    command = [str(BIN / "lungmech"), *args]
+    return [MPIEXEC, "-n", str(ranks), *command] if ranks > 1 else command
+
+
+@pytest.fixture
+def earlier(tmp_path) -> Path:
+    """A finished result in out/, and the slow scene."""
+    (tmp_path / "quick.toml").write_text(QUICK)
+    (tmp_path / "slow.toml").write_text(SLOW)
+    done = subprocess.run(lungmech("run", "quick.toml", "-o", "out", "-q", cwd=tmp_path), cwd=tmp_path, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return tmp_path
+
+
+def _contents(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in folder.iterdir()}
+
+
+def _interrupt(workspace: Path, sig: int, ranks: int = 1, after: float = 8.0) -> subprocess.CompletedProcess:
+    process = subprocess.Popen(lungmech("run", "slow.toml", "-o", "out", "-q", ranks=ranks, cwd=workspace), cwd=workspace,
+                               env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(after)
+    assert process.poll() is None, "the slow run ended before it could be interrupted"
+    process.send_signal(sig)
+    try:
+        out, err = process.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise AssertionError("the interrupted run did not stop") from None
+    return subprocess.CompletedProcess(process.args, process.returncode, out, err)
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_stops_the_run_and_keeps_the_earlier_result(earlier, sig, code):
+    before = _contents(earlier / "out")
+    result = _interrupt(earlier, sig)
+    assert result.returncode == code, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert lines == [f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results "
+                     "are unchanged"], result.stderr
+    assert _contents(earlier / "out") == before
+    assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"]  # no staging left
+
+
+def test_a_killed_run_leaves_staging_that_the_next_run_removes(earlier):
+    process = subprocess.Popen(lungmech("run", "slow.toml", "-o", "out", "-q", cwd=earlier), cwd=earlier, env=ENV,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(6.0)
+    process.kill()
+    process.wait(timeout=60)
+    left = [p for p in earlier.iterdir() if ".lungmech-staging-" in p.name]
+    assert len(left) == 1
+    done = subprocess.run(lungmech("run", "quick.toml", "-o", "out", "-q", cwd=earlier), cwd=earlier, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "removed" in done.stdout + done.stderr
+    assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"]
+
+
+def test_mpi_a_signal_stops_every_rank(earlier):
+    before = _contents(earlier / "out")
+    result = _interrupt(earlier, signal.SIGTERM, ranks=2, after=12.0)
+    assert result.returncode == 143, result.stderr
+    assert "lungmech: interrupted by SIGTERM" in result.stderr and "Traceback" not in result.stderr
+    assert _contents(earlier / "out") == before
+    assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["run", "quick.toml", "-o", "notes.txt"], "exists and is not a folder"),
+        (["run", "quick.toml", "-o", "."], "is the current folder"),
+        (["run", "quick.toml", "-o", "notes.txt/out"], "cannot write into"),
+        (["run", "bad.toml", "-o", "x"], "loads[0]: value must be 3 numbers"),
+        (["rom", "solve", "quick.toml", "-o", "x"], "is not a lungmech reduced model"),
+    ],
+)
+def test_mpi_a_failure_ends_every_rank_with_one_line(tmp_path, args, message):
+    (tmp_path / "quick.toml").write_text(QUICK)
+    (tmp_path / "bad.toml").write_text(QUICK.replace("value = [0.0, 0.0, -10.0]", 'value = "abc"'))
+    (tmp_path / "notes.txt").write_text("mine")
+    result = subprocess.run(lungmech(*args, ranks=2, cwd=tmp_path), cwd=tmp_path, env=ENV, capture_output=True,
+                            text=True, timeout=240)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "notes.txt", "quick.toml"]
+    assert (tmp_path / "notes.txt").read_text() == "mine"
