@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from mpi4py import MPI
 
+from lungmech import meshes
 from lungmech.constraints import clamp
 from lungmech.geometry import from_file
 from lungmech.inverse import unloaded_reference
@@ -36,7 +37,7 @@ from lungmech.quantities import deformed_volume
 from lungmech.ramp import Ramp
 from lungmech.solver import NewtonSolver, Stepping, solve
 
-MESH = Path(__file__).resolve().parents[1] / "meshes" / "lung_phantom_left.msh"
+MESH = meshes.reference("lung_phantom_left")
 SURFACE = ("pleura", "diaphragm", "mediastinum")
 CYCLE = Ramp((0.0, 1.0, 2.0), (0.0, 1.0, 0.0))  # 0 at both end-expirations, 1 at end-inspiration
 SWING = 500.0  # Pa
