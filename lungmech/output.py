@@ -59,7 +59,8 @@ class FieldWriter:
         self._point = [self._u]
         if "p" in model.fields:  # the mixed formulation's pressure, at the displacement's nodes
             space = fem.functionspace(mesh, ("Lagrange", model.degree))
-            self._p = (fem.Function(space, name="pressure"), model.space.sub(1).collapse())
+            collapsed, dofs = model.space.sub(1).collapse()
+            self._p = (fem.Function(space, name="pressure"), fem.Function(collapsed), dofs)
             self._point.append(self._p[0])
         dg0 = fem.functionspace(mesh, ("DG", 0))
         self._cells = [(fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
@@ -81,8 +82,7 @@ class FieldWriter:
     def write(self, t: float) -> None:
         self._u.x.array[:] = self._model.displacement().x.array
         if len(self._point) > 1:
-            pressure, (space, dofs) = self._p
-            collapsed = fem.Function(space)
+            pressure, collapsed, dofs = self._p
             collapsed.x.array[:] = self._model.state.x.array[dofs]
             pressure.interpolate(collapsed)
         for function, expression in self._cells:

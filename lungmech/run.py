@@ -128,15 +128,14 @@ def full_order(model: Model, scene: Scene, folder: Path) -> tuple[NewtonSolver, 
 def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> dict:
     """Replace the (imaged) mesh by its unloaded reference; write it; report how it went."""
     imaged_volume = model.geometry.volume()
-    progress = Progress("unloading the imaged lung" if _is_lung(scene) else "finding the unloaded reference")
-    first = [None]
+    body = "lung" if _is_lung(scene) else "body"
+    progress = Progress("unloading the imaged lung" if body == "lung" else "finding the unloaded reference")
     tolerance, most = scene.inverse.tolerance, scene.inverse.max_iterations
 
     def show(report: InverseReport) -> None:
-        mismatch = report.mismatch[-1]
-        first[0] = first[0] or mismatch
-        done = np.log(first[0] / max(mismatch, tolerance)) / np.log(first[0] / tolerance) if first[0] > tolerance else 1.0
-        progress.update(done, f"iteration {report.iterations}/{most}: mismatch {mismatch:.2e} of the lung's size "
+        first, mismatch = report.mismatch[0], report.mismatch[-1]
+        done = np.log(first / max(mismatch, tolerance)) / np.log(first / tolerance) if first > tolerance else 1.0
+        progress.update(done, f"iteration {report.iterations}/{most}: mismatch {mismatch:.2e} of the {body}'s size "
                               f"(target {tolerance:.0e})")
 
     report = unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver, monitor=show)
