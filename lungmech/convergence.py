@@ -6,8 +6,9 @@ all, nor every stiffness from 1 Pa to 1 GPa. So each field b is judged on its ow
 
     |r_b| <= max(rtol · R_b, atol, floor_b),
 
-where R_b is the largest residual of that field in the current solve (its first, unless the
-field starts in balance) and floor_b the round-off floor of its residual,
+where R_b is the largest residual of that field the solver has met — its load scale: for a load
+path from rest, the first step's load; a field that starts in balance takes its scale from the
+residuals it meets — and floor_b the round-off floor of its residual,
 
     floor_b = ε · ‖(|K| s)_b‖,    s = |x| + h·(1 on the displacement),
 
@@ -121,30 +122,34 @@ def _cell_size(mesh) -> float:
 
 
 class Test:
-    """The convergence test of one Newton solve (call :meth:`start` before each solve)."""
+    """The convergence test of a solver's Newton solves: call :meth:`new_step` when a load step
+    begins and :meth:`start` before each of its Newton solves."""
 
     def __init__(self, fields: Fields, rtol: float, atol: float):
         self.fields, self.rtol, self.atol = fields, rtol, atol
+        self.scale = np.zeros(len(fields.fields))  # the largest residuals met: the load scale
+        self.new_step()
+
+    def new_step(self) -> None:
+        self.floor: np.ndarray | None = None  # from the step's first tangent
         self.start()
 
     def start(self) -> None:
         self.history: list[np.ndarray] = []
-        self.floor: np.ndarray | None = None
         self.constrained = 0.0
-        self.verdict = ""
 
     def __call__(self, residual: PETSc.Vec, iteration: int, jacobian: PETSc.Mat | None, x: PETSc.Vec) -> int:
         """0 (go on) or a PETSc converged reason (> 0) for the residual at ``iteration``."""
         norms, self.constrained = self.fields.norms(residual)
         self.history.append(norms)
+        self.scale = np.maximum(self.scale, norms)
         if iteration == 0 or jacobian is None:
             return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS if not norms.any() and not self.constrained else 0
-        if self.floor is None:  # from the first tangent of this solve
+        if self.floor is None:
             self.floor = self.fields.floors(jacobian, x)
         if self.constrained > 1e3 * EPS * self.fields.cell_size:
             return 0
-        scale = np.max(self.history, axis=0)
-        below = norms <= np.maximum(self.rtol * scale, self.atol)
+        below = norms <= np.maximum(self.rtol * self.scale, self.atol)
         previous = self.history[-2]
         at_floor = (norms <= self.floor) & ((norms <= 0.1 * previous) | (previous <= 10 * self.floor))
         if np.all(below | at_floor):
@@ -157,9 +162,8 @@ class Test:
         if not self.history:
             return "no residual was computed"
         norms = self.history[-1]
-        scale = np.max(self.history, axis=0)
         parts = []
-        for f, norm, big, floor in zip(self.fields.fields, norms, scale,
+        for f, norm, big, floor in zip(self.fields.fields, norms, self.scale,
                                        self.floor if self.floor is not None else [np.nan] * len(norms)):
             target = max(self.rtol * big, self.atol)
             if norm > max(target, floor if np.isfinite(floor) else 0.0) or not np.isfinite(norm):

@@ -206,6 +206,7 @@ class NewtonSolver:
         a Newton solve, which then converges quadratically, and updated between solves until
         they stop changing: a fixed point around an exact Newton method.
         """
+        self.test.new_step()
         return settle_state_dependent(self.model, self._newton, self.options)
 
     def _newton(self) -> NewtonResult:

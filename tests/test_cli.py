@@ -166,6 +166,8 @@ def test_reduced_model_from_the_command_line(tmp_path, capsys):
     assert sorted(os.listdir(tmp_path / "reduced")) == sorted(os.listdir(tmp_path / "full"))
     assert main(["rom", "build", str(scene), "-o", str(tmp_path / "modal.npz"), "--basis", "modal", "--size", "4", "-q"]) == 0
     capsys.readouterr()
+    assert main(["rom", "solve", str(model), "-o", str(tmp_path / "deep"), "--scale", "2.5", "-q"]) == 0
+    assert "lies outside the trained range [[0.5], [1.5]]: the reduced model extrapolates" in capsys.readouterr().out
 
     other = tmp_path / "other" / "scene.toml"
     other.parent.mkdir()

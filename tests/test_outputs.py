@@ -121,6 +121,16 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
     assert not alive.exists() and (out / "b.txt").is_file()
 
 
+def test_staging_from_another_host_is_reported_not_removed(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    foreign = tmp_path / ".out.lungmech-staging-123-abc123"
+    foreign.mkdir()
+    (foreign / destination.MARKER).write_text(json.dumps({"host": "elsewhere.example", "pid": 123}))
+    with pytest.raises(OutputError, match="was left by a lungmech run on host elsewhere.example; remove it if that run"):
+        write_result(tmp_path / "out", {"a.txt": "1"})
+    assert foreign.is_dir()
+
+
 def test_an_interrupted_swap_is_finished(tmp_path, monkeypatch):
     """A crash between moving the old result away and moving the new one in: the next run
     restores the old one first."""

@@ -91,3 +91,15 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
     new = folder / "new.xdmf"
     assert main(["shape", str(out / "shape_modes.npz"), "--reference", str(reference), "-c", "1,-1", "-o", str(new)]) == 0
     assert geometry.from_file(new, comm).volume() > 0
+
+
+def test_an_unconverged_registration_is_kept_only_when_asked(tmp_path, capsys):
+    target = tmp_path / "patient.nii.gz"
+    assert main(["phantom", "-o", str(target), "--spacing", "4"]) == 0
+    args = ["register", str(target), "--reference", REFERENCE, "--max-iterations", "1", "--stages", "1", "-q"]
+    capsys.readouterr()
+    assert main([*args, "-o", str(tmp_path / "fit")]) == 2
+    assert "did not converge" in capsys.readouterr().err and not (tmp_path / "fit").exists()
+    assert main([*args, "-o", str(tmp_path / "fit"), "--accept-unconverged"]) == 0
+    assert "converged: no (kept: --accept-unconverged)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "fit" / "report.json").read_text())["converged"] is False
