@@ -17,8 +17,9 @@ from lungmech.errors import ParameterError
 __all__ = ["boolean", "integer", "real", "vector"]
 
 
-def real(name: str, value: object, *, positive: bool = False, nonnegative: bool = False,
-         infinite: bool = False) -> float:
+def real(
+    name: str, value: object, *, positive: bool = False, nonnegative: bool = False, infinite: bool = False
+) -> float:
     """``value`` as a float: a real number (not a bool or a string), finite unless ``infinite``."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ParameterError(f"{name} must be a number (got {value!r})")

@@ -59,8 +59,10 @@ class Fields:
             parts = [np.arange(owned)]
         else:
             parts = [np.asarray(space.sub(i).collapse()[1]).ravel() for i in range(len(names))]
-        self.fields = [Field(name, units.get(name, "?"), np.setdiff1d(rows[rows < owned], np.flatnonzero(constrained)))
-                       for name, rows in zip(names, parts)]
+        self.fields = [
+            Field(name, units.get(name, "?"), np.setdiff1d(rows[rows < owned], np.flatnonzero(constrained)))
+            for name, rows in zip(names, parts)
+        ]
         self.constrained = np.flatnonzero(constrained)
         self.comm = comm
         mesh = space.mesh
@@ -144,7 +146,11 @@ class Test:
         self.history.append(norms)
         self.scale = np.maximum(self.scale, norms)
         if iteration == 0 or jacobian is None:
-            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS if not norms.any() and not self.constrained else 0
+            return (
+                PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+                if not norms.any() and not self.constrained
+                else 0
+            )
         if self.floor is None:
             self.floor = self.fields.floors(jacobian, x)
         if self.constrained > 1e3 * EPS * self.fields.cell_size:
@@ -153,8 +159,11 @@ class Test:
         previous = self.history[-2]
         at_floor = (norms <= self.floor) & ((norms <= 0.1 * previous) | (previous <= 10 * self.floor))
         if np.all(below | at_floor):
-            return (PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE if np.all(below)
-                    else PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS)
+            return (
+                PETSc.SNES.ConvergedReason.CONVERGED_FNORM_RELATIVE
+                if np.all(below)
+                else PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+            )
         return 0
 
     def describe(self) -> str:
@@ -163,12 +172,18 @@ class Test:
             return "no residual was computed"
         norms = self.history[-1]
         parts = []
-        for f, norm, big, floor in zip(self.fields.fields, norms, self.scale,
-                                       self.floor if self.floor is not None else [np.nan] * len(norms)):
+        for f, norm, big, floor in zip(
+            self.fields.fields,
+            norms,
+            self.scale,
+            self.floor if self.floor is not None else [np.nan] * len(norms),
+        ):
             target = max(self.rtol * big, self.atol)
             if norm > max(target, floor if np.isfinite(floor) else 0.0) or not np.isfinite(norm):
-                parts.append(f"{f.name} residual {norm:.2e} {f.unit} > {target:.2e} {f.unit} ({self.rtol:.0e} of "
-                             f"{big:.2e} {f.unit}; round-off floor {floor:.1e} {f.unit})")
+                parts.append(
+                    f"{f.name} residual {norm:.2e} {f.unit} > {target:.2e} {f.unit} ({self.rtol:.0e} of "
+                    f"{big:.2e} {f.unit}; round-off floor {floor:.1e} {f.unit})"
+                )
         if self.constrained > 1e3 * EPS * self.fields.cell_size:
             parts.append(f"imposed displacements missed by {self.constrained:.2e} m")
         return "; ".join(parts) or "every field met its test"

@@ -59,7 +59,9 @@ def check_location(target: Path, inputs: Iterable[Path], what: str = "output fol
     here = Path.cwd().resolve()
     if _within(here, target):
         where = "is the current folder" if here == target else f"holds the current folder '{here}'"
-        raise OutputError(f"{what} '{target}' {where}; lungmech will not replace it: name a folder of its own")
+        raise OutputError(
+            f"{what} '{target}' {where}; lungmech will not replace it: name a folder of its own"
+        )
     for source in inputs:
         source = resolve(source)
         if _within(source, target):
@@ -79,7 +81,9 @@ def check_folder(target: Path) -> None:
         return
     manifest = _manifest(target)
     if manifest is None:
-        shown = ", ".join(f"'{e}'" for e in entries[:3]) + (f" and {len(entries) - 3} more" if len(entries) > 3 else "")
+        shown = ", ".join(f"'{e}'" for e in entries[:3]) + (
+            f" and {len(entries) - 3} more" if len(entries) > 3 else ""
+        )
         raise OutputError(
             f"output folder '{target}' is not empty and was not written by lungmech (it holds {shown}); "
             "lungmech replaces only empty folders and its own: name another output folder"
@@ -89,18 +93,19 @@ def check_folder(target: Path) -> None:
         path = target / entry
         if entry == MARKER:
             continue
-        if path.is_dir() and not path.is_symlink():
-            if entry not in folders:
-                raise OutputError(f"output folder '{target}' holds '{entry}', which lungmech did not write; "
-                                  "move it away or name another output folder")
+        folder = path.is_dir() and not path.is_symlink()
+        if entry not in (folders if folder else files) or path.is_symlink():
+            raise OutputError(
+                f"output folder '{target}' holds '{entry}', which lungmech did not write; "
+                "move it away or name another output folder"
+            )
+        if folder:
             continue
-        if entry not in files or path.is_symlink():
-            raise OutputError(f"output folder '{target}' holds '{entry}', which lungmech did not write; "
-                              "move it away or name another output folder")
         size, digest = files[entry]
         if path.stat().st_size != size or _sha256(path) != digest:
-            raise OutputError(f"'{path}' was changed after lungmech wrote it; move it away or name another "
-                              "output folder")
+            raise OutputError(
+                f"'{path}' was changed after lungmech wrote it; move it away or name another output folder"
+            )
 
 
 def _within(path: Path, folder: Path) -> bool:
@@ -143,7 +148,13 @@ def _sha256(path: Path) -> str:
 
 
 def _write_marker(folder: Path, state: str, **extra) -> None:
-    marker = {"written_by": "lungmech", "state": state, "host": socket.gethostname(), "pid": os.getpid(), **extra}
+    marker = {
+        "written_by": "lungmech",
+        "state": state,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        **extra,
+    }
     (folder / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
 
 
@@ -160,9 +171,15 @@ def _seal(folder: Path, command: str) -> None:
             files[entry] = [path.stat().st_size, _sha256(path)]
     from lungmech import __version__
 
-    _write_marker(folder, "complete", lungmech=__version__, command=command,
-                  written=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                  files=files, folders=folders)
+    _write_marker(
+        folder,
+        "complete",
+        lungmech=__version__,
+        command=command,
+        written=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        files=files,
+        folders=folders,
+    )
 
 
 # --- staging ---------------------------------------------------------------------------------
@@ -192,7 +209,7 @@ def _recover(target: Path) -> None:
         prefix = f".{target.name}."
         if not sibling.name.startswith(prefix):
             continue
-        kind = sibling.name[len(prefix):].rsplit("-", 2)[0]
+        kind = sibling.name[len(prefix) :].rsplit("-", 2)[0]
         if kind not in (_STAGING, _OLD):
             continue
         if kind == _OLD:  # a swap stopped between its two renames
@@ -204,11 +221,14 @@ def _recover(target: Path) -> None:
             continue
         host, pid = _owner(sibling)
         if host not in (None, socket.gethostname()):
-            raise OutputError(f"'{sibling}' was left by a lungmech run on host {host}; "
-                              "remove it if that run has ended")
+            raise OutputError(
+                f"'{sibling}' was left by a lungmech run on host {host}; remove it if that run has ended"
+            )
         if pid is not None and pid != os.getpid() and _alive(pid):
-            raise OutputError(f"another lungmech run (process {pid}) is writing '{target}' (into '{sibling.name}'); "
-                              "wait for it to finish, or name another output")
+            raise OutputError(
+                f"another lungmech run (process {pid}) is writing '{target}' (into '{sibling.name}'); "
+                "wait for it to finish, or name another output"
+            )
         shutil.rmtree(sibling, ignore_errors=True)
         log.warning("lungmech: removed '%s', left by an interrupted run", sibling.name)
 
@@ -381,12 +401,16 @@ def _check_file(target: Path, others: Sequence[Path], ours: Callable[[Path], boo
             raise OutputError(f"output '{path}' is a folder; name a file")
     mine = target.is_file() and ours(target)
     if (target.exists() or target.is_symlink()) and not mine:
-        raise OutputError(f"'{target}' exists and was not written by lungmech, which never overwrites it: "
-                          "name another file or move it away")
+        raise OutputError(
+            f"'{target}' exists and was not written by lungmech, which never overwrites it: "
+            "name another file or move it away"
+        )
     for path in others:
         if (path.exists() or path.is_symlink()) and not mine:
-            raise OutputError(f"'{path}' exists and does not belong to a file lungmech wrote: name another "
-                              "file or move it away")
+            raise OutputError(
+                f"'{path}' exists and does not belong to a file lungmech wrote: name another "
+                "file or move it away"
+            )
 
 
 def _barrier_then(comm: MPI.Comm, publish: Callable[[], None], staging: Path) -> None:

@@ -64,7 +64,9 @@ def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
     start = K.getOwnershipRange()[0]
     rows = np.unique(np.concatenate([bc.dof_indices()[0] for bc in model.bcs] or [np.zeros(0, np.int32)]))
-    K.zeroRowsColumns((start + rows[rows < owned]).astype(PETSc.IntType), diag=1e6 * K.norm(PETSc.NormType.NORM_INFINITY))
+    K.zeroRowsColumns(
+        (start + rows[rows < owned]).astype(PETSc.IntType), diag=1e6 * K.norm(PETSc.NormType.NORM_INFINITY)
+    )
     eps = SLEPc.EPS().create(model.geometry.mesh.comm)
     eps.setOperators(K)
     eps.setProblemType(SLEPc.EPS.ProblemType.NHEP)
@@ -86,13 +88,16 @@ def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
     return float(value)
 
 
-def compliance(model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[float], None], t: float,
-               delta: float) -> float:
+def compliance(
+    model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[float], None], t: float, delta: float
+) -> float:
     """|K⁻¹ ∂R/∂t| on the displacement at the model's state and time t (collective): how far the
     body moves per unit of load time. ∂R/∂t is a difference quotient over ``delta``."""
     from dolfinx.fem.petsc import assemble_vector
 
-    constrained = np.unique(np.concatenate([bc.dof_indices()[0] for bc in model.bcs] or [np.zeros(0, np.int32)]))
+    constrained = np.unique(
+        np.concatenate([bc.dof_indices()[0] for bc in model.bcs] or [np.zeros(0, np.int32)])
+    )
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
 
     def residual_at(time: float) -> PETSc.Vec:
@@ -112,8 +117,10 @@ def compliance(model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[f
     response = rate.duplicate()
     try:
         ksp.solve(rate, response)
-        moved = response.getArray(readonly=True)[: owned]
-        displacement = np.asarray(model.space.sub(0).collapse()[1]).ravel() if model.mixed else np.arange(owned)
+        moved = response.getArray(readonly=True)[:owned]
+        displacement = (
+            np.asarray(model.space.sub(0).collapse()[1]).ravel() if model.mixed else np.arange(owned)
+        )
         moved = moved[displacement[displacement < owned]]
         value = float(np.sqrt(model.geometry.mesh.comm.allreduce(float(moved @ moved))))
     finally:
@@ -139,8 +146,10 @@ def diagnose(
     """
     if not failed_min_jacobian > 0:  # <= 0 or nan
         shown = "undefined (nan)" if np.isnan(failed_min_jacobian) else f"{failed_min_jacobian:.3g}"
-        return (f"an element inverted: J = det F reached {shown} in the last Newton iterate (the load is too large "
-                "for the material there, or the mesh too coarse)")
+        return (
+            f"an element inverted: J = det F reached {shown} in the last Newton iterate (the load is too large "
+            "for the material there, or the mesh too coarse)"
+        )
     state, begin = start
     delta = 1e-6 * max(abs(t - begin), 1.0)
     try:
@@ -151,9 +160,11 @@ def diagnose(
             before = compliance(model, solver.residual_form, solver.jacobian_form, drive, begin, delta)
         drive(t)
         if before > 0 and now / before >= RUNAWAY:
-            return (f"loss of stability: the body's response to the load is running away (its tangent compliance "
-                    f"along the load grew {now / before:.0f} times since the start: a limit point, past which it "
-                    "cannot carry more of this load)")
+            return (
+                f"loss of stability: the body's response to the load is running away (its tangent compliance "
+                f"along the load grew {now / before:.0f} times since the start: a limit point, past which it "
+                "cannot carry more of this load)"
+            )
         loaded = smallest_eigenvalue(model, solver.jacobian_form)
         with model.kept_state():
             model.reset()
@@ -166,6 +177,8 @@ def diagnose(
     if unloaded != 0 and loaded / unloaded < 0:
         return "loss of stability: the tangent stiffness has an eigenvalue of the wrong sign (buckling, or a bifurcation)"
     if unloaded != 0 and loaded / unloaded < STABILITY_LOST:
-        return (f"loss of stability: the tangent stiffness kept {100 * loaded / unloaded:.2g} % of its smallest "
-                "eigenvalue at rest (buckling, or a bifurcation)")
+        return (
+            f"loss of stability: the tangent stiffness kept {100 * loaded / unloaded:.2g} % of its smallest "
+            "eigenvalue at rest (buckling, or a bifurcation)"
+        )
     return ""

@@ -63,8 +63,10 @@ class FieldWriter:
             self._p = (fem.Function(space, name="pressure"), fem.Function(collapsed), dofs)
             self._point.append(self._p[0])
         dg0 = fem.functionspace(mesh, ("DG", 0))
-        self._cells = [(fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
-                       for name, expr in cell_fields(model).items()]
+        self._cells = [
+            (fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
+            for name, expr in cell_fields(model).items()
+        ]
         owned = mesh.topology.index_map(mesh.topology.dim).size_local
         self._cell_dofs = dg0.dofmap.list[:owned, 0]
         self._times: list[float] = []
@@ -74,7 +76,9 @@ class FieldWriter:
 
             self._vtx = [
                 VTXWriter(mesh.comm, self._folder / "displacement.bp", self._point, engine="BP4"),
-                VTXWriter(mesh.comm, self._folder / "cell_fields.bp", [f for f, _ in self._cells], engine="BP4"),
+                VTXWriter(
+                    mesh.comm, self._folder / "cell_fields.bp", [f for f, _ in self._cells], engine="BP4"
+                ),
             ]
         else:
             self._grid = _grid(self._u.function_space)
@@ -120,8 +124,10 @@ class FieldWriter:
                 f"{pieces}</PUnstructuredGrid>\n</VTKFile>\n"
             )
         suffix = ".vtu" if ranks == 1 else ".pvtu"
-        entries = "\n".join(f'    <DataSet timestep="{t!r}" part="0" file="fields_{i:06d}{suffix}"/>'
-                            for i, t in enumerate(self._times))
+        entries = "\n".join(
+            f'    <DataSet timestep="{t!r}" part="0" file="fields_{i:06d}{suffix}"/>'
+            for i, t in enumerate(self._times)
+        )
         (self._folder / "fields.pvd").write_text(
             '<?xml version="1.0"?>\n<VTKFile type="Collection" version="1.0">\n  <Collection>\n'
             f"{entries}\n  </Collection>\n</VTKFile>\n"
