@@ -35,6 +35,7 @@ import dolfinx.mesh
 import ufl
 from lungmech.errors import GeometryError
 from lungmech.lung_shape import LungShape
+from lungmech.parallel import on_root
 
 __all__ = [
     "Geometry", "box", "companions", "diameter", "ellipsoid", "from_file", "is_lungmech_mesh", "lung_phantom",
@@ -541,11 +542,24 @@ def companions(path: str | Path) -> list[Path]:
 
 
 def is_lungmech_mesh(path: str | Path) -> bool:
-    """Whether ``path`` is an .xdmf mesh that lungmech wrote (its boundary-names file says so)."""
+    """Whether ``path`` is an .xdmf mesh that lungmech wrote, with its .h5, both unchanged (its
+    boundary-names file says so and holds their SHA-256)."""
+    path = Path(path)
     try:
-        return Path(path).suffix == ".xdmf" and json.loads(_sidecar(Path(path)).read_text())["written_by"] == "lungmech"
-    except (OSError, ValueError, TypeError, KeyError):
+        names = json.loads(_sidecar(path).read_text())
+        written = names["sha256"]
+        return (path.suffix == ".xdmf" and names["written_by"] == "lungmech"
+                and all(_sha256(path.with_name(name)) == sha for name, sha in written.items())
+                and set(written) == {path.name, path.with_suffix(".h5").name})
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return False
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    with open(path, "rb") as stream:
+        return hashlib.sha256(stream.read()).hexdigest()
 
 
 def _global_values(tags: dolfinx.mesh.MeshTags, comm: MPI.Comm) -> set[int]:
@@ -641,9 +655,7 @@ def write(geometry: Geometry, path: str | Path) -> None:
     if path.suffix != ".xdmf":
         raise GeometryError(f"cannot write '{path}': geometries are written as .xdmf")
     mesh, comm = geometry.mesh, geometry.mesh.comm
-    if comm.rank == 0:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    comm.Barrier()
+    on_root(comm, lambda: path.parent.mkdir(parents=True, exist_ok=True))
     with dolfinx.io.XDMFFile(comm, str(path), "w") as file:
         with _named(mesh, "mesh"):
             file.write_mesh(mesh)
@@ -652,7 +664,10 @@ def write(geometry: Geometry, path: str | Path) -> None:
         if geometry.cell_tags is not None:
             with _named(geometry.cell_tags, "cell_tags"):
                 file.write_meshtags(geometry.cell_tags, mesh.geometry)
-    if comm.rank == 0:
-        names = {"boundaries": dict(geometry.boundaries), "written_by": "lungmech"}
+
+    def sidecar() -> None:
+        files = {p.name: _sha256(p) for p in (path, path.with_suffix(".h5"))}
+        names = {"boundaries": dict(geometry.boundaries), "written_by": "lungmech", "sha256": files}
         _sidecar(path).write_text(json.dumps(names, indent=2) + "\n")
-    comm.Barrier()  # so that no rank reads the sidecar before it exists
+
+    on_root(comm, sidecar)  # collective: no rank reads the sidecar before it exists

@@ -40,6 +40,27 @@ def write_result(folder: Path, files: dict[str, str]) -> None:
             (staging / name).write_text(text)
 
 
+def staging_marker(pid: int) -> dict:
+    return {"written_by": "lungmech", "state": "staging", "host": os.uname().nodename, "pid": pid}
+
+
+def test_folders_that_only_look_like_leftovers_are_never_touched(tmp_path, monkeypatch):
+    """A user's folders named like staging or replaced results, without lungmech's marker, stay."""
+    monkeypatch.chdir(tmp_path)
+    theirs = [".out.lungmech-staging-1-abcdef", ".out.lungmech-staging-notes-v2", ".out.lungmech-old-2020-backup",
+              ".out.lungmech-old-999999999-abcdef"]
+    for name in theirs:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "thesis.tex").write_text("years of work")
+    write_result(tmp_path / "out", {"a.txt": "1"})
+    for name in theirs:
+        assert (tmp_path / name / "thesis.tex").read_text() == "years of work"
+    empty = tmp_path / ".out.lungmech-staging-999999999-abcdef"  # killed before its marker: empty
+    empty.mkdir()
+    write_result(tmp_path / "out", {"a.txt": "2"})
+    assert not empty.exists()
+
+
 def test_a_folder_of_lungmech_is_replaced_and_only_then(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "out"
@@ -98,13 +119,14 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
     dead = tmp_path / ".out.lungmech-staging-999999999-abc123"  # no such process
     dead.mkdir()
     (dead / "half.vtu").write_text("x")
+    (dead / destination.MARKER).write_text(json.dumps(staging_marker(999999999)))
     write_result(out, {"a.txt": "1"})
     assert not dead.exists() and (out / "a.txt").is_file()
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live Python run
     try:
         alive = tmp_path / f".out.lungmech-staging-{other.pid}-abc123"
         alive.mkdir()
-        (alive / destination.MARKER).write_text(json.dumps({"host": os.uname().nodename, "pid": other.pid}))
+        (alive / destination.MARKER).write_text(json.dumps(staging_marker(other.pid)))
         with pytest.raises(OutputError, match=f"another lungmech run \\(process {other.pid}\\) is writing"):
             write_result(out, {"b.txt": "2"})
     finally:
@@ -113,7 +135,7 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
     assert (out / "a.txt").is_file()
     stranger = subprocess.Popen(["sleep", "60"])  # a live process that is not Python: a reused pid
     try:
-        (alive / destination.MARKER).write_text(json.dumps({"host": os.uname().nodename, "pid": stranger.pid}))
+        (alive / destination.MARKER).write_text(json.dumps(staging_marker(stranger.pid)))
         write_result(out, {"b.txt": "2"})
     finally:
         stranger.kill()
@@ -125,7 +147,7 @@ def test_staging_from_another_host_is_reported_not_removed(tmp_path, monkeypatch
     monkeypatch.chdir(tmp_path)
     foreign = tmp_path / ".out.lungmech-staging-123-abc123"
     foreign.mkdir()
-    (foreign / destination.MARKER).write_text(json.dumps({"host": "elsewhere.example", "pid": 123}))
+    (foreign / destination.MARKER).write_text(json.dumps(staging_marker(123) | {"host": "elsewhere.example"}))
     with pytest.raises(OutputError, match="was left by a lungmech run on host elsewhere.example; remove it if that run"):
         write_result(tmp_path / "out", {"a.txt": "1"})
     assert foreign.is_dir()
@@ -261,3 +283,43 @@ def test_progress_is_a_live_bar_on_a_terminal_and_lines_in_logs(tty, monkeypatch
         assert stream.text.splitlines()[:3] == ["breathing: step 1", "breathing: step cut back", "breathing: step 2"]
         assert "\r" not in stream.text and "#" not in stream.text
     assert stream.text.rstrip().endswith("s)")
+
+
+def test_a_mount_point_can_be_the_output_folder(tmp_path, monkeypatch):
+    """A folder that cannot be renamed (a mount point, as with docker -v host:/out) is filled in
+    place, and replaced in place on a rerun."""
+    import subprocess
+
+    monkeypatch.chdir(tmp_path)
+    mount = tmp_path / "mnt"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        write_result(mount, {"a.txt": "1"})
+        write_result(mount, {"b.txt": "2"})
+        assert sorted(p.name for p in mount.iterdir()) == [destination.MARKER, "b.txt"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["mnt"]
+    finally:
+        subprocess.run(["umount", "-l", str(mount)])
+
+
+def test_a_failed_job_removes_the_folders_it_made(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError):
+        with destination.output_folder(tmp_path / "new1" / "new2" / "out", COMM):
+            raise ValueError("failed")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_metaimage_moves_with_its_data(tmp_path, monkeypatch):
+    from lungmech.cli import main
+    from lungmech.registration import image
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("p.mhd", "q.nhdr"):
+        assert main(["phantom", "-o", name, "--spacing", "8"]) == 0
+        assert image.read(name).volume > 0
+        assert main(["phantom", "-o", name, "--spacing", "8"]) == 0  # its own, unchanged: replaced
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.mhd", "p.zraw", "q.nhdr", "q.raw.gz"]

@@ -20,6 +20,7 @@ Conventions:
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import zipfile
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ import numpy.typing as npt
 
 from lungmech.errors import ImageError
 
-__all__ = ["SUFFIXES", "Image", "from_array", "kind", "read", "stem", "write", "written_by_lungmech"]
+__all__ = ["SUFFIXES", "Image", "companions", "from_array", "kind", "read", "stem", "write", "written_by_lungmech"]
 
 # Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
 _NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
@@ -46,7 +47,7 @@ SUFFIXES = {
     ".nhdr": "itk",
 }
 _LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
-_SIGNATURE = "lungmech image"  # in the header of the images lungmech writes
+_SIGNATURE = "lungmech image"  # in the header of the images lungmech writes, with a digest of the voxels
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value
@@ -229,6 +230,7 @@ def write(image: Image, path: str | Path) -> None:
     nib = _nibabel(path) if format_ == "nifti" else None  # imported first, to fail before touching the disk
     sitk = _simpleitk(path) if format_ == "itk" else None
     data = image.mask.astype(np.uint8)
+    signature = _signature(data)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         if format_ == "nifti":
@@ -237,7 +239,7 @@ def write(image: Image, path: str | Path) -> None:
             nifti.set_sform(affine, code=1)
             nifti.set_qform(affine, code=1)
             nifti.header.set_xyzt_units(xyz="mm")
-            nifti.header["descrip"] = _SIGNATURE
+            nifti.header["descrip"] = signature
             nib.save(nifti, path)
         elif format_ == "itk":
             origin, spacing, direction = _itk_geometry(image.affine, path)
@@ -246,10 +248,10 @@ def write(image: Image, path: str | Path) -> None:
             itk.SetOrigin(origin.tolist())
             itk.SetSpacing(spacing.tolist())
             itk.SetDirection(direction.ravel().tolist())
-            itk.SetMetaData("written_by", _SIGNATURE)
+            itk.SetMetaData("written_by", signature)
             sitk.WriteImage(itk, str(path), True)  # True: compress
         else:
-            np.savez_compressed(path, mask=image.mask, affine=image.affine, written_by=_SIGNATURE)
+            np.savez_compressed(path, mask=image.mask, affine=image.affine, written_by=signature)
     except ImageError:
         raise
     except Exception as e:
@@ -257,25 +259,47 @@ def write(image: Image, path: str | Path) -> None:
 
 
 def written_by_lungmech(path: str | Path) -> bool:
-    """Whether the image file ``path`` was written by :func:`write` (its header says so)."""
+    """Whether the image file ``path`` was written by :func:`write` and its voxels are unchanged
+    (its header carries a digest of them)."""
     path = Path(path)
     try:
-        format_ = kind(path)
-        if format_ == "nifti":
-            import nibabel as nib
-
-            return nib.load(path).header["descrip"].item().decode(errors="replace").strip() == _SIGNATURE
-        if format_ == "itk":
-            import SimpleITK as sitk
-
-            reader = sitk.ImageFileReader()
-            reader.SetFileName(str(path))
-            reader.ReadImageInformation()
-            return reader.HasMetaDataKey("written_by") and reader.GetMetaData("written_by") == _SIGNATURE
-        with np.load(path, allow_pickle=False) as npz:
-            return str(npz["written_by"]) == _SIGNATURE
+        return _stored_signature(path) == _signature(read(path).mask.astype(np.uint8))
     except Exception:  # any reader's failure: not a file lungmech can vouch for
         return False
+
+
+def companions(path: str | Path) -> list[str]:
+    """The names of the files written next to an image file: a MetaImage's or NRRD header's data."""
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".mhd"):
+        return [f"{stem(path)}.zraw"]
+    if name.endswith(".nhdr"):
+        return [f"{stem(path)}.raw.gz"]
+    return []
+
+
+def _signature(data: npt.NDArray[np.uint8]) -> str:
+    """lungmech's mark on an image, with the first 40 hex digits of the voxels' SHA-256 (fits NIfTI's 80 bytes)."""
+    digest = hashlib.sha256(str(data.shape).encode() + np.ascontiguousarray(data).tobytes()).hexdigest()
+    return f"{_SIGNATURE} {digest[:40]}"
+
+
+def _stored_signature(path: Path) -> str:
+    format_ = kind(path)
+    if format_ == "nifti":
+        import nibabel as nib
+
+        return nib.load(path).header["descrip"].item().decode(errors="replace").strip()
+    if format_ == "itk":
+        import SimpleITK as sitk
+
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(str(path))
+        reader.ReadImageInformation()
+        return reader.GetMetaData("written_by") if reader.HasMetaDataKey("written_by") else ""
+    with np.load(path, allow_pickle=False) as npz:
+        return str(npz["written_by"])
 
 
 def kind(path: Path) -> str:

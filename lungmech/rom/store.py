@@ -6,6 +6,7 @@ any number of ranks loads on any other; the mesh fingerprint is checked on loadi
 
 from __future__ import annotations
 
+import hashlib
 import json
 import zipfile
 from pathlib import Path
@@ -40,6 +41,7 @@ def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arra
     if where.fingerprint != basis.fingerprint:
         raise ParameterError("save: the basis does not belong to this model's mesh and space")
     vectors = where.gather(basis.vectors)
+    arrays = {"vectors": vectors, "values": basis.values, **(arrays or {})}
     metadata = {
         "format": FORMAT,
         "kind": basis.kind,
@@ -49,18 +51,28 @@ def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arra
         "dofs": where.size,
         "source": basis.source,
         "extra": extra or {},
+        "content_sha256": _content(arrays),
     }
-    on_root(where.comm, lambda: np.savez(path, vectors=vectors, values=basis.values, metadata=json.dumps(metadata),
-                                         **(arrays or {})))
+    on_root(where.comm, lambda: np.savez(path, metadata=json.dumps(metadata), **arrays))
 
 
 def is_model(path: str | Path) -> bool:
-    """Whether ``path`` is a lungmech reduced-model file (any mesh)."""
+    """Whether ``path`` is a lungmech reduced-model file (any mesh), unchanged since it was written."""
     try:
-        read(path)
+        metadata, arrays = read(path)
     except ModelFileError:
         return False
-    return True
+    return metadata.get("content_sha256") == _content(arrays)
+
+
+def _content(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 of named arrays: names, dtypes, shapes and bytes, in name order."""
+    sha = hashlib.sha256()
+    for name in sorted(arrays):
+        array = np.ascontiguousarray(arrays[name])
+        sha.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
+        sha.update(array.tobytes())
+    return sha.hexdigest()
 
 
 def _suffix(path: str | Path) -> Path:
