@@ -68,6 +68,7 @@ class TaylorHood:
     """u in P_k, pressure p in P_{k−1}: ψ_iso(F) − p g(J) − p²/(2 bulk) (the last term vanishes for bulk = inf)."""
 
     fields: ClassVar[tuple[str, ...]] = ("p",)
+    residual_units: ClassVar[dict[str, str]] = {"p": "m^3"}  # ∫ (g(J) + p/bulk) q dX
 
     def bind(self, mesh) -> TaylorHood:
         return self

@@ -29,7 +29,7 @@ from petsc4py import PETSc
 
 from lungmech.linear import factorised, use_lu
 
-__all__ = ["RUNAWAY", "STABILITY_LOST", "compliance", "diagnose", "min_jacobian", "smallest_eigenvalue"]
+__all__ = ["RUNAWAY", "STABILITY_LOST", "Inversion", "compliance", "diagnose", "min_jacobian", "smallest_eigenvalue"]
 
 STABILITY_LOST = 0.05  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
@@ -54,6 +54,24 @@ def min_jacobian(model) -> Callable[[], float]:
     return evaluate
 
 
+class Inversion:
+    """Whether the model's state turns a cell inside out: J = det F ≤ 0 (or undefined) at a
+    quadrature point. Such a state is no equilibrium of a real body, even where a law without a
+    barrier on J (Saint Venant–Kirchhoff) balances it. Small-strain laws are not checked."""
+
+    def __init__(self, model):
+        self._smallest = None if getattr(model.material, "small_strain", False) else min_jacobian(model)
+
+    def __call__(self) -> str:
+        """"" for a state without inverted cells, else what is wrong with it (collective)."""
+        if self._smallest is None:
+            return ""
+        smallest = self._smallest()
+        if smallest > 0:
+            return ""
+        return f"an inverted state (smallest J = det F = {smallest:.3g}), not an equilibrium of a real body"
+
+
 def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
     """The real part of the eigenvalue of the tangent nearest 0, on the free dofs (collective)."""
     from slepc4py import SLEPc
@@ -61,12 +79,8 @@ def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
     K = assemble_matrix(jacobian, bcs=model.bcs, diag=1.0)
     K.assemble()
     # Constrained rows hold 1 on the diagonal: lift them far above the spectrum near 0.
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
-    start = K.getOwnershipRange()[0]
-    rows = np.unique(np.concatenate([bc.dof_indices()[0] for bc in model.bcs] or [np.zeros(0, np.int32)]))
-    K.zeroRowsColumns(
-        (start + rows[rows < owned]).astype(PETSc.IntType), diag=1e6 * K.norm(PETSc.NormType.NORM_INFINITY)
-    )
+    rows = K.getOwnershipRange()[0] + model.constrained_dofs()
+    K.zeroRowsColumns(rows.astype(PETSc.IntType), diag=1e6 * K.norm(PETSc.NormType.NORM_INFINITY))
     eps = SLEPc.EPS().create(model.geometry.mesh.comm)
     eps.setOperators(K)
     eps.setProblemType(SLEPc.EPS.ProblemType.NHEP)
@@ -95,16 +109,13 @@ def compliance(
     body moves per unit of load time. ∂R/∂t is a difference quotient over ``delta``."""
     from dolfinx.fem.petsc import assemble_vector
 
-    constrained = np.unique(
-        np.concatenate([bc.dof_indices()[0] for bc in model.bcs] or [np.zeros(0, np.int32)])
-    )
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    constrained = model.constrained_dofs()
 
     def residual_at(time: float) -> PETSc.Vec:
         drive(time)
         vector = assemble_vector(residual)
         vector.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        vector.getArray()[constrained[constrained < owned]] = 0.0
+        vector.getArray()[constrained] = 0.0
         return vector
 
     rate = residual_at(t + delta)
@@ -117,11 +128,7 @@ def compliance(
     response = rate.duplicate()
     try:
         ksp.solve(rate, response)
-        moved = response.getArray(readonly=True)[:owned]
-        displacement = (
-            np.asarray(model.space.sub(0).collapse()[1]).ravel() if model.mixed else np.arange(owned)
-        )
-        moved = moved[displacement[displacement < owned]]
+        moved = response.getArray(readonly=True)[model.field_dofs()["u"]]
         value = float(np.sqrt(model.geometry.mesh.comm.allreduce(float(moved @ moved))))
     finally:
         for obj in (ksp, K, rate, response):
@@ -144,6 +151,9 @@ def diagnose(
     compiled forms (``residual_form``, ``jacobian_form``). The model's state and time are
     restored.
     """
+    if not model.bcs:
+        return ("nothing holds the body (no imposed displacement), so it can move rigidly and its tangent is "
+                "singular: clamp a boundary, or impose symmetry conditions")
     if not failed_min_jacobian > 0:  # <= 0 or nan
         shown = "undefined (nan)" if np.isnan(failed_min_jacobian) else f"{failed_min_jacobian:.3g}"
         return (

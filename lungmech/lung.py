@@ -75,6 +75,7 @@ class Poromechanics:
     pore_barrier: float = 0.0
     pore_range: tuple[float, float] = (0.5, math.inf)
     fields: ClassVar[tuple[str, ...]] = ("phi_s",)
+    residual_units: ClassVar[dict[str, str]] = {"phi_s": "J"}  # ∫ (∂W/∂Φs + p_f) δΦs dX, Pa·m³
 
     def __post_init__(self):
         checks.real("lung bulk modulus kappa", self.kappa, positive=True)

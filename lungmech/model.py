@@ -190,6 +190,22 @@ class Model:
             return self.state.copy()
         return self.state.sub(0).collapse()
 
+    def field_dofs(self) -> dict[str, np.ndarray]:
+        """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""
+        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        if not self.mixed:
+            return {"u": np.arange(owned)}
+        names = ("u", *self.formulation.fields)
+        parts = [np.asarray(self.space.sub(i).collapse()[1]).ravel() for i in range(len(names))]
+        return {name: rows[rows < owned] for name, rows in zip(names, parts)}
+
+    def constrained_dofs(self) -> np.ndarray:
+        """This rank's owned entries of the state vector that an imposed displacement sets."""
+        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        dofs = [bc.dof_indices()[0] for bc in self.bcs]
+        everything = np.unique(np.concatenate(dofs)) if dofs else np.zeros(0, dtype=np.int32)
+        return everything[everything < owned]
+
     def _default_quadrature_degree(self) -> int:
         mesh = self.geometry.mesh
         affine = mesh.topology.cell_name() in ("interval", "triangle", "tetrahedron")

@@ -43,16 +43,18 @@ class NewtonOptions:
     problems). ``petsc_options`` overrides or extends any PETSc option; one PETSc refuses or
     does not use is an error.
 
-    A Newton solve has converged when every field's residual has fallen by ``rtol`` from its
-    largest value in the solve, or to ``atol`` (in the residual's own unit; 0: no absolute test),
-    or quadratically to its round-off floor (see :mod:`lungmech.convergence`).
+    A Newton solve has converged when every field's residual has fallen to ``rtol`` times its load
+    scale, or to ``atol`` (in the residual's own unit; 0: no absolute test), or quadratically to
+    its round-off floor (see :mod:`lungmech.convergence`). The default line search, ``cp``,
+    judges a step by R·d, an energy, consistent across fields of different units (``bt``'s merit
+    ‖R‖² is not).
     """
 
     linear_solver: str = "direct"
     rtol: float = 1e-10
     atol: float = 0.0
     max_iterations: int = 25
-    line_search: str = "bt"
+    line_search: str = "cp"
     petsc_options: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -65,6 +67,10 @@ class NewtonOptions:
         checks.integer("max_iterations", self.max_iterations, minimum=1)
         if not isinstance(self.petsc_options, dict):
             raise ParameterError(f"petsc_options must be a table of PETSc options (got {self.petsc_options!r})")
+        for key in self.petsc_options:
+            if key in ("snes_rtol", "snes_atol", "snes_stol"):
+                raise ParameterError(f"petsc_options.{key}: lungmech stops Newton with its own test; set rtol or atol "
+                                     "in [solver] instead")
         for key, value in self.petsc_options.items():
             if not isinstance(value, str | bool | int | float) or (isinstance(value, float) and not math.isfinite(value)):
                 raise ParameterError(f"petsc_options.{key}: expected a string, number or boolean (got {value!r})")
@@ -73,6 +79,8 @@ class NewtonOptions:
         options = {
             "snes_type": "newtonls",
             "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
+            # The line searches' own absolute stop (cp's |F·Y| < 1e-15) depends on units: ours decides.
+            "snes_linesearch_atol": 0.0,
             "snes_max_it": self.max_iterations,
             "snes_max_funcs": 10 * self.max_iterations + 100,
         }
@@ -93,7 +101,10 @@ class NewtonOptions:
                 "mg_levels_ksp_type": "chebyshev",
                 "mg_levels_pc_type": "jacobi",
             }
-        return options | self.petsc_options
+        # A true flag is set as a bare option (PETSc reads "" as true, and as "on" for a viewer);
+        # a false one is left out (off, PETSc's default).
+        given = {k: "" if v is True else v for k, v in self.petsc_options.items() if v is not False}
+        return options | given
 
 
 @dataclass(frozen=True)
@@ -188,13 +199,15 @@ class NewtonSolver:
             J=model.jacobian if jacobian is None else jacobian,
             petsc_options_prefix=prefix,
         )
-        _configure(self, self.problem.solver, prefix, self.options.petsc())
+        options = self.options.petsc()
+        _configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
         if self.options.linear_solver == "iterative":
             self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
         self._residuals: list[float] = []
         snes = self.problem.solver
         snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
         self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
+        self.inversion = limits.Inversion(model)
         snes.setConvergenceTest(
             lambda snes, it, norms: self.test(snes.getFunction()[0], it, snes.getJacobian()[0], snes.getSolution())
         )
@@ -209,6 +222,10 @@ class NewtonSolver:
         self.test.new_step()
         return settle_state_dependent(self.model, self._newton, self.options)
 
+    def start_path(self) -> None:
+        """A new load path begins: the fields' load scales start again (see :mod:`lungmech.convergence`)."""
+        self.test.start_path()
+
     def _newton(self) -> NewtonResult:
         self._residuals.clear()
         self.test.start()
@@ -218,12 +235,17 @@ class NewtonSolver:
             reason = snes.getConvergedReason()
         except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
             Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
-            return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}"
+            said = _petsc_message(error)
+            if error.ierr in _SETTINGS_ERRORS:  # the same at every step: not a numerical failure
+                raise SolverError(f"PETSc refused the solver settings (solver.petsc_options?): {said}") from None
+            return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}"
         Interrupted.raise_pending()
         converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
         name = _REASONS.get(reason, str(reason))
         if not converged:
             name = f"{name}: {self.test.describe()}"
+        elif wrong := self.inversion():
+            converged, name = False, f"{name} to {wrong}"
         return bool(converged), snes.getIterationNumber(), tuple(self._residuals), name
 
     @property
@@ -291,22 +313,32 @@ class _Anderson:
         return image - dG @ gamma
 
 
+# PETSc errors of settings, not of numbers: no support, wrong argument, out of range, unknown type.
+_SETTINGS_ERRORS = (56, 62, 63, 86)
+
+
+def _petsc_message(error: PETSc.Error) -> str:
+    """The last line of PETSc's error report (what went wrong, without its call stack)."""
+    lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
+    return lines[-1] if lines else f"error {error.ierr}"
+
+
 # Options of objects made at set-up (factorisation, multigrid levels, sub-solvers): read later.
 _READ_LATER = ("mat_", "mg_", "fieldsplit_", "sub_", "redundant_", "pc_factor_mat_solver")
 
 
-def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict) -> None:
+def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict, given: Sequence[str]) -> None:
     """Set ``options`` on ``snes`` (and its KSP and PC) for ``owner``'s lifetime. A value PETSc
-    refuses, or an option it does not use, is a :class:`SolverError` naming it (options of the
-    objects made at set-up, such as mat_* or mg_levels_*, cannot be checked here)."""
+    refuses, or an option of the user's (``given``) it does not use, is a :class:`SolverError`
+    naming it (options of the objects made at set-up, such as mat_* or mg_levels_*, are checked
+    when they are read, at the first solve)."""
     _persistent_options(owner, prefix, options)
     database = PETSc.Options()
     try:
         snes.setFromOptions()
     except PETSc.Error as error:
-        lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
-        raise SolverError(f"solver.petsc_options: PETSc refused them: {lines[-1] if lines else error}") from None
-    unknown = [key for key in options if not key.startswith(_READ_LATER) and not database.used(prefix + key)]
+        raise SolverError(f"solver.petsc_options: PETSc refused them: {_petsc_message(error)}") from None
+    unknown = [key for key in given if not key.startswith(_READ_LATER) and not database.used(prefix + key)]
     if unknown:
         raise SolverError(f"solver.petsc_options: PETSc does not use {', '.join(unknown)} here (misspelt, or an "
                           "option of another solver type)")
@@ -353,6 +385,7 @@ def solve(
     t, dt = stepping.start, stepping.initial_step
     drive(t)
     first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
+    getattr(solver, "start_path", lambda: None)()
     last, previous, previous_dt = state.copy(), None, None
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):

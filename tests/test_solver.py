@@ -89,3 +89,13 @@ def test_bad_solver_options():
         NewtonOptions(linear_solver="magic")
     with pytest.raises(ParameterError, match="min_step"):
         Stepping(initial_step=1e-9)
+
+
+def test_petsc_options_of_the_user_only_are_checked():
+    """Choosing another SNES type leaves lungmech's line-search default unused: not an error."""
+    from lungmech.solver import NewtonOptions, NewtonSolver
+
+    geometry = box(MPI.COMM_WORLD, cells=(1, 1, 1))
+    model = Model(geometry, SaintVenantKirchhoff.from_young(1.0, 0.3), constraints=[clamp("x0")])
+    NewtonSolver(model, NewtonOptions(petsc_options={"snes_type": "newtontr"}))
+    NewtonSolver(model, NewtonOptions(petsc_options={"snes_type": "ksponly", "ksp_view": False}))

@@ -17,6 +17,7 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.convergence import Fields
+from lungmech.limits import Inversion
 from lungmech.errors import ParameterError
 from lungmech.rom.basis import Basis, apply, gram, inner_product, origin, reference_state
 from lungmech.rom.layout import layout
@@ -61,9 +62,13 @@ class ReducedSolver:
         self._vector = fem.Function(model.space).x
         self._matrix = create_matrix(self._jacobian)
         self._fields = Fields(model)
+        self.inversion = Inversion(model)
         self.coordinates = np.zeros(basis.size)
         self.description = f"reduced Galerkin: {basis.kind} basis of {basis.size} vectors"
         self.iterations_total = 0
+
+    def start_path(self) -> None:
+        """A new load path begins (each reduced solve scales its own residual)."""
 
     def solve(self) -> NewtonResult:
         """One reduced Newton solve from (the projection of) the current state."""
@@ -136,10 +141,12 @@ class ReducedSolver:
         return floor
 
     def _finish(self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str) -> NewtonResult:
-        if converged:
-            self.coordinates = q
         self.iterations_total += iterations
         converged = converged and bool(np.all(np.isfinite(self.model.state.x.array)))
+        if converged and (wrong := self.inversion()):
+            converged, reason = False, f"{reason} to {wrong}"
+        if converged:
+            self.coordinates = q
         return converged, iterations, tuple(residuals), reason
 
     @property
