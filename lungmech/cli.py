@@ -56,7 +56,7 @@ def parser() -> argparse.ArgumentParser:
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
     solve.add_argument("scene", nargs="?", help="scene file (default: the one the model was built from)")
-    _common(solve, "results/<model name>")
+    _common(solve, "results/<model name>-reduced")
     registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
     return top
@@ -101,7 +101,8 @@ def _fail(code: int, message: str, interrupted: bool = False) -> int:
     from lungmech import parallel
 
     comm = MPI.COMM_WORLD
-    if parallel.arrive(comm, timeout=3.0 if interrupted else 10.0):
+    # Collective errors arrive together; a wait this long means the failure reached this rank alone.
+    if parallel.arrive(comm, timeout=3.0 if interrupted else 60.0):
         if comm.rank == 0:
             print(message, file=sys.stderr, flush=True)
         return code
@@ -193,7 +194,7 @@ def _rom_build(args) -> int:
 
 def _run(args) -> int:
     from lungmech.console import end_of_run
-    from lungmech.run import full_order, run
+    from lungmech.run import check_scale, full_order, run
 
     prepare, inputs = full_order, []
     if args.command == "rom":  # solve: the scene the model was built from, unless another is named
@@ -210,8 +211,9 @@ def _run(args) -> int:
     comm, scene, name, path = _setup(args)
     if len(args.scale) > 1:
         raise ParameterError("--scale takes one value (per-load factors are joined by ':', e.g. 1.2:1)")
-    scale = args.scale[0]
-    output = args.output if args.output is not None else RESULTS / (Path(args.model).stem if args.command == "rom" else path.stem)
+    scale = check_scale(scene, args.scale[0])
+    default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
+    output = args.output if args.output is not None else RESULTS / default
     if comm.rank == 0:
         how = " with the reduced model " + args.model if args.command == "rom" else ""
         print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)

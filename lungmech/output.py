@@ -22,7 +22,7 @@ from dolfinx import fem, plot
 from mpi4py import MPI
 
 from lungmech import lung
-from lungmech.parallel import on_root
+from lungmech.parallel import on_root, together
 
 __all__ = ["FORMATS", "FieldWriter", "cell_fields", "write_json"]
 
@@ -107,8 +107,8 @@ class FieldWriter:
         name = f"fields_{step:06d}"
         piece = f"{name}.vtu" if comm.size == 1 else f"{name}_p{comm.rank}.vtu"
         mesh = meshio.Mesh(points, [cells], point_data=point_data, cell_data=cell_data)
-        meshio.write(self._folder / piece, mesh, file_format="vtu", binary=True, compression="zlib")
-        comm.Barrier()
+        with together(comm):  # a rank that cannot write its piece stops them all
+            meshio.write(self._folder / piece, mesh, file_format="vtu", binary=True, compression="zlib")
         on_root(comm, lambda: self._write_collection(name, point_data, cell_data, comm.size))
 
     def _write_collection(self, name: str, point_data: dict, cell_data: dict, ranks: int) -> None:

@@ -174,6 +174,10 @@ SCENES = {
     "unknown KSP type": (TINY + '[solver]\npetsc_options = { ksp_type = "bogus" }\n', "Unable to find requested KSP type bogus"),
     "unknown PETSc option": (TINY + "[solver]\npetsc_options = { nonsense_option = 1 }\n",
                              "PETSc does not use nonsense_option"),
+    "SNES tolerance": (TINY + "[solver]\npetsc_options = { snes_rtol = 1e-8 }\n", "lungmech stops Newton with its own test"),
+    "bad MUMPS setting": (TINY + '[solver]\npetsc_options = { mat_mumps_icntl_14 = "abc" }\n',
+                          "PETSc refused the solver settings (solver.petsc_options?): Input string abc has no integer value"),
+    "nothing holds the body": (swap('[[constraints]]\ntype = "clamp"\nboundary = "x0"\n', ""), "nothing holds the body"),
     "fields a word": (swap("fields = false", 'fields = "no"'), "fields must be true or false"),
     "unknown field format": (swap("fields = false", 'fields = true\nformat = "bp5"'), "format must be one of vtk, vtx"),
     "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
@@ -461,6 +465,8 @@ COMMANDS = {
                               ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "geometry.cells"),
     "model with two scales": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1,2"],
                               "--scale takes one value"),
+    "model with two scales for one load": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1:2"],
+                                           "one finite factor or one per load"),
     "model with a scale of letters": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "deep"],
                                       "not a list of numbers"),
     # images and registration
@@ -481,6 +487,11 @@ COMMANDS = {
     "register onto a 2-D reference": ([], ["register", "lung.nii.gz", "--reference", "square.msh", "-o", "fit"],
                                       "holds a 2-D mesh"),
     "register onto no reference": ([], ["register", "lung.nii.gz", "--reference", "none.msh", "-o", "fit"], "not found"),
+    "register onto a missing path named like a bundled mesh": (
+        [], ["register", "lung.nii.gz", "--reference", "mine/lung_phantom_left.msh", "-o", "fit"], "not found"),
+    "a cohort of negative spacing": ([], ["shape-modes", "--synthetic", "3", "--spacing", "-5", "-o", "modes2"],
+                                     "--spacing must be a positive voxel size in mm"),
+    "a phantom too fine": ([], ["phantom", "-o", "fine.nii.gz", "--spacing", "1e-4"], "use a coarser spacing"),
     "register the user's folder": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "mydata"],
                                    "was not written by lungmech"),
     # the command line itself

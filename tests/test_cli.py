@@ -168,6 +168,15 @@ def test_reduced_model_from_the_command_line(tmp_path, capsys):
     capsys.readouterr()
     assert main(["rom", "solve", str(model), "-o", str(tmp_path / "deep"), "--scale", "2.5", "-q"]) == 0
     assert "lies outside the trained range [[0.5], [1.5]]: the reduced model extrapolates" in capsys.readouterr().out
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:  # default outputs: the full and the reduced run of one scene do not share a folder
+        assert main(["run", str(scene), "-q"]) == main(["rom", "solve", str(model), "-q"]) == 0
+    finally:
+        os.chdir(cwd)
+    assert (tmp_path / "results" / "scene" / "summary.json").is_file()
+    assert (tmp_path / "results" / "tiny-reduced" / "summary.json").is_file()
+    capsys.readouterr()
 
     other = tmp_path / "other" / "scene.toml"
     other.parent.mkdir()

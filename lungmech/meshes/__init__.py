@@ -12,7 +12,7 @@ from pathlib import Path
 
 from lungmech.errors import GeometryError
 
-__all__ = ["NAMES", "reference", "resolve"]
+__all__ = ["NAMES", "locate", "reference"]
 
 NAMES = ("lung_phantom_right", "lung_phantom_left", "sphere_octant")
 
@@ -24,9 +24,8 @@ def reference(name: str) -> Path:
     return Path(str(resources.files(__name__) / f"{name}.msh"))
 
 
-def resolve(given: str | Path) -> Path:
-    """A mesh file by path, or by the name of a bundled mesh when no such file exists."""
+def locate(given: str | Path) -> Path:
+    """A mesh file by path, or a bundled mesh by its bare name (no folder, no suffix) when no
+    file of that name exists here."""
     path = Path(given)
-    if path.exists() or str(given) not in NAMES and path.stem not in NAMES:
-        return path
-    return reference(str(given) if str(given) in NAMES else path.stem)
+    return reference(str(given)) if str(given) in NAMES and not path.exists() else path

@@ -19,7 +19,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     register = commands.add_parser("register", help="map a reference mesh onto a segmented 3-D image")
     register.add_argument("image", help="segmentation (.nii, .nii.gz, .mha, .nrrd or .npz)")
     _reference(register)
-    register.add_argument("-o", "--output", help="output folder (default results/<image name>); replaced only on "
+    register.add_argument("-o", "--output", help="output folder (default results/<image name>-registration); replaced only on "
                           "success, and only if it is empty or lungmech's own")
     _image_options(register)
     _descent_options(register)
@@ -60,9 +60,9 @@ def _reference(command: argparse.ArgumentParser) -> None:
 
 
 def _mesh(text: str) -> str:
-    from lungmech.meshes import resolve
+    from lungmech.meshes import locate
 
-    return str(resolve(text))
+    return str(locate(text))
 
 
 def _image_options(command: argparse.ArgumentParser) -> None:
@@ -119,7 +119,7 @@ def _register(args, comm) -> int:
 
     options = _options(args)
     target = image.read(args.image, label=args.label, unit=args.unit)
-    output = args.output if args.output is not None else f"results/{image.stem(Path(args.image))}"
+    output = args.output if args.output is not None else f"results/{image.stem(Path(args.image))}-registration"
     report = workflow.register_image(args.reference, target, output, options, comm, accept=_accepted(args))
     if comm.rank == 0:
         converged = "yes" if report["converged"] else "no (kept: --accept-unconverged)"
@@ -138,6 +138,8 @@ def _shape_modes(args, comm) -> int:
     if (args.synthetic is None) == (not args.images):
         raise ParameterError("give either image files/folders or --synthetic N (one of the two)")
     if args.synthetic is not None:
+        if not (math.isfinite(args.spacing) and args.spacing > 0):
+            raise ParameterError(f"--spacing must be a positive voxel size in mm (got {args.spacing})")
         cohort = phantom.cohort(args.synthetic, args.latent, seed=args.seed, side=args.side)
         sources = {f"patient_{j:03d}": im for j, im in enumerate(cohort.images(spacing=1e-3 * args.spacing))}
     else:
@@ -187,7 +189,7 @@ def _phantom(args, comm) -> int:
     given = {k: v for k, v in vars(args).items() if k in fields and v is not None}
     if not (math.isfinite(args.spacing) and args.spacing > 0):
         raise ParameterError(f"--spacing must be a positive voxel size in mm (got {args.spacing})")
-    with output_file(args.output, comm, ours=image.written_by_lungmech) as path:
+    with output_file(args.output, comm, ours=image.written_by_lungmech, companions=image.companions(args.output)) as path:
         shape = LungShape(**given)
         target = phantom.voxelise(shape, 1e-3 * args.spacing)
         on_root(comm, lambda: image.write(target, path))

@@ -29,6 +29,9 @@ __all__ = ["LATENT", "Cohort", "cohort", "voxelise"]
 _SLAB_POINTS = 1 << 20  # voxel centres tested at once: ~100 MB of temporaries at most
 
 
+MAX_VOXELS = 1e9  # a synthetic image larger than this is a mistake in the spacing (1 GB as bytes)
+
+
 def voxelise(
     shape: LungShape,
     spacing: float | Sequence[float] = 0.002,
@@ -58,6 +61,9 @@ def voxelise(
     corners = np.array(list(itertools.product(*zip(lo, hi)))) @ R.T + t
     first = np.floor((corners.min(axis=0) - margin) / step) - 1
     n = (np.ceil((corners.max(axis=0) + margin) / step) + 1 - first).astype(int)
+    if np.prod(n.astype(float)) > MAX_VOXELS:
+        raise ParameterError(f"a grid of {n[0]} x {n[1]} x {n[2]} voxels at spacing {np.round(1e3 * step, 6).tolist()} mm "
+                             f"is more than {MAX_VOXELS:.0e} voxels; use a coarser spacing")
     origin = (first + 0.5) * step
     # Voxel centres in the shape's own frame, x = R^T (p - t) = sum over axes d of (p_d - t_d) R[d],
     # one term per grid axis, so that they add up by broadcasting.

@@ -28,6 +28,7 @@ from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from lungmech.errors import RegistrationError  # noqa: E402
+from lungmech.parallel import on_root  # noqa: E402
 from lungmech.registration.image import Image  # noqa: E402
 from lungmech.registration.metrics import boundary_triangles  # noqa: E402
 
@@ -96,11 +97,13 @@ def registration_slices(
     voxel axes (from voxel 0). The mesh (in its current configuration) is cut by each slice
     plane; ``reference``, the triangles (n, 3, 3) of another surface in metres, e.g. the starting
     position, is drawn dashed. Parent folders are created. Collective: only rank 0 draws (and
-    needs ``reference``).
+    needs ``reference``); an error there is raised on every rank.
     """
     triangles = boundary_triangles(mesh)
-    if mesh.comm.rank != 0:
-        return
+    on_root(mesh.comm, lambda: _slices(triangles, image, path, title, reference, reference_label))
+
+
+def _slices(triangles, image: Image, path, title: str, reference, reference_label: str) -> None:
     surfaces = [(triangles, _MESH_COLOUR, "-", "mesh")]
     if reference is not None:
         reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3, 3)

@@ -41,9 +41,9 @@ def register_image(
     ``registered.xdmf`` (the mapped mesh), ``mapping.npz`` (reference nodes and displacement in
     canonical order), ``report.json`` (metrics and the descent) and ``registration.png``.
 
-    Refused with a :class:`RegistrationError` (nothing written) unless ``accept`` names the
-    doubt: a target of a handful of voxels or of a size that points at a wrong length unit
-    ("implausible"), a descent that did not converge ("unconverged").
+    Refused with a :class:`RegistrationError` (nothing written): a target of a handful of
+    voxels; unless ``accept`` names the doubt, a target whose size points at a wrong length unit
+    ("implausible") and a descent that did not converge ("unconverged").
     """
     inputs = [reference, *([image.source] if image.source is not None else [])]
     with output_folder(out, comm, inputs=inputs, command="lungmech register") as staging:
