@@ -154,12 +154,22 @@ def diagnose(
     if not model.bcs:
         return ("nothing holds the body (no imposed displacement), so it can move rigidly and its tangent is "
                 "singular: clamp a boundary, or impose symmetry conditions")
+    # A limit point or a bifurcation is the cause, an iterate thrown inside out past it only the
+    # symptom: stability is judged first, at the last converged state.
+    stability = _stability(model, solver, drive, t, start)
+    if stability:
+        return stability
     if not failed_min_jacobian > 0:  # <= 0 or nan
         shown = "undefined (nan)" if np.isnan(failed_min_jacobian) else f"{failed_min_jacobian:.3g}"
         return (
             f"an element inverted: J = det F reached {shown} in the last Newton iterate (the load is too large "
             "for the material there, or the mesh too coarse)"
         )
+    return ""
+
+
+def _stability(model, solver, drive: Callable[[float], None], t: float, start: tuple[np.ndarray, float]) -> str:
+    """A loss of stability at the model's (last converged) state, or ""."""
     state, begin = start
     delta = 1e-6 * max(abs(t - begin), 1.0)
     try:
