@@ -13,7 +13,23 @@ import numpy as np  # noqa: E402
 
 from lungmech.console import CMH2O  # noqa: E402
 
-__all__ = ["deformed_body", "pressure_volume"]
+__all__ = ["deformed_body", "drawn", "pressure_volume"]
+
+
+def drawn(comm, path: Path, draw) -> bool:
+    """Collective: ``draw()`` a picture (itself collective). A picture that cannot be drawn (no
+    off-screen rendering on this machine, say) is a warning on the console, not a failed run:
+    the results are in the other files. Returns whether it was drawn."""
+    import logging
+
+    try:
+        draw()
+        return True
+    except Exception as error:  # raised on every rank alike: draw() is collective
+        if comm.rank == 0:
+            reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+            logging.getLogger("lungmech").warning("lungmech: warning: %s was not drawn (%s)", Path(path).name, reason)
+        return False
 
 
 def pressure_volume(

@@ -39,7 +39,7 @@ from lungmech.loads import FollowerPressure
 from lungmech.model import Model
 from lungmech.output import FieldWriter, write_json
 from lungmech.parallel import on_root
-from lungmech.plot import deformed_body, pressure_volume
+from lungmech.plot import deformed_body, drawn, pressure_volume
 from lungmech.quantities import Probe, deformed_volume, strain_energy
 from lungmech.scene import Scene, build_geometry
 from lungmech.solver import NewtonSolver, StepReport, solve
@@ -272,21 +272,22 @@ def run(
             "units": SUMMARY_UNITS,
         }
         write_json(staging / "summary.json", summary, comm)
+        on_root(comm, lambda: _write_history(scene, history, staging))
         with model.kept_state():
             model.state.x.array[:] = largest["state"]
             model.state.x.scatter_forward()
-            deformed_body(model, staging / "deformed.png",
-                          f"{scene.title}\nlargest volume {litres(largest['volume'])}, t = {largest['time']:.3g} s")
-        on_root(comm, lambda: _write_tables(scene, history, axis, staging))
+            title = f"{scene.title}\nlargest volume {litres(largest['volume'])}, t = {largest['time']:.3g} s"
+            drawn(comm, staging / "deformed.png", lambda: deformed_body(model, staging / "deformed.png", title))
+        if axis is not None:
+            label, value, parts = axis
+            pressures, volumes = [value(row) for row in history], [row["volume"] for row in history]
+            drawn(comm, staging / "pressure_volume.png", lambda: on_root(comm, lambda: pressure_volume(
+                pressures, volumes, staging / "pressure_volume.png", label, title=scene.title, note=parts)))
     return summary
 
 
-def _write_tables(scene: Scene, history: list[dict], axis, folder: Path) -> None:
-    """history.csv (columns with units) and the P–V picture (rank 0)."""
-    if axis is not None:
-        label, value, parts = axis
-        pressure_volume([value(row) for row in history], [row["volume"] for row in history],
-                        folder / "pressure_volume.png", label, title=scene.title, note=parts)
+def _write_history(scene: Scene, history: list[dict], folder: Path) -> None:
+    """history.csv, its columns named with their units (rank 0)."""
     labels = {load.label for load in scene.loads}
     columns = list(dict.fromkeys(k for row in history for k in row))
     header = [f"{k} [{_column_unit(k, labels)}]" for k in columns]

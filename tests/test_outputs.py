@@ -22,6 +22,8 @@ from lungmech import scene as scenes
 from lungmech.errors import OutputError
 from lungmech.run import run
 
+from fem import TINY_SCENE
+
 COMM = MPI.COMM_SELF
 TINY = {
     "title": "tiny",
@@ -323,3 +325,19 @@ def test_a_metaimage_moves_with_its_data(tmp_path, monkeypatch):
         assert image.read(name).volume > 0
         assert main(["phantom", "-o", name, "--spacing", "8"]) == 0  # its own, unchanged: replaced
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.mhd", "p.zraw", "q.nhdr", "q.raw.gz"]
+
+
+def test_a_picture_that_cannot_be_drawn_is_a_warning(tmp_path, monkeypatch, capsys):
+    """No off-screen rendering here, say: the run keeps its results, says what is missing, exits 0."""
+    from lungmech import plot
+    from lungmech.cli import main
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("cannot open an off-screen window")
+
+    monkeypatch.setattr(plot, "_draw", broken)
+    (tmp_path / "scene.toml").write_text(TINY_SCENE)
+    assert main(["run", str(tmp_path / "scene.toml"), "-o", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "lungmech: warning: deformed.png was not drawn (cannot open an off-screen window)" in out
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [destination.MARKER, "history.csv", "summary.json"]

@@ -20,6 +20,7 @@ from lungmech.errors import ImageError, RegistrationError
 from lungmech.destination import output_folder
 from lungmech.output import write_json
 from lungmech.parallel import on_root
+from lungmech.plot import drawn
 from lungmech.registration import image as images
 from lungmech.registration import metrics, nodes, pictures
 from lungmech.registration.image import Image
@@ -57,10 +58,10 @@ def register_image(
         with nodes.deformed(result.displacement) as mesh:
             report = {"reference": str(reference)} | metrics.report(mesh, image) | result.summary()
             geometries.write(geometry, staging / "registered.xdmf")
-            pictures.registration_slices(mesh, image, staging / "registration.png", reference=initial,
-                                         reference_label="start (similarity fit)",
-                                         title=f"Dice {report['dice']:.3f}, mean distance "
-                                               f"{1e3 * report['mean_surface_distance']:.2f} mm")
+            title = f"Dice {report['dice']:.3f}, mean distance {1e3 * report['mean_surface_distance']:.2f} mm"
+            drawn(comm, staging / "registration.png", lambda: pictures.registration_slices(
+                mesh, image, staging / "registration.png", reference=initial,
+                reference_label="start (similarity fit)", title=title))
         report["total_seconds"] = time.perf_counter() - start
         report["units"] = REPORT_UNITS
         check_converged(report, "unconverged" in accept)
@@ -167,12 +168,10 @@ def _shape_modes(library, reference, count: int, start: float, staging: Path, co
         "units": MODES_UNITS | {f"members[].{k}": v for k, v in REPORT_UNITS.items()},
     }
 
-    def write() -> None:
-        modes.save(staging / "shape_modes.npz")
-        pictures.shape_spectrum(modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
-                                title=f"Shape modes of {count} mappings")
-
-    on_root(comm, write)
+    on_root(comm, lambda: modes.save(staging / "shape_modes.npz"))
+    drawn(comm, staging / "singular_values.png", lambda: on_root(comm, lambda: pictures.shape_spectrum(
+        modes.singular_values, staging / "singular_values.png", leave_one_out=loo,
+        title=f"Shape modes of {count} mappings")))
     write_json(staging / "report.json", report, comm)
     return report
 
