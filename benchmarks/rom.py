@@ -237,13 +237,16 @@ class Counted:
         self.iterations = self.calls = 0
         self.last_reason = ""
 
+    def __getattr__(self, name):  # the rest of the Solver protocol: the inner solver's
+        return getattr(self.inner, name)
+
     def solve(self):
         if self.deadline is not None and COMM.bcast(time.perf_counter() > self.deadline, root=0):
             raise OverBudget()
         result = self.inner.solve()
         self.calls += 1
-        self.iterations += result[1]
-        self.last_reason = result[3]
+        self.iterations += result.iterations
+        self.last_reason = result.reason
         return result
 
 

@@ -235,7 +235,7 @@ class ImplicitEuler:
         state.array[:] = self.previous.x.array + self.step * self.velocity.x.array
         state.scatter_forward()
         result = solver.solve()
-        if result[0]:
+        if result.converged:
             self.velocity.x.array[:] = (state.array - self.previous.x.array) / self.step
             self.previous.x.array[:] = state.array
             self.velocity.x.scatter_forward()
@@ -309,16 +309,17 @@ def march(
     started = time.perf_counter()
     for _ in range(steps):
         tic = time.perf_counter()
-        converged, iterations, residuals, reason = scheme.advance(solver)
-        step = StepReport(scheme.time + (0.0 if converged else scheme.step), scheme.step, iterations,
-                          residuals, reason, time.perf_counter() - tic, converged)
+        result = scheme.advance(solver)
+        converged, residuals = result.converged, result.residuals
+        step = StepReport(scheme.time + (0.0 if converged else scheme.step), scheme.step, result.iterations,
+                          residuals, result.reason, time.perf_counter() - tic, converged)
         report.steps.append(step)
         if not converged:
             report.seconds = time.perf_counter() - started
             history = ", ".join(f"{r:.3e}" for r in residuals[-6:]) or "none"
             raise SolverError(
                 f"implicit Euler: Newton did not converge from t = {scheme.time:.6g} with step "
-                f"{scheme.step:.3g} (reason {reason}; last residual norms: {history}). The state at "
+                f"{scheme.step:.3g} (reason {result.reason}; last residual norms: {history}). The state at "
                 f"t = {scheme.time:.6g} is kept. Try a smaller step or check the loads."
             )
         if on_step is not None:

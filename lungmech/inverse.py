@@ -130,8 +130,8 @@ def unloaded_reference(
 
 
 def _newton(solver: NewtonSolver) -> int:
-    converged, iterations, residuals, reason = solver.solve()
-    if not converged:
-        raise SolverError(f"inverse: the direct solve on the corrected reference failed ({reason})")
-    return iterations
+    result = solver.solve()
+    if not result.converged:
+        raise SolverError(f"inverse: the direct solve on the corrected reference failed ({result.reason})")
+    return result.iterations
 

@@ -264,7 +264,7 @@ def run(
             "strain_energy": history[-1]["strain_energy"],
             "inverse": inverse,
             "load_scale": np.asarray(scale, dtype=float).tolist(),
-            "solver": getattr(solver, "description", "full order"),
+            "solver": solver.description,
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
                 "displacement": probe(model.displacement()).tolist() if probe is not None else [],

@@ -14,7 +14,8 @@ import math
 import time
 import weakref
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
 
 import numpy as np
 from dolfinx.fem.petsc import NonlinearProblem
@@ -208,6 +209,7 @@ class NewtonSolver:
         snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
         self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
         self.inversion = limits.Inversion(model)
+        self.description = "full order"
         snes.setConvergenceTest(
             lambda snes, it, norms: self.test(snes.getFunction()[0], it, snes.getJacobian()[0], snes.getSolution())
         )
@@ -238,7 +240,7 @@ class NewtonSolver:
             said = _petsc_message(error)
             if error.ierr in _SETTINGS_ERRORS:  # the same at every step: not a numerical failure
                 raise SolverError(f"PETSc refused the solver settings (solver.petsc_options?): {said}") from None
-            return False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}"
+            return NewtonResult(False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}")
         Interrupted.raise_pending()
         converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
         name = _REASONS.get(reason, str(reason))
@@ -246,7 +248,7 @@ class NewtonSolver:
             name = f"{name}: {self.test.describe()}"
         elif wrong := self.inversion():
             converged, name = False, f"{name} to {wrong}"
-        return bool(converged), snes.getIterationNumber(), tuple(self._residuals), name
+        return NewtonResult(bool(converged), snes.getIterationNumber(), tuple(self._residuals), name)
 
     @property
     def residual_form(self):
@@ -262,7 +264,43 @@ class NewtonSolver:
         self.problem.solver.destroy()
 
 
-NewtonResult = tuple[bool, int, tuple[float, ...], str]  # converged, iterations, residuals, reason
+@dataclass(frozen=True)
+class NewtonResult:
+    """What a Newton solve did (or several, for loads whose coefficients settle in a fixed point)."""
+
+    converged: bool
+    iterations: int
+    residuals: tuple[float, ...]  # the norm of the whole residual at each iteration
+    reason: str  # PETSc's converged reason, and what failed when it did not converge
+
+    def then(self, later: NewtonResult) -> NewtonResult:
+        """This solve followed by ``later``: iterations and residuals add up; ``later`` decides."""
+        return NewtonResult(later.converged, self.iterations + later.iterations, self.residuals + later.residuals,
+                            later.reason)
+
+
+class Solver(Protocol):
+    """What the load stepping (:func:`solve`) and the outputs need of a nonlinear solver: the
+    full-order :class:`NewtonSolver` and the reduced :class:`lungmech.rom.galerkin.ReducedSolver`."""
+
+    model: Any
+    description: str  # for summaries, e.g. "full order"
+
+    def solve(self) -> NewtonResult:
+        """One Newton solve from the model's current state, at its current loads."""
+        ...
+
+    def start_path(self) -> None:
+        """A load path begins (the solver may rescale its convergence test)."""
+        ...
+
+    @property
+    def residual_form(self) -> Any: ...
+
+    @property
+    def jacobian_form(self) -> Any: ...
+
+    def destroy(self) -> None: ...
 
 
 def settle_state_dependent(model, newton: Callable[[], NewtonResult], options: NewtonOptions) -> NewtonResult:
@@ -279,21 +317,20 @@ def settle_state_dependent(model, newton: Callable[[], NewtonResult], options: N
 
     theta = np.concatenate([term.evaluate() for term in terms])
     assign(theta)
-    converged, iterations, residuals, reason = newton()
+    result = newton()
     anderson = _Anderson()
     for _ in range(options.max_iterations):
-        if not converged:
+        if not result.converged:
             break
         image = np.concatenate([term.evaluate() for term in terms])
         if np.linalg.norm(image - theta) <= options.rtol * max(np.linalg.norm(image), 1e-300):
             break
         theta = anderson.next(theta, image)
         assign(theta)
-        converged, more, further, reason = newton()
-        iterations, residuals = iterations + more, residuals + further
+        result = result.then(newton())
     else:
-        converged, reason = False, "state-dependent load coefficients did not settle"
-    return converged, iterations, residuals, reason
+        result = replace(result, converged=False, reason="state-dependent load coefficients did not settle")
+    return result
 
 
 class _Anderson:
@@ -357,7 +394,7 @@ def solve(
     stepping: Stepping | None = None,
     options: NewtonOptions | None = None,
     on_step: Callable[[StepReport], None] | None = None,
-    solver: NewtonSolver | None = None,
+    solver: Solver | None = None,
     drive: Callable[[float], None] | None = None,
     monitor: Callable[[StepReport], None] | None = None,
     breakpoints: Sequence[float] | None = None,
@@ -385,7 +422,7 @@ def solve(
     t, dt = stepping.start, stepping.initial_step
     drive(t)
     first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
-    getattr(solver, "start_path", lambda: None)()
+    solver.start_path()
     last, previous, previous_dt = state.copy(), None, None
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
@@ -394,8 +431,10 @@ def solve(
                 state[:] = last + (dt / previous_dt) * (last - previous)
             drive(t + dt)
             tic = time.perf_counter()
-            converged, iterations, residuals, reason = solver.solve()
-            step = StepReport(t + dt, dt, iterations, residuals, reason, time.perf_counter() - tic, converged)
+            result = solver.solve()
+            converged = result.converged
+            step = StepReport(t + dt, dt, result.iterations, result.residuals, result.reason, time.perf_counter() - tic,
+                              converged)
             report.steps.append(step)
             (monitor or _log_step)(step)
             if converged:
@@ -403,7 +442,7 @@ def solve(
                 t += dt
                 if on_step is not None:
                     on_step(step)
-                if iterations <= stepping.easy_iterations:
+                if result.iterations <= stepping.easy_iterations:
                     dt *= stepping.growth
                 continue
             final = dt <= stepping.min_step * (1 + 1e-12)

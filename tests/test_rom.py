@@ -108,8 +108,9 @@ def test_reduced_newton_is_quadratic_and_accurate_on_unseen_loads(trained):
     # One step of a tenth of the load: Newton's contraction r_{k+1} ≈ C r_k² until round-off.
     model.reset()
     model.set_time(0.1)
-    converged, iterations, residuals, reason = solver.solve()
-    assert converged and residuals[-1] <= 1e-10 * residuals[0], (reason, residuals)
+    result = solver.solve()
+    residuals = result.residuals
+    assert result.converged and residuals[-1] <= 1e-10 * residuals[0], (result.reason, residuals)
     r = np.array(residuals)
     useful = r[1:][r[1:] > 1e-11 * r[0]]
     ratios = np.log(useful[1:] / r[0]) / np.log(useful[:-1] / r[0])

@@ -35,7 +35,8 @@ def test_newton_converges_quadratically():
     solver = NewtonSolver(model, NewtonOptions(line_search="none"))
     solve(model, Stepping(end=0.5), solver=solver)
     model.set_time(1.0)
-    converged, _, residuals, _ = solver.solve()
+    result = solver.solve()
+    converged, residuals = result.converged, result.residuals
     r = np.array(residuals) / residuals[0]
     assert converged and len(r) >= 4, r
     pairs = [(a, b) for a, b in zip(r[:-1], r[1:]) if a < 1e-2 and b > 1e-13]

@@ -147,7 +147,7 @@ class ReducedSolver:
             converged, reason = False, f"{reason} to {wrong}"
         if converged:
             self.coordinates = q
-        return converged, iterations, tuple(residuals), reason
+        return NewtonResult(converged, iterations, tuple(residuals), reason)
 
     @property
     def residual_form(self):
