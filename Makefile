@@ -7,7 +7,7 @@ PY      := $(VENV)/bin/python
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
 
-.PHONY: demo test test-serial test-mpi bench bench-rom bench-registration clean
+.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-registration clean
 
 $(STAMP): pyproject.toml
 	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
@@ -16,7 +16,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/lungmech run -o results/default
 
-test: test-serial test-mpi
+test: lint test-serial test-mpi
+
+# ruff's linter and formatter, configured in pyproject.toml.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check lungmech tests demos benchmarks
+	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks
 
 test-serial: $(STAMP)
 	$(PY) -m pytest -m "not mpi" tests

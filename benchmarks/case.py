@@ -7,7 +7,7 @@
 memory is that of one case. The last line on stdout is ``RESULT {json}`` (rank 0).
 
 Timings (wall clock, ``time.perf_counter``, max over ranks):
-  mesh_seconds   gmsh meshing + distribution (lungmech.geometry.sphere, the same for both codes)
+  mesh_seconds   gmsh meshing + distribution (lungmech.mesh.sphere, the same for both codes)
   build_seconds  function spaces, UFL forms, boundary conditions (no compilation)
   setup_seconds  constructing the solver: FFCx/CFFI JIT of residual and Jacobian (cold or warm
                  cache, see ``jit_cache``), matrix sparsity, vectors, SNES/KSP set-up
@@ -29,13 +29,13 @@ from pathlib import Path
 
 _started = time.perf_counter()
 
-import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
-from lungmech.geometry import sphere
-
 import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+
+import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
+from lungmech.mesh import sphere
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))  # tests/analytic.py: plain NumPy/SciPy, no lungmech
@@ -96,7 +96,9 @@ def errors(mesh, geometry, u, reference: Reference) -> dict:
     R = ufl.sqrt(ufl.dot(X, X))
     u_ref = reference.ufl_radial(R) * X / R
     dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": ERROR_QUADRATURE})
-    ds = ufl.Measure("ds", domain=mesh, subdomain_data=geometry.facet_tags, metadata={"quadrature_degree": ERROR_QUADRATURE})
+    ds = ufl.Measure(
+        "ds", domain=mesh, subdomain_data=geometry.facet_tags, metadata={"quadrature_degree": ERROR_QUADRATURE}
+    )
     inner = ds(geometry.boundaries["inner"])
     x = X + u
 
@@ -135,12 +137,12 @@ def repeat(comm, solve_once, times: list[float]) -> None:
 
 
 def run_lungmech(geometry, formulation: str, pressure: float, nu: float, steps: int, line_search: str) -> dict:
-    from lungmech.constraints import symmetry
     from lungmech.errors import SolverError
-    from lungmech.loads import FollowerPressure
-    from lungmech.materials import NeoHookean
-    from lungmech.model import Model
-    from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+    from lungmech.fem.constraints import symmetry
+    from lungmech.fem.loads import FollowerPressure
+    from lungmech.fem.materials import NeoHookean
+    from lungmech.fem.model import Model
+    from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
 
     degree, mixed = FORMULATIONS[formulation]
     tic = time.perf_counter()
@@ -156,7 +158,11 @@ def run_lungmech(geometry, formulation: str, pressure: float, nu: float, steps: 
     tic = time.perf_counter()
     solver = NewtonSolver(model, NewtonOptions(line_search=line_search))
     setup = time.perf_counter() - tic
-    out = {"build_seconds": build, "setup_seconds": setup, "quadrature_degree": model.dx.metadata()["quadrature_degree"]}
+    out = {
+        "build_seconds": build,
+        "setup_seconds": setup,
+        "quadrature_degree": model.dx.metadata()["quadrature_degree"],
+    }
     stepping = Stepping(initial_step=1.0 / steps, growth=1.0)  # growth 1: equal steps unless Newton fails
     times: list[float] = []
     reports = []
@@ -237,7 +243,9 @@ def main() -> None:
     parser.add_argument("--nu", type=float, default=0.4999)
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--line-search", default="cp")
-    parser.add_argument("--max-dofs", type=int, default=0, help="stop after meshing if the case is larger (0: no limit)")
+    parser.add_argument(
+        "--max-dofs", type=int, default=0, help="stop after meshing if the case is larger (0: no limit)"
+    )
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
 

@@ -1,6 +1,6 @@
 """The pressurised thick sphere written by hand in plain DOLFINx: the baseline lungmech is timed against.
 
-Only dolfinx, ufl, basix and petsc4py; ``lungmech.geometry`` is used for the mesh alone, so
+Only dolfinx, ufl, basix and petsc4py; ``lungmech.mesh`` is used for the mesh alone, so
 both codes solve on the very same cells. Everything else mirrors what lungmech builds for
 
     Model(geometry, NeoHookean(mu, lmbda), degree=..., mixed=...,
@@ -21,14 +21,14 @@ from __future__ import annotations
 import argparse
 import time
 
-import lungmech.geometry  # the mesh only (its import also orders MPI before the bindings)
-
 import basix.ufl
 import ufl
 from dolfinx import default_scalar_type, fem
 from dolfinx.fem.petsc import NonlinearProblem
 from mpi4py import MPI
 from petsc4py import PETSc
+
+import lungmech.mesh  # the mesh only (its import also orders MPI before the bindings)
 
 # lungmech's NewtonOptions() defaults, written out.
 PETSC_OPTIONS = {
@@ -86,9 +86,9 @@ class Problem:
         dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": self.quadrature_degree})
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
         N = ufl.FacetNormal(mesh)
-        residual = ufl.derivative(psi * dx, self.state, v) + self.load * ufl.dot(
-            J * ufl.inv(F).T * N, v_u
-        ) * ds(geometry.boundaries["inner"])
+        residual = ufl.derivative(psi * dx, self.state, v) + self.load * ufl.dot(J * ufl.inv(F).T * N, v_u) * ds(
+            geometry.boundaries["inner"]
+        )
         jacobian = ufl.derivative(residual, self.state, ufl.TrialFunction(V))
 
         Vu = V.sub(0) if mixed else V
@@ -126,7 +126,12 @@ class Problem:
             iterations += snes.getIterationNumber()
             previous, last = last, x.copy()
             step_seconds.append(time.perf_counter() - t0)
-        return {"seconds": time.perf_counter() - tic, "iterations": iterations, "steps": steps, "step_seconds": step_seconds}
+        return {
+            "seconds": time.perf_counter() - tic,
+            "iterations": iterations,
+            "steps": steps,
+            "step_seconds": step_seconds,
+        }
 
 
 def main() -> None:
@@ -141,7 +146,7 @@ def main() -> None:
     mu = 1.0
     lmbda = 2 * mu * args.nu / (1 - 2 * args.nu)
     order = 1 if args.formulation == "P1" else 2
-    geometry = lungmech.geometry.sphere(comm, 1.0, 2.0, mesh_size=args.h, octant=True, order=order)
+    geometry = lungmech.mesh.sphere(comm, 1.0, 2.0, mesh_size=args.h, octant=True, order=order)
     problem = Problem(geometry, args.formulation, mu, lmbda, args.pressure, args.line_search)
     result = problem.solve()
     imap = problem.state.function_space.dofmap.index_map

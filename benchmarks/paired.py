@@ -18,17 +18,17 @@ import statistics
 import time
 from pathlib import Path
 
-import lungmech  # noqa: F401
-from lungmech.constraints import symmetry
-from lungmech.geometry import sphere
-from lungmech.loads import FollowerPressure
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
-from mpi4py import MPI
-
 from case import FORMULATIONS, lame
 from handwritten import Problem
+from mpi4py import MPI
+
+import lungmech  # noqa: F401
+from lungmech.fem.constraints import symmetry
+from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.mesh import sphere
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -24,7 +24,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from machine import STARTED, cpu_and_memory, relaunch, say, tic, toc  # benchmarks/ is the script folder, first on sys.path
+from machine import (
+    STARTED,
+    cpu_and_memory,
+    relaunch,
+    say,
+    tic,
+    toc,
+)  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -48,16 +55,28 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="smoke run: 2 mesh sizes x 2 spacings (2.5, 1.5 mm)")
     p.add_argument("--ranks", type=int, default=1, help="re-launch under mpiexec -n RANKS (default 1)")
-    p.add_argument("--mesh-sizes", default=None, help="lung_phantom mesh_size values in metres, comma list "
-                   f"(default {','.join(map(str, MESH_SIZES))})")
+    p.add_argument(
+        "--mesh-sizes",
+        default=None,
+        help=f"lung_phantom mesh_size values in metres, comma list (default {','.join(map(str, MESH_SIZES))})",
+    )
     p.add_argument("--spacings", default=None, help=f"image spacings in mm (default {','.join(map(str, SPACINGS))})")
-    p.add_argument("--solvers", default="default",
-                   help="comma list of Sobolev-gradient (and elastic-extension) solvers: default (Options().solver), "
-                   "petsc (PETSc's own LU), mumps (MUMPS LU); default: default")
-    p.add_argument("--budget", type=float, default=300.0,
-                   help="do not run a case when a smaller case of the same solver (coarser mesh at the same "
-                   "spacing, or the same mesh at a coarser spacing) already took more than BUDGET s")
-    p.add_argument("--prefix", default=None, help="output file stem (default registration, --quick: registration_quick)")
+    p.add_argument(
+        "--solvers",
+        default="default",
+        help="comma list of Sobolev-gradient (and elastic-extension) solvers: default (Options().solver), "
+        "petsc (PETSc's own LU), mumps (MUMPS LU); default: default",
+    )
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=300.0,
+        help="do not run a case when a smaller case of the same solver (coarser mesh at the same "
+        "spacing, or the same mesh at a coarser spacing) already took more than BUDGET s",
+    )
+    p.add_argument(
+        "--prefix", default=None, help="output file stem (default registration, --quick: registration_quick)"
+    )
     p.add_argument("--no-plot", action="store_true", help="skip the PNG")
     return p.parse_args(argv)
 
@@ -83,10 +102,13 @@ from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx l
 from petsc4py import PETSc  # noqa: E402
 
 import lungmech.registration.sobolev as sobolev  # noqa: E402
-from lungmech.geometry import lung_phantom  # noqa: E402
-from lungmech.lung_shape import LungShape  # noqa: E402
+from lungmech.mesh import (
+    lung_phantom,  # noqa: E402
+    nodes,  # noqa: E402
+)
+from lungmech.mesh.lung_shape import LungShape  # noqa: E402
 from lungmech.registration import field as image_field  # noqa: E402
-from lungmech.registration import metrics, nodes  # noqa: E402
+from lungmech.registration import metrics  # noqa: E402
 from lungmech.registration.phantom import voxelise  # noqa: E402
 from lungmech.registration.sobolev import Options, register  # noqa: E402
 
@@ -201,6 +223,8 @@ PARTS = [
 ]
 for _label, _owner, _name in PARTS:
     setattr(_owner, _name, TIMERS.wrap(_label, getattr(_owner, _name)))
+
+
 def key(label: str) -> str:
     return label.replace(" ", "_").replace("+", "_")
 
@@ -210,8 +234,18 @@ def sobolev_seconds(r: dict) -> float:
     return r["t_sobolev_factor_solve"] + r["t_sobolev_solve"]
 
 
-PART_LABELS = ["setup", "similarity", "image function", "sobolev factor+solve", "sobolev solve", "derivative", "psi",
-               "image sampling", "det F", "relax"]
+PART_LABELS = [
+    "setup",
+    "similarity",
+    "image function",
+    "sobolev factor+solve",
+    "sobolev solve",
+    "derivative",
+    "psi",
+    "image sampling",
+    "det F",
+    "relax",
+]
 
 
 def factor_package(solver: dict | None) -> str:
@@ -284,12 +318,19 @@ def run_case(ref: Reference, spacing_mm: float, solver_name: str, shape: LungSha
     metrics_max, metrics_sum = peak_mb(per_case)
     stages = result.stages
     row = {
-        "mesh_size": ref.mesh_size, "cells": ref.cells, "nodes": ref.nodes, "dofs": 3 * ref.nodes,
-        "spacing_mm": spacing_mm, "image_shape": "x".join(map(str, image.shape)), "voxels": int(np.prod(image.shape)),
+        "mesh_size": ref.mesh_size,
+        "cells": ref.cells,
+        "nodes": ref.nodes,
+        "dofs": 3 * ref.nodes,
+        "spacing_mm": spacing_mm,
+        "image_shape": "x".join(map(str, image.shape)),
+        "voxels": int(np.prod(image.shape)),
         "mask_voxels": int(np.count_nonzero(image.mask)),
-        "solver": solver_name, "ranks": COMM.size,
+        "solver": solver_name,
+        "ranks": COMM.size,
         "status": "ok",
-        "registration_seconds": seconds, "register_reported_seconds": COMM.bcast(result.seconds, root=0),
+        "registration_seconds": seconds,
+        "register_reported_seconds": COMM.bcast(result.seconds, root=0),
         "iterations": result.iterations,
         "seconds_per_iteration": seconds / result.iterations if result.iterations else "",
         "converged": result.converged,
@@ -297,17 +338,27 @@ def run_case(ref: Reference, spacing_mm: float, solver_name: str, shape: LungSha
         "stage_iterations": ";".join(str(s["iterations"]) for s in stages),
         "stage_reasons": ";".join(s["reason"] for s in stages),
         "stage_min_det_F": ";".join(f"{s['min_det_F']:.4f}" for s in stages),
-        "psi": result.psi, "min_det_F": result.min_jacobian,
+        "psi": result.psi,
+        "min_det_F": result.min_jacobian,
         "dice": report["dice"],
-        "msd_mm": 1e3 * report["mean_surface_distance"], "msd_voxels": report["mean_surface_distance_voxels"],
-        "hd95_mm": 1e3 * report["hd95"], "hausdorff_mm": 1e3 * report["hausdorff"],
-        "volume_mesh": report["volume_mesh"], "volume_image": report["volume_image"], "volume_exact": shape.volume(),
+        "msd_mm": 1e3 * report["mean_surface_distance"],
+        "msd_voxels": report["mean_surface_distance_voxels"],
+        "hd95_mm": 1e3 * report["hd95"],
+        "hausdorff_mm": 1e3 * report["hausdorff"],
+        "volume_mesh": report["volume_mesh"],
+        "volume_image": report["volume_image"],
+        "volume_exact": shape.volume(),
         "volume_err_exact_pct": 100 * (report["volume_mesh"] / shape.volume() - 1),
-        "voxelise_seconds": voxelise_seconds, "metrics_seconds": metrics_seconds,
+        "voxelise_seconds": voxelise_seconds,
+        "metrics_seconds": metrics_seconds,
         "mesh_seconds": ref.mesh_seconds,
-        "peak_rss_mb": max(register_max, metrics_max), "peak_rss_mb_sum": max(register_sum, metrics_sum),
-        "peak_rss_register_mb": register_max, "peak_rss_metrics_mb": metrics_max, "rss_start_mb": rss_start,
-        "peak_per_case": per_case, "load_average": os.getloadavg()[0],
+        "peak_rss_mb": max(register_max, metrics_max),
+        "peak_rss_mb_sum": max(register_sum, metrics_sum),
+        "peak_rss_register_mb": register_max,
+        "peak_rss_metrics_mb": metrics_max,
+        "rss_start_mb": rss_start,
+        "peak_per_case": per_case,
+        "load_average": os.getloadavg()[0],
     }
     accounted = sum(parts.values())
     for label in PART_LABELS:
@@ -320,13 +371,50 @@ def run_case(ref: Reference, spacing_mm: float, solver_name: str, shape: LungSha
 # --- output --------------------------------------------------------------------------------------
 
 COLUMNS = [
-    "mesh_size", "cells", "nodes", "dofs", "spacing_mm", "image_shape", "voxels", "mask_voxels", "solver", "ranks", "status",
-    "registration_seconds", "register_reported_seconds", "iterations", "seconds_per_iteration", "converged",
-    "stage_smoothing", "stage_iterations", "stage_reasons", "stage_min_det_F", "psi", "min_det_F",
-    "dice", "msd_mm", "msd_voxels", "hd95_mm", "hausdorff_mm", "volume_mesh", "volume_image", "volume_exact",
-    "volume_err_exact_pct", "voxelise_seconds", "metrics_seconds", "mesh_seconds",
-    "peak_rss_mb", "peak_rss_mb_sum", "peak_rss_register_mb", "peak_rss_metrics_mb", "rss_start_mb", "peak_per_case", "load_average",
-    *[f"{p}_{key(label)}" for label in PART_LABELS for p in ("t", "n")], "t_other", "skip_reason",
+    "mesh_size",
+    "cells",
+    "nodes",
+    "dofs",
+    "spacing_mm",
+    "image_shape",
+    "voxels",
+    "mask_voxels",
+    "solver",
+    "ranks",
+    "status",
+    "registration_seconds",
+    "register_reported_seconds",
+    "iterations",
+    "seconds_per_iteration",
+    "converged",
+    "stage_smoothing",
+    "stage_iterations",
+    "stage_reasons",
+    "stage_min_det_F",
+    "psi",
+    "min_det_F",
+    "dice",
+    "msd_mm",
+    "msd_voxels",
+    "hd95_mm",
+    "hausdorff_mm",
+    "volume_mesh",
+    "volume_image",
+    "volume_exact",
+    "volume_err_exact_pct",
+    "voxelise_seconds",
+    "metrics_seconds",
+    "mesh_seconds",
+    "peak_rss_mb",
+    "peak_rss_mb_sum",
+    "peak_rss_register_mb",
+    "peak_rss_metrics_mb",
+    "rss_start_mb",
+    "peak_per_case",
+    "load_average",
+    *[f"{p}_{key(label)}" for label in PART_LABELS for p in ("t", "n")],
+    "t_other",
+    "skip_reason",
 ]
 
 
@@ -349,42 +437,57 @@ def markdown(rows: list[dict], lines: list[str]) -> str:
     done = [r for r in rows if r["status"] == "ok"]
     skipped = [r for r in rows if r["status"] != "ok"]
     out = list(lines) + ["", "## Results", ""]
-    head = ("| mesh size [m] | cells | nodes | spacing [mm] | image [voxels] | solver | registration [s] | iterations "
-            "(stage 1 + 2) | s / it | min det F | Dice | MSD [mm] | MSD [vox] | hd95 [mm] | vol. err. vs exact | "
-            "voxelise + metrics [s] | peak RSS [MB] register / metrics |")
+    head = (
+        "| mesh size [m] | cells | nodes | spacing [mm] | image [voxels] | solver | registration [s] | iterations "
+        "(stage 1 + 2) | s / it | min det F | Dice | MSD [mm] | MSD [vox] | hd95 [mm] | vol. err. vs exact | "
+        "voxelise + metrics [s] | peak RSS [MB] register / metrics |"
+    )
     out += [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
-        base = (f"| {r['mesh_size']:g} | {r['cells']:,} | {r['nodes']:,} | {r['spacing_mm']:g} | "
-                f"{r['image_shape'].replace('x', '×')} ({r['voxels'] / 1e6:.2g} M) | {r['solver']} |")
+        base = (
+            f"| {r['mesh_size']:g} | {r['cells']:,} | {r['nodes']:,} | {r['spacing_mm']:g} | "
+            f"{r['image_shape'].replace('x', '×')} ({r['voxels'] / 1e6:.2g} M) | {r['solver']} |"
+        )
         if r["status"] != "ok":
             out.append(base + f" not run ({r['skip_reason']}) |" + " |" * 10)
             continue
         its = " + ".join(r["stage_iterations"].split(";"))
         out.append(
-            base + f" {f(r['registration_seconds'], '.1f')} | {r['iterations']} ({its}) | {f(r['seconds_per_iteration'], '.3f')} | "
+            base
+            + f" {f(r['registration_seconds'], '.1f')} | {r['iterations']} ({its}) | {f(r['seconds_per_iteration'], '.3f')} | "
             f"{f(r['min_det_F'], '.2f')} | {f(r['dice'], '.4f')} | {f(r['msd_mm'], '.2f')} | {f(r['msd_voxels'], '.2f')} | "
             f"{f(r['hd95_mm'], '.2f')} | {f(r['volume_err_exact_pct'], '+.2f')} % | "
             f"{f(r['voxelise_seconds'], '.2f')} + {f(r['metrics_seconds'], '.2f')} | {memory(r)} |"
         )
     if done:
-        out += ["", "### Where the registration time goes", "",
-                "Exclusive wall time of each part (rank 0), as a share of the registration time. Sobolev factor+solve = "
-                "the first Sobolev-gradient solve after the matrix was reassembled (LU factorisation + triangular solves, "
-                "once per derivative, i.e. per iteration), Sobolev solve = further solves with the same LU (L-BFGS "
-                "scaling); derivative = assembly of DΨ and of the Sobolev matrix; ψ = line-search evaluations of Ψ; "
-                "image sampling = I and ∇I at the quadrature points (inside derivative and ψ); relax = the elastic "
-                "extensions of the boundary displacement (lifting + solve; since 42b17cf their LU is factorised once, "
-                "in setup); other = L-BFGS vector algebra, state updates, Python.", ""]
+        out += [
+            "",
+            "### Where the registration time goes",
+            "",
+            "Exclusive wall time of each part (rank 0), as a share of the registration time. Sobolev factor+solve = "
+            "the first Sobolev-gradient solve after the matrix was reassembled (LU factorisation + triangular solves, "
+            "once per derivative, i.e. per iteration), Sobolev solve = further solves with the same LU (L-BFGS "
+            "scaling); derivative = assembly of DΨ and of the Sobolev matrix; ψ = line-search evaluations of Ψ; "
+            "image sampling = I and ∇I at the quadrature points (inside derivative and ψ); relax = the elastic "
+            "extensions of the boundary displacement (lifting + solve; since 42b17cf their LU is factorised once, "
+            "in setup); other = L-BFGS vector algebra, state updates, Python.",
+            "",
+        ]
         labels = PART_LABELS + ["other"]
-        head = ("| mesh size [m] | spacing [mm] | solver | registration [s] | " + " | ".join(labels)
-                + " | s per factor+solve | s per solve |")
+        head = (
+            "| mesh size [m] | spacing [mm] | solver | registration [s] | "
+            + " | ".join(labels)
+            + " | s per factor+solve | s per solve |"
+        )
         out += [head, "|" + "---|" * (head.count("|") - 1)]
         for r in done:
             shares = [r[f"t_{key(label)}"] / r["registration_seconds"] for label in labels]
             per = [r[f"t_{k}"] / r[f"n_{k}"] if r[f"n_{k}"] else "" for k in ("sobolev_factor_solve", "sobolev_solve")]
-            out.append(f"| {r['mesh_size']:g} | {r['spacing_mm']:g} | {r['solver']} | {f(r['registration_seconds'], '.1f')} | "
-                       + " | ".join(f"{s:.0%}" for s in shares)
-                       + f" | {f(per[0], '.3g')} ({r['n_sobolev_factor_solve']}×) | {f(per[1], '.3g')} ({r['n_sobolev_solve']}×) |")
+            out.append(
+                f"| {r['mesh_size']:g} | {r['spacing_mm']:g} | {r['solver']} | {f(r['registration_seconds'], '.1f')} | "
+                + " | ".join(f"{s:.0%}" for s in shares)
+                + f" | {f(per[0], '.3g')} ({r['n_sobolev_factor_solve']}×) | {f(per[1], '.3g')} ({r['n_sobolev_solve']}×) |"
+            )
         out += ["", "### Notes (from the measured numbers above)", ""]
         out += [f"- {note}" for note in notes(done, skipped)]
     return "\n".join(out) + "\n"
@@ -413,8 +516,11 @@ def notes(done: list[dict], skipped: list[dict]) -> list[str]:
             continue
         ratio = [o["registration_seconds"] / d["registration_seconds"] for o, d in pairs]
         per_it = [o["seconds_per_iteration"] / d["seconds_per_iteration"] for o, d in pairs]
-        solve = [(o["t_sobolev_factor_solve"] / o["n_sobolev_factor_solve"])
-                 / (d["t_sobolev_factor_solve"] / d["n_sobolev_factor_solve"]) for o, d in pairs]
+        solve = [
+            (o["t_sobolev_factor_solve"] / o["n_sobolev_factor_solve"])
+            / (d["t_sobolev_factor_solve"] / d["n_sobolev_factor_solve"])
+            for o, d in pairs
+        ]
         worst = max(pairs, key=lambda p: p[0]["registration_seconds"] / p[1]["registration_seconds"])
         ddice = max(abs(o["dice"] - d["dice"]) for o, d in pairs)
         its = [abs(o["iterations"] - d["iterations"]) for o, d in pairs]
@@ -430,19 +536,31 @@ def notes(done: list[dict], skipped: list[dict]) -> list[str]:
         rs = sorted((r for r in done if r["solver"] == first and r["mesh_size"] == h), key=lambda r: -r["spacing_mm"])
         if len(rs) > 1:
             items.append(
-                f"{first}, mesh {h:g} m: spacing " + " → ".join(f"{r['spacing_mm']:g}" for r in rs) + " mm: iterations "
-                + " → ".join(str(r["iterations"]) for r in rs) + ", registration "
-                + " → ".join(f"{r['registration_seconds']:.1f}" for r in rs) + " s, s / it "
-                + " → ".join(f"{r['seconds_per_iteration']:.3f}" for r in rs) + ", image-function builds (EDT + smoothing) "
-                + " → ".join(f"{r['t_image_function']:.2f}" for r in rs) + " s, MSD "
-                + " → ".join(f"{r['msd_voxels']:.2f}" for r in rs) + " voxels."
+                f"{first}, mesh {h:g} m: spacing "
+                + " → ".join(f"{r['spacing_mm']:g}" for r in rs)
+                + " mm: iterations "
+                + " → ".join(str(r["iterations"]) for r in rs)
+                + ", registration "
+                + " → ".join(f"{r['registration_seconds']:.1f}" for r in rs)
+                + " s, s / it "
+                + " → ".join(f"{r['seconds_per_iteration']:.3f}" for r in rs)
+                + ", image-function builds (EDT + smoothing) "
+                + " → ".join(f"{r['t_image_function']:.2f}" for r in rs)
+                + " s, MSD "
+                + " → ".join(f"{r['msd_voxels']:.2f}" for r in rs)
+                + " voxels."
             )
     for r in skipped:
-        items.append(f"Not run: {r['solver']} at mesh {r['mesh_size']:g} m, spacing {r['spacing_mm']:g} mm — {r['skip_reason']}.")
+        items.append(
+            f"Not run: {r['solver']} at mesh {r['mesh_size']:g} m, spacing {r['spacing_mm']:g} mm — {r['skip_reason']}."
+        )
     unconverged = [r for r in done if not r["converged"]]
     if unconverged:
-        items.append("Not converged (a stage hit max_iterations): " + ", ".join(
-            f"{r['solver']} {r['mesh_size']:g} m {r['spacing_mm']:g} mm" for r in unconverged) + ".")
+        items.append(
+            "Not converged (a stage hit max_iterations): "
+            + ", ".join(f"{r['solver']} {r['mesh_size']:g} m {r['spacing_mm']:g} mm" for r in unconverged)
+            + "."
+        )
     return items
 
 
@@ -462,19 +580,36 @@ def plot(rows: list[dict], path: Path) -> None:
         for solver, (ls, marker) in styles.items():
             rs = sorted((r for r in done if r["spacing_mm"] == s and r["solver"] == solver), key=lambda r: r["nodes"])
             if rs:
-                left.loglog([r["nodes"] for r in rs], [r["registration_seconds"] for r in rs], ls=ls, marker=marker,
-                            color=f"C{i}", label=f"{s:g} mm, {solver}")
-    left.set(xlabel="reference mesh nodes", ylabel="registration wall time [s]",
-             title=f"register(): time vs mesh size ({done[0]['ranks']} rank(s))")
+                left.loglog(
+                    [r["nodes"] for r in rs],
+                    [r["registration_seconds"] for r in rs],
+                    ls=ls,
+                    marker=marker,
+                    color=f"C{i}",
+                    label=f"{s:g} mm, {solver}",
+                )
+    left.set(
+        xlabel="reference mesh nodes",
+        ylabel="registration wall time [s]",
+        title=f"register(): time vs mesh size ({done[0]['ranks']} rank(s))",
+    )
     left.grid(True, which="both", alpha=0.3)
     left.legend(fontsize=7)
     meshes = sorted(dict.fromkeys(r["mesh_size"] for r in done), reverse=True)
     for i, h in enumerate(meshes):
         for solver, (ls, marker) in styles.items():
-            rs = sorted((r for r in done if r["mesh_size"] == h and r["solver"] == solver), key=lambda r: r["spacing_mm"])
+            rs = sorted(
+                (r for r in done if r["mesh_size"] == h and r["solver"] == solver), key=lambda r: r["spacing_mm"]
+            )
             if rs:
-                right.plot([r["spacing_mm"] for r in rs], [r["dice"] for r in rs], ls=ls, marker=marker, color=f"C{i}",
-                           label=f"{rs[0]['cells']:,} cells, {solver}")
+                right.plot(
+                    [r["spacing_mm"] for r in rs],
+                    [r["dice"] for r in rs],
+                    ls=ls,
+                    marker=marker,
+                    color=f"C{i}",
+                    label=f"{rs[0]['cells']:,} cells, {solver}",
+                )
     right.set(xlabel="image spacing [mm]", ylabel="Dice (mapped mesh vs mask)", title="fit vs image resolution")
     right.invert_xaxis()
     right.grid(True, alpha=0.3)
@@ -488,14 +623,24 @@ def versions() -> dict:
     import dolfinx
 
     cpu, mem = cpu_and_memory()
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "lungmech"], capture_output=True,
-                           text=True).stdout.split("\n")
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "-C", str(ROOT), "status", "--porcelain", "--", "lungmech"], capture_output=True, text=True
+    ).stdout.split("\n")
     changed = [line[3:].strip() for line in dirty if line.strip()]
     note = f" (uncommitted changes in {', '.join(f'`{c}`' for c in changed)})" if changed else ""
-    return {"dolfinx": dolfinx.__version__, "petsc": ".".join(map(str, PETSc.Sys.getVersion())), "numpy": np.__version__,
-            "python": platform.python_version(), "cpu": cpu, "cores": os.cpu_count(), "memory": mem,
-            "commit": commit + note}
+    return {
+        "dolfinx": dolfinx.__version__,
+        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory": mem,
+        "commit": commit + note,
+    }
 
 
 def header(v: dict, load: tuple, done: bool, warmup: float, packages: dict, per_case: bool) -> list[str]:
@@ -512,16 +657,19 @@ def header(v: dict, load: tuple, done: bool, warmup: float, packages: dict, per_
         f"- Command: `{' '.join(['python benchmarks/registration.py', os.environ.get('REGISTRATION_BENCH_COMMAND', ' '.join(sys.argv[1:]))]).strip()}`"
         f"{f' (= mpiexec -n {COMM.size} python benchmarks/registration.py ...)' if COMM.size > 1 else ''}; "
         f"total wall time {(time.perf_counter() - STARTED) / 60:.1f} min.",
-        "- Reference Ω: `lung_phantom(comm, mesh_size=h, side=\"right\")` (P1 tetrahedra; h = 0.0176 is the bundled "
+        '- Reference Ω: `lung_phantom(comm, mesh_size=h, side="right")` (P1 tetrahedra; h = 0.0176 is the bundled '
         "`lungmech/meshes/lung_phantom_right.msh`). Target: `voxelise(LungShape("
-        + ", ".join(f"{k}={val:g}" for k, val in TARGET.items()) + f"), spacing, offset={OFFSET})` — exact ground truth, "
+        + ", ".join(f"{k}={val:g}" for k, val in TARGET.items())
+        + f"), spacing, offset={OFFSET})` — exact ground truth, "
         "another shape than the reference's (taller, narrower, shallower, other apex and dome), moved by the offset.",
         f"- `register(mesh, image, Options())` with lungmech's defaults: stages {tuple(o.stages)} voxels of smoothing, "
         f"{o.image_function} image function, L-BFGS memory {o.memory}, step_tolerance {o.step_tolerance} voxel, "
         f"stagnation {o.stagnation}, min_jacobian {o.min_jacobian}, max_iterations {o.max_iterations} per stage. "
         f"Solver `default` = `Options().solver` as it is ({dict(o.solver)}: LU package `{packages.get('default', '?')}` "
         f"on {COMM.size} rank(s))"
-        + "".join(f"; `{name}` = {SOLVERS[name]} (`{packages.get(name, '?')}`)" for name in packages if name != "default")
+        + "".join(
+            f"; `{name}` = {SOLVERS[name]} (`{packages.get(name, '?')}`)" for name in packages if name != "default"
+        )
         + ". The solver serves the Sobolev-gradient solves and the elastic extension (relax); nothing else differs.",
         f"- Registration [s]: wall time of `register()` (MPI barriers around it), warm JIT: a 2-iteration warm-up "
         f"registration ran first ({warmup:.1f} s, not in the table). s / it = registration / total iterations (all "
@@ -530,10 +678,14 @@ def header(v: dict, load: tuple, done: bool, warmup: float, packages: dict, per_
         "the voxelised mesh against the mask, MSD = mean symmetric surface distance, hd95; vol. err. vs exact = "
         "enclosed volume of the mapped mesh / `LungShape.volume()` − 1 (the mask's own volume is in the CSV). "
         "voxelise = `phantom.voxelise` of the target; metrics = `metrics.report`.",
-        "- Peak RSS: " + ("the process's VmHWM during voxelise + register, and during metrics (reset through "
-                          "/proc/self/clear_refs before each, so it includes the resident baseline — libraries, the "
-                          "reference mesh — `rss_start_mb` in the CSV)"
-                          if per_case else "getrusage ru_maxrss (the process's peak so far, not per case)")
+        "- Peak RSS: "
+        + (
+            "the process's VmHWM during voxelise + register, and during metrics (reset through "
+            "/proc/self/clear_refs before each, so it includes the resident baseline — libraries, the "
+            "reference mesh — `rss_start_mb` in the CSV)"
+            if per_case
+            else "getrusage ru_maxrss (the process's peak so far, not per case)"
+        )
         + ("; max over ranks (sum over ranks in brackets)." if COMM.size > 1 else "."),
     ]
 
@@ -556,8 +708,10 @@ def too_costly(rows: list[dict], h: float, spacing: float, solver: str, budget: 
         if r["solver"] != solver or r["status"] != "ok" or r["registration_seconds"] <= budget:
             continue
         if (r["mesh_size"] == h and r["spacing_mm"] > spacing) or (r["spacing_mm"] == spacing and r["mesh_size"] > h):
-            return (f"the smaller case {r['mesh_size']:g} m, {r['spacing_mm']:g} mm took {r['registration_seconds']:.0f} s "
-                    f"> --budget {budget:g} s ({r['seconds_per_iteration']:.2f} s per iteration)")
+            return (
+                f"the smaller case {r['mesh_size']:g} m, {r['spacing_mm']:g} mm took {r['registration_seconds']:.0f} s "
+                f"> --budget {budget:g} s ({r['seconds_per_iteration']:.2f} s per iteration)"
+            )
     return ""
 
 
@@ -565,8 +719,16 @@ def main() -> None:
     args = ARGS
     load = os.getloadavg()
     prefix = args.prefix or ("registration_quick" if args.quick else "registration")
-    mesh_sizes = [float(x) for x in args.mesh_sizes.split(",")] if args.mesh_sizes else list(QUICK_MESH_SIZES if args.quick else MESH_SIZES)
-    spacings = [float(x) for x in args.spacings.split(",")] if args.spacings else list(QUICK_SPACINGS if args.quick else SPACINGS)
+    mesh_sizes = (
+        [float(x) for x in args.mesh_sizes.split(",")]
+        if args.mesh_sizes
+        else list(QUICK_MESH_SIZES if args.quick else MESH_SIZES)
+    )
+    spacings = (
+        [float(x) for x in args.spacings.split(",")]
+        if args.spacings
+        else list(QUICK_SPACINGS if args.quick else SPACINGS)
+    )
     solvers = args.solvers.split(",")
     if unknown := [s for s in solvers if s not in SOLVERS]:
         raise SystemExit(f"unknown solver(s) {unknown}; choose from {list(SOLVERS)}")
@@ -590,9 +752,21 @@ def main() -> None:
             for solver in solvers:
                 reason = too_costly(rows, h, spacing, solver, args.budget)
                 if reason:
-                    rows.append({"mesh_size": h, "cells": ref.cells, "nodes": ref.nodes, "dofs": 3 * ref.nodes,
-                                 "spacing_mm": spacing, "image_shape": "", "voxels": 0, "solver": solver,
-                                 "ranks": COMM.size, "status": "skipped", "skip_reason": reason})
+                    rows.append(
+                        {
+                            "mesh_size": h,
+                            "cells": ref.cells,
+                            "nodes": ref.nodes,
+                            "dofs": 3 * ref.nodes,
+                            "spacing_mm": spacing,
+                            "image_shape": "",
+                            "voxels": 0,
+                            "solver": solver,
+                            "ranks": COMM.size,
+                            "status": "skipped",
+                            "skip_reason": reason,
+                        }
+                    )
                     say(f"  {spacing:g} mm, {solver}: skipped: {reason}")
                     rows[-1]["image_shape"] = "x".join(map(str, voxelise(shape, spacing * 1e-3, offset=OFFSET).shape))
                     rows[-1]["voxels"] = int(np.prod([int(n) for n in rows[-1]["image_shape"].split("x")]))
@@ -600,11 +774,13 @@ def main() -> None:
                 row = run_case(ref, spacing, solver, shape)
                 per_case = per_case or row["peak_per_case"]
                 rows.append(row)
-                say(f"  {spacing:g} mm, {solver}: {row['registration_seconds']:.1f} s, {row['iterations']} its "
+                say(
+                    f"  {spacing:g} mm, {solver}: {row['registration_seconds']:.1f} s, {row['iterations']} its "
                     f"({row['stage_iterations'].replace(';', ' + ')}), {row['seconds_per_iteration']:.3f} s/it, "
                     f"Sobolev solves {sobolev_seconds(row) / row['registration_seconds']:.0%}, "
                     f"Dice {row['dice']:.4f}, MSD {row['msd_mm']:.2f} mm ({row['msd_voxels']:.2f} vox), "
-                    f"min det F {row['min_det_F']:.2f}, peak {row['peak_rss_mb']:.0f} MB")
+                    f"min det F {row['min_det_F']:.2f}, peak {row['peak_rss_mb']:.0f} MB"
+                )
                 write(rows, prefix, header(v, load, False, warmup, packages, per_case), False)
         del ref
     write(rows, prefix, header(v, load, True, warmup, packages, per_case), not args.no_plot)

@@ -25,7 +25,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from machine import STARTED, cpu_and_memory, relaunch, say, tic, toc  # benchmarks/ is the script folder, first on sys.path
+from machine import (
+    STARTED,
+    cpu_and_memory,
+    relaunch,
+    say,
+    tic,
+    toc,
+)  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -40,25 +47,54 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--ranks", type=int, default=1, help="re-launch under mpiexec -n RANKS (default 1)")
     p.add_argument("--cases", default=None, help="comma list of lung, beam, beam-large (default: lung,beam,beam-large)")
     p.add_argument("--sizes", default=None, help="basis sizes k (default 2,5,10,20,40,80)")
-    p.add_argument("--lung-mesh-size", type=float, default=0.007,
-                   help="gmsh size of lung_phantom (0.007: 53k dofs); ignored with --quick (bundled scene mesh)")
+    p.add_argument(
+        "--lung-mesh-size",
+        type=float,
+        default=0.007,
+        help="gmsh size of lung_phantom (0.007: 53k dofs); ignored with --quick (bundled scene mesh)",
+    )
     p.add_argument("--lung-train", default="0.5,1.5", help="tidal depths of the training breaths")
-    p.add_argument("--lung-test", default="1.25,1.75", help="tidal depths of the test breaths (> max train: extrapolation)")
-    p.add_argument("--lung-step", type=float, default=0.125,
-                   help="initial and largest load step of every lung breath, full and reduced (the scene's is 0.1; see README)")
-    p.add_argument("--lung-easy", type=int, default=20,
-                   help="Stepping.easy_iterations of the lung: a step that took at most this many Newton iterations "
-                   "(summed over the balanced-gravity fixed point, ~12-16 per step) lets the next one grow")
-    p.add_argument("--line-search", default="cp", help="NewtonOptions.line_search of the full model (reduced: backtracking "
-                   "unless none/basic); the lung scene's default bt cuts the lung's steps, see README")
+    p.add_argument(
+        "--lung-test", default="1.25,1.75", help="tidal depths of the test breaths (> max train: extrapolation)"
+    )
+    p.add_argument(
+        "--lung-step",
+        type=float,
+        default=0.125,
+        help="initial and largest load step of every lung breath, full and reduced (the scene's is 0.1; see README)",
+    )
+    p.add_argument(
+        "--lung-easy",
+        type=int,
+        default=20,
+        help="Stepping.easy_iterations of the lung: a step that took at most this many Newton iterations "
+        "(summed over the balanced-gravity fixed point, ~12-16 per step) lets the next one grow",
+    )
+    p.add_argument(
+        "--line-search",
+        default="cp",
+        help="NewtonOptions.line_search of the full model (reduced: backtracking "
+        "unless none/basic); the lung scene's default bt cuts the lung's steps, see README",
+    )
     p.add_argument("--beam-cells", default="60,6,6", help="cells of the 10 x 1 x 1 beam (60,6,6: 9k dofs)")
-    p.add_argument("--repeats", type=int, default=None,
-                   help="timed runs at the timing load (median), full and reduced (default 3; --quick: 2)")
-    p.add_argument("--budget", type=float, default=1.5,
-                   help="a reduced run is stopped after BUDGET x the full model's time for the same load")
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timed runs at the timing load (median), full and reduced (default 3; --quick: 2)",
+    )
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=1.5,
+        help="a reduced run is stopped after BUDGET x the full model's time for the same load",
+    )
     p.add_argument("--min-budget", type=float, default=10.0, help="... but never before MIN_BUDGET seconds")
-    p.add_argument("--replot", action="store_true",
-                   help="run nothing: rebuild PREFIX.md, .csv and _pareto.png from results/raw/PREFIX-<case>.json")
+    p.add_argument(
+        "--replot",
+        action="store_true",
+        help="run nothing: rebuild PREFIX.md, .csv and _pareto.png from results/raw/PREFIX-<case>.json",
+    )
     p.add_argument("--prefix", default=None, help="output file stem (default rom, --quick: rom_quick)")
     return p.parse_args(argv)
 
@@ -80,24 +116,24 @@ import platform  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx links to)
 from dolfinx import fem, la  # noqa: E402
 from dolfinx.fem.petsc import assemble_matrix  # noqa: E402
+from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx links to)
 from petsc4py import PETSc  # noqa: E402
 
 from lungmech import rom  # noqa: E402
-from lungmech.constraints import clamp  # noqa: E402
+from lungmech.app.run import build_model  # noqa: E402
+from lungmech.app.scene import load as load_scene  # noqa: E402
 from lungmech.errors import LungmechError, SolverError  # noqa: E402
-from lungmech.geometry import box, lung_phantom  # noqa: E402
-from lungmech.inverse import unloaded_reference  # noqa: E402
-from lungmech.loads import BodyForce  # noqa: E402
-from lungmech.materials import NeoHookean  # noqa: E402
-from lungmech.model import Model  # noqa: E402
-from lungmech.quantities import deformed_volume  # noqa: E402
-from lungmech.rom.basis import apply, gram  # noqa: E402
-from lungmech.run import build_model  # noqa: E402
-from lungmech.scene import load as load_scene  # noqa: E402
-from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve  # noqa: E402
+from lungmech.fem.constraints import clamp  # noqa: E402
+from lungmech.fem.loads import BodyForce  # noqa: E402
+from lungmech.fem.materials import NeoHookean  # noqa: E402
+from lungmech.fem.model import Model  # noqa: E402
+from lungmech.fem.quantities import deformed_volume  # noqa: E402
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve  # noqa: E402
+from lungmech.lung.inverse import unloaded_reference  # noqa: E402
+from lungmech.mesh import box, lung_phantom  # noqa: E402
+from lungmech.parallel.linalg import apply, gram  # noqa: E402
 
 COMM = MPI.COMM_WORLD
 RANK0 = COMM.rank == 0
@@ -158,16 +194,31 @@ def lung_case(args) -> Case:
         mesh_note = "lung_phantom(side='right') at its default size, as the scene builds it (= lungmech/meshes/lung_phantom_right.msh)"
     else:
         geometry = lung_phantom(COMM, mesh_size=args.lung_mesh_size, side=scene.geometry.get("side", "right"))
-        model = Model(geometry, scene.material, degree=scene.degree, formulation=scene.formulation,
-                      loads=scene.loads, constraints=scene.constraints)
+        model = Model(
+            geometry,
+            scene.material,
+            degree=scene.degree,
+            formulation=scene.formulation,
+            loads=scene.loads,
+            constraints=scene.constraints,
+        )
         mesh_note = f"lung_phantom(side='right', mesh_size={args.lung_mesh_size})"
     build = toc(t0)
     outputs = (0.5, 1.0, 1.5, 2.0)
     step = args.lung_step
     stepping = dataclasses.replace(
-        scene.stepping, initial_step=step, max_step=step, min_step=1e-3, easy_iterations=args.lung_easy,
-        times=tuple(sorted(t for t in {*scene.stepping.times, *outputs, *model.breakpoints}
-                           if scene.stepping.start < t <= scene.stepping.end)),
+        scene.stepping,
+        initial_step=step,
+        max_step=step,
+        min_step=1e-3,
+        easy_iterations=args.lung_easy,
+        times=tuple(
+            sorted(
+                t
+                for t in {*scene.stepping.times, *outputs, *model.breakpoints}
+                if scene.stepping.start < t <= scene.stepping.end
+            )
+        ),
     )
     train = [(float(s), 1.0) for s in args.lung_train.split(",")]
     top = max(s for s, _ in train)
@@ -177,13 +228,21 @@ def lung_case(args) -> Case:
     interp = [t for t in tests if t.label == "interp"] or tests
     interp[len(interp) // 2].timing = True
     case = Case(
-        "lung", "Breathing right lung (lung_breathing.toml), mixed (u P1, Φs DG0) poromechanics", model,
-        dataclasses.replace(scene.newton, line_search=args.line_search), stepping, outputs, train, tests, ("pod", "polynomial", "modal", "modal+derivatives"),
+        "lung",
+        "Breathing right lung (lung_breathing.toml), mixed (u P1, Φs DG0) poromechanics",
+        model,
+        dataclasses.replace(scene.newton, line_search=args.line_search),
+        stepping,
+        outputs,
+        train,
+        tests,
+        ("pod", "polynomial", "modal", "modal+derivatives"),
         about=scene.stepping.start,
     )
     case.offline["build"] = build
     case.description = {
-        "mesh": mesh_note, "load": "pleural follower pressure −500 Pa at t = 0, ramp 1 → 2 → 1 on t ∈ [0, 2], "
+        "mesh": mesh_note,
+        "load": "pleural follower pressure −500 Pa at t = 0, ramp 1 → 2 → 1 on t ∈ [0, 2], "
         "scaled about t = 0 by the tidal depth s; balanced gravity (state-dependent) constant",
         "scales": "(s, 1): s scales the pleural pressure's change since t = 0, gravity stays",
         "stepping": f"initial = max step {step}, min step 1e-3, growth {stepping.growth} after steps of at most "
@@ -197,20 +256,39 @@ def beam_case(args, large: bool) -> Case:
     nx, ny, nz = (int(n) for n in ("20,2,2" if args.quick else args.beam_cells).split(","))
     t0 = tic()
     geometry = box(COMM, lengths=(10.0, 1.0, 1.0), cells=(nx, ny, nz))
-    model = Model(geometry, NeoHookean.from_young(100.0, 0.3),
-                  loads=[BodyForce((0.0, 0.0, -1.0)), BodyForce((0.0, -1.0, 0.0))], constraints=[clamp("x0")])
+    model = Model(
+        geometry,
+        NeoHookean.from_young(100.0, 0.3),
+        loads=[BodyForce((0.0, 0.0, -1.0)), BodyForce((0.0, -1.0, 0.0))],
+        constraints=[clamp("x0")],
+    )
     build = toc(t0)
     outputs = (0.25, 0.5, 0.75, 1.0)
     stepping = Stepping(end=1.0, initial_step=0.1, max_step=0.1, min_step=1e-3, times=outputs)
     f = 0.1 if large else 0.01
     train = [(f, 0.0), (2 * f, 0.0), (3 * f, 0.0)]
-    tests = [Test((1.5 * f, 0.0), "interp"), Test((2.5 * f, 0.0), "interp", timing=True),
-             Test((3.5 * f, 0.0), "extrap"), Test((2 * f, f), "direction")]
+    tests = [
+        Test((1.5 * f, 0.0), "interp"),
+        Test((2.5 * f, 0.0), "interp", timing=True),
+        Test((3.5 * f, 0.0), "extrap"),
+        Test((2 * f, f), "direction"),
+    ]
     name = "beam-large" if large else "beam"
-    span = "0.1–0.35: the beam hangs (tip drop 70–95 % of its length)" if large else "0.01–0.035: tip deflection 10–35 % of the length"
+    span = (
+        "0.1–0.35: the beam hangs (tip drop 70–95 % of its length)"
+        if large
+        else "0.01–0.035: tip deflection 10–35 % of the length"
+    )
     case = Case(
-        name, f"Neo-Hookean cantilever 10 × 1 × 1 (E = 100, ν = 0.3), clamped at x = 0, body force {span}", model,
-        NewtonOptions(line_search=args.line_search), stepping, outputs, train, tests, ("pod", "polynomial", "modal", "modal+derivatives"),
+        name,
+        f"Neo-Hookean cantilever 10 × 1 × 1 (E = 100, ν = 0.3), clamped at x = 0, body force {span}",
+        model,
+        NewtonOptions(line_search=args.line_search),
+        stepping,
+        outputs,
+        train,
+        tests,
+        ("pod", "polynomial", "modal", "modal+derivatives"),
     )
     case.offline["build"] = build
     case.description = {
@@ -266,16 +344,29 @@ def breath(case: Case, solver, scale, budget: float | None = None) -> dict:
     counted = Counted(solver, None if budget is None else time.perf_counter() + budget)
     status, reason, steps, failed = "ok", "", 0, 0
     try:
-        report = solve(model, case.stepping, solver=counted,
-                       drive=lambda t: model.set_time(t, load_factor=scale, about=case.about), on_step=record)
+        report = solve(
+            model,
+            case.stepping,
+            solver=counted,
+            drive=lambda t: model.set_time(t, load_factor=scale, about=case.about),
+            on_step=record,
+        )
         steps, failed = len(report.accepted), report.failures
     except SolverError:
         status, reason = "did not converge", f"stopped at t = {model.time:.4g} ({counted.last_reason})"
     except OverBudget:
         status, reason = "stopped", f"over the time budget ({budget:.0f} s) at t = {model.time:.4g}"
     seconds = toc(t0)
-    return {"status": status, "reason": reason, "seconds": seconds, "states": states, "newton": counted.iterations,
-            "newton_calls": counted.calls, "steps": steps, "failed_steps": failed}
+    return {
+        "status": status,
+        "reason": reason,
+        "seconds": seconds,
+        "states": states,
+        "newton": counted.iterations,
+        "newton_calls": counted.calls,
+        "steps": steps,
+        "failed_steps": failed,
+    }
 
 
 def knorm(K, x: np.ndarray) -> float:
@@ -304,7 +395,9 @@ class Metrics:
     def add_full(self, test: Test, states: dict[float, np.ndarray]) -> None:
         d = {t: (x - self.case.start)[: self.n] for t, x in states.items()}
         self.reference[test.name] = {
-            "states": states, "d": d, "dnorm": {t: knorm(self.K, v) for t, v in d.items()},
+            "states": states,
+            "d": d,
+            "dnorm": {t: knorm(self.K, v) for t, v in d.items()},
             "volume": {t: self.vol(x) for t, x in states.items()},
         }
 
@@ -326,14 +419,16 @@ class Metrics:
             "disp_err": disp,
             "volume_err_rel": max(dv[t] / ref["volume"][t] for t in states),
             "volume_err_tidal": max(dv.values()) / tidal if tidal > 0 else float("nan"),
-            "energy_err_by_time": ";".join(f"{t:g}:{energy[t] / max(ref['dnorm'].values()):.3e}" for t in sorted(states)),
+            "energy_err_by_time": ";".join(
+                f"{t:g}:{energy[t] / max(ref['dnorm'].values()):.3e}" for t in sorted(states)
+            ),
         }
 
     def projection(self, test: Test, V: np.ndarray, KV: np.ndarray) -> float:
         ref = self.reference[test.name]
         G = gram(V, KV, COMM)
         worst = 0.0
-        for t, d in ref["d"].items():
+        for d in ref["d"].values():
             c = np.linalg.lstsq(G, gram(KV, d[:, None], COMM)[:, 0], rcond=None)[0]
             worst = max(worst, knorm(self.K, d - V @ c))
         return worst / max(ref["dnorm"].values())
@@ -458,7 +553,9 @@ def derivative_modes(k: int) -> int:
 
 def polynomial_order(components: int, k: int) -> int:
     order = 1
-    while components * len([p for p in np.ndindex(order + 1, order + 1, order + 1) if sum(p) <= order]) < k and order < 6:
+    while (
+        components * len([p for p in np.ndindex(order + 1, order + 1, order + 1) if sum(p) <= order]) < k and order < 6
+    ):
         order += 1
     return order
 
@@ -489,8 +586,11 @@ def bases_for(case: Case, kind: str, sizes: list[int], snapshots: np.ndarray | N
         seconds = toc(t0)
         for k in sizes:
             offline = {"snapshots": 0.0, "eigen": 0.0, "build": seconds}
-            out[k] = (basis.truncate(k), f"order {order}, truncated", offline) if k <= basis.size else (
-                None, f"n/a (order-{order} basis has {basis.size} vectors)", offline)
+            out[k] = (
+                (basis.truncate(k), f"order {order}, truncated", offline)
+                if k <= basis.size
+                else (None, f"n/a (order-{order} basis has {basis.size} vectors)", offline)
+            )
         return out
     # modal and modal + derivatives: displacement-only models
     model.reset()
@@ -508,7 +608,11 @@ def bases_for(case: Case, kind: str, sizes: list[int], snapshots: np.ndarray | N
                 eigen = toc(t0)
                 t0 = tic()
                 basis = rom.with_modal_derivatives(model, modes)
-                out[k] = (basis, f"{m} modes + {m * (m + 1) // 2} derivatives", {"snapshots": 0.0, "eigen": eigen, "build": toc(t0)})
+                out[k] = (
+                    basis,
+                    f"{m} modes + {m * (m + 1) // 2} derivatives",
+                    {"snapshots": 0.0, "eigen": eigen, "build": toc(t0)},
+                )
         except LungmechError as error:
             out[k] = (None, f"n/a ({error})", {})
     model.state.x.array[:] = case.start
@@ -535,8 +639,10 @@ def run_case(case: Case, args, sizes: list[int]) -> tuple[list[dict], dict]:
         case.offline["inverse"] = toc(t0)
         case.offline["inverse_iterations"] = report.iterations
         case.offline["inverse_newton"] = report.newton_iterations
-        say(f"  inverse: {report.iterations} fixed-point iterations, {report.newton_iterations} Newton its, "
-            f"{case.offline['inverse']:.1f} s")
+        say(
+            f"  inverse: {report.iterations} fixed-point iterations, {report.newton_iterations} Newton its, "
+            f"{case.offline['inverse']:.1f} s"
+        )
     else:
         model.reset()
         case.offline["inverse"] = 0.0
@@ -562,12 +668,18 @@ def run_case(case: Case, args, sizes: list[int]) -> tuple[list[dict], dict]:
         if runs[0]["status"] != "ok":
             raise SystemExit(f"{case.name}: the full model failed on the test load {test.name}: {runs[0]['reason']}")
         metrics.add_full(test, runs[0]["states"])
-        full_runs[test.name] = {"seconds": [r["seconds"] for r in runs], "newton": runs[0]["newton"],
-                                "newton_calls": runs[0]["newton_calls"], "steps": runs[0]["steps"],
-                                "failed_steps": runs[0]["failed_steps"],
-                                "volume": metrics.reference[test.name]["volume"]}
-        say(f"  full {test.name} [{test.label}]: {', '.join(f'{s:.2f}' for s in full_runs[test.name]['seconds'])} s, "
-            f"{runs[0]['newton']} Newton its, {runs[0]['steps']} steps (+{runs[0]['failed_steps']} failed)")
+        full_runs[test.name] = {
+            "seconds": [r["seconds"] for r in runs],
+            "newton": runs[0]["newton"],
+            "newton_calls": runs[0]["newton_calls"],
+            "steps": runs[0]["steps"],
+            "failed_steps": runs[0]["failed_steps"],
+            "volume": metrics.reference[test.name]["volume"],
+        }
+        say(
+            f"  full {test.name} [{test.label}]: {', '.join(f'{s:.2f}' for s in full_runs[test.name]['seconds'])} s, "
+            f"{runs[0]['newton']} Newton its, {runs[0]['steps']} steps (+{runs[0]['failed_steps']} failed)"
+        )
     model.state.x.array[:] = metrics.reference[next(t.name for t in case.tests if t.timing)]["states"][case.outputs[1]]
     case.offline["full_split"] = full_cost_split(case)
     say(f"  full model per Newton iteration: {fmt_split(case.offline['full_split'])}")
@@ -575,24 +687,48 @@ def run_case(case: Case, args, sizes: list[int]) -> tuple[list[dict], dict]:
     rows = []
     for test in case.tests:
         fr = full_runs[test.name]
-        rows.append(base_row(case) | {
-            "kind": "full", "k": dofs(model), "size": dofs(model), "status": "ok", "scale": test.name, "label": test.label,
-            "timing_load": test.timing, "runs": len(fr["seconds"]), "online_seconds": float(np.median(fr["seconds"])),
-            "online_seconds_first": fr["seconds"][0], "online_seconds_all": ";".join(f"{s:.4f}" for s in fr["seconds"]),
-            "full_seconds": float(np.median(fr["seconds"])), "speedup": 1.0, "newton_iterations": fr["newton"],
-            "newton_calls": fr["newton_calls"], "steps": fr["steps"], "failed_steps": fr["failed_steps"],
-            "energy_err": 0.0, "projection_err": 0.0, "disp_err": 0.0, "volume_err_rel": 0.0, "volume_err_tidal": 0.0,
-            "volume_max": max(fr["volume"].values()), "volume_start": metrics.v0,
-            **{f"split_{k}": v for k, v in case.offline["full_split"].items()},
-        })
+        rows.append(
+            base_row(case)
+            | {
+                "kind": "full",
+                "k": dofs(model),
+                "size": dofs(model),
+                "status": "ok",
+                "scale": test.name,
+                "label": test.label,
+                "timing_load": test.timing,
+                "runs": len(fr["seconds"]),
+                "online_seconds": float(np.median(fr["seconds"])),
+                "online_seconds_first": fr["seconds"][0],
+                "online_seconds_all": ";".join(f"{s:.4f}" for s in fr["seconds"]),
+                "full_seconds": float(np.median(fr["seconds"])),
+                "speedup": 1.0,
+                "newton_iterations": fr["newton"],
+                "newton_calls": fr["newton_calls"],
+                "steps": fr["steps"],
+                "failed_steps": fr["failed_steps"],
+                "energy_err": 0.0,
+                "projection_err": 0.0,
+                "disp_err": 0.0,
+                "volume_err_rel": 0.0,
+                "volume_err_tidal": 0.0,
+                "volume_max": max(fr["volume"].values()),
+                "volume_start": metrics.v0,
+                **{f"split_{k}": v for k, v in case.offline["full_split"].items()},
+            }
+        )
 
     for kind in case.kinds:
         bases = bases_for(case, kind, sizes, S)
         KV_cache = None
         for k in sizes:
             basis, note, offline = bases[k]
-            common = base_row(case) | {"kind": kind, "k": k, "note": note,
-                                       **{f"offline_{n}": v for n, v in offline.items()}}
+            common = base_row(case) | {
+                "kind": kind,
+                "k": k,
+                "note": note,
+                **{f"offline_{n}": v for n, v in offline.items()},
+            }
             if offline:
                 common["offline_total"] = case.offline["inverse"] + sum(offline.values())
             if basis is None:
@@ -601,7 +737,11 @@ def run_case(case: Case, args, sizes: list[int]) -> tuple[list[dict], dict]:
                 continue
             if kind in ("pod", "polynomial"):  # nested bases: K·V once for the largest size
                 if KV_cache is None or KV_cache.shape[1] < basis.size:
-                    KV_cache = apply(K, np.ascontiguousarray(bases[max(s for s in sizes if bases[s][0] is not None)][0].vectors), COMM)
+                    KV_cache = apply(
+                        K,
+                        np.ascontiguousarray(bases[max(s for s in sizes if bases[s][0] is not None)][0].vectors),
+                        COMM,
+                    )
                 KV = KV_cache[:, : basis.size]
             else:
                 KV = apply(K, np.ascontiguousarray(basis.vectors), COMM)
@@ -628,38 +768,73 @@ def run_case(case: Case, args, sizes: list[int]) -> tuple[list[dict], dict]:
                 seconds = [r["seconds"] for r in runs]
                 errors = metrics.errors(test, first["states"]) if first["status"] == "ok" else {}
                 row = common | {
-                    "size": basis.size, "status": "ok" if ok else next(r["status"] for r in runs if r["status"] != "ok"),
+                    "size": basis.size,
+                    "status": "ok" if ok else next(r["status"] for r in runs if r["status"] != "ok"),
                     "reason": "" if ok else next(r["reason"] for r in runs if r["status"] != "ok"),
-                    "scale": test.name, "label": test.label, "timing_load": test.timing, "runs": len(runs),
-                    "online_seconds": float(np.median(seconds)) if ok else "", "online_seconds_first": seconds[0],
-                    "online_seconds_all": ";".join(f"{s:.4f}" for s in seconds), "full_seconds": full_seconds,
-                    "speedup": full_seconds / float(np.median(seconds)) if ok else "", "setup_seconds": setup,
-                    "newton_iterations": first["newton"], "newton_calls": first["newton_calls"], "steps": first["steps"],
-                    "failed_steps": first["failed_steps"], **counts,
+                    "scale": test.name,
+                    "label": test.label,
+                    "timing_load": test.timing,
+                    "runs": len(runs),
+                    "online_seconds": float(np.median(seconds)) if ok else "",
+                    "online_seconds_first": seconds[0],
+                    "online_seconds_all": ";".join(f"{s:.4f}" for s in seconds),
+                    "full_seconds": full_seconds,
+                    "speedup": full_seconds / float(np.median(seconds)) if ok else "",
+                    "setup_seconds": setup,
+                    "newton_iterations": first["newton"],
+                    "newton_calls": first["newton_calls"],
+                    "steps": first["steps"],
+                    "failed_steps": first["failed_steps"],
+                    **counts,
                     "projection_err": metrics.projection(test, np.ascontiguousarray(basis.vectors), KV),
-                    "volume_start": metrics.v0, **errors,
+                    "volume_start": metrics.v0,
+                    **errors,
                 }
                 if counts["jacobian_evals"] and first["status"] == "ok":
-                    row["measured_share_res_jac"] = (counts["seconds_residual"] + counts["seconds_jacobian"]) / first["seconds"]
+                    row["measured_share_res_jac"] = (counts["seconds_residual"] + counts["seconds_jacobian"]) / first[
+                        "seconds"
+                    ]
                 if split is not None and test.timing:
                     row |= {f"split_{n}": v for n, v in split.items()}
                     per_it = residuals_per_jacobian(counts)
                     assembly = split["jac_assembly"] + per_it * split["res_assembly"]
-                    total = assembly + split["jac_projection"] + split["small_solve"] + per_it * (
-                        split["res_projection"] + split["reconstruct"])
-                    row |= {"split_residuals_per_jacobian": per_it, "split_iteration_seconds": total,
-                            "split_assembly_share": assembly / total}
+                    total = (
+                        assembly
+                        + split["jac_projection"]
+                        + split["small_solve"]
+                        + per_it * (split["res_projection"] + split["reconstruct"])
+                    )
+                    row |= {
+                        "split_residuals_per_jacobian": per_it,
+                        "split_iteration_seconds": total,
+                        "split_assembly_share": assembly / total,
+                    }
                 rows.append(row)
-                err = f"energy err {row['energy_err']:.2e}, proj {row['projection_err']:.2e}, vol {row['volume_err_rel']:.1e}" \
-                    if errors else f"proj {row['projection_err']:.2e}"
-                say(f"  {kind} k={k} (size {basis.size}) {test.name}: {row['status']} {row.get('reason', '')}  "
-                    f"{', '.join(f'{s:.2f}' for s in seconds)} s (full {full_seconds:.2f} s), {first['newton']} its; {err}")
+                err = (
+                    f"energy err {row['energy_err']:.2e}, proj {row['projection_err']:.2e}, vol {row['volume_err_rel']:.1e}"
+                    if errors
+                    else f"proj {row['projection_err']:.2e}"
+                )
+                say(
+                    f"  {kind} k={k} (size {basis.size}) {test.name}: {row['status']} {row.get('reason', '')}  "
+                    f"{', '.join(f'{s:.2f}' for s in seconds)} s (full {full_seconds:.2f} s), {first['newton']} its; {err}"
+                )
             reduced.destroy()
     K.destroy()
-    raw = {"case": case.name, "title": case.title, "description": case.description, "dofs": dofs(model),
-           "cells": cells(model), "ranks": COMM.size, "offline": case.offline, "notes": case.notes,
-           "train": case.train, "tests": [dataclasses.asdict(t) for t in case.tests], "outputs": case.outputs,
-           "full_runs": {k: {**v, "volume": {str(t): x for t, x in v["volume"].items()}} for k, v in full_runs.items()}}
+    raw = {
+        "case": case.name,
+        "title": case.title,
+        "description": case.description,
+        "dofs": dofs(model),
+        "cells": cells(model),
+        "ranks": COMM.size,
+        "offline": case.offline,
+        "notes": case.notes,
+        "train": case.train,
+        "tests": [dataclasses.asdict(t) for t in case.tests],
+        "outputs": case.outputs,
+        "full_runs": {k: {**v, "volume": {str(t): x for t, x in v["volume"].items()}} for k, v in full_runs.items()},
+    }
     return rows, raw
 
 
@@ -678,14 +853,56 @@ def fmt_split(s: dict) -> str:
 # --- output ------------------------------------------------------------------------------------
 
 COLUMNS = [
-    "case", "dofs", "cells", "ranks", "kind", "k", "size", "status", "reason", "note", "scale", "label", "timing_load",
-    "runs", "online_seconds", "online_seconds_first", "online_seconds_all", "full_seconds", "speedup", "setup_seconds",
-    "newton_iterations", "newton_calls", "steps", "failed_steps", "residual_evals", "jacobian_evals",
-    "seconds_residual", "seconds_jacobian", "measured_share_res_jac",
-    "energy_err", "projection_err", "disp_err", "volume_err_rel", "volume_err_tidal", "volume_max", "volume_start",
-    "energy_err_by_time", "offline_snapshots", "offline_eigen", "offline_build", "offline_total",
-    "split_res_assembly", "split_res_projection", "split_reconstruct", "split_jac_assembly", "split_jac_projection",
-    "split_small_solve", "split_lu_factor_solve", "split_residuals_per_jacobian", "split_iteration_seconds",
+    "case",
+    "dofs",
+    "cells",
+    "ranks",
+    "kind",
+    "k",
+    "size",
+    "status",
+    "reason",
+    "note",
+    "scale",
+    "label",
+    "timing_load",
+    "runs",
+    "online_seconds",
+    "online_seconds_first",
+    "online_seconds_all",
+    "full_seconds",
+    "speedup",
+    "setup_seconds",
+    "newton_iterations",
+    "newton_calls",
+    "steps",
+    "failed_steps",
+    "residual_evals",
+    "jacobian_evals",
+    "seconds_residual",
+    "seconds_jacobian",
+    "measured_share_res_jac",
+    "energy_err",
+    "projection_err",
+    "disp_err",
+    "volume_err_rel",
+    "volume_err_tidal",
+    "volume_max",
+    "volume_start",
+    "energy_err_by_time",
+    "offline_snapshots",
+    "offline_eigen",
+    "offline_build",
+    "offline_total",
+    "split_res_assembly",
+    "split_res_projection",
+    "split_reconstruct",
+    "split_jac_assembly",
+    "split_jac_projection",
+    "split_small_solve",
+    "split_lu_factor_solve",
+    "split_residuals_per_jacobian",
+    "split_iteration_seconds",
     "split_assembly_share",
 ]
 
@@ -741,16 +958,32 @@ def markdown(rows: list[dict], raws: list[dict], header: list[str], sizes: list[
             f"{f(per_iteration(timing), '.3g')} s per Newton iteration. Per Newton iteration: residual "
             f"assembly {f(timing.get('split_res_assembly'), '.3f')} s, tangent assembly {f(timing.get('split_jac_assembly'), '.3f')} s, "
             f"LU factorisation + solve {f(timing.get('split_lu_factor_solve'), '.3f')} s (a fresh one, incl. the symbolic analysis).",
-            "- Offline (shared): " + ", ".join(
+            "- Offline (shared): "
+            + ", ".join(
                 [f"model build {off['build']:.1f} s"]
-                + ([f"inverse (unloaded reference) {off['inverse']:.1f} s ({off.get('inverse_iterations')} fixed-point its)"] if off.get("inverse") else [])
-                + [f"snapshots {off['snapshots_seconds']:.1f} s", f"POD {off.get('pod_seconds', float('nan')):.2f} s "
-                   f"({off.get('pod_significant')} significant directions, σ/σ₁ > 1e-7)"]
-            ) + ".",
+                + (
+                    [
+                        f"inverse (unloaded reference) {off['inverse']:.1f} s ({off.get('inverse_iterations')} fixed-point its)"
+                    ]
+                    if off.get("inverse")
+                    else []
+                )
+                + [
+                    f"snapshots {off['snapshots_seconds']:.1f} s",
+                    f"POD {off.get('pod_seconds', float('nan')):.2f} s "
+                    f"({off.get('pod_significant')} significant directions, σ/σ₁ > 1e-7)",
+                ]
+            )
+            + ".",
         ]
         if off.get("singular_values"):
             s = np.array(off["singular_values"])
-            lines.append("- POD singular values σ_i/σ_1: " + ", ".join(f"{v:.1e}" for v in (s / s[0])[:12]) + (" …" if len(s) > 12 else "") + ".")
+            lines.append(
+                "- POD singular values σ_i/σ_1: "
+                + ", ".join(f"{v:.1e}" for v in (s / s[0])[:12])
+                + (" …" if len(s) > 12 else "")
+                + "."
+            )
         labels = [lab for lab in ("interp", "extrap", "direction") if any(t["label"] == lab for t in raw["tests"])]
         lines += [
             "",
@@ -777,8 +1010,14 @@ def markdown(rows: list[dict], raws: list[dict], header: list[str], sizes: list[
                     lines.append(f"| {kind} | {k} | – | {r0['status']} | | | | | | | | | | | |")
                     continue
                 tr = next((r for r in rs if r["timing_load"]), r0)
-                offline = (f"{r0.get('offline_total', 0):.1f} ({r0.get('offline_snapshots', 0):.1f} / "
-                           f"{r0.get('offline_eigen', 0):.2f} / {r0.get('offline_build', 0):.2f})") if "offline_total" in r0 else "–"
+                offline = (
+                    (
+                        f"{r0.get('offline_total', 0):.1f} ({r0.get('offline_snapshots', 0):.1f} / "
+                        f"{r0.get('offline_eigen', 0):.2f} / {r0.get('offline_build', 0):.2f})"
+                    )
+                    if "offline_total" in r0
+                    else "–"
+                )
                 lines.append(
                     f"| {kind} | {k} | {r0['size']} | {status_of(rs)} | {f(worst(rs, 'energy_err'))} | {f(worst(rs, 'projection_err'))} | "
                     f"{f(worst(rs, 'disp_err'))} | {f(worst(rs, 'volume_err_rel'))} | {f(worst(rs, 'volume_err_tidal'))} | "
@@ -790,21 +1029,44 @@ def markdown(rows: list[dict], raws: list[dict], header: list[str], sizes: list[
         others = [lab for lab in labels if lab != "interp"]
         if others:
             names = {"extrap": "extrapolation", "direction": "unseen load direction"}
-            head = "| basis | k | " + " | ".join(
-                f"{names[lab]} {x}" for lab in others for x in ("status", "energy err.", "projection err.", "max-norm u err.", "vol. err. / V")) + " |"
-            lines += ["", "Loads outside the training range: " + "; ".join(
-                f"{names[lab]}: " + ", ".join(sname(t_["scale"]) for t_ in raw["tests"] if t_["label"] == lab)
-                for lab in others) + ".", "",
-                      head, "|" + "---|" * (head.count("|") - 1)]
+            head = (
+                "| basis | k | "
+                + " | ".join(
+                    f"{names[lab]} {x}"
+                    for lab in others
+                    for x in ("status", "energy err.", "projection err.", "max-norm u err.", "vol. err. / V")
+                )
+                + " |"
+            )
+            lines += [
+                "",
+                "Loads outside the training range: "
+                + "; ".join(
+                    f"{names[lab]}: " + ", ".join(sname(t_["scale"]) for t_ in raw["tests"] if t_["label"] == lab)
+                    for lab in others
+                )
+                + ".",
+                "",
+                head,
+                "|" + "---|" * (head.count("|") - 1),
+            ]
             for kind in kinds:
                 for k in sizes:
                     cellsx = []
-                    if not group(rows, name, kind, k, "interp") or group(rows, name, kind, k, "interp")[0]["size"] == "":
+                    if (
+                        not group(rows, name, kind, k, "interp")
+                        or group(rows, name, kind, k, "interp")[0]["size"] == ""
+                    ):
                         continue
                     for lab in others:
                         rs = group(rows, name, kind, k, lab)
-                        cellsx += [status_of(rs), f(worst(rs, "energy_err")), f(worst(rs, "projection_err")),
-                                   f(worst(rs, "disp_err")), f(worst(rs, "volume_err_rel"))]
+                        cellsx += [
+                            status_of(rs),
+                            f(worst(rs, "energy_err")),
+                            f(worst(rs, "projection_err")),
+                            f(worst(rs, "disp_err")),
+                            f(worst(rs, "volume_err_rel")),
+                        ]
                     lines.append(f"| {kind} | {k} | " + " | ".join(cellsx) + " |")
         lines += ["", cost_sentence(rows, name)]
     return "\n".join(lines) + "\n"
@@ -818,7 +1080,9 @@ def per_iteration(r: dict):
 
 def cost_sentence(rows: list[dict], name: str) -> str:
     full = next(r for r in rows if r["case"] == name and r["kind"] == "full" and r["timing_load"])
-    split = [r for r in rows if r["case"] == name and r["kind"] != "full" and r.get("split_assembly_share") not in ("", None)]
+    split = [
+        r for r in rows if r["case"] == name and r["kind"] != "full" and r.get("split_assembly_share") not in ("", None)
+    ]
     if not split:
         return "**Online cost:** no reduced run converged on the timing load, so it was not measured."
     shares = [r["split_assembly_share"] for r in split]
@@ -826,9 +1090,13 @@ def cost_sentence(rows: list[dict], name: str) -> str:
     small = [r for r in split]
     big = max(small, key=lambda r: r["size"])
     little = min(small, key=lambda r: r["size"])
-    useful = [r for r in split if r.get("speedup") not in ("", None) and worst(
-        group(rows, name, r["kind"], r["k"], "interp"), "energy_err") not in ("", None) and worst(
-        group(rows, name, r["kind"], r["k"], "interp"), "energy_err") <= 1e-2]
+    useful = [
+        r
+        for r in split
+        if r.get("speedup") not in ("", None)
+        and worst(group(rows, name, r["kind"], r["k"], "interp"), "energy_err") not in ("", None)
+        and worst(group(rows, name, r["kind"], r["k"], "interp"), "energy_err") <= 1e-2
+    ]
     speed = [r["speedup"] for r in useful]
     full_it = per_iteration(full)
     decomposition = "; ".join(
@@ -836,7 +1104,8 @@ def cost_sentence(rows: list[dict], name: str) -> str:
         f"{int(full['newton_iterations']) / int(r['newton_iterations']):.2g} (ratio of Newton iterations, full "
         f"{full['newton_iterations']} / reduced {r['newton_iterations']}; steps {full['steps']} + {full['failed_steps']} failed "
         f"/ {r['steps']} + {r['failed_steps']} failed)"
-        for r in useful if per_iteration(r)
+        for r in useful
+        if per_iteration(r)
     )
     lu = full.get("split_lu_factor_solve")
     jac = full.get("split_jac_assembly")
@@ -859,8 +1128,8 @@ def cost_sentence(rows: list[dict], name: str) -> str:
         f"Newton iteration counts. Measured speed-ups of the reduced "
         f"models with energy error ≤ 1e-2 on the interpolating loads: {min(speed):.1f}–{max(speed):.1f}× ({decomposition}). "
         "This is the baseline hyper-reduction must beat: it removes the full assembly, not the k × k solve."
-        if speed else
-        f"**Online cost:** assembly share {min(shares):.0%}–{max(shares):.0%} of an iteration; no reduced model reached "
+        if speed
+        else f"**Online cost:** assembly share {min(shares):.0%}–{max(shares):.0%} of an iteration; no reduced model reached "
         "energy error ≤ 1e-2."
     )
 
@@ -878,7 +1147,9 @@ def pareto(rows: list[dict], raws: list[dict], path: Path) -> None:
     colours = dict(zip(markers, ("C0", "C1", "C2", "C3")))
     for j, name in enumerate(names):
         full = next(r for r in rows if r["case"] == name and r["kind"] == "full" and r["timing_load"])
-        for i, (key, label) in enumerate((("energy_err", "rel. energy-norm error"), ("volume_err_rel", "rel. volume error |V_r − V_f| / V_f"))):
+        for i, (key, label) in enumerate(
+            (("energy_err", "rel. energy-norm error"), ("volume_err_rel", "rel. volume error |V_r − V_f| / V_f"))
+        ):
             ax = axes[i, j]
             failed = []
             for kind, marker in markers.items():
@@ -898,25 +1169,61 @@ def pareto(rows: list[dict], raws: list[dict], path: Path) -> None:
                 x, y, k, proj = zip(*pts)
                 ax.loglog(x, y, marker=marker, ls="-", color=colours[kind], label=kind)
                 if key == "energy_err" and all(v not in ("", None) and v > 0 for v in proj):
-                    ax.loglog(x, proj, marker=marker, ls=":", color=colours[kind], mfc="none", alpha=0.6,
-                              label=f"{kind}: projection (best in span)")
+                    ax.loglog(
+                        x,
+                        proj,
+                        marker=marker,
+                        ls=":",
+                        color=colours[kind],
+                        mfc="none",
+                        alpha=0.6,
+                        label=f"{kind}: projection (best in span)",
+                    )
                 for xi, yi, ki, _ in pts:
                     ax.annotate(str(ki), (xi, yi), textcoords="offset points", xytext=(4, 3), fontsize=7)
             for xi, kind, ki in failed:  # runs that did not converge or were stopped: at the top, time until then
-                ax.plot([xi], [1.0], marker="x", color=colours[kind], ms=8, transform=ax.get_xaxis_transform(), clip_on=False)
-                ax.annotate(f"{ki}✗", (xi, 1.0), xycoords=("data", "axes fraction"), textcoords="offset points",
-                            xytext=(3, -10), fontsize=7, color=colours[kind])
+                ax.plot(
+                    [xi],
+                    [1.0],
+                    marker="x",
+                    color=colours[kind],
+                    ms=8,
+                    transform=ax.get_xaxis_transform(),
+                    clip_on=False,
+                )
+                ax.annotate(
+                    f"{ki}✗",
+                    (xi, 1.0),
+                    xycoords=("data", "axes fraction"),
+                    textcoords="offset points",
+                    xytext=(3, -10),
+                    fontsize=7,
+                    color=colours[kind],
+                )
             ax.axvline(full["online_seconds"], color="k", ls="--", lw=1)
-            ax.annotate("full model", (full["online_seconds"], 0.5), xycoords=("data", "axes fraction"),
-                        rotation=90, fontsize=8, ha="right", va="center")
+            ax.annotate(
+                "full model",
+                (full["online_seconds"], 0.5),
+                xycoords=("data", "axes fraction"),
+                rotation=90,
+                fontsize=8,
+                ha="right",
+                va="center",
+            )
             ax.set_xscale("log")
             ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.set(xlabel="online time [s] (median, timing load)", ylabel=label,
-                   title=f"{name}: {full['dofs']} dofs, {full['ranks']} rank(s)")
+            ax.set(
+                xlabel="online time [s] (median, timing load)",
+                ylabel=label,
+                title=f"{name}: {full['dofs']} dofs, {full['ranks']} rank(s)",
+            )
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=6)
-    fig.suptitle("Reduced models: worst error on unseen interpolating loads vs online time (numbers: basis size; "
-                 "dotted: projection error; ✗ at the top: did not converge / stopped)", fontsize=9)
+    fig.suptitle(
+        "Reduced models: worst error on unseen interpolating loads vs online time (numbers: basis size; "
+        "dotted: projection error; ✗ at the top: did not converge / stopped)",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -927,13 +1234,23 @@ def versions() -> dict:
     import slepc4py
 
     cpu, memory = cpu_and_memory()
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "lungmech"], capture_output=True,
-                           text=True).stdout.strip()
-    return {"dolfinx": dolfinx.__version__, "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
-            "slepc": slepc4py.__version__, "numpy": np.__version__, "python": platform.python_version(),
-            "cpu": cpu, "cores": os.cpu_count(), "memory": memory,
-            "commit": commit + (" (lungmech/ has uncommitted changes)" if dirty else "")}
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "-C", str(ROOT), "status", "--porcelain", "--", "lungmech"], capture_output=True, text=True
+    ).stdout.strip()
+    return {
+        "dolfinx": dolfinx.__version__,
+        "petsc": ".".join(map(str, PETSc.Sys.getVersion())),
+        "slepc": slepc4py.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory": memory,
+        "commit": commit + (" (lungmech/ has uncommitted changes)" if dirty else ""),
+    }
 
 
 def header(args, v: dict, total: float, done: bool, load: tuple) -> list[str]:
@@ -949,20 +1266,20 @@ def header(args, v: dict, total: float, done: bool, load: tuple) -> list[str]:
         f"- Command: `python benchmarks/rom.py {os.environ.get('ROM_BENCH_COMMAND', ' '.join(sys.argv[1:]))}`"
         f"{f' (= mpiexec -n {COMM.size} python benchmarks/rom.py ...)' if COMM.size > 1 else ''}; "
         f"total wall time {total / 60:.1f} min.",
-        f"- Full model: `lungmech.solver.NewtonSolver` (SNES newtonls, line search {args.line_search}, rtol 1e-10, atol 1e-12, "
+        f"- Full model: `lungmech.fem.solver.NewtonSolver` (SNES newtonls, line search {args.line_search}, rtol 1e-10, atol 1e-12, "
         "MUMPS LU); the lung's inverse problem (offline) uses the scene's own solver settings (line search bt).",
         "- Reduced model: `lungmech.rom.ReducedSolver` (Galerkin, Newton on Vᵀ R(x₀ + V q) = 0 with the same NewtonOptions "
-        "as the full model, bt-type backtracking on the reduced residual), driven by the same `lungmech.solver.solve` "
+        "as the full model, bt-type backtracking on the reduced residual), driven by the same `lungmech.fem.solver.solve` "
         "stepping and loads as the full model. No hyper-reduction. A reduced run that needs more than "
-        f"{args.budget:g} × the full model's time for the same load is stopped (\"stopped\"); one whose steps fail down to the "
-        "minimum step is \"did not converge\".",
-        "- Bases: pod = `rom.pod(inner=\"energy\")` of the training snapshots, truncated to k (n/a above the number of "
+        f'{args.budget:g} × the full model\'s time for the same load is stopped ("stopped"); one whose steps fail down to the '
+        'minimum step is "did not converge".',
+        '- Bases: pod = `rom.pod(inner="energy")` of the training snapshots, truncated to k (n/a above the number of '
         "significant directions); polynomial = `rom.polynomial_basis` (monomials of the coordinates × field components, "
         "lowest order first) truncated to k; modal = `rom.modal_basis(k)` (lowest k modes at the unloaded state); "
         "modal+derivatives = m modes + all m(m+1)/2 static modal derivatives with the largest m that fits k (size column: "
         "what is left after re-orthonormalisation). Modal bases need a displacement-only model.",
         "- Timings are wall times (MPI barriers around each), warm: the forms are compiled and the solvers used before "
-        "any timed run. K = the energy inner product `rom.inner_product(model, \"energy\")` (second variation of the stored "
+        'any timed run. K = the energy inner product `rom.inner_product(model, "energy")` (second variation of the stored '
         "energy at the unloaded state).",
     ]
 
@@ -983,13 +1300,18 @@ def write(rows, raws, args, v, done, load, sizes, prefix, lines=None) -> None:
         writer.writerows(rows)
     for raw in raws:
         (RAW / f"{prefix}-{raw['case']}.json").write_text(
-            json.dumps(raw | {"rows": [r for r in rows if r["case"] == raw["case"]]}, indent=1, default=str) + "\n")
+            json.dumps(raw | {"rows": [r for r in rows if r["case"] == raw["case"]]}, indent=1, default=str) + "\n"
+        )
     pareto(rows, raws, RESULTS / f"{prefix}_pareto.png")
 
 
 def replot(args, prefix: str, names: list[str], sizes: list[int]) -> None:
     """Rebuild the outputs from the raw JSON of an earlier run (its header is kept)."""
-    raws = [json.loads((RAW / f"{prefix}-{name}.json").read_text()) for name in names if (RAW / f"{prefix}-{name}.json").exists()]
+    raws = [
+        json.loads((RAW / f"{prefix}-{name}.json").read_text())
+        for name in names
+        if (RAW / f"{prefix}-{name}.json").exists()
+    ]
     lines = raws[0].get("header") if raws else None
     if lines is None:  # raw files written before headers were stored: keep the header of the existing table
         old = (RESULTS / f"{prefix}.md").read_text().split("\n## ")[0].rstrip("\n").split("\n")

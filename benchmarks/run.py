@@ -74,8 +74,15 @@ def _run_case(formulation: str, h: float, impl: str, args, ranks: int = 1) -> di
     if done.returncode != 0 or not lines:
         tail = (done.stderr or done.stdout).strip().splitlines()[-5:]
         print(f"  ! {impl} {formulation} h={h} failed (exit {done.returncode}): {' | '.join(tail)}", flush=True)
-        return {"impl": impl, "formulation": formulation, "h": h, "ranks": ranks, "converged": False, "message": " | ".join(tail)}
-    result = json.loads(lines[-1][len("RESULT "):])
+        return {
+            "impl": impl,
+            "formulation": formulation,
+            "h": h,
+            "ranks": ranks,
+            "converged": False,
+            "message": " | ".join(tail),
+        }
+    result = json.loads(lines[-1][len("RESULT ") :])
     result["wall_seconds"] = time.perf_counter() - tic
     return result
 
@@ -147,12 +154,20 @@ def markdown(rows: list[dict], header: list[str]) -> str:
     )
     lines = [*header, "", head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
-        steps = f"{r['load_steps']}" + (f" (+{r['failed_steps']} failed)" if r["failed_steps"] else "") if r["load_steps"] != "" else "–"
+        steps = (
+            f"{r['load_steps']}" + (f" (+{r['failed_steps']} failed)" if r["failed_steps"] else "")
+            if r["load_steps"] != ""
+            else "–"
+        )
         setup = f"{fmt(r['setup_seconds'], '.1f')} ({r['jit_cache']})" if r["setup_seconds"] != "" else "–"
         its = r["newton_iterations"] if r["converged"] else "did not converge"
         if r["hw_newton_iterations"] not in ("", r["newton_iterations"]):
             its = f"{its} (hw {r['hw_newton_iterations']})"
-        hw = fmt(r["hw_solve_seconds"], ".2f") if r["hw_converged"] else ("did not converge" if r["hw_converged"] is False else "–")
+        hw = (
+            fmt(r["hw_solve_seconds"], ".2f")
+            if r["hw_converged"]
+            else ("did not converge" if r["hw_converged"] is False else "–")
+        )
         lines.append(
             f"| {r['formulation']} | {r['ranks']} | {r['h']} | {r['cells']} | {r['dofs']} | {its} | {steps} | "
             f"{fmt(r['solve_seconds'], '.2f')} | {fmt(r['seconds_per_newton'], '.3f')} | {setup} | "
@@ -183,7 +198,9 @@ def reference_value(pressure: float, nu: float) -> float:
     import analytic
 
     lmbda = 2 * nu / (1 - 2 * nu)
-    return analytic.thick_sphere_compressible("neo_hookean", analytic.LameParams(1.0, lmbda), pressure, 1.0, 2.0).u_inner
+    return analytic.thick_sphere_compressible(
+        "neo_hookean", analytic.LameParams(1.0, lmbda), pressure, 1.0, 2.0
+    ).u_inner
 
 
 # --- main --------------------------------------------------------------------------------------
@@ -200,11 +217,19 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--pressure", type=float, default=0.2)
     parser.add_argument("--nu", type=float, default=0.4999)
     parser.add_argument("--steps", type=int, default=5)
-    parser.add_argument("--line-search", default="cp", help="SNES line search of both codes (see README: bt fails for P2)")
+    parser.add_argument(
+        "--line-search", default="cp", help="SNES line search of both codes (see README: bt fails for P2)"
+    )
     parser.add_argument("--timeout", type=float, default=7200.0, help="seconds per case")
-    parser.add_argument("--keep-cache", action="store_true", help="do not empty the JIT caches first (then the first mesh is warm too)")
-    parser.add_argument("--reuse", action="store_true", help="take cases already in results/raw/ instead of running them again")
-    parser.add_argument("--measured-only", action="store_true", help="rebuild the table from results/raw/ alone; run nothing")
+    parser.add_argument(
+        "--keep-cache", action="store_true", help="do not empty the JIT caches first (then the first mesh is warm too)"
+    )
+    parser.add_argument(
+        "--reuse", action="store_true", help="take cases already in results/raw/ instead of running them again"
+    )
+    parser.add_argument(
+        "--measured-only", action="store_true", help="rebuild the table from results/raw/ alone; run nothing"
+    )
     return parser.parse_args()
 
 
@@ -228,7 +253,7 @@ def header(args, total: float, done: bool, v: dict, u_ref: float, reused: int, c
         f"- Problem: A = 1, B = 2, symmetry planes x0, y0, z0; compressible neo-Hookean μ = 1, ν = {nu} "
         f"(λ = {2 * nu / (1 - 2 * nu):.6g}); follower pressure P = {P} on the inner surface. Reference u(A) = {u_ref:.10f} "
         "(radial BVP by scipy solve_bvp, tests/analytic.py).",
-        "- Meshes: gmsh (lungmech.geometry.sphere), straight tetrahedra for P1, curved quadratic ones for P2 and mixed "
+        "- Meshes: gmsh (lungmech.mesh.sphere), straight tetrahedra for P1, curved quadratic ones for P2 and mixed "
         "(Taylor–Hood P2–P1).",
         f"- Solver (both codes): SNES newtonls, line search {args.line_search}, rtol 1e-10, atol 1e-12, stol 1e-12, "
         f"max 25 its, KSP preonly + MUMPS LU (ICNTL(14) = 200); {args.steps} equal load steps with lungmech's linear predictor.",

@@ -26,16 +26,16 @@ import numpy as np
 from mpi4py import MPI
 
 from lungmech import meshes
-from lungmech.constraints import clamp
-from lungmech.geometry import from_file
-from lungmech.inverse import unloaded_reference
-from lungmech.loads import FollowerPressure
+from lungmech.app.plot import deformed_body
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import deformed_volume
+from lungmech.fem.ramp import Ramp
+from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
-from lungmech.model import Model
-from lungmech.plot import deformed_body
-from lungmech.quantities import deformed_volume
-from lungmech.ramp import Ramp
-from lungmech.solver import NewtonSolver, Stepping, solve
+from lungmech.lung.inverse import unloaded_reference
+from lungmech.mesh import from_file
 
 MESH = meshes.reference("lung_phantom_left")
 SURFACE = ("pleura", "diaphragm", "mediastinum")
@@ -81,8 +81,10 @@ def main(output: Path) -> None:
         imaged = model.geometry.volume()
         report = unloaded_reference(model, time=0.0, solver=NewtonSolver(model))
         if MPI.COMM_WORLD.rank == 0:
-            print(f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {model.geometry.volume() * 1e3:.3f} L "
-                  f"({report.iterations} fixed-point iterations)")
+            print(
+                f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {model.geometry.volume() * 1e3:.3f} L "
+                f"({report.iterations} fixed-point iterations)"
+            )
         curves[name] = breathe(model, pleural, alveolar, output / f"breathing_cycle_inspired_{index}.png")
     if MPI.COMM_WORLD.rank != 0:
         return
@@ -98,8 +100,10 @@ def main(output: Path) -> None:
     fig.savefig(output / "breathing_cycle.png", dpi=150)
     (spont_p, spont_v), (vent_p, vent_v) = curves.values()
     peak = (spont_v.max() - vent_v.max()) / spont_v.max()
-    print(f"end-inspiration volumes: spontaneous {spont_v.max() * 1e3:.4f} L, ventilator {vent_v.max() * 1e3:.4f} L "
-          f"(relative difference {peak:+.2e})")
+    print(
+        f"end-inspiration volumes: spontaneous {spont_v.max() * 1e3:.4f} L, ventilator {vent_v.max() * 1e3:.4f} L "
+        f"(relative difference {peak:+.2e})"
+    )
     print(f"wrote {output / 'breathing_cycle.png'}")
 
 

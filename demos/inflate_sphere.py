@@ -17,13 +17,13 @@ import numpy as np
 import ufl
 from mpi4py import MPI
 
-from lungmech.constraints import symmetry
-from lungmech.geometry import sphere
-from lungmech.loads import FollowerPressure
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import integral
-from lungmech.solver import Stepping, solve
+from lungmech.fem.constraints import symmetry
+from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import integral
+from lungmech.fem.solver import Stepping, solve
+from lungmech.mesh import sphere
 
 A, B, MU = 1.0, 2.0, 1.0
 
@@ -50,7 +50,11 @@ def main(output: Path) -> None:
     inner_radius = integral(ufl.sqrt(ufl.dot(x + model.u, x + model.u)) * geometry.ds("inner"), geometry.mesh.comm)
     area = geometry.area("inner")
     curve = [(0.0, 1.0)]
-    solve(model, Stepping(initial_step=0.05, max_step=0.05), on_step=lambda step: curve.append((0.9 * limit * step.time, inner_radius() / area)))
+    solve(
+        model,
+        Stepping(initial_step=0.05, max_step=0.05),
+        on_step=lambda step: curve.append((0.9 * limit * step.time, inner_radius() / area)),
+    )
 
     if MPI.COMM_WORLD.rank == 0:
         pressure, stretch = np.array(curve).T

@@ -24,11 +24,11 @@ import numpy as np
 from mpi4py import MPI
 
 from lungmech import rom
-from lungmech.inverse import unloaded_reference
-from lungmech.quantities import deformed_volume
-from lungmech.run import build_model
-from lungmech.scene import load
-from lungmech.solver import NewtonSolver, solve
+from lungmech.app.run import build_model
+from lungmech.app.scene import load
+from lungmech.fem.quantities import deformed_volume
+from lungmech.fem.solver import NewtonSolver, solve
+from lungmech.lung.inverse import unloaded_reference
 
 TRAINING, UNSEEN = (0.5, 1.5), (0.75, 1.25, 2.0)
 SWING = 500.0  # Pa: the scene's pleural pressure goes −500 → −1000 → −500
@@ -42,9 +42,14 @@ def breathe(model, solver, scene, depth: float) -> tuple[np.ndarray, float]:
     curve = [(SWING, volume())]
     record = lambda step: curve.append((SWING * (1 + depth * (ramp(step.time) - 1)), volume()))  # noqa: E731
     tic = time.perf_counter()
-    solve(model, stepping, solver=solver, on_step=record,
-          drive=lambda t: model.set_time(t, load_factor=(depth, 1.0), about=stepping.start),
-          breakpoints=model.breakpoints)
+    solve(
+        model,
+        stepping,
+        solver=solver,
+        on_step=record,
+        drive=lambda t: model.set_time(t, load_factor=(depth, 1.0), about=stepping.start),
+        breakpoints=model.breakpoints,
+    )
     return np.array(curve), time.perf_counter() - tic
 
 
@@ -69,8 +74,10 @@ def main(out: Path) -> None:
     basis, _, _ = rom.load(out / "reduced_lung.npz", model)
     reduced = rom.ReducedSolver(model, basis, scene.newton, start=start)
     if comm.rank == 0:
-        print(f"offline: {snapshots.shape[1]} snapshots, POD basis of {basis.size} vectors "
-              f"(σ/σ0 = {', '.join(f'{v:.1e}' for v in basis.values / basis.values[0])}), {offline:.0f} s")
+        print(
+            f"offline: {snapshots.shape[1]} snapshots, POD basis of {basis.size} vectors "
+            f"(σ/σ0 = {', '.join(f'{v:.1e}' for v in basis.values / basis.values[0])}), {offline:.0f} s"
+        )
     figure, (loops, decay) = plt.subplots(1, 2, figsize=(11, 4.2))
     for depth in UNSEEN:
         model.state.x.array[:] = start
@@ -79,12 +86,19 @@ def main(out: Path) -> None:
         approximate, reduced_seconds = breathe(model, reduced, scene, depth)
         error = abs(approximate[:, 1].max() - exact[:, 1].max()) / exact[:, 1].max()
         if comm.rank == 0:
-            print(f"depth {depth}: end-inspiration volume {1e3 * exact[:, 1].max():.4f} L full, "
-                  f"{1e3 * approximate[:, 1].max():.4f} L reduced (relative error {error:.1e}); "
-                  f"{full_seconds:.1f} s full, {reduced_seconds:.1f} s reduced")
-        line, = loops.plot(-exact[:, 0], 1e3 * exact[:, 1], lw=3, alpha=0.35, label=f"full, depth {depth}")
-        loops.plot(-approximate[:, 0], 1e3 * approximate[:, 1], "--", color=line.get_color(),
-                   label=f"reduced ({basis.size} POD vectors)")
+            print(
+                f"depth {depth}: end-inspiration volume {1e3 * exact[:, 1].max():.4f} L full, "
+                f"{1e3 * approximate[:, 1].max():.4f} L reduced (relative error {error:.1e}); "
+                f"{full_seconds:.1f} s full, {reduced_seconds:.1f} s reduced"
+            )
+        (line,) = loops.plot(-exact[:, 0], 1e3 * exact[:, 1], lw=3, alpha=0.35, label=f"full, depth {depth}")
+        loops.plot(
+            -approximate[:, 0],
+            1e3 * approximate[:, 1],
+            "--",
+            color=line.get_color(),
+            label=f"reduced ({basis.size} POD vectors)",
+        )
     loops.set(xlabel="pleural pressure [Pa]", ylabel="lung volume [L]", title="breaths not in the training set")
     loops.legend(fontsize=7)
     singular = np.array(basis.source["singular_values"])

@@ -25,9 +25,11 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from lungmech import geometry, meshes
-from lungmech.lung_shape import LungShape
-from lungmech.registration import image, metrics, phantom, pictures, workflow
+from lungmech import mesh as geometry
+from lungmech import meshes
+from lungmech.app import registration as workflow
+from lungmech.mesh.lung_shape import LungShape
+from lungmech.registration import image, metrics, phantom, pictures
 from lungmech.registration.library import ShapeModes
 
 REFERENCE = meshes.reference("lung_phantom_right")
@@ -49,10 +51,13 @@ def main() -> None:
 
     # 2. Registration.
     report = workflow.register_image(REFERENCE, segmentation, out / "registration", comm=comm)
-    say(comm, f"registered in {report['iterations']} iterations, {report['seconds']:.1f} s: Dice {report['dice']:.4f}, "
+    say(
+        comm,
+        f"registered in {report['iterations']} iterations, {report['seconds']:.1f} s: Dice {report['dice']:.4f}, "
         f"mean surface distance {1e3 * report['mean_surface_distance']:.2f} mm "
         f"({report['mean_surface_distance_voxels']:.2f} voxels), hd95 {1e3 * report['hd95']:.2f} mm, "
-        f"min det F {report['min_det_F']:.3f}")
+        f"min det F {report['min_det_F']:.3f}",
+    )
 
     # 3. Shape modes of a cohort.
     start = time.perf_counter()
@@ -61,18 +66,30 @@ def main() -> None:
     summary = workflow.build_shape_modes(REFERENCE, sources, out / "shape_modes", comm=comm)
     sigma = np.asarray(summary["singular_values"])
     loo = 1e3 * np.asarray(summary["leave_one_out_rms"])
-    say(comm, f"{len(sources)} mappings in {time.perf_counter() - start:.0f} s (worst Dice {summary['worst']['dice']:.4f}); "
+    say(
+        comm,
+        f"{len(sources)} mappings in {time.perf_counter() - start:.0f} s (worst Dice {summary['worst']['dice']:.4f}); "
         f"σ/σ1 = {np.array2string(sigma / sigma[0], precision=3)}; the first 2 modes capture "
         f"{100 * summary['compactness'][1]:.1f} % of the variance; leave-one-out RMS error "
-        f"{loo[0]:.2f} → {loo[1]:.2f} → {loo[2]:.2f} mm with 0, 1, 2 modes")
+        f"{loo[0]:.2f} → {loo[1]:.2f} → {loo[2]:.2f} mm with 0, 1, 2 modes",
+    )
 
     modes = ShapeModes.load(out / "shape_modes" / "shape_modes.npz")
     surfaces = {}
-    for label, c in {"mean": [], "mode 1 +2σ": [2.0], "mode 1 −2σ": [-2.0], "mode 2 +2σ": [0, 2.0], "mode 2 −2σ": [0, -2.0]}.items():
+    for label, c in {
+        "mean": [],
+        "mode 1 +2σ": [2.0],
+        "mode 1 −2σ": [-2.0],
+        "mode 2 +2σ": [0, 2.0],
+        "mode 2 −2σ": [0, -2.0],
+    }.items():
         surfaces[label] = metrics.boundary_triangles(modes.geometry(geometry.from_file(REFERENCE, comm), c).mesh)
     if comm.rank == 0:
-        pictures.surface_sections(surfaces, out / "shape_mode_sections.png",
-                                  title="Shape modes of 10 synthetic patients (2 latent parameters)")
+        pictures.surface_sections(
+            surfaces,
+            out / "shape_mode_sections.png",
+            title="Shape modes of 10 synthetic patients (2 latent parameters)",
+        )
     new = modes.geometry(geometry.from_file(REFERENCE, comm), [1.0, -1.0])
     geometry.write(new, out / "new_lung.xdmf")
     say(comm, f"new lung (+1σ mode 1, −1σ mode 2): volume {1e3 * new.volume():.3f} L -> {out / 'new_lung.xdmf'}")

@@ -1,12 +1,61 @@
-"""lungmech: finite-strain continuum mechanics for lung digital twins, on DOLFINx 0.11."""
+"""lungmech: finite-strain continuum mechanics for lung digital twins, on DOLFINx 0.11.
+
+The library: ``fem`` (laws, loads, model, solver), ``mesh`` (geometries), ``lung`` (the
+poromechanical lung, gravity, the inverse problem), ``parallel``, ``rom`` (reduced models) and
+``registration``. The application (scenes, runs, CLI) is ``lungmech.app``. The names users
+reach for first are importable from here, e.g. ``from lungmech import Model, NeoHookean, box``;
+they load on first use, so ``import lungmech`` stays light.
+"""
 
 try:  # The PyPI wheel must order MPI before the compiled bindings; Debian's build has no such module.
     import dolfinx_solver  # noqa: F401
 except ImportError:
     pass
 
+import importlib
+
+from lungmech import _moved
 from lungmech.errors import GeometryError, LungmechError, ParameterError, SceneError, SolverError
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
-__all__ = ["GeometryError", "LungmechError", "ParameterError", "SceneError", "SolverError", "__version__"]
+_moved.install()
+
+_PUBLIC = {
+    "lungmech.fem": (
+        "BodyForce",
+        "CiarletGeymonat",
+        "Displacement",
+        "ExponentialCiarletGeymonat",
+        "FollowerPressure",
+        "LinearElastic",
+        "Model",
+        "MooneyRivlin",
+        "NeoHookean",
+        "NewtonOptions",
+        "NewtonSolver",
+        "Ramp",
+        "SaintVenantKirchhoff",
+        "StableNeoHookean",
+        "Stepping",
+        "Sum",
+        "TaylorHood",
+        "Traction",
+        "clamp",
+        "deformed_volume",
+        "solve",
+        "strain_energy",
+        "symmetry",
+    ),
+    "lungmech.mesh": ("Geometry", "box", "ellipsoid", "from_file", "lung_phantom", "sphere"),
+    "lungmech.lung": ("AlveolarPressure", "Gravity", "Poromechanics", "unloaded_reference"),
+}
+_WHERE = {name: module for module, names in _PUBLIC.items() for name in names}
+
+__all__ = ["GeometryError", "LungmechError", "ParameterError", "SceneError", "SolverError", "__version__", *_WHERE]
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        return getattr(importlib.import_module(_WHERE[name]), name)
+    raise AttributeError(f"module 'lungmech' has no attribute {name!r}")

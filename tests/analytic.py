@@ -286,9 +286,7 @@ def psi_ciarlet_geymonat(F: npt.ArrayLike, p: CiarletGeymonatParams) -> Any:
     F = _as_F(F)
     _, I1, I2, J = _invariants(F)
     lnJ = np.log(J)
-    return _unwrap(
-        p.c0 * (J**2 - 1.0 - 2.0 * lnJ) + p.c1 * (I1 - 3.0 - 2.0 * lnJ) + p.c2 * (I2 - 3.0 - 4.0 * lnJ)
-    )
+    return _unwrap(p.c0 * (J**2 - 1.0 - 2.0 * lnJ) + p.c1 * (I1 - 3.0 - 2.0 * lnJ) + p.c2 * (I2 - 3.0 - 4.0 * lnJ))
 
 
 def piola_ciarlet_geymonat(F: npt.ArrayLike, p: CiarletGeymonatParams) -> Array:
@@ -297,9 +295,7 @@ def piola_ciarlet_geymonat(F: npt.ArrayLike, p: CiarletGeymonatParams) -> Array:
     C, I1, _, J = _invariants(F)
     FiT = _T(np.linalg.inv(F))
     return (
-        _scalar_times(2.0 * p.c0 * (J**2 - 1.0), FiT)
-        + 2.0 * p.c1 * (F - FiT)
-        + p.c2 * (_dI2_dF(F, C, I1) - 4.0 * FiT)
+        _scalar_times(2.0 * p.c0 * (J**2 - 1.0), FiT) + 2.0 * p.c1 * (F - FiT) + p.c2 * (_dI2_dF(F, C, I1) - 4.0 * FiT)
     )
 
 
@@ -357,9 +353,7 @@ def psi_stable_neo_hookean(F: npt.ArrayLike, p: LameParams) -> Any:
     F = _as_F(F)
     mu_p, lam_p, a, psi_rest = _snh_constants(p)
     _, I1, _, J = _invariants(F)
-    return _unwrap(
-        0.5 * mu_p * (I1 - 3.0) + 0.5 * lam_p * (J - a) ** 2 - 0.5 * mu_p * np.log(I1 + 1.0) - psi_rest
-    )
+    return _unwrap(0.5 * mu_p * (I1 - 3.0) + 0.5 * lam_p * (J - a) ** 2 - 0.5 * mu_p * np.log(I1 + 1.0) - psi_rest)
 
 
 def piola_stable_neo_hookean(F: npt.ArrayLike, p: LameParams) -> Array:
@@ -396,11 +390,7 @@ def piola_mooney_rivlin(F: npt.ArrayLike, p: MooneyRivlinParams) -> Array:
     F = _as_F(F)
     C, I1, _, J = _invariants(F)
     FiT = _T(np.linalg.inv(F))
-    return (
-        2.0 * p.c1 * (F - FiT)
-        + p.c2 * (_dI2_dF(F, C, I1) - 4.0 * FiT)
-        + _scalar_times(p.kappa * np.log(J), FiT)
-    )
+    return 2.0 * p.c1 * (F - FiT) + p.c2 * (_dI2_dF(F, C, I1) - 4.0 * FiT) + _scalar_times(p.kappa * np.log(J), FiT)
 
 
 def lame_mooney_rivlin(p: MooneyRivlinParams) -> tuple[float, float]:
@@ -594,9 +584,7 @@ def uniaxial(law: str | Law, params: Any, stretch: float) -> tuple[float, float]
         fb = s22(b)
         while not (np.isfinite(fb) and fb * f0 < 0):
             if not 1e-12 < b < 1e12:
-                raise ValueError(
-                    f"uniaxial: no lateral stretch with sigma22 = 0 for law '{obj.name}' at l = {l}"
-                )
+                raise ValueError(f"uniaxial: no lateral stretch with sigma22 = 0 for law '{obj.name}' at l = {l}")
             if np.isfinite(fb):  # keep the bracket end finite (exp overflow far out)
                 a = b
             b *= factor
@@ -669,9 +657,7 @@ def thick_sphere_limit_point(A: float, B: float, mu: float) -> tuple[float, floa
     hi = 2.0
     while _thick_sphere_dP(hi, A, B, mu) > 0:
         hi *= 2.0
-    la = brentq(
-        _thick_sphere_dP, 1.0 + 1e-12, hi, args=(A, B, mu), xtol=1e-15, rtol=4 * np.finfo(float).eps
-    )
+    la = brentq(_thick_sphere_dP, 1.0 + 1e-12, hi, args=(A, B, mu), xtol=1e-15, rtol=4 * np.finfo(float).eps)
     return la, float(thick_sphere_pressure(la, A, B, mu))
 
 
@@ -731,9 +717,7 @@ class LameSphere:
 def thick_sphere_lame(P: float, A: float, B: float, mu: float, lmbda: float) -> LameSphere:
     """Lamé solution of the pressurised thick sphere (see :class:`LameSphere`)."""
     d = B**3 - A**3
-    return LameSphere(
-        c1=P * A**3 / ((3 * lmbda + 2 * mu) * d), c2=P * A**3 * B**3 / (4 * mu * d), mu=mu, lmbda=lmbda
-    )
+    return LameSphere(c1=P * A**3 / ((3 * lmbda + 2 * mu) * d), c2=P * A**3 * B**3 / (4 * mu * d), mu=mu, lmbda=lmbda)
 
 
 @dataclass(frozen=True)
@@ -792,9 +776,7 @@ def thick_sphere_compressible(
     obj = _law(law, params)
     mu_l, lam_l = obj.lame(params)
     if not mu_l > 0:
-        raise ValueError(
-            f"thick_sphere_compressible needs a law with shear stiffness ('{obj.name}' has mu = 0)"
-        )
+        raise ValueError(f"thick_sphere_compressible needs a law with shear stiffness ('{obj.name}' has mu = 0)")
     if not 0 < A < B:
         raise ValueError("need 0 < A < B")
     small_strain = obj.name == "linear"
@@ -863,9 +845,7 @@ def thick_sphere_compressible(
     def solve(p_load: float, x: Array, y: Array, tol_: float, nodes: int = max_nodes) -> Any:
         with np.errstate(all="ignore"):
             bc, bc_jac = make_bc(p_load)
-            return solve_bvp(
-                rhs, bc, x, y, bc_jac=bc_jac, tol=tol_, bc_tol=max(tol_, bc_tol_eff), max_nodes=nodes
-            )
+            return solve_bvp(rhs, bc, x, y, bc_jac=bc_jac, tol=tol_, bc_tol=max(tol_, bc_tol_eff), max_nodes=nodes)
 
     # Stage 1: converge the nonlinear problem on a coarse mesh, with load continuation if the
     # linear guess is too far off. Stage 2: refine to the requested tolerance from there.
@@ -888,9 +868,7 @@ def thick_sphere_compressible(
                     )
     sol = solve(P, sol.x, sol.y, tol_eff)
     if not sol.success:
-        raise RuntimeError(
-            f"thick_sphere_compressible: refinement to tol = {tol_eff:g} failed: {sol.message}"
-        )
+        raise RuntimeError(f"thick_sphere_compressible: refinement to tol = {tol_eff:g} failed: {sol.message}")
     spline = sol.sol
 
     def u(R: npt.ArrayLike) -> Any:
@@ -1005,8 +983,13 @@ def lung_inflation(p_f: float, p: LungParams) -> dict[str, float]:
         end = factor
         while (lung_skeleton_stress(end, p) - p_f) * (0.0 - p_f) > 0:
             end *= factor
-        J = brentq(lambda j: lung_skeleton_stress(j, p) - p_f, min(1.0, end), max(1.0, end),
-                   xtol=1e-15, rtol=4 * np.finfo(float).eps)
+        J = brentq(
+            lambda j: lung_skeleton_stress(j, p) - p_f,
+            min(1.0, end),
+            max(1.0, end),
+            xtol=1e-15,
+            rtol=4 * np.finfo(float).eps,
+        )
     phi_s = 1.0 / (1.0 / p.phi_s0 + p_f / p.kappa)
     return {"J": J, "E": 0.5 * (J ** (2.0 / 3.0) - 1.0), "phi_s": phi_s, "phi_f": J - phi_s, "phi_s_current": phi_s / J}
 
@@ -1022,7 +1005,9 @@ def pore_barrier_derivative(phi_f: float, phi_s0: float, eta: float, lower: floa
     return 0.0
 
 
-def lung_inflation_with_pore_barrier(p_f: float, p: LungParams, eta: float, lower: float, upper: float) -> dict[str, float]:
+def lung_inflation_with_pore_barrier(
+    p_f: float, p: LungParams, eta: float, lower: float, upper: float
+) -> dict[str, float]:
     """Homogeneous inflation with the porosity barrier: two scalar equations for (J, Φs).
 
     u-equation: σ_skel(J) + W_pore'(J − Φs) − p_f = 0;  Φs-equation: κ(1/Φs0 − 1/Φs) − W_pore'(J − Φs) + p_f = 0.

@@ -5,18 +5,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-import lungmech.meshes
 import ufl
 from mpi4py import MPI
 
-from lungmech.constraints import Displacement, symmetry
-from lungmech.geometry import box, sphere
-from lungmech.loads import FollowerPressure
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import integral
-from lungmech.solver import NewtonOptions, Stepping, solve
+import lungmech.meshes
+from lungmech.fem.constraints import Displacement, symmetry
+from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import integral
+from lungmech.fem.solver import NewtonOptions, Stepping, solve
+from lungmech.mesh import box, sphere
 
 MESHES = Path(lungmech.meshes.__file__).parent  # the bundled meshes
 
@@ -65,12 +64,23 @@ def homogeneous(law, F: np.ndarray, degree: int = 1, mixed: bool = False, comm=M
     return model
 
 
-def uniaxial(law, stretch: float, degree: int = 1, mixed: bool = False, biaxial: bool = False,
-             stepping: Stepping | None = None, comm=MPI.COMM_WORLD) -> Model:
+def uniaxial(
+    law,
+    stretch: float,
+    degree: int = 1,
+    mixed: bool = False,
+    biaxial: bool = False,
+    stepping: Stepping | None = None,
+    comm=MPI.COMM_WORLD,
+) -> Model:
     """Stretch along x (and y when ``biaxial``) with symmetry planes; the other faces are free."""
     geometry = box(comm, cells=(1, 1, 1))
-    constraints = [symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z"),
-                   Displacement("x1", stretch - 1.0, "x")]
+    constraints = [
+        symmetry("x0", "x"),
+        symmetry("y0", "y"),
+        symmetry("z0", "z"),
+        Displacement("x1", stretch - 1.0, "x"),
+    ]
     if biaxial:
         constraints.append(Displacement("y1", stretch - 1.0, "y"))
     model = Model(geometry, law, degree=degree, mixed=mixed, constraints=constraints)

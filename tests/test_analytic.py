@@ -139,10 +139,7 @@ def hessian_at_identity(law: str, p: object) -> np.ndarray:
 def test_linearisation_matches_lame_of(law: str) -> None:
     mu, lam = an.lame_of(law, PARAMS[law])
     d = np.eye(3)
-    A = (
-        mu * (np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d))
-        + lam * np.einsum("ij,kl->ijkl", d, d)
-    )
+    A = mu * (np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d)) + lam * np.einsum("ij,kl->ijkl", d, d)
     H = hessian_at_identity(law, PARAMS[law])
     np.testing.assert_allclose(H, A, atol=1e-7 * np.abs(A).max())
 
@@ -191,15 +188,9 @@ def test_incompressible_closed_forms_are_energy_derivatives() -> None:
         return c1 * (x**2 + 2 / x - 3) + c2 * (2 * x + x**-2 - 3)
 
     for l in [0.4, 0.8, 1.5, 2.7]:
-        assert an.incompressible_neo_hookean_uniaxial(l, mu) == pytest.approx(
-            l * _dW_dl(w_nh_uni, l), rel=1e-13
-        )
-        assert an.incompressible_neo_hookean_equibiaxial(l, mu) == pytest.approx(
-            l / 2 * _dW_dl(w_nh_bi, l), rel=1e-13
-        )
-        assert an.incompressible_mooney_rivlin_uniaxial(l, c1, c2) == pytest.approx(
-            l * _dW_dl(w_mr_uni, l), rel=1e-13
-        )
+        assert an.incompressible_neo_hookean_uniaxial(l, mu) == pytest.approx(l * _dW_dl(w_nh_uni, l), rel=1e-13)
+        assert an.incompressible_neo_hookean_equibiaxial(l, mu) == pytest.approx(l / 2 * _dW_dl(w_nh_bi, l), rel=1e-13)
+        assert an.incompressible_mooney_rivlin_uniaxial(l, c1, c2) == pytest.approx(l * _dW_dl(w_mr_uni, l), rel=1e-13)
 
 
 def test_simple_shear_neo_hookean() -> None:
@@ -250,9 +241,7 @@ def uniaxial_by_energy(law: str, p: object, l: float) -> tuple[float, float]:
     return t, dpsi / t**2  # σ11 = P11 l / J = (dψ*/dl) l / (l t²)
 
 
-@pytest.mark.parametrize(
-    "law", ["neo_hookean", "stable_neo_hookean", "mooney_rivlin", "ciarlet_geymonat", "svk"]
-)
+@pytest.mark.parametrize("law", ["neo_hookean", "stable_neo_hookean", "mooney_rivlin", "ciarlet_geymonat", "svk"])
 def test_uniaxial_matches_energy_minimisation(law: str) -> None:
     for l in [0.5, 1.3, 1.8]:
         t, s11 = an.uniaxial(law, PARAMS[law], l)
@@ -476,9 +465,7 @@ def test_cantilever_frequencies_by_rayleigh_quotient() -> None:
     satisfies the clamped (φ = φ' = 0) and free (φ'' = 0) end conditions."""
     E, I, rho, Ar, L = 2e11, 3e-8, 7800.0, 1e-4, 1.5
     omega = an.cantilever_frequencies(E, I, rho, Ar, L, n_modes=3)
-    assert omega == pytest.approx(
-        np.array(an.CANTILEVER_BETA_L) ** 2 * math.sqrt(E * I / (rho * Ar * L**4)), rel=1e-10
-    )
+    assert omega == pytest.approx(np.array(an.CANTILEVER_BETA_L) ** 2 * math.sqrt(E * I / (rho * Ar * L**4)), rel=1e-10)
     d = 1e-3 * L
 
     def d2(n, x):
@@ -519,9 +506,14 @@ def test_lung_skeleton_stress_is_energy_derivative():
         lam = J ** (1 / 3)
         I1, I2 = 3 * lam**2, 3 * lam**4
         lnJ = math.log(J)
-        return (p.alpha * (math.exp(p.gamma * (J**2 - 1 - 2 * lnJ)) - 1)
-                + p.c1 * (I1 - 3 - 2 * lnJ) + p.c2 * (I2 - 3 - 4 * lnJ))
+        return (
+            p.alpha * (math.exp(p.gamma * (J**2 - 1 - 2 * lnJ)) - 1)
+            + p.c1 * (I1 - 3 - 2 * lnJ)
+            + p.c2 * (I2 - 3 - 4 * lnJ)
+        )
 
     for J in (0.7, 1.0, 1.3, 2.0):
         h = 1e-6
-        assert an.lung_skeleton_stress(J, p) == pytest.approx((energy(J + h) - energy(J - h)) / (2 * h), rel=1e-7, abs=1e-9)
+        assert an.lung_skeleton_stress(J, p) == pytest.approx(
+            (energy(J + h) - energy(J - h)) / (2 * h), rel=1e-7, abs=1e-9
+        )

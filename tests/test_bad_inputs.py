@@ -24,8 +24,9 @@ import pytest
 from fem import TINY_SCENE
 from mpi4py import MPI
 
-from lungmech import geometry, meshes
-from lungmech.cli import main
+from lungmech import mesh as geometry
+from lungmech import meshes
+from lungmech.app.cli import main
 
 TINY = TINY_SCENE
 LUNG = """title = "lung cube"
@@ -68,18 +69,34 @@ SCENES = {
     "traction of 2 components": (swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"), "value must be 3 numbers"),
     "traction of 4 components": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -10.0, 1.0]"), "value must be 3 numbers"),
     "traction is true": (swap("value = [0.0, 0.0, -10.0]", "value = true"), "value must be 3 numbers"),
-    "pressure is a word": (swap('type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
-                                'type = "follower_pressure"\nboundary = "x1"\nvalue = "abc"'), "value must be a number"),
-    "pressure on no boundary": (swap('type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
-                                     'type = "follower_pressure"\nboundary = []\nvalue = 1.0'), "boundary must be"),
+    "pressure is a word": (
+        swap(
+            'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+            'type = "follower_pressure"\nboundary = "x1"\nvalue = "abc"',
+        ),
+        "value must be a number",
+    ),
+    "pressure on no boundary": (
+        swap(
+            'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+            'type = "follower_pressure"\nboundary = []\nvalue = 1.0',
+        ),
+        "boundary must be",
+    ),
     "probes a word": (swap("fields = false", 'fields = false\nprobes = "abc"'), "probes must be a list of points"),
-    "probe coordinate a word": (swap("fields = false", 'fields = false\nprobes = [["a", 0.0, 0.0]]'),
-                                "probes[0][0] must be a number"),
-    "probe of 2 coordinates": (swap("fields = false", "fields = false\nprobes = [[1.0, 0.5]]"),
-                               "probes[0] must be 3 numbers"),
+    "probe coordinate a word": (
+        swap("fields = false", 'fields = false\nprobes = [["a", 0.0, 0.0]]'),
+        "probes[0][0] must be a number",
+    ),
+    "probe of 2 coordinates": (
+        swap("fields = false", "fields = false\nprobes = [[1.0, 0.5]]"),
+        "probes[0] must be 3 numbers",
+    ),
     "probes a table": (swap("fields = false", "fields = false\nprobes = { x = 1.0 }"), "probes must be a list"),
-    "probe outside the body": (swap("fields = false", "fields = false\nprobes = [[9.0, 0.5, 0.5]]"),
-                               "probe point (9, 0.5, 0.5) lies outside the mesh"),
+    "probe outside the body": (
+        swap("fields = false", "fields = false\nprobes = [[9.0, 0.5, 0.5]]"),
+        "probe point (9, 0.5, 0.5) lies outside the mesh",
+    ),
     "E a word": (swap("E = 1.0e3", 'E = "1 kPa"'), "must be a number"),
     "nu nan": (swap("nu = 0.3", "nu = nan"), "material.nu: nan is not a value"),
     "E inf": (swap("E = 1.0e3", "E = inf"), "material.E: inf is not allowed"),
@@ -89,58 +106,107 @@ SCENES = {
     "lambda a bool": (swap("E = 1.0e3\nnu = 0.3", "mu = 1.0\nlmbda = true"), "parameter 'lmbda' must be a number"),
     "unknown law": (swap('"neo_hookean"', '"rubber"'), "material.law: unknown law 'rubber'"),
     "unknown material key": (swap("nu = 0.3", "nu = 0.3\nnuu = 0.2"), "material.nuu: unknown key"),
-    "incompressible without mixed": (swap("E = 1.0e3\nnu = 0.3", "incompressible = true\nmu = 1.0"),
-                                     "needs the mixed formulation"),
-    "empty sum": (swap('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "sum"\nterms = []'), "non-empty list of laws"),
+    "incompressible without mixed": (
+        swap("E = 1.0e3\nnu = 0.3", "incompressible = true\nmu = 1.0"),
+        "needs the mixed formulation",
+    ),
+    "empty sum": (
+        swap('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "sum"\nterms = []'),
+        "non-empty list of laws",
+    ),
     "kappa inf": (swap("kappa = 1.0e4", "kappa = inf", LUNG), "formulation.kappa: inf is not allowed"),
     "kappa a word": (swap("kappa = 1.0e4", 'kappa = "abc"', LUNG), "kappa must be a number"),
     "phi_s0 above one": (swap("phi_s0 = 0.3", "phi_s0 = 1.5", LUNG), "phi_s0 must lie in (0, 1)"),
     "phi_s0 nan": (swap("phi_s0 = 0.3", "phi_s0 = nan", LUNG), "formulation.phi_s0: nan is not a value"),
-    "scale_skeleton a word": (swap("phi_s0 = 0.3", 'phi_s0 = 0.3\nscale_skeleton = "yes"', LUNG),
-                              "scale_skeleton must be true or false"),
-    "pore_range of one number": (swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_range = [0.5]", LUNG),
-                                 "pore_range must be two numbers"),
-    "pore barrier negative": (swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_barrier = -1.0", LUNG),
-                              "pore_barrier must be >= 0"),
-    "skeleton alpha negative": (swap("alpha = 160.0", "alpha = -1.0", LUNG),
-                                "material (law 'lung_skeleton'): alpha must be > 0"),
+    "scale_skeleton a word": (
+        swap("phi_s0 = 0.3", 'phi_s0 = 0.3\nscale_skeleton = "yes"', LUNG),
+        "scale_skeleton must be true or false",
+    ),
+    "pore_range of one number": (
+        swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_range = [0.5]", LUNG),
+        "pore_range must be two numbers",
+    ),
+    "pore barrier negative": (
+        swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_barrier = -1.0", LUNG),
+        "pore_barrier must be >= 0",
+    ),
+    "skeleton alpha negative": (
+        swap("alpha = 160.0", "alpha = -1.0", LUNG),
+        "material (law 'lung_skeleton'): alpha must be > 0",
+    ),
     "skeleton gamma a word": (swap("gamma = 0.5", 'gamma = "abc"', LUNG), "gamma must be a number"),
     "skeleton without shear": (swap("c1 = 200.0\nc2 = 400.0", "c1 = 0.0\nc2 = 0.0", LUNG), "c1 + c2 must be > 0"),
-    "skeleton missing keys": (swap("gamma = 0.5\nc1 = 200.0\nc2 = 400.0\n", "", LUNG),
-                              "material (law 'lung_skeleton'): missing key(s) gamma, c1, c2"),
-    "unknown formulation": (swap('type = "poromechanics"', 'type = "poro"', LUNG), "formulation.type: unknown type 'poro'"),
+    "skeleton missing keys": (
+        swap("gamma = 0.5\nc1 = 200.0\nc2 = 400.0\n", "", LUNG),
+        "material (law 'lung_skeleton'): missing key(s) gamma, c1, c2",
+    ),
+    "unknown formulation": (
+        swap('type = "poromechanics"', 'type = "poro"', LUNG),
+        "formulation.type: unknown type 'poro'",
+    ),
     "degree a word": (TINY + '[formulation]\ndegree = "2"\n', "formulation.degree: expected int"),
     "degree zero": (TINY + "[formulation]\ndegree = 0\n", "degree must be an integer >= 1"),
     "mixed at degree one": (TINY + '[formulation]\ntype = "mixed"\n', "it needs degree >= 2"),
-    "gravity density inf": (TINY + '[[loads]]\ntype = "gravity"\ndensity = inf\nacceleration = [0.0, 0.0, -9.81]\n',
-                            "loads[1].density: inf is not allowed"),
-    "gravity in 2-D": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, -9.81]\n',
-                       "acceleration needs 3 components"),
-    "gravity nan": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, nan]\n',
-                    "loads[1].acceleration[2]: nan is not a value"),
-    "gravity unbalanceable": (TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, -9.81]\n'
-                              'balanced_on = ["x1"]\n', "no pressure on x1 can balance"),
+    "gravity density inf": (
+        TINY + '[[loads]]\ntype = "gravity"\ndensity = inf\nacceleration = [0.0, 0.0, -9.81]\n',
+        "loads[1].density: inf is not allowed",
+    ),
+    "gravity in 2-D": (
+        TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, -9.81]\n',
+        "acceleration needs 3 components",
+    ),
+    "gravity nan": (
+        TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, nan]\n',
+        "loads[1].acceleration[2]: nan is not a value",
+    ),
+    "gravity unbalanceable": (
+        TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, -9.81]\nbalanced_on = ["x1"]\n',
+        "no pressure on x1 can balance",
+    ),
     "pressure nan": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, nan]"), "loads[0].value[2]: nan is not a value"),
     "pressure -inf": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -inf]"), "loads[0].value[2]: -inf is not allowed"),
     "unknown load type": (swap('type = "traction"', 'type = "wind"'), "loads[0].type: unknown type 'wind'"),
     "unknown load key": (swap('boundary = "x1"', 'boundary = "x1"\npressure = 3.0'), "loads[0].pressure: unknown key"),
-    "loads not a list": (swap("[[loads]]\ntype = \"traction\"\nboundary = \"x1\"\nvalue = [0.0, 0.0, -10.0]\n", ""
-                              ).replace('title = "tiny"', 'title = "tiny"\nloads = 3'), "loads: expected a list of tables"),
-    "empty ramp": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [], values = [] }"),
-                   "at least one (time, value) point"),
-    "ramp time a word": (swap("value = [0.0, 0.0, -10.0]", 'value = [0.0, 0.0, -10.0]\nramp = { times = ["a"], values = [1.0] }'),
-                         "ramp times[0] must be a number"),
-    "ramp going back": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [1.0, 0.0], values = [0.0, 1.0] }"),
-                        "ramp times must increase strictly"),
-    "ramp lengths differ": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [0.0, 1.0], values = [0.0] }"),
-                            "as many times as values"),
-    "ramp not a table": (swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = 3"), "loads[0].ramp: expected a table"),
-    "constraint component w": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\ncomponent = "w"'),
-                               "component must be 0, 1, 2 or x, y, z"),
-    "constraint value nan": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = nan'),
-                             "constraints[0].value: nan is not a value"),
-    "constraint value of 2 components": (swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = [1.0, 2.0]'),
-                                         "value must be 3 numbers"),
+    "loads not a list": (
+        swap('[[loads]]\ntype = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]\n', "").replace(
+            'title = "tiny"', 'title = "tiny"\nloads = 3'
+        ),
+        "loads: expected a list of tables",
+    ),
+    "empty ramp": (
+        swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [], values = [] }"),
+        "at least one (time, value) point",
+    ),
+    "ramp time a word": (
+        swap("value = [0.0, 0.0, -10.0]", 'value = [0.0, 0.0, -10.0]\nramp = { times = ["a"], values = [1.0] }'),
+        "ramp times[0] must be a number",
+    ),
+    "ramp going back": (
+        swap(
+            "value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [1.0, 0.0], values = [0.0, 1.0] }"
+        ),
+        "ramp times must increase strictly",
+    ),
+    "ramp lengths differ": (
+        swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [0.0, 1.0], values = [0.0] }"),
+        "as many times as values",
+    ),
+    "ramp not a table": (
+        swap("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = 3"),
+        "loads[0].ramp: expected a table",
+    ),
+    "constraint component w": (
+        swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\ncomponent = "w"'),
+        "component must be 0, 1, 2 or x, y, z",
+    ),
+    "constraint value nan": (
+        swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = nan'),
+        "constraints[0].value: nan is not a value",
+    ),
+    "constraint value of 2 components": (
+        swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = [1.0, 2.0]'),
+        "value must be 3 numbers",
+    ),
     "unknown boundary": (swap('boundary = "x0"', 'boundary = "hilum"'), "unknown boundary 'hilum'"),
     "stepping end inf": (TINY + "[stepping]\nend = inf\n", "stepping.end: inf is not allowed"),
     "stepping start -inf": (TINY + "[stepping]\nstart = -inf\n", "stepping.start: -inf is not allowed"),
@@ -162,22 +228,44 @@ SCENES = {
     "max iterations fractional": (TINY + "[solver]\nmax_iterations = 2.5\n", "max_iterations must be an integer"),
     "unknown line search": (TINY + '[solver]\nline_search = "fast"\n', "line_search must be"),
     "unknown linear solver": (TINY + '[solver]\nlinear_solver = "cg"\n', "linear_solver must be"),
-    "iterative mixed": (TINY.replace("nu = 0.3", "nu = 0.4") + '[formulation]\ntype = "mixed"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
-                        "the iterative linear solver handles the displacement formulation only"),
+    "iterative mixed": (
+        TINY.replace("nu = 0.3", "nu = 0.4")
+        + '[formulation]\ntype = "mixed"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
+        "the iterative linear solver handles the displacement formulation only",
+    ),
     "petsc options a word": (TINY + '[solver]\npetsc_options = "fast"\n', "petsc_options must be a table"),
-    "petsc option a table": (TINY + "[solver]\npetsc_options = { snes_type = { a = 1 } }\n",
-                             "petsc_options.snes_type: expected a string, number or boolean"),
-    "unknown SNES type": (TINY + '[solver]\npetsc_options = { snes_type = "nonsense" }\n',
-                          "PETSc refused them: Unable to find requested SNES type nonsense"),
-    "non-integer PETSc value": (TINY + '[solver]\npetsc_options = { snes_max_it = "abc" }\n',
-                                "PETSc refused them: Input string abc has no integer value"),
-    "unknown KSP type": (TINY + '[solver]\npetsc_options = { ksp_type = "bogus" }\n', "Unable to find requested KSP type bogus"),
-    "unknown PETSc option": (TINY + "[solver]\npetsc_options = { nonsense_option = 1 }\n",
-                             "PETSc does not use nonsense_option"),
-    "SNES tolerance": (TINY + "[solver]\npetsc_options = { snes_rtol = 1e-8 }\n", "lungmech stops Newton with its own test"),
-    "bad MUMPS setting": (TINY + '[solver]\npetsc_options = { mat_mumps_icntl_14 = "abc" }\n',
-                          "PETSc refused the solver settings (solver.petsc_options?): Input string abc has no integer value"),
-    "nothing holds the body": (swap('[[constraints]]\ntype = "clamp"\nboundary = "x0"\n', ""), "nothing holds the body"),
+    "petsc option a table": (
+        TINY + "[solver]\npetsc_options = { snes_type = { a = 1 } }\n",
+        "petsc_options.snes_type: expected a string, number or boolean",
+    ),
+    "unknown SNES type": (
+        TINY + '[solver]\npetsc_options = { snes_type = "nonsense" }\n',
+        "PETSc refused them: Unable to find requested SNES type nonsense",
+    ),
+    "non-integer PETSc value": (
+        TINY + '[solver]\npetsc_options = { snes_max_it = "abc" }\n',
+        "PETSc refused them: Input string abc has no integer value",
+    ),
+    "unknown KSP type": (
+        TINY + '[solver]\npetsc_options = { ksp_type = "bogus" }\n',
+        "Unable to find requested KSP type bogus",
+    ),
+    "unknown PETSc option": (
+        TINY + "[solver]\npetsc_options = { nonsense_option = 1 }\n",
+        "PETSc does not use nonsense_option",
+    ),
+    "SNES tolerance": (
+        TINY + "[solver]\npetsc_options = { snes_rtol = 1e-8 }\n",
+        "lungmech stops Newton with its own test",
+    ),
+    "bad MUMPS setting": (
+        TINY + '[solver]\npetsc_options = { mat_mumps_icntl_14 = "abc" }\n',
+        "PETSc refused the solver settings (solver.petsc_options?): Input string abc has no integer value",
+    ),
+    "nothing holds the body": (
+        swap('[[constraints]]\ntype = "clamp"\nboundary = "x0"\n', ""),
+        "nothing holds the body",
+    ),
     "fields a word": (swap("fields = false", 'fields = "no"'), "fields must be true or false"),
     "unknown field format": (swap("fields = false", 'fields = true\nformat = "bp5"'), "format must be one of vtk, vtx"),
     "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
@@ -189,10 +277,14 @@ SCENES = {
     "unknown builder": (swap('builder = "box"', 'builder = "torus"'), "geometry.builder: unknown builder 'torus'"),
     "box cells a word": (swap("cells = [2, 1, 1]", 'cells = ["a", 1, 1]'), "geometry: bad value for the box builder"),
     "builder and file": (swap('builder = "box"', 'builder = "box"\nfile = "m.msh"'), "give exactly one of 'builder'"),
-    "mesh file a number": (swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', "file = 3"),
-                           "geometry.file: expected str"),
-    "boundary names a word": (swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]',
-                                   'file = "box.xdmf"\nboundaries = "x0"'), "geometry.boundaries: expected a table"),
+    "mesh file a number": (
+        swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', "file = 3"),
+        "geometry.file: expected str",
+    ),
+    "boundary names a word": (
+        swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', 'file = "box.xdmf"\nboundaries = "x0"'),
+        "geometry.boundaries: expected a table",
+    ),
     "not TOML": ("[geometry\nbuilder = 1", "not valid TOML"),
     "empty scene": ("", "missing section [geometry]"),
 }
@@ -201,7 +293,7 @@ SCENES = {
 @pytest.fixture(scope="module")
 def assets(tmp_path_factory) -> Path:
     """Files the cases read: meshes, images, a reduced model, a lungmech result; made once."""
-    from lungmech.lung_shape import LungShape
+    from lungmech.mesh.lung_shape import LungShape
     from lungmech.registration import image, phantom
 
     root = tmp_path_factory.mktemp("assets")
@@ -210,11 +302,43 @@ def assets(tmp_path_factory) -> Path:
     geometry.write(geometry.box(comm, (2.0, 1.0, 1.0), (2, 1, 1)), root / "box.xdmf")
     _square(root / "square.msh")
     image.write(phantom.voxelise(LungShape(), 4e-3), root / "lung.nii.gz")
-    assert main(["rom", "build", str(root / "scene.toml"), "-o", str(root / "model.npz"), "--scales", "0.5,1.5",
-                 "--size", "4", "-q"]) == 0
+    assert (
+        main(
+            [
+                "rom",
+                "build",
+                str(root / "scene.toml"),
+                "-o",
+                str(root / "model.npz"),
+                "--scales",
+                "0.5,1.5",
+                "--size",
+                "4",
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert main(["run", str(root / "scene.toml"), "-o", str(root / "result"), "-q"]) == 0
-    assert main(["shape-modes", "--synthetic", "3", "--latent", "1", "--spacing", "5", "--reference", REFERENCE,
-                 "-o", str(root / "modes"), "-q"]) == 0
+    assert (
+        main(
+            [
+                "shape-modes",
+                "--synthetic",
+                "3",
+                "--latent",
+                "1",
+                "--spacing",
+                "5",
+                "--reference",
+                REFERENCE,
+                "-o",
+                str(root / "modes"),
+                "-q",
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -251,8 +375,10 @@ def workspace(tmp_path, assets, monkeypatch) -> Path:
 
 
 def _snapshot(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "folder"
-            for p in root.rglob("*")}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "folder"
+        for p in root.rglob("*")
+    }
 
 
 def refused(argv: list[str], message: str, capsys, root: Path) -> None:
@@ -283,6 +409,7 @@ def _write(name: str, data: bytes | str):
         path = root / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(data if isinstance(data, bytes) else data.encode())
+
     return make
 
 
@@ -309,6 +436,7 @@ def _damaged_model(root: Path) -> None:
 def _lung_result_with(change) -> callable:
     def make(root: Path) -> None:
         change(root / "result")
+
     return make
 
 
@@ -317,6 +445,7 @@ def _copy_mesh(folder: str):
         (root / folder).mkdir()
         for suffix in (".xdmf", ".h5", ".tags.json"):
             shutil.copy(root / f"box{suffix}", root / folder / f"box{suffix}")
+
     return make
 
 
@@ -356,148 +485,327 @@ def _other_physics(change: str, into: str) -> list:
 # (files to make, command line, what the message must say)
 COMMANDS = {
     # scene files
-    "binary scene": ([_write("scene.toml", b"\x89PNG\r\n\x1a\n\0\0\0")], ["run", "scene.toml", "-o", "out"],
-                     "is not a text file"),
-    "latin-1 scene": ([_write("scene.toml", TINY.replace("tiny", "poumon é").encode("latin-1"))],
-                      ["run", "scene.toml", "-o", "out"], "is not UTF-8 text (byte 0xe9 on line 1)"),
+    "binary scene": (
+        [_write("scene.toml", b"\x89PNG\r\n\x1a\n\0\0\0")],
+        ["run", "scene.toml", "-o", "out"],
+        "is not a text file",
+    ),
+    "latin-1 scene": (
+        [_write("scene.toml", TINY.replace("tiny", "poumon é").encode("latin-1"))],
+        ["run", "scene.toml", "-o", "out"],
+        "is not UTF-8 text (byte 0xe9 on line 1)",
+    ),
     "scene is a folder": ([lambda r: (r / "scenes").mkdir()], ["run", "scenes", "-o", "out"], "is a folder"),
     "scene missing": ([], ["run", "none.toml", "-o", "out"], "scene file 'none.toml' not found"),
     # meshes
-    "2-D mesh": ([_write("scene.toml", _mesh_scene("square.msh"))], ["run", "scene.toml", "-o", "out"],
-                 "holds a 2-D mesh (triangle cells); lungmech solves 3-D bodies only"),
-    "xdmf without its data": ([lambda r: (r / "box.h5").rename(r / "elsewhere.h5"), _write("scene.toml", _mesh_scene("box.xdmf"))],
-                              ["run", "scene.toml", "-o", "out"], "its data file"),
-    "xdmf without boundary names": ([lambda r: (r / "box.tags.json").rename(r / "names.json"),
-                                     _write("scene.toml", _mesh_scene("box.xdmf"))],
-                                    ["run", "scene.toml", "-o", "out"], "its boundary names, 'box.tags.json', are missing"),
-    "truncated msh": ([_truncated("square.msh", "cut.msh", 300), _write("scene.toml", _mesh_scene("cut.msh"))],
-                      ["run", "scene.toml", "-o", "out"], "mesh file"),
-    "mesh of another format": ([_write("lung.stl", "solid x\nendsolid x\n"), _write("scene.toml", _mesh_scene("lung.stl"))],
-                               ["run", "scene.toml", "-o", "out"], "suffix '.stl' is not .msh or .xdmf"),
-    "mesh file is a folder": ([lambda r: (r / "dir.msh").mkdir(), _write("scene.toml", _mesh_scene("dir.msh"))],
-                              ["run", "scene.toml", "-o", "out"], "is a folder; name a mesh file"),
-    "mesh file missing": ([_write("scene.toml", _mesh_scene("nowhere.msh"))], ["run", "scene.toml", "-o", "out"],
-                          "mesh file"),
-    "unknown tag name": ([_write("scene.toml", _mesh_scene("box.xdmf", "\nboundaries = { x0 = 99 }"))],
-                         ["run", "scene.toml", "-o", "out"], "boundary 'x0' has tag 99, which no facet carries"),
-    "phi_s0 file with nan": (_phi(b"0.3\n" * 5 + b"nan\n"), ["run", "scene.toml", "-o", "out"],
-                             "holds values that are not finite numbers"),
-    "phi_s0 file too short": (_phi(b"0.3\n0.3\n"), ["run", "scene.toml", "-o", "out"], "has 2 values; the mesh has 6 cells"),
+    "2-D mesh": (
+        [_write("scene.toml", _mesh_scene("square.msh"))],
+        ["run", "scene.toml", "-o", "out"],
+        "holds a 2-D mesh (triangle cells); lungmech solves 3-D bodies only",
+    ),
+    "xdmf without its data": (
+        [lambda r: (r / "box.h5").rename(r / "elsewhere.h5"), _write("scene.toml", _mesh_scene("box.xdmf"))],
+        ["run", "scene.toml", "-o", "out"],
+        "its data file",
+    ),
+    "xdmf without boundary names": (
+        [lambda r: (r / "box.tags.json").rename(r / "names.json"), _write("scene.toml", _mesh_scene("box.xdmf"))],
+        ["run", "scene.toml", "-o", "out"],
+        "its boundary names, 'box.tags.json', are missing",
+    ),
+    "truncated msh": (
+        [_truncated("square.msh", "cut.msh", 300), _write("scene.toml", _mesh_scene("cut.msh"))],
+        ["run", "scene.toml", "-o", "out"],
+        "mesh file",
+    ),
+    "mesh of another format": (
+        [_write("lung.stl", "solid x\nendsolid x\n"), _write("scene.toml", _mesh_scene("lung.stl"))],
+        ["run", "scene.toml", "-o", "out"],
+        "suffix '.stl' is not .msh or .xdmf",
+    ),
+    "mesh file is a folder": (
+        [lambda r: (r / "dir.msh").mkdir(), _write("scene.toml", _mesh_scene("dir.msh"))],
+        ["run", "scene.toml", "-o", "out"],
+        "is a folder; name a mesh file",
+    ),
+    "mesh file missing": (
+        [_write("scene.toml", _mesh_scene("nowhere.msh"))],
+        ["run", "scene.toml", "-o", "out"],
+        "mesh file",
+    ),
+    "unknown tag name": (
+        [_write("scene.toml", _mesh_scene("box.xdmf", "\nboundaries = { x0 = 99 }"))],
+        ["run", "scene.toml", "-o", "out"],
+        "boundary 'x0' has tag 99, which no facet carries",
+    ),
+    "phi_s0 file with nan": (
+        _phi(b"0.3\n" * 5 + b"nan\n"),
+        ["run", "scene.toml", "-o", "out"],
+        "holds values that are not finite numbers",
+    ),
+    "phi_s0 file too short": (
+        _phi(b"0.3\n0.3\n"),
+        ["run", "scene.toml", "-o", "out"],
+        "has 2 values; the mesh has 6 cells",
+    ),
     "phi_s0 file of words": (_phi(b"zero\none\n"), ["run", "scene.toml", "-o", "out"], "is not a list of numbers"),
     "phi_s0 file empty": (_phi(b""), ["run", "scene.toml", "-o", "out"], "has 0 values"),
-    "phi_s0 pickled": (_phi(b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (1,), }" + b" " * 60 + b"\n",
-                            "phi.npy"), ["run", "scene.toml", "-o", "out"], "is not a list of numbers"),
-    "phi_s0 file missing": ([_write("scene.toml", swap("phi_s0 = 0.3", 'phi_s0 = "none.npy"', LUNG))],
-                            ["run", "scene.toml", "-o", "out"], "phi_s0: file"),
+    "phi_s0 pickled": (
+        _phi(
+            b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (1,), }" + b" " * 60 + b"\n",
+            "phi.npy",
+        ),
+        ["run", "scene.toml", "-o", "out"],
+        "is not a list of numbers",
+    ),
+    "phi_s0 file missing": (
+        [_write("scene.toml", swap("phi_s0 = 0.3", 'phi_s0 = "none.npy"', LUNG))],
+        ["run", "scene.toml", "-o", "out"],
+        "phi_s0: file",
+    ),
     "phi_s0 out of range": (_phi(b"0.3\n" * 5 + b"1.2\n"), ["run", "scene.toml", "-o", "out"], "must lie in (0, 1)"),
     # outputs
     "-o .": ([], ["run", "scene.toml", "-o", "."], "is the current folder"),
     "-o empty": ([], ["run", "scene.toml", "-o", ""], "is the current folder"),
     "-o a parent of the current folder": ([], ["run", "scene.toml", "-o", ".."], "holds the current folder"),
-    "-o the scene's folder": ([_write("proj/scene.toml", TINY)], ["run", "proj/scene.toml", "-o", "proj"],
-                              "holds the input"),
-    "-o the mesh's folder": ([_copy_mesh("m2"), _write("meshdir/scene.toml", _mesh_scene("../m2/box.xdmf"))],
-                             ["run", "meshdir/scene.toml", "-o", "m2"], "holds the input"),
+    "-o the scene's folder": (
+        [_write("proj/scene.toml", TINY)],
+        ["run", "proj/scene.toml", "-o", "proj"],
+        "holds the input",
+    ),
+    "-o the mesh's folder": (
+        [_copy_mesh("m2"), _write("meshdir/scene.toml", _mesh_scene("../m2/box.xdmf"))],
+        ["run", "meshdir/scene.toml", "-o", "m2"],
+        "holds the input",
+    ),
     "-o the user's folder": ([], ["run", "scene.toml", "-o", "mydata"], "is not empty and was not written by lungmech"),
     "-o a link to the user's folder": ([_symlink], ["run", "scene.toml", "-o", "link"], "was not written by lungmech"),
     "-o an existing file": ([], ["run", "scene.toml", "-o", "notes.txt"], "exists and is not a folder"),
     "-o below a file": ([], ["run", "scene.toml", "-o", "notes.txt/out"], "cannot write into"),
-    "-o a result with a note added": ([_write("result/my_note.txt", "keep")], ["run", "scene.toml", "-o", "result"],
-                                      "holds 'my_note.txt', which lungmech did not write"),
-    "-o a result with a changed file": ([lambda r: (r / "result" / "history.csv").write_text("edited\n")],
-                                        ["run", "scene.toml", "-o", "result"], "was changed after lungmech wrote it"),
-    "-o a result with a folder added": ([lambda r: (r / "result" / "extra").mkdir()], ["run", "scene.toml", "-o", "result"],
-                                        "holds 'extra', which lungmech did not write"),
-    "rom build over a user file": ([_write("m.npz", b"mine")], ["rom", "build", "scene.toml", "-o", "m.npz"],
-                                   "exists and was not written by lungmech"),
-    "rom build over a folder": ([lambda r: (r / "dir.npz").mkdir()], ["rom", "build", "scene.toml", "-o", "dir.npz"],
-                                "is a folder"),
+    "-o a result with a note added": (
+        [_write("result/my_note.txt", "keep")],
+        ["run", "scene.toml", "-o", "result"],
+        "holds 'my_note.txt', which lungmech did not write",
+    ),
+    "-o a result with a changed file": (
+        [lambda r: (r / "result" / "history.csv").write_text("edited\n")],
+        ["run", "scene.toml", "-o", "result"],
+        "was changed after lungmech wrote it",
+    ),
+    "-o a result with a folder added": (
+        [lambda r: (r / "result" / "extra").mkdir()],
+        ["run", "scene.toml", "-o", "result"],
+        "holds 'extra', which lungmech did not write",
+    ),
+    "rom build over a user file": (
+        [_write("m.npz", b"mine")],
+        ["rom", "build", "scene.toml", "-o", "m.npz"],
+        "exists and was not written by lungmech",
+    ),
+    "rom build over a folder": (
+        [lambda r: (r / "dir.npz").mkdir()],
+        ["rom", "build", "scene.toml", "-o", "dir.npz"],
+        "is a folder",
+    ),
     "rom build over the scene": ([], ["rom", "build", "scene.toml", "-o", "scene.toml"], "saved as .npz"),
-    "rom build of no scales": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--scales", "1,nan"],
-                               "load scales must be finite numbers"),
-    "rom build of a wrong basis": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--basis", "wavelet"],
-                                   "basis kind must be"),
-    "rom build of size zero": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],
-                               "basis size must be a positive integer"),
-    "phantom over a user image": ([lambda r: shutil.copy(r / "notes.txt", r / "patient.nii.gz")],
-                                  ["phantom", "-o", "patient.nii.gz"], "exists and was not written by lungmech"),
+    "rom build of no scales": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--scales", "1,nan"],
+        "load scales must be finite numbers",
+    ),
+    "rom build of a wrong basis": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--basis", "wavelet"],
+        "basis kind must be",
+    ),
+    "rom build of size zero": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],
+        "basis size must be a positive integer",
+    ),
+    "phantom over a user image": (
+        [lambda r: shutil.copy(r / "notes.txt", r / "patient.nii.gz")],
+        ["phantom", "-o", "patient.nii.gz"],
+        "exists and was not written by lungmech",
+    ),
     "phantom of zero spacing": ([], ["phantom", "-o", "p.nii.gz", "--spacing", "0"], "--spacing must be a positive"),
     "phantom of another format": ([], ["phantom", "-o", "p.png"], "unknown suffix"),
-    "shape over a user mesh": ([lambda r: [(r / f"user{s}").write_text("theirs") for s in (".xdmf", ".h5")]],
-                               ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "user.xdmf"],
-                               "exists and was not written by lungmech"),
-    "shape next to a user h5": ([_write("new.h5", "theirs")],
-                                ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "new.xdmf"],
-                                "does not belong to a file lungmech wrote"),
-    "shape as another format": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "x.vtk"],
-                                "is written as an .xdmf mesh"),
-    "shape of too many coefficients": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "1,1,1,1",
-                                            "-o", "x.xdmf"], "give at most"),
-    "shape of nan": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "nan", "-o", "x.xdmf"],
-                     "must be finite numbers"),
-    "shape of a word": ([], ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "big", "-o", "x.xdmf"],
-                        "not a list of numbers"),
-    "shape modes that are not": ([], ["shape", "notes.txt", "--reference", REFERENCE, "-c", "1", "-o", "x.xdmf"],
-                                 "is not a shape-modes file"),
-    "shape on another mesh": ([], ["shape", "modes/shape_modes.npz", "--reference", "lung_phantom_left", "-c", "1",
-                                   "-o", "x.xdmf"], "not the reference these shape modes were built on"),
+    "shape over a user mesh": (
+        [lambda r: [(r / f"user{s}").write_text("theirs") for s in (".xdmf", ".h5")]],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "user.xdmf"],
+        "exists and was not written by lungmech",
+    ),
+    "shape next to a user h5": (
+        [_write("new.h5", "theirs")],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "new.xdmf"],
+        "does not belong to a file lungmech wrote",
+    ),
+    "shape as another format": (
+        [],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "x.vtk"],
+        "is written as an .xdmf mesh",
+    ),
+    "shape of too many coefficients": (
+        [],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "1,1,1,1", "-o", "x.xdmf"],
+        "give at most",
+    ),
+    "shape of nan": (
+        [],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "nan", "-o", "x.xdmf"],
+        "must be finite numbers",
+    ),
+    "shape of a word": (
+        [],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "big", "-o", "x.xdmf"],
+        "not a list of numbers",
+    ),
+    "shape modes that are not": (
+        [],
+        ["shape", "notes.txt", "--reference", REFERENCE, "-c", "1", "-o", "x.xdmf"],
+        "is not a shape-modes file",
+    ),
+    "shape on another mesh": (
+        [],
+        ["shape", "modes/shape_modes.npz", "--reference", "lung_phantom_left", "-c", "1", "-o", "x.xdmf"],
+        "not the reference these shape modes were built on",
+    ),
     # reduced models
     "model missing": ([], ["rom", "solve", "none.npz", "scene.toml", "-o", "out"], "reduced model file not found"),
-    "model truncated": ([_truncated("model.npz", "cut.npz", 200)], ["rom", "solve", "cut.npz", "scene.toml", "-o", "out"],
-                        "not an .npz archive, or a truncated one"),
-    "model of text": ([_write("text.npz", "hello")], ["rom", "solve", "text.npz", "scene.toml", "-o", "out"],
-                      "is not a lungmech reduced model"),
-    "model foreign": ([lambda r: np.savez(r / "foreign.npz", a=np.ones(3))], ["rom", "solve", "foreign.npz", "scene.toml", "-o", "out"],
-                      "is not a lungmech reduced model"),
-    "model is a folder": ([lambda r: (r / "m.npz").mkdir()], ["rom", "solve", "m.npz", "scene.toml", "-o", "out"], "is a folder"),
-    "model damaged": ([_damaged_model], ["rom", "solve", "nan_model.npz", "scene.toml", "-o", "out"],
-                      "holds values that are not finite numbers"),
-    "model of another law": (_other_physics('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3',
-                                            'law = "saint_venant_kirchhoff"\nE = 1.0e3\nnu = 0.3'),
-                             ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "material.law"),
-    "model of another clamp": (_other_physics('boundary = "x0"', 'boundary = "x1"'),
-                               ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "constraints[0].boundary"),
-    "model of another load": (_other_physics("[0.0, 0.0, -10.0]", "[0.0, -10.0, 0.0]"),
-                              ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "loads[0].value"),
-    "model of another stiffness": (_other_physics("E = 1.0e3", "E = 5.0e3"),
-                                   ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "material.E: 1000.0"),
-    "model of another mesh": (_other_physics("cells = [2, 1, 1]", "cells = [4, 1, 1]"),
-                              ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"], "geometry.cells"),
-    "model with two scales": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1,2"],
-                              "--scale takes one value"),
-    "model with two scales for one load": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1:2"],
-                                           "one finite factor or one per load"),
-    "model with a scale of letters": ([], ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "deep"],
-                                      "not a list of numbers"),
+    "model truncated": (
+        [_truncated("model.npz", "cut.npz", 200)],
+        ["rom", "solve", "cut.npz", "scene.toml", "-o", "out"],
+        "not an .npz archive, or a truncated one",
+    ),
+    "model of text": (
+        [_write("text.npz", "hello")],
+        ["rom", "solve", "text.npz", "scene.toml", "-o", "out"],
+        "is not a lungmech reduced model",
+    ),
+    "model foreign": (
+        [lambda r: np.savez(r / "foreign.npz", a=np.ones(3))],
+        ["rom", "solve", "foreign.npz", "scene.toml", "-o", "out"],
+        "is not a lungmech reduced model",
+    ),
+    "model is a folder": (
+        [lambda r: (r / "m.npz").mkdir()],
+        ["rom", "solve", "m.npz", "scene.toml", "-o", "out"],
+        "is a folder",
+    ),
+    "model damaged": (
+        [_damaged_model],
+        ["rom", "solve", "nan_model.npz", "scene.toml", "-o", "out"],
+        "holds values that are not finite numbers",
+    ),
+    "model of another law": (
+        _other_physics(
+            'law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "saint_venant_kirchhoff"\nE = 1.0e3\nnu = 0.3'
+        ),
+        ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"],
+        "material.law",
+    ),
+    "model of another clamp": (
+        _other_physics('boundary = "x0"', 'boundary = "x1"'),
+        ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"],
+        "constraints[0].boundary",
+    ),
+    "model of another load": (
+        _other_physics("[0.0, 0.0, -10.0]", "[0.0, -10.0, 0.0]"),
+        ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"],
+        "loads[0].value",
+    ),
+    "model of another stiffness": (
+        _other_physics("E = 1.0e3", "E = 5.0e3"),
+        ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"],
+        "material.E: 1000.0",
+    ),
+    "model of another mesh": (
+        _other_physics("cells = [2, 1, 1]", "cells = [4, 1, 1]"),
+        ["rom", "solve", "model.npz", "other/scene.toml", "-o", "out"],
+        "geometry.cells",
+    ),
+    "model with two scales": (
+        [],
+        ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1,2"],
+        "--scale takes one value",
+    ),
+    "model with two scales for one load": (
+        [],
+        ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1:2"],
+        "one finite factor or one per load",
+    ),
+    "model with a scale of letters": (
+        [],
+        ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "deep"],
+        "not a list of numbers",
+    ),
     # images and registration
     "register -o .": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "."], "is the current folder"),
-    "register into the image's folder": ([lambda r: (r / "ct").mkdir(), lambda r: shutil.copy(r / "lung.nii.gz", r / "ct")],
-                                         ["register", "ct/lung.nii.gz", "--reference", REFERENCE, "-o", "ct"], "holds the input"),
-    "register onto a speck": ([_few_voxels], ["register", "speck.nii.gz", "--reference", REFERENCE, "-o", "fit"],
-                              "spans only [1, 1, 3] voxels"),
-    "register in the wrong unit": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "--unit", "m", "-o", "fit"],
-                                   "is the image's length unit right"),
+    "register into the image's folder": (
+        [lambda r: (r / "ct").mkdir(), lambda r: shutil.copy(r / "lung.nii.gz", r / "ct")],
+        ["register", "ct/lung.nii.gz", "--reference", REFERENCE, "-o", "ct"],
+        "holds the input",
+    ),
+    "register onto a speck": (
+        [_few_voxels],
+        ["register", "speck.nii.gz", "--reference", REFERENCE, "-o", "fit"],
+        "spans only [1, 1, 3] voxels",
+    ),
+    "register in the wrong unit": (
+        [],
+        ["register", "lung.nii.gz", "--reference", REFERENCE, "--unit", "m", "-o", "fit"],
+        "is the image's length unit right",
+    ),
     "register a 4-D image": ([_four_d], ["register", "movie.nii.gz", "--reference", REFERENCE, "-o", "fit"], "4-D"),
-    "register a label map": ([_label_map], ["register", "labels.nii.gz", "--reference", REFERENCE, "-o", "fit"],
-                             "choose one with --label"),
-    "register an unknown format": ([_write("scan.png", b"png")], ["register", "scan.png", "--reference", REFERENCE, "-o", "fit"],
-                                   "unknown suffix"),
-    "register without convergence": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "--max-iterations", "1",
-                                          "--stages", "1", "-o", "fit"], "did not converge"),
-    "register onto a 2-D reference": ([], ["register", "lung.nii.gz", "--reference", "square.msh", "-o", "fit"],
-                                      "holds a 2-D mesh"),
-    "register onto no reference": ([], ["register", "lung.nii.gz", "--reference", "none.msh", "-o", "fit"], "not found"),
+    "register a label map": (
+        [_label_map],
+        ["register", "labels.nii.gz", "--reference", REFERENCE, "-o", "fit"],
+        "choose one with --label",
+    ),
+    "register an unknown format": (
+        [_write("scan.png", b"png")],
+        ["register", "scan.png", "--reference", REFERENCE, "-o", "fit"],
+        "unknown suffix",
+    ),
+    "register without convergence": (
+        [],
+        ["register", "lung.nii.gz", "--reference", REFERENCE, "--max-iterations", "1", "--stages", "1", "-o", "fit"],
+        "did not converge",
+    ),
+    "register onto a 2-D reference": (
+        [],
+        ["register", "lung.nii.gz", "--reference", "square.msh", "-o", "fit"],
+        "holds a 2-D mesh",
+    ),
+    "register onto no reference": (
+        [],
+        ["register", "lung.nii.gz", "--reference", "none.msh", "-o", "fit"],
+        "not found",
+    ),
     "register onto a missing path named like a bundled mesh": (
-        [], ["register", "lung.nii.gz", "--reference", "mine/lung_phantom_left.msh", "-o", "fit"], "not found"),
-    "a cohort of negative spacing": ([], ["shape-modes", "--synthetic", "3", "--spacing", "-5", "-o", "modes2"],
-                                     "--spacing must be a positive voxel size in mm"),
+        [],
+        ["register", "lung.nii.gz", "--reference", "mine/lung_phantom_left.msh", "-o", "fit"],
+        "not found",
+    ),
+    "a cohort of negative spacing": (
+        [],
+        ["shape-modes", "--synthetic", "3", "--spacing", "-5", "-o", "modes2"],
+        "--spacing must be a positive voxel size in mm",
+    ),
     "a phantom too fine": ([], ["phantom", "-o", "fine.nii.gz", "--spacing", "1e-4"], "use a coarser spacing"),
-    "register the user's folder": ([], ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "mydata"],
-                                   "was not written by lungmech"),
+    "register the user's folder": (
+        [],
+        ["register", "lung.nii.gz", "--reference", REFERENCE, "-o", "mydata"],
+        "was not written by lungmech",
+    ),
     # the command line itself
     "unknown command": ([], ["simulate", "scene.toml"], "invalid choice: 'simulate'"),
     "missing -o for a model": ([], ["rom", "build", "scene.toml"], "the following arguments are required: -o/--output"),
-    "size of letters": ([], ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "big"], "invalid int value: 'big'"),
+    "size of letters": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "big"],
+        "invalid int value: 'big'",
+    ),
 }
 
 
@@ -516,17 +824,17 @@ def test_the_suite_is_large_enough():
 def test_full_disk(workspace, capsys, monkeypatch):
     """A write that fails for lack of space (ENOSPC) is one error naming the file; the earlier
     result stays, and the staging folder goes."""
-    import lungmech.output
+    import lungmech.app.output
 
-    real = lungmech.output.write_json
+    real = lungmech.app.output.write_json
 
     def full(path, data, comm=MPI.COMM_WORLD):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(lungmech.output, "write_json", full)
-    monkeypatch.setattr("lungmech.run.write_json", full)
+    monkeypatch.setattr(lungmech.app.output, "write_json", full)
+    monkeypatch.setattr("lungmech.app.run.write_json", full)
     refused(["run", "scene.toml", "-o", "result", "-q"], "cannot write", capsys, workspace)
-    monkeypatch.setattr("lungmech.run.write_json", real)
+    monkeypatch.setattr("lungmech.app.run.write_json", real)
     assert json.loads((workspace / "result" / "summary.json").read_text())["steps"] >= 1
 
 
@@ -572,7 +880,9 @@ def read_only(tmp_path):
 def test_read_only_folder(workspace, read_only, capsys):
     before = _snapshot(read_only)
     refused(["run", "scene.toml", "-o", str(read_only / "out"), "-q"], "Read-only file system", capsys, workspace)
-    refused(["rom", "build", "scene.toml", "-o", str(read_only / "m.npz"), "-q"], "Read-only file system", capsys, workspace)
+    refused(
+        ["rom", "build", "scene.toml", "-o", str(read_only / "m.npz"), "-q"], "Read-only file system", capsys, workspace
+    )
     assert _snapshot(read_only) == before
 
 
@@ -580,5 +890,9 @@ def test_zipfile_is_not_enough_to_be_a_model(workspace, capsys):
     """An .npz with lungmech's keys but a foreign format tag is refused, and not overwritten."""
     with zipfile.ZipFile(workspace / "fake.npz", "w") as z:
         z.writestr("metadata.npy", b"not numpy")
-    refused(["rom", "solve", "fake.npz", "scene.toml", "-o", "out"], "is not a lungmech reduced model", capsys, workspace)
-    refused(["rom", "build", "scene.toml", "-o", "fake.npz"], "exists and was not written by lungmech", capsys, workspace)
+    refused(
+        ["rom", "solve", "fake.npz", "scene.toml", "-o", "out"], "is not a lungmech reduced model", capsys, workspace
+    )
+    refused(
+        ["rom", "build", "scene.toml", "-o", "fake.npz"], "exists and was not written by lungmech", capsys, workspace
+    )

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 from fem import TINY_SCENE
 
-from lungmech import scene as scenes
-from lungmech.cli import main
+from lungmech.app import scene as scenes
+from lungmech.app.cli import main
+from lungmech.app.run import run
 from lungmech.errors import SceneError
-from lungmech.run import run
 
 TINY = TINY_SCENE
 
@@ -47,12 +47,17 @@ BAD = {
         TINY.replace("E = 1.0e3\nnu = 0.3", "incompressible = true\nmu = 1.0"),
         "needs the mixed formulation",
     ),
-    "bad ramp": (TINY.replace('value = [0.0, 0.0, -10.0]', 'value = [0.0, 0.0, -10.0]\nramp = { times = [0, 1], values = [0] }'),
-                 "loads[0].ramp"),
+    "bad ramp": (
+        TINY.replace("value = [0.0, 0.0, -10.0]", "value = [0.0, 0.0, -10.0]\nramp = { times = [0, 1], values = [0] }"),
+        "loads[0].ramp",
+    ),
     "not toml": ("[geometry\nbuilder = 1", "not valid TOML"),
     "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
     "inverse unknown key": (TINY + "[inverse]\ntol = 1e-6\n", "inverse.tol: unknown key"),
-    "gravity in 2-D": (TINY + GRAVITY.replace("[0.0, 0.0, -9.81]", "[0.0, -9.81]"), "loads[1]: gravity: acceleration needs 3 components"),
+    "gravity in 2-D": (
+        TINY + GRAVITY.replace("[0.0, 0.0, -9.81]", "[0.0, -9.81]"),
+        "loads[1]: gravity: acceleration needs 3 components",
+    ),
 }
 
 
@@ -92,13 +97,11 @@ def test_failed_run_keeps_previous_results(tmp_path):
 
 def _built(text: str):
     """The model a scene builds, and what its residual integrates over: {(type, subdomain)}."""
-    from lungmech.run import build_model
+    from lungmech.app.run import build_model
 
     model = build_model(scenes.parse(scenes.tomllib.loads(text)))
     domains = {(i.integral_type(), i.subdomain_id()) for i in model.residual.integrals()}
     return model, domains
-
-
 
 
 def test_only_declared_physics_is_built():
@@ -115,10 +118,15 @@ def test_only_declared_physics_is_built():
     balanced = GRAVITY + 'balanced_on = ["x1", "y0", "y1", "z0", "z1"]\n'
     model, domains = _built(TINY + balanced)
     assert len(model.state_dependent) == 1
-    assert domains == {("cell", "everywhere")} | {("exterior_facet", model.geometry.tag(b)) for b in ("x1", "y0", "y1", "z0", "z1")}
+    assert domains == {("cell", "everywhere")} | {
+        ("exterior_facet", model.geometry.tag(b)) for b in ("x1", "y0", "y1", "z0", "z1")
+    }
 
     # The lung model adds exactly one field (Φs), and no porosity barrier unless asked for.
-    lung = TINY.replace('law = "neo_hookean"\nE = 1.0e3\nnu = 0.3', 'law = "lung_skeleton"\nalpha = 1.0\ngamma = 0.5\nc1 = 1.0\nc2 = 1.0')
+    lung = TINY.replace(
+        'law = "neo_hookean"\nE = 1.0e3\nnu = 0.3',
+        'law = "lung_skeleton"\nalpha = 1.0\ngamma = 0.5\nc1 = 1.0\nc2 = 1.0',
+    )
     lung += '[formulation]\ntype = "poromechanics"\nkappa = 100.0\nphi_s0 = 0.3\n'
     model, _ = _built(lung)
     assert list(model.fields) == ["u", "phi_s"]
@@ -143,11 +151,13 @@ def test_scene_error_names_nested_key():
 def test_cli_subprocess_exit_code_and_info(tmp_path):
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     bad = write(tmp_path, TINY.replace("nu = 0.3", "nu = 0.7"))
-    result = subprocess.run([sys.executable, "-m", "lungmech.cli", "run", str(bad)], capture_output=True, text=True, env=env)
+    result = subprocess.run(
+        [sys.executable, "-m", "lungmech.app.cli", "run", str(bad)], capture_output=True, text=True, env=env
+    )
     assert result.returncode == 2
     assert result.stderr.strip().startswith("lungmech: error:") and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
-    info = subprocess.run([sys.executable, "-m", "lungmech.cli", "info"], capture_output=True, text=True, env=env)
+    info = subprocess.run([sys.executable, "-m", "lungmech.app.cli", "info"], capture_output=True, text=True, env=env)
     assert info.returncode == 0 and "DOLFINx 0.11" in info.stdout and "neo_hookean" in info.stdout
 
 
@@ -164,7 +174,10 @@ def test_reduced_model_from_the_command_line(tmp_path, capsys):
     assert reduced["deformed_volume"] == pytest.approx(full["deformed_volume"], rel=1e-8)
     assert reduced["probes"] == full["probes"] and reduced["load_scale"] == 1.2
     assert sorted(os.listdir(tmp_path / "reduced")) == sorted(os.listdir(tmp_path / "full"))
-    assert main(["rom", "build", str(scene), "-o", str(tmp_path / "modal.npz"), "--basis", "modal", "--size", "4", "-q"]) == 0
+    assert (
+        main(["rom", "build", str(scene), "-o", str(tmp_path / "modal.npz"), "--basis", "modal", "--size", "4", "-q"])
+        == 0
+    )
     capsys.readouterr()
     assert main(["rom", "solve", str(model), "-o", str(tmp_path / "deep"), "--scale", "2.5", "-q"]) == 0
     assert "lies outside the trained range [[0.5], [1.5]]: the reduced model extrapolates" in capsys.readouterr().out
@@ -182,10 +195,25 @@ def test_reduced_model_from_the_command_line(tmp_path, capsys):
     other.parent.mkdir()
     other.write_text(TINY)
     errors = {
-        ("rom", "solve", str(model), str(other), "-o", str(tmp_path / "x")): "other physics than this scene's: geometry.cells",
+        (
+            "rom",
+            "solve",
+            str(model),
+            str(other),
+            "-o",
+            str(tmp_path / "x"),
+        ): "other physics than this scene's: geometry.cells",
         ("rom", "solve", str(tmp_path / "none.npz"), "-o", str(tmp_path / "x")): "not found",
         ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--basis", "wavelet"): "basis kind must be",
-        ("rom", "build", str(scene), "-o", str(tmp_path / "y.npz"), "--scales", "1:2"): "one finite factor or one per load",
+        (
+            "rom",
+            "build",
+            str(scene),
+            "-o",
+            str(tmp_path / "y.npz"),
+            "--scales",
+            "1:2",
+        ): "one finite factor or one per load",
         ("run", str(scene), "-o", str(tmp_path / "x"), "--scale", "1,2"): "--scale takes one value",
     }
     for command, message in errors.items():

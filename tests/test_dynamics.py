@@ -13,20 +13,24 @@ from dolfinx import fem, la
 from mpi4py import MPI
 from scipy.integrate import solve_ivp
 
-from lungmech.constraints import clamp
-from lungmech.dynamics import (
-    ImplicitEuler, full_solver, integrate, modal_response, reduced_solver, rest_stiffness,
-)
 from lungmech.errors import ParameterError, SolverError
-from lungmech.geometry import box
-from lungmech.loads import Traction
-from lungmech.materials import LinearElastic, NeoHookean
-from lungmech.modal import mass_matrix, modal_analysis
-from lungmech.model import Model
-from lungmech.quantities import Probe, integral, strain_energy
-from lungmech.ramp import Ramp
-from lungmech.rom import modal_basis, pod
-from lungmech.solver import NewtonOptions
+from lungmech.fem.constraints import clamp
+from lungmech.fem.dynamics import (
+    ImplicitEuler,
+    full_solver,
+    integrate,
+    modal_response,
+    rest_stiffness,
+)
+from lungmech.fem.loads import Traction
+from lungmech.fem.materials import LinearElastic, NeoHookean
+from lungmech.fem.modal import mass_matrix, modal_analysis
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import Probe, integral, strain_energy
+from lungmech.fem.ramp import Ramp
+from lungmech.fem.solver import NewtonOptions
+from lungmech.mesh import box
+from lungmech.rom import modal_basis, pod, reduced_solver
 
 LENGTH, WIDTH, THICKNESS = 10.0, 0.6, 0.4  # a flat section: bending in z is the single softest mode
 TIP = [[LENGTH, WIDTH / 2, THICKNESS / 2]]
@@ -36,8 +40,7 @@ def beam(comm=MPI.COMM_WORLD, law=None, traction=(0.0, 0.0, -1e-3), cells=(20, 2
     """A clamped P2 cantilever under a tip traction applied suddenly at t = 0 (constant ramp)."""
     geometry = box(comm, lengths=(LENGTH, WIDTH, THICKNESS), cells=cells)
     loads = [Traction("x1", traction, ramp=Ramp.constant())] if np.any(traction) else []
-    return Model(geometry, law or LinearElastic.from_young(1.0, 0.0), degree=2,
-                 constraints=[clamp("x0")], loads=loads)
+    return Model(geometry, law or LinearElastic.from_young(1.0, 0.0), degree=2, constraints=[clamp("x0")], loads=loads)
 
 
 class Modal:
@@ -123,8 +126,7 @@ def test_modal_response_ramp_with_initial_conditions():
 def test_modal_response_is_exact_for_any_sampling_of_a_piecewise_linear_force():
     lam = np.array([0.0, 0.8, 30.0])
     knots = np.array([0.0, 0.4, 1.5, 1.7, 3.0])
-    values = np.array([[0.0, 1.0, -2.0], [1.0, 0.5, 3.0], [-0.5, 2.0, 0.0], [2.0, -1.0, 1.0],
-                       [0.0, 0.0, 4.0]])
+    values = np.array([[0.0, 1.0, -2.0], [1.0, 0.5, 3.0], [-0.5, 2.0, 0.0], [2.0, -1.0, 1.0], [0.0, 0.0, 4.0]])
     z0, v0 = np.array([0.2, -0.1, 0.05]), np.array([0.0, 0.3, -1.0])
 
     def force(t):
@@ -142,8 +144,14 @@ def test_modal_response_is_exact_for_any_sampling_of_a_piecewise_linear_force():
     for i in range(lam.size):
         state = [z0[i], v0[i]]
         for n in range(knots.size - 1):
-            ode = solve_ivp(lambda t, y: [y[1], np.interp(t, knots, values[:, i]) - lam[i] * y[0]],
-                            knots[n : n + 2], state, rtol=1e-12, atol=1e-13, method="DOP853")
+            ode = solve_ivp(
+                lambda t, y: [y[1], np.interp(t, knots, values[:, i]) - lam[i] * y[0]],
+                knots[n : n + 2],
+                state,
+                rtol=1e-12,
+                atol=1e-13,
+                method="DOP853",
+            )
             state = ode.y[:, -1]
             assert coarse_z[n + 1, i] == pytest.approx(state[0], rel=1e-8, abs=1e-10)
             assert coarse_v[n + 1, i] == pytest.approx(state[1], rel=1e-8, abs=1e-10)
@@ -176,8 +184,7 @@ def test_implicit_euler_is_first_order_against_the_exact_modal_response():
         model.set_time(0.0)
         h = horizon / steps
         history = [0.0]
-        integrate(model, density, h, steps,
-                  on_step=lambda scheme, _: history.append(modal.coordinates(model.state)[0]))
+        integrate(model, density, h, steps, on_step=lambda scheme, _: history.append(modal.coordinates(model.state)[0]))
         history = np.array(history)
         times = np.linspace(0.0, horizon, steps + 1)
         exact, _ = modal_response([lam], times, np.full((steps + 1, 1), f))
@@ -253,10 +260,11 @@ def test_nonlinear_implicit_euler_converges_and_matches_the_linear_limit():
     h = 2 * np.pi / np.sqrt(modal_analysis(beam(cells=(10, 2, 2)), 1, density).eigenvalues[0]) / 16
     law = NeoHookean.from_young(1.0, 0.0)  # ν = 0 : the same small-strain limit as LinearElastic(1, 0)
     model = beam(law=law, traction=(0.0, 0.0, -4e-5), cells=(10, 2, 2))
-    iterations, tips = [], []
+    tips = []
     probe = Probe(model.geometry.mesh, TIP)
-    scheme, report = integrate(model, density, h, steps, rayleigh=(1e-3, 1.0),
-                               on_step=lambda s, r: tips.append(probe(model.state)[0, 2]))
+    scheme, report = integrate(
+        model, density, h, steps, rayleigh=(1e-3, 1.0), on_step=lambda s, r: tips.append(probe(model.state)[0, 2])
+    )
     assert all(s.converged for s in report.steps) and len(report.steps) == steps
     assert max(s.iterations for s in report.steps) >= 3  # genuinely nonlinear
     assert tips[-1] < -0.5  # a large deflection: 5 % of the length and more
@@ -298,8 +306,15 @@ def test_reduced_implicit_euler_on_the_modal_basis_is_the_modal_recurrence():
     assert np.all(np.abs(f) > 1e-6 * np.abs(f).max())  # every mode is loaded
     h = 2 * np.pi / np.sqrt(lam[0]) / 20
     states = []
-    integrate(model, density, h, steps, rayleigh=rayleigh, solver_factory=reduced_solver(basis),
-              on_step=lambda s, r: states.append(model.state.x.array[:owned].copy()))
+    integrate(
+        model,
+        density,
+        h,
+        steps,
+        rayleigh=rayleigh,
+        solver_factory=reduced_solver(basis),
+        on_step=lambda s, r: states.append(model.state.x.array[:owned].copy()),
+    )
     z = euler_recurrence(lam, h, steps, f, rayleigh=rayleigh)
     expected = z[1:] @ phis.T
     assert np.array(states) == pytest.approx(expected, abs=1e-8 * np.abs(expected).max())
@@ -311,22 +326,42 @@ def test_reduced_implicit_euler_on_the_pod_of_the_trajectory_is_the_full_one():
     h = 2 * np.pi / np.sqrt(modal_analysis(model, 1, density).eigenvalues[0]) / 30
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
     full, reduced = [], []
-    integrate(model, density, h, steps, rayleigh=rayleigh,
-              on_step=lambda s, r: full.append(model.state.x.array[:owned].copy()))
+    integrate(
+        model,
+        density,
+        h,
+        steps,
+        rayleigh=rayleigh,
+        on_step=lambda s, r: full.append(model.state.x.array[:owned].copy()),
+    )
     basis = pod(model, np.column_stack(full), inner="l2")
     assert 1 < basis.size <= steps
     model.reset()
     model.set_time(0.0)
-    integrate(model, density, h, steps, rayleigh=rayleigh, solver_factory=reduced_solver(basis),
-              on_step=lambda s, r: reduced.append(model.state.x.array[:owned].copy()))
+    integrate(
+        model,
+        density,
+        h,
+        steps,
+        rayleigh=rayleigh,
+        solver_factory=reduced_solver(basis),
+        on_step=lambda s, r: reduced.append(model.state.x.array[:owned].copy()),
+    )
     full = np.array(full)
     assert np.array(reduced) == pytest.approx(full, abs=1e-6 * np.abs(full).max())
     # and a basis that misses part of the trajectory does not reproduce it
     model.reset()
     model.set_time(0.0)
     truncated = []
-    integrate(model, density, h, steps, rayleigh=rayleigh, solver_factory=reduced_solver(basis.truncate(1)),
-              on_step=lambda s, r: truncated.append(model.state.x.array[:owned].copy()))
+    integrate(
+        model,
+        density,
+        h,
+        steps,
+        rayleigh=rayleigh,
+        solver_factory=reduced_solver(basis.truncate(1)),
+        on_step=lambda s, r: truncated.append(model.state.x.array[:owned].copy()),
+    )
     assert np.abs(np.array(truncated) - full).max() > 1e-3 * np.abs(full).max()
 
 

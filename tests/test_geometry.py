@@ -3,18 +3,16 @@
 import math
 from pathlib import Path
 
-import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
-
-from mpi4py import MPI
-
+import dolfinx
 import numpy as np
 import pytest
-
-import dolfinx
 import ufl
-from lungmech.errors import GeometryError
-from lungmech.geometry import Geometry, box, ellipsoid, from_file, lung_phantom, sphere, write
 from fem import MESHES
+from mpi4py import MPI
+
+import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
+from lungmech.errors import GeometryError
+from lungmech.mesh import Geometry, box, ellipsoid, from_file, lung_phantom, sphere, write
 
 LUNG_NAMES = {"pleura", "diaphragm", "mediastinum", "hilum"}
 OCTANT_1_2 = 4 / 3 * math.pi * (2**3 - 1**3) / 8  # an eighth of the shell 1 < r < 2

@@ -7,18 +7,17 @@ the hilum carries nothing, in force and in moment.
 
 import numpy as np
 import pytest
+from fem import MESHES
 from mpi4py import MPI
 
-from lungmech.constraints import clamp
 from lungmech.errors import ParameterError
-from lungmech.geometry import from_file
-from lungmech.gravity import Gravity
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import reaction
-from lungmech.solver import solve
-
-from fem import MESHES
+from lungmech.fem.constraints import clamp
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import reaction
+from lungmech.fem.solver import solve
+from lungmech.lung.gravity import Gravity
+from lungmech.mesh import from_file
 
 DENSITY, G = 300.0, np.array([0.0, 0.0, -9.81])
 SURROUNDING = ("pleura", "diaphragm", "mediastinum")

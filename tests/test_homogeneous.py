@@ -3,12 +3,12 @@
 The references (tests/analytic.py) are hand-derived NumPy formulas, independent of UFL.
 """
 
+import analytic as A
 import numpy as np
 import pytest
-
-import analytic as A
 from fem import homogeneous, lateral_stretch, mean_cauchy, relative_error, uniaxial
-from lungmech import materials as M
+
+from lungmech.fem import materials as M
 
 MU, LMBDA = 1.3, 2.1
 # A general (non-symmetric) deformation gradient with det F > 0.

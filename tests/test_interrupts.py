@@ -39,8 +39,14 @@ def earlier(tmp_path) -> Path:
     """A finished result in out/, and the slow scene."""
     (tmp_path / "quick.toml").write_text(QUICK)
     (tmp_path / "slow.toml").write_text(SLOW)
-    done = subprocess.run(lungmech("run", "quick.toml", "-o", "out", "-q", cwd=tmp_path), cwd=tmp_path, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        lungmech("run", "quick.toml", "-o", "out", "-q", cwd=tmp_path),
+        cwd=tmp_path,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     return tmp_path
 
@@ -50,8 +56,14 @@ def _contents(folder: Path) -> dict[str, bytes]:
 
 
 def _interrupt(workspace: Path, sig: int, ranks: int = 1, after: float = 8.0) -> subprocess.CompletedProcess:
-    process = subprocess.Popen(lungmech("run", "slow.toml", "-o", "out", "-q", ranks=ranks, cwd=workspace), cwd=workspace,
-                               env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        lungmech("run", "slow.toml", "-o", "out", "-q", ranks=ranks, cwd=workspace),
+        cwd=workspace,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     time.sleep(after)
     assert process.poll() is None, "the slow run ended before it could be interrupted"
     process.send_signal(sig)
@@ -69,22 +81,34 @@ def test_a_signal_stops_the_run_and_keeps_the_earlier_result(earlier, sig, code)
     result = _interrupt(earlier, sig)
     assert result.returncode == code, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert lines == [f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results "
-                     "are unchanged"], result.stderr
+    assert lines == [
+        f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
+    ], result.stderr
     assert _contents(earlier / "out") == before
     assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"]  # no staging left
 
 
 def test_a_killed_run_leaves_staging_that_the_next_run_removes(earlier):
-    process = subprocess.Popen(lungmech("run", "slow.toml", "-o", "out", "-q", cwd=earlier), cwd=earlier, env=ENV,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        lungmech("run", "slow.toml", "-o", "out", "-q", cwd=earlier),
+        cwd=earlier,
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     time.sleep(6.0)
     process.kill()
     process.wait(timeout=60)
     left = [p for p in earlier.iterdir() if ".lungmech-staging-" in p.name]
     assert len(left) == 1
-    done = subprocess.run(lungmech("run", "quick.toml", "-o", "out", "-q", cwd=earlier), cwd=earlier, env=ENV,
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        lungmech("run", "quick.toml", "-o", "out", "-q", cwd=earlier),
+        cwd=earlier,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0 and "removed" in done.stdout + done.stderr
     assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"]
 
@@ -112,8 +136,9 @@ def test_mpi_a_failure_ends_every_rank_with_one_line(tmp_path, args, message):
     (tmp_path / "quick.toml").write_text(QUICK)
     (tmp_path / "bad.toml").write_text(QUICK.replace("value = [0.0, 0.0, -10.0]", 'value = "abc"'))
     (tmp_path / "notes.txt").write_text("mine")
-    result = subprocess.run(lungmech(*args, ranks=2, cwd=tmp_path), cwd=tmp_path, env=ENV, capture_output=True,
-                            text=True, timeout=240)
+    result = subprocess.run(
+        lungmech(*args, ranks=2, cwd=tmp_path), cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=240
+    )
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "notes.txt", "quick.toml"]

@@ -2,18 +2,18 @@
 
 import numpy as np
 import pytest
+from fem import MESHES
 from mpi4py import MPI
 
-from fem import MESHES
-from lungmech.constraints import clamp
 from lungmech.errors import ParameterError, SolverError
-from lungmech.geometry import from_file
-from lungmech.gravity import Gravity
-from lungmech.inverse import InverseOptions, node_displacements, unloaded_reference
-from lungmech.loads import FollowerPressure
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.model import Model
+from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import Poromechanics, skeleton
-from lungmech.model import Model
-from lungmech.solver import Stepping, solve
+from lungmech.lung.gravity import Gravity
+from lungmech.lung.inverse import InverseOptions, node_displacements, unloaded_reference
+from lungmech.mesh import from_file
 
 SURROUNDING = ("pleura", "diaphragm", "mediastinum")
 

@@ -2,22 +2,22 @@
 
 import math
 
+import analytic as an
 import dolfinx.mesh
 import numpy as np
 import pytest
 from dolfinx import fem
 from mpi4py import MPI
 
-import analytic as an
 from lungmech import lung
-from lungmech.constraints import symmetry
 from lungmech.errors import ParameterError
-from lungmech.geometry import box
+from lungmech.fem.constraints import symmetry
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import deformed_volume
+from lungmech.fem.ramp import Ramp
+from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
-from lungmech.model import Model
-from lungmech.quantities import deformed_volume
-from lungmech.ramp import Ramp
-from lungmech.solver import Stepping, solve
+from lungmech.mesh import box
 
 PARAMS = an.LungParams()  # α = 0.16, γ = 0.5, c1 = 0.2, c2 = 0.4, κ = 100, Φs0 = 0.5
 
@@ -61,7 +61,11 @@ def test_skeleton_stress_balances_alveolar_pressure_along_a_ramp():
     model = unit_cube(0.8, ramp)
     volume = deformed_volume(model)
     curve = []
-    solve(model, Stepping(end=2.0, initial_step=0.2, max_step=0.2), on_step=lambda s: curve.append((0.8 * ramp(s.time), volume())))
+    solve(
+        model,
+        Stepping(end=2.0, initial_step=0.2, max_step=0.2),
+        on_step=lambda s: curve.append((0.8 * ramp(s.time), volume())),
+    )
     assert len(curve) >= 10
     for pressure, v in curve:
         assert v == pytest.approx(an.lung_inflation(pressure, PARAMS)["J"], rel=1e-10)
@@ -126,7 +130,9 @@ def test_heterogeneous_reference_fraction_from_a_function_and_from_a_file(tmp_pa
 
     # The same field from a file, one value per cell in the mesh's input order.
     mesh = model.geometry.mesh
-    midpoints = dolfinx.mesh.compute_midpoints(mesh, 3, np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32))
+    midpoints = dolfinx.mesh.compute_midpoints(
+        mesh, 3, np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
+    )
     values = np.empty(mesh.topology.index_map(3).size_global)
     values[mesh.topology.original_cell_index[: len(midpoints)]] = _solid_fraction(midpoints.T)
     np.save(tmp_path / "phi_s0.npy", values)
@@ -155,31 +161,40 @@ def test_bad_lung_parameters():
 
 
 def test_lung_scene_reproduces_the_closed_form(tmp_path):
-    from lungmech import scene as scenes
-    from lungmech.run import run
+    from lungmech.app import scene as scenes
+    from lungmech.app.run import run
 
-    scene = scenes.parse({
-        "geometry": {"builder": "box", "cells": [1, 1, 1]},
-        "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4},
-        "formulation": {"type": "poromechanics", "kappa": 100.0, "phi_s0": 0.5},
-        "constraints": [{"type": "symmetry", "boundary": b, "component": c} for b, c in (("x0", "x"), ("y0", "y"), ("z0", "z"))],
-        "loads": [{"type": "alveolar_pressure", "value": 0.5}],
-        "output": {"fields": False},
-    })
+    scene = scenes.parse(
+        {
+            "geometry": {"builder": "box", "cells": [1, 1, 1]},
+            "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4},
+            "formulation": {"type": "poromechanics", "kappa": 100.0, "phi_s0": 0.5},
+            "constraints": [
+                {"type": "symmetry", "boundary": b, "component": c} for b, c in (("x0", "x"), ("y0", "y"), ("z0", "z"))
+            ],
+            "loads": [{"type": "alveolar_pressure", "value": 0.5}],
+            "output": {"fields": False},
+        }
+    )
     summary = run(scene, tmp_path / "out")
     assert summary["deformed_volume"] == pytest.approx(an.lung_inflation(0.5, PARAMS)["J"], rel=1e-10)
     assert summary["formulation"] == "Poromechanics"
     assert (tmp_path / "out" / "pressure_volume.png").stat().st_size > 0
     last = (tmp_path / "out" / "history.csv").read_text().splitlines()
     header, row = last[0].split(","), dict(zip(last[0].split(","), last[-1].split(",")))
-    assert "phi_s [1]" in header and float(row["phi_s [1]"]) == pytest.approx(an.lung_inflation(0.5, PARAMS)["phi_s"], rel=1e-10)
+    assert "phi_s [1]" in header and float(row["phi_s [1]"]) == pytest.approx(
+        an.lung_inflation(0.5, PARAMS)["phi_s"], rel=1e-10
+    )
 
 
 def test_lung_scene_errors():
-    from lungmech import scene as scenes
+    from lungmech.app import scene as scenes
     from lungmech.errors import SceneError
 
-    base = {"geometry": {"builder": "box"}, "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4}}
+    base = {
+        "geometry": {"builder": "box"},
+        "material": {"law": "lung_skeleton", "alpha": 0.16, "gamma": 0.5, "c1": 0.2, "c2": 0.4},
+    }
     with pytest.raises(SceneError, match="formulation.type: unknown type 'poro'"):
         scenes.parse({**base, "formulation": {"type": "poro"}})
     with pytest.raises(SceneError, match="formulation: missing key"):

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech.constraints import clamp
 from lungmech.errors import ParameterError
-from lungmech.geometry import box
-from lungmech.materials import LinearElastic, NeoHookean
-from lungmech.modal import mass_matrix, modal_analysis
-from lungmech.model import Model
+from lungmech.fem.constraints import clamp
+from lungmech.fem.materials import LinearElastic, NeoHookean
+from lungmech.fem.modal import mass_matrix, modal_analysis
+from lungmech.fem.model import Model
+from lungmech.mesh import box
 
 BETA_L = np.array([1.8751040687, 4.6940911330])  # VERIFICATION.md, first two bending modes
 LENGTH, SIDE, E, RHO = 10.0, 0.5, 1.0, 1.0  # slenderness 20

@@ -7,18 +7,18 @@ import json
 
 import numpy as np
 import pytest
+from fem import inflated_sphere, mean_inner_radius
 from mpi4py import MPI
 
-from fem import inflated_sphere, mean_inner_radius
-from lungmech import scene as scenes
-from lungmech.constraints import clamp
-from lungmech.geometry import box
-from lungmech.loads import BodyForce, FollowerPressure, Traction
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import Probe, deformed_volume, strain_energy
-from lungmech.run import run
-from lungmech.solver import Stepping, solve
+from lungmech.app import scene as scenes
+from lungmech.app.run import run
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
+from lungmech.fem.solver import Stepping, solve
+from lungmech.mesh import box
 
 pytestmark = pytest.mark.mpi
 RTOL = 1e-10
@@ -95,8 +95,9 @@ def test_lung_model_same_on_all_ranks_as_on_one():
 
 
 def test_inverse_with_balanced_gravity_same_on_all_ranks_as_on_one():
-    from lungmech.inverse import unloaded_reference
     from test_inverse import end_expiration_lung
+
+    from lungmech.lung.inverse import unloaded_reference
 
     def reference(comm) -> tuple[float, float]:
         model = end_expiration_lung(comm)
@@ -108,8 +109,9 @@ def test_inverse_with_balanced_gravity_same_on_all_ranks_as_on_one():
 
 
 def test_modal_frequencies_same_on_all_ranks_as_on_one():
-    from lungmech.modal import modal_analysis
     from test_modal import cantilever
+
+    from lungmech.fem.modal import modal_analysis
 
     parallel = modal_analysis(cantilever(MPI.COMM_WORLD), 4).eigenvalues
     serial = modal_analysis(cantilever(MPI.COMM_SELF), 4).eigenvalues
@@ -117,7 +119,7 @@ def test_modal_frequencies_same_on_all_ranks_as_on_one():
 
 
 def test_dof_layout_is_the_same_on_all_ranks_as_on_one():
-    from lungmech.rom import layout
+    from lungmech.parallel.layout import layout
 
     def canonical(comm):
         model = Model(box(comm, cells=(3, 2, 2)), NeoHookean.from_young(1.0, 0.3), degree=2)
@@ -133,8 +135,9 @@ def test_dof_layout_is_the_same_on_all_ranks_as_on_one():
 
 def test_reduced_model_same_on_all_ranks_and_portable(tmp_path):
     """Built and solved on N ranks = built and solved on one; a file saved on N loads on one."""
-    from lungmech import rom
     from test_rom import STEPPING, TRAINING, beam, run
+
+    from lungmech import rom
 
     path = MPI.COMM_WORLD.bcast(str(tmp_path / "beam.npz"))
 
@@ -164,14 +167,20 @@ def _scene_folder(tmp_path):
 def test_a_failure_on_rank_0_is_raised_on_every_rank(tmp_path, monkeypatch):
     """Rank 0 alone writes the tables: its failure reaches every rank (no hang), the earlier
     result stays and the staging folder goes. A picture that cannot be drawn there is a warning."""
-    import lungmech.run
-    from lungmech import plot
+    import lungmech.app.run
+    from lungmech.app import plot
     from lungmech.errors import LungmechError
 
     comm = MPI.COMM_WORLD
     folder = _scene_folder(tmp_path)
-    scene = scenes.parse({**SCENE, "output": {"fields": False}, "formulation": {"degree": 1},
-                          "material": {"law": "neo_hookean", "E": 1.0e3, "nu": 0.3}})
+    scene = scenes.parse(
+        {
+            **SCENE,
+            "output": {"fields": False},
+            "formulation": {"degree": 1},
+            "material": {"law": "neo_hookean", "E": 1.0e3, "nu": 0.3},
+        }
+    )
     run(scene, folder / "out", comm)
     before = {p.name: p.read_bytes() for p in (folder / "out").iterdir()}
 
@@ -186,7 +195,7 @@ def test_a_failure_on_rank_0_is_raised_on_every_rank(tmp_path, monkeypatch):
     def full(*args, **kwargs):
         raise OSError(28, "No space left on device", "history.csv")
 
-    monkeypatch.setattr(lungmech.run, "_write_history", full)
+    monkeypatch.setattr(lungmech.app.run, "_write_history", full)
     with pytest.raises((OSError, LungmechError), match="No space left on device"):
         run(scene, folder / "out", comm)
     comm.Barrier()
@@ -195,7 +204,7 @@ def test_a_failure_on_rank_0_is_raised_on_every_rank(tmp_path, monkeypatch):
 
 
 def test_a_bad_mesh_read_on_rank_0_is_an_error_on_every_rank(tmp_path):
-    from lungmech import geometry
+    from lungmech import mesh as geometry
     from lungmech.errors import GeometryError
 
     comm = MPI.COMM_WORLD
@@ -212,8 +221,8 @@ def test_rigid_body_modes_are_rigid_on_every_partition():
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_matrix
 
-    from lungmech.materials import LinearElastic
-    from lungmech.solver import rigid_body_modes
+    from lungmech.fem.materials import LinearElastic
+    from lungmech.fem.solver import rigid_body_modes
 
     geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2), origin=(5.0, -2.0, 1.0))
     model = Model(geometry, LinearElastic.from_young(1.0, 0.3))

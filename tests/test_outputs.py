@@ -15,14 +15,13 @@ import meshio
 import numpy as np
 import pytest
 import pyvista
+from fem import TINY_SCENE
 from mpi4py import MPI
 
-from lungmech import destination
-from lungmech import scene as scenes
+from lungmech.app import scene as scenes
+from lungmech.app.run import run
 from lungmech.errors import OutputError
-from lungmech.run import run
-
-from fem import TINY_SCENE
+from lungmech.parallel import destination
 
 COMM = MPI.COMM_SELF
 TINY = {
@@ -49,8 +48,12 @@ def staging_marker(pid: int) -> dict:
 def test_folders_that_only_look_like_leftovers_are_never_touched(tmp_path, monkeypatch):
     """A user's folders named like staging or replaced results, without lungmech's marker, stay."""
     monkeypatch.chdir(tmp_path)
-    theirs = [".out.lungmech-staging-1-abcdef", ".out.lungmech-staging-notes-v2", ".out.lungmech-old-2020-backup",
-              ".out.lungmech-old-999999999-abcdef"]
+    theirs = [
+        ".out.lungmech-staging-1-abcdef",
+        ".out.lungmech-staging-notes-v2",
+        ".out.lungmech-old-2020-backup",
+        ".out.lungmech-old-999999999-abcdef",
+    ]
     for name in theirs:
         (tmp_path / name).mkdir()
         (tmp_path / name / "thesis.tex").write_text("years of work")
@@ -150,7 +153,9 @@ def test_staging_from_another_host_is_reported_not_removed(tmp_path, monkeypatch
     foreign = tmp_path / ".out.lungmech-staging-123-abc123"
     foreign.mkdir()
     (foreign / destination.MARKER).write_text(json.dumps(staging_marker(123) | {"host": "elsewhere.example"}))
-    with pytest.raises(OutputError, match="was left by a lungmech run on host elsewhere.example; remove it if that run"):
+    with pytest.raises(
+        OutputError, match="was left by a lungmech run on host elsewhere.example; remove it if that run"
+    ):
         write_result(tmp_path / "out", {"a.txt": "1"})
     assert foreign.is_dir()
 
@@ -232,8 +237,11 @@ def test_fields_open_in_pyvista_and_meshio_and_units_everywhere(tmp_path):
 
 
 def test_mixed_and_quadratic_fields_are_written(tmp_path):
-    table = {**TINY, "material": {"law": "neo_hookean", "E": 1e3, "nu": 0.45},
-             "formulation": {"type": "mixed", "degree": 2}}
+    table = {
+        **TINY,
+        "material": {"law": "neo_hookean", "E": 1e3, "nu": 0.45},
+        "formulation": {"type": "mixed", "degree": 2},
+    }
     summary = run(scenes.parse(table), tmp_path / "out", COMM)
     mesh = meshio.read(tmp_path / "out" / f"fields_{summary['steps']:06d}.vtu")
     assert mesh.cells[0].type == "tetra10" and "pressure" in mesh.point_data
@@ -243,8 +251,10 @@ def test_mixed_and_quadratic_fields_are_written(tmp_path):
 
 def test_provenance_hashes_the_scene_file(tmp_path):
     path = tmp_path / "scene.toml"
-    path.write_text('title = "x"\n[geometry]\nbuilder = "box"\ncells = [1, 1, 1]\n[material]\nlaw = "linear"\n'
-                    'E = 1.0\nnu = 0.3\n[[constraints]]\ntype = "clamp"\nboundary = "x0"\n[output]\nfields = false\n')
+    path.write_text(
+        'title = "x"\n[geometry]\nbuilder = "box"\ncells = [1, 1, 1]\n[material]\nlaw = "linear"\n'
+        'E = 1.0\nnu = 0.3\n[[constraints]]\ntype = "clamp"\nboundary = "x0"\n[output]\nfields = false\n'
+    )
     summary = run(scenes.load(path), tmp_path / "out", COMM)
     assert summary["provenance"]["scene_sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -267,7 +277,7 @@ class _Terminal:
 def test_progress_is_a_live_bar_on_a_terminal_and_lines_in_logs(tty, monkeypatch):
     import logging
 
-    from lungmech.console import Progress
+    from lungmech.app.console import Progress
 
     monkeypatch.delenv("CI", raising=False)
     monkeypatch.setenv("TERM", "xterm")
@@ -295,8 +305,13 @@ def test_a_mount_point_can_be_the_output_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     mount = tmp_path / "mnt"
     mount.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
-                                           capture_output=True).returncode != 0:
+    if (
+        os.geteuid() != 0
+        or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)], capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("mounting a tmpfs needs root")
     try:
         write_result(mount, {"a.txt": "1"})
@@ -316,7 +331,7 @@ def test_a_failed_job_removes_the_folders_it_made(tmp_path, monkeypatch):
 
 
 def test_a_metaimage_moves_with_its_data(tmp_path, monkeypatch):
-    from lungmech.cli import main
+    from lungmech.app.cli import main
     from lungmech.registration import image
 
     monkeypatch.chdir(tmp_path)
@@ -329,8 +344,8 @@ def test_a_metaimage_moves_with_its_data(tmp_path, monkeypatch):
 
 def test_a_picture_that_cannot_be_drawn_is_a_warning(tmp_path, monkeypatch, capsys):
     """No off-screen rendering here, say: the run keeps its results, says what is missing, exits 0."""
-    from lungmech import plot
-    from lungmech.cli import main
+    from lungmech.app import plot
+    from lungmech.app.cli import main
 
     def broken(*args, **kwargs):
         raise RuntimeError("cannot open an off-screen window")

@@ -3,19 +3,17 @@
 import math
 from dataclasses import replace
 
-import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
-
-from mpi4py import MPI
-
 import numpy as np
 import pytest
+from fem import MESHES
+from mpi4py import MPI
 from scipy.spatial.transform import Rotation
 
+import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
 from lungmech.errors import GeometryError, ParameterError
-from lungmech.geometry import from_file, lung_phantom
-from lungmech.lung_shape import LungShape
+from lungmech.mesh import from_file, lung_phantom
+from lungmech.mesh.lung_shape import LungShape
 from lungmech.registration.phantom import LATENT, cohort, voxelise
-from fem import MESHES
 
 # Volumes by adaptive quadrature (QUADPACK over z, relative tolerance 1e-10, of the slice area
 # from a 10^5-point midpoint rule in x, itself checked against QUADPACK to 1e-9).
@@ -118,8 +116,16 @@ def test_rigid_motion_moves_the_voxels():
 
 
 def test_bad_input_is_refused():
-    for bad in ({"side": "middle"}, {"height": -0.1}, {"width": math.nan}, {"apex": 0.6}, {"dome": 0.0},
-                {"mediastinal": 0.1}, {"notch": 0.7}, {"notch": -0.1}):
+    for bad in (
+        {"side": "middle"},
+        {"height": -0.1},
+        {"width": math.nan},
+        {"apex": 0.6},
+        {"dome": 0.0},
+        {"mediastinal": 0.1},
+        {"notch": 0.7},
+        {"notch": -0.1},
+    ):
         with pytest.raises(GeometryError):
             LungShape(**bad)
     with pytest.raises(GeometryError, match="side"):
@@ -139,8 +145,14 @@ def test_bad_input_is_refused():
     with pytest.raises(ParameterError, match="offset"):
         voxelise(LungShape(), offset=(0.0, 0.0))
 
-    for bad in ({"size": 0}, {"latent": 0}, {"latent": 6}, {"spread": -1.0}, {"tilt": math.inf},
-                {"side": "right", "base": LungShape(side="left")}):
+    for bad in (
+        {"size": 0},
+        {"latent": 0},
+        {"latent": 6},
+        {"spread": -1.0},
+        {"tilt": math.inf},
+        {"side": "right", "base": LungShape(side="left")},
+    ):
         with pytest.raises(ParameterError):
             cohort(**{"size": 3} | bad)
 

@@ -7,11 +7,12 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from lungmech import geometry, meshes
+from lungmech import mesh as geometry
+from lungmech import meshes
 from lungmech.errors import ParameterError, RegistrationError
+from lungmech.mesh.nodes import deformed
 from lungmech.registration import align, field, metrics
 from lungmech.registration.image import from_array
-from lungmech.registration.nodes import deformed
 from lungmech.registration.sobolev import Options, ShapeEnergy, register
 
 
@@ -230,14 +231,18 @@ def test_registration_options_are_checked():
 
 # --- lung phantoms ---------------------------------------------------------------------------
 
-from lungmech.lung_shape import LungShape  # noqa: E402
+from lungmech.mesh.lung_shape import LungShape  # noqa: E402
 from lungmech.registration import phantom  # noqa: E402
 from lungmech.registration.library import mapping_library  # noqa: E402
 
 PHANTOMS = {  # reference mesh, target shape, voxel size, pose
     "taller, narrower right lung": ("right", LungShape(height=0.27, width=0.10, depth=0.15, apex=0.27), 0.0025),
     "smaller right lung, higher dome": ("right", LungShape(height=0.20, width=0.10, depth=0.15, dome=0.23), 0.0015),
-    "broad left lung, small notch": ("left", LungShape(side="left", width=0.12, depth=0.18, notch=0.35, mediastinal=0.38), 0.002),
+    "broad left lung, small notch": (
+        "left",
+        LungShape(side="left", width=0.12, depth=0.18, notch=0.35, mediastinal=0.38),
+        0.002,
+    ),
 }
 
 
@@ -274,7 +279,7 @@ def test_registration_is_the_same_on_any_number_of_ranks():
     """1 and N ranks give the same registered shape and metrics. Node by node the mappings agree
     to a fraction of a voxel only: partitions differ in round-off, and where the energy is flat
     (nodes sliding along the surface) the descent's step decisions amplify it."""
-    from lungmech.registration import nodes
+    from lungmech.mesh import nodes
 
     h = 0.0025
     image = ellipsoid_image([0.06, 0.045, 0.08], h, align.Similarity(1.0, np.eye(3), np.array([0.01, 0, 0])))

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech import geometry, meshes
-from lungmech.cli import main
-from lungmech.lung_shape import LungShape
+from lungmech import mesh as geometry
+from lungmech import meshes
+from lungmech.app.cli import main
+from lungmech.mesh.lung_shape import LungShape
 from lungmech.registration import image
 
 REFERENCE = str(meshes.reference("lung_phantom_right"))
@@ -81,7 +82,9 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
             n = 40
             x = (np.indices((n, n, n)).reshape(3, -1).T - n / 2) * h
             mask = (np.sum((x / axes) ** 2, axis=1) < 1).reshape(n, n, n)
-            image.write(image.from_array(mask, spacing=(h,) * 3, origin=(-n / 2 * h,) * 3), folder / "images" / f"e{j}.npz")
+            image.write(
+                image.from_array(mask, spacing=(h,) * 3, origin=(-n / 2 * h,) * 3), folder / "images" / f"e{j}.npz"
+            )
     comm.Barrier()
     out = folder / "modes"
     assert main(["shape-modes", str(folder / "images"), "--reference", str(reference), "-o", str(out), "-q"]) == 0
@@ -89,7 +92,9 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
     assert report["images"] == 3 and report["worst"]["dice"] >= 0.97
     assert (out / "singular_values.png").stat().st_size > 10_000
     new = folder / "new.xdmf"
-    assert main(["shape", str(out / "shape_modes.npz"), "--reference", str(reference), "-c", "1,-1", "-o", str(new)]) == 0
+    assert (
+        main(["shape", str(out / "shape_modes.npz"), "--reference", str(reference), "-c", "1,-1", "-o", str(new)]) == 0
+    )
     assert geometry.from_file(new, comm).volume() > 0
 
 

@@ -7,7 +7,7 @@ import pytest
 from mpi4py import MPI
 
 from lungmech.errors import RegistrationError
-from lungmech.geometry import box, sphere
+from lungmech.mesh import box, sphere
 from lungmech.registration.image import Image, from_array
 from lungmech.registration.metrics import dice, report, surface_distances, voxelise
 

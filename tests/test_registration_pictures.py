@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from lungmech.errors import RegistrationError
-from lungmech.geometry import sphere
+from lungmech.mesh import sphere
 from lungmech.registration.image import from_array
 from lungmech.registration.metrics import boundary_triangles
 from lungmech.registration.pictures import (

@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech.constraints import clamp
 from lungmech.errors import ParameterError
-from lungmech.geometry import box, sphere
-from lungmech.loads import Traction
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import Traction
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import reaction
+from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import Poromechanics, skeleton
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import reaction
-from lungmech.solver import Stepping, solve
+from lungmech.mesh import box, sphere
 
 COMM = MPI.COMM_SELF
 PULL = np.array([0.3, -0.2, -1.0])  # traction on x1 (unit area), Pa
@@ -25,10 +25,21 @@ PULL = np.array([0.3, -0.2, -1.0])  # traction on x1 (unit area), Pa
     "make",
     [
         lambda g: Model(g, NeoHookean.from_young(1e3, 0.3), constraints=[clamp("x0")], loads=[Traction("x1", PULL)]),
-        lambda g: Model(g, NeoHookean.from_young(1e3, 0.45), degree=2, mixed=True, constraints=[clamp("x0")],
-                        loads=[Traction("x1", PULL)]),
-        lambda g: Model(g, skeleton(160.0, 0.5, 200.0, 400.0), formulation=Poromechanics(1e4, 0.3),
-                        constraints=[clamp("x0")], loads=[Traction("x1", PULL)]),
+        lambda g: Model(
+            g,
+            NeoHookean.from_young(1e3, 0.45),
+            degree=2,
+            mixed=True,
+            constraints=[clamp("x0")],
+            loads=[Traction("x1", PULL)],
+        ),
+        lambda g: Model(
+            g,
+            skeleton(160.0, 0.5, 200.0, 400.0),
+            formulation=Poromechanics(1e4, 0.3),
+            constraints=[clamp("x0")],
+            loads=[Traction("x1", PULL)],
+        ),
     ],
     ids=["displacement", "mixed", "poromechanics"],
 )

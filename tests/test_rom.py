@@ -7,15 +7,17 @@ from dolfinx.fem.petsc import assemble_matrix
 from mpi4py import MPI
 
 from lungmech import rom
-from lungmech.constraints import clamp
 from lungmech.errors import ModelFileError, ParameterError
-from lungmech.geometry import box
-from lungmech.loads import BodyForce, FollowerPressure
-from lungmech.materials import LinearElastic, NeoHookean, SaintVenantKirchhoff
-from lungmech.modal import modal_analysis
-from lungmech.model import Model
-from lungmech.rom.basis import Basis, apply, gram
-from lungmech.solver import NewtonSolver, Stepping, solve
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import BodyForce, FollowerPressure
+from lungmech.fem.materials import LinearElastic, NeoHookean, SaintVenantKirchhoff
+from lungmech.fem.modal import modal_analysis
+from lungmech.fem.model import Model
+from lungmech.fem.solver import NewtonSolver, Stepping, solve
+from lungmech.mesh import box
+from lungmech.parallel.layout import layout
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import Basis
 
 STEPPING = Stepping(initial_step=0.25, max_step=0.25)
 TRAINING = (0.5, 1.0, 1.5)
@@ -92,7 +94,7 @@ def test_complete_basis_gives_the_full_solution():
         dofs, _ = bc.dof_indices()
         free[dofs[dofs < n]] = False
     vectors = np.eye(n)[:, free]
-    basis = Basis(vectors, np.ones(free.sum()), "identity", "l2", rom.layout(model.space).fingerprint)
+    basis = Basis(vectors, np.ones(free.sum()), "identity", "l2", layout(model.space).fingerprint)
     reduced = run(model, rom.ReducedSolver(model, basis), 1.3)
     assert np.abs(reduced - full).max() <= 1e-9 * np.abs(full).max()
 
@@ -190,7 +192,9 @@ def test_save_load_round_trip_and_mesh_check(trained, tmp_path):
     loaded, extra, arrays = rom.load(path, model)
     assert np.array_equal(loaded.vectors, basis.vectors) and np.array_equal(loaded.values, basis.values)
     assert (loaded.kind, loaded.inner_product, loaded.fingerprint) == ("pod", "energy", basis.fingerprint)
-    assert loaded.source == basis.source and extra == {"note": "test"} and np.array_equal(arrays["start"], np.arange(3.0))
+    assert (
+        loaded.source == basis.source and extra == {"note": "test"} and np.array_equal(arrays["start"], np.arange(3.0))
+    )
     with pytest.raises(ModelFileError, match="another mesh"):
         rom.load(path, beam(cells=(8, 2, 1)))
     moved = beam()

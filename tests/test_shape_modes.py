@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech import geometry, meshes
+from lungmech import mesh as geometry
+from lungmech import meshes
 from lungmech.errors import RegistrationError
-from lungmech.registration import align, nodes
+from lungmech.mesh import nodes
+from lungmech.registration import align
 from lungmech.registration.library import Library, ShapeModes, leave_one_out
 
 LUNG = meshes.reference("lung_phantom_right")
@@ -48,7 +50,9 @@ def _library(reference, latent, similarities):
 def _similarities(count, seed):
     rng = np.random.default_rng(seed)
     return [
-        align.Similarity(rng.uniform(0.8, 1.2), _rotation(rng.normal(size=3), rng.uniform(0, 15)), rng.normal(0, 0.02, 3))
+        align.Similarity(
+            rng.uniform(0.8, 1.2), _rotation(rng.normal(size=3), rng.uniform(0, 15)), rng.normal(0, 0.02, 3)
+        )
         for _ in range(count)
     ]
 
@@ -110,8 +114,8 @@ def test_shape_modes_round_trip_and_refuse_another_mesh(reference, tmp_path):
 
 
 def test_a_shape_from_coefficients_is_a_geometry_a_scene_runs_on(reference, tmp_path):
-    from lungmech import scene as scenes
-    from lungmech.run import run
+    from lungmech.app import scene as scenes
+    from lungmech.app.run import run
 
     latent = np.random.default_rng(7).normal(size=(5, 2))
     modes = _library(reference, latent, _similarities(5, 8)).modes()

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from lungmech.constraints import clamp
 from lungmech.errors import ParameterError, SolverError
-from lungmech.geometry import box
-from lungmech.loads import BodyForce, FollowerPressure, Traction
-from lungmech.materials import NeoHookean, SaintVenantKirchhoff
-from lungmech.model import Model
-from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
+from lungmech.fem.materials import NeoHookean, SaintVenantKirchhoff
+from lungmech.fem.model import Model
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.mesh import box
 
 
 def bent_block(loads_scale: float = 1.0) -> Model:
@@ -74,11 +74,13 @@ def test_iterative_solver_matches_direct():
     direct, iterative = bent_block(), bent_block()
     solve(direct)
     solve(iterative, options=NewtonOptions(linear_solver="iterative"))
-    assert np.allclose(iterative.state.x.array, direct.state.x.array, rtol=0, atol=1e-8 * np.abs(direct.state.x.array).max())
+    assert np.allclose(
+        iterative.state.x.array, direct.state.x.array, rtol=0, atol=1e-8 * np.abs(direct.state.x.array).max()
+    )
 
 
 def test_iterative_solver_refuses_mixed():
-    from lungmech.geometry import box as make_box
+    from lungmech.mesh import box as make_box
 
     model = Model(make_box(MPI.COMM_WORLD, cells=(1, 1, 1)), NeoHookean(1.0, 100.0), degree=2, mixed=True)
     with pytest.raises(ParameterError, match="iterative"):
@@ -94,7 +96,7 @@ def test_bad_solver_options():
 
 def test_petsc_options_of_the_user_only_are_checked():
     """Choosing another SNES type leaves lungmech's line-search default unused: not an error."""
-    from lungmech.solver import NewtonOptions, NewtonSolver
+    from lungmech.fem.solver import NewtonOptions, NewtonSolver
 
     geometry = box(MPI.COMM_WORLD, cells=(1, 1, 1))
     model = Model(geometry, SaintVenantKirchhoff.from_young(1.0, 0.3), constraints=[clamp("x0")])

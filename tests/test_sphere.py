@@ -1,12 +1,12 @@
 """Thick-walled sphere under internal pressure: incompressible neo-Hookean, Taylor–Hood P2–P1,
 against the closed form (VERIFICATION.md), with a follower pressure on curved quadratic cells."""
 
+import analytic as A
 import pytest
+from fem import inflated_sphere, mean_inner_radius
 from mpi4py import MPI
 
-import analytic as A
-from fem import inflated_sphere, mean_inner_radius
-from lungmech.solver import Stepping
+from lungmech.fem.solver import Stepping
 
 P = 0.2871548459  # gives λ_a = 1.1 for A = 1, B = 2, μ = 1
 

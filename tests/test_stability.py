@@ -3,18 +3,18 @@ strains; and volumetric locking of P1 with its two cures, P2 and the mixed formu
 
 import itertools
 
+import analytic as A
 import pytest
+from fem import lateral_stretch, mean_cauchy, uniaxial
 from mpi4py import MPI
 
-import analytic as A
-from fem import lateral_stretch, mean_cauchy, uniaxial
-from lungmech.constraints import clamp
-from lungmech.geometry import box
-from lungmech.loads import Traction
-from lungmech.materials import NeoHookean
-from lungmech.model import Model
-from lungmech.quantities import integral
-from lungmech.solver import NewtonOptions, Stepping, solve
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import Traction
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import integral
+from lungmech.fem.solver import NewtonOptions, Stepping, solve
+from lungmech.mesh import box
 
 CASES = list(itertools.product([0.3, 0.49, 0.499, 0.4999], [1.0, 1e3, 1e9], [0.3, 3.0]))
 

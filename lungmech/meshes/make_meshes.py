@@ -5,11 +5,10 @@ Gmsh runs single-threaded with a fixed seed, so the files come out the same on e
 
 from pathlib import Path
 
-import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
-
 from mpi4py import MPI
 
-from lungmech.geometry import lung_phantom, sphere
+import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
+from lungmech.mesh import lung_phantom, sphere
 
 HERE = Path(__file__).resolve().parent
 

@@ -60,7 +60,9 @@ def mesh_moments(mesh) -> Moments:
     # ∫ x dx = V mean(vertices); ∫ x xᵀ dx = V/20 (Σ x_i x_iᵀ + (Σ x_i)(Σ x_i)ᵀ)
     total = x.sum(axis=1)
     first = (volume[:, None] * total / 4.0).sum(axis=0)
-    second = np.einsum("c,cij->ij", volume / 20.0, np.einsum("cvi,cvj->cij", x, x) + np.einsum("ci,cj->cij", total, total))
+    second = np.einsum(
+        "c,cij->ij", volume / 20.0, np.einsum("cvi,cvj->cij", x, x) + np.einsum("ci,cj->cij", total, total)
+    )
     sums = np.concatenate([[volume.sum()], first, second.ravel()])
     mesh.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     return _moments(sums[0], sums[1:4], sums[4:].reshape(3, 3))

@@ -125,9 +125,11 @@ def _trilinear(values: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.nd
     value = c0 + tz * (c1 - c0)
     dx0 = (c[1, 0, 0] - c[0, 0, 0]) + ty * ((c[1, 1, 0] - c[0, 1, 0]) - (c[1, 0, 0] - c[0, 0, 0]))
     dx1 = (c[1, 0, 1] - c[0, 0, 1]) + ty * ((c[1, 1, 1] - c[0, 1, 1]) - (c[1, 0, 1] - c[0, 0, 1]))
-    gradient = np.column_stack([
-        (dx0 + tz * (dx1 - dx0)) * di,
-        ((c10 - c00) + tz * ((c11 - c01) - (c10 - c00))) * dj,
-        (c1 - c0) * dk,
-    ])
+    gradient = np.column_stack(
+        [
+            (dx0 + tz * (dx1 - dx0)) * di,
+            ((c10 - c00) + tz * ((c11 - c01) - (c10 - c00))) * dj,
+            (c1 - c0) * dk,
+        ]
+    )
     return value, gradient

@@ -415,7 +415,9 @@ def _binary(data: npt.NDArray[Any], label: int | None, what: str) -> npt.NDArray
     else:
         mask = data != 0
         if not (data[mask] == 1).all():
-            raise ImageError(f"{what} is not binary (its labels are {_labels(data)}); choose one with --label (label= in Python)")
+            raise ImageError(
+                f"{what} is not binary (its labels are {_labels(data)}); choose one with --label (label= in Python)"
+            )
     if not mask.any():
         raise ImageError(f"{what} is empty (shape {data.shape}): no voxel is set")
     return mask

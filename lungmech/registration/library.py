@@ -2,7 +2,7 @@
 
 Every mapping φ_j = Id + u_j of the reference Ω (one per patient, from :func:`register`) is
 written in one node order (the canonical, partition-independent order of
-:mod:`lungmech.rom.layout`). The similarity part of each mapping (position, orientation, size)
+:mod:`lungmech.parallel.layout`). The similarity part of each mapping (position, orientation, size)
 is removed by composition, φ̃_j = S_j⁻¹ ∘ φ_j with S_j its mass-weighted Procrustes fit; the rest
 is centred on the sample mean and reduced by a POD in the mass inner product
 (u, v)_M = (1/|Ω|) ∫_Ω u·v dX with lumped nodal masses, so that norms read as RMS displacements
@@ -22,8 +22,10 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError, RegistrationError
-from lungmech.geometry import Geometry
-from lungmech.registration import align, metrics, nodes
+from lungmech.mesh import nodes
+from lungmech.mesh.geometry import Geometry
+from lungmech.parallel import linalg
+from lungmech.registration import align, metrics
 from lungmech.registration.align import procrustes
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
@@ -78,9 +80,14 @@ def mapping_library(mesh, images: Mapping[str, Image], options: Options = Option
         result = register(mesh, image, options)
         with nodes.deformed(result.displacement) as mapped:
             report = {"name": name} | metrics.report(mapped, image) | result.summary()
-        log.info("%s: Dice %.4f, mean surface distance %.2f voxels, min det F %.3f, %d iterations",
-                 name, report["dice"], report["mean_surface_distance_voxels"], report["min_det_F"],
-                 report["iterations"])
+        log.info(
+            "%s: Dice %.4f, mean surface distance %.2f voxels, min det F %.3f, %d iterations",
+            name,
+            report["dice"],
+            report["mean_surface_distance_voxels"],
+            report["min_det_F"],
+            report["iterations"],
+        )
         displacements.append(nodes.gather(result.displacement, where))
         reports.append(report)
     return Library(tuple(images), reference, weights, np.array(displacements), where.fingerprint, tuple(reports))
@@ -122,7 +129,9 @@ class ShapeModes:
         shapes = {"weights": (n,), "mean": (n, 3), "modes": (m, n, 3), "coefficients": (len(self.names), m)}
         for name, shape in shapes.items():
             if np.shape(getattr(self, name)) != shape:
-                raise RegistrationError(f"shape modes: '{name}' has shape {np.shape(getattr(self, name))}, expected {shape}")
+                raise RegistrationError(
+                    f"shape modes: '{name}' has shape {np.shape(getattr(self, name))}, expected {shape}"
+                )
 
     @property
     def deviations(self) -> np.ndarray:
@@ -173,8 +182,14 @@ class ShapeModes:
         path.parent.mkdir(parents=True, exist_ok=True)
         metadata = {"format": FORMAT, "fingerprint": self.fingerprint, "names": list(self.names)}
         np.savez(
-            path, reference=self.reference, weights=self.weights, mean=self.mean, modes=self.modes,
-            singular_values=self.singular_values, coefficients=self.coefficients, metadata=json.dumps(metadata),
+            path,
+            reference=self.reference,
+            weights=self.weights,
+            mean=self.mean,
+            modes=self.modes,
+            singular_values=self.singular_values,
+            coefficients=self.coefficients,
+            metadata=json.dumps(metadata),
         )
 
     @classmethod
@@ -185,7 +200,9 @@ class ShapeModes:
         try:
             with np.load(path, allow_pickle=False) as data:
                 metadata = json.loads(str(data["metadata"]))
-                arrays = {k: data[k] for k in ("reference", "weights", "mean", "modes", "singular_values", "coefficients")}
+                arrays = {
+                    k: data[k] for k in ("reference", "weights", "mean", "modes", "singular_values", "coefficients")
+                }
             if metadata["format"] != FORMAT:
                 raise ValueError(f"format {metadata['format']!r}")
             modes = cls(**arrays, fingerprint=str(metadata["fingerprint"]), names=tuple(metadata["names"]))
@@ -213,16 +230,14 @@ def shape_modes(
 
 
 def _pod(centred: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """M-orthonormal modes, singular values and coefficients (N, m) of centred samples (N, n, 3).
-
-    Directions with σ below 1e-10 σ₁ are round-off (a centred library has rank N − 1 at most).
-    """
-    root = np.sqrt(weights)[None, :, None]
-    matrix = (centred * root).reshape(len(centred), -1)  # rows: samples in the M-weighted basis
-    left, singular, right = np.linalg.svd(matrix, full_matrices=False)
-    keep = singular > 1e-10 * singular[0] if singular[0] > 0 else np.zeros(len(singular), bool)
-    modes = right[keep].reshape(-1, *centred.shape[1:]) / root
-    return modes, singular[keep], left[:, keep] * singular[keep]
+    """M-orthonormal modes (m, n, 3), singular values and coefficients (N, m) of centred samples
+    (N, n, 3), by the one POD of :mod:`lungmech.parallel.linalg` (the library is replicated on every
+    rank: no communication). A centred library has rank N − 1 at most; the rest is round-off."""
+    mass = np.repeat(weights, centred.shape[2])  # M on the flattened (node, component) rows
+    columns = centred.reshape(len(centred), -1).T
+    decomposition = linalg.pod(columns, lambda V: mass[:, None] * V, MPI.COMM_SELF)
+    modes = decomposition.modes.T.reshape(-1, *centred.shape[1:])
+    return modes, decomposition.values, decomposition.coefficients
 
 
 def leave_one_out(displacements: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:

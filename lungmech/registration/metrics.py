@@ -20,15 +20,14 @@ from __future__ import annotations
 import itertools
 import math
 
-from mpi4py import MPI
-
-import numpy as np
-import numpy.typing as npt
-from scipy.spatial import cKDTree
-
 import dolfinx
 import dolfinx.geometry
 import dolfinx.mesh
+import numpy as np
+import numpy.typing as npt
+from mpi4py import MPI
+from scipy.spatial import cKDTree
+
 from lungmech.errors import RegistrationError
 from lungmech.registration.image import Image
 
@@ -297,9 +296,7 @@ def _centroids(k: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]
     return s, t
 
 
-def _weighted_percentile(
-    values: npt.NDArray[np.float64], weights: npt.NDArray[np.float64], q: float
-) -> float:
+def _weighted_percentile(values: npt.NDArray[np.float64], weights: npt.NDArray[np.float64], q: float) -> float:
     """The smallest value below which lies at least q % of the total weight."""
     order = np.argsort(values, kind="stable")
     cumulative = np.cumsum(weights[order])

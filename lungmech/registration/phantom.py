@@ -1,6 +1,6 @@
 """Synthetic lung images with exact ground truth, for testing shape registration.
 
-:func:`voxelise` samples a :class:`~lungmech.lung_shape.LungShape` (optionally moved rigidly) on a
+:func:`voxelise` samples a :class:`~lungmech.mesh.lung_shape.LungShape` (optionally moved rigidly) on a
 CT-like voxel grid, and :func:`cohort` makes a population of lungs whose shapes differ along a
 few named latent parameters, so that a registration or shape-mode pipeline can be checked
 against the answer it should find. The latent parameters are genuine shape changes, never
@@ -21,7 +21,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from lungmech.errors import ParameterError
-from lungmech.lung_shape import LungShape
+from lungmech.mesh.lung_shape import LungShape
 from lungmech.registration.image import Image, from_array
 
 __all__ = ["LATENT", "Cohort", "cohort", "voxelise"]
@@ -62,8 +62,10 @@ def voxelise(
     first = np.floor((corners.min(axis=0) - margin) / step) - 1
     n = (np.ceil((corners.max(axis=0) + margin) / step) + 1 - first).astype(int)
     if np.prod(n.astype(float)) > MAX_VOXELS:
-        raise ParameterError(f"a grid of {n[0]} x {n[1]} x {n[2]} voxels at spacing {np.round(1e3 * step, 6).tolist()} mm "
-                             f"is more than {MAX_VOXELS:.0e} voxels; use a coarser spacing")
+        raise ParameterError(
+            f"a grid of {n[0]} x {n[1]} x {n[2]} voxels at spacing {np.round(1e3 * step, 6).tolist()} mm "
+            f"is more than {MAX_VOXELS:.0e} voxels; use a coarser spacing"
+        )
     origin = (first + 0.5) * step
     # Voxel centres in the shape's own frame, x = R^T (p - t) = sum over axes d of (p_d - t_d) R[d],
     # one term per grid axis, so that they add up by broadcasting.
@@ -120,13 +122,15 @@ def _stretch(height: float, width: float, depth: float) -> Callable[[LungShape, 
 # transforms. Amplitudes for the default lung: elongation +12 mm height (-3 mm width, -4 mm
 # depth), dome peak +7 mm, apex (equator) +10 mm, aspect +9 mm depth (-5 mm width),
 # mediastinal +5 mm in the body's x semi-axis (a broader medial face).
-LATENT: Mapping[str, tuple[float, Callable[[LungShape, float], LungShape]]] = MappingProxyType({
-    "elongation": (0.05, _stretch(1.0, -0.5, -0.5)),  # height up, width and depth down, H W D fixed
-    "dome": (0.03, _fraction("dome")),  # diaphragm dome height, fraction of the height
-    "apex": (0.04, _fraction("apex")),  # equator height: the apex taper
-    "aspect": (0.1, _stretch(0.0, -0.5, 0.5)),  # depth / width ratio, W D fixed
-    "mediastinal": (0.04, _fraction("mediastinal")),  # mediastinal flattening
-})
+LATENT: Mapping[str, tuple[float, Callable[[LungShape, float], LungShape]]] = MappingProxyType(
+    {
+        "elongation": (0.05, _stretch(1.0, -0.5, -0.5)),  # height up, width and depth down, H W D fixed
+        "dome": (0.03, _fraction("dome")),  # diaphragm dome height, fraction of the height
+        "apex": (0.04, _fraction("apex")),  # equator height: the apex taper
+        "aspect": (0.1, _stretch(0.0, -0.5, 0.5)),  # depth / width ratio, W D fixed
+        "mediastinal": (0.04, _fraction("mediastinal")),  # mediastinal flattening
+    }
+)
 _TRUNCATE = 3.0  # latent draws are cut at +-3 standard deviations: no freak shapes
 
 

@@ -41,9 +41,7 @@ _REFERENCE_COLOUR = "tab:blue"
 _AXES = "ijk"
 
 
-def plane_section(
-    triangles: npt.ArrayLike, normal: npt.ArrayLike, offset: float
-) -> list[npt.NDArray[np.float64]]:
+def plane_section(triangles: npt.ArrayLike, normal: npt.ArrayLike, offset: float) -> list[npt.NDArray[np.float64]]:
     """Where a triangulated surface crosses the plane ``normal · x = offset``.
 
     Args:
@@ -201,9 +199,7 @@ def shape_spectrum(
     _save(fig, path)
 
 
-def surface_sections(
-    surfaces: dict[str, npt.ArrayLike], path: str | Path, *, title: str = ""
-) -> None:
+def surface_sections(surfaces: dict[str, npt.ArrayLike], path: str | Path, *, title: str = "") -> None:
     """A PNG of surfaces (label -> triangles (n, 3, 3), metres) cut by the planes x, y and z =
     const through the first surface's centroid, e.g. a mean shape and its modes (one rank)."""
     if not surfaces:
@@ -224,8 +220,10 @@ def surface_sections(
         ax.set_title(f"{'xyz'[normal_axis]} = {1e3 * centre[normal_axis]:.0f} mm")
         ax.set_xlabel(f"{'xyz'[p]} (mm)")
         ax.set_ylabel(f"{'xyz'[q]} (mm)")
-    handles = [Line2D([], [], color=c, linestyle="-" if i == 0 else "--", label=label)
-               for i, (label, c) in enumerate(zip(meshes, colours))]
+    handles = [
+        Line2D([], [], color=c, linestyle="-" if i == 0 else "--", label=label)
+        for i, (label, c) in enumerate(zip(meshes, colours))
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False)
     if title:
         fig.suptitle(title)
@@ -258,9 +256,7 @@ def _chains(links: npt.NDArray[np.intp], n: int) -> list[list[int]]:
     return chains
 
 
-def _frame(
-    ax: plt.Axes, points: npt.NDArray[np.float64], lower: npt.ArrayLike, upper: npt.ArrayLike
-) -> None:
+def _frame(ax: plt.Axes, points: npt.NDArray[np.float64], lower: npt.ArrayLike, upper: npt.ArrayLike) -> None:
     """Limits around ``points`` (mm) with a margin, within the image; equal scales."""
     low, high = points.min(axis=0), points.max(axis=0)
     margin = 0.08 * (high - low).max() + 1e-9

@@ -50,7 +50,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError, RegistrationError
-from lungmech.geometry import diameter
+from lungmech.mesh import diameter
 from lungmech.registration import field as image_field
 from lungmech.registration.align import Similarity, moments_fit
 from lungmech.registration.image import Image
@@ -146,8 +146,12 @@ class Registration:
 
     def summary(self) -> dict:
         return {
-            "psi": self.psi, "min_det_F": self.min_jacobian, "iterations": self.iterations,
-            "seconds": self.seconds, "converged": self.converged, "stages": self.stages,
+            "psi": self.psi,
+            "min_det_F": self.min_jacobian,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "converged": self.converged,
+            "stages": self.stages,
             "initial_similarity": self.similarity.as_dict(),
         }
 
@@ -174,15 +178,27 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
             energy.use(build(image, smoothing), options.regularisation * scale)
             stage = _descend(energy, options, voxel, image.volume * scale, history)
             stages.append({"smoothing": smoothing} | stage)
-            log.info("registration stage (smoothing %g voxels): %d iterations, %s, min det F %.3f",
-                     smoothing, stage["iterations"], stage["reason"], stage["min_det_F"])
+            log.info(
+                "registration stage (smoothing %g voxels): %d iterations, %s, min det F %.3f",
+                smoothing,
+                stage["iterations"],
+                stage["reason"],
+                stage["min_det_F"],
+            )
         psi = energy.value()
         jacobian = energy.min_jacobian()
     finally:
         energy.destroy()
     return Registration(
-        u, similarity, psi, jacobian, sum(s["iterations"] for s in stages), time.perf_counter() - start,
-        all(s["converged"] for s in stages), stages, history,
+        u,
+        similarity,
+        psi,
+        jacobian,
+        sum(s["iterations"] for s in stages),
+        time.perf_counter() - start,
+        all(s["converged"] for s in stages),
+        stages,
+        history,
     )
 
 
@@ -252,8 +268,11 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
             reason = "stagnation"
             break
     return {
-        "iterations": iterations, "reason": reason, "converged": reason in ("step", "stagnation", "stationary"),
-        "psi": psi, "min_det_F": energy.min_jacobian(),
+        "iterations": iterations,
+        "reason": reason,
+        "converged": reason in ("step", "stagnation", "stationary"),
+        "psi": psi,
+        "min_det_F": energy.min_jacobian(),
     }
 
 

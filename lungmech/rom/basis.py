@@ -15,10 +15,10 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
+from lungmech.parallel.linalg import gram_schmidt
 
 INNER_PRODUCTS = ("l2", "mass", "energy")
 
@@ -83,52 +83,6 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     return W
 
 
-def apply(A: PETSc.Mat | None, vectors: np.ndarray, comm: MPI.Comm) -> np.ndarray:
-    """A · V for a distributed PETSc matrix and the owned rows V (one MatMatMult)."""
-    if A is None:
-        return vectors
-    rows, k = vectors.shape
-    dense = PETSc.Mat().createDense(((rows, None), (None, k)), array=np.ascontiguousarray(vectors), comm=comm)
-    product = A.matMult(dense)
-    result = product.getDenseArray().copy()
-    product.destroy()
-    dense.destroy()
-    return result
-
-
-def gram(left: np.ndarray, right: np.ndarray, comm: MPI.Comm) -> np.ndarray:
-    """Lᵀ R over all ranks."""
-    local = np.ascontiguousarray(left.T @ right)
-    total = np.empty_like(local)
-    comm.Allreduce(local, total, op=MPI.SUM)
-    return total
-
-
-def orthonormalise(
-    vectors: np.ndarray, W: PETSc.Mat | None, comm: MPI.Comm, tolerance: float = 1e-10
-) -> tuple[np.ndarray, np.ndarray]:
-    """W-orthonormal vectors spanning the columns of ``vectors``, in order (Gram–Schmidt, twice).
-
-    A column whose remainder is below ``tolerance`` × its own norm adds nothing new and is
-    dropped. Returns the vectors and the indices of the columns that were kept.
-    """
-    kept = []
-    result, weighted = np.zeros((vectors.shape[0], 0)), np.zeros((vectors.shape[0], 0))  # V and W·V
-    for j in range(vectors.shape[1]):
-        v = vectors[:, [j]].copy()
-        norm0 = np.sqrt(max(gram(v, apply(W, v, comm), comm)[0, 0], 0.0))
-        if not norm0 > 0:
-            continue
-        for _ in range(2):  # "twice is enough" (Kahan–Parlett)
-            v -= result @ gram(weighted, v, comm)
-        wv = apply(W, v, comm)
-        norm = np.sqrt(max(gram(v, wv, comm)[0, 0], 0.0))
-        if norm > tolerance * norm0:
-            result, weighted = np.hstack([result, v / norm]), np.hstack([weighted, wv / norm])
-            kept.append(j)
-    return result, np.array(kept, dtype=int)
-
-
 def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
     """One basis spanning all of ``bases`` (in order), re-orthonormalised; repeats are dropped."""
     if not bases:
@@ -138,7 +92,7 @@ def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
         raise ParameterError("enrich: the bases belong to different meshes or spaces")
     comm = model.geometry.mesh.comm
     W = inner_product(model, inner)
-    vectors, kept = orthonormalise(np.hstack([b.vectors for b in bases]), W, comm)
+    vectors, kept = gram_schmidt(np.hstack([b.vectors for b in bases]), W, comm)
     if W is not None:
         W.destroy()
     values = np.concatenate([b.values for b in bases])[kept]

@@ -6,8 +6,8 @@ vanishes on imposed dofs. Newton solves Vᵀ R(x₀ + V q) = 0 with the reduced 
 on the reduced residual. Without hyper-reduction each iteration still assembles the full
 residual and tangent, which dominates the online cost; the k × k solve is negligible.
 
-A :class:`ReducedSolver` has the interface of :class:`lungmech.solver.NewtonSolver`, so the
-same load stepping (:func:`lungmech.solver.solve`), outputs and state-dependent loads work.
+A :class:`ReducedSolver` has the interface of :class:`lungmech.fem.solver.NewtonSolver`, so the
+same load stepping (:func:`lungmech.fem.solver.solve`), outputs and state-dependent loads work.
 """
 
 from __future__ import annotations
@@ -16,12 +16,13 @@ import numpy as np
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
-from lungmech.convergence import Fields
-from lungmech.limits import Inversion
 from lungmech.errors import ParameterError
-from lungmech.rom.basis import Basis, apply, gram, inner_product, origin, reference_state
-from lungmech.rom.layout import layout
-from lungmech.solver import NewtonOptions, NewtonResult, settle_state_dependent
+from lungmech.fem.convergence import Fields
+from lungmech.fem.limits import Inversion
+from lungmech.fem.solver import NewtonOptions, NewtonResult, settle_state_dependent
+from lungmech.parallel.layout import layout
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import Basis, inner_product, origin, reference_state
 
 
 class ReducedSolver:
@@ -124,23 +125,36 @@ class ReducedSolver:
             while True:
                 trial = self.reduced_residual(q + alpha * step)
                 norm = float(np.linalg.norm(trial))
-                if options.line_search in ("none", "basic") or norm <= (1 - 1e-4 * alpha) * residuals[-1] or alpha < 2**-10:
+                if (
+                    options.line_search in ("none", "basic")
+                    or norm <= (1 - 1e-4 * alpha) * residuals[-1]
+                    or alpha < 2**-10
+                ):
                     break
                 alpha /= 2
             q, r = q + alpha * step, trial
             residuals.append(norm)
-        return self._finish(q, False, options.max_iterations, residuals,
-                            f"DIVERGED_MAX_IT: reduced residual {residuals[-1]:.2e} > "
-                            f"{max(options.rtol * max(residuals), options.atol, floor):.2e}")
+        return self._finish(
+            q,
+            False,
+            options.max_iterations,
+            residuals,
+            f"DIVERGED_MAX_IT: reduced residual {residuals[-1]:.2e} > "
+            f"{max(options.rtol * max(residuals), options.atol, floor):.2e}",
+        )
 
     def _floor(self) -> float:
-        """‖|V|ᵀ ε|K|s‖: the round-off floor of Vᵀ R (see :mod:`lungmech.convergence`)."""
+        """‖|V|ᵀ ε|K|s‖: the round-off floor of Vᵀ R (see :mod:`lungmech.fem.convergence`)."""
         rounding = self._fields.rounding(self._matrix, self.model.state.x.petsc_vec)
-        floor = float(np.linalg.norm(gram(np.abs(self.V), rounding.getArray(readonly=True)[: self.owned, None], self.comm)))
+        floor = float(
+            np.linalg.norm(gram(np.abs(self.V), rounding.getArray(readonly=True)[: self.owned, None], self.comm))
+        )
         rounding.destroy()
         return floor
 
-    def _finish(self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str) -> NewtonResult:
+    def _finish(
+        self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str
+    ) -> NewtonResult:
         self.iterations_total += iterations
         converged = converged and bool(np.all(np.isfinite(self.model.state.x.array)))
         if converged and (wrong := self.inversion()):
@@ -161,3 +175,11 @@ class ReducedSolver:
 
     def destroy(self) -> None:
         self._matrix.destroy()
+
+
+def reduced_solver(basis: Basis, options: NewtonOptions | None = None):
+    """A factory of reduced Galerkin solvers on ``basis`` for the forms of a time-stepping scheme
+    (:class:`lungmech.fem.dynamics.ImplicitEuler`): ``solver_factory`` of ``integrate``."""
+    return lambda scheme: ReducedSolver(
+        scheme.model, basis, options, residual=scheme.residual, jacobian=scheme.jacobian
+    )

@@ -8,10 +8,10 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
-from lungmech.linear import factorised
-from lungmech.modal import modal_analysis
+from lungmech.fem.linear import factorised
+from lungmech.fem.modal import modal_analysis
+from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis, enrich, zero_imposed
-from lungmech.rom.layout import layout
 
 
 def modal_basis(model, size: int, density: float = 1.0, shift: float | None = None) -> Basis:
@@ -64,5 +64,11 @@ def with_modal_derivatives(model, basis: Basis) -> Basis:
     derivatives = modal_derivatives(model, basis)
     extra = Basis(derivatives, np.zeros(derivatives.shape[1]), "derivatives", basis.inner_product, basis.fingerprint)
     enriched = enrich(model, basis, extra)
-    return Basis(enriched.vectors, enriched.values, "modal+derivatives", basis.inner_product, basis.fingerprint,
-                 basis.source | {"modes": basis.size})
+    return Basis(
+        enriched.vectors,
+        enriched.values,
+        "modal+derivatives",
+        basis.inner_product,
+        basis.fingerprint,
+        basis.source | {"modes": basis.size},
+    )

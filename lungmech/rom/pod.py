@@ -7,9 +7,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.rom.basis import Basis, apply, gram, inner_product, orthonormalise, origin, reference_state, zero_imposed
-from lungmech.rom.layout import layout
-from lungmech.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.parallel import linalg
+from lungmech.parallel.layout import layout
+from lungmech.rom.basis import Basis, inner_product, origin, reference_state, zero_imposed
 
 
 def snapshots(
@@ -67,19 +68,13 @@ def pod(
         raise ParameterError("pod: snapshots must be (owned dofs of the model, number of snapshots)")
     data = zero_imposed(model, data.copy())
     W = inner_product(model, inner)
-    correlation = gram(data, apply(W, data, comm), comm)
-    eigenvalues, vectors = np.linalg.eigh(correlation)
-    order = np.argsort(eigenvalues)[::-1]
-    eigenvalues, vectors = eigenvalues[order], vectors[:, order]
-    if not eigenvalues[0] > 0:
-        raise ParameterError("pod: the snapshots are all zero (did the loads act?)")
-    singular = np.sqrt(np.clip(eigenvalues, 0.0, None))
-    keep = singular > 1e-7 * singular[0]
-    modes, kept = orthonormalise(data @ vectors[:, keep] / singular[keep], W, comm)
+    decomposition = linalg.pod(data, W, comm)
     if W is not None:
         W.destroy()
-    source = (source or {}) | {"snapshots": data.shape[1], "singular_values": singular.tolist()}
-    basis = Basis(modes, singular[keep][kept], "pod", inner, layout(model.space).fingerprint, source)
+    if not decomposition.values.size:
+        raise ParameterError("pod: the snapshots are all zero (did the loads act?)")
+    source = (source or {}) | {"snapshots": data.shape[1], "singular_values": decomposition.spectrum.tolist()}
+    basis = Basis(decomposition.modes, decomposition.values, "pod", inner, layout(model.space).fingerprint, source)
     if size is not None or energy is not None:
         basis = basis.truncate(size=size if size is None else min(size, basis.size), energy=energy)
     return basis

@@ -9,8 +9,9 @@ import numpy as np
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError
-from lungmech.rom.basis import Basis, inner_product, orthonormalise, zero_imposed
-from lungmech.rom.layout import field_dofs, layout
+from lungmech.parallel.layout import field_dofs, layout
+from lungmech.parallel.linalg import gram_schmidt
+from lungmech.rom.basis import Basis, inner_product, zero_imposed
 
 
 def polynomial_basis(model, order: int, inner: str = "mass") -> Basis:
@@ -38,8 +39,9 @@ def polynomial_basis(model, order: int, inner: str = "mass") -> Basis:
             columns.append(column)
     vectors = zero_imposed(model, np.column_stack(columns))
     W = inner_product(model, inner)
-    vectors, _ = orthonormalise(vectors, W, comm)
+    vectors, _ = gram_schmidt(vectors, W, comm)
     if W is not None:
         W.destroy()
-    return Basis(vectors, np.zeros(vectors.shape[1]), "polynomial", inner, layout(model.space).fingerprint,
-                 {"order": order})
+    return Basis(
+        vectors, np.zeros(vectors.shape[1]), "polynomial", inner, layout(model.space).fingerprint, {"order": order}
+    )

@@ -1,6 +1,6 @@
 """Reduced models on disk: plain arrays and JSON metadata in one ``.npz`` (nothing pickled).
 
-Vectors are written in the canonical dof order of :mod:`lungmech.rom.layout`, so a basis built on
+Vectors are written in the canonical dof order of :mod:`lungmech.parallel.layout`, so a basis built on
 any number of ranks loads on any other; the mesh fingerprint is checked on loading.
 """
 
@@ -13,21 +13,22 @@ from pathlib import Path
 
 import numpy as np
 
-from lungmech.destination import output_file
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.parallel import on_root
+from lungmech.parallel.destination import output_file
+from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis
-from lungmech.rom.layout import layout
 
 FORMAT = "lungmech-rom/1"
 
 
-def save(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None,
-         inputs=()) -> Path:
+def save(
+    path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None, inputs=()
+) -> Path:
     """Write ``basis`` (and any ``extra`` metadata / named canonical ``arrays``) to ``path``.
 
     Collective. The file is written to a staging name and moved into place; an existing file is
-    replaced only if it is a lungmech reduced model (see :mod:`lungmech.destination`).
+    replaced only if it is a lungmech reduced model (see :mod:`lungmech.parallel.destination`).
     """
     path = _suffix(path)
     with output_file(path, model.geometry.mesh.comm, inputs=inputs, ours=is_model) as staging:
@@ -95,8 +96,9 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
         with np.load(path, allow_pickle=False) as data:
             metadata = json.loads(str(data["metadata"]))
             if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
-                raise ValueError(f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, "
-                                 f"expected {FORMAT!r}")
+                raise ValueError(
+                    f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
+                )
             arrays = {name: data[name] for name in data.files if name != "metadata"}
         for key in ("vectors", "values"):
             if key not in arrays:
@@ -125,12 +127,17 @@ def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray]]:
         )
     vectors, values = arrays.pop("vectors"), arrays.pop("values")
     if vectors.ndim != 2 or vectors.shape[0] != where.size or values.shape != (vectors.shape[1],):
-        raise ModelFileError(f"'{path}' is damaged: its basis has shape {vectors.shape} and {values.size} values, "
-                             f"for {where.size} dofs")
+        raise ModelFileError(
+            f"'{path}' is damaged: its basis has shape {vectors.shape} and {values.size} values, for {where.size} dofs"
+        )
     if not (np.isfinite(vectors).all() and np.isfinite(values).all()):
         raise ModelFileError(f"'{path}' is damaged: its basis holds values that are not finite numbers")
     basis = Basis(
-        where.scatter(vectors), values, metadata["kind"], metadata["inner_product"], where.fingerprint,
+        where.scatter(vectors),
+        values,
+        metadata["kind"],
+        metadata["inner_product"],
+        where.fingerprint,
         metadata["source"],
     )
     return basis, metadata["extra"], arrays

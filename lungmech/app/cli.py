@@ -1,0 +1,284 @@
+"""Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve``, ``lungmech register``,
+``lungmech shape-modes``, ``lungmech shape``, ``lungmech phantom`` and ``lungmech info``.
+
+Every failure ends in one line on standard error and a non-zero exit: 2 for bad input or a
+failed computation, 130/143 for Ctrl-C/SIGTERM, 3 for an internal error (``LUNGMECH_DEBUG=1``
+shows its traceback). Under MPI the line is printed once, and a failure that reaches one rank
+only ends the whole run rather than leaving the others waiting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import os
+import signal
+import sys
+from collections.abc import Iterator
+from importlib import resources
+from pathlib import Path
+
+from lungmech.app import registration_cli as registration
+from lungmech.errors import Interrupted, LungmechError, ParameterError
+
+DEFAULT_SCENE = "lung_breathing.toml"
+RESULTS = Path("results")  # default outputs go to results/<name of the scene, model or image>
+
+
+class UsageError(LungmechError):
+    """A command line that argparse cannot parse."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, not the usage block
+        raise UsageError(f"{message} (see '{self.prog} --help')")
+
+
+def parser() -> argparse.ArgumentParser:
+    top = _Parser(prog="lungmech", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = top.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("run", help="solve a scene (the bundled default scene when none is given)")
+    run.add_argument("scene", nargs="?", help="scene file (.toml)")
+    _common(run, "results/<scene name>")
+    rom = commands.add_parser("rom", help="reduced-order models: build one from a scene, solve with one")
+    actions = rom.add_subparsers(dest="action", required=True)
+    build = actions.add_parser("build", help="build a reduced model from full-order runs of a scene")
+    build.add_argument("scene", nargs="?", help="scene file (.toml; default: the bundled scene)")
+    build.add_argument("-o", "--output", required=True, help="reduced model file (.npz)")
+    build.add_argument("--basis", default="pod", help="pod, modal, modal+derivatives, polynomial or pod+modal")
+    build.add_argument(
+        "--size", type=int, default=20, help="number of basis vectors, at most (modes, for modal+derivatives)"
+    )
+    build.add_argument(
+        "--scales",
+        default="0.5,1,1.5",
+        type=_scales,
+        help="training load scales, comma-separated; one factor per load joined by ':' (e.g. 0.5:1,1.5:1)",
+    )
+    build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")
+    build.add_argument("--order", type=int, default=2, help="order of a polynomial basis")
+    build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
+    solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
+    solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
+    solve.add_argument("scene", nargs="?", help="scene file (default: the one the model was built from)")
+    _common(solve, "results/<model name>-reduced")
+    registration.add_commands(commands)
+    commands.add_parser("info", help="versions, MPI size and available laws")
+    return top
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns the exit code (never raises for bad input, interrupts or failures)."""
+    with _interrupts():
+        try:
+            args = parser().parse_args(argv)
+            return _dispatch(args)
+        except LungmechError as error:
+            return _fail(2, f"lungmech: error: {error}")
+        except Interrupted as interrupt:
+            return _fail(
+                128 + interrupt.signum,
+                f"lungmech: interrupted by {interrupt.name}; nothing was written and earlier results are unchanged",
+                interrupted=True,
+            )
+        except KeyboardInterrupt:
+            return _fail(
+                130, "lungmech: interrupted; nothing was written and earlier results are unchanged", interrupted=True
+            )
+        except Exception as error:  # a bug: say so in one line, with the traceback on request
+            if os.environ.get("LUNGMECH_DEBUG"):
+                raise
+            return _fail(
+                3,
+                f"lungmech: internal error ({type(error).__name__}: {error}); please report it "
+                "(LUNGMECH_DEBUG=1 shows the traceback)",
+            )
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.command == "info":
+        return _info()
+    if args.command in registration.COMMANDS:
+        return registration.run(args)
+    if args.command == "rom" and args.action == "build":
+        return _rom_build(args)
+    return _run(args)
+
+
+def _fail(code: int, message: str, interrupted: bool = False) -> int:
+    """Print ``message`` once and return ``code`` when every rank failed alike; otherwise
+    (the failure reached this rank only) print it and end the whole MPI run now."""
+    from mpi4py import MPI
+
+    from lungmech import parallel
+
+    comm = MPI.COMM_WORLD
+    # Collective errors arrive together; a wait this long means the failure reached this rank alone.
+    if parallel.arrive(comm, timeout=3.0 if interrupted else 60.0):
+        if comm.rank == 0:
+            print(message, file=sys.stderr, flush=True)
+        return code
+    print(f"{message} (rank {comm.rank}; ending the other ranks)", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(code)  # mpiexec then ends the ranks that wait for this one
+
+
+@contextlib.contextmanager
+def _interrupts() -> Iterator[None]:
+    """SIGINT and SIGTERM raise :class:`Interrupted` (so staging folders are removed); a second
+    one ends the process at once."""
+
+    from petsc4py import PETSc  # noqa: F401  (PETSc installs its own handlers when it starts: ours come after)
+
+    def handler(signum, frame):
+        for again in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(again, lambda s, f: os._exit(128 + s))
+        Interrupted.pending = signum
+        raise Interrupted(signum)
+
+    Interrupted.pending = None
+    try:
+        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:  # not the main thread (e.g. called from a test runner's worker)
+        yield
+        return
+    try:
+        yield
+    finally:
+        for s, old in previous.items():
+            signal.signal(s, old)
+
+
+def _common(command: argparse.ArgumentParser, default: str) -> None:
+    command.add_argument(
+        "-o",
+        "--output",
+        help=f"output folder (default {default}); replaced only when the run "
+        "succeeds, and only if it is empty or lungmech's own",
+    )
+    command.add_argument(
+        "--scale",
+        default=(1.0,),
+        type=_scales,
+        metavar="S",
+        help="scale the loads' change from the start (one factor, or one per load joined by ':')",
+    )
+    command.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
+
+
+def _scales(text: str) -> list:
+    """'0.5,1' -> [0.5, 1.0]; '0.5:1,1.5:1' -> [(0.5, 1.0), (1.5, 1.0)]; finite numbers only."""
+    import math
+
+    try:
+        scales = [tuple(float(f) for f in item.split(":")) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if not all(math.isfinite(f) for scale in scales for f in scale):
+        raise argparse.ArgumentTypeError(f"load scales must be finite numbers: {text!r}")
+    return [s[0] if len(s) == 1 else s for s in scales]
+
+
+def _setup(args):
+    """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
+    from mpi4py import MPI
+
+    from lungmech.app import scene as scenes
+
+    comm = MPI.COMM_WORLD
+    logging.basicConfig(
+        level=logging.WARNING if args.quiet or comm.rank != 0 else logging.INFO,
+        format="%(message)s",
+        stream=sys.stdout,
+        force=True,
+    )
+    if args.scene is None:
+        with resources.as_file(resources.files("lungmech.scenes") / DEFAULT_SCENE) as path:
+            return comm, scenes.load(path), f"bundled default scene ({DEFAULT_SCENE})", Path(path)
+    return comm, scenes.load(args.scene), args.scene, Path(args.scene)
+
+
+def _rom_build(args) -> int:
+    from lungmech.app.reduce import build
+
+    comm, scene, name, path = _setup(args)
+    if comm.rank == 0:
+        print(f"lungmech: building a {args.basis} reduced model of {name}", flush=True)
+    summary = build(
+        scene,
+        args.output,
+        kind=args.basis,
+        size=args.size,
+        scales=args.scales,
+        inner=args.inner,
+        order=args.order,
+        comm=comm,
+    )
+    if comm.rank == 0:
+        seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
+        print(
+            f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs "
+            f"({seconds}); saved to {Path(args.output).resolve()}"
+        )
+    return 0
+
+
+def _run(args) -> int:
+    from lungmech.app.console import end_of_run
+    from lungmech.app.run import check_scale, full_order, run
+
+    prepare, inputs = full_order, []
+    if args.command == "rom":  # solve: the scene the model was built from, unless another is named
+        from lungmech.app.reduce import reduced_order, trained_range
+        from lungmech.rom import store
+
+        metadata, _ = store.read(args.model)
+        if args.scene is None:
+            args.scene = metadata["extra"].get("scene")
+            if args.scene is None or not Path(args.scene).is_file():
+                raise ParameterError(
+                    f"{args.model}: the scene it was built from ({args.scene}) is not there; "
+                    "name the scene after the model file"
+                )
+        prepare, inputs = reduced_order(args.model), [args.model]
+    comm, scene, name, path = _setup(args)
+    if len(args.scale) > 1:
+        raise ParameterError("--scale takes one value (per-load factors are joined by ':', e.g. 1.2:1)")
+    scale = check_scale(scene, args.scale[0])
+    default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
+    output = args.output if args.output is not None else RESULTS / default
+    if comm.rank == 0:
+        how = " with the reduced model " + args.model if args.command == "rom" else ""
+        print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)
+        if args.command == "rom" and (note := trained_range(metadata["extra"], scale)):
+            print(f"lungmech: note: {note}", flush=True)
+    summary = run(scene, output, comm, scale=scale, prepare=prepare, inputs=inputs)
+    if comm.rank == 0:
+        print(end_of_run(summary, Path(output).resolve()))
+    return 0
+
+
+def _info() -> int:
+    import dolfinx
+    import petsc4py
+    from mpi4py import MPI
+
+    import lungmech
+    from lungmech.fem.materials import LAWS
+
+    try:
+        import slepc4py
+
+        slepc = slepc4py.__version__
+    except ImportError:
+        slepc = "not installed"
+    print(f"lungmech {lungmech.__version__}")
+    print(f"DOLFINx {dolfinx.__version__}, petsc4py {petsc4py.__version__}, slepc4py {slepc}")
+    print(f"Python {sys.version.split()[0]}, MPI ranks {MPI.COMM_WORLD.size}")
+    print("laws: " + ", ".join([*LAWS, "sum"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,185 @@
+"""Results on disk: field time series that every viewer opens, and JSON summaries.
+
+Fields are written as VTK XML: ``fields.pvd`` lists one file per output time, a ``.vtu`` in a
+serial run, a ``.pvtu`` with one ``.vtu`` piece per rank under MPI. ParaView, pyvista and meshio
+(the ``.vtu`` files) read them. Each file holds the mesh in its reference configuration, the
+displacement (and the pressure of the mixed formulation) at the nodes of the displacement's
+Lagrange space, quadratic cells included, and cellwise fields (J, stresses, the lung's
+fractions): "warp by vector" shows the deformed body. ``format="vtx"`` writes ADIOS2 ``.bp``
+folders instead (ParaView's ADIOS2 reader).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import meshio
+import numpy as np
+import ufl
+from dolfinx import fem, plot
+from mpi4py import MPI
+
+from lungmech.parallel import on_root, together
+
+__all__ = ["FORMATS", "FieldWriter", "cell_fields", "write_json"]
+
+FORMATS = ("vtk", "vtx")
+
+
+def cell_fields(model) -> dict[str, ufl.core.expr.Expr]:
+    """Cellwise scalar fields worth looking at: J, von Mises and mean Cauchy stress, plus those the
+    formulation names (``formulation.output_fields(model)``, e.g. the lung's fractions)."""
+    sigma = model.cauchy()
+    deviator = ufl.dev(sigma)
+    fields = {
+        "J": ufl.det(model.F),
+        "von_mises": ufl.sqrt(1.5 * ufl.inner(deviator, deviator)),
+        "mean_stress": ufl.tr(sigma) / 3,
+    }
+    if hasattr(model.formulation, "output_fields"):
+        fields |= model.formulation.output_fields(model)
+    return fields
+
+
+class FieldWriter:
+    """Time series of the displacement and the cell fields of ``model`` in ``folder``.
+
+    Collective: construct, :meth:`write` and :meth:`close` on every rank.
+    """
+
+    def __init__(self, model, folder: Path, format: str = "vtk"):
+        if format not in FORMATS:
+            raise ValueError(f"field format must be one of {', '.join(FORMATS)} (got {format!r})")
+        mesh = model.geometry.mesh
+        self._model, self._folder, self._format = model, Path(folder), format
+        self._u = model.displacement()
+        self._u.name = "displacement"
+        self._point = [self._u]
+        if "p" in model.fields:  # the mixed formulation's pressure, at the displacement's nodes
+            space = fem.functionspace(mesh, ("Lagrange", model.degree))
+            collapsed, dofs = model.space.sub(1).collapse()
+            self._p = (fem.Function(space, name="pressure"), fem.Function(collapsed), dofs)
+            self._point.append(self._p[0])
+        dg0 = fem.functionspace(mesh, ("DG", 0))
+        self._cells = [
+            (fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
+            for name, expr in cell_fields(model).items()
+        ]
+        owned = mesh.topology.index_map(mesh.topology.dim).size_local
+        self._cell_dofs = dg0.dofmap.list[:owned, 0]
+        self._times: list[float] = []
+        self._vtx = None
+        if format == "vtx":
+            from dolfinx.io import VTXWriter
+
+            self._vtx = [
+                VTXWriter(mesh.comm, self._folder / "displacement.bp", self._point, engine="BP4"),
+                VTXWriter(mesh.comm, self._folder / "cell_fields.bp", [f for f, _ in self._cells], engine="BP4"),
+            ]
+        else:
+            self._grid = _grid(self._u.function_space)
+
+    def write(self, t: float) -> None:
+        self._u.x.array[:] = self._model.displacement().x.array
+        if len(self._point) > 1:
+            pressure, collapsed, dofs = self._p
+            collapsed.x.array[:] = self._model.state.x.array[dofs]
+            pressure.interpolate(collapsed)
+        for function, expression in self._cells:
+            function.interpolate(expression)
+        if self._vtx is not None:
+            for writer in self._vtx:
+                writer.write(t)
+            return
+        self._write_vtk(t)
+
+    def _write_vtk(self, t: float) -> None:
+        comm = self._u.function_space.mesh.comm
+        step = len(self._times)
+        self._times.append(float(t))
+        cells, points = self._grid
+        point_data = {f.name: f.x.array.reshape(len(points), -1) for f in self._point}
+        cell_data = {f.name: [f.x.array[self._cell_dofs]] for f, _ in self._cells}
+        name = f"fields_{step:06d}"
+        piece = f"{name}.vtu" if comm.size == 1 else f"{name}_p{comm.rank}.vtu"
+        mesh = meshio.Mesh(points, [cells], point_data=point_data, cell_data=cell_data)
+        with together(comm):  # a rank that cannot write its piece stops them all
+            meshio.write(self._folder / piece, mesh, file_format="vtu", binary=True, compression="zlib")
+        on_root(comm, lambda: self._write_collection(name, point_data, cell_data, comm.size))
+
+    def _write_collection(self, name: str, point_data: dict, cell_data: dict, ranks: int) -> None:
+        """The .pvtu of this step (under MPI) and the .pvd listing every step."""
+        if ranks > 1:
+            pieces = "".join(f'<Piece Source="{name}_p{r}.vtu"/>' for r in range(ranks))
+            (self._folder / f"{name}.pvtu").write_text(
+                '<?xml version="1.0"?>\n<VTKFile type="PUnstructuredGrid" version="1.0" byte_order="LittleEndian" '
+                'header_type="UInt64">\n<PUnstructuredGrid GhostLevel="0">'
+                f'<PPoints><PDataArray type="Float64" NumberOfComponents="3"/></PPoints>'
+                f"<PPointData>{_declare(point_data)}</PPointData>"
+                f"<PCellData>{_declare({k: v[0] for k, v in cell_data.items()})}</PCellData>"
+                f"{pieces}</PUnstructuredGrid>\n</VTKFile>\n"
+            )
+        suffix = ".vtu" if ranks == 1 else ".pvtu"
+        entries = "\n".join(
+            f'    <DataSet timestep="{t!r}" part="0" file="fields_{i:06d}{suffix}"/>' for i, t in enumerate(self._times)
+        )
+        (self._folder / "fields.pvd").write_text(
+            '<?xml version="1.0"?>\n<VTKFile type="Collection" version="1.0">\n  <Collection>\n'
+            f"{entries}\n  </Collection>\n</VTKFile>\n"
+        )
+
+    def close(self) -> None:
+        for writer in self._vtx or ():
+            writer.close()
+
+
+def _declare(data: dict[str, np.ndarray]) -> str:
+    """The .pvtu declarations of the data arrays of the pieces."""
+    return "".join(
+        f'<PDataArray type="Float64" Name={quoteattr(name)} NumberOfComponents="{np.shape(a)[1] if np.ndim(a) > 1 else 1}"/>'
+        for name, a in data.items()
+    )
+
+
+def _grid(space: fem.FunctionSpace) -> tuple[tuple[str, np.ndarray], np.ndarray]:
+    """This rank's owned cells (meshio type, connectivity) and the node coordinates of ``space``
+    (owned and ghost)."""
+    mesh = space.mesh
+    owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    topology, types, points = plot.vtk_mesh(space, np.arange(owned, dtype=np.int32))
+    vtk_type = int(types[0]) if len(types) else 10
+    per_cell = int(topology[0]) if len(topology) else 4
+    connectivity = topology.reshape(-1, per_cell + 1)[:, 1:]
+    kind = _MESHIO_TYPES.get((vtk_type, per_cell))
+    if kind is None:
+        raise ValueError(f"no VTK cell type for {per_cell}-node cells of VTK type {vtk_type}")
+    name, order = kind
+    return (name, connectivity[:, order] if order is not None else connectivity), points
+
+
+# VTK's Lagrange cells of order 2 are its quadratic cells, up to the order of two hexahedron edges.
+_HEX27 = [*range(18), 19, 18, *range(20, 27)]
+_MESHIO_TYPES = {
+    (10, 4): ("tetra", None),
+    (71, 10): ("tetra10", None),
+    (12, 8): ("hexahedron", None),
+    (72, 27): ("hexahedron27", _HEX27),
+}
+
+
+def write_json(path: Path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+    """Collective: write ``data`` as JSON from rank 0 (numpy values converted); an error is
+    raised on every rank."""
+    on_root(comm, lambda: Path(path).write_text(json.dumps(data, indent=2, default=_plain) + "\n"))
+
+
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")

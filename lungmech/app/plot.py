@@ -1,0 +1,150 @@
+"""Pictures of results (matplotlib and pyvista, off-screen), with units on every axis."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lungmech.app.console import CMH2O  # noqa: E402
+
+__all__ = ["deformed_body", "drawn", "pressure_volume"]
+
+
+def drawn(comm, path: Path, draw) -> bool:
+    """Collective: ``draw()`` a picture (itself collective). A picture that cannot be drawn (no
+    off-screen rendering on this machine, say) is a warning on the console, not a failed run:
+    the results are in the other files. Returns whether it was drawn."""
+    import logging
+
+    try:
+        draw()
+        return True
+    except Exception as error:  # raised on every rank alike: draw() is collective
+        if comm.rank == 0:
+            reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+            logging.getLogger("lungmech").warning("lungmech: warning: %s was not drawn (%s)", Path(path).name, reason)
+        return False
+
+
+def pressure_volume(
+    pressure: Sequence[float],
+    volume: Sequence[float],
+    path: Path,
+    label: str,
+    title: str = "",
+    note: Sequence[str] = (),
+) -> None:
+    """The P–V curve: volume (m³, drawn in L) against ``pressure`` (Pa, drawn in kPa, with
+    cmH2O on the top axis), inspiration (volume rising) and expiration drawn apart. ``label``
+    names the pressure; ``note`` lines say what it is made of."""
+    kpa, litres = np.asarray(pressure, dtype=float) / 1e3, 1e3 * np.asarray(volume, dtype=float)
+    rising = np.diff(litres) >= 0
+    fig, ax = plt.subplots(figsize=(6, 4.4))
+    branches = (
+        (rising, dict(color="tab:blue", ls="-", marker="o", ms=4, lw=2.5), "inspiration (volume rising)"),
+        (
+            ~rising,
+            dict(color="tab:orange", ls="--", marker="s", ms=3, mfc="none", lw=1.2),
+            "expiration (volume falling)",
+        ),
+    )
+    for branch, style, name in branches:
+        for k, i in enumerate(np.flatnonzero(branch)):
+            ax.plot(kpa[i : i + 2], litres[i : i + 2], **style, label=name if k == 0 else None)
+    ax.set_xlabel(f"{label} [kPa]")
+    ax.set_ylabel("lung volume [L]" if label.startswith("transpulmonary") else "volume [L]")
+    top = ax.secondary_xaxis("top", functions=(lambda p: 1e3 * p / CMH2O, lambda c: c * CMH2O / 1e3))
+    top.set_xlabel("[cmH$_2$O]")
+    ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    if note:
+        ax.text(0.98, 0.02, "\n".join(note), transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.35")
+    if rising.any() or (~rising).any():
+        ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def deformed_body(model, path: Path, title: str = "") -> None:
+    """A PNG of the deformed body coloured by J = det F (the local volume ratio), with an
+    orientation triad; the camera is set by the reference configuration, so every state of a
+    body is seen alike. Collective under MPI; rank 0 draws, and an error
+    there is raised on every rank."""
+    import ufl
+    from dolfinx import fem, plot
+
+    from lungmech.parallel import on_root
+
+    mesh = model.geometry.mesh
+    u = model.displacement()
+    cells_owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    topology, types, x = plot.vtk_mesh(u.function_space, np.arange(cells_owned, dtype=np.int32))
+    dg0 = fem.functionspace(mesh, ("DG", 0))
+    J = fem.Function(dg0)
+    J.interpolate(fem.Expression(ufl.det(model.F), dg0.element.interpolation_points))
+    J_cells = J.x.array[dg0.dofmap.list[:cells_owned, 0]]
+    displacement = u.x.array.reshape(-1, 3)[: len(x)]
+    pieces = mesh.comm.gather((topology, types, x, displacement, J_cells), root=0)
+    on_root(mesh.comm, lambda: _draw(pieces, path, title))
+
+
+def _draw(pieces, path: Path, title: str) -> None:
+    import pyvista
+    import vtk
+
+    vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server" noise: rendering is off-screen
+    bodies, lower, upper = [], [], []
+    for topology, types, x, displacement, J_cells in pieces:
+        grid = pyvista.UnstructuredGrid(topology, types, x + displacement)
+        grid.cell_data["J"] = J_cells
+        bodies.append(grid)
+        if len(x):
+            lower.append(x.min(axis=0))
+            upper.append(x.max(axis=0))
+    body = pyvista.merge(bodies) if len(bodies) > 1 else bodies[0]
+
+    plotter = pyvista.Plotter(off_screen=True, window_size=(1000, 760))
+    plotter.add_mesh(
+        body,
+        scalars="J",
+        cmap="viridis",
+        show_edges=False,
+        smooth_shading=False,
+        scalar_bar_args={
+            "title": "J = det F [-]",
+            "vertical": True,
+            "position_x": 0.86,
+            "position_y": 0.15,
+            "width": 0.07,
+            "height": 0.7,
+            "fmt": "%.3g",
+            "title_font_size": 14,
+            "label_font_size": 12,
+        },
+    )
+    if title:
+        plotter.add_text(title, font_size=10)
+    plotter.add_axes(line_width=3, labels_off=False)
+    # A fixed camera: medial-anterior view (the hilum side of a lung), framed by the reference
+    # with room for the body to grow and for the colour bar on the right.
+    lower, upper = np.min(lower, axis=0), np.max(upper, axis=0)  # of the reference configuration
+    centre, size = (lower + upper) / 2, float(np.linalg.norm(upper - lower))
+    view = np.array([-1.0, -0.7, 0.35])
+    view /= np.linalg.norm(view)
+    right = np.cross(view, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    focus = centre - 0.12 * size * right  # shifts the body left, clear of the colour bar
+    plotter.camera.focal_point = focus
+    plotter.camera.position = focus + 2.6 * size * view  # pyvista: the camera sits along +view
+    plotter.camera.up = (0.0, 0.0, 1.0)
+    plotter.camera.view_angle = 30.0
+    plotter.screenshot(str(path))
+    plotter.close()

@@ -1,0 +1,382 @@
+"""Scene files (TOML): what to model, read and validated into lungmech objects.
+
+A scene declares its geometry, law, formulation, constraints, loads, stepping, solver and
+outputs; only what it declares is built. Every unknown key or bad value is a :class:`SceneError`
+naming the key, e.g. ``material.nuu: unknown key (expected one of: E, nu)``.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import inspect
+import json
+import math
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lungmech import checks
+from lungmech import mesh as _geometry
+from lungmech.app.output import FORMATS as FIELD_FORMATS
+from lungmech.errors import LungmechError, ParameterError, SceneError
+from lungmech.fem.constraints import Displacement, clamp, symmetry
+from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
+from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
+from lungmech.fem.materials import LAWS, Material, Sum
+from lungmech.fem.ramp import Ramp
+from lungmech.fem.solver import NewtonOptions, Stepping
+from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
+from lungmech.lung.gravity import Gravity
+from lungmech.lung.inverse import InverseOptions
+
+SECTIONS = (
+    "title",
+    "geometry",
+    "material",
+    "formulation",
+    "constraints",
+    "loads",
+    "stepping",
+    "solver",
+    "inverse",
+    "output",
+)
+BUILDERS: dict[str, Callable] = {
+    "box": _geometry.box,
+    "sphere": _geometry.sphere,
+    "ellipsoid": _geometry.ellipsoid,
+    "lung_phantom": _geometry.lung_phantom,
+}
+LOADS = {
+    "body_force": BodyForce,
+    "traction": Traction,
+    "follower_pressure": FollowerPressure,
+    "alveolar_pressure": AlveolarPressure,
+    "gravity": Gravity,
+}
+FORMULATIONS = {"displacement": PureDisplacement, "mixed": TaylorHood, "poromechanics": Poromechanics}
+# Laws made of other laws, by name (their parameters are the builder's arguments).
+COMPOSITE_LAWS = {"lung_skeleton": skeleton}
+CONSTRAINTS = {"clamp": clamp, "symmetry": symmetry, "displacement": Displacement}
+
+
+@dataclass(frozen=True)
+class Output:
+    """What a run writes besides summary.json and history.csv."""
+
+    fields: bool = True
+    probes: tuple[tuple[float, float, float], ...] = ()
+    format: str = "vtk"  # of the fields: "vtk" (.pvd/.vtu, read by every viewer) or "vtx" (ADIOS2 .bp)
+
+    def __post_init__(self):
+        checks.boolean("fields", self.fields)
+        if self.format not in FIELD_FORMATS:
+            raise ParameterError(f"format must be one of {', '.join(FIELD_FORMATS)} (got {self.format!r})")
+        if not isinstance(self.probes, Sequence) or isinstance(self.probes, str):
+            raise ParameterError(f"probes must be a list of points [x, y, z] (got {self.probes!r})")
+        object.__setattr__(self, "probes", tuple(checks.vector(f"probes[{i}]", p) for i, p in enumerate(self.probes)))
+
+
+@dataclass(frozen=True)
+class Scene:
+    geometry: dict[str, Any]
+    material: Material
+    degree: int = 1
+    formulation: Formulation = field(default_factory=PureDisplacement)
+    constraints: tuple = ()
+    loads: tuple = ()
+    stepping: Stepping = field(default_factory=Stepping)
+    newton: NewtonOptions = field(default_factory=NewtonOptions)
+    output: Output = field(default_factory=Output)
+    inverse: InverseOptions | None = None  # the geometry is imaged under the loads of stepping.start
+    title: str = ""
+    folder: Path = Path(".")
+    source: Path | None = None  # the scene file, when read from one
+    table: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)  # as written (parsed TOML)
+
+    @property
+    def inputs(self) -> list[Path]:
+        """The files this scene reads: itself, its mesh (with the mesh's companion files) and data."""
+        files = [self.source] if self.source is not None else []
+        if "file" in self.geometry:
+            mesh = Path(self.geometry["file"])
+            files += [mesh] + [p for p in _geometry.companions(mesh) if p.exists()]
+        phi_s0 = getattr(self.formulation, "phi_s0", None)
+        if isinstance(phi_s0, str | Path):
+            files.append(Path(phi_s0))
+        return files
+
+
+def load(path: str | Path) -> Scene:
+    """Read and validate a scene file (UTF-8 TOML)."""
+    path = Path(path)
+    if path.is_dir():
+        raise SceneError(f"scene file '{path}' is a folder; name a .toml file")
+    if not path.is_file():
+        raise SceneError(f"scene file '{path}' not found")
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise SceneError(f"cannot read scene file '{path}': {error.strerror or error}") from None
+    if b"\0" in data:
+        raise SceneError(f"scene file '{path}' is not a text file (it holds binary data); a scene is TOML text")
+    try:
+        text = data.decode("utf-8-sig")  # a byte-order mark, as some editors write, is not TOML
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise SceneError(
+            f"scene file '{path}' is not UTF-8 text (byte 0x{data[error.start]:02x} on line {line}); save it as UTF-8"
+        ) from None
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise SceneError(f"{path}: not valid TOML ({error})") from None
+    return parse(table, folder=path.parent, source=path)
+
+
+def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None = None) -> Scene:
+    """Validate a scene given as a dictionary (the parsed TOML)."""
+    _no_unknown_keys(table, SECTIONS, "scene")
+    _finite_numbers(table)
+    for required in ("geometry", "material"):
+        if required not in table:
+            raise SceneError(f"scene: missing section [{required}]")
+    formulation = dict(_section(table, "formulation"))
+    degree = _typed(formulation.pop("degree", 1), int, "formulation.degree")
+    kind = formulation.pop("type", "displacement")
+    if kind not in FORMULATIONS:
+        raise SceneError(f"formulation.type: unknown type {kind!r} (available: {', '.join(FORMULATIONS)})")
+    if isinstance(formulation.get("phi_s0"), str):  # a file of cell values, next to the scene
+        path = folder / formulation["phi_s0"]
+        if not path.is_file():
+            raise SceneError(f"formulation.phi_s0: file '{path}' not found")
+        formulation["phi_s0"] = str(path)
+    output = _section(table, "output")
+    return Scene(
+        geometry=_geometry_spec(_section(table, "geometry"), folder),
+        material=material(_section(table, "material")),
+        degree=degree,
+        formulation=_call(FORMULATIONS[kind], formulation, "formulation"),
+        constraints=tuple(_entries(table, "constraints", CONSTRAINTS)),
+        loads=tuple(_entries(table, "loads", LOADS)),
+        stepping=_call(Stepping, _with_tuple(_section(table, "stepping"), "times"), "stepping"),
+        newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
+        output=_call(Output, _with_tuple(output, "probes"), "output"),
+        inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
+        title=_typed(table.get("title", ""), str, "title"),
+        folder=folder,
+        source=source,
+        table=copy.deepcopy(table),
+    )
+
+
+def physics(scene: Scene) -> dict[str, Any]:
+    """What a scene models, as plain values: its mesh's boundary names, law, formulation,
+    constraints, loads, start time and [inverse]. Two scenes with the same physics may differ
+    in title, outputs, stepping (but its start) and solver settings. Numbers are floats, and a
+    file of cell values is named by its SHA-256 (a mesh is checked by its own fingerprint)."""
+    table = scene.table
+    described = {
+        key: table[key] for key in ("material", "formulation", "constraints", "loads", "inverse") if key in table
+    }
+    described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
+    described["stepping.start"] = scene.stepping.start
+    phi_s0 = getattr(scene.formulation, "phi_s0", None)
+    if isinstance(phi_s0, str | Path):
+        described["formulation"] = {**described["formulation"], "phi_s0": _sha256(Path(phi_s0))}
+    return json.loads(json.dumps(described, default=str), parse_int=float)
+
+
+def differences(built: dict[str, Any], given: dict[str, Any]) -> list[str]:
+    """Where two physics descriptions (:func:`physics`) differ, one line each."""
+    left, right = _flatten(built), _flatten(given)
+    lines = []
+    for key in sorted(set(left) | set(right)):
+        if key not in right:
+            lines.append(f"{key} = {left[key]!r} only in the model's scene")
+        elif key not in left:
+            lines.append(f"{key} = {right[key]!r} only in this scene")
+        elif left[key] != right[key]:
+            lines.append(f"{key}: {left[key]!r} in the model's scene, {right[key]!r} here")
+    return lines
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        return {
+            k: v for key, item in value.items() for k, v in _flatten(item, f"{prefix}.{key}" if prefix else key).items()
+        }
+    if isinstance(value, list) and any(isinstance(v, dict | list) for v in value):
+        return {k: v for i, item in enumerate(value) for k, v in _flatten(item, f"{prefix}[{i}]").items()}
+    return {prefix: value}
+
+
+def _sha256(path: Path) -> str:
+    return "sha256:" + hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def material(table: dict[str, Any], where: str = "material") -> Material:
+    """A law from ``{law = name, <parameters>}``.
+
+    Parameters are the law's own (e.g. mu, lmbda or c0, c1, c2), or E and nu (plus the law's
+    optional shares), or ``incompressible = true`` with the shear parameters. ``law = "sum"``
+    takes a list ``terms`` of such tables.
+    """
+    table = dict(table)
+    name = table.pop("law", None)
+    if name in COMPOSITE_LAWS:
+        return _call(COMPOSITE_LAWS[name], table, f"{where} (law '{name}')")
+    if name == "sum":
+        _no_unknown_keys(table, ("terms",), where)
+        terms = table.get("terms")
+        if not isinstance(terms, list) or not terms:
+            raise SceneError(f"{where}.terms: a sum needs a non-empty list of laws")
+        return Sum(tuple(material(t, f"{where}.terms[{i}]") for i, t in enumerate(terms)))
+    if name not in LAWS:
+        available = ", ".join([*LAWS, *COMPOSITE_LAWS, "sum"])
+        raise SceneError(f"{where}.law: unknown law {name!r} (available: {available})")
+    cls = LAWS[name]
+    if table.pop("incompressible", False):
+        if not hasattr(cls, "incompressible"):
+            raise SceneError(f"{where}.incompressible: law '{name}' has no incompressible variant")
+        return _call(cls.incompressible, table, where)
+    if "E" in table or "nu" in table:
+        if not hasattr(cls, "from_young"):
+            raise SceneError(f"{where}: law '{name}' is not defined by E and nu")
+        return _call(cls.from_young, table, where)
+    return _call(cls, table, where)
+
+
+def build_geometry(spec: dict[str, Any], comm) -> _geometry.Geometry:
+    """The mesh a scene's [geometry] section describes."""
+    spec = dict(spec)
+    if "file" in spec:
+        return _geometry.from_file(spec.pop("file"), comm, spec.pop("boundaries", None))
+    builder = BUILDERS[spec.pop("builder")]
+    try:
+        return builder(comm, **spec)
+    except (TypeError, ValueError) as error:  # e.g. a string where a length belongs
+        raise SceneError(f"geometry: bad value for the {builder.__name__} builder ({error})") from None
+
+
+def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
+    if ("file" in table) == ("builder" in table):
+        raise SceneError("geometry: give exactly one of 'builder' (a generated mesh) or 'file' (a mesh file)")
+    if "file" in table:
+        _no_unknown_keys(table, ("file", "boundaries"), "geometry")
+        _typed(table["file"], str, "geometry.file")
+        names = table.get("boundaries", {})
+        if not isinstance(names, dict) or not all(
+            isinstance(v, int) and not isinstance(v, bool) for v in names.values()
+        ):
+            raise SceneError(
+                "geometry.boundaries: expected a table of boundary names and facet tags, e.g. { hilum = 4, pleura = 1 }"
+            )
+        path = Path(table["file"])
+        path = path if path.is_absolute() else folder / path
+        if path.is_dir():
+            raise SceneError(f"geometry.file: '{path}' is a folder; name a mesh file (.msh or .xdmf)")
+        if not path.is_file():
+            raise SceneError(f"geometry.file: mesh file '{path}' not found")
+        return {**table, "file": str(path)}
+    name = table["builder"]
+    if name not in BUILDERS:
+        raise SceneError(f"geometry.builder: unknown builder {name!r} (available: {', '.join(BUILDERS)})")
+    parameters = {k: v for k, v in table.items() if k != "builder"}
+    _check_signature(BUILDERS[name], parameters, "geometry", skip=("comm",))
+    return {"builder": name, **{k: tuple(v) if isinstance(v, list) else v for k, v in parameters.items()}}
+
+
+def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) -> list:
+    entries = table.get(section, [])
+    if not isinstance(entries, list):
+        raise SceneError(f"{section}: expected a list of tables ([[{section}]])")
+    built = []
+    for i, entry in enumerate(entries):
+        where = f"{section}[{i}]"
+        if not isinstance(entry, dict):
+            raise SceneError(f"{where}: expected a table")
+        entry = dict(entry)
+        kind = entry.pop("type", None)
+        if kind not in kinds:
+            raise SceneError(f"{where}.type: unknown type {kind!r} (available: {', '.join(kinds)})")
+        if "ramp" in entry:
+            ramp = entry["ramp"]
+            if not isinstance(ramp, dict):
+                raise SceneError(f"{where}.ramp: expected a table {{times = [...], values = [...]}}")
+            entry["ramp"] = _call(Ramp, ramp, f"{where}.ramp")
+        if isinstance(entry.get("value"), list):
+            entry["value"] = tuple(entry["value"])
+        built.append(_call(kinds[kind], entry, where))
+    return built
+
+
+# Keys where TOML's inf is meaningful (an open range); nan is never a value.
+_INFINITY_ALLOWED = ("formulation.pore_range", "stepping.max_step")
+
+
+def _finite_numbers(table: Any, where: str = "") -> None:
+    """Refuse nan anywhere in the scene, and inf except where it means 'no bound'."""
+    if isinstance(table, dict):
+        for key, value in table.items():
+            _finite_numbers(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(table, list):
+        for i, value in enumerate(table):
+            _finite_numbers(value, f"{where}[{i}]")
+    elif isinstance(table, float) and not math.isfinite(table):
+        if math.isnan(table):
+            raise SceneError(f"{where}: nan is not a value; give a number")
+        if not (where.startswith(_INFINITY_ALLOWED) and table > 0):
+            raise SceneError(f"{where}: {table} is not allowed here; give a finite number")
+
+
+def _section(table: dict[str, Any], name: str) -> dict[str, Any]:
+    section = table.get(name, {})
+    if not isinstance(section, dict):
+        raise SceneError(f"{name}: expected a table [{name}]")
+    return section
+
+
+def _with_tuple(table: dict[str, Any], key: str) -> dict[str, Any]:
+    if key in table and isinstance(table[key], list):
+        return {**table, key: tuple(tuple(v) if isinstance(v, list) else v for v in table[key])}
+    return table
+
+
+def _typed(value, kind: type, where: str):
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise SceneError(f"{where}: expected {kind.__name__} (got {value!r})")
+    return value
+
+
+def _no_unknown_keys(table: dict[str, Any], allowed, where: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise SceneError(f"{where}.{key}: unknown key (expected one of: {', '.join(allowed)})")
+
+
+def _check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=()) -> None:
+    parameters = inspect.signature(func).parameters
+    allowed = [p for p in parameters if p not in skip and p != "self"]
+    _no_unknown_keys(kwargs, allowed, where)
+    missing = [
+        p
+        for p, spec in parameters.items()
+        if p not in skip and spec.default is inspect.Parameter.empty and p not in kwargs
+    ]
+    if missing:
+        raise SceneError(f"{where}: missing key(s) {', '.join(missing)}")
+
+
+def _call(func: Callable, kwargs: dict[str, Any], where: str):
+    """func(**kwargs), with unknown/missing keys and bad values reported against ``where``."""
+    _check_signature(func, kwargs, where)
+    try:
+        return func(**kwargs)
+    except LungmechError as error:
+        raise SceneError(f"{where}: {error}") from None
+    except (TypeError, ValueError) as error:
+        raise SceneError(f"{where}: bad value ({error})") from None

@@ -1,0 +1,99 @@
+"""Imposed displacements (Dirichlet conditions) on named boundaries, with load ramps."""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from dolfinx import fem
+
+from lungmech import checks
+from lungmech.errors import ParameterError
+from lungmech.fem.ramp import Ramp
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclass(frozen=True)
+class Displacement:
+    """u = ramp(t) · value on a boundary; only component ``component`` of u when it is given.
+
+    ``value`` is a vector (or a scalar with ``component``), or a function of the reference
+    coordinates x (shape (3, n)) returning the values at those points.
+    """
+
+    boundary: str
+    value: Sequence[float] | float | Callable[[np.ndarray], np.ndarray] = 0.0
+    component: int | str | None = None
+    ramp: Ramp = field(default_factory=Ramp)
+
+    def __post_init__(self):
+        if not isinstance(self.boundary, str) or not self.boundary:
+            raise ParameterError(f"boundary must be a boundary name (got {self.boundary!r})")
+        if not isinstance(self.ramp, Ramp):
+            raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
+        if not callable(self.value):
+            scalar = isinstance(self.value, numbers.Real) and not isinstance(self.value, bool)
+            value = checks.real("value", self.value) if scalar else checks.vector("value", self.value)
+            object.__setattr__(self, "value", value)
+        if isinstance(self.component, bool):
+            raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")
+        if isinstance(self.component, str):
+            if self.component not in AXES:
+                raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")
+            object.__setattr__(self, "component", AXES[self.component])
+        if self.component is not None and self.component not in (0, 1, 2):
+            raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")
+
+
+def clamp(boundary: str) -> Displacement:
+    """u = 0 on the boundary."""
+    return Displacement(boundary, (0.0, 0.0, 0.0), ramp=Ramp.constant())
+
+
+def symmetry(boundary: str, component: int | str) -> Displacement:
+    """Zero normal displacement on a symmetry plane (the plane's normal is axis ``component``)."""
+    return Displacement(boundary, 0.0, component, ramp=Ramp.constant())
+
+
+@dataclass
+class ImposedValue:
+    """A built Dirichlet condition and how to set its value at time t."""
+
+    bc: fem.DirichletBC
+    target: fem.Function
+    base: np.ndarray
+    ramp: Ramp
+
+    def set_time(self, t: float) -> None:
+        self.target.x.array[:] = self.ramp(t) * self.base
+
+
+def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> ImposedValue:
+    """The DirichletBC of ``constraint`` on the displacement (sub)space ``space``."""
+    sub = space if constraint.component is None else space.sub(constraint.component)
+    values = sub.collapse()[0] if sub.component() else sub
+    facets = geometry.facets(constraint.boundary)
+    fdim = geometry.mesh.topology.dim - 1
+    base = fem.Function(values)
+    base.interpolate(_as_callable(constraint, values.value_size))
+    target = fem.Function(values)
+    if sub.component():  # a subspace: dofs come in (sub, collapsed) pairs
+        dofs = fem.locate_dofs_topological((sub, values), fdim, facets)
+        bc = fem.dirichletbc(target, dofs, sub)
+    else:
+        dofs = fem.locate_dofs_topological(sub, fdim, facets)
+        bc = fem.dirichletbc(target, dofs)
+    return ImposedValue(bc, target, base.x.array.copy(), constraint.ramp)
+
+
+def _as_callable(constraint: Displacement, size: int) -> Callable[[np.ndarray], np.ndarray]:
+    if callable(constraint.value):
+        return constraint.value
+    value = np.atleast_1d(np.asarray(constraint.value, dtype=float))
+    if value.size != size:
+        what = "a scalar" if size == 1 else f"{size} components"
+        raise ParameterError(f"imposed displacement on '{constraint.boundary}' needs {what} (got {list(value)})")
+    return lambda x: np.tile(value[:, None], (1, x.shape[1]))

@@ -1,0 +1,216 @@
+"""A finite-strain boundary-value problem: a law, loads and imposed displacements on a geometry.
+
+The model is the sum of the terms it is given and nothing more: its total potential is
+Π = ∫ ψ dx + Σ (load potentials), its residual is δΠ minus the virtual work of follower loads,
+and its Jacobian is the exact derivative of the residual. Every load value, imposed
+displacement and material parameter lives in a ``Constant`` or ``Function``, so changing the time
+or a parameter recompiles nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Sequence
+
+import basix.ufl
+import numpy as np
+import ufl
+from dolfinx import fem
+
+from lungmech.errors import ParameterError
+from lungmech.fem import constraints as _constraints
+from lungmech.fem.constraints import Displacement
+from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
+from lungmech.fem.kinematics import deformation_gradient
+from lungmech.fem.loads import Load, StateDependentWork
+from lungmech.fem.materials import Material, with_constants
+
+
+class Model:
+    """Unknowns, forms and boundary data of one problem.
+
+    Args:
+        geometry: mesh with named boundaries (:mod:`lungmech.mesh`).
+        material: a strain-energy law (:mod:`lungmech.fem.materials`).
+        degree: Lagrange degree of the displacement.
+        mixed: shorthand for ``formulation=TaylorHood()``: displacement–pressure
+            (P``degree``–P``degree-1``), for nearly or exactly incompressible laws with a
+            volumetric split.
+        formulation: how the unknowns are discretised (:mod:`lungmech.fem.formulations`).
+        loads: body forces, tractions, follower pressures (:mod:`lungmech.fem.loads`).
+        constraints: imposed displacements (:mod:`lungmech.fem.constraints`).
+        quadrature_degree: overrides the law's own choice.
+    """
+
+    def __init__(
+        self,
+        geometry,
+        material: Material,
+        *,
+        degree: int = 1,
+        mixed: bool = False,
+        formulation: Formulation | None = None,
+        loads: Sequence[Load] = (),
+        constraints: Sequence[Displacement] = (),
+        quadrature_degree: int | None = None,
+    ):
+        mesh = geometry.mesh
+        self.geometry = geometry
+        self.material = with_constants(material, mesh)
+        self.formulation = (formulation or (TaylorHood() if mixed else PureDisplacement())).bind(mesh)
+        self.degree = degree
+        self.loads, self.constraints = tuple(loads), tuple(constraints)
+        if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
+            raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
+        if degree < mesh.geometry.cmaps[0].degree:
+            raise ParameterError(
+                f"degree {degree} displacements on a mesh of order {mesh.geometry.cmaps[0].degree} (curved cells) "
+                "cannot move the body rigidly: rotations would strain it. Use degree >= the mesh order, or a "
+                "straight (order 1) mesh"
+            )
+        self.formulation.check(material, degree)
+
+        q = quadrature_degree if quadrature_degree is not None else self._default_quadrature_degree()
+        self.dx = ufl.Measure("dx", domain=mesh, metadata={"quadrature_degree": q})
+        cell, gdim = mesh.basix_cell(), mesh.geometry.dim
+        element_u = basix.ufl.element("Lagrange", cell, degree, shape=(gdim,))
+        extra = self.formulation.elements(cell, degree, q)
+        if extra:
+            self.space = fem.functionspace(mesh, basix.ufl.mixed_element([element_u, *extra]))
+            self.displacement_space = self.space.sub(0)
+        else:
+            self.space = fem.functionspace(mesh, element_u)
+            self.displacement_space = self.space
+        self.state = fem.Function(self.space, name="state")
+        self.reset()
+        unknowns = ufl.split(self.state) if extra else (self.state,)
+        self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
+        self.u = self.fields["u"]
+
+        self.F = deformation_gradient(self.u)
+        self.energy_density = self.formulation.energy_density(self.material, self.F, self.fields)
+
+        v = ufl.TestFunction(self.space)
+        v_u = ufl.split(v)[0] if self.mixed else v
+        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
+        self.potential = self.energy_density * self.dx
+        virtual_work, self._state_dependent = [], []
+        for load, value in zip(self.loads, self._load_values):
+            if hasattr(load, "potential"):
+                self.potential += load.potential(self, value)
+            work = load.virtual_work(self, v_u, value) if hasattr(load, "virtual_work") else None
+            if isinstance(work, StateDependentWork):
+                self._state_dependent.append(work)
+                work = work.form
+            if work is not None:
+                virtual_work.append(work)
+        self.residual = ufl.derivative(self.potential, self.state, v)
+        for work in virtual_work:
+            self.residual -= work
+        self.jacobian = ufl.derivative(self.residual, self.state, ufl.TrialFunction(self.space))
+
+        self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]
+        self.bcs = [imposed.bc for imposed in self._imposed]
+        self.time = 0.0
+        self.set_time(0.0)
+
+    def reset(self) -> None:
+        """Back to the unloaded state: u = 0 and every other field at its initial value."""
+        self.state.x.array[:] = 0.0
+        initial = self.formulation.initial_values()
+        for index, name in enumerate(self.formulation.fields, start=1):
+            if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
+                subspace, dofs = self.space.sub(index).collapse()
+                start = fem.Function(subspace)
+                if isinstance(initial[name], fem.Function):
+                    start.interpolate(initial[name])
+                else:
+                    start.x.array[:] = initial[name]
+                self.state.x.array[dofs] = start.x.array
+
+    def set_time(self, t: float, load_factor: float | Sequence[float] = 1.0, about: float | None = None) -> None:
+        """Set every load and imposed displacement to its ramped value at time t.
+
+        ``load_factor`` scales the loads (not the imposed displacements), all alike or one
+        factor per load: a path to the loads of time t from zero, as the inverse problem needs.
+        With ``about`` = t₀ it scales only their change since t₀ (ramp(t₀) + f (ramp(t) −
+        ramp(t₀))): a deeper or shallower breath from the same end-expiration, say.
+        """
+        self.time = t
+        factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
+        for load, value, factor in zip(self.loads, self._load_values, factors):
+            base = 0.0 if about is None else load.ramp(about)
+            current = (base + factor * (load.ramp(t) - base)) * np.asarray(load.value, dtype=float)
+            if not np.all(np.isfinite(current)):
+                label = getattr(load, "label", type(load).__name__)
+                raise ParameterError(
+                    f"load '{label}' is not a finite number at t = {t:g} (value {current}, factor {factor})"
+                )
+            value.value = current
+        for imposed in self._imposed:
+            imposed.set_time(t)
+
+    @contextlib.contextmanager
+    def kept_state(self) -> Iterator[None]:
+        """Whatever the block does to the state, it is restored afterwards (also on an error)."""
+        saved = self.state.x.array.copy()
+        try:
+            yield
+        finally:
+            self.state.x.array[:] = saved
+            self.state.x.scatter_forward()
+
+    @property
+    def state_dependent(self) -> list[StateDependentWork]:
+        """Load terms whose coefficients are global functionals of the state (solver-managed)."""
+        return self._state_dependent
+
+    @property
+    def mixed(self) -> bool:
+        """Whether the state holds fields besides the displacement."""
+        return bool(self.formulation.fields)
+
+    @property
+    def breakpoints(self) -> list[float]:
+        """Times where some ramp has a kink: the solver lands on them exactly."""
+        ramps = [load.ramp for load in self.loads] + [c.ramp for c in self.constraints]
+        return sorted({t for ramp in ramps for t in ramp.times})
+
+    def first_piola(self) -> ufl.core.expr.Expr:
+        """P = ∂(energy density)/∂F, including the pressure of the mixed formulation."""
+        return ufl.diff(self.energy_density, self.F)
+
+    def cauchy(self) -> ufl.core.expr.Expr:
+        """σ = P Fᵀ / J (σ = P for a small-strain law)."""
+        if getattr(self.material, "small_strain", False):
+            return self.first_piola()
+        return self.first_piola() * self.F.T / ufl.det(self.F)
+
+    def displacement(self) -> fem.Function:
+        """The displacement as a Function of its own (collapsed) space: a copy."""
+        if not self.mixed:
+            return self.state.copy()
+        return self.state.sub(0).collapse()
+
+    def field_dofs(self) -> dict[str, np.ndarray]:
+        """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""
+        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        if not self.mixed:
+            return {"u": np.arange(owned)}
+        names = ("u", *self.formulation.fields)
+        parts = [np.asarray(self.space.sub(i).collapse()[1]).ravel() for i in range(len(names))]
+        return {name: rows[rows < owned] for name, rows in zip(names, parts)}
+
+    def constrained_dofs(self) -> np.ndarray:
+        """This rank's owned entries of the state vector that an imposed displacement sets."""
+        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        dofs = [bc.dof_indices()[0] for bc in self.bcs]
+        everything = np.unique(np.concatenate(dofs)) if dofs else np.zeros(0, dtype=np.int32)
+        return everything[everything < owned]
+
+    def _default_quadrature_degree(self) -> int:
+        mesh = self.geometry.mesh
+        affine = mesh.topology.cell_name() in ("interval", "triangle", "tetrahedron")
+        gradient_degree = self.degree - 1 if affine else self.degree
+        gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
+        return self.material.quadrature_degree(gradient_degree)

@@ -1,0 +1,514 @@
+"""Newton's method (PETSc SNES) with line search and adaptive load stepping.
+
+A step that fails (no convergence, a NaN, a linear-solver breakdown) is undone: the last
+converged state is restored and the step is cut. Easy steps make the next one longer. Below the
+minimum step the solve stops with a :class:`SolverError` that says where and why. An unconverged
+state is never returned as a result.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+import weakref
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import numpy as np
+from dolfinx.fem.petsc import NonlinearProblem
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lungmech import checks
+from lungmech.errors import Interrupted, ParameterError, SolverError
+from lungmech.fem import convergence, limits
+from lungmech.parallel.linalg import gram_schmidt
+
+log = logging.getLogger("lungmech")
+
+_REASONS = {
+    getattr(PETSc.SNES.ConvergedReason, name): name
+    for name in dir(PETSc.SNES.ConvergedReason)
+    if name.isupper() or name.startswith(("CONVERGED", "DIVERGED", "ITERATING"))
+}
+_prefixes = itertools.count()
+
+
+@dataclass(frozen=True)
+class NewtonOptions:
+    """Nonlinear and linear solver settings.
+
+    ``linear_solver`` is "direct" (MUMPS LU, robust, the default) or "iterative" (GMRES with
+    smoothed-aggregation AMG and the rigid-body near-nullspace, for large displacement-only
+    problems). ``petsc_options`` overrides or extends any PETSc option; one PETSc refuses or
+    does not use is an error.
+
+    A Newton solve has converged when every field's residual has fallen to ``rtol`` times its load
+    scale, or to ``atol`` (in the residual's own unit; 0: no absolute test), or quadratically to
+    its round-off floor (see :mod:`lungmech.fem.convergence`). The default line search, ``cp``,
+    judges a step by R·d, an energy, consistent across fields of different units (``bt``'s merit
+    ‖R‖² is not).
+    """
+
+    linear_solver: str = "direct"
+    rtol: float = 1e-10
+    atol: float = 0.0
+    max_iterations: int = 25
+    line_search: str = "cp"
+    petsc_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.linear_solver not in ("direct", "iterative"):
+            raise ParameterError(f"linear_solver must be 'direct' or 'iterative' (got {self.linear_solver!r})")
+        if self.line_search not in ("bt", "l2", "cp", "basic", "none"):
+            raise ParameterError(f"line_search must be bt, l2, cp, basic or none (got {self.line_search!r})")
+        checks.real("rtol", self.rtol, positive=True)
+        checks.real("atol", self.atol, nonnegative=True)
+        checks.integer("max_iterations", self.max_iterations, minimum=1)
+        if not isinstance(self.petsc_options, dict):
+            raise ParameterError(f"petsc_options must be a table of PETSc options (got {self.petsc_options!r})")
+        for key in self.petsc_options:
+            if key in ("snes_rtol", "snes_atol", "snes_stol"):
+                raise ParameterError(
+                    f"petsc_options.{key}: lungmech stops Newton with its own test; set rtol or atol "
+                    "in [solver] instead"
+                )
+        for key, value in self.petsc_options.items():
+            if not isinstance(value, str | bool | int | float) or (
+                isinstance(value, float) and not math.isfinite(value)
+            ):
+                raise ParameterError(f"petsc_options.{key}: expected a string, number or boolean (got {value!r})")
+
+    def petsc(self) -> dict:
+        options = {
+            "snes_type": "newtonls",
+            "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
+            # The line searches' own absolute stop (cp's |F·Y| < 1e-15) depends on units: ours decides.
+            "snes_linesearch_atol": 0.0,
+            "snes_max_it": self.max_iterations,
+            "snes_max_funcs": 10 * self.max_iterations + 100,
+        }
+        if self.linear_solver == "direct":
+            options |= {
+                "ksp_type": "preonly",
+                "pc_type": "lu",
+                "pc_factor_mat_solver_type": "mumps",
+                "mat_mumps_icntl_14": 200,  # room for pivoting (mixed)
+            }
+        else:
+            options |= {
+                "ksp_type": "gmres",
+                "ksp_rtol": 1e-9,
+                "ksp_max_it": 500,
+                "pc_type": "gamg",
+                "pc_gamg_type": "agg",
+                "mg_levels_ksp_type": "chebyshev",
+                "mg_levels_pc_type": "jacobi",
+            }
+        # A true flag is set as a bare option (PETSc reads "" as true, and as "on" for a viewer);
+        # a false one is left out (off, PETSc's default).
+        given = {k: "" if v is True else v for k, v in self.petsc_options.items() if v is not False}
+        return options | given
+
+
+@dataclass(frozen=True)
+class Stepping:
+    """Adaptive pseudo-time stepping from ``start`` to ``end``.
+
+    Steps grow by ``growth`` after a step that took at most ``easy_iterations`` Newton
+    iterations and are halved after a failure; ``times`` (and every ramp breakpoint) are hit
+    exactly, so outputs can be requested there.
+    """
+
+    end: float = 1.0
+    start: float = 0.0
+    initial_step: float = 0.25
+    min_step: float = 1e-5
+    max_step: float = 1.0
+    growth: float = 1.5
+    easy_iterations: int = 5
+    times: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        for name in ("end", "start", "initial_step", "min_step", "growth"):
+            checks.real(name, getattr(self, name))
+        checks.real("max_step", self.max_step, infinite=True)
+        checks.integer("easy_iterations", self.easy_iterations, minimum=0)
+        if not isinstance(self.times, tuple):
+            raise ParameterError(f"times must be a list of output times (got {self.times!r})")
+        object.__setattr__(self, "times", tuple(checks.real(f"times[{i}]", t) for i, t in enumerate(self.times)))
+        if not self.end > self.start:
+            raise ParameterError(f"end ({self.end}) must be after start ({self.start})")
+        if outside := [t for t in self.times if not self.start < t <= self.end]:
+            raise ParameterError(
+                f"times {outside} lie outside (start, end] = ({self.start:g}, {self.end:g}]: "
+                "outputs can only be asked for inside the run"
+            )
+        if not 0 < self.min_step <= self.initial_step <= self.max_step:
+            raise ParameterError(
+                f"need 0 < min_step <= initial_step <= max_step (got {self.min_step:g}, "
+                f"{self.initial_step:g}, {self.max_step:g})"
+            )
+        if not self.growth >= 1:
+            raise ParameterError(f"growth must be >= 1 (got {self.growth:g})")
+
+
+@dataclass(frozen=True)
+class StepReport:
+    time: float
+    step: float
+    iterations: int
+    residuals: tuple[float, ...]
+    reason: str
+    seconds: float
+    converged: bool
+
+
+@dataclass
+class SolveReport:
+    """Every attempted step, accepted or not, and the totals."""
+
+    steps: list[StepReport] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def accepted(self) -> list[StepReport]:
+        return [s for s in self.steps if s.converged]
+
+    @property
+    def newton_iterations(self) -> int:
+        return sum(s.iterations for s in self.steps)
+
+    @property
+    def failures(self) -> int:
+        return sum(not s.converged for s in self.steps)
+
+
+class NewtonSolver:
+    """One SNES for one model: forms are compiled once, then reused for every step.
+
+    ``residual`` and ``jacobian`` replace the model's own forms (same unknowns), e.g. the
+    incremental potential of a time step (:mod:`lungmech.fem.dynamics`).
+    """
+
+    def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
+        self.model = model
+        self.options = options or NewtonOptions()
+        if self.options.linear_solver == "iterative" and model.mixed:
+            raise ParameterError(
+                "the iterative linear solver handles the displacement formulation only; "
+                "use the direct solver with the mixed formulation"
+            )
+        prefix = f"lungmech_{next(_prefixes)}_"
+        self.problem = NonlinearProblem(
+            model.residual if residual is None else residual,
+            model.state,
+            bcs=model.bcs,
+            J=model.jacobian if jacobian is None else jacobian,
+            petsc_options_prefix=prefix,
+        )
+        options = self.options.petsc()
+        _configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
+        if self.options.linear_solver == "iterative":
+            self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
+        self._residuals: list[float] = []
+        snes = self.problem.solver
+        snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
+        self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
+        self.inversion = limits.Inversion(model)
+        self.description = "full order"
+        snes.setConvergenceTest(
+            lambda snes, it, norms: self.test(snes.getFunction()[0], it, snes.getJacobian()[0], snes.getSolution())
+        )
+
+    def solve(self) -> NewtonResult:
+        """One Newton solve from the current state: (converged, iterations, residuals, reason).
+
+        Loads whose coefficients depend on the whole state (balanced gravity) are frozen during
+        a Newton solve, which then converges quadratically, and updated between solves until
+        they stop changing: a fixed point around an exact Newton method.
+        """
+        self.test.new_step()
+        return settle_state_dependent(self.model, self._newton, self.options)
+
+    def start_path(self) -> None:
+        """A new load path begins: the fields' load scales start again (see :mod:`lungmech.fem.convergence`)."""
+        self.test.start_path()
+
+    def _newton(self) -> NewtonResult:
+        self._residuals.clear()
+        self.test.start()
+        snes = self.problem.solver
+        try:
+            self.problem.solve()
+            reason = snes.getConvergedReason()
+        except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
+            Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
+            said = _petsc_message(error)
+            if error.ierr in _SETTINGS_ERRORS:  # the same at every step: not a numerical failure
+                raise SolverError(f"PETSc refused the solver settings (solver.petsc_options?): {said}") from None
+            return NewtonResult(
+                False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}"
+            )
+        Interrupted.raise_pending()
+        converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
+        name = _REASONS.get(reason, str(reason))
+        if not converged:
+            name = f"{name}: {self.test.describe()}"
+        elif wrong := self.inversion():
+            converged, name = False, f"{name} to {wrong}"
+        return NewtonResult(bool(converged), snes.getIterationNumber(), tuple(self._residuals), name)
+
+    @property
+    def residual_form(self):
+        """The compiled residual form."""
+        return self.problem.F
+
+    @property
+    def jacobian_form(self):
+        """The compiled Jacobian form."""
+        return self.problem.J
+
+    def destroy(self) -> None:
+        self.problem.solver.destroy()
+
+
+@dataclass(frozen=True)
+class NewtonResult:
+    """What a Newton solve did (or several, for loads whose coefficients settle in a fixed point)."""
+
+    converged: bool
+    iterations: int
+    residuals: tuple[float, ...]  # the norm of the whole residual at each iteration
+    reason: str  # PETSc's converged reason, and what failed when it did not converge
+
+    def then(self, later: NewtonResult) -> NewtonResult:
+        """This solve followed by ``later``: iterations and residuals add up; ``later`` decides."""
+        return NewtonResult(
+            later.converged, self.iterations + later.iterations, self.residuals + later.residuals, later.reason
+        )
+
+
+class Solver(Protocol):
+    """What the load stepping (:func:`solve`) and the outputs need of a nonlinear solver: the
+    full-order :class:`NewtonSolver` and the reduced :class:`lungmech.rom.galerkin.ReducedSolver`."""
+
+    model: Any
+    description: str  # for summaries, e.g. "full order"
+
+    def solve(self) -> NewtonResult:
+        """One Newton solve from the model's current state, at its current loads."""
+        ...
+
+    def start_path(self) -> None:
+        """A load path begins (the solver may rescale its convergence test)."""
+        ...
+
+    @property
+    def residual_form(self) -> Any: ...
+
+    @property
+    def jacobian_form(self) -> Any: ...
+
+    def destroy(self) -> None: ...
+
+
+def settle_state_dependent(model, newton: Callable[[], NewtonResult], options: NewtonOptions) -> NewtonResult:
+    """Run ``newton`` with the state-dependent load coefficients frozen, update them from the
+    solution and repeat (Anderson-accelerated) until they stop changing (relative ``rtol``)."""
+    terms = model.state_dependent
+    if not terms:
+        return newton()
+    splits = np.cumsum([len(term.evaluate()) for term in terms])[:-1]
+
+    def assign(theta: np.ndarray) -> None:
+        for term, part in zip(terms, np.split(theta, splits)):
+            term.assign(part)
+
+    theta = np.concatenate([term.evaluate() for term in terms])
+    assign(theta)
+    result = newton()
+    anderson = _Anderson()
+    for _ in range(options.max_iterations):
+        if not result.converged:
+            break
+        image = np.concatenate([term.evaluate() for term in terms])
+        if np.linalg.norm(image - theta) <= options.rtol * max(np.linalg.norm(image), 1e-300):
+            break
+        theta = anderson.next(theta, image)
+        assign(theta)
+        result = result.then(newton())
+    else:
+        result = replace(result, converged=False, reason="state-dependent load coefficients did not settle")
+    return result
+
+
+class _Anderson:
+    """Anderson acceleration of a fixed point θ = G(θ): the next iterate from the last few."""
+
+    def __init__(self, depth: int = 5):
+        self.depth, self.thetas, self.images = depth, [], []
+
+    def next(self, theta: np.ndarray, image: np.ndarray) -> np.ndarray:
+        self.thetas, self.images = [*self.thetas, theta][-self.depth - 1 :], [*self.images, image][-self.depth - 1 :]
+        if len(self.thetas) == 1:
+            return image
+        residuals = np.array(self.images) - np.array(self.thetas)  # rows: G(θ_i) − θ_i
+        dF = np.diff(residuals, axis=0).T
+        dG = np.diff(np.array(self.images), axis=0).T
+        gamma = np.linalg.lstsq(dF, residuals[-1], rcond=None)[0]
+        return image - dG @ gamma
+
+
+# PETSc errors of settings, not of numbers: no support, wrong argument, out of range, unknown type.
+_SETTINGS_ERRORS = (56, 62, 63, 86)
+
+
+def _petsc_message(error: PETSc.Error) -> str:
+    """The last line of PETSc's error report (what went wrong, without its call stack)."""
+    lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
+    return lines[-1] if lines else f"error {error.ierr}"
+
+
+# Options of objects made at set-up (factorisation, multigrid levels, sub-solvers): read later.
+_READ_LATER = ("mat_", "mg_", "fieldsplit_", "sub_", "redundant_", "pc_factor_mat_solver")
+
+
+def _configure(owner, snes: PETSc.SNES, prefix: str, options: dict, given: Sequence[str]) -> None:
+    """Set ``options`` on ``snes`` (and its KSP and PC) for ``owner``'s lifetime. A value PETSc
+    refuses, or an option of the user's (``given``) it does not use, is a :class:`SolverError`
+    naming it (options of the objects made at set-up, such as mat_* or mg_levels_*, are checked
+    when they are read, at the first solve)."""
+    _persistent_options(owner, prefix, options)
+    database = PETSc.Options()
+    try:
+        snes.setFromOptions()
+    except PETSc.Error as error:
+        raise SolverError(f"solver.petsc_options: PETSc refused them: {_petsc_message(error)}") from None
+    unknown = [key for key in given if not key.startswith(_READ_LATER) and not database.used(prefix + key)]
+    if unknown:
+        raise SolverError(
+            f"solver.petsc_options: PETSc does not use {', '.join(unknown)} here (misspelt, or an "
+            "option of another solver type)"
+        )
+
+
+def _persistent_options(owner, prefix: str, options: dict) -> None:
+    """Set PETSc options that stay until ``owner`` is garbage-collected."""
+    database = PETSc.Options()
+    for key, value in options.items():
+        database[prefix + key] = value
+    weakref.finalize(owner, lambda: [database.delValue(prefix + key) for key in options])
+
+
+def solve(
+    model,
+    stepping: Stepping | None = None,
+    options: NewtonOptions | None = None,
+    on_step: Callable[[StepReport], None] | None = None,
+    solver: Solver | None = None,
+    drive: Callable[[float], None] | None = None,
+    monitor: Callable[[StepReport], None] | None = None,
+    breakpoints: Sequence[float] | None = None,
+) -> SolveReport:
+    """Drive ``model`` from ``stepping.start`` to ``stepping.end`` with adaptive steps.
+
+    ``on_step`` is called after every accepted step (outputs, P–V curves, snapshots), and
+    ``monitor`` after every attempt, accepted or cut back (default: a log line). Pass a
+    ``solver`` to reuse its compiled forms across calls. The stepped variable is the time,
+    unless ``drive(s)`` is given to apply it otherwise (e.g. as a load factor). Steps land on
+    ``breakpoints`` (default: the model's ramp breakpoints, unless ``drive`` is given). Raises
+    :class:`SolverError` when a step below ``stepping.min_step`` still fails; the model then
+    holds the last converged state.
+    """
+    stepping = stepping or Stepping()
+    solver = solver or NewtonSolver(model, options)
+    state = model.state.x.array
+    if breakpoints is None:
+        breakpoints = model.breakpoints if drive is None else []
+    drive = drive or model.set_time
+    targets = sorted({t for t in (*stepping.times, *breakpoints, stepping.end) if stepping.start < t <= stepping.end})
+    report = SolveReport()
+    started = time.perf_counter()
+
+    t, dt = stepping.start, stepping.initial_step
+    drive(t)
+    first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
+    solver.start_path()
+    last, previous, previous_dt = state.copy(), None, None
+    for target in targets:
+        while t < target - 1e-12 * (stepping.end - stepping.start):
+            dt = min(dt, stepping.max_step, target - t)
+            if previous is not None:  # linear predictor from the last two converged states
+                state[:] = last + (dt / previous_dt) * (last - previous)
+            drive(t + dt)
+            tic = time.perf_counter()
+            result = solver.solve()
+            converged = result.converged
+            step = StepReport(
+                t + dt, dt, result.iterations, result.residuals, result.reason, time.perf_counter() - tic, converged
+            )
+            report.steps.append(step)
+            (monitor or _log_step)(step)
+            if converged:
+                previous, previous_dt, last = last, dt, state.copy()
+                t += dt
+                if on_step is not None:
+                    on_step(step)
+                if result.iterations <= stepping.easy_iterations:
+                    dt *= stepping.growth
+                continue
+            final = dt <= stepping.min_step * (1 + 1e-12)
+            smallest_J = limits.min_jacobian(model)() if final else None  # of the failed iterate
+            state[:] = last
+            model.state.x.scatter_forward()
+            if final:
+                drive(t)
+                cause = limits.diagnose(model, solver, drive, t, (first, stepping.start), smallest_J)
+                report.seconds = time.perf_counter() - started
+                raise SolverError(_failure_message(t, dt, step, cause))
+            dt = max(dt / 2, stepping.min_step)
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _log_step(step: StepReport) -> None:
+    status = "ok" if step.converged else f"not converged ({step.reason}): step cut back"
+    log.info(
+        "t = %.6g s  dt = %.3g s  Newton %2d  %.2f s  %s", step.time, step.step, step.iterations, step.seconds, status
+    )
+
+
+def _failure_message(t: float, dt: float, step: StepReport, cause: str) -> str:
+    where = f"the load path stopped at t = {t:.6g} s"
+    if cause:
+        return (
+            f"{where}: {cause}. Newton could not take even the minimum step ({dt:.3g} s) beyond it "
+            f"({step.reason}). The last converged state, at t = {t:.6g} s, is kept."
+        )
+    return (
+        f"{where}: the minimum step ({dt:.3g} s) was reached and Newton still did not converge ({step.reason}). "
+        "The last converged state is kept. Try a smaller min_step or another line search, or check the loads "
+        "and material parameters."
+    )
+
+
+def rigid_body_modes(space) -> PETSc.NullSpace:
+    """The 6 rigid-body modes of a 3-D vector space, orthonormalised: AMG's near-nullspace."""
+    index_map, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+    n = index_map.size_local
+    comm = space.mesh.comm
+    x = space.tabulate_dof_coordinates()[:n]
+    # Rotations about one point for all ranks (the global centre: better conditioned than the origin).
+    total = comm.allreduce(np.concatenate([x.sum(axis=0), [len(x)]]), op=MPI.SUM)
+    x = x - total[:3] / total[3]
+    modes = np.zeros((6, n, bs))
+    for i in range(3):
+        modes[i, :, i] = 1.0
+        modes[3 + i] = np.cross(np.eye(3)[i], x)
+    orthonormal, _ = gram_schmidt(modes.reshape(6, -1).T, None, comm, tolerance=0.0)
+    vectors = [PETSc.Vec().createWithArray(mode.copy(), bsize=bs, comm=comm) for mode in orthonormal.T]
+    return PETSc.NullSpace().create(vectors=vectors, comm=comm)

@@ -1,0 +1,132 @@
+"""The inverse problem: the unloaded reference configuration of an imaged, loaded body.
+
+A lung is imaged under load (at end-expiration the pleural pressure already pulls on it).
+Given that geometry x̂ and the loads at the imaging time, find the reference X whose deformed
+configuration X + u(X) is x̂. We use the backward-displacement fixed point (Sellier 2011;
+Bols et al. 2013): from X_0 = x̂, solve the direct problem on X_k and correct the reference by
+the mismatch, X_{k+1} = X_k + ω_k (x̂ − X_k − u_k), with Aitken's dynamic relaxation ω_k
+(Küttler & Wall 2008). Every iteration is a direct solve with the model's own forms — the
+mesh nodes move, nothing is recompiled — started from the previous iteration's displacement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from time import perf_counter
+
+import numpy as np
+from mpi4py import MPI
+
+from lungmech import checks
+from lungmech.errors import ParameterError, SolverError
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.mesh import nodes as mesh_nodes
+
+
+@dataclass
+class InverseReport:
+    """Mismatch max |X + u − x̂| / size after each iteration, and the totals."""
+
+    mismatch: list[float] = field(default_factory=list)
+    newton_iterations: int = 0
+    seconds: float = 0.0
+
+    @property
+    def iterations(self) -> int:
+        return len(self.mismatch)
+
+
+def node_displacements(model) -> Callable[[], np.ndarray]:
+    """A function that returns u at the mesh's geometry nodes (owned and ghost), shape (nodes, 3)."""
+    sample = mesh_nodes.sampler(model.geometry.mesh)
+    return lambda: sample(model.displacement())
+
+
+@dataclass(frozen=True)
+class InverseOptions:
+    """Stop when max |X + u − x̂| ≤ ``tolerance`` × the body's size, or fail after ``max_iterations``."""
+
+    tolerance: float = 1e-9
+    max_iterations: int = 50
+
+    def __post_init__(self):
+        checks.real("tolerance", self.tolerance)
+        if not 0 < self.tolerance < 1:
+            raise ParameterError(f"tolerance must lie in (0, 1) (got {self.tolerance})")
+        if isinstance(self.max_iterations, bool) or not (
+            isinstance(self.max_iterations, int) and self.max_iterations >= 1
+        ):
+            raise ParameterError(f"max_iterations must be a positive integer (got {self.max_iterations!r})")
+
+
+def unloaded_reference(
+    model,
+    time: float = 0.0,
+    options: InverseOptions = InverseOptions(),
+    stepping: Stepping | None = None,
+    newton: NewtonOptions | None = None,
+    solver: NewtonSolver | None = None,
+    monitor: Callable[[InverseReport], None] | None = None,
+) -> InverseReport:
+    """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
+
+    On return the mesh holds the reference X and ``model.state`` the loaded state at ``time``,
+    whose nodes X + u match the imaged ones to ``options.tolerance`` × the body's size. ``stepping``
+    raises the loads of ``time`` from zero (a load factor from 0 to 1) for the first direct solve;
+    imposed displacements keep their values at ``time``. ``monitor(report)`` is called after
+    every iteration (progress). Raises :class:`SolverError` when the iteration does not converge.
+    """
+    tic = perf_counter()
+    mesh = model.geometry.mesh
+    gdim, comm = mesh.geometry.dim, mesh.comm
+    imaged = mesh.geometry.x[:, :gdim].copy()
+    owned = mesh.geometry.index_map().size_local
+    size = model.geometry.size
+    displacement = node_displacements(model)
+    solver = solver or NewtonSolver(model, newton)
+    report = InverseReport()
+
+    def dot(a: np.ndarray, b: np.ndarray) -> float:
+        return comm.allreduce(float(np.sum(a[:owned] * b[:owned])), op=MPI.SUM)
+
+    model.reset()  # first direct solve: the loads of ``time``, raised from zero
+    first = solve(
+        model,
+        stepping or Stepping(initial_step=0.25),
+        solver=solver,
+        drive=lambda s: model.set_time(time, s),
+        monitor=None if monitor is None else lambda step: None,
+    )
+    report.newton_iterations += first.newton_iterations
+    relaxation, previous = 1.0, None
+    while True:
+        residual = imaged - mesh.geometry.x[:, :gdim] - displacement()
+        worst = comm.allreduce(float(np.abs(residual[:owned]).max(initial=0.0)), op=MPI.MAX) / size
+        report.mismatch.append(worst)
+        if monitor is not None:
+            monitor(report)
+        if worst <= options.tolerance:
+            break
+        if report.iterations >= options.max_iterations:
+            raise SolverError(
+                f"inverse: no unloaded reference within {options.max_iterations} iterations (mismatch "
+                f"{worst:.2e} of the body's size, asked {options.tolerance:.0e}); the loads may be too large "
+                "for the material, or the imaged geometry is not a deformed state of it"
+            )
+        if previous is not None:  # Aitken: the relaxation that would have cancelled the last change
+            change = residual - previous
+            relaxation = -relaxation * dot(previous, change) / dot(change, change)
+        mesh_nodes.move(mesh, relaxation * residual)
+        previous = residual
+        model.set_time(time)
+        report.newton_iterations += _newton(solver)
+    report.seconds = perf_counter() - tic
+    return report
+
+
+def _newton(solver: NewtonSolver) -> int:
+    result = solver.solve()
+    if not result.converged:
+        raise SolverError(f"inverse: the direct solve on the corrected reference failed ({result.reason})")
+    return result.iterations

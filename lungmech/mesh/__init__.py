@@ -1,0 +1,26 @@
+"""Meshes with named boundaries: the :class:`Geometry`, its builders, mesh files, and its nodes.
+
+``geometry`` (the class and its measures) · ``builders`` (box, sphere, ellipsoid, lung phantom) ·
+``files`` (.msh and .xdmf in and out) · ``nodes`` (the one owner of node moves) · ``lung_shape``.
+"""
+
+from lungmech.mesh.builders import box, ellipsoid, lung_phantom, sphere
+from lungmech.mesh.files import companions, from_file, is_lungmech_mesh, write
+from lungmech.mesh.geometry import Geometry, diameter
+from lungmech.mesh.lung_shape import LungShape
+from lungmech.mesh.nodes import node_dofs
+
+__all__ = [
+    "Geometry",
+    "LungShape",
+    "box",
+    "companions",
+    "diameter",
+    "ellipsoid",
+    "from_file",
+    "is_lungmech_mesh",
+    "lung_phantom",
+    "node_dofs",
+    "sphere",
+    "write",
+]

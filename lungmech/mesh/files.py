@@ -1,0 +1,216 @@
+"""Mesh files: gmsh ``.msh`` and DOLFINx ``.xdmf`` (with its ``.h5`` data and a ``.tags.json``
+sidecar of boundary names), read into and written from a :class:`~lungmech.mesh.geometry.Geometry`.
+
+Collective: under MPI, call on all ranks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import dolfinx
+import dolfinx.io
+import dolfinx.mesh
+import numpy as np
+from mpi4py import MPI
+
+from lungmech.errors import GeometryError
+from lungmech.mesh.builders import gmsh_session
+from lungmech.mesh.geometry import Geometry, from_meshdata
+from lungmech.parallel import on_root
+
+__all__ = ["companions", "from_file", "is_lungmech_mesh", "write"]
+
+
+def from_file(
+    path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, boundaries: Mapping[str, int] | None = None
+) -> Geometry:
+    """Read a geometry from a gmsh ``.msh`` or a DOLFINx ``.xdmf`` file.
+
+    Boundary names come from ``boundaries`` if given, else from the gmsh physical names of
+    dimension 2 (``.msh``) or the sidecar ``<stem>.tags.json`` written by :func:`write`
+    (``.xdmf``); tag values without a name are named by their number, e.g. ``"3"``.
+    """
+    path = Path(path)
+    if path.suffix not in (".msh", ".xdmf"):
+        raise GeometryError(f"cannot read mesh file '{path}': suffix {path.suffix!r} is not .msh or .xdmf")
+    if not path.is_file():
+        raise GeometryError(f"mesh file '{path}' not found")
+    geometry = _read_msh(path, comm) if path.suffix == ".msh" else _read_xdmf(path, comm)
+
+    present = _global_values(geometry.facet_tags, comm)
+    names = dict(boundaries if boundaries is not None else geometry.boundaries)
+    for name, tag in names.items():
+        if tag not in present:
+            raise GeometryError(
+                f"mesh file '{path}': boundary {name!r} has tag {tag}, which no facet carries; "
+                f"tags present: {', '.join(map(str, sorted(present)))}"
+            )
+    names |= {str(tag): tag for tag in sorted(present - set(names.values()))}
+    source = f"mesh file '{path}'"
+    if path.suffix == ".xdmf" and boundaries is None and not _sidecar(path).is_file():
+        source += (
+            f" (its boundary names, '{_sidecar(path).name}', are missing, so its boundaries go by tag number; "
+            "name them in [geometry] boundaries = {name = tag, ...})"
+        )
+    return Geometry(geometry.mesh, geometry.facet_tags, names, geometry.cell_tags, source)
+
+
+def _check_solid(mesh: dolfinx.mesh.Mesh, path: Path) -> None:
+    """A 3-D body with finite node coordinates (collective)."""
+    if mesh.topology.dim != 3:
+        raise GeometryError(
+            f"mesh file '{path}' holds a {mesh.topology.dim}-D mesh ({mesh.topology.cell_name()} "
+            "cells); lungmech solves 3-D bodies only (tetrahedra or hexahedra)"
+        )
+    finite = mesh.comm.allreduce(bool(np.isfinite(mesh.geometry.x).all()), op=MPI.LAND)
+    if not finite:
+        raise GeometryError(f"mesh file '{path}' has node coordinates that are not finite numbers (nan or inf)")
+
+
+def companions(path: str | Path) -> list[Path]:
+    """The files that go with a mesh file: an .xdmf's .h5 data and .tags.json boundary names."""
+    path = Path(path)
+    return [path.with_suffix(".h5"), _sidecar(path)] if path.suffix == ".xdmf" else []
+
+
+def is_lungmech_mesh(path: str | Path) -> bool:
+    """Whether ``path`` is an .xdmf mesh that lungmech wrote, with its .h5, both unchanged (its
+    boundary-names file says so and holds their SHA-256)."""
+    path = Path(path)
+    try:
+        names = json.loads(_sidecar(path).read_text())
+        written = names["sha256"]
+        return (
+            path.suffix == ".xdmf"
+            and names["written_by"] == "lungmech"
+            and all(_sha256(path.with_name(name)) == sha for name, sha in written.items())
+            and set(written) == {path.name, path.with_suffix(".h5").name}
+        )
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return False
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as stream:
+        return hashlib.sha256(stream.read()).hexdigest()
+
+
+def _global_values(tags: dolfinx.mesh.MeshTags, comm: MPI.Comm) -> set[int]:
+    """All tag values in use, on any rank."""
+    return set().union(*comm.allgather({int(v) for v in np.unique(tags.values)}))
+
+
+def _read_msh(path: Path, comm: MPI.Comm) -> Geometry:
+    """Read a .msh file quietly (dolfinx.io.gmsh.read_from_msh is not quiet, and finalizes gmsh)."""
+    root = 0
+    if comm.rank != root:
+        if failure := comm.bcast(None, root=root):
+            raise GeometryError(failure)
+        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(None, comm, root, gdim=3))
+    with gmsh_session({}) as gmsh:
+        try:
+            gmsh.merge(str(path))
+        except Exception as e:
+            comm.bcast(f"cannot read mesh file '{path}': {e}", root=root)
+            raise GeometryError(f"cannot read mesh file '{path}': {e}") from e
+        comm.bcast(None, root=root)
+        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, root, gdim=3))
+
+
+def _to_geometry(path: Path, read: Callable[[], Any]) -> Geometry:
+    try:
+        data = read()
+    except RuntimeError as e:  # raised on all ranks alike (model_to_mesh broadcasts its checks)
+        raise GeometryError(f"cannot read mesh file '{path}': {e}") from e
+    _check_solid(data.mesh, path)
+    if data.facet_tags is None:
+        raise GeometryError(f"mesh file '{path}' has no facet tags (no 2D physical groups)")
+    return from_meshdata(data)
+
+
+def _read_xdmf(path: Path, comm: MPI.Comm) -> Geometry:
+    try:
+        grids = {grid.get("Name") for grid in ET.parse(path).iter("Grid")}
+    except ET.ParseError as e:
+        raise GeometryError(f"cannot read mesh file '{path}': not valid XDMF ({e})") from None
+    if "mesh" not in grids:
+        raise GeometryError(f"mesh file '{path}' has no grid named 'mesh'")
+    if "facet_tags" not in grids:
+        raise GeometryError(f"mesh file '{path}' has no facet tags (no grid named 'facet_tags')")
+    for data in _data_files(path):
+        if not data.is_file():
+            raise GeometryError(f"mesh file '{path}': its data file '{data}' is missing")
+    try:
+        with dolfinx.io.XDMFFile(comm, str(path), "r") as file:
+            mesh = file.read_mesh(name="mesh")
+            mesh.topology.create_connectivity(mesh.topology.dim - 1, mesh.topology.dim)
+            facet_tags = file.read_meshtags(mesh, name="facet_tags")
+            cell_tags = file.read_meshtags(mesh, name="cell_tags") if "cell_tags" in grids else None
+    except RuntimeError as e:  # HDF5 or XDMF errors, raised on every rank alike
+        raise GeometryError(f"cannot read mesh file '{path}': {str(e).strip().splitlines()[-1]}") from None
+    _check_solid(mesh, path)
+
+    boundaries: dict[str, int] = {}
+    sidecar = _sidecar(path)
+    if sidecar.is_file():
+        try:
+            boundaries = {str(k): int(v) for k, v in json.loads(sidecar.read_text())["boundaries"].items()}
+        except (ValueError, KeyError, TypeError, AttributeError) as e:
+            message = f"""expected {{"boundaries": {{name: tag, ...}}}} ({e!r})"""
+            raise GeometryError(f"cannot read boundary names from '{sidecar}': {message}") from None
+    return Geometry(mesh, facet_tags, boundaries, cell_tags)
+
+
+def _data_files(path: Path) -> set[Path]:
+    """The HDF5 files an XDMF file refers to (``file.h5:/dataset``), relative to it."""
+    names = {
+        item.text.strip().split(":")[0]
+        for item in ET.parse(path).iter("DataItem")
+        if item.get("Format") == "HDF" and item.text
+    }
+    return {path.parent / name for name in names}
+
+
+def _sidecar(path: Path) -> Path:
+    return path.with_suffix(".tags.json")
+
+
+@contextlib.contextmanager
+def _named(obj: Any, name: str) -> Iterator[None]:
+    """Temporarily rename a mesh or mesh tags: XDMF stores them under their current name."""
+    old, obj.name = obj.name, name
+    try:
+        yield
+    finally:
+        obj.name = old
+
+
+def write(geometry: Geometry, path: str | Path) -> None:
+    """Write ``geometry`` to ``path`` (``.xdmf``, with ``.h5`` data and a ``.tags.json`` sidecar)."""
+    path = Path(path)
+    if path.suffix != ".xdmf":
+        raise GeometryError(f"cannot write '{path}': geometries are written as .xdmf")
+    mesh, comm = geometry.mesh, geometry.mesh.comm
+    on_root(comm, lambda: path.parent.mkdir(parents=True, exist_ok=True))
+    with dolfinx.io.XDMFFile(comm, str(path), "w") as file:
+        with _named(mesh, "mesh"):
+            file.write_mesh(mesh)
+        with _named(geometry.facet_tags, "facet_tags"):
+            file.write_meshtags(geometry.facet_tags, mesh.geometry)
+        if geometry.cell_tags is not None:
+            with _named(geometry.cell_tags, "cell_tags"):
+                file.write_meshtags(geometry.cell_tags, mesh.geometry)
+
+    def sidecar() -> None:
+        files = {p.name: _sha256(p) for p in (path, path.with_suffix(".h5"))}
+        names = {"boundaries": dict(geometry.boundaries), "written_by": "lungmech", "sha256": files}
+        _sidecar(path).write_text(json.dumps(names, indent=2) + "\n")
+
+    on_root(comm, sidecar)  # collective: no rank reads the sidecar before it exists

@@ -1,0 +1,140 @@
+"""A mesh's geometry nodes: where they are, vector fields on them, and the one place that moves them.
+
+Every change of a mesh's reference configuration goes through :func:`move`, :func:`place` or
+:func:`deformed`: the inverse problem replaces the imaged nodes by the unloaded reference, a
+reduced model puts back the reference it was built on, registration maps a reference mesh onto
+an image. Nothing is recompiled when nodes move: forms read the coordinates at assembly.
+
+A nodal field is a vector Lagrange field of the mesh's own geometry degree, so its dofs sit on
+the geometry nodes (:func:`displacement_space`). Written in the canonical order of
+:mod:`lungmech.parallel.layout` ((component, node) sorted by position) it reads the same on any
+number of MPI ranks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import numpy.typing as npt
+import ufl
+from dolfinx import fem, la
+
+from lungmech.parallel.layout import Layout, layout
+
+__all__ = [
+    "deformed",
+    "displacement_space",
+    "gather",
+    "masses",
+    "move",
+    "move_nodes",
+    "node_dofs",
+    "place",
+    "positions",
+    "place_canonical",
+    "sampler",
+    "scatter",
+]
+
+
+def node_dofs(space: fem.FunctionSpace) -> npt.NDArray[np.int64]:
+    """The dof (block) of every geometry node, owned and ghost, for a Lagrange space of the
+    mesh's own degree: both numberings enumerate the same points cell by cell."""
+    mesh = space.mesh
+    node_of_dof = np.empty(space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts, dtype=np.int64)
+    node_of_dof[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    dof_of_node = np.empty_like(node_of_dof)
+    dof_of_node[node_of_dof] = np.arange(node_of_dof.size)
+    return dof_of_node
+
+
+def displacement_space(mesh) -> tuple[fem.FunctionSpace, Layout]:
+    """The vector Lagrange space on the geometry nodes and its canonical layout (collective)."""
+    space = fem.functionspace(mesh, ("Lagrange", mesh.geometry.cmaps[0].degree, (mesh.geometry.dim,)))
+    return space, layout(space)
+
+
+def gather(function: fem.Function, where: Layout) -> np.ndarray:
+    """A nodal vector field as (nodes, gdim) in canonical node order, on every rank (collective)."""
+    bs = function.function_space.dofmap.index_map_bs
+    owned = function.function_space.dofmap.index_map.size_local * bs
+    # Canonical dofs are sorted by (component, node): all x components, then y, then z.
+    return where.gather(function.x.array[:owned]).reshape(bs, -1).T
+
+
+def positions(space: fem.FunctionSpace, where: Layout) -> np.ndarray:
+    """The nodes' current positions (nodes, gdim) in canonical order, on every rank (collective)."""
+    identity = fem.Function(space)
+    identity.interpolate(lambda x: x[: space.mesh.geometry.dim])
+    return gather(identity, where)
+
+
+def scatter(values: np.ndarray, function: fem.Function, where: Layout) -> None:
+    """Set ``function`` from canonical (nodes, gdim) values (ghosts included)."""
+    owned = function.function_space.dofmap.index_map.size_local * function.function_space.dofmap.index_map_bs
+    function.x.array[:owned] = where.scatter(np.asarray(values).T.ravel())
+    function.x.scatter_forward()
+
+
+def masses(space: fem.FunctionSpace, where: Layout) -> np.ndarray:
+    """Lumped nodal masses (row sums of the mass matrix) in canonical order, summing to 1."""
+    v = ufl.TestFunction(space)
+    lumped = fem.assemble_vector(fem.form(v[0] * ufl.dx(domain=space.mesh)))
+    lumped.scatter_reverse(la.InsertMode.add)
+    bs = space.dofmap.index_map_bs
+    owned = space.dofmap.index_map.size_local * bs
+    nodes = where.gather(lumped.array[:owned]).reshape(bs, -1)[0]
+    return nodes / nodes.sum()
+
+
+def sampler(mesh) -> Callable[[fem.Function], np.ndarray]:
+    """A function that returns a vector field's values at the geometry nodes (owned and ghost,
+    the mesh's local node order), shape (nodes, gdim); the nodal space is made once."""
+    space, _ = displacement_space(mesh)
+    dof_of_node = node_dofs(space)
+    at_nodes = fem.Function(space)
+
+    def sample(function: fem.Function) -> np.ndarray:
+        at_nodes.interpolate(function)
+        return at_nodes.x.array.reshape(-1, mesh.geometry.dim)[dof_of_node]
+
+    return sample
+
+
+def move(mesh, by: np.ndarray) -> None:
+    """Move every node (owned and ghost, local node order) by ``by``, shape (nodes, gdim)."""
+    mesh.geometry.x[:, : mesh.geometry.dim] += by
+
+
+def place(mesh, x: np.ndarray) -> None:
+    """Put every node (owned and ghost, local node order) at ``x``, shape (nodes, gdim)."""
+    mesh.geometry.x[:, : mesh.geometry.dim] = x
+
+
+def move_nodes(displacement: fem.Function) -> None:
+    """Move the mesh's nodes by a nodal displacement field (in place: the mesh becomes Φ(Ω))."""
+    mesh = displacement.function_space.mesh
+    displacement.x.scatter_forward()
+    move(mesh, displacement.x.array.reshape(-1, mesh.geometry.dim)[node_dofs(displacement.function_space)])
+
+
+@contextlib.contextmanager
+def deformed(displacement: fem.Function) -> Iterator:
+    """Within the block the mesh's nodes sit at X + u; afterwards they are restored."""
+    mesh = displacement.function_space.mesh
+    reference = mesh.geometry.x.copy()
+    move_nodes(displacement)
+    try:
+        yield mesh
+    finally:
+        mesh.geometry.x[:] = reference
+
+
+def place_canonical(space: fem.FunctionSpace, where: Layout, x: np.ndarray) -> None:
+    """Put the nodes at ``x`` (nodes, gdim), given in the canonical order ``where`` of ``space``
+    (a :func:`displacement_space`, laid out before the nodes moved: its order survives moves)."""
+    target = fem.Function(space)
+    scatter(x, target, where)
+    place(space.mesh, target.x.array.reshape(-1, space.mesh.geometry.dim)[node_dofs(space)])

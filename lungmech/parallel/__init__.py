@@ -1,0 +1,7 @@
+"""What makes lungmech MPI-correct: collective errors (``collective``), the one partition-independent
+dof and node order (``layout``), distributed row-block linear algebra (``linalg``) and output
+destinations that never touch a user's files (``destination``)."""
+
+from lungmech.parallel.collective import arrive, on_root, raise_together, together
+
+__all__ = ["arrive", "on_root", "raise_together", "together"]

@@ -1,0 +1,136 @@
+"""The house rules, read from the source: which part of lungmech may import which.
+
+Layers, lowest first: the base modules (errors, checks), ``parallel``, ``mesh``, ``fem``, ``lung``,
+then ``rom`` and ``registration`` side by side, and the application ``app`` on top. A module
+imports its own layer and those below, never above; ``rom`` and ``registration`` never import each
+other; generic output code (``app/output.py``) knows no physics. Imports inside functions count.
+"""
+
+import ast
+import importlib
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+import lungmech
+
+PACKAGE = Path(lungmech.__file__).parent
+BASE = {"errors", "checks", "_moved", "scenes", ""}
+LAYERS = {  # part -> the parts it may import (besides the base modules and itself)
+    "parallel": set(),
+    "mesh": {"parallel"},
+    "fem": {"parallel", "mesh"},
+    "lung": {"parallel", "mesh", "fem"},
+    "rom": {"parallel", "mesh", "fem"},
+    "registration": {"parallel", "mesh", "fem"},
+    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes"},
+    "meshes": {"parallel", "mesh"},  # the bundled meshes and the script that makes them
+}
+
+
+def _modules() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _part(module: str) -> str:
+    """'lungmech.fem.model' -> 'fem'; 'lungmech.errors' -> 'errors'; 'lungmech' -> ''."""
+    names = module.split(".")
+    return names[1] if len(names) > 1 else ""
+
+
+def _imports(path: Path) -> set[str]:
+    """The lungmech modules a file imports, anywhere in it (relative imports resolved)."""
+    here = "lungmech." + ".".join(path.relative_to(PACKAGE).with_suffix("").parts)
+    here = here.removesuffix(".__init__")
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                package = here.split(".")[: len(here.split(".")) - node.level + (path.name == "__init__.py")]
+                base = ".".join([*package, base] if base else package)
+            found |= {base} | {f"{base}.{alias.name}" for alias in node.names}
+    return {name for name in found if name == "lungmech" or name.startswith("lungmech.")}
+
+
+def _part_of(path: Path) -> str:
+    parts = path.relative_to(PACKAGE).parts
+    return parts[0] if len(parts) > 1 else path.stem
+
+
+def _violations() -> list[str]:
+    found = []
+    for path in _modules():
+        part = _part_of(path)
+        allowed = LAYERS.get(part, set()) | BASE | {part}
+        for name in sorted(_imports(path)):
+            target = _part(name)
+            if target in LAYERS and target not in allowed:
+                found.append(f"{path.relative_to(PACKAGE.parent)} imports {name} ({part} may not import {target})")
+    return found
+
+
+def test_layers_import_downwards_only():
+    assert _violations() == []
+
+
+def test_generic_output_code_knows_no_physics():
+    output = PACKAGE / "app" / "output.py"
+    assert not {name for name in _imports(output) if _part(name) == "lung"}
+
+
+def test_the_rules_can_fail():
+    """A library module importing the application is caught (the checker is not vacuous)."""
+    bad = PACKAGE / "fem" / "_architecture_probe.py"
+    bad.write_text("from lungmech.app import run\n")
+    try:
+        assert any("_architecture_probe.py imports lungmech.app.run" in line for line in _violations())
+    finally:
+        bad.unlink()
+
+
+def test_base_modules_import_no_part():
+    for name in ("errors", "checks"):
+        assert not {i for i in _imports(PACKAGE / f"{name}.py") if _part(i) in LAYERS}
+
+
+@pytest.mark.parametrize(
+    "old, new",
+    [
+        ("lungmech.geometry", "lungmech.mesh"),
+        ("lungmech.model", "lungmech.fem.model"),
+        ("lungmech.scene", "lungmech.app.scene"),
+        ("lungmech.rom.layout", "lungmech.parallel.layout"),
+        ("lungmech.registration.nodes", "lungmech.mesh.nodes"),
+    ],
+)
+def test_old_import_paths_still_work_with_a_warning(old, new):
+    sys.modules.pop(old, None)  # imported before by another test: import it afresh
+    with pytest.warns(DeprecationWarning, match=f"{old} moved to {new}"):
+        module = importlib.import_module(old)
+    target = importlib.import_module(new)
+    public = [name for name in dir(target) if not name.startswith("_")]
+    assert public and all(getattr(module, name) is getattr(target, name) for name in public)
+
+
+def test_every_moved_path_names_a_real_module():
+    from lungmech._moved import MOVED
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        for new in MOVED.values():
+            importlib.import_module(new)
+
+
+def test_public_names_at_the_top():
+    """What users reach for first is importable from lungmech itself."""
+    from lungmech.fem.model import Model
+    from lungmech.mesh.builders import box
+
+    assert lungmech.Model is Model and lungmech.box is box
+    with pytest.raises(AttributeError):
+        lungmech.no_such_name  # noqa: B018
