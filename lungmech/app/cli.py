@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import signal
 import sys
@@ -164,7 +165,26 @@ def _common(command: argparse.ArgumentParser, default: str) -> None:
         metavar="S",
         help="scale the loads' change from the start (one factor, or one per load joined by ':')",
     )
+    command.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        type=_assignment,
+        metavar="NAME=VALUE",
+        help="set a parameter of the scene's [parameters] (repeatable); checked against its range",
+    )
     command.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
+
+
+def _assignment(text: str) -> tuple[str, float]:
+    name, equals, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not equals or not name.strip() or not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"--set takes NAME=NUMBER (got {text!r})")
+    return name.strip(), number
 
 
 def _scales(text: str) -> list:
@@ -243,6 +263,8 @@ def _run(args) -> int:
                 )
         prepare, inputs = reduced_order(args.model), [args.model]
     comm, scene, name, path = _setup(args)
+    if args.set:
+        scene = scene.with_values(dict(args.set))
     if len(args.scale) > 1:
         raise ParameterError("--scale takes one value (per-load factors are joined by ':', e.g. 1.2:1)")
     scale = check_scale(scene, args.scale[0])

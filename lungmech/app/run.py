@@ -63,6 +63,7 @@ SUMMARY_UNITS = {
     "largest_volume.time": "s",
     "strain_energy": "J",
     "load_scale": "1",
+    "parameters": "as declared in the scene's [parameters] (see their units there)",
     "probes.points": "m",
     "probes.displacement": "m",
     "inverse.iterations": "1",
@@ -86,16 +87,20 @@ _COLUMN_UNITS = {
 
 
 def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
-    """The model a scene declares, and nothing else."""
+    """The model a scene declares, and nothing else, at the scene's parameter values."""
     geometry = build_geometry(scene.geometry, comm)
-    return Model(
+    material_parameters = any(p.kind == "material" for p in scene.parameters)
+    model = Model(
         geometry,
-        scene.material,
+        scene.law() if material_parameters else scene.material,
         degree=scene.degree,
         formulation=scene.formulation,
         loads=scene.loads,
         constraints=scene.constraints,
+        parameters=scene.parameters,
     )
+    model.set_parameters(scene.values)
+    return model
 
 
 def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> dict[str, float]:
@@ -295,6 +300,7 @@ def run(
         mesh = model.geometry.mesh
         summary = {
             "title": scene.title,
+            "parameters": model.parameter_values,
             "provenance": provenance(scene, comm),
             "mpi_ranks": comm.size,
             "dofs": model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs,

@@ -14,7 +14,7 @@ import json
 import math
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ from lungmech.fem.constraints import Displacement, clamp, symmetry
 from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
 from lungmech.fem.materials import LAWS, Material, Sum
+from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
@@ -34,6 +35,7 @@ from lungmech.lung.inverse import InverseOptions
 
 SECTIONS = (
     "title",
+    "parameters",
     "geometry",
     "material",
     "formulation",
@@ -96,6 +98,19 @@ class Scene:
     folder: Path = Path(".")
     source: Path | None = None  # the scene file, when read from one
     table: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)  # as written (parsed TOML)
+    parameters: tuple[Parameter, ...] = ()
+    values: dict[str, float] = field(default_factory=dict)  # set with --set (others at their defaults)
+
+    def law(self) -> Callable[[dict[str, float]], Material]:
+        """The law as a function of the material targets' values by key (``{"c1": 300.0}``): the
+        scene's [material] rebuilt with those values, so its own checks and derived constants hold."""
+        return lambda keys: material(_substituted(self.table["material"], keys, "material"))
+
+    def with_values(self, given: dict[str, float]) -> Scene:
+        """This scene with parameter values set (``--set name=value``), each checked against its range."""
+        known = Parameters(self.parameters)
+        current = known.values(given, start=self.values)
+        return replace(self, values={name: current[name] for name in {*self.values, *given}})
 
     @property
     def inputs(self) -> list[Path]:
@@ -166,6 +181,7 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
         newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
         output=_call(Output, _with_tuple(output, "probes"), "output"),
         inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
+        parameters=_parameters(table),
         title=_typed(table.get("title", ""), str, "title"),
         folder=folder,
         source=source,
@@ -180,7 +196,9 @@ def physics(scene: Scene) -> dict[str, Any]:
     file of cell values is named by its SHA-256 (a mesh is checked by its own fingerprint)."""
     table = scene.table
     described = {
-        key: table[key] for key in ("material", "formulation", "constraints", "loads", "inverse") if key in table
+        key: table[key]
+        for key in ("material", "formulation", "constraints", "loads", "inverse", "parameters")
+        if key in table
     }
     described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
     described["stepping.start"] = scene.stepping.start
@@ -380,3 +398,126 @@ def _call(func: Callable, kwargs: dict[str, Any], where: str):
         raise SceneError(f"{where}: {error}") from None
     except (TypeError, ValueError) as error:
         raise SceneError(f"{where}: bad value ({error})") from None
+
+
+# Units of the targets a parameter may name (the unit a user gives its values in).
+_UNITS = {
+    "E": "Pa",
+    "mu": "Pa",
+    "lmbda": "Pa",
+    "bulk": "Pa",
+    "c0": "Pa",
+    "c1": "Pa",
+    "c2": "Pa",
+    "alpha": "Pa",
+    "kappa": "Pa",
+    "pore_barrier": "Pa",
+    "nu": "1",
+    "gamma": "1",
+    "phi_s0": "1",
+    "c2_share": "1",
+    "value": "Pa",
+    "amplitude": "1",
+    "pitch": "deg",
+    "roll": "deg",
+}
+_PARAMETER_KEYS = ("target", "default", "range", "scale", "region", "outside")
+
+
+def _parameters(table: dict[str, Any]) -> tuple[Parameter, ...]:
+    """[parameters.NAME] tables: target, range, optional default (the scene's own value at the
+    target), scale ("linear" or "log"), region and outside."""
+    section = table.get("parameters", {})
+    if not isinstance(section, dict):
+        raise SceneError("parameters: expected tables [parameters.NAME]")
+    built = []
+    for name, entry in section.items():
+        where = f"parameters.{name}"
+        if not isinstance(entry, dict):
+            raise SceneError(f"{where}: expected a table with target and range")
+        _no_unknown_keys(entry, _PARAMETER_KEYS, where)
+        for required in ("target", "range"):
+            if required not in entry:
+                raise SceneError(f"{where}: missing key '{required}'")
+        target = _typed(entry["target"], str, f"{where}.target")
+        scale = entry.get("scale", "linear")
+        if scale not in ("linear", "log"):
+            raise SceneError(f"{where}.scale: must be 'linear' or 'log' (got {scale!r})")
+        default = entry["default"] if "default" in entry else _value_at(table, target, where)
+        kind, _, key = target.partition(".")
+        unit = "m" if kind == "interface" else _UNITS.get(key.rpartition(".")[2], "")
+        built.append(
+            _call(
+                Parameter,
+                {
+                    "name": name,
+                    "target": target,
+                    "default": default,
+                    "range": entry["range"],
+                    "log": scale == "log",
+                    "unit": unit,
+                    "region": _region(entry.get("region"), f"{where}.region"),
+                    "outside": entry.get("outside"),
+                },
+                where,
+            )
+        )
+    try:
+        Parameters(built)
+    except ParameterError as error:
+        raise SceneError(f"parameters: {error}") from None
+    return tuple(built)
+
+
+def _region(spec: Any, where: str):
+    if spec is None:
+        return None
+    if not isinstance(spec, dict):
+        raise SceneError(f"{where}: expected {{tag = N}} or {{normal = [..], position = .., width = ..}}")
+    if "tag" in spec:
+        _no_unknown_keys(spec, ("tag",), where)
+        return _call(Cells, {"tag": spec["tag"], "label": f"tag {spec['tag']}"}, where)
+    _no_unknown_keys(spec, ("normal", "position", "width"), where)
+    return _call(HalfSpace, spec, where)
+
+
+def _value_at(table: dict[str, Any], target: str, where: str) -> float:
+    """The scene's own value at a parameter's target: its default when none is given."""
+    kind, _, key = target.partition(".")
+    name, _, attribute = key.rpartition(".")
+    if kind == "loads" and attribute in ("amplitude", "pitch", "roll"):
+        return 1.0 if attribute == "amplitude" else 0.0
+    if kind == "constraints" and attribute == "amplitude":
+        return 1.0
+    if kind == "loads" and attribute == "value":
+        for entry in table.get("loads", []):
+            if isinstance(entry, dict) and entry.get("name") == name:
+                return entry.get("value")
+    if kind in ("material", "formulation"):
+        value = _lookup(table.get(kind, {}), key)
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return value
+    raise SceneError(f"{where}: give a default (the scene has no number at {target})")
+
+
+def _lookup(table: Any, path: str) -> Any:
+    for part in path.replace("[", ".").replace("]", "").split("."):
+        if isinstance(table, dict):
+            table = table.get(part)
+        elif isinstance(table, list) and part.isdigit() and int(part) < len(table):
+            table = table[int(part)]
+        else:
+            return None
+    return table
+
+
+def _substituted(table: dict[str, Any], keys: dict[str, float], where: str) -> dict[str, Any]:
+    """A copy of ``table`` with the values at the dotted ``keys`` (``c1``, ``terms[1].c1``) replaced."""
+    table = copy.deepcopy(table)
+    for path, value in keys.items():
+        parts = path.replace("[", ".").replace("]", "").split(".")
+        node = table
+        for part in parts[:-1]:
+            node = node[int(part)] if isinstance(node, list) else node[part]
+        node[parts[-1]] = value
+    return table

@@ -21,15 +21,19 @@ class Displacement:
     """u = ramp(t) · value on a boundary; only component ``component`` of u when it is given.
 
     ``value`` is a vector (or a scalar with ``component``), or a function of the reference
-    coordinates x (shape (3, n)) returning the values at those points.
+    coordinates x (shape (3, n)) returning the values at those points. ``name`` lets a parameter
+    scale it (``constraints.<name>.amplitude``).
     """
 
     boundary: str
     value: Sequence[float] | float | Callable[[np.ndarray], np.ndarray] = 0.0
     component: int | str | None = None
     ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
 
     def __post_init__(self):
+        if not isinstance(self.name, str):
+            raise ParameterError(f"name must be a string (got {self.name!r})")
         if not isinstance(self.boundary, str) or not self.boundary:
             raise ParameterError(f"boundary must be a boundary name (got {self.boundary!r})")
         if not isinstance(self.ramp, Ramp):
@@ -66,9 +70,10 @@ class ImposedValue:
     target: fem.Function
     base: np.ndarray
     ramp: Ramp
+    amplitude: float = 1.0  # a parameter's factor on the value
 
     def set_time(self, t: float) -> None:
-        self.target.x.array[:] = self.ramp(t) * self.base
+        self.target.x.array[:] = self.amplitude * self.ramp(t) * self.base
 
 
 def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> ImposedValue:

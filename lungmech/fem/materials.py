@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar, Protocol, Self, runtime_checkable
 
@@ -98,6 +99,28 @@ def _numbers(law: object) -> dict[str, float] | None:
     return values
 
 
+def numbers_of(law: Material) -> dict[str, float]:
+    """The law's numeric parameters by path: ``"mu"``, or ``"terms[1].c1"`` inside a :class:`Sum`.
+
+    Parameters already given as UFL expressions are left out.
+    """
+    if isinstance(law, Sum):
+        return {f"terms[{i}].{path}": v for i, term in enumerate(law.terms) for path, v in numbers_of(term).items()}
+    values = {f.name: getattr(law, f.name) for f in dataclasses.fields(law)}
+    return {name: float(v) for name, v in values.items() if isinstance(v, numbers.Real) and not isinstance(v, bool)}
+
+
+def with_values(law: Material, values: Mapping[str, Param]) -> Material:
+    """A copy of ``law`` with the parameters at the paths of :func:`numbers_of` replaced."""
+    if isinstance(law, Sum):
+        parts = [{} for _ in law.terms]
+        for path, v in values.items():
+            index, _, rest = path.removeprefix("terms[").partition("].")
+            parts[int(index)][rest] = v
+        return Sum(tuple(with_values(term, part) for term, part in zip(law.terms, parts)))
+    return dataclasses.replace(law, **values) if values else law
+
+
 def with_constants(law: Material, mesh) -> Material:
     """A copy of ``law`` whose finite parameters are ``fem.Constant``s on ``mesh``.
 
@@ -106,13 +129,8 @@ def with_constants(law: Material, mesh) -> Material:
     """
     from dolfinx import fem
 
-    if isinstance(law, Sum):
-        return Sum(tuple(with_constants(t, mesh) for t in law.terms))
-    values = {}
-    for f in dataclasses.fields(law):
-        v = getattr(law, f.name)
-        values[f.name] = fem.Constant(mesh, float(v)) if isinstance(v, numbers.Real) and math.isfinite(v) else v
-    return dataclasses.replace(law, **values)
+    finite = {path: v for path, v in numbers_of(law).items() if math.isfinite(v)}
+    return with_values(law, {path: fem.Constant(mesh, v) for path, v in finite.items()})
 
 
 def _nonpolynomial_degree(gradient_degree: int) -> int:

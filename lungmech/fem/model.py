@@ -10,7 +10,8 @@ or a parameter recompiles nothing.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+import dataclasses
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import basix.ufl
 import numpy as np
@@ -18,12 +19,14 @@ import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError
+from lungmech.fem import binding
 from lungmech.fem import constraints as _constraints
 from lungmech.fem.constraints import Displacement
 from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.fem.kinematics import deformation_gradient
 from lungmech.fem.loads import Load, StateDependentWork
-from lungmech.fem.materials import Material, with_constants
+from lungmech.fem.materials import Material
+from lungmech.fem.parameters import LOAD_ATTRIBUTES, Parameter, Parameters
 
 
 class Model:
@@ -31,7 +34,8 @@ class Model:
 
     Args:
         geometry: mesh with named boundaries (:mod:`lungmech.mesh`).
-        material: a strain-energy law (:mod:`lungmech.fem.materials`).
+        material: a strain-energy law (:mod:`lungmech.fem.materials`), or a function of the
+            parameter values that returns one (``lambda mu: NeoHookean.from_young(mu["E"], 0.3)``).
         degree: Lagrange degree of the displacement.
         mixed: shorthand for ``formulation=TaylorHood()``: displacement–pressure
             (P``degree``–P``degree-1``), for nearly or exactly incompressible laws with a
@@ -40,12 +44,14 @@ class Model:
         loads: body forces, tractions, follower pressures (:mod:`lungmech.fem.loads`).
         constraints: imposed displacements (:mod:`lungmech.fem.constraints`).
         quadrature_degree: overrides the law's own choice.
+        parameters: named parameters μ (:mod:`lungmech.fem.parameters`), set with
+            :meth:`set_parameters` without recompiling anything.
     """
 
     def __init__(
         self,
         geometry,
-        material: Material,
+        material: Material | binding.LawAt,
         *,
         degree: int = 1,
         mixed: bool = False,
@@ -53,11 +59,17 @@ class Model:
         loads: Sequence[Load] = (),
         constraints: Sequence[Displacement] = (),
         quadrature_degree: int | None = None,
+        parameters: Sequence[Parameter] = (),
     ):
         mesh = geometry.mesh
         self.geometry = geometry
-        self.material = with_constants(material, mesh)
-        self.formulation = (formulation or (TaylorHood() if mixed else PureDisplacement())).bind(mesh)
+        self.parameters = Parameters(parameters)
+        self._interfaces = {p.name: fem.Constant(mesh, p.default) for p in self.parameters if p.kind == "interface"}
+        law_at = binding.law_function(material, self.parameters)
+        material = law_at(binding.outside_keys(self.parameters, self.parameters.defaults))
+        self.material, assign_material = binding.material(law_at, self.parameters, geometry, self._interfaces)
+        unbound = formulation or (TaylorHood() if mixed else PureDisplacement())
+        self.formulation = unbound.bind(mesh)
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
         if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
@@ -111,8 +123,83 @@ class Model:
 
         self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]
         self.bcs = [imposed.bc for imposed in self._imposed]
+        self._amplitudes = np.ones(len(self.loads))
+        self._assignments = [
+            assign_material,
+            _assign_formulation(unbound, self.formulation, self.parameters),
+            self._assign_loads(),
+            self._assign_constraints(),
+            lambda values: [c.__setattr__("value", values[name]) for name, c in self._interfaces.items()],
+        ]
+        self.parameter_values = self.parameters.defaults
         self.time = 0.0
-        self.set_time(0.0)
+        self.set_parameters()
+
+    def set_parameters(self, values: Mapping[str, float] | None = None, **named: float) -> None:
+        """Set parameters by name (``model.set_parameters(stiffness=2e3)`` or a mapping); the others
+        keep their current values. Each value is checked against its range. Only constants change:
+        nothing is recompiled. The loads are re-evaluated at the current time; the state is kept."""
+        given = {**(values or {}), **named}
+        current = self.parameters.values(given, start=self.parameter_values)
+        for assign in self._assignments:
+            assign(current)
+        self.parameter_values = current
+        self.set_time(self.time)
+
+    def _assign_loads(self) -> Callable[[Mapping[str, float]], None]:
+        """How load parameters (value, amplitude, posture) set the loads."""
+        named = {load.name: i for i, load in enumerate(self.loads) if load.name}
+        acting = [p for p in self.parameters if p.kind == "loads"]
+        for p in acting:
+            name, _, attribute = p.key.rpartition(".")
+            if name not in named:
+                known = ", ".join(named) or "none: give loads a name"
+                raise ParameterError(f"parameter '{p.name}': no load named '{name}' (named loads: {known})")
+            load = self.loads[named[name]]
+            if attribute not in LOAD_ATTRIBUTES:
+                raise ParameterError(f"parameter '{p.name}': a load's target is one of {', '.join(LOAD_ATTRIBUTES)}")
+            if attribute == "value" and np.ndim(load.value) != 0:
+                raise ParameterError(f"parameter '{p.name}': load '{name}' has a vector value; use {name}.amplitude")
+            if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
+                raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
+        base = self.loads
+
+        def assign(values: Mapping[str, float]) -> None:
+            loads, amplitudes = list(base), np.ones(len(base))
+            for p in acting:
+                name, _, attribute = p.key.rpartition(".")
+                i = named[name]
+                if attribute == "value":
+                    loads[i] = dataclasses.replace(loads[i], value=values[p.name])
+                elif attribute == "amplitude":
+                    amplitudes[i] = values[p.name]
+            for i, load in enumerate(base):
+                angles = {a: values[p.name] for p in acting for a in ("pitch", "roll") if p.key == f"{load.name}.{a}"}
+                if angles:
+                    turned = posture(angles.get("pitch", 0.0), angles.get("roll", 0.0)) @ np.asarray(load.acceleration)
+                    loads[i] = dataclasses.replace(loads[i], acceleration=tuple(turned))
+            self.loads, self._amplitudes = tuple(loads), amplitudes
+
+        return assign
+
+    def _assign_constraints(self) -> Callable[[Mapping[str, float]], None]:
+        named = {c.name: i for i, c in enumerate(self.constraints) if c.name}
+        acting = [p for p in self.parameters if p.kind == "constraints"]
+        for p in acting:
+            name, _, attribute = p.key.rpartition(".")
+            if name not in named or attribute != "amplitude":
+                known = ", ".join(named) or "none: give constraints a name"
+                raise ParameterError(
+                    f"parameter '{p.name}': target must be constraints.<name>.amplitude (named constraints: {known})"
+                )
+
+        def assign(values: Mapping[str, float]) -> None:
+            for imposed in self._imposed:
+                imposed.amplitude = 1.0
+            for p in acting:
+                self._imposed[named[p.key.rpartition(".")[0]]].amplitude = values[p.name]
+
+        return assign
 
     def reset(self) -> None:
         """Back to the unloaded state: u = 0 and every other field at its initial value."""
@@ -138,9 +225,9 @@ class Model:
         """
         self.time = t
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
-        for load, value, factor in zip(self.loads, self._load_values, factors):
+        for load, value, factor, amplitude in zip(self.loads, self._load_values, factors, self._amplitudes):
             base = 0.0 if about is None else load.ramp(about)
-            current = (base + factor * (load.ramp(t) - base)) * np.asarray(load.value, dtype=float)
+            current = (base + factor * (load.ramp(t) - base)) * amplitude * np.asarray(load.value, dtype=float)
             if not np.all(np.isfinite(current)):
                 label = getattr(load, "label", type(load).__name__)
                 raise ParameterError(
@@ -214,3 +301,45 @@ class Model:
         gradient_degree = self.degree - 1 if affine else self.degree
         gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
         return self.material.quadrature_degree(gradient_degree)
+
+
+def posture(pitch: float, roll: float) -> np.ndarray:
+    """The rotation R = R_y(roll) R_x(pitch) that turns gravity from the scene's posture (angles in
+    degrees; x: the patient's right, y: anterior, z: superior). From upright, g = (0, 0, −g):
+    pitch = −90° gives g along −y (supine, lying on the back), +90° prone; roll = +90° gives g along
+    −x (lying on the left side), −90° on the right side."""
+    a, b = np.radians(pitch), np.radians(roll)
+    about_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    about_y = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    return about_y @ about_x
+
+
+def _assign_formulation(unbound, bound, parameters: Parameters) -> Callable[[Mapping[str, float]], None]:
+    """How formulation parameters set the bound formulation's constants (checked by rebuilding the
+    formulation at the new values, so its own checks apply)."""
+    acting = {p.name: p.key for p in parameters if p.kind == "formulation"}
+    for name, key in acting.items():
+        target = getattr(bound, key, None)
+        if isinstance(target, int | float) and target == 0:
+            raise ParameterError(
+                f"parameter '{name}': formulation.{key} is 0 in the scene, which leaves its term out of the forms; "
+                "give it a positive value there to make it a parameter"
+            )
+        if not isinstance(target, fem.Constant | fem.Function) or isinstance(getattr(unbound, key), str | Callable):
+            raise ParameterError(
+                f"parameter '{name}': formulation.{key} is not a number of the {type(unbound).__name__} formulation "
+                "(a constant given per cell by a file or a function cannot be one parameter)"
+            )
+
+    def assign(values: Mapping[str, float]) -> None:
+        if not acting:
+            return
+        dataclasses.replace(unbound, **{key: values[name] for name, key in acting.items()})  # its checks
+        for name, key in acting.items():
+            target = getattr(bound, key)
+            if isinstance(target, fem.Function):
+                target.x.array[:] = values[name]
+            else:
+                target.value = values[name]
+
+    return assign

@@ -16,11 +16,12 @@ displacements on affine cells J is constant per cell, so DG0 is exact there.
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -96,10 +97,17 @@ class Poromechanics:
         object.__setattr__(self, "pore_range", (float(lower), float(upper)))
 
     def bind(self, mesh) -> Poromechanics:
-        """This formulation with Φs0 as a cellwise (DG0) field on ``mesh``."""
-        if isinstance(self.phi_s0, fem.Function):
+        """This formulation on ``mesh``: Φs0 as a cellwise (DG0) field, κ and η as ``fem.Constant``s
+        (parameters change them without recompiling; η = 0 leaves the barrier out of the forms)."""
+        if isinstance(self.kappa, fem.Constant):
             return self
-        return replace(self, phi_s0=reference_fraction(self.phi_s0, mesh))
+        bound = copy.copy(self)  # not replace(): the checks of __post_init__ are for numbers
+        phi_s0 = self.phi_s0 if isinstance(self.phi_s0, fem.Function) else reference_fraction(self.phi_s0, mesh)
+        object.__setattr__(bound, "phi_s0", phi_s0)
+        object.__setattr__(bound, "kappa", fem.Constant(mesh, float(self.kappa)))
+        if self.pore_barrier > 0:
+            object.__setattr__(bound, "pore_barrier", fem.Constant(mesh, float(self.pore_barrier)))
+        return bound
 
     def check(self, material: Material, degree: int) -> None:
         pass
@@ -128,7 +136,7 @@ class Poromechanics:
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
         phi_s = fields["phi_s"]
         density = self.skeleton_energy(material, F) + self.bulk_energy(phi_s)
-        if self.pore_barrier > 0:
+        if not (isinstance(self.pore_barrier, numbers.Real) and self.pore_barrier == 0):
             density += self.pore_energy(ufl.det(F) - phi_s)
         return density
 

@@ -1,0 +1,180 @@
+"""Named parameters: ranges, what they act on, regions and interfaces, and no recompilation."""
+
+import dolfinx.jit
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from lungmech.errors import ParameterError, SceneError
+from lungmech.fem import FollowerPressure, Model, NeoHookean, NewtonSolver, Stepping, clamp, deformed_volume, solve
+from lungmech.fem.constraints import Displacement
+from lungmech.fem.model import posture
+from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
+from lungmech.mesh import box
+
+
+def block(parameters, law=None, **kwargs):
+    return Model(
+        box(MPI.COMM_SELF, cells=(3, 2, 2)),
+        law or (lambda c: NeoHookean.from_young(c["E"], 0.3)),
+        constraints=[clamp("x0")],
+        loads=[FollowerPressure("x1", 0.5, name="push")],
+        parameters=parameters,
+        **kwargs,
+    )
+
+
+def volume_at(model, **values):
+    model.reset()
+    model.set_parameters(values)
+    solve(model, Stepping())
+    return deformed_volume(model)()
+
+
+STIFFNESS = Parameter("E", "material.E", 10.0, (5.0, 20.0), log=True, unit="Pa")
+
+
+def test_a_parameter_is_the_law_built_at_its_value():
+    """Setting E = 15 on a model built at E = 10 gives the model built at E = 15."""
+    swept = block([STIFFNESS])
+    built = block([Parameter("E", "material.E", 15.0, (5.0, 20.0))])
+    assert volume_at(swept, E=15.0) == pytest.approx(volume_at(built), rel=1e-12)
+
+
+def test_a_sweep_compiles_nothing(monkeypatch):
+    """Nine points of stiffness × pressure after the first solve: no FFCx compilation."""
+    model = block([STIFFNESS, Parameter("p", "loads.push.value", 0.5, (0.1, 1.0), unit="Pa")])
+    solver, volume = NewtonSolver(model), deformed_volume(model)
+    calls = []
+    original = dolfinx.jit.ffcx_jit
+    monkeypatch.setattr(dolfinx.jit, "ffcx_jit", lambda *a, **k: calls.append(1) or original(*a, **k))
+
+    def at(E, p):
+        model.reset()
+        model.set_parameters(E=E, p=p)
+        solve(model, Stepping(), solver=solver)
+        return volume()
+
+    volumes = {(E, p): at(E, p) for E in (5.0, 10.0, 20.0) for p in (0.1, 0.5, 1.0)}
+    assert calls == []
+    # The law is homogeneous of degree 1 in E: the answer depends on p/E only, and on nothing else.
+    assert volumes[5.0, 0.5] == pytest.approx(volumes[10.0, 1.0], rel=1e-9)
+    assert volumes[10.0, 0.5] == pytest.approx(volumes[20.0, 1.0], rel=1e-9)
+    assert len({round(v, 9) for v in volumes.values()}) == 7
+
+
+def test_out_of_range_and_unknown_names_are_refused_with_the_range():
+    model = block([STIFFNESS])
+    with pytest.raises(ParameterError, match=r"'E' = 30 Pa is outside its range \[5, 20\] Pa"):
+        model.set_parameters(E=30.0)
+    with pytest.raises(ParameterError, match="unknown parameter 'G'"):
+        model.set_parameters(G=1.0)
+    with pytest.raises(ParameterError, match="log scale needs a positive range"):
+        Parameter("E", "material.E", 1.0, (0.0, 2.0), log=True)
+    with pytest.raises(ParameterError, match="no load named 'pull'"):
+        block([Parameter("q", "loads.pull.value", 1.0, (0.0, 2.0))], law=NeoHookean.from_young(10.0, 0.3))
+
+
+def test_a_plain_law_is_parametrised_by_its_own_constants():
+    law = NeoHookean.from_young(10.0, 0.3)
+    model = block([Parameter("mu", "material.mu", law.mu, (1.0, 10.0))], law=law)
+    model.set_parameters(mu=2.0)
+    assert float(model.material.mu.value) == 2.0
+
+
+def test_a_region_covering_the_body_is_the_global_value():
+    """A half-space that holds the whole block acts as the global parameter; one that holds none
+    leaves the law alone."""
+    everywhere = HalfSpace((1.0, 0.0, 0.0), 10.0, 0.01)
+    nowhere = HalfSpace((1.0, 0.0, 0.0), -10.0, 0.01)
+    reference = volume_at(block([STIFFNESS]), E=6.0)
+    inside = volume_at(
+        block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=everywhere)]), soft=6.0
+    )
+    outside = volume_at(
+        block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=nowhere)]), soft=6.0
+    )
+    assert inside == pytest.approx(reference, rel=1e-10)
+    assert outside == pytest.approx(volume_at(block([STIFFNESS])), rel=1e-10)
+
+
+def test_a_moving_interface_changes_the_answer_smoothly():
+    soft = Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=HalfSpace((1.0, 0.0, 0.0), "cut", 0.05))
+    model = block([STIFFNESS, soft, Parameter("cut", "interface", 0.5, (0.2, 0.8), unit="m")])
+    volumes = [volume_at(model, soft=2.0, cut=c) for c in (0.3, 0.4, 0.5)]
+    assert volumes[0] > volumes[1] > volumes[2]  # the soft part (x < cut) grows: the pressed block shrinks more
+    steps = np.diff(volumes)
+    assert abs(steps[1] - steps[0]) < 0.5 * abs(steps[0])  # smooth, not a jump
+
+
+def test_a_cell_region_needs_cells():
+    with pytest.raises(ParameterError, match="no cell tags"):
+        block([Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=Cells(tag=3))])
+
+
+def test_posture_turns_gravity():
+    g = np.array([0.0, 0.0, -9.81])
+    assert posture(-90.0, 0.0) @ g == pytest.approx([0.0, -9.81, 0.0], abs=1e-12)  # supine: towards the back
+    assert posture(0.0, 90.0) @ g == pytest.approx([-9.81, 0.0, 0.0], abs=1e-12)  # on the left side
+
+
+def test_an_imposed_displacement_has_an_amplitude():
+    pulled = Model(
+        box(MPI.COMM_SELF, cells=(2, 2, 2)),
+        NeoHookean.from_young(10.0, 0.3),
+        constraints=[clamp("x0"), Displacement("x1", 0.1, component=0, name="pull")],
+        parameters=[Parameter("a", "constraints.pull.amplitude", 1.0, (0.0, 2.0))],
+    )
+    pulled.set_parameters(a=0.5)
+    solve(pulled, Stepping())
+    assert deformed_volume(pulled)() > 1.0  # stretched along x by 0.05
+    assert pulled._imposed[1].target.x.array.max() == pytest.approx(0.05)
+
+
+def test_samples_fill_the_box_and_repeat():
+    space = Parameters([STIFFNESS, Parameter("p", "loads.push.value", 0.5, (0.0, 1.0))])
+    first, again = space.sample(16, seed=3), space.sample(16, seed=3)
+    assert first == again
+    E = np.array([s["E"] for s in first])
+    assert E.min() >= 5.0 and E.max() <= 20.0
+    assert np.median(np.log(E)) == pytest.approx(np.log(10.0), abs=0.2)  # spread in log E
+    assert space.to_unit(space.from_unit(np.array([0.25, 0.75]))) == pytest.approx([0.25, 0.75])
+
+
+SCENE = """
+[geometry]
+builder = "box"
+cells = [2, 2, 2]
+[material]
+law = "neo_hookean"
+E = 10.0
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "follower_pressure"
+boundary = "x1"
+value = 1.0
+name = "push"
+[parameters.stiffness]
+target = "material.E"
+range = [5.0, 20.0]
+"""
+
+
+def test_a_scene_declares_parameters_and_set_checks_them():
+    import tomllib
+
+    from lungmech.app import scene as scenes
+
+    scene = scenes.parse(tomllib.loads(SCENE))
+    assert scene.parameters[0].default == 10.0 and scene.parameters[0].unit == "Pa"
+    assert scene.with_values({"stiffness": 12.0}).values == {"stiffness": 12.0}
+    with pytest.raises(ParameterError, match="outside its range"):
+        scene.with_values({"stiffness": 50.0})
+    bad = tomllib.loads(SCENE.replace('target = "material.E"', 'target = "material.E"\nspeed = 1'))
+    with pytest.raises(SceneError, match="parameters.stiffness.speed: unknown key"):
+        scenes.parse(bad)
+    amplitude = SCENE.replace('"material.E"', '"loads.push.amplitude"').replace("[5.0, 20.0]", "[0.5, 2.0]")
+    assert scenes.parse(tomllib.loads(amplitude)).parameters[0].default == 1.0  # the scene's own value
