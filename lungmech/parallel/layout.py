@@ -164,7 +164,8 @@ def _node_keys(space: fem.FunctionSpace, cells: np.ndarray, comm: MPI.Comm) -> n
     per_cell = nodes.shape[1]
     index_map = space.dofmap.index_map
     keys = np.full(index_map.size_local + index_map.num_ghosts, np.iinfo(np.int64).max)
-    np.minimum.at(keys, nodes.ravel(), (cells[:, None] * per_cell + np.arange(per_cell)).ravel())
+    for position in range(per_cell):  # one position at a time: a cells × dofs table would dominate
+        np.minimum.at(keys, nodes[:, position], cells * per_cell + position)
     # Cells on other ranks may hold an owned node too: each ghost sends its candidate to the owner.
     owned = index_map.size_local
     order = np.argsort(index_map.owners, kind="stable")
@@ -222,28 +223,35 @@ def _fingerprint(space: fem.FunctionSpace, index: np.ndarray, cells: np.ndarray,
     diameter = _diameter(mesh)
     grid = _RESOLUTION * diameter
 
-    def columns():  # one at a time: a cell × columns table would be the largest array of all
+    def columns():  # one at a time: a cells × columns table would be the largest array of all
         yield cells[:owned_cells]
         for position in range(dofs.shape[1]):
             for component in range(bs):
                 yield canonical.array[dofs[:, position] * bs + component]
         for node in range(geometry.shape[1]):
             for axis in range(3):
-                yield np.round(mesh.geometry.x[geometry[:, node], axis] / grid).astype(np.int64)
+                coordinate = mesh.geometry.x[geometry[:, node], axis]
+                coordinate /= grid
+                yield np.round(coordinate, out=coordinate).astype(np.int64)
 
     digest = np.full(owned_cells, 0x9E3779B97F4A7C15, dtype=np.uint64)
     for column in columns():
-        digest = _mix(digest ^ _mix(np.ascontiguousarray(column, dtype=np.int64).view(np.uint64)))
+        digest ^= _mix(np.asarray(column, dtype=np.int64).astype(np.uint64))  # a copy, bits kept
+        digest = _mix(digest)
     total = comm.allreduce(int(digest.sum(dtype=np.uint64))) % 2**64  # Python ints: exact, then wrapped
     summary = f"{space.ufl_element()}|{size}|{comm.allreduce(owned_cells)}|{diameter:.9e}|{total:016x}"
     return hashlib.sha256(summary.encode()).hexdigest()[:16]
 
 
 def _mix(h: npt.NDArray[np.uint64]) -> npt.NDArray[np.uint64]:
-    """The splitmix64 finaliser, elementwise (a bijection of 64-bit words that spreads every bit)."""
-    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return h ^ (h >> np.uint64(31))
+    """The splitmix64 finaliser, elementwise and in place (a bijection of 64-bit words that
+    spreads every bit); returns ``h``."""
+    h ^= h >> np.uint64(30)
+    h *= np.uint64(0xBF58476D1CE4E5B9)
+    h ^= h >> np.uint64(27)
+    h *= np.uint64(0x94D049BB133111EB)
+    h ^= h >> np.uint64(31)
+    return h
 
 
 def _diameter(mesh) -> float:

@@ -82,7 +82,7 @@ def _content(arrays: dict[str, np.ndarray]) -> str:
     for name in sorted(arrays):
         array = np.ascontiguousarray(arrays[name])
         sha.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
-        sha.update(array.tobytes())
+        sha.update(array.data)  # the bytes in place: no copy of a large basis
     return sha.hexdigest()
 
 
