@@ -49,6 +49,7 @@ __all__ = ["Layout", "field_dofs", "layout"]
 
 _RESOLUTION = 1e-9  # coordinates are compared on a grid of 1e-9 × the mesh diameter
 _INDEX, _VALUES = 71, 72  # message tags of gather and scatter
+_BLOCK = 1 << 16  # cells hashed at a time
 
 
 @dataclass(frozen=True)
@@ -218,27 +219,30 @@ def _fingerprint(space: fem.FunctionSpace, index: np.ndarray, cells: np.ndarray,
     canonical = la.vector(space.dofmap.index_map, bs, dtype=np.int64)  # canonical index of ghosts too
     canonical.array[: len(index)] = index
     canonical.scatter_forward()
-    dofs = space.dofmap.list[:owned_cells]
-    geometry = mesh.geometry.dofmaps[0][:owned_cells]
+    nodes = mesh.geometry.dofmaps[0]  # a copy, made once
     diameter = _diameter(mesh)
     grid = _RESOLUTION * diameter
 
-    def columns():  # one at a time: a cells × columns table would be the largest array of all
-        yield cells[:owned_cells]
+    def columns(block: slice):
+        """The hashed numbers of a block of owned cells, one column at a time."""
+        yield cells[block]
+        dofs = space.dofmap.list[block]
         for position in range(dofs.shape[1]):
             for component in range(bs):
                 yield canonical.array[dofs[:, position] * bs + component]
-        for node in range(geometry.shape[1]):
+        for node in range(nodes.shape[1]):
             for axis in range(3):
-                coordinate = mesh.geometry.x[geometry[:, node], axis]
-                coordinate /= grid
-                yield np.round(coordinate, out=coordinate).astype(np.int64)
+                yield np.round(mesh.geometry.x[nodes[block, node], axis] / grid)
 
-    digest = np.full(owned_cells, 0x9E3779B97F4A7C15, dtype=np.uint64)
-    for column in columns():
-        digest ^= _mix(np.asarray(column, dtype=np.int64).astype(np.uint64))  # a copy, bits kept
-        digest = _mix(digest)
-    total = comm.allreduce(int(digest.sum(dtype=np.uint64))) % 2**64  # Python ints: exact, then wrapped
+    local = 0
+    for first in range(0, owned_cells, _BLOCK):  # blocks of cells keep the temporaries small
+        block = slice(first, min(first + _BLOCK, owned_cells))
+        digest = np.full(block.stop - block.start, 0x9E3779B97F4A7C15, dtype=np.uint64)
+        for column in columns(block):
+            digest ^= _mix(column.astype(np.int64).astype(np.uint64))  # two's complement bits, copied
+            digest = _mix(digest)
+        local += int(digest.sum(dtype=np.uint64))  # wraps mod 2^64, as the total does below
+    total = comm.allreduce(local) % 2**64  # Python ints: exact, then wrapped
     summary = f"{space.ufl_element()}|{size}|{comm.allreduce(owned_cells)}|{diameter:.9e}|{total:016x}"
     return hashlib.sha256(summary.encode()).hexdigest()[:16]
 
