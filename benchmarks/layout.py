@@ -317,39 +317,33 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (memory, seconds) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for implementation, colour in zip(IMPLEMENTATIONS, ("tab:red", "tab:blue")):
-        for ranks in sorted({r["ranks"] for r in rows}):
-            for rank, marker in ((0, "o"), (1, "s")):
-                chosen = [
-                    r for r in rows if (r["implementation"], r["ranks"], r["rank"]) == (implementation, ranks, rank)
-                ]
-                if not chosen:
-                    continue
-                dofs = [r["dofs"] / 1e3 for r in chosen]
-                style = "-" if ranks == 1 else "--"
-                label = f"{implementation}, {ranks} rank{'s' if ranks > 1 else ''}, rank {rank}"
-                memory.plot(
-                    dofs, [r["layout_increment"] for r in chosen], style, marker=marker, color=colour, label=label
-                )
-                if rank == 0:
-                    seconds.plot(
-                        dofs,
-                        [r["layout_seconds"] for r in chosen],
-                        style,
+    panels = {
+        "layout_increment": ("layout: peak RSS increment per rank [MiB]", "Memory of the layout"),
+        "write_increment": ("store write: peak RSS increment per rank [MiB]", "Memory of a store write"),
+        "layout_seconds": ("layout time [s]", "Time of the layout"),
+    }
+    fig, axes = plt.subplots(1, len(panels), figsize=(15, 4.4))
+    for (key, (ylabel, title)), ax in zip(panels.items(), axes):
+        for implementation, colour in zip(IMPLEMENTATIONS, ("tab:red", "tab:blue")):
+            for ranks in sorted({r["ranks"] for r in rows}):
+                for rank, marker in ((0, "o"), (1, "s")):
+                    chosen = [
+                        r for r in rows if (r["implementation"], r["ranks"], r["rank"]) == (implementation, ranks, rank)
+                    ]
+                    if not chosen or (key == "layout_seconds" and rank > 0):  # times are the same on every rank
+                        continue
+                    label = f"{implementation}, {ranks} rank{'s' if ranks > 1 else ''}"
+                    ax.plot(
+                        [r["dofs"] / 1e3 for r in chosen],
+                        [r[key] for r in chosen],
+                        "-" if ranks == 1 else "--",
                         marker=marker,
                         color=colour,
-                        label=f"{implementation}, {ranks} rank{'s' if ranks > 1 else ''}",
+                        label=label if key == "layout_seconds" else f"{label}, rank {rank}",
                     )
-    memory.set(
-        xlabel="dofs [thousands]",
-        ylabel="layout peak RSS increment per rank [MiB]",
-        title="Memory of the layout, per rank",
-    )
-    seconds.set(xlabel="dofs [thousands]", ylabel="layout time [s]", title="Time of the layout")
-    for axes in (memory, seconds):
-        axes.grid(alpha=0.3)
-        axes.legend(fontsize=7)
+        ax.set(xlabel="dofs [thousands]", ylabel=ylabel, title=title)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -203,6 +203,8 @@ def test_dof_layout_is_the_same_on_all_ranks_as_on_one(geometries, mesh, space):
         table = _dof_table(model.space)
         gathered = where.gather(table)
         assert np.array_equal(where.scatter(gathered), table)
+        last = comm.size - 1  # another root
+        assert np.array_equal(where.scatter(where.gather(table, root=last), root=last), table)
         indices = where.gather(where.index)
         assert indices is None or np.array_equal(indices, np.arange(where.size))
         return where.fingerprint, where.size, gathered

@@ -72,7 +72,8 @@ class Layout:
         """Collective: the owned rows of every rank, (owned, ...) each, as one (size, ...) float
         array in canonical order on rank ``root``; None on the other ranks.
 
-        Only ``root`` holds the whole array (it writes it); the others send their rows.
+        Only ``root`` holds the whole array (it writes it); the others send their rows. Every
+        rank passes rows of the same shape.
         """
         local = np.ascontiguousarray(local, dtype=np.float64)
         if self.comm.rank != root:
@@ -83,8 +84,10 @@ class Layout:
         result[self.index] = local
         for rank in range(self.comm.size):
             if rank != root:
-                index = self._receive(rank, _INDEX, np.int64, ())
-                result[index] = self._receive(rank, _VALUES, np.float64, local.shape[1:])
+                index = self._receive_index(rank)
+                values = np.empty((len(index), *local.shape[1:]))
+                self.comm.Recv(values, source=rank, tag=_VALUES)
+                result[index] = values
         return result
 
     def scatter(self, canonical: npt.ArrayLike | None, root: int = 0) -> np.ndarray:
@@ -101,18 +104,17 @@ class Layout:
             return rows
         for rank in range(self.comm.size):
             if rank != root:
-                index = self._receive(rank, _INDEX, np.int64, ())
+                index = self._receive_index(rank)
                 self.comm.Send(np.ascontiguousarray(canonical[index]), dest=rank, tag=_VALUES)
         return canonical[self.index]
 
-    def _receive(self, source: int, tag: int, dtype: type, tail: tuple[int, ...]) -> np.ndarray:
-        """The next message from ``source`` with ``tag``, as an array of rows of shape ``tail``."""
+    def _receive_index(self, source: int) -> npt.NDArray[np.int64]:
+        """The canonical indices of the owned dofs of rank ``source``, sent to this rank."""
         status = MPI.Status()
-        self.comm.Probe(source=source, tag=tag, status=status)
-        items = status.Get_count(MPI.BYTE) // np.dtype(dtype).itemsize
-        array = np.empty((items // max(int(np.prod(tail)), 1), *tail), dtype=dtype)
-        self.comm.Recv(array, source=source, tag=tag)
-        return array
+        self.comm.Probe(source=source, tag=_INDEX, status=status)
+        index = np.empty(status.Get_count(MPI.INT64_T), dtype=np.int64)
+        self.comm.Recv(index, source=source, tag=_INDEX)
+        return index
 
 
 def layout(space: fem.FunctionSpace) -> Layout:
