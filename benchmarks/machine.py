@@ -57,6 +57,28 @@ def say(*parts) -> None:
         print(f"[{(time.perf_counter() - STARTED) / 60:5.1f} min]", *parts, flush=True)
 
 
+def status_kb(key: str) -> int | None:
+    """A field of /proc/self/status in kB (``VmRSS``: resident now, ``VmHWM``: peak), or None."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def reset_peak() -> bool:
+    """Reset the kernel's peak RSS (VmHWM, and with it getrusage's ru_maxrss) of this process to
+    its current RSS (Linux >= 4.0); False where that is not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as stream:
+            stream.write("5")
+        return True
+    except OSError:
+        return False
+
+
 def tic() -> float:
     """A start time, all ranks together."""
     from mpi4py import MPI

@@ -28,7 +28,9 @@ from machine import (
     STARTED,
     cpu_and_memory,
     relaunch,
+    reset_peak,
     say,
+    status_kb,
     tic,
     toc,
 )  # benchmarks/ is the script folder, first on sys.path
@@ -120,30 +122,10 @@ logging.getLogger("lungmech").setLevel(logging.WARNING)
 # --- memory: the peak of each case -------------------------------------------------------------
 
 
-def _status_kb(key: str) -> int | None:
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith(key + ":"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def reset_peak() -> bool:
-    """Reset the kernel's peak RSS (VmHWM) of this process to its current RSS (Linux >= 4.0)."""
-    try:
-        with open("/proc/self/clear_refs", "w") as stream:
-            stream.write("5")
-        return True
-    except OSError:
-        return False
-
-
 def peak_mb(per_case: bool) -> tuple[float, float]:
     """(max over ranks, sum over ranks) of the peak RSS in MB: VmHWM since the last reset, or the
     process's whole-life peak (getrusage ru_maxrss) where /proc is not available."""
-    kb = _status_kb("VmHWM") if per_case else None
+    kb = status_kb("VmHWM") if per_case else None
     if kb is None:
         kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     mb = kb / 1024
@@ -151,7 +133,7 @@ def peak_mb(per_case: bool) -> tuple[float, float]:
 
 
 def rss_mb() -> float:
-    kb = _status_kb("VmRSS") or 0
+    kb = status_kb("VmRSS") or 0
     return COMM.allreduce(kb / 1024, op=MPI.MAX)
 
 

@@ -13,12 +13,14 @@ from mpi4py import MPI
 from lungmech.app import scene as scenes
 from lungmech.app.run import run
 from lungmech.fem.constraints import clamp
+from lungmech.fem.formulations import TaylorHood
 from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
 from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.solver import Stepping, solve
-from lungmech.mesh import box
+from lungmech.lung import Poromechanics, skeleton
+from lungmech.mesh import box, sphere
 
 pytestmark = pytest.mark.mpi
 RTOL = 1e-10
@@ -118,19 +120,176 @@ def test_modal_frequencies_same_on_all_ranks_as_on_one():
     assert parallel == pytest.approx(serial, rel=1e-8)
 
 
-def test_dof_layout_is_the_same_on_all_ranks_as_on_one():
+# The spaces whose dofs the layout orders: displacement P1 and P2, Taylor–Hood P2/P1, and the
+# poromechanics P1 vector + DG0 (u, Φs); on DOLFINx's box and on a gmsh mesh.
+SPACES = {
+    "P1": lambda geometry: Model(geometry, NeoHookean.from_young(1.0, 0.3)),
+    "P2": lambda geometry: Model(geometry, NeoHookean.from_young(1.0, 0.3), degree=2),
+    "Taylor-Hood": lambda geometry: Model(
+        geometry, NeoHookean.from_young(1.0, 0.3), degree=2, formulation=TaylorHood()
+    ),
+    "poromechanics": lambda geometry: Model(
+        geometry, skeleton(0.16, 0.5, 0.2, 0.4), formulation=Poromechanics(kappa=100.0, phi_s0=0.3)
+    ),
+}
+MESHES = {
+    "box": lambda comm: box(comm, lengths=(3.0, 1.0, 1.0), cells=(5, 3, 2)),
+    "sphere": lambda comm: sphere(comm, mesh_size=0.5),
+}
+
+
+@pytest.fixture(scope="module")
+def geometries():
+    """The meshes on all ranks and on one, each made once."""
+    made = {}
+
+    def geometry(name: str, comm):
+        if (name, comm.size) not in made:
+            made[name, comm.size] = MESHES[name](comm)
+        return made[name, comm.size]
+
+    return geometry
+
+
+def _dof_table(space) -> np.ndarray:
+    """(field, component, x, y, z) of every owned dof of ``space``."""
+    from lungmech.parallel.layout import field_dofs
+
+    table = np.empty((space.dofmap.index_map.size_local * space.dofmap.index_map_bs, 5))
+    for field, (collapsed, parent) in enumerate(field_dofs(space)):
+        bs, nodes = collapsed.dofmap.index_map_bs, collapsed.dofmap.index_map.size_local
+        points = collapsed.tabulate_dof_coordinates()[:nodes]
+        for component in range(bs):
+            table[parent[np.arange(nodes) * bs + component]] = np.column_stack(
+                [np.full(nodes, field), np.full(nodes, component), points]
+            )
+    return table
+
+
+@pytest.mark.parametrize("mesh", MESHES)
+def test_a_cells_dof_order_is_the_same_on_any_partition(geometries, mesh):
+    """The layout names a node by (input index of a cell, position in the cell's dofmap): that
+    position holds the same point on every partition, for every field (and for P3)."""
+    from dolfinx import fem
+
+    from lungmech.parallel.layout import field_dofs
+
+    def points(comm) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per field: the input index of every owned cell, and the points of its dofs in order."""
+        geometry = geometries(mesh, comm)
+        cells = geometry.mesh.topology.index_map(3).size_local
+        spaces = [make(geometry).space for make in SPACES.values()]
+        spaces.append(fem.functionspace(geometry.mesh, ("Lagrange", 3)))
+        fields = [collapsed for space in spaces for collapsed, _ in field_dofs(space)]
+        original = geometry.mesh.topology.original_cell_index[:cells]
+        return [(original, V.tabulate_dof_coordinates()[V.dofmap.list[:cells]]) for V in fields]
+
+    for (cells, parallel), (everything, serial) in zip(points(MPI.COMM_WORLD), points(MPI.COMM_SELF)):
+        position = np.empty(len(everything), dtype=int)
+        position[everything] = np.arange(len(everything))
+        assert np.allclose(parallel, serial[position[cells]], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("space", SPACES)
+@pytest.mark.parametrize("mesh", MESHES)
+def test_dof_layout_is_the_same_on_all_ranks_as_on_one(geometries, mesh, space):
+    """The same canonical order (each dof's field, component and point) and fingerprint on all
+    ranks as on one; the canonical indices are 0..N-1; values gathered on rank 0 scatter back."""
     from lungmech.parallel.layout import layout
 
     def canonical(comm):
-        model = Model(box(comm, cells=(3, 2, 2)), NeoHookean.from_young(1.0, 0.3), degree=2)
-        f = model.state
-        f.interpolate(lambda x: np.array([x[0] + x[1] ** 2, x[2] * x[0], np.sin(x[1])]))
+        model = SPACES[space](geometries(mesh, comm))
         where = layout(model.space)
-        return where.fingerprint, where.gather(f.x.array[: len(where.index)])
+        table = _dof_table(model.space)
+        gathered = where.gather(table)
+        assert np.array_equal(where.scatter(gathered), table)
+        last = comm.size - 1  # another root
+        assert np.array_equal(where.scatter(where.gather(table, root=last), root=last), table)
+        indices = where.gather(where.index)
+        assert indices is None or np.array_equal(indices, np.arange(where.size))
+        return where.fingerprint, where.size, gathered
 
-    (parallel_print, parallel), (serial_print, serial) = canonical(MPI.COMM_WORLD), canonical(MPI.COMM_SELF)
-    assert parallel_print == serial_print
-    assert parallel == pytest.approx(serial, abs=1e-14)
+    (parallel_print, size, parallel), (serial_print, serial_size, serial) = (
+        canonical(MPI.COMM_WORLD),
+        canonical(MPI.COMM_SELF),
+    )
+    assert (parallel_print, size) == (serial_print, serial_size)
+    if parallel is not None:  # rank 0
+        assert np.allclose(parallel, serial, rtol=0, atol=1e-12)
+
+
+class _Watched:
+    """A communicator that refuses to gather or broadcast more than a few numbers per rank, and
+    counts the numbers that Alltoallv delivers here."""
+
+    def __init__(self, comm):
+        self._comm = comm
+        self.limit = 64 + 8 * comm.size  # O(ranks) numbers
+        self.delivered = 0
+
+    def __getattr__(self, name):
+        return getattr(self._comm, name)
+
+    def _small(self, name, *buffers):
+        for buffer in buffers:
+            count = np.size(buffer[0] if isinstance(buffer, list | tuple) else buffer)
+            if count > self.limit:
+                raise AssertionError(f"{name} of {count} numbers on {self._comm.size} ranks")
+
+    def _small_object(self, name, obj):
+        import pickle
+
+        if len(pickle.dumps(obj)) > 8 * self.limit:
+            raise AssertionError(f"{name} of {len(pickle.dumps(obj))} bytes on {self._comm.size} ranks")
+
+    def allgather(self, obj):
+        self._small_object("allgather", obj)
+        return self._comm.allgather(obj)
+
+    def gather(self, obj, root=0):
+        self._small_object("gather", obj)
+        return self._comm.gather(obj, root=root)
+
+    def bcast(self, obj, root=0):
+        self._small_object("bcast", obj)
+        return self._comm.bcast(obj, root=root)
+
+    def Allgather(self, send, receive):
+        self._small("Allgather", receive)
+        return self._comm.Allgather(send, receive)
+
+    def Allgatherv(self, send, receive):
+        self._small("Allgatherv", receive)
+        return self._comm.Allgatherv(send, receive)
+
+    def Gatherv(self, send, receive, root=0):
+        self._small("Gatherv", send)
+        return self._comm.Gatherv(send, receive, root=root)
+
+    def Allreduce(self, send, receive, op=MPI.SUM):
+        self._small("Allreduce", send)
+        return self._comm.Allreduce(send, receive, op=op)
+
+    def Alltoallv(self, send, receive):
+        self.delivered += int(np.sum(receive[1]))
+        return self._comm.Alltoallv(send, receive)
+
+
+def test_the_layout_gathers_no_mesh(monkeypatch):
+    """No rank receives the mesh: collectives other than the bucket sort's Alltoallv carry O(ranks)
+    numbers, and what Alltoallv delivers to a rank is O(its own share of the dofs)."""
+    import dolfinx.mesh
+
+    from lungmech.parallel.layout import layout
+
+    model = SPACES["Taylor-Hood"](box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4)))
+    expected = layout(model.space)
+    watched = _Watched(MPI.COMM_WORLD)
+    monkeypatch.setattr(dolfinx.mesh.Mesh, "comm", property(lambda mesh: watched))
+    found = layout(model.space)
+    assert np.array_equal(found.index, expected.index) and found.fingerprint == expected.fingerprint
+    index_map = model.space.dofmap.index_map
+    assert watched.delivered <= 2 * (index_map.size_local + index_map.num_ghosts)
 
 
 def test_reduced_model_same_on_all_ranks_and_portable(tmp_path):

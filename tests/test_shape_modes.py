@@ -124,7 +124,8 @@ def test_a_shape_from_coefficients_is_a_geometry_a_scene_runs_on(reference, tmp_
     new = modes.geometry(fresh, [2.0, -1.0])
     X, weights, _ = reference
     expected = X + modes.displacement([2.0, -1.0])
-    assert np.allclose(nodes.positions(space, where), expected, atol=1e-12)
+    placed = nodes.positions(space, where)  # on rank 0
+    assert placed is None or np.allclose(placed, expected, atol=1e-12)
     geometry.write(new, tmp_path / "new_lung.xdmf")
     scene = tmp_path / "scene.toml"
     scene.write_text(

@@ -106,7 +106,7 @@ def _build(
     basis = enrich(model, *parts) if len(parts) > 1 else parts[0]
     basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
 
-    arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}
+    arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}  # canonical, on rank 0 (None elsewhere)
     if scene.inverse is not None:
         arrays["reference_nodes"] = nodes.positions(node_space, node_order)
     extra = {
@@ -134,7 +134,7 @@ def reduced_order(path: str | Path):
 
 
 def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
-    metadata, arrays = store.read(path)
+    metadata, arrays = store.read_on_root(path, model.geometry.mesh.comm)  # arrays on rank 0 only
     extra = metadata["extra"]
     check_physics(path, extra, scene)
     where = layout(model.space)  # of the imaged mesh; its dof order survives moving the nodes
@@ -142,6 +142,7 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolv
         raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
     if "reference_nodes" in arrays:  # the unloaded reference found offline
         nodes.place_canonical(*nodes.displacement_space(model.geometry.mesh), arrays["reference_nodes"])
+    del arrays  # rank 0's copy; load reads the file again and checks it against the moved mesh
     basis, _, arrays = store.load(path, model)
     owned = basis.vectors.shape[0]
     model.state.x.array[:owned] = where.scatter(arrays["start"])

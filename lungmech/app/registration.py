@@ -54,7 +54,7 @@ def register_image(
         start = time.perf_counter()
         result = register(geometry.mesh, image, options)
         space, where = nodes.displacement_space(geometry.mesh)
-        reference_nodes = nodes.positions(space, where)
+        reference_nodes = nodes.positions(space, where)  # canonical, on rank 0 (it writes mapping.npz)
         initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
         with nodes.deformed(result.displacement) as mesh:
             report = {"reference": str(reference)} | metrics.report(mesh, image) | result.summary()

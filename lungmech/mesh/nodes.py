@@ -7,8 +7,10 @@ an image. Nothing is recompiled when nodes move: forms read the coordinates at a
 
 A nodal field is a vector Lagrange field of the mesh's own geometry degree, so its dofs sit on
 the geometry nodes (:func:`displacement_space`). Written in the canonical order of
-:mod:`lungmech.parallel.layout` ((component, node) sorted by position) it reads the same on any
-number of MPI ranks.
+:mod:`lungmech.parallel.layout` (all x components, then y, then z, each in the same node order)
+it reads the same on any number of MPI ranks. Canonical (nodes, gdim) arrays live on rank 0 only:
+:func:`gather`, :func:`positions` and :func:`masses` return them there (None elsewhere), and
+:func:`scatter` and :func:`place_canonical` read them there.
 """
 
 from __future__ import annotations
@@ -51,41 +53,50 @@ def node_dofs(space: fem.FunctionSpace) -> npt.NDArray[np.int64]:
 
 
 def displacement_space(mesh) -> tuple[fem.FunctionSpace, Layout]:
-    """The vector Lagrange space on the geometry nodes and its canonical layout (collective)."""
+    """Collective: the vector Lagrange space on the geometry nodes and its canonical layout."""
     space = fem.functionspace(mesh, ("Lagrange", mesh.geometry.cmaps[0].degree, (mesh.geometry.dim,)))
     return space, layout(space)
 
 
-def gather(function: fem.Function, where: Layout) -> np.ndarray:
-    """A nodal vector field as (nodes, gdim) in canonical node order, on every rank (collective)."""
+def gather(function: fem.Function, where: Layout) -> np.ndarray | None:
+    """Collective: a nodal vector field as (nodes, gdim) in canonical node order on rank 0, None
+    elsewhere."""
     bs = function.function_space.dofmap.index_map_bs
     owned = function.function_space.dofmap.index_map.size_local * bs
+    canonical = where.gather(function.x.array[:owned])
     # Canonical dofs are sorted by (component, node): all x components, then y, then z.
-    return where.gather(function.x.array[:owned]).reshape(bs, -1).T
+    return None if canonical is None else canonical.reshape(bs, -1).T
 
 
-def positions(space: fem.FunctionSpace, where: Layout) -> np.ndarray:
-    """The nodes' current positions (nodes, gdim) in canonical order, on every rank (collective)."""
+def positions(space: fem.FunctionSpace, where: Layout) -> np.ndarray | None:
+    """Collective: the nodes' current positions (nodes, gdim) in canonical order on rank 0, None
+    elsewhere."""
     identity = fem.Function(space)
     identity.interpolate(lambda x: x[: space.mesh.geometry.dim])
     return gather(identity, where)
 
 
-def scatter(values: np.ndarray, function: fem.Function, where: Layout) -> None:
-    """Set ``function`` from canonical (nodes, gdim) values (ghosts included)."""
+def scatter(values: np.ndarray | None, function: fem.Function, where: Layout) -> None:
+    """Collective: set ``function`` (ghosts included) from canonical (nodes, gdim) ``values``
+    given on rank 0 (the other ranks may pass None)."""
     owned = function.function_space.dofmap.index_map.size_local * function.function_space.dofmap.index_map_bs
-    function.x.array[:owned] = where.scatter(np.asarray(values).T.ravel())
+    canonical = None if values is None else np.asarray(values).T.ravel()
+    function.x.array[:owned] = where.scatter(canonical)
     function.x.scatter_forward()
 
 
-def masses(space: fem.FunctionSpace, where: Layout) -> np.ndarray:
-    """Lumped nodal masses (row sums of the mass matrix) in canonical order, summing to 1."""
+def masses(space: fem.FunctionSpace, where: Layout) -> np.ndarray | None:
+    """Collective: lumped nodal masses (row sums of the mass matrix) in canonical order, summing
+    to 1, on rank 0; None elsewhere."""
     v = ufl.TestFunction(space)
     lumped = fem.assemble_vector(fem.form(v[0] * ufl.dx(domain=space.mesh)))
     lumped.scatter_reverse(la.InsertMode.add)
     bs = space.dofmap.index_map_bs
     owned = space.dofmap.index_map.size_local * bs
-    nodes = where.gather(lumped.array[:owned]).reshape(bs, -1)[0]
+    canonical = where.gather(lumped.array[:owned])
+    if canonical is None:
+        return None
+    nodes = canonical.reshape(bs, -1)[0]
     return nodes / nodes.sum()
 
 
@@ -132,9 +143,10 @@ def deformed(displacement: fem.Function) -> Iterator:
         mesh.geometry.x[:] = reference
 
 
-def place_canonical(space: fem.FunctionSpace, where: Layout, x: np.ndarray) -> None:
-    """Put the nodes at ``x`` (nodes, gdim), given in the canonical order ``where`` of ``space``
-    (a :func:`displacement_space`, laid out before the nodes moved: its order survives moves)."""
+def place_canonical(space: fem.FunctionSpace, where: Layout, x: np.ndarray | None) -> None:
+    """Collective: put the nodes at ``x`` (nodes, gdim), given on rank 0 in the canonical order
+    ``where`` of ``space`` (a :func:`displacement_space`; its order is topological, so it holds
+    after the nodes moved). The other ranks may pass None."""
     target = fem.Function(space)
     scatter(x, target, where)
     place(space.mesh, target.x.array.reshape(-1, space.mesh.geometry.dim)[node_dofs(space)])

@@ -73,8 +73,10 @@ def mapping_library(mesh, images: Mapping[str, Image], options: Options = Option
     if len(images) < 2:
         raise RegistrationError(f"a mapping library needs at least 2 images, got {len(images)}")
     space, where = nodes.displacement_space(mesh)
-    reference = nodes.positions(space, where)
-    weights = nodes.masses(space, where)
+    # The library and its POD work on replicated nodal arrays (one reference mesh's nodes per
+    # image): the canonical arrays that rank 0 gathers are broadcast to every rank on purpose.
+    reference = mesh.comm.bcast(nodes.positions(space, where))
+    weights = mesh.comm.bcast(nodes.masses(space, where))
     displacements, reports = [], []
     for name, image in images.items():
         result = register(mesh, image, options)
@@ -88,7 +90,7 @@ def mapping_library(mesh, images: Mapping[str, Image], options: Options = Option
             report["min_det_F"],
             report["iterations"],
         )
-        displacements.append(nodes.gather(result.displacement, where))
+        displacements.append(mesh.comm.bcast(nodes.gather(result.displacement, where)))
         reports.append(report)
     return Library(tuple(images), reference, weights, np.array(displacements), where.fingerprint, tuple(reports))
 

@@ -1,7 +1,9 @@
 """Reduced models on disk: plain arrays and JSON metadata in one ``.npz`` (nothing pickled).
 
 Vectors are written in the canonical dof order of :mod:`lungmech.parallel.layout`, so a basis built on
-any number of ranks loads on any other; the mesh fingerprint is checked on loading.
+any number of ranks loads on any other; the mesh fingerprint is checked on loading. Rank 0 alone
+holds a whole vector: it gathers the rows to write them, and reads the file and sends every rank
+its rows on loading.
 """
 
 from __future__ import annotations
@@ -12,9 +14,10 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+from mpi4py import MPI
 
 from lungmech.errors import ModelFileError, ParameterError
-from lungmech.parallel import on_root
+from lungmech.parallel import on_root, together
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis
@@ -37,24 +40,31 @@ def save(
 
 
 def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None) -> None:
-    """Collective: write the model file at ``path`` as it is (no checks; :func:`save` checks)."""
+    """Collective: write the model file at ``path`` as it is (no checks; :func:`save` checks).
+
+    ``arrays`` are canonical arrays, read on rank 0 only (the other ranks may pass None values).
+    """
     where = layout(model.space)
     if where.fingerprint != basis.fingerprint:
         raise ParameterError("save: the basis does not belong to this model's mesh and space")
     vectors = where.gather(basis.vectors)
-    arrays = {"vectors": vectors, "values": basis.values, **(arrays or {})}
-    metadata = {
-        "format": FORMAT,
-        "kind": basis.kind,
-        "size": basis.size,
-        "inner_product": basis.inner_product,
-        "fingerprint": basis.fingerprint,
-        "dofs": where.size,
-        "source": basis.source,
-        "extra": extra or {},
-        "content_sha256": _content(arrays),
-    }
-    on_root(where.comm, lambda: np.savez(path, metadata=json.dumps(metadata), **arrays))
+
+    def written() -> None:
+        content = {"vectors": vectors, "values": basis.values, **(arrays or {})}
+        metadata = {
+            "format": FORMAT,
+            "kind": basis.kind,
+            "size": basis.size,
+            "inner_product": basis.inner_product,
+            "fingerprint": basis.fingerprint,
+            "dofs": where.size,
+            "source": basis.source,
+            "extra": extra or {},
+            "content_sha256": _content(content),
+        }
+        np.savez(path, metadata=json.dumps(metadata), **content)
+
+    on_root(where.comm, written)
 
 
 def is_model(path: str | Path) -> bool:
@@ -72,7 +82,7 @@ def _content(arrays: dict[str, np.ndarray]) -> str:
     for name in sorted(arrays):
         array = np.ascontiguousarray(arrays[name])
         sha.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
-        sha.update(array.tobytes())
+        sha.update(array.data)  # the bytes in place: no copy of a large basis
     return sha.hexdigest()
 
 
@@ -112,32 +122,48 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     return metadata, arrays
 
 
-def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray]]:
-    """Read a reduced model for ``model``: (basis, extra metadata, other arrays).
+def read_on_root(path: str | Path, comm: MPI.Comm) -> tuple[dict, dict[str, np.ndarray | None]]:
+    """Collective: :func:`read` on rank 0 only. The metadata on every rank; the arrays on rank 0,
+    and the same names with None on the others. An error reading is raised on every rank."""
+    found = on_root(comm, lambda: read(path))
+    metadata, names = comm.bcast((found[0], sorted(found[1])) if found is not None else None)
+    return metadata, found[1] if found is not None else dict.fromkeys(names)
 
-    Refused with a :class:`ModelFileError` when the file is not a lungmech reduced model, is
-    damaged, or was built on another mesh or space.
+
+def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray | None]]:
+    """Collective: read a reduced model for ``model``: (basis, extra metadata, other arrays).
+
+    Rank 0 reads the file and sends every rank its rows of the basis; the other arrays (canonical,
+    for :meth:`~lungmech.parallel.layout.Layout.scatter`) are returned on rank 0, with the same
+    names but None on the other ranks. Refused with a :class:`ModelFileError` when the file is not
+    a lungmech reduced model, is damaged, or was built on another mesh or space.
     """
-    metadata, arrays = read(path)
     where = layout(model.space)
+    metadata, arrays = read_on_root(path, where.comm)
     if metadata["fingerprint"] != where.fingerprint or metadata["dofs"] != where.size:
         raise ModelFileError(
             f"{path} was built on another mesh or discretisation ({metadata['dofs']} dofs, fingerprint "
             f"{metadata['fingerprint']}); this model has {where.size} dofs, fingerprint {where.fingerprint}"
         )
     vectors, values = arrays.pop("vectors"), arrays.pop("values")
-    if vectors.ndim != 2 or vectors.shape[0] != where.size or values.shape != (vectors.shape[1],):
-        raise ModelFileError(
-            f"'{path}' is damaged: its basis has shape {vectors.shape} and {values.size} values, for {where.size} dofs"
-        )
-    if not (np.isfinite(vectors).all() and np.isfinite(values).all()):
-        raise ModelFileError(f"'{path}' is damaged: its basis holds values that are not finite numbers")
+    with together(where.comm):  # only rank 0 holds the arrays to check
+        if vectors is not None:
+            _check_basis(path, vectors, values, where.size)
     basis = Basis(
         where.scatter(vectors),
-        values,
+        where.comm.bcast(values),
         metadata["kind"],
         metadata["inner_product"],
         where.fingerprint,
         metadata["source"],
     )
     return basis, metadata["extra"], arrays
+
+
+def _check_basis(path: str | Path, vectors: np.ndarray, values: np.ndarray, dofs: int) -> None:
+    if vectors.ndim != 2 or vectors.shape[0] != dofs or values.shape != (vectors.shape[1],):
+        raise ModelFileError(
+            f"'{path}' is damaged: its basis has shape {vectors.shape} and {values.size} values, for {dofs} dofs"
+        )
+    if not (np.isfinite(vectors).all() and np.isfinite(values).all()):
+        raise ModelFileError(f"'{path}' is damaged: its basis holds values that are not finite numbers")
