@@ -237,6 +237,14 @@ class Model:
         for imposed in self._imposed:
             imposed.set_time(t)
 
+    def scalar_loads(self) -> dict[str, float]:
+        """The current value of every scalar load (a pressure, Pa) by label, as :meth:`set_time` set it."""
+        return {
+            load.label: float(value.value)
+            for load, value in zip(self.loads, self._load_values)
+            if np.ndim(load.value) == 0
+        }
+
     @contextlib.contextmanager
     def kept_state(self) -> Iterator[None]:
         """Whatever the block does to the state, it is restored afterwards (also on an error)."""

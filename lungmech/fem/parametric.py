@@ -1,0 +1,164 @@
+"""One problem, several models of it: every model answers ``solve(μ)`` with the same outputs.
+
+In the manner of pyMOR (model → reductor → reduced model), a *parametric model* has named
+``parameters`` and a ``solve(mu)`` that returns a :class:`Solution`: the outputs at the output
+times of the load path, the states (full state vectors, or reduced coordinates) and, on request,
+the derivatives of the outputs with respect to μ. :class:`FullOrderModel` is the finite-element
+model driven along its load path by Newton's method; :class:`lungmech.rom.reduced.ReducedModel`
+answers the same calls from a reduced basis. They can be swapped, compared and chained.
+
+The outputs are the same functionals of the state for every model (:class:`Outputs`): the
+deformed volume ∫ J dX (m³), the strain energy ∫ ψ dX (J), the displacement at probe points (m)
+and the value of every scalar load (Pa, for pressure–volume curves). They are recorded at the
+*output times*: the stepping's ``times``, every ramp breakpoint and the end, which every model
+hits exactly, so two models' answers are compared point by point.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from lungmech.fem.parameters import Parameters
+from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
+
+__all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "output_times"]
+
+UNITS = {"time": "s", "volume": "m^3", "strain_energy": "J", "probes": "m", "loads": "Pa"}
+
+
+@dataclass(frozen=True)
+class Solution:
+    """What ``solve(mu)`` returns.
+
+    ``times`` (s) are the output times; ``outputs[name]`` has one row per output time (volume
+    in m³, strain_energy in J, probes in m with shape (times, points, 3), loads in Pa by label).
+    ``states`` has one row per output time: the owned entries of the full state vector, or the
+    reduced coordinates q. ``sensitivities[name]`` (when asked) holds ∂output/∂μ with the
+    parameters on the last axis, in ``parameter_names`` order.
+    """
+
+    parameters: dict[str, float]
+    times: np.ndarray
+    outputs: dict[str, np.ndarray]
+    states: np.ndarray
+    newton_iterations: int
+    seconds: float
+    sensitivities: dict[str, np.ndarray] | None = None
+    parameter_names: tuple[str, ...] = ()
+    units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
+
+
+class ParametricModel(Protocol):
+    """What every model of a problem provides, full order or reduced."""
+
+    parameters: Parameters
+
+    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution: ...
+
+
+def output_times(model, stepping: Stepping) -> np.ndarray:
+    """The times a load path reports: the stepping's ``times``, the ramp breakpoints and the end."""
+    inside = [t for t in (*stepping.times, *model.breakpoints) if stepping.start < t < stepping.end]
+    return np.array(sorted({*inside, stepping.end}))
+
+
+class Outputs:
+    """The outputs of a model's current state, compiled once (collective)."""
+
+    def __init__(self, model, probes: Sequence[Sequence[float]] = ()):
+        self.model = model
+        self._volume, self._energy = deformed_volume(model), strain_energy(model)
+        self._probe = Probe(model.geometry.mesh, probes) if len(probes) else None
+
+    def __call__(self) -> dict[str, object]:
+        values: dict[str, object] = {"volume": self._volume(), "strain_energy": self._energy()}
+        if self._probe is not None:
+            values["probes"] = self._probe(self.model.displacement())
+        values["loads"] = self.model.scalar_loads()
+        return values
+
+
+def stack(rows: list[dict[str, object]]) -> dict[str, np.ndarray]:
+    """Rows of outputs (one per time) as arrays with the time first; loads by label."""
+    stacked = {name: np.array([row[name] for row in rows]) for name in rows[0] if name != "loads"}
+    for label in rows[0]["loads"]:
+        stacked[f"loads/{label}"] = np.array([row["loads"][label] for row in rows])
+    return stacked
+
+
+class FullOrderModel:
+    """The finite-element model driven along its load path: ``solve(mu)`` from the start state.
+
+    ``model`` is a :class:`~lungmech.fem.model.Model` with parameters; each solve resets it to
+    ``start`` (default: the unloaded state; a lung imaged under load starts from the state the
+    inverse problem found) and steps it from ``stepping.start`` to ``stepping.end``.
+    Collective. The model's compiled forms serve every μ: nothing is recompiled.
+    """
+
+    def __init__(
+        self,
+        model,
+        stepping: Stepping | None = None,
+        newton: NewtonOptions | None = None,
+        probes: Sequence[Sequence[float]] = (),
+        start: np.ndarray | None = None,
+        solver: Solver | None = None,
+    ):
+        self.model = model
+        self.parameters = model.parameters
+        self.stepping = stepping or Stepping()
+        self.solver = solver or NewtonSolver(model, newton)
+        self.outputs = Outputs(model, probes)
+        self.start = start
+        self.times = output_times(model, self.stepping)
+
+    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
+        """The outputs (and states) at the output times for the parameters ``mu`` (the others at
+        their defaults)."""
+        model = self.model
+        values = self.parameters.values(mu)
+        model.set_parameters(values)
+        self.reset()
+        tic = time.perf_counter()
+        rows, states, derivatives = [], [], []
+        owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+
+        def record(step) -> None:
+            if np.min(np.abs(self.times - model.time)) <= 1e-9 * (self.stepping.end - self.stepping.start):
+                rows.append(self.outputs())
+                states.append(model.state.x.array[:owned].copy())
+                if sensitivities:
+                    derivatives.append(self.sensitivities())
+
+        model.set_time(self.stepping.start)
+        report = solve(model, self.stepping, solver=self.solver, on_step=record, monitor=lambda step: None)
+        return Solution(
+            parameters=values,
+            times=self.times.copy(),
+            outputs=stack(rows),
+            states=np.array(states),
+            newton_iterations=report.newton_iterations,
+            seconds=time.perf_counter() - tic,
+            sensitivities=stack(derivatives) if sensitivities else None,
+            parameter_names=self.parameters.names,
+        )
+
+    def reset(self) -> None:
+        """The model back at the start state."""
+        model = self.model
+        model.reset()
+        if self.start is not None:
+            model.state.x.array[:] = self.start
+            model.state.x.scatter_forward()
+
+    def sensitivities(self) -> dict[str, object]:
+        """∂outputs/∂μ at the current state (see :mod:`lungmech.fem.sensitivity`)."""
+        from lungmech.fem.sensitivity import output_derivatives
+
+        return output_derivatives(self.model, self.outputs, self.solver)
