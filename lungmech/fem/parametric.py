@@ -73,6 +73,7 @@ class Outputs:
 
     def __init__(self, model, probes: Sequence[Sequence[float]] = ()):
         self.model = model
+        self.probe_points = tuple(tuple(float(c) for c in point) for point in probes)
         self._volume, self._energy = deformed_volume(model), strain_energy(model)
         self._probe = Probe(model.geometry.mesh, probes) if len(probes) else None
 

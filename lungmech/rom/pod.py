@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -20,31 +20,39 @@ def snapshots(
     options: NewtonOptions | None = None,
     solver: NewtonSolver | None = None,
     start: np.ndarray | None = None,
+    parameters: Sequence[Mapping[str, float]] = ({},),
 ) -> np.ndarray:
-    """Full-order states minus the start state, at every accepted step of one run per scale.
+    """Full-order states minus the start state, at every accepted step of one run per parameter
+    point and scale.
 
-    Each run starts from ``start`` (a state array; default: unloaded) at ``stepping.start``. A
-    scale multiplies the loads' change since then (a number: all loads; a sequence: one factor
-    per load), so the training set spans load amplitudes as well as the load history. Returns
-    the owned rows, shape (owned dofs, snapshots); the model is left at the start state.
+    Each run starts from ``start`` (a state array; default: unloaded) at ``stepping.start``, with
+    the model's parameters set to the point (a mapping of names to values; the others at their
+    defaults). A scale multiplies the loads' change since then (a number: all loads; a sequence:
+    one factor per load), so the training set spans parameters and load amplitudes as well as the
+    load history. Returns the owned rows, shape (owned dofs, snapshots); the model is left at the
+    start state, at its default parameters.
     """
-    if not scales:
-        raise ParameterError("snapshots: give at least one load scale")
+    if not scales or not parameters:
+        raise ParameterError("snapshots: give at least one load scale and one parameter point")
     solver = solver or NewtonSolver(model, options)
     start = reference_state(model) if start is None else start.copy()
     owned = _owned(model)
     columns = []
-    for scale in scales:
-        model.state.x.array[:] = start
-        solve(
-            model,
-            stepping,
-            solver=solver,
-            drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
-            breakpoints=model.breakpoints,  # drive() hides them
-            on_step=lambda step: columns.append((model.state.x.array - origin(model, start))[:owned].copy()),
-        )
+    for point in parameters:
+        model.set_parameters(model.parameters.values(point))
+        for scale in scales:
+            model.state.x.array[:] = start
+            solve(
+                model,
+                stepping,
+                solver=solver,
+                drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
+                breakpoints=model.breakpoints,  # drive() hides them
+                on_step=lambda step: columns.append((model.state.x.array - origin(model, start))[:owned].copy()),
+                monitor=lambda step: None,
+            )
     model.state.x.array[:] = start
+    model.set_parameters(model.parameters.defaults)
     model.set_time(stepping.start)
     return np.column_stack(columns)
 

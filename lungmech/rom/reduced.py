@@ -1,0 +1,115 @@
+"""A reduced model is a model: ``solve(μ)`` in k unknowns, with the outputs of the full one.
+
+A :class:`ReducedModel` holds a basis V of the state space (orthonormal in the energy or mass
+inner product), the start state x₀ the basis is relative to, the load path and the parameters it
+was trained over. Its states are x = x₀(t, μ) + V q; each load step solves the Galerkin equations
+Vᵀ R(x₀ + V q; μ) = 0 by Newton's method in q (:class:`~lungmech.rom.galerkin.ReducedSolver`).
+It answers :meth:`solve` with the same :class:`~lungmech.fem.parametric.Solution` as
+:class:`~lungmech.fem.parametric.FullOrderModel` — outputs at the same output times, its states
+being the coordinates q — so the two can be swapped and compared; :meth:`reconstruct` gives the
+full field of any state.
+
+Without hyper-reduction the reduced residual and tangent are still assembled on the full mesh,
+so the model keeps the full model's forms; it is made by :func:`lungmech.rom.reductor.reduce`
+and saved and loaded by :mod:`lungmech.rom.store` with its start state and training box.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from lungmech.fem.parametric import Outputs, Solution, output_times, stack
+from lungmech.fem.solver import NewtonOptions, Stepping, solve
+from lungmech.rom.basis import Basis, reference_state
+from lungmech.rom.galerkin import ReducedSolver
+
+__all__ = ["ReducedModel"]
+
+
+class ReducedModel:
+    """The reduced Galerkin model of ``model`` on ``basis`` (collective).
+
+    Args:
+        model: the full :class:`~lungmech.fem.model.Model` whose forms are projected.
+        basis: a :class:`~lungmech.rom.basis.Basis` of its state space, zero on imposed dofs.
+        stepping: the load path (the same as the full model's, so outputs meet at the same times).
+        newton: options of the reduced Newton solves.
+        start: the state the basis is relative to (full state array; default: the unloaded state).
+        probes: points whose displacement is an output.
+        training: the parameter points the basis was trained on (what the model has seen).
+    """
+
+    def __init__(
+        self,
+        model,
+        basis: Basis,
+        stepping: Stepping,
+        newton: NewtonOptions | None = None,
+        start: np.ndarray | None = None,
+        probes: Sequence[Sequence[float]] = (),
+        training: Sequence[Mapping[str, float]] = (),
+    ):
+        self.model, self.basis, self.stepping = model, basis, stepping
+        self.parameters = model.parameters
+        self.start = reference_state(model) if start is None else np.array(start, dtype=float)
+        self.solver = ReducedSolver(model, basis, newton, start=self.start)
+        self.outputs = Outputs(model, probes)
+        self.times = output_times(model, stepping)
+        self.training = [dict(point) for point in training]
+        with model.kept_state():
+            model.state.x.array[:] = self.start
+            model.state.x.scatter_forward()
+            self.start_volume = self.outputs()["volume"]  # m³, of the start state
+
+    @property
+    def size(self) -> int:
+        """The number of reduced unknowns k."""
+        return self.basis.size
+
+    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
+        """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
+        model = self.model
+        values = self.parameters.values(mu)
+        model.set_parameters(values)
+        model.state.x.array[:] = self.start
+        model.state.x.scatter_forward()
+        tic = time.perf_counter()
+        rows, states, derivatives = [], [], []
+
+        def record(step) -> None:
+            if np.min(np.abs(self.times - model.time)) <= 1e-9 * (self.stepping.end - self.stepping.start):
+                rows.append(self.outputs())
+                states.append(self.solver.coordinates.copy())
+                if sensitivities:
+                    derivatives.append(self._sensitivities())
+
+        model.set_time(self.stepping.start)
+        report = solve(model, self.stepping, solver=self.solver, on_step=record, monitor=lambda step: None)
+        return Solution(
+            parameters=values,
+            times=self.times.copy(),
+            outputs=stack(rows),
+            states=np.array(states),
+            newton_iterations=report.newton_iterations,
+            seconds=time.perf_counter() - tic,
+            sensitivities=stack(derivatives) if sensitivities else None,
+            parameter_names=self.parameters.names,
+        )
+
+    def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
+        """The full state x₀ + V q of output ``index`` of ``solution``, as the model's state
+        (owned entries returned). Sets the model's parameters and time to that output's."""
+        model = self.model
+        model.set_parameters(solution.parameters)
+        model.set_time(float(solution.times[index]))
+        self.solver.reconstruct(solution.states[index])
+        return model.state.x.array[: self.basis.vectors.shape[0]].copy()
+
+    def _sensitivities(self) -> dict[str, object]:
+        from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives
+
+        derivative = reduced_state_derivatives(self.model, self.basis.vectors, self.solver.jacobian_form)
+        return output_derivatives(self.model, self.outputs, state_derivative=derivative)
