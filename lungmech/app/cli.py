@@ -53,16 +53,24 @@ def parser() -> argparse.ArgumentParser:
     )
     build.add_argument(
         "--scales",
-        default="0.5,1,1.5",
+        default=None,
         type=_scales,
-        help="training load scales, comma-separated; one factor per load joined by ':' (e.g. 0.5:1,1.5:1)",
+        help="training load scales, comma-separated; one factor per load joined by ':' (e.g. 0.5:1,1.5:1); "
+        "default 0.5,1,1.5, or 1 when the scene has [parameters]",
     )
+    build.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        help="training points: Sobol' samples of the scene's [parameters] box (default 8; 1 without parameters)",
+    )
+    build.add_argument("--seed", type=int, default=0, help="seed of the training samples (default 0)")
     build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")
     build.add_argument("--order", type=int, default=2, help="order of a polynomial basis")
     build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
-    solve.add_argument("scene", nargs="?", help="scene file (default: the one the model was built from)")
+    solve.add_argument("scene", nargs="?", help="scene file (default: the scene stored in the model file)")
     _common(solve, "results/<model name>-reduced")
     registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
@@ -200,11 +208,9 @@ def _scales(text: str) -> list:
     return [s[0] if len(s) == 1 else s for s in scales]
 
 
-def _setup(args):
-    """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
+def _logging(args):
+    """Logging on rank 0 (warnings only with --quiet); returns the world communicator."""
     from mpi4py import MPI
-
-    from lungmech.app import scene as scenes
 
     comm = MPI.COMM_WORLD
     logging.basicConfig(
@@ -213,6 +219,14 @@ def _setup(args):
         stream=sys.stdout,
         force=True,
     )
+    return comm
+
+
+def _setup(args):
+    """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
+    from lungmech.app import scene as scenes
+
+    comm = _logging(args)
     if args.scene is None:
         with resources.as_file(resources.files("lungmech.scenes") / DEFAULT_SCENE) as path:
             return comm, scenes.load(path), f"bundled default scene ({DEFAULT_SCENE})", Path(path)
@@ -231,6 +245,8 @@ def _rom_build(args) -> int:
         kind=args.basis,
         size=args.size,
         scales=args.scales,
+        samples=args.samples,
+        seed=args.seed,
         inner=args.inner,
         order=args.order,
         comm=comm,
@@ -245,35 +261,38 @@ def _rom_build(args) -> int:
 
 
 def _run(args) -> int:
+    if args.command == "rom" and args.scene is None:  # the scene inside the model file
+        from lungmech.app.reduce import embedded_scene
+
+        comm = _logging(args)
+        with embedded_scene(args.model, comm) as scene:
+            return _solve(args, comm, scene, f"the scene inside {args.model}", Path(args.model))
+    comm, scene, name, path = _setup(args)
+    return _solve(args, comm, scene, name, path)
+
+
+def _solve(args, comm, scene, name: str, path: Path) -> int:
     from lungmech.app.console import end_of_run
     from lungmech.app.run import check_scale, full_order, run
 
-    prepare, inputs = full_order, []
-    if args.command == "rom":  # solve: the scene the model was built from, unless another is named
-        from lungmech.app.reduce import reduced_order, trained_range
-        from lungmech.rom import store
-
-        metadata, _ = store.read(args.model)
-        if args.scene is None:
-            args.scene = metadata["extra"].get("scene")
-            if args.scene is None or not Path(args.scene).is_file():
-                raise ParameterError(
-                    f"{args.model}: the scene it was built from ({args.scene}) is not there; "
-                    "name the scene after the model file"
-                )
-        prepare, inputs = reduced_order(args.model), [args.model]
-    comm, scene, name, path = _setup(args)
+    prepare, inputs, note = full_order, [], None
     if args.set:
         scene = scene.with_values(dict(args.set))
     if len(args.scale) > 1:
         raise ParameterError("--scale takes one value (per-load factors are joined by ':', e.g. 1.2:1)")
     scale = check_scale(scene, args.scale[0])
+    if args.command == "rom":
+        from lungmech.app.reduce import reduced_order, trained_range
+        from lungmech.rom import store
+
+        prepare, inputs = reduced_order(args.model), [args.model]
+        note = trained_range(store.read_on_root(args.model, comm)[0]["extra"], scale)
     default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
     output = args.output if args.output is not None else RESULTS / default
     if comm.rank == 0:
         how = " with the reduced model " + args.model if args.command == "rom" else ""
         print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)
-        if args.command == "rom" and (note := trained_range(metadata["extra"], scale)):
+        if note:
             print(f"lungmech: note: {note}", flush=True)
     summary = run(scene, output, comm, scale=scale, prepare=prepare, inputs=inputs)
     if comm.rank == 0:

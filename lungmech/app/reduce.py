@@ -1,29 +1,43 @@
 """Reduced models of a scene: built offline from full-order runs, solved online like a scene.
 
 Offline (:func:`build`): build the scene's model; if it has [inverse], unload the imaged mesh
-once; run the full model for each training load scale and collect snapshots; make the basis;
-save it with the start state, the reference mesh nodes and the offline timings. Online
-(:func:`reduced_order`): the ``prepare`` step of :func:`lungmech.app.run.run` that puts the stored
-reference and start state in place and returns a :class:`ReducedSolver`, so a reduced run
-writes the same outputs as a full one.
+once (at the default parameters); run the full model along its load path at every training
+point — a seeded Sobol' sample of the scene's [parameters] box, and the load scales — and collect
+snapshots; make the basis; save it with the start state, the reference mesh nodes, the training
+points, the offline timings, and the scene itself with every file it reads (mesh, Φs0 data), so
+that the model file is all ``lungmech rom solve model.npz --set name=value`` needs.
+
+Online: :func:`embedded_scene` gives the scene stored in a model file, :func:`load` the
+:class:`~lungmech.rom.reduced.ReducedModel` (``solve(mu)``), and :func:`reduced_order` the
+``prepare`` step of :func:`lungmech.app.run.run`, so a reduced run writes the same outputs as a
+full one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import copy
+import shutil
+import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
+from lungmech import checks
+from lungmech.app import scene as scenes
 from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
+from lungmech.fem.parameters import Parameters
 from lungmech.fem.solver import NewtonSolver
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
+from lungmech.mesh.files import companions
+from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.rom import store
@@ -32,6 +46,7 @@ from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.polynomial import polynomial_basis
+from lungmech.rom.reduced import ReducedModel
 
 KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
 
@@ -41,17 +56,22 @@ def build(
     path: str | Path,
     kind: str = "pod",
     size: int = 20,
-    scales: Sequence[Scale] = (0.5, 1.0, 1.5),
+    scales: Sequence[Scale] | None = None,
     inner: str = "mass",
     order: int = 2,
     density: float = 1.0,
     comm: MPI.Comm = MPI.COMM_WORLD,
+    samples: int | None = None,
+    seed: int = 0,
 ) -> dict:
     """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
-    ``kind``: pod (of full runs at the load ``scales``), modal (K y = λ M y at the start
+    ``kind``: pod (of full runs at the training points), modal (K y = λ M y at the start
     state), modal+derivatives, polynomial (of ``order``), or pod+modal (enriched). ``size`` caps
-    the number of vectors (POD may keep fewer: only directions above its noise level).
+    the number of vectors (POD may keep fewer: only directions above its noise level). The
+    training points are ``samples`` Sobol' points of the scene's parameter box (``seed``;
+    default 8 when the scene has [parameters], else its one point) times the load ``scales``
+    (default 0.5, 1, 1.5 without parameters, 1 with them).
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
@@ -59,17 +79,33 @@ def build(
         raise ParameterError(f"basis kind must be one of {', '.join(KINDS)} (got {kind!r})")
     if isinstance(size, bool) or not (isinstance(size, int) and size >= 1):
         raise ParameterError(f"basis size must be a positive integer (got {size!r})")
+    if scales is None:
+        scales = (1.0,) if scene.parameters else (0.5, 1.0, 1.5)
     if not scales:
         raise ParameterError("give at least one training load scale")
     for scale in scales:
         check_scale(scene, scale)
+    box = Parameters(scene.parameters)
+    if samples is None:
+        samples = 8 if box else 1
+    checks.integer("training samples", samples, minimum=1)
+    training = box.sample(samples, seed) if box else [{}]
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
-        return _build(scene, staging, kind, size, scales, inner, order, density, comm)
+        return _build(scene, staging, kind, size, scales, training, inner, order, density, comm)
 
 
 def _build(
-    scene: Scene, path: Path, kind: str, size: int, scales, inner: str, order: int, density: float, comm: MPI.Comm
+    scene: Scene,
+    path: Path,
+    kind: str,
+    size: int,
+    scales,
+    training: list[dict],
+    inner: str,
+    order: int,
+    density: float,
+    comm: MPI.Comm,
 ) -> dict:
     timings = {}
     tic = time.perf_counter()
@@ -89,10 +125,11 @@ def _build(
     parts: list[Basis] = []
     if kind in ("pod", "pod+modal"):
         tic = time.perf_counter()
-        data = snapshots(model, scene.stepping, scales, solver=solver, start=start)
+        data = snapshots(model, scene.stepping, scales, solver=solver, start=start, parameters=training)
         timings["snapshots"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        parts.append(pod(model, data, inner=inner, size=size, source={"scales": _plain(scales)}))
+        source = {"scales": _plain(scales), "training": training}
+        parts.append(pod(model, data, inner=inner, size=size, source=source))
         timings["svd"] = time.perf_counter() - tic
     if kind in ("modal", "modal+derivatives", "pod+modal"):
         tic = time.perf_counter()
@@ -116,8 +153,13 @@ def _build(
         "imaged_fingerprint": where.fingerprint,
         "loads": len(scene.loads),
         "scales": _plain(scales),
+        "training": training,
+        "parameters": model.parameters.describe(),
         "offline_seconds": timings,
+        "scene_table": scene.table,
+        "files": _embedded_names(scene),
     }
+    arrays |= {f"file:{name}": data for name, data in _file_bytes(scene, comm).items()}
     store.write(path, model, basis, extra=extra, arrays=arrays)
     return {
         "kind": basis.kind,
@@ -134,6 +176,21 @@ def reduced_order(path: str | Path):
 
 
 def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
+    reduced, placed = _reduced(path, model, scene)
+    return reduced.solver, {"reference": "from the reduced model"} if placed else None
+
+
+def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
+    """The reduced model stored at ``path``, self-contained: its scene and mesh come from the file.
+    Collective."""
+    with embedded_scene(path, comm) as scene:
+        model = build_model(scene, comm)
+    return _reduced(Path(path), model, scene)[0]
+
+
+def _reduced(path: Path, model, scene: Scene) -> tuple[ReducedModel, bool]:
+    """The reduced model of ``path`` on ``model`` (the scene's, just built), and whether it moved
+    the mesh to the unloaded reference stored with it."""
     metadata, arrays = store.read_on_root(path, model.geometry.mesh.comm)  # arrays on rank 0 only
     extra = metadata["extra"]
     check_physics(path, extra, scene)
@@ -142,14 +199,15 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolv
         raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
     if "reference_nodes" in arrays:  # the unloaded reference found offline
         nodes.place_canonical(*nodes.displacement_space(model.geometry.mesh), arrays["reference_nodes"])
-    del arrays  # rank 0's copy; load reads the file again and checks it against the moved mesh
-    basis, _, arrays = store.load(path, model)
+    basis, _, arrays = store.load(path, model, content=(metadata, arrays))  # checked on the moved mesh
     owned = basis.vectors.shape[0]
     model.state.x.array[:owned] = where.scatter(arrays["start"])
     model.state.x.scatter_forward()
+    start = model.state.x.array.copy()
     model.set_time(scene.stepping.start)
-    solver = ReducedSolver(model, basis, scene.newton, start=model.state.x.array.copy())
-    return solver, {"reference": "from the reduced model"} if "reference_nodes" in arrays else None
+    training = metadata["extra"].get("training", [])
+    reduced = ReducedModel(model, basis, scene.stepping, scene.newton, start, scene.output.probes, training)
+    return reduced, "reference_nodes" in arrays
 
 
 def check_physics(path: Path, extra: dict, scene: Scene) -> None:
@@ -182,3 +240,57 @@ def trained_range(extra: dict, scale) -> str | None:
 
 def _plain(scales) -> list:
     return [np.asarray(s, dtype=float).tolist() for s in scales]
+
+
+def _embedded_names(scene: Scene) -> dict[str, str]:
+    """Where each file the scene reads goes inside the model file: the mesh (with its companions)
+    under mesh/, a Φs0 file under data/."""
+    names = {}
+    if "file" in scene.geometry:
+        mesh = Path(scene.geometry["file"])
+        for part in [mesh, *(p for p in companions(mesh) if p.exists())]:
+            names[f"mesh/{part.name}"] = str(part)
+    phi_s0 = getattr(scene.formulation, "phi_s0", None)
+    if isinstance(phi_s0, str | Path):
+        names[f"data/{Path(phi_s0).name}"] = str(phi_s0)
+    return names
+
+
+def _file_bytes(scene: Scene, comm: MPI.Comm) -> dict[str, np.ndarray | None]:
+    """The bytes of the scene's files (rank 0; None on the others)."""
+    names = _embedded_names(scene)
+    if comm.rank != 0:
+        return dict.fromkeys(names)
+    return {name: np.frombuffer(Path(source).read_bytes(), dtype=np.uint8) for name, source in names.items()}
+
+
+@contextlib.contextmanager
+def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterator[Scene]:
+    """The scene a model file holds, with its files unpacked into a temporary folder for the
+    duration of the block (rank 0 unpacks; the ranks must share that folder's file system).
+    Collective."""
+    metadata, arrays = store.read_on_root(path, comm)
+    extra = metadata["extra"]
+    if "scene_table" not in extra:
+        raise ModelFileError(f"{path} holds no scene (built before lungmech 0.2); name the scene after the model file")
+    folder = comm.bcast(tempfile.mkdtemp(prefix="lungmech-model-") if comm.rank == 0 else None)
+    try:
+
+        def unpack() -> None:
+            for name in extra["files"]:
+                target = Path(folder) / name
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.write_bytes(arrays[f"file:{name}"].tobytes())
+
+        on_root(comm, unpack)
+        table = copy.deepcopy(extra["scene_table"])
+        for name, source in extra["files"].items():
+            unpacked = str(Path(folder) / name)
+            if name.startswith("mesh/") and Path(source).name == Path(table["geometry"].get("file", "")).name:
+                table["geometry"]["file"] = unpacked
+            if name.startswith("data/") and isinstance(table.get("formulation", {}).get("phi_s0"), str):
+                table["formulation"]["phi_s0"] = unpacked
+        yield scenes.parse(table, folder=Path(folder))
+    finally:
+        comm.barrier()
+        on_root(comm, lambda: shutil.rmtree(folder, ignore_errors=True))

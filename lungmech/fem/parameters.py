@@ -269,15 +269,16 @@ class Parameters(Sequence[Parameter]):
         return {p.name: _from_unit(p, float(u)) for p, u in zip(self._items, np.asarray(unit, dtype=float))}
 
     def sample(self, count: int, seed: int = 0) -> list[dict[str, float]]:
-        """``count`` points spread over the box: a scrambled Sobol' sequence (``scipy.stats.qmc``),
-        seeded so that the same call gives the same points; log parameters spread in log μ."""
+        """``count`` points spread over the box: the first ``count`` of a scrambled Sobol' sequence
+        of 2^m ≥ count points (``scipy.stats.qmc``), seeded so that the same call gives the same
+        points; log parameters spread in log μ."""
         from scipy.stats import qmc
 
         checks.integer("sample count", count, minimum=1)
         if not self._items:
             return [{} for _ in range(count)]
         sobol = qmc.Sobol(d=len(self._items), scramble=True, seed=seed)
-        points = sobol.random(count) if count & (count - 1) else sobol.random_base2(int(math.log2(count)))
+        points = sobol.random_base2(max(0, math.ceil(math.log2(count))))[:count]
         return [self.from_unit(u) for u in points]
 
     def describe(self) -> list[dict]:

@@ -130,16 +130,20 @@ def read_on_root(path: str | Path, comm: MPI.Comm) -> tuple[dict, dict[str, np.n
     return metadata, found[1] if found is not None else dict.fromkeys(names)
 
 
-def load(path: str | Path, model) -> tuple[Basis, dict, dict[str, np.ndarray | None]]:
+def load(
+    path: str | Path, model, content: tuple[dict, dict] | None = None
+) -> tuple[Basis, dict, dict[str, np.ndarray | None]]:
     """Collective: read a reduced model for ``model``: (basis, extra metadata, other arrays).
 
     Rank 0 reads the file and sends every rank its rows of the basis; the other arrays (canonical,
     for :meth:`~lungmech.parallel.layout.Layout.scatter`) are returned on rank 0, with the same
     names but None on the other ranks. Refused with a :class:`ModelFileError` when the file is not
-    a lungmech reduced model, is damaged, or was built on another mesh or space.
+    a lungmech reduced model, is damaged, or was built on another mesh or space. ``content``: what
+    :func:`read_on_root` gave, when the caller has read the file already.
     """
     where = layout(model.space)
-    metadata, arrays = read_on_root(path, where.comm)
+    metadata, arrays = content if content is not None else read_on_root(path, where.comm)
+    arrays = dict(arrays)
     if metadata["fingerprint"] != where.fingerprint or metadata["dofs"] != where.size:
         raise ModelFileError(
             f"{path} was built on another mesh or discretisation ({metadata['dofs']} dofs, fingerprint "
