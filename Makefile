@@ -7,7 +7,7 @@ PY      := $(VENV)/bin/python
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
 
-.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-registration bench-layout clean
+.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml
 	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
@@ -40,6 +40,9 @@ bench-registration: $(STAMP)
 	$(PY) benchmarks/registration.py
 
 # Memory and time of the canonical dof layout on 1 and 2 ranks (starts mpiexec itself).
+bench-rom-parameters: $(STAMP)
+	$(PY) benchmarks/rom_parameters.py
+
 bench-layout: $(STAMP)
 	$(PY) benchmarks/layout.py
 

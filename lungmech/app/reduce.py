@@ -33,6 +33,7 @@ from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
+from lungmech.fem.parametric import approach
 from lungmech.fem.solver import NewtonSolver
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
@@ -176,7 +177,13 @@ def reduced_order(path: str | Path):
 
 
 def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
+    values = dict(model.parameter_values)  # the scene's, with --set
     reduced, placed = _reduced(path, model, scene)
+    # The stored start is an equilibrium at the default parameters: move it to the asked ones.
+    model.set_parameters(model.parameters.defaults)
+    model.state.x.array[:] = reduced.start
+    model.state.x.scatter_forward()
+    approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start)
     return reduced.solver, {"reference": "from the reduced model"} if placed else None
 
 

@@ -37,6 +37,7 @@ from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import FollowerPressure
 from lungmech.fem.model import Model
+from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.solver import NewtonSolver, StepReport, solve
 from lungmech.lung.inverse import InverseReport, unloaded_reference
@@ -101,6 +102,21 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
     )
     model.set_parameters(scene.values)
     return model
+
+
+def full_order_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> FullOrderModel:
+    """The scene's full-order model as a parametric model (``solve(mu)``). A scene with [inverse]
+    first finds the unloaded reference of its imaged mesh, once, at the default parameters; every
+    solve then starts from the imaged state. Collective."""
+    model = build_model(scene, comm)
+    solver = NewtonSolver(model, scene.newton)
+    start = None
+    if scene.inverse is not None:
+        model.set_parameters(model.parameters.defaults)
+        unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver)
+        start = model.state.x.array.copy()
+        model.set_parameters(scene.values)
+    return FullOrderModel(model, scene.stepping, scene.newton, scene.output.probes, start, solver)
 
 
 def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> dict[str, float]:

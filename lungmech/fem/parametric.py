@@ -17,7 +17,7 @@ hits exactly, so two models' answers are compared point by point.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -62,6 +62,37 @@ class ParametricModel(Protocol):
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution: ...
 
 
+def approach(
+    model,
+    solver: Solver,
+    values: Mapping[str, float],
+    start: Mapping[str, float],
+    time: float,
+    on_step: Callable | None = None,
+) -> int:
+    """Move the model's state, an equilibrium at the parameters ``start`` and time ``time``, to
+    the equilibrium at ``values``: a continuation along the straight line between them in the unit
+    box (log parameters in log μ), with the load stepping's adaptive steps. A start state under
+    load (a lung imaged at end-expiration) is an equilibrium for its own parameters only; other
+    parameters reach it this way rather than in one Newton solve. Returns the Newton iterations
+    (0 when the parameters are the start's). Collective."""
+    if all(values[name] == start[name] for name in values):
+        model.set_parameters(values)
+        return 0
+    box = model.parameters
+    a, b = box.to_unit(start), box.to_unit(values)
+
+    def drive(s: float) -> None:
+        model.set_parameters(box.from_unit(a + s * (b - a)))
+        model.set_time(time)
+
+    report = solve(
+        model, Stepping(initial_step=0.25), solver=solver, drive=drive, on_step=on_step, monitor=lambda step: None
+    )
+    model.set_parameters(values)  # exactly, not through the unit box
+    return report.newton_iterations
+
+
 def output_times(model, stepping: Stepping) -> np.ndarray:
     """The times a load path reports: the stepping's ``times``, the ramp breakpoints and the end."""
     inside = [t for t in (*stepping.times, *model.breakpoints) if stepping.start < t < stepping.end]
@@ -98,7 +129,9 @@ class FullOrderModel:
 
     ``model`` is a :class:`~lungmech.fem.model.Model` with parameters; each solve resets it to
     ``start`` (default: the unloaded state; a lung imaged under load starts from the state the
-    inverse problem found) and steps it from ``stepping.start`` to ``stepping.end``.
+    inverse problem found), an equilibrium at the default parameters at ``stepping.start``,
+    moves it to the asked parameters (:func:`approach`) and steps it from ``stepping.start`` to
+    ``stepping.end``.
     Collective. The model's compiled forms serve every μ: nothing is recompiled.
     """
 
@@ -124,9 +157,9 @@ class FullOrderModel:
         their defaults)."""
         model = self.model
         values = self.parameters.values(mu)
-        model.set_parameters(values)
         self.reset()
         tic = time.perf_counter()
+        iterations = approach(model, self.solver, values, self.parameters.defaults, self.stepping.start)
         rows, states, derivatives = [], [], []
         owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
 
@@ -144,7 +177,7 @@ class FullOrderModel:
             times=self.times.copy(),
             outputs=stack(rows),
             states=np.array(states),
-            newton_iterations=report.newton_iterations,
+            newton_iterations=iterations + report.newton_iterations,
             seconds=time.perf_counter() - tic,
             sensitivities=stack(derivatives) if sensitivities else None,
             parameter_names=self.parameters.names,

@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.parametric import approach
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
 from lungmech.parallel import linalg
 from lungmech.parallel.layout import layout
@@ -25,9 +26,10 @@ def snapshots(
     """Full-order states minus the start state, at every accepted step of one run per parameter
     point and scale.
 
-    Each run starts from ``start`` (a state array; default: unloaded) at ``stepping.start``, with
-    the model's parameters set to the point (a mapping of names to values; the others at their
-    defaults). A scale multiplies the loads' change since then (a number: all loads; a sequence:
+    Each run starts from ``start`` (a state array, an equilibrium at the default parameters;
+    default: unloaded) at ``stepping.start``, moves to the point's parameters (a mapping of names
+    to values; the others at their defaults) by :func:`~lungmech.fem.parametric.approach`, whose
+    states are snapshots too, and follows the load path. A scale multiplies the loads' change since then (a number: all loads; a sequence:
     one factor per load), so the training set spans parameters and load amplitudes as well as the
     load history. Returns the owned rows, shape (owned dofs, snapshots); the model is left at the
     start state, at its default parameters.
@@ -38,17 +40,24 @@ def snapshots(
     start = reference_state(model) if start is None else start.copy()
     owned = _owned(model)
     columns = []
+    defaults = model.parameters.defaults
+
+    def keep(step) -> None:
+        columns.append((model.state.x.array - origin(model, start))[:owned].copy())
+
     for point in parameters:
-        model.set_parameters(model.parameters.values(point))
         for scale in scales:
+            model.set_parameters(defaults)
             model.state.x.array[:] = start
+            model.state.x.scatter_forward()
+            approach(model, solver, model.parameters.values(point), defaults, stepping.start, on_step=keep)
             solve(
                 model,
                 stepping,
                 solver=solver,
                 drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
                 breakpoints=model.breakpoints,  # drive() hides them
-                on_step=lambda step: columns.append((model.state.x.array - origin(model, start))[:owned].copy()),
+                on_step=keep,
                 monitor=lambda step: None,
             )
     model.state.x.array[:] = start

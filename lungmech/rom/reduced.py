@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from lungmech.fem.parametric import Outputs, Solution, output_times, stack
+from lungmech.fem.parametric import Outputs, Solution, approach, output_times, stack
 from lungmech.fem.solver import NewtonOptions, Stepping, solve
 from lungmech.rom.basis import Basis, reference_state
 from lungmech.rom.galerkin import ReducedSolver
@@ -73,10 +73,11 @@ class ReducedModel:
         """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
         model = self.model
         values = self.parameters.values(mu)
-        model.set_parameters(values)
+        model.set_parameters(self.parameters.defaults)
         model.state.x.array[:] = self.start
         model.state.x.scatter_forward()
         tic = time.perf_counter()
+        iterations = approach(model, self.solver, values, self.parameters.defaults, self.stepping.start)
         rows, states, derivatives = [], [], []
 
         def record(step) -> None:
@@ -93,7 +94,7 @@ class ReducedModel:
             times=self.times.copy(),
             outputs=stack(rows),
             states=np.array(states),
-            newton_iterations=report.newton_iterations,
+            newton_iterations=iterations + report.newton_iterations,
             seconds=time.perf_counter() - tic,
             sensitivities=stack(derivatives) if sensitivities else None,
             parameter_names=self.parameters.names,
