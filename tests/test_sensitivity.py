@@ -230,3 +230,16 @@ def test_sensitivities_same_on_all_ranks_as_on_one():
     assert set(parallel) == set(serial)
     for key in serial:
         assert np.allclose(parallel[key], serial[key], rtol=1e-9, atol=1e-10 * np.abs(serial[key]).max()), key
+
+
+@pytest.mark.parametrize("E, nu", [(12.0, 0.32), (5.0, 0.4), (20.0, 0.2)])
+def test_derived_constants_differentiate_to_the_closed_form_also_at_the_ends_of_the_range(E, nu):
+    """μ = E/2(1+ν), λ = Eν/((1+ν)(1−2ν)): linear in E (exact), not in ν (second order), and
+    one-sided differences at the ends of the ranges stay inside them."""
+    model = block(parameters=BLOCK[:2])
+    model.set_parameters(E=E, nu=nu)
+    derivatives = sensitivity.value_derivatives(model).constants
+    mu, lam = derivatives[model.material.mu], derivatives[model.material.lmbda]
+    assert mu == pytest.approx([1 / (2 * (1 + nu)), -E / (2 * (1 + nu) ** 2)], rel=1e-9)
+    closed = [nu / ((1 + nu) * (1 - 2 * nu)), E * (1 + 2 * nu**2) / ((1 + nu) ** 2 * (1 - 2 * nu) ** 2)]
+    assert lam == pytest.approx(closed, rel=1e-8)

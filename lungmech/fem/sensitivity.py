@@ -74,15 +74,15 @@ STEP = 1e-5  # the difference step of ∂c/∂μ, as a fraction of the parameter
 class ValueDerivatives:
     """∂(the values the parameters set)/∂μ at the current μ and time, the parameters last.
 
-    ``constants[k]`` (shape of the k-th constant + (n,)) and ``functions[j]`` (local entries, ghosts
-    included, n) follow the order of the model's compiled derivative forms; ``imposed`` is
+    ``constants[c]`` (the shape of the Constant c + (n,)) and ``functions[f]`` (the local entries of
+    the Function f, ghosts included, n) cover every one the model's forms hold; ``imposed`` is
     dx_D/dμ, the derivative of the imposed values as a state vector (local entries, n; zero on
     free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label.
     """
 
     names: tuple[str, ...]
-    constants: tuple[np.ndarray, ...]
-    functions: tuple[np.ndarray, ...]
+    constants: dict[fem.Constant, np.ndarray]
+    functions: dict[fem.Function, np.ndarray]
     imposed: np.ndarray
     loads: dict[str, np.ndarray]
 
@@ -129,10 +129,10 @@ class _Forms:
 
     def set_weights(self, derivatives: ValueDerivatives, i: int) -> None:
         """The directions of parameter i: w_k = ∂c_k/∂μ_i, δf_j = ∂f_j/∂μ_i."""
-        for w, d in zip(self.weights, derivatives.constants):
-            w.value = d[..., i]
-        for direction, d in zip(self.directions, derivatives.functions):
-            direction.x.array[:] = d[:, i]
+        for c, w in zip(self.constants, self.weights):
+            w.value = derivatives.constants[c][..., i]
+        for f, direction in zip(self.functions, self.directions):
+            direction.x.array[:] = derivatives.functions[f][:, i]
 
 
 _compiled: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -203,8 +203,8 @@ def value_derivatives(model) -> ValueDerivatives:
     forms = _forms(model)
     parameters = model.parameters
     size = len(model.state.x.array)
-    constants = [np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants]
-    functions = [np.zeros((len(f.x.array), len(parameters))) for f in forms.functions]
+    constants = {c: np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants}
+    functions = {f: np.zeros((len(f.x.array), len(parameters))) for f in forms.functions}
     imposed = np.zeros((size, len(parameters)))
     loads = {label: np.zeros(len(parameters)) for label in model.scalar_loads()}
     with _restored(model, forms):
@@ -219,9 +219,9 @@ def value_derivatives(model) -> ValueDerivatives:
             points, weights = _stencil(parameter, current[parameter.name])
             for point, weight in zip(points, weights):
                 model.set_parameters({parameter.name: float(point)})
-                for d, c in zip(constants, forms.constants):
+                for c, d in constants.items():
                     d[..., i] += weight * np.asarray(c.value, dtype=float)
-                for d, f in zip(functions, forms.functions):
+                for f, d in functions.items():
                     d[:, i] += weight * f.x.array
                 x_D = np.zeros(size)
                 for bc in model.bcs:
@@ -230,7 +230,7 @@ def value_derivatives(model) -> ValueDerivatives:
                 for label, value in model.scalar_loads().items():
                     loads[label][i] += weight * value
             model.set_parameters(current)
-    return ValueDerivatives(parameters.names, tuple(constants), tuple(functions), imposed, loads)
+    return ValueDerivatives(parameters.names, constants, functions, imposed, loads)
 
 
 def _owned(model) -> int:
