@@ -108,6 +108,11 @@ class Outputs:
         self._volume, self._energy = deformed_volume(model), strain_energy(model)
         self._probe = Probe(model.geometry.mesh, probes) if len(probes) else None
 
+    @property
+    def probe(self) -> Probe | None:
+        """The probe of the displacement at the points, if any were given."""
+        return self._probe
+
     def __call__(self) -> dict[str, object]:
         values: dict[str, object] = {"volume": self._volume(), "strain_energy": self._energy()}
         if self._probe is not None:

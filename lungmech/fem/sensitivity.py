@@ -1,0 +1,378 @@
+"""Exact derivatives of a model's outputs with respect to its parameters μ (direct or reduced).
+
+At a converged state x(μ) the residual vanishes, R(x(μ), c(μ)) = 0 on the free dofs, with c the
+values the parameters set (the model's ``fem.Constant``s and parameter ``Function``s: law and
+formulation constants, region fields' inside values, interface positions, load values) and the
+imposed (Dirichlet) values x_D(μ) on the others. Differentiating,
+
+    K dx/dμ_i = −∂R/∂μ_i = −Σ_k ∂R/∂c_k · ∂c_k/∂μ_i   on the free dofs,   dx/dμ_i = dx_D/dμ_i  on the imposed ones,
+
+with K = ∂R/∂x the model's exact Jacobian at the converged state (direct sensitivities: one
+factorisation of K serves every parameter). A reduced Galerkin model x = x₀ + V q, whose basis V
+vanishes on imposed dofs and x₀ holds the imposed values, gives instead
+
+    dq/dμ = −(Vᵀ K V)⁻¹ Vᵀ (∂R/∂μ + K dx₀/dμ),   dx/dμ = V dq/dμ + dx₀/dμ,
+
+the exact derivative of the reduced model's own answer. An output J(x, c) then has
+dJ/dμ = ∂J/∂x · dx/dμ + ∂J/∂c · ∂c/∂μ: the deformed volume ∫ det F dX has no explicit part, the
+strain energy ∫ ψ dX has ∂ψ/∂c (ψ depends on the law's constants), a probe is the displacement
+part of dx/dμ at its point, and a scalar load's value is itself one of the c.
+
+∂R/∂c_k and ∂ψ/∂c_k are exact in the forms: UFL differentiates with respect to a ``Constant``
+wrapped in a ``ufl.variable`` (and with respect to a ``Function`` by :func:`ufl.derivative`). One
+form per model holds Σ_k w_k · ∂R/∂c_k with weight Constants w_k (dotted with the constant for a
+vector one), so each parameter costs one assembly with w_k = ∂c_k/∂μ_i and nothing is recompiled
+between parameters or μ. The map μ → c is the model's own assignment
+(:meth:`lungmech.fem.model.Model.set_parameters`) and may be nonlinear (E, ν → Lamé constants;
+posture angles → gravity vector): ∂c/∂μ_i and dx_D/dμ_i are its central differences in the
+*values* only (no assembly), exact for targets that enter linearly (most do: up to round-off,
+≈ 10⁻¹¹ relative) and second-order accurate otherwise (relative error ≈ h² c'''/(6 c') with
+h = 10⁻⁵ of the parameter's range: ≈ 10⁻⁹ for ν in [0.2, 0.4]).
+
+The direct method solves once per parameter and serves every output (volume, energy, each probe
+component, loads); an adjoint would pay off only for more parameters than outputs.
+
+Loads whose coefficients depend on the state (balanced gravity) are frozen by the solver in a
+fixed point, so K is not the Jacobian of the converged map; those models are refused.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import weakref
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from dolfinx import fem, la
+from dolfinx.fem.petsc import assemble_matrix, create_matrix
+from mpi4py import MPI
+from petsc4py import PETSc
+from ufl.algorithms import expand_derivatives
+from ufl.algorithms.map_integrands import map_integrands
+
+from lungmech.errors import ParameterError
+from lungmech.fem.linear import factorised
+from lungmech.parallel.linalg import apply, gram
+
+__all__ = [
+    "STEP",
+    "ValueDerivatives",
+    "output_derivatives",
+    "reduced_state_derivatives",
+    "residual_derivatives",
+    "state_derivatives",
+    "value_derivatives",
+]
+
+STEP = 1e-5  # the difference step of ∂c/∂μ, as a fraction of the parameter's range
+
+
+@dataclass(frozen=True)
+class ValueDerivatives:
+    """∂(the values the parameters set)/∂μ at the current μ and time, the parameters last.
+
+    ``constants[c]`` (the shape of the Constant c + (n,)) and ``functions[f]`` (the local entries of
+    the Function f, ghosts included, n) cover every one the model's forms hold; ``imposed`` is
+    dx_D/dμ, the derivative of the imposed values as a state vector (local entries, n; zero on
+    free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label.
+    """
+
+    names: tuple[str, ...]
+    constants: dict[fem.Constant, np.ndarray]
+    functions: dict[fem.Function, np.ndarray]
+    imposed: np.ndarray
+    loads: dict[str, np.ndarray]
+
+
+class _Forms:
+    """The derivative forms of one model, compiled once (collective).
+
+    ``constants`` and ``functions`` are every ``Constant`` and (non-state) ``Function`` of the
+    residual and of the strain energy: whatever a parameter may set. ``weights`` are their
+    directions (w_k, δf_j); ``residual`` = Σ_k w_k · ∂R/∂c_k + Σ_j ∂R/∂f_j [δf_j], ``energy`` the
+    same of ∫ ψ dX, ``volume_gradient`` = ∂(∫ det F dX)/∂x, ``energy_gradient`` = ∂(∫ ψ dX)/∂x.
+    """
+
+    def __init__(self, model):
+        residual = expand_derivatives(model.residual)
+        energy = model.energy_density * model.dx
+        found_constants = {c: None for form in (residual, energy) for c in form.constants()}
+        found_functions = {f: None for form in (residual, energy) for f in form.coefficients() if f is not model.state}
+        self.constants, self.functions = tuple(found_constants), tuple(found_functions)
+        mesh = model.geometry.mesh
+        self.weights = tuple(fem.Constant(mesh, np.zeros(c.ufl_shape)) for c in self.constants)
+        self.directions = tuple(fem.Function(f.function_space) for f in self.functions)
+        self.residual, self.energy = self._explicit(residual), self._explicit(energy)  # None: no parameter acts
+        self.volume_gradient = fem.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
+        self.energy_gradient = fem.form(ufl.derivative(energy, model.state))
+        self.comm = mesh.comm
+
+    def _explicit(self, form: ufl.Form) -> fem.Form | None:
+        """Σ_k w_k · ∂form/∂c_k + Σ_j ∂form/∂f_j [δf_j] at fixed state, compiled (None if it vanishes)."""
+        variables = {c: ufl.variable(c) for c in self.constants}
+        wrapped = ufl.replace(form, variables)
+
+        def differentiate(integrand):
+            return sum(
+                (ufl.inner(ufl.diff(integrand, variables[c]), w) for c, w in zip(self.constants, self.weights)),
+                ufl.zero(),
+            )
+
+        derivative = map_integrands(differentiate, wrapped)
+        for f, direction in zip(self.functions, self.directions):
+            derivative = derivative + ufl.derivative(form, f, direction)
+        derivative = expand_derivatives(derivative)
+        return None if derivative.empty() else fem.form(derivative)
+
+    def set_weights(self, derivatives: ValueDerivatives, i: int) -> None:
+        """The directions of parameter i: w_k = ∂c_k/∂μ_i, δf_j = ∂f_j/∂μ_i."""
+        for c, w in zip(self.constants, self.weights):
+            w.value = derivatives.constants[c][..., i]
+        for f, direction in zip(self.functions, self.directions):
+            direction.x.array[:] = derivatives.functions[f][:, i]
+
+
+_compiled: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _forms(model) -> _Forms:
+    """The model's derivative forms, compiled on first use (collective) and kept with the model."""
+    if model not in _compiled:
+        _compiled[model] = _Forms(model)
+    return _compiled[model]
+
+
+def _refuse_state_dependent(model) -> None:
+    if model.state_dependent:
+        raise ParameterError(
+            "sensitivities: this model has loads with state-dependent coefficients (balanced gravity), "
+            "which the solver settles in a fixed point, so they are not exactly differentiable; leave balanced_on out"
+        )
+
+
+def _stencil(parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points and weights of a second-order first derivative that stay inside the range: central
+    (c(μ+h) − c(μ−h))/2h, or one-sided (±(−3c(μ) + 4c(μ±h) − c(μ±2h))/2h) at an end of the range.
+    h = STEP × (high − low); for a log-scale parameter, STEP × μ ln(high/low) (its range in its own
+    sampling coordinate, at μ)."""
+    low, high = parameter.range
+    h = STEP * (value * math.log(high / low) if parameter.log else high - low)
+    if value - h >= low and value + h <= high:
+        return value + h * np.array([-1.0, 1.0]), np.array([-1.0, 1.0]) / (2 * h)
+    side = 1.0 if value - h < low else -1.0
+    return value + side * h * np.array([0.0, 1.0, 2.0]), side * np.array([-3.0, 4.0, -1.0]) / (2 * h)
+
+
+@contextlib.contextmanager
+def _restored(model, forms: _Forms) -> Iterator[None]:
+    """Whatever the block does to the parameters, constants, imposed values and state, they are
+    restored afterwards (also on an error)."""
+    values, state = dict(model.parameter_values), model.state.x.array.copy()
+    constants = {c: np.array(c.value, copy=True) for c in (*forms.constants, *model._load_values)}
+    functions = {f: f.x.array.copy() for f in forms.functions}
+    imposed = [(i.amplitude, i.target.x.array.copy()) for i in model._imposed]
+    try:
+        yield
+    finally:
+        model.set_parameters(values)
+        for c, value in constants.items():
+            c.value = value
+        for f, array in functions.items():
+            f.x.array[:] = array
+        for i, (amplitude, target) in zip(model._imposed, imposed):
+            i.amplitude, i.target.x.array[:] = amplitude, target
+        model.state.x.array[:] = state
+        model.state.x.scatter_forward()
+
+
+def value_derivatives(model) -> ValueDerivatives:
+    """∂c/∂μ of every value the parameters set, dx_D/dμ and ∂(scalar load)/∂μ, at the current μ
+    and time: differences of the model's own assignment (:meth:`Model.set_parameters` at a few μ
+    around the current one, reading the constants, functions, imposed values and loads; no
+    assembly). Exact for values that depend linearly on μ, second-order accurate otherwise (see
+    :func:`_stencil`). The model is left as it was: parameters, constants, time, load values, state.
+
+    The loads are differentiated as :meth:`Model.set_time` sets them at the current time (no load
+    factor); a model whose loads were set otherwise is refused. Collective (the first call
+    compiles the model's derivative forms).
+    """
+    _refuse_state_dependent(model)
+    forms = _forms(model)
+    parameters = model.parameters
+    size = len(model.state.x.array)
+    constants = {c: np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants}
+    functions = {f: np.zeros((len(f.x.array), len(parameters))) for f in forms.functions}
+    imposed = np.zeros((size, len(parameters)))
+    loads = {label: np.zeros(len(parameters)) for label in model.scalar_loads()}
+    with _restored(model, forms):
+        current = dict(model.parameter_values)
+        given = [np.array(v.value, copy=True) for v in model._load_values]
+        model.set_parameters(current)
+        if not all(np.array_equal(v.value, g) for v, g in zip(model._load_values, given)):
+            raise ParameterError(
+                "sensitivities: the loads were set with a load factor; derivatives follow Model.set_time(t) alone"
+            )
+        for i, parameter in enumerate(parameters):
+            points, weights = _stencil(parameter, current[parameter.name])
+            for point, weight in zip(points, weights):
+                model.set_parameters({parameter.name: float(point)})
+                for c, d in constants.items():
+                    d[..., i] += weight * np.asarray(c.value, dtype=float)
+                for f, d in functions.items():
+                    d[:, i] += weight * f.x.array
+                x_D = np.zeros(size)
+                for bc in model.bcs:
+                    bc.set(x_D)
+                imposed[:, i] += weight * x_D
+                for label, value in model.scalar_loads().items():
+                    loads[label][i] += weight * value
+            model.set_parameters(current)
+    return ValueDerivatives(parameters.names, constants, functions, imposed, loads)
+
+
+def _owned(model) -> int:
+    return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+
+
+def residual_derivatives(model, derivatives: ValueDerivatives | None = None) -> np.ndarray:
+    """∂R/∂μ_i = Σ_k ∂R/∂c_k ∂c_k/∂μ_i at the current state (fixed x, imposed rows included):
+    owned rows, one column per parameter. One assembly of the compiled form per parameter.
+    Collective."""
+    forms = _forms(model)
+    derivatives = derivatives or value_derivatives(model)
+    vector = fem.Function(model.space).x
+    owned = _owned(model)
+    columns = np.zeros((owned, len(derivatives.names)))
+    for i in range(len(derivatives.names)):
+        forms.set_weights(derivatives, i)
+        if forms.residual is None:
+            break
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, forms.residual)
+        vector.scatter_reverse(la.InsertMode.add)
+        columns[:, i] = vector.array[:owned]
+    return columns
+
+
+def _jacobian(jacobian_form) -> PETSc.Mat:
+    """K assembled without imposed values (their rows and columns kept): destroy it after."""
+    K = create_matrix(jacobian_form)
+    assemble_matrix(K, jacobian_form)
+    K.assemble()
+    return K
+
+
+def state_derivatives(model, jacobian_form, derivatives: ValueDerivatives | None = None) -> np.ndarray:
+    """Direct sensitivities dx/dμ at the current (converged) state: owned rows, one column per parameter.
+
+    dx = dx_D + y with y = 0 on the imposed dofs and K_ff y_f = −(∂R/∂μ + K dx_D)_f: K is
+    assembled once without the imposed values (``jacobian_form``: the exact Jacobian of
+    ``model.residual``, e.g. the solver's compiled one), K dx_D formed, then the imposed rows
+    and columns of K replaced by the identity and K factorised once (MUMPS LU) for every
+    parameter. Collective.
+    """
+    derivatives = derivatives or value_derivatives(model)
+    comm, owned = model.geometry.mesh.comm, _owned(model)
+    n = len(derivatives.names)
+    if n == 0:
+        return np.zeros((owned, 0))
+    dR = residual_derivatives(model, derivatives)
+    dx_D = np.ascontiguousarray(derivatives.imposed[:owned])
+    K = _jacobian(jacobian_form)
+    rhs = -dR - apply(K, dx_D, comm)
+    imposed = model.constrained_dofs()
+    rhs[imposed] = dx_D[imposed]
+    index_map = model.space.dofmap.index_map
+    K.zeroRowsColumns((index_map.local_range[0] * model.space.dofmap.index_map_bs + imposed).astype(PETSc.IntType))
+    ksp = factorised(K)
+    b, x = K.createVecLeft(), K.createVecRight()
+    result = np.zeros((owned, n))
+    try:
+        for i in range(n):
+            b.array[:] = rhs[:, i]
+            ksp.solve(b, x)
+            if ksp.getConvergedReason() < 0:
+                raise ParameterError(
+                    f"sensitivities: the linear solve with the Jacobian failed (reason {ksp.getConvergedReason()})"
+                )
+            result[:, i] = x.array
+    finally:
+        for obj in (b, x, ksp, K):
+            obj.destroy()
+    return result
+
+
+def reduced_state_derivatives(
+    model, V: np.ndarray, jacobian_form, derivatives: ValueDerivatives | None = None
+) -> np.ndarray:
+    """Reduced sensitivities dq/dμ = −(Vᵀ K V)⁻¹ Vᵀ (∂R/∂μ + K dx₀/dμ) of x = x₀ + V q at the
+    current (converged) reduced state, shape (k, parameters). ``V``: the basis's owned rows
+    (vanishing on imposed dofs); dx₀/dμ = ``derivatives.imposed``. The state's derivative is
+    V dq/dμ + dx₀/dμ (pass it to :func:`output_derivatives`). Collective."""
+    derivatives = derivatives or value_derivatives(model)
+    comm, owned = model.geometry.mesh.comm, _owned(model)
+    V = np.ascontiguousarray(V)
+    dR = residual_derivatives(model, derivatives)
+    K = _jacobian(jacobian_form)
+    try:
+        KV = apply(K, V, comm)
+        KdxD = apply(K, np.ascontiguousarray(derivatives.imposed[:owned]), comm)
+    finally:
+        K.destroy()
+    return -np.linalg.solve(gram(V, KV, comm), gram(V, dR + KdxD, comm))
+
+
+def output_derivatives(
+    model,
+    outputs,
+    solver,
+    state_derivative: np.ndarray | None = None,
+    derivatives: ValueDerivatives | None = None,
+) -> dict[str, object]:
+    """d(outputs)/dμ at the current converged state, in the structure of
+    :class:`lungmech.fem.parametric.Outputs` with the parameters on a last axis: volume and
+    strain_energy (n,), probes (points, 3, n), loads {label: (n,)}.
+
+    dV/dμ = ∂V/∂x · dx/dμ; dE/dμ = ∂E/∂x · dx/dμ + Σ_k ∂E/∂c_k ∂c_k/∂μ; probes: the displacement
+    part of dx/dμ at the points; loads: ∂(load value)/∂μ. ``state_derivative`` (owned rows,
+    parameters) is dx/dμ if known (a reduced model's V dq/dμ + dx₀/dμ); otherwise the direct
+    sensitivities with ``solver.jacobian_form``, which must be the exact Jacobian of
+    ``model.residual``. Collective.
+    """
+    forms = _forms(model)
+    derivatives = derivatives or value_derivatives(model)
+    comm, owned, n = forms.comm, _owned(model), len(derivatives.names)
+    dx = (
+        state_derivative
+        if state_derivative is not None
+        else state_derivatives(model, solver.jacobian_form, derivatives)
+    )
+    dx = np.asarray(dx, dtype=float).reshape(owned, n)
+    vector = fem.Function(model.space).x
+
+    def gradient(form) -> np.ndarray:
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, form)
+        vector.scatter_reverse(la.InsertMode.add)
+        return vector.array[:owned, None].copy()
+
+    volume = gram(gradient(forms.volume_gradient), dx, comm)[0]
+    energy = gram(gradient(forms.energy_gradient), dx, comm)[0]
+    for i in range(n if forms.energy is not None else 0):
+        forms.set_weights(derivatives, i)
+        energy[i] += comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
+    result: dict[str, object] = {"volume": volume, "strain_energy": energy}
+    probe = getattr(outputs, "probe", None)
+    if probe is not None:
+        direction = fem.Function(model.space)
+        columns = []
+        for i in range(n):
+            direction.x.array[:owned] = dx[:, i]
+            direction.x.scatter_forward()
+            columns.append(probe(direction.sub(0).collapse() if model.mixed else direction))
+        result["probes"] = np.stack(columns, axis=-1) if columns else np.zeros((len(probe.points), 3, 0))
+    result["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
+    return result
