@@ -129,3 +129,20 @@ def test_training_points_cover_the_box_and_are_stored(tmp_path):
     assert len(model.training) == 4 and summary["size"] <= 6
     stiffness = [point["stiffness"] for point in model.training]
     assert min(stiffness) < 9.0 < 14.0 < max(stiffness)  # spread over [5, 20], not bunched
+
+
+def test_reduced_sensitivities_are_the_derivatives_of_the_reduced_model(full, reduced):
+    """d(outputs)/dμ of the reduced model = central differences of its own solves; and close to the
+    full model's (the basis spans the box)."""
+    mu = {"E": 9.0, "nu": 0.33, "p": 1.3}
+    exact = reduced.solve(mu, sensitivities=True)
+    full_exact = full.solve(mu, sensitivities=True)
+    for i, p in enumerate(BOX):
+        h = 1e-4 * (p.range[1] - p.range[0])
+        up, down = reduced.solve(mu | {p.name: mu[p.name] + h}), reduced.solve(mu | {p.name: mu[p.name] - h})
+        for name in ("volume", "strain_energy"):
+            fd = (up.outputs[name] - down.outputs[name]) / (2 * h)
+            assert exact.sensitivities[name][:, i] == pytest.approx(fd, rel=1e-5, abs=1e-9 * np.abs(fd).max())
+            assert exact.sensitivities[name][:, i] == pytest.approx(
+                full_exact.sensitivities[name][:, i], rel=1e-3, abs=1e-6 * np.abs(fd).max()
+            )

@@ -25,6 +25,7 @@ import numpy as np
 
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
+from lungmech.fem.sensitivity import output_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
 
 __all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "output_times"]
@@ -197,7 +198,5 @@ class FullOrderModel:
             model.state.x.scatter_forward()
 
     def sensitivities(self) -> dict[str, object]:
-        """∂outputs/∂μ at the current state (see :mod:`lungmech.fem.sensitivity`)."""
-        from lungmech.fem.sensitivity import output_derivatives
-
+        """∂outputs/∂μ at the current state: direct sensitivities (:mod:`lungmech.fem.sensitivity`)."""
         return output_derivatives(self.model, self.outputs, self.solver)

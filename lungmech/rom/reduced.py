@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lungmech.fem.parametric import Outputs, Solution, approach, output_times, stack
+from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping, solve
 from lungmech.rom.basis import Basis, reference_state
 from lungmech.rom.galerkin import ReducedSolver
@@ -110,7 +111,9 @@ class ReducedModel:
         return model.state.x.array[: self.basis.vectors.shape[0]].copy()
 
     def _sensitivities(self) -> dict[str, object]:
-        from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives
-
-        derivative = reduced_state_derivatives(self.model, self.basis.vectors, self.solver.jacobian_form)
-        return output_derivatives(self.model, self.outputs, state_derivative=derivative)
+        """Reduced sensitivities: dx/dμ = V dq/dμ + dx₀/dμ, dq/dμ = −(VᵀKV)⁻¹Vᵀ(∂R/∂μ + K dx₀/dμ)."""
+        model, V = self.model, self.basis.vectors
+        derivatives = value_derivatives(model)
+        dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
+        dx = V @ dq + derivatives.imposed[: V.shape[0]]
+        return output_derivatives(model, self.outputs, None, state_derivative=dx, derivatives=derivatives)
