@@ -392,3 +392,54 @@ def test_rigid_body_modes_are_rigid_on_every_partition():
         product = mode.duplicate()
         K.mult(mode, product)
         assert product.norm() <= 1e-12 * K.norm() * mode.norm()
+
+
+def test_parametric_full_and_reduced_models_same_on_all_ranks_as_on_one(tmp_path):
+    """FullOrderModel.solve and a ReducedModel trained over a parameter box, with sensitivities:
+    the same outputs on every rank count; a model file written on N ranks solves on one."""
+    from lungmech.app import reduce as reduce_app
+    from lungmech.fem.parameters import Parameter, Parameters
+    from lungmech.fem.parametric import FullOrderModel
+    from lungmech.fem.ramp import Ramp
+    from lungmech.rom.reductor import reduce
+
+    box_ = [Parameter("E", "material.E", 10.0, (5.0, 20.0)), Parameter("p", "loads.push.value", 1.0, (0.2, 2.0))]
+
+    def answers(comm):
+        model = Model(
+            box(comm, cells=(4, 2, 2)),
+            lambda c: NeoHookean.from_young(c["E"], 0.3),
+            constraints=[clamp("x0")],
+            loads=[FollowerPressure("x1", 1.0, name="push", ramp=Ramp((0, 1), (0, 1)))],
+            parameters=box_,
+        )
+        full = FullOrderModel(model, Stepping(times=(0.5,)), probes=[(1.0, 0.5, 0.5)])
+        rom = reduce(full, Parameters(box_).sample(4, seed=2), size=8)
+        mu = {"E": 7.0, "p": 1.5}
+        f, r = full.solve(mu, sensitivities=True), rom.solve(mu, sensitivities=True)
+        return np.concatenate(
+            [
+                f.outputs["volume"],
+                f.sensitivities["volume"].ravel(),
+                r.outputs["volume"],
+                r.sensitivities["volume"].ravel(),
+            ]
+        )
+
+    assert answers(MPI.COMM_WORLD) == pytest.approx(answers(MPI.COMM_SELF), rel=1e-8)
+
+    table = {
+        "geometry": {"builder": "box", "cells": [3, 2, 2]},
+        "material": {"law": "neo_hookean", "E": 10.0, "nu": 0.3},
+        "constraints": [{"type": "clamp", "boundary": "x0"}],
+        "loads": [{"type": "follower_pressure", "boundary": "x1", "value": 1.0, "name": "push"}],
+        "parameters": {"stiffness": {"target": "material.E", "range": [5.0, 20.0]}},
+        "output": {"fields": False},
+    }
+    folder = tmp_path if MPI.COMM_WORLD.rank == 0 else None
+    folder = MPI.COMM_WORLD.bcast(str(folder))
+    path = f"{folder}/parametric.npz"
+    reduce_app.build(scenes.parse(table), path, samples=2, size=4)
+    parallel = reduce_app.load(path).solve({"stiffness": 12.0}).outputs["volume"]
+    serial = reduce_app.load(path, MPI.COMM_SELF).solve({"stiffness": 12.0}).outputs["volume"]
+    assert parallel == pytest.approx(serial, rel=1e-10)
