@@ -178,3 +178,41 @@ def test_a_scene_declares_parameters_and_set_checks_them():
         scenes.parse(bad)
     amplitude = SCENE.replace('"material.E"', '"loads.push.amplitude"').replace("[5.0, 20.0]", "[0.5, 2.0]")
     assert scenes.parse(tomllib.loads(amplitude)).parameters[0].default == 1.0  # the scene's own value
+
+
+def test_an_image_region_marks_the_cells_of_its_label(tmp_path):
+    """A label image (NIfTI, metres) whose label 1 fills x < 0.5 marks exactly the cells there."""
+    import tomllib
+
+    import nibabel
+
+    from lungmech.app import scene as scenes
+
+    labels = np.ones((20, 10, 10), dtype=np.int16)
+    labels[10:] = 2
+    affine = np.diag([0.05, 0.1, 0.1, 1.0])
+    affine[:3, 3] = [0.025, 0.05, 0.05]  # voxel centres; the label boundary is the plane x = 0.5
+    image = nibabel.Nifti1Image(labels, affine)
+    image.header.set_xyzt_units("meter")
+    nibabel.save(image, tmp_path / "zones.nii.gz")
+    table = tomllib.loads(SCENE.replace("[2, 2, 2]", "[4, 2, 2]"))
+    table["parameters"]["soft"] = {
+        "target": "material.E",
+        "range": [1.0, 20.0],
+        "region": {"image": "zones.nii.gz", "label": 1},
+    }
+    scene = scenes.parse(table, folder=tmp_path)
+    assert tmp_path / "zones.nii.gz" in scene.inputs
+    geometry = scenes.build_geometry(scene.geometry, MPI.COMM_SELF)
+    marked = scene.parameters[1].region.marker(geometry)
+    mesh = geometry.mesh
+    midpoints = mesh.geometry.x[mesh.geometry.dofmaps[0]].mean(axis=1)
+    assert marked.any() and np.array_equal(marked, midpoints[:, 0] < 0.5)
+    missing = tomllib.loads(SCENE)
+    missing["parameters"]["soft"] = {
+        "target": "material.E",
+        "range": [1.0, 20.0],
+        "region": {"image": "no.nii", "label": 1},
+    }
+    with pytest.raises(SceneError, match="no.nii' not found"):
+        scenes.parse(missing, folder=tmp_path)

@@ -30,7 +30,7 @@ from mpi4py import MPI
 from lungmech import checks
 from lungmech.app import scene as scenes
 from lungmech.app.run import Scale, build_model, check_scale
-from lungmech.app.scene import Scene, differences, physics
+from lungmech.app.scene import ImageLabel, Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import approach
@@ -41,6 +41,7 @@ from lungmech.mesh.files import companions
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
+from lungmech.registration.image import companions as image_companions
 from lungmech.rom import store
 from lungmech.rom.basis import Basis, enrich
 from lungmech.rom.galerkin import ReducedSolver
@@ -260,6 +261,12 @@ def _embedded_names(scene: Scene) -> dict[str, str]:
     phi_s0 = getattr(scene.formulation, "phi_s0", None)
     if isinstance(phi_s0, str | Path):
         names[f"data/{Path(phi_s0).name}"] = str(phi_s0)
+    for parameter in scene.parameters:  # label images of regions, with their data files
+        marker = getattr(parameter.region, "marker", None)
+        if isinstance(marker, ImageLabel):
+            data = [Path(marker.path).with_name(name) for name in image_companions(marker.path)]
+            for part in [marker.path, *(d for d in data if d.exists())]:
+                names[f"regions/{Path(part).name}"] = str(part)
     return names
 
 
@@ -297,6 +304,10 @@ def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterato
                 table["geometry"]["file"] = unpacked
             if name.startswith("data/") and isinstance(table.get("formulation", {}).get("phi_s0"), str):
                 table["formulation"]["phi_s0"] = unpacked
+            for entry in table.get("parameters", {}).values():
+                region = entry.get("region")
+                if isinstance(region, dict) and Path(str(region.get("image", ""))).name == Path(source).name:
+                    region["image"] = unpacked
         yield scenes.parse(table, folder=Path(folder))
     finally:
         comm.barrier()

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lungmech import checks
 from lungmech import mesh as _geometry
 from lungmech.app.output import FORMATS as FIELD_FORMATS
@@ -122,6 +124,11 @@ class Scene:
         phi_s0 = getattr(self.formulation, "phi_s0", None)
         if isinstance(phi_s0, str | Path):
             files.append(Path(phi_s0))
+        files += [
+            Path(p.region.marker.path)
+            for p in self.parameters
+            if isinstance(getattr(p.region, "marker", None), ImageLabel)
+        ]
         return files
 
 
@@ -181,7 +188,7 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
         newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
         output=_call(Output, _with_tuple(output, "probes"), "output"),
         inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
-        parameters=_parameters(table),
+        parameters=_parameters(table, folder),
         title=_typed(table.get("title", ""), str, "title"),
         folder=folder,
         source=source,
@@ -424,7 +431,7 @@ _UNITS = {
 _PARAMETER_KEYS = ("target", "default", "range", "scale", "region", "outside")
 
 
-def _parameters(table: dict[str, Any]) -> tuple[Parameter, ...]:
+def _parameters(table: dict[str, Any], folder: Path) -> tuple[Parameter, ...]:
     """[parameters.NAME] tables: target, range, optional default (the scene's own value at the
     target), scale ("linear" or "log"), region and outside."""
     section = table.get("parameters", {})
@@ -456,7 +463,7 @@ def _parameters(table: dict[str, Any]) -> tuple[Parameter, ...]:
                     "range": entry["range"],
                     "log": scale == "log",
                     "unit": unit,
-                    "region": _region(entry.get("region"), f"{where}.region"),
+                    "region": _region(entry.get("region"), f"{where}.region", folder),
                     "outside": entry.get("outside"),
                 },
                 where,
@@ -469,16 +476,52 @@ def _parameters(table: dict[str, Any]) -> tuple[Parameter, ...]:
     return tuple(built)
 
 
-def _region(spec: Any, where: str):
+def _region(spec: Any, where: str, folder: Path):
+    """A parameter's region: {tag = N} (cell tag), {image = "labels.nii.gz", label = N} (the cells
+    whose midpoint lies in a voxel of that label) or {normal, position, width} (a half-space)."""
     if spec is None:
         return None
     if not isinstance(spec, dict):
-        raise SceneError(f"{where}: expected {{tag = N}} or {{normal = [..], position = .., width = ..}}")
+        raise SceneError(
+            f"{where}: expected {{tag = N}}, {{image = FILE, label = N}} or {{normal = [..], position = .., width = ..}}"
+        )
     if "tag" in spec:
         _no_unknown_keys(spec, ("tag",), where)
         return _call(Cells, {"tag": spec["tag"], "label": f"tag {spec['tag']}"}, where)
+    if "image" in spec:
+        _no_unknown_keys(spec, ("image", "label"), where)
+        path = folder / _typed(spec["image"], str, f"{where}.image")
+        label = _typed(spec.get("label"), int, f"{where}.label")
+        if not path.is_file():
+            raise SceneError(f"{where}.image: file '{path}' not found")
+        return Cells(marker=ImageLabel(str(path), label), label=f"label {label} of {path.name}")
     _no_unknown_keys(spec, ("normal", "position", "width"), where)
     return _call(HalfSpace, spec, where)
+
+
+@dataclass(frozen=True)
+class ImageLabel:
+    """The cells whose midpoint lies in a voxel of ``label`` in a label image (a segmentation of
+    lobes or zones): a :class:`~lungmech.fem.parameters.Cells` marker."""
+
+    path: str
+    label: int
+
+    def __call__(self, geometry) -> np.ndarray:
+        from lungmech.registration import image as images
+
+        try:
+            zone = images.read(self.path, label=self.label)
+        except LungmechError as error:
+            raise SceneError(f"region image: {error}") from None
+        mesh = geometry.mesh
+        cells = mesh.topology.index_map(mesh.topology.dim)
+        nodes = mesh.geometry.dofmaps[0][: cells.size_local + cells.num_ghosts]
+        voxels = np.rint(zone.index(mesh.geometry.x[nodes].mean(axis=1))).astype(int)
+        inside = np.all((voxels >= 0) & (voxels < zone.shape), axis=1)
+        marked = np.zeros(len(voxels), dtype=bool)
+        marked[inside] = zone.mask[tuple(voxels[inside].T)]
+        return marked
 
 
 def _value_at(table: dict[str, Any], target: str, where: str) -> float:

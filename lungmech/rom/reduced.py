@@ -65,6 +65,19 @@ class ReducedModel:
             model.state.x.scatter_forward()
             self.start_volume = self.outputs()["volume"]  # m³, of the start state
 
+    def truncated(self, size: int) -> ReducedModel:
+        """The same model on the first ``size`` basis vectors (a POD basis is nested: the smaller
+        model is the one a smaller build would give). Shares the full model's forms."""
+        return ReducedModel(
+            self.model,
+            self.basis.truncate(size),
+            self.stepping,
+            self.solver.options,
+            self.start,
+            self.outputs.probe_points,
+            self.training,
+        )
+
     @property
     def size(self) -> int:
         """The number of reduced unknowns k."""
