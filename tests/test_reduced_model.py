@@ -146,3 +146,15 @@ def test_reduced_sensitivities_are_the_derivatives_of_the_reduced_model(full, re
             assert exact.sensitivities[name][:, i] == pytest.approx(
                 full_exact.sensitivities[name][:, i], rel=1e-3, abs=1e-6 * np.abs(fd).max()
             )
+
+
+def test_a_model_file_of_another_version_is_refused_with_what_to_do(tmp_path):
+    import json
+
+    from lungmech.errors import ModelFileError
+    from lungmech.rom import store
+
+    path = tmp_path / "old.npz"
+    np.savez(path, metadata=json.dumps({"format": "lungmech-rom/1"}), vectors=np.zeros((3, 1)), values=np.ones(1))
+    with pytest.raises(ModelFileError, match="another lungmech version.*rebuild it"):
+        store.read(path)

@@ -22,7 +22,7 @@ from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis
 
-FORMAT = "lungmech-rom/1"
+FORMAT = "lungmech-rom/2"  # 2: canonical order from input cells; the scene and its files inside
 
 
 def save(
@@ -93,6 +93,10 @@ def _suffix(path: str | Path) -> Path:
     return path
 
 
+class _Older(Exception):
+    """A reduced-model file of another format version."""
+
+
 def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a reduced-model file, checked to be one (any mesh)."""
     path = Path(path)
@@ -105,6 +109,9 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     try:
         with np.load(path, allow_pickle=False) as data:
             metadata = json.loads(str(data["metadata"]))
+            if isinstance(metadata, dict) and str(metadata.get("format", "")).startswith("lungmech-rom/"):
+                if metadata["format"] != FORMAT:
+                    raise _Older(metadata["format"])
             if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
                 raise ValueError(
                     f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
@@ -116,6 +123,11 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
         for key in ("kind", "inner_product", "fingerprint", "dofs", "extra"):
             if key not in metadata:
                 raise KeyError(f"no '{key}' in its metadata")
+    except _Older as older:
+        raise ModelFileError(
+            f"'{path}' was written by another lungmech version (format {older}, this one reads {FORMAT}); "
+            "rebuild it with 'lungmech rom build'"
+        ) from None
     except Exception as error:  # zipfile, zlib, json and numpy raise many kinds on a damaged file
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise ModelFileError(f"'{path}' is not a lungmech reduced model, or is damaged ({reason})") from None
