@@ -22,7 +22,6 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-import dolfinx.jit
 import matplotlib
 
 matplotlib.use("Agg")
@@ -54,6 +53,8 @@ def scene_table() -> dict:
 
 def python_sweep(comm) -> tuple[np.ndarray, int]:
     """Tidal volumes (L) on the grid, and the FFCx calls the sweep made after the first build."""
+    import dolfinx.jit  # after lungmech, which orders MPI before DOLFINx's bindings
+
     full = full_order_model(scenes.parse(scene_table()), comm)
     calls = []
     original = dolfinx.jit.ffcx_jit

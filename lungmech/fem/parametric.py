@@ -28,7 +28,7 @@ from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.sensitivity import output_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
 
-__all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "output_times"]
+__all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "approach", "output_times", "trajectory"]
 
 UNITS = {"time": "s", "volume": "m^3", "strain_energy": "J", "probes": "m", "loads": "Pa"}
 
@@ -92,6 +92,43 @@ def approach(
     )
     model.set_parameters(values)  # exactly, not through the unit box
     return report.newton_iterations
+
+
+def trajectory(
+    owner,
+    values: dict[str, float],
+    state: Callable[[], np.ndarray],
+    derivatives: Callable[[], dict] | None = None,
+) -> Solution:
+    """The load path of ``owner`` (a full or reduced model: its ``model``, ``solver``,
+    ``stepping``, ``outputs``, ``times``, ``parameters``) at ``values``, from the state the model
+    holds (an equilibrium at the default parameters at ``stepping.start``): :func:`approach`, then
+    the load stepping, recording ``outputs()``, ``state()`` and ``derivatives()`` at every output
+    time. Collective."""
+    model, stepping = owner.model, owner.stepping
+    tic = time.perf_counter()
+    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start)
+    rows, states, derived = [], [], []
+
+    def record(step) -> None:
+        if np.min(np.abs(owner.times - model.time)) <= 1e-9 * (stepping.end - stepping.start):
+            rows.append(owner.outputs())
+            states.append(state())
+            if derivatives is not None:
+                derived.append(derivatives())
+
+    model.set_time(stepping.start)
+    report = solve(model, stepping, solver=owner.solver, on_step=record, monitor=lambda step: None)
+    return Solution(
+        parameters=values,
+        times=owner.times.copy(),
+        outputs=stack(rows),
+        states=np.array(states),
+        newton_iterations=iterations + report.newton_iterations,
+        seconds=time.perf_counter() - tic,
+        sensitivities=stack(derived) if derivatives is not None else None,
+        parameter_names=owner.parameters.names,
+    )
 
 
 def output_times(model, stepping: Stepping) -> np.ndarray:
@@ -161,37 +198,19 @@ class FullOrderModel:
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
         """The outputs (and states) at the output times for the parameters ``mu`` (the others at
         their defaults)."""
-        model = self.model
-        values = self.parameters.values(mu)
+        owned = self.model.space.dofmap.index_map.size_local * self.model.space.dofmap.index_map_bs
         self.reset()
-        tic = time.perf_counter()
-        iterations = approach(model, self.solver, values, self.parameters.defaults, self.stepping.start)
-        rows, states, derivatives = [], [], []
-        owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
-
-        def record(step) -> None:
-            if np.min(np.abs(self.times - model.time)) <= 1e-9 * (self.stepping.end - self.stepping.start):
-                rows.append(self.outputs())
-                states.append(model.state.x.array[:owned].copy())
-                if sensitivities:
-                    derivatives.append(self.sensitivities())
-
-        model.set_time(self.stepping.start)
-        report = solve(model, self.stepping, solver=self.solver, on_step=record, monitor=lambda step: None)
-        return Solution(
-            parameters=values,
-            times=self.times.copy(),
-            outputs=stack(rows),
-            states=np.array(states),
-            newton_iterations=iterations + report.newton_iterations,
-            seconds=time.perf_counter() - tic,
-            sensitivities=stack(derivatives) if sensitivities else None,
-            parameter_names=self.parameters.names,
+        return trajectory(
+            self,
+            self.parameters.values(mu),
+            state=lambda: self.model.state.x.array[:owned].copy(),
+            derivatives=self.sensitivities if sensitivities else None,
         )
 
     def reset(self) -> None:
-        """The model back at the start state."""
+        """The model back at the start state, at the default parameters."""
         model = self.model
+        model.set_parameters(self.parameters.defaults)
         model.reset()
         if self.start is not None:
             model.state.x.array[:] = self.start

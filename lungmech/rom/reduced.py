@@ -16,14 +16,13 @@ and saved and loaded by :mod:`lungmech.rom.store` with its start state and train
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from lungmech.fem.parametric import Outputs, Solution, approach, output_times, stack
+from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
-from lungmech.fem.solver import NewtonOptions, Stepping, solve
+from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.rom.basis import Basis, reference_state
 from lungmech.rom.galerkin import ReducedSolver
 
@@ -86,32 +85,14 @@ class ReducedModel:
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
         """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
         model = self.model
-        values = self.parameters.values(mu)
         model.set_parameters(self.parameters.defaults)
         model.state.x.array[:] = self.start
         model.state.x.scatter_forward()
-        tic = time.perf_counter()
-        iterations = approach(model, self.solver, values, self.parameters.defaults, self.stepping.start)
-        rows, states, derivatives = [], [], []
-
-        def record(step) -> None:
-            if np.min(np.abs(self.times - model.time)) <= 1e-9 * (self.stepping.end - self.stepping.start):
-                rows.append(self.outputs())
-                states.append(self.solver.coordinates.copy())
-                if sensitivities:
-                    derivatives.append(self._sensitivities())
-
-        model.set_time(self.stepping.start)
-        report = solve(model, self.stepping, solver=self.solver, on_step=record, monitor=lambda step: None)
-        return Solution(
-            parameters=values,
-            times=self.times.copy(),
-            outputs=stack(rows),
-            states=np.array(states),
-            newton_iterations=iterations + report.newton_iterations,
-            seconds=time.perf_counter() - tic,
-            sensitivities=stack(derivatives) if sensitivities else None,
-            parameter_names=self.parameters.names,
+        return trajectory(
+            self,
+            self.parameters.values(mu),
+            state=lambda: self.solver.coordinates.copy(),
+            derivatives=self._sensitivities if sensitivities else None,
         )
 
     def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
