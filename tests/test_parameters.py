@@ -216,3 +216,26 @@ def test_an_image_region_marks_the_cells_of_its_label(tmp_path):
     }
     with pytest.raises(SceneError, match="no.nii' not found"):
         scenes.parse(missing, folder=tmp_path)
+
+
+@pytest.mark.slow
+def test_a_sweep_through_set_compiles_once(tmp_path):
+    """Three 'lungmech run --set' processes sharing a fresh FFCx cache: only the first one adds
+    compiled forms; the answers differ (the values reached the forms)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE + "[output]\nfields = false\n")
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    compiled, volumes = [], []
+    for E in (6.0, 12.0, 18.0):
+        out = tmp_path / f"E{E:g}"
+        command = [sys.executable, "-m", "lungmech.app.cli", "run", str(scene), "-q", "-o", str(out)]
+        subprocess.run([*command, "--set", f"stiffness={E}"], check=True, env=env, capture_output=True)
+        compiled.append(sum(1 for _ in (tmp_path / "cache").rglob("*.so")))
+        volumes.append(json.loads((out / "summary.json").read_text())["deformed_volume"])
+    assert compiled[0] > 0 and compiled[1] == compiled[2] == compiled[0]
+    assert len(set(volumes)) == 3
