@@ -7,8 +7,8 @@ from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SceneError
 from lungmech.fem import FollowerPressure, Model, NeoHookean, NewtonSolver, Stepping, clamp, deformed_volume, solve
+from lungmech.fem.binding import posture
 from lungmech.fem.constraints import Displacement
-from lungmech.fem.model import posture
 from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
 from lungmech.mesh import box
 

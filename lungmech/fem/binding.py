@@ -6,18 +6,21 @@ a parameter acts on a region — and returns how to assign new values. A law's c
 found by rebuilding it at the new values (``law_at(keys)``, with ``keys`` the values of the
 material targets by key: ``{"E": 2e3}`` for a parameter on ``material.E``) and reading its
 numbers, so derived constants (μ and λ from E and ν) and the law's own checks come for free. The other targets
-(formulation constants, loads, imposed displacements, interfaces) are assigned by the model.
+are :func:`formulation` constants, :func:`loads` (value, amplitude, posture) and
+:func:`constraints` amplitudes; the model applies what they return.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
 
+import numpy as np
 from dolfinx import fem
 
 from lungmech.errors import ParameterError
 from lungmech.fem.materials import Material, numbers_of, with_values
-from lungmech.fem.parameters import Parameter, Parameters
+from lungmech.fem.parameters import LOAD_ATTRIBUTES, Parameter, Parameters
 
 LawAt = Callable[[Mapping[str, float]], Material]
 Assign = Callable[[Mapping[str, float]], None]
@@ -112,3 +115,103 @@ def _set(constants: Mapping[str, fem.Constant], law: Material, parameters: Param
                 f"parameters {names} change the form of the law (its constant {path}), not only its values"
             )
         constant.value = numbers[path]
+
+
+def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, float]], tuple[tuple, np.ndarray]]:
+    """``at(values) -> (loads, amplitudes)``: the model's loads with the values and postures the
+    ``loads.<name>.<attribute>`` parameters set, and a factor per load (its amplitude)."""
+    named = {load.name: i for i, load in enumerate(base) if load.name}
+    acting = [p for p in parameters if p.kind == "loads"]
+    for p in acting:
+        name, _, attribute = p.key.rpartition(".")
+        if name not in named:
+            known = ", ".join(named) or "none: give loads a name"
+            raise ParameterError(f"parameter '{p.name}': no load named '{name}' (named loads: {known})")
+        load = base[named[name]]
+        if attribute not in LOAD_ATTRIBUTES:
+            raise ParameterError(f"parameter '{p.name}': a load's target is one of {', '.join(LOAD_ATTRIBUTES)}")
+        if attribute == "value" and np.ndim(load.value) != 0:
+            raise ParameterError(f"parameter '{p.name}': load '{name}' has a vector value; use {name}.amplitude")
+        if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
+            raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
+
+    def at(values: Mapping[str, float]) -> tuple[tuple, np.ndarray]:
+        current, amplitudes = list(base), np.ones(len(base))
+        for p in acting:
+            name, _, attribute = p.key.rpartition(".")
+            i = named[name]
+            if attribute == "value":
+                current[i] = dataclasses.replace(current[i], value=values[p.name])
+            elif attribute == "amplitude":
+                amplitudes[i] = values[p.name]
+        for i, load in enumerate(base):
+            angles = {a: values[p.name] for p in acting for a in ("pitch", "roll") if p.key == f"{load.name}.{a}"}
+            if angles:
+                turned = posture(angles.get("pitch", 0.0), angles.get("roll", 0.0)) @ np.asarray(load.acceleration)
+                current[i] = dataclasses.replace(current[i], acceleration=tuple(turned))
+        return tuple(current), amplitudes
+
+    return at
+
+
+def constraints(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, float]], np.ndarray]:
+    """``amplitudes(values)``: a factor per imposed displacement, set by ``constraints.<name>.amplitude``."""
+    named = {c.name: i for i, c in enumerate(base) if c.name}
+    acting = [p for p in parameters if p.kind == "constraints"]
+    for p in acting:
+        name, _, attribute = p.key.rpartition(".")
+        if name not in named or attribute != "amplitude":
+            known = ", ".join(named) or "none: give constraints a name"
+            raise ParameterError(
+                f"parameter '{p.name}': target must be constraints.<name>.amplitude (named constraints: {known})"
+            )
+
+    def amplitudes(values: Mapping[str, float]) -> np.ndarray:
+        factors = np.ones(len(base))
+        for p in acting:
+            factors[named[p.key.rpartition(".")[0]]] = values[p.name]
+        return factors
+
+    return amplitudes
+
+
+def posture(pitch: float, roll: float) -> np.ndarray:
+    """The rotation R = R_y(roll) R_x(pitch) that turns gravity from the scene's posture (angles in
+    degrees; x: the patient's right, y: anterior, z: superior). From upright, g = (0, 0, −g):
+    pitch = −90° gives g along −y (supine, lying on the back), +90° prone; roll = +90° gives g along
+    −x (lying on the left side), −90° on the right side."""
+    a, b = np.radians(pitch), np.radians(roll)
+    about_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    about_y = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    return about_y @ about_x
+
+
+def formulation(unbound, bound, parameters: Parameters) -> Assign:
+    """How formulation parameters set the bound formulation's constants (checked by rebuilding the
+    formulation at the new values, so its own checks apply)."""
+    acting = {p.name: p.key for p in parameters if p.kind == "formulation"}
+    for name, key in acting.items():
+        target = getattr(bound, key, None)
+        if isinstance(target, int | float) and target == 0:
+            raise ParameterError(
+                f"parameter '{name}': formulation.{key} is 0 in the scene, which leaves its term out of the forms; "
+                "give it a positive value there to make it a parameter"
+            )
+        if not isinstance(target, fem.Constant | fem.Function) or isinstance(getattr(unbound, key), str | Callable):
+            raise ParameterError(
+                f"parameter '{name}': formulation.{key} is not a number of the {type(unbound).__name__} formulation "
+                "(a constant given per cell by a file or a function cannot be one parameter)"
+            )
+
+    def assign(values: Mapping[str, float]) -> None:
+        if not acting:
+            return
+        dataclasses.replace(unbound, **{key: values[name] for name, key in acting.items()})  # its checks
+        for name, key in acting.items():
+            target = getattr(bound, key)
+            if isinstance(target, fem.Function):
+                target.x.array[:] = values[name]
+            else:
+                target.value = values[name]
+
+    return assign

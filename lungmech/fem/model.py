@@ -10,8 +10,7 @@ or a parameter recompiles nothing.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 
 import basix.ufl
 import numpy as np
@@ -26,7 +25,7 @@ from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.fem.kinematics import deformation_gradient
 from lungmech.fem.loads import Load, StateDependentWork
 from lungmech.fem.materials import Material
-from lungmech.fem.parameters import LOAD_ATTRIBUTES, Parameter, Parameters
+from lungmech.fem.parameters import Parameter, Parameters
 
 
 class Model:
@@ -124,13 +123,10 @@ class Model:
         self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]
         self.bcs = [imposed.bc for imposed in self._imposed]
         self._amplitudes = np.ones(len(self.loads))
-        self._assignments = [
-            assign_material,
-            _assign_formulation(unbound, self.formulation, self.parameters),
-            self._assign_loads(),
-            self._assign_constraints(),
-            lambda values: [c.__setattr__("value", values[name]) for name, c in self._interfaces.items()],
-        ]
+        self._assign_material = assign_material
+        self._assign_formulation = binding.formulation(unbound, self.formulation, self.parameters)
+        self._loads_at = binding.loads(self.loads, self.parameters)
+        self._constraint_amplitudes = binding.constraints(self.constraints, self.parameters)
         self.parameter_values = self.parameters.defaults
         self.time = 0.0
         self.set_parameters()
@@ -141,65 +137,15 @@ class Model:
         nothing is recompiled. The loads are re-evaluated at the current time; the state is kept."""
         given = {**(values or {}), **named}
         current = self.parameters.values(given, start=self.parameter_values)
-        for assign in self._assignments:
-            assign(current)
+        self._assign_material(current)
+        self._assign_formulation(current)
+        self.loads, self._amplitudes = self._loads_at(current)
+        for imposed, amplitude in zip(self._imposed, self._constraint_amplitudes(current)):
+            imposed.amplitude = amplitude
+        for name, constant in self._interfaces.items():
+            constant.value = current[name]
         self.parameter_values = current
         self.set_time(self.time)
-
-    def _assign_loads(self) -> Callable[[Mapping[str, float]], None]:
-        """How load parameters (value, amplitude, posture) set the loads."""
-        named = {load.name: i for i, load in enumerate(self.loads) if load.name}
-        acting = [p for p in self.parameters if p.kind == "loads"]
-        for p in acting:
-            name, _, attribute = p.key.rpartition(".")
-            if name not in named:
-                known = ", ".join(named) or "none: give loads a name"
-                raise ParameterError(f"parameter '{p.name}': no load named '{name}' (named loads: {known})")
-            load = self.loads[named[name]]
-            if attribute not in LOAD_ATTRIBUTES:
-                raise ParameterError(f"parameter '{p.name}': a load's target is one of {', '.join(LOAD_ATTRIBUTES)}")
-            if attribute == "value" and np.ndim(load.value) != 0:
-                raise ParameterError(f"parameter '{p.name}': load '{name}' has a vector value; use {name}.amplitude")
-            if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
-                raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
-        base = self.loads
-
-        def assign(values: Mapping[str, float]) -> None:
-            loads, amplitudes = list(base), np.ones(len(base))
-            for p in acting:
-                name, _, attribute = p.key.rpartition(".")
-                i = named[name]
-                if attribute == "value":
-                    loads[i] = dataclasses.replace(loads[i], value=values[p.name])
-                elif attribute == "amplitude":
-                    amplitudes[i] = values[p.name]
-            for i, load in enumerate(base):
-                angles = {a: values[p.name] for p in acting for a in ("pitch", "roll") if p.key == f"{load.name}.{a}"}
-                if angles:
-                    turned = posture(angles.get("pitch", 0.0), angles.get("roll", 0.0)) @ np.asarray(load.acceleration)
-                    loads[i] = dataclasses.replace(loads[i], acceleration=tuple(turned))
-            self.loads, self._amplitudes = tuple(loads), amplitudes
-
-        return assign
-
-    def _assign_constraints(self) -> Callable[[Mapping[str, float]], None]:
-        named = {c.name: i for i, c in enumerate(self.constraints) if c.name}
-        acting = [p for p in self.parameters if p.kind == "constraints"]
-        for p in acting:
-            name, _, attribute = p.key.rpartition(".")
-            if name not in named or attribute != "amplitude":
-                known = ", ".join(named) or "none: give constraints a name"
-                raise ParameterError(
-                    f"parameter '{p.name}': target must be constraints.<name>.amplitude (named constraints: {known})"
-                )
-
-        def assign(values: Mapping[str, float]) -> None:
-            for imposed in self._imposed:
-                imposed.amplitude = 1.0
-            for p in acting:
-                self._imposed[named[p.key.rpartition(".")[0]]].amplitude = values[p.name]
-
-        return assign
 
     def reset(self) -> None:
         """Back to the unloaded state: u = 0 and every other field at its initial value."""
@@ -309,45 +255,3 @@ class Model:
         gradient_degree = self.degree - 1 if affine else self.degree
         gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
         return self.material.quadrature_degree(gradient_degree)
-
-
-def posture(pitch: float, roll: float) -> np.ndarray:
-    """The rotation R = R_y(roll) R_x(pitch) that turns gravity from the scene's posture (angles in
-    degrees; x: the patient's right, y: anterior, z: superior). From upright, g = (0, 0, −g):
-    pitch = −90° gives g along −y (supine, lying on the back), +90° prone; roll = +90° gives g along
-    −x (lying on the left side), −90° on the right side."""
-    a, b = np.radians(pitch), np.radians(roll)
-    about_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    about_y = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-    return about_y @ about_x
-
-
-def _assign_formulation(unbound, bound, parameters: Parameters) -> Callable[[Mapping[str, float]], None]:
-    """How formulation parameters set the bound formulation's constants (checked by rebuilding the
-    formulation at the new values, so its own checks apply)."""
-    acting = {p.name: p.key for p in parameters if p.kind == "formulation"}
-    for name, key in acting.items():
-        target = getattr(bound, key, None)
-        if isinstance(target, int | float) and target == 0:
-            raise ParameterError(
-                f"parameter '{name}': formulation.{key} is 0 in the scene, which leaves its term out of the forms; "
-                "give it a positive value there to make it a parameter"
-            )
-        if not isinstance(target, fem.Constant | fem.Function) or isinstance(getattr(unbound, key), str | Callable):
-            raise ParameterError(
-                f"parameter '{name}': formulation.{key} is not a number of the {type(unbound).__name__} formulation "
-                "(a constant given per cell by a file or a function cannot be one parameter)"
-            )
-
-    def assign(values: Mapping[str, float]) -> None:
-        if not acting:
-            return
-        dataclasses.replace(unbound, **{key: values[name] for name, key in acting.items()})  # its checks
-        for name, key in acting.items():
-            target = getattr(bound, key)
-            if isinstance(target, fem.Function):
-                target.x.array[:] = values[name]
-            else:
-                target.value = values[name]
-
-    return assign
