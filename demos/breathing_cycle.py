@@ -81,9 +81,10 @@ def main(output: Path) -> None:
         model = lung(pleural, alveolar)
         imaged = model.geometry.volume()
         report = unloaded_reference(model, time=0.0, solver=NewtonSolver(model))
+        unloaded = model.geometry.volume()  # collective: on every rank, not in the rank-0 block below
         if MPI.COMM_WORLD.rank == 0:
             print(
-                f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {model.geometry.volume() * 1e3:.3f} L "
+                f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {unloaded * 1e3:.3f} L "
                 f"({report.iterations} fixed-point iterations)"
             )
         curves[name] = breathe(model, pleural, alveolar, output / f"breathing_cycle_inspired_{index}.png")
