@@ -10,9 +10,9 @@ Both raise the transpulmonary pressure p_f − p_pleural from 500 to 1000 Pa. Wi
 porosity barrier the displacement equation sees p_f and the pleural pressure only through
 that difference (Φs alone feels p_f), so the two P–V loops coincide to round-off: the demo
 prints their difference. Writes breathing_cycle.png (both loops) and the deformed lung at
-end-inspiration for each mode.
+end-inspiration for each mode into the output folder (default demos/output/breathing_cycle).
 
-    python demos/breathing_cycle.py [-o demos/output]
+    python demos/breathing_cycle.py [-o FOLDER]
 """
 
 import argparse
@@ -36,6 +36,7 @@ from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import from_file
+from lungmech.parallel.destination import output_folder
 
 MESH = meshes.reference("lung_phantom_left")
 SURFACE = ("pleura", "diaphragm", "mediastinum")
@@ -70,19 +71,20 @@ def lung(pleural: Ramp, alveolar: Ramp) -> Model:
 
 
 def main(output: Path) -> None:
+    """Both cycles; the pictures go into the (empty) folder ``output``."""
     modes = {
         "spontaneous (pleural −500 → −1000 Pa)": (Ramp((0.0, 1.0, 2.0), (1.0, 2.0, 1.0)), Ramp((0.0, 2.0), (0.0, 0.0))),
         "ventilator (alveolar 0 → 500 Pa)": (Ramp((0.0, 2.0), (1.0, 1.0)), CYCLE),
     }
-    output.mkdir(parents=True, exist_ok=True)
     curves = {}
     for index, (name, (pleural, alveolar)) in enumerate(modes.items()):
         model = lung(pleural, alveolar)
         imaged = model.geometry.volume()
         report = unloaded_reference(model, time=0.0, solver=NewtonSolver(model))
+        unloaded = model.geometry.volume()  # collective: on every rank, not in the rank-0 block below
         if MPI.COMM_WORLD.rank == 0:
             print(
-                f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {model.geometry.volume() * 1e3:.3f} L "
+                f"{name}: imaged {imaged * 1e3:.3f} L, unloaded {unloaded * 1e3:.3f} L "
                 f"({report.iterations} fixed-point iterations)"
             )
         curves[name] = breathe(model, pleural, alveolar, output / f"breathing_cycle_inspired_{index}.png")
@@ -104,10 +106,17 @@ def main(output: Path) -> None:
         f"end-inspiration volumes: spontaneous {spont_v.max() * 1e3:.4f} L, ventilator {vent_v.max() * 1e3:.4f} L "
         f"(relative difference {peak:+.2e})"
     )
-    print(f"wrote {output / 'breathing_cycle.png'}")
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", type=Path, default=Path(__file__).resolve().parent / "output")
-    main(parser.parse_args().output)
+    parser.add_argument(
+        "-o", "--output", type=Path, default=Path(__file__).resolve().parent / "output" / "breathing_cycle"
+    )
+    target = parser.parse_args().output
+    # Staged, and moved into place only when the demo succeeds; a folder that is not empty and
+    # not lungmech's own is refused, so no file of the user's is ever overwritten.
+    with output_folder(target, MPI.COMM_WORLD, inputs=[MESH], command="python demos/breathing_cycle.py") as staging:
+        main(staging)
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"wrote {target / 'breathing_cycle.png'}")

@@ -6,9 +6,10 @@ and its balanced weight) is unloaded once; the full model then breathes at two t
 in the mass inner product keeps the significant directions; the reduced model is saved.
 Online: the saved model is loaded and breathes at depths 0.75, 1.25 (between the training
 ones) and 2.0 (beyond them); each breath is compared with the full model. Prints volumes,
-errors and times, and writes reduced_lung.png (P–V loops, full against reduced; POD decay).
+errors and times, and writes reduced_lung.npz (the reduced model) and reduced_lung.png (P–V
+loops, full against reduced; POD decay) into the output folder (default demos/output/reduced_lung).
 
-    python demos/reduced_lung.py [-o demos/output]
+    python demos/reduced_lung.py [-o FOLDER]
 """
 
 import argparse
@@ -29,7 +30,9 @@ from lungmech.app.scene import load
 from lungmech.fem.quantities import deformed_volume
 from lungmech.fem.solver import NewtonSolver, solve
 from lungmech.lung.inverse import unloaded_reference
+from lungmech.parallel.destination import output_folder
 
+SCENE = resources.files("lungmech.scenes") / "lung_breathing.toml"
 TRAINING, UNSEEN = (0.5, 1.5), (0.75, 1.25, 2.0)
 SWING = 500.0  # Pa: the scene's pleural pressure goes −500 → −1000 → −500
 
@@ -53,11 +56,10 @@ def breathe(model, solver, scene, depth: float) -> tuple[np.ndarray, float]:
     return np.array(curve), time.perf_counter() - tic
 
 
-def main(out: Path) -> None:
+def main(scene_file: Path, out: Path) -> None:
+    """Offline and online on the scene ``scene_file``; results go into the (empty) folder ``out``."""
     comm = MPI.COMM_WORLD
-    out.mkdir(parents=True, exist_ok=True)
-    with resources.as_file(resources.files("lungmech.scenes") / "lung_breathing.toml") as path:
-        scene = load(path)
+    scene = load(scene_file)
 
     # Offline: unload the imaged lung, train on two depths, POD, save.
     tic = time.perf_counter()
@@ -109,10 +111,20 @@ def main(out: Path) -> None:
     figure.tight_layout()
     if comm.rank == 0:
         figure.savefig(out / "reduced_lung.png", dpi=120)
-        print(f"wrote {out / 'reduced_lung.png'}")
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", type=Path, default=Path(__file__).resolve().parent / "output")
-    main(parser.parse_args().output)
+    parser.add_argument(
+        "-o", "--output", type=Path, default=Path(__file__).resolve().parent / "output" / "reduced_lung"
+    )
+    target = parser.parse_args().output
+    # Staged, and moved into place only when the demo succeeds; a folder that is not empty and
+    # not lungmech's own is refused, so no file of the user's is ever overwritten.
+    with (
+        resources.as_file(SCENE) as scene_file,
+        output_folder(target, MPI.COMM_WORLD, inputs=[scene_file], command="python demos/reduced_lung.py") as staging,
+    ):
+        main(scene_file, staging)
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"wrote {target / 'reduced_lung.png'}")

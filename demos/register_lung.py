@@ -12,9 +12,10 @@ synthetic patient, then build shape modes from a small synthetic cohort.
 
 Writes registration.png (fitted surface over image slices), shape_modes.png (singular values,
 compactness, leave-one-out error) and shape_mode_sections.png (mean shape ± 2 standard
-deviations along each mode).
+deviations along each mode), with the image, the registration and shape-mode folders and the
+new lung, into the output folder (default demos/output/register_lung).
 
-    python demos/register_lung.py [-o demos/output]
+    python demos/register_lung.py [-o FOLDER]
 """
 
 import argparse
@@ -29,16 +30,15 @@ from lungmech import mesh as geometry
 from lungmech import meshes
 from lungmech.app import registration as workflow
 from lungmech.mesh.lung_shape import LungShape
+from lungmech.parallel.destination import output_folder
 from lungmech.registration import image, metrics, phantom, pictures
 from lungmech.registration.library import ShapeModes
 
 REFERENCE = meshes.reference("lung_phantom_right")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", default="demos/output", help="output folder")
-    out = Path(parser.parse_args().output)
+def main(out: Path) -> None:
+    """Registration and shape modes; everything goes into the (empty) folder ``out``."""
     comm = MPI.COMM_WORLD
 
     # 1. A synthetic patient, saved and read back like a real segmentation.
@@ -71,7 +71,7 @@ def main() -> None:
         f"{len(sources)} mappings in {time.perf_counter() - start:.0f} s (worst Dice {summary['worst']['dice']:.4f}); "
         f"σ/σ1 = {np.array2string(sigma / sigma[0], precision=3)}; the first 2 modes capture "
         f"{100 * summary['compactness'][1]:.1f} % of the variance; leave-one-out RMS error "
-        f"{loo[0]:.2f} → {loo[1]:.2f} → {loo[2]:.2f} mm with 0, 1, 2 modes",
+        f"{' → '.join(f'{e:.2f}' for e in loo[:4])} mm with 0 → {min(len(loo), 4) - 1} modes",
     )
 
     modes = ShapeModes.load(out / "shape_modes" / "shape_modes.npz")
@@ -92,7 +92,7 @@ def main() -> None:
         )
     new = modes.geometry(geometry.from_file(REFERENCE, comm), [1.0, -1.0])
     geometry.write(new, out / "new_lung.xdmf")
-    say(comm, f"new lung (+1σ mode 1, −1σ mode 2): volume {1e3 * new.volume():.3f} L -> {out / 'new_lung.xdmf'}")
+    say(comm, f"new lung (+1σ mode 1, −1σ mode 2): volume {1e3 * new.volume():.3f} L -> new_lung.xdmf")
 
     if comm.rank == 0:
         shutil.copy(out / "registration" / "registration.png", out / "registration.png")
@@ -105,4 +105,13 @@ def say(comm, text: str) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "-o", "--output", type=Path, default=Path(__file__).resolve().parent / "output" / "register_lung"
+    )
+    target = parser.parse_args().output
+    # Staged, and moved into place only when the demo succeeds; a folder that is not empty and
+    # not lungmech's own is refused, so no file of the user's is ever overwritten.
+    with output_folder(target, MPI.COMM_WORLD, inputs=[REFERENCE], command="python demos/register_lung.py") as staging:
+        main(staging)
+    say(MPI.COMM_WORLD, f"wrote {target}")

@@ -3,12 +3,15 @@
 Unknowns: the displacement u and Φs, the current solid volume per unit reference volume
 (Φf = J − Φs is the fluid, i.e. air, volume). The total potential is
 
-    Π(u, Φs) = ∫ W_skel(F) + W_bulk(Φs) − p_f (J − Φs) dX  + (pleural loads),
+    Π(u, Φs) = ∫ s·W_skel(F) + W_bulk(Φs) + W_pore(J − Φs) − p_f (J − Φs) dX  + (pleural loads),
 
-W_skel = α(e^{γ(J²−1−2lnJ)} − 1) + c1(I1−3−2lnJ) + c2(I2−3−4lnJ) and
-W_bulk = κ(Φs/Φs0 − 1 − ln(Φs/Φs0)). Its Φs-equation is the reference's ∂W_bulk/∂Φs + p_f = 0,
-and at that solution its u-equation is the reference's, so the total Cauchy stress is
-σ_skel + (∂W_bulk/∂Φs) I = σ_skel − p_f I.
+W_skel = α(e^{γ(J²−1−2lnJ)} − 1) + c1(I1−3−2lnJ) + c2(I2−3−4lnJ) (:func:`skeleton`),
+W_bulk = κ(Φs/Φs0 − 1 − ln(Φs/Φs0)), the optional porosity barrier W_pore and the skeleton
+scaling s (Φs0 or 1) as in :class:`Poromechanics`; p_f is the alveolar (air) pressure
+(:class:`AlveolarPressure`). Without W_pore, its Φs-equation is the reference's
+∂W_bulk/∂Φs + p_f = 0, and at that solution its u-equation is the reference's, so the total
+Cauchy stress is σ_skel + (∂W_bulk/∂Φs) I = σ_skel − p_f I. Energies are per unit reference
+volume, in Pa; pressures in Pa; Φs, Φs0 and Φf are volume fractions (1).
 
 Φs lives in DG0: its equation holds pointwise (no derivative of Φs appears), and with P1
 displacements on affine cells J is constant per cell, so DG0 is exact there.
@@ -40,7 +43,31 @@ from lungmech.fem.ramp import Ramp
 
 
 def skeleton(alpha: float, gamma: float, c1: float, c2: float) -> Sum:
-    """W_skel: the exponential Ciarlet–Geymonat bulk term plus the CGNHMR shear terms."""
+    """The lung skeleton's law W_skel (scene ``law = "lung_skeleton"``): the exponential
+    Ciarlet–Geymonat bulk term plus the CGNHMR shear terms.
+
+    .. math:: W_skel(F) = α (e^{γ (J² − 1 − 2 ln J)} − 1) + c1 (I1 − 3 − 2 ln J) + c2 (I2 − 3 − 4 ln J)
+
+    Parameters
+    ----------
+    alpha : float
+        Volumetric stiffness α (Pa), > 0.
+    gamma : float
+        Exponential rate γ (1), > 0: how fast the volume stiffness grows.
+    c1, c2 : float
+        Shear coefficients (Pa), ≥ 0, with c1 + c2 > 0.
+
+    Returns
+    -------
+    Sum
+        ``Sum((ExponentialCiarletGeymonat(alpha, gamma), CiarletGeymonat(0, c1, c2)))``.
+
+    Notes
+    -----
+    Small-strain limit: μ = 2(c1 + c2), λ = 4(αγ + c2) (per unit solid volume when the
+    formulation scales the skeleton by Φs0). ψ → ∞ as J → 0. The bundled lung scene uses
+    α = 160 Pa, γ = 0.5, c1 = 200 Pa, c2 = 400 Pa.
+    """
     for name, value in (("alpha", alpha), ("gamma", gamma)):
         checks.real(name, value, positive=True)
     for name, value in (("c1", c1), ("c2", c2)):
@@ -55,19 +82,40 @@ ReferenceFraction = float | Callable[[np.ndarray], np.ndarray] | str | Path
 
 @dataclass(frozen=True)
 class Poromechanics:
-    """The (u, Φs) formulation: a skeleton law plus the solid bulk energy W_bulk(Φs).
+    """The (u, Φs) formulation of the lung (scene ``type = "poromechanics"``): a skeleton law
+    plus the solid bulk energy W_bulk(Φs) and an optional porosity barrier W_pore(Φf).
 
-    Args:
-        kappa: solid bulk modulus κ (Pa) of W_bulk = κ(Φs/Φs0 − 1 − ln(Φs/Φs0)).
-        phi_s0: reference solid fraction Φs0 in (0, 1): a number, a function of the points
-            (array of shape (3, n) -> n values, evaluated at cell midpoints), or a ``.npy``/``.txt``
-            file with one value per cell in the mesh file's cell order.
-        scale_skeleton: multiply W_skel by Φs0 (skeleton parameters then count per unit of solid
-            volume, so denser tissue is stiffer).
-        pore_barrier: η (Pa) of the porosity barrier W_pore; 0 leaves it out.
-        pore_range: (lower, upper) bounds of r = Φf/Φf0 between which W_pore vanishes; outside,
-            W_pore = η(lower/r − 1)² (r < lower: alveolar collapse) or η(r/upper − 1)²
-            (r > upper: overdistension). C¹ at the bounds; the first grows without limit as r → 0.
+    .. math:: Π(u, Φs) = ∫ [s·ψ(F) + W_bulk(Φs) + W_pore(J − Φs)] dX + (load potentials)
+
+    with W_bulk = κ(Φs/Φs0 − 1 − ln(Φs/Φs0)), s = Φs0 if ``scale_skeleton`` else 1, and
+    W_pore(Φf) = η(lower/r − 1)² for r < lower, η(r/upper − 1)² for r > upper, else 0, where
+    r = Φf/Φf0 = Φf/(1 − Φs0). u is Lagrange P_k, Φs is DG0 (cellwise); ψ is any law, normally
+    :func:`skeleton`. The alveolar pressure enters as a load (:class:`AlveolarPressure`).
+
+    Parameters
+    ----------
+    kappa : float
+        Solid bulk modulus κ (Pa), > 0. At equilibrium without W_pore, Φs = 1/(1/Φs0 + p_f/κ):
+        κ ≫ |p_f| keeps the solid nearly incompressible.
+    phi_s0 : float, callable or path
+        Reference solid volume fraction Φs0 (1) in (0, 1): a number, a function of the points
+        (array of shape (3, n) -> n values, evaluated at cell midpoints), or a ``.npy``/``.txt``
+        file with one value per cell in the mesh file's cell order.
+    scale_skeleton : bool
+        Multiply ψ by Φs0 (skeleton parameters then count per unit of solid volume, so denser
+        tissue is stiffer). Default False.
+    pore_barrier : float
+        η (Pa) of the porosity barrier W_pore, ≥ 0; 0 (the default) leaves it out.
+    pore_range : (float, float)
+        (lower, upper) bounds (1) of r = Φf/Φf0 between which W_pore vanishes, with
+        0 ≤ lower < 1 < upper ≤ inf; default (0.5, inf). Below ``lower`` the barrier resists
+        alveolar collapse, above ``upper`` overdistension. W_pore is C¹ at the bounds, and the
+        collapse branch grows without limit as r → 0.
+
+    Notes
+    -----
+    The Φs-equation is ∂W_bulk/∂Φs − ∂W_pore/∂Φf + p_f = 0 in every cell. The residual of Φs is
+    an energy (J). Model of Patte, Genet & Chapelle (2022), quasi-static.
     """
 
     kappa: float
@@ -110,15 +158,18 @@ class Poromechanics:
         return bound
 
     def check(self, material: Material, degree: int) -> None:
-        pass
+        """Every law and degree is accepted (an incompressible law fails in ``psi``)."""
 
     def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+        """Φs in DG0: its equation has no derivative of Φs, so it holds cell by cell."""
         return [basix.ufl.element("DG", cell, 0)]
 
     def skeleton_energy(self, material: Material, F: Expr) -> Expr:
+        """s·ψ(F) (Pa), s = Φs0 if ``scale_skeleton`` else 1."""
         return self.phi_s0 * material.psi(F) if self.scale_skeleton else material.psi(F)
 
     def bulk_energy(self, phi_s: Expr) -> Expr:
+        """W_bulk = κ(Φs/Φs0 − 1 − ln(Φs/Φs0)) (Pa), zero with zero slope at Φs = Φs0."""
         ratio = phi_s / self.phi_s0
         return self.kappa * (ratio - 1 - ufl.ln(ratio))
 
@@ -127,6 +178,8 @@ class Poromechanics:
         return self.kappa * (1 / self.phi_s0 - 1 / phi_s)
 
     def pore_energy(self, phi_f: Expr) -> Expr:
+        """W_pore(Φf) (Pa): η(lower/r − 1)² below ``lower``, η(r/upper − 1)² above ``upper``,
+        r = Φf/(1 − Φs0); a bound at 0 or inf leaves its branch out."""
         r = phi_f / (1 - self.phi_s0)
         lower, upper = self.pore_range
         collapse = ufl.conditional(ufl.lt(r, lower), (lower / r - 1) ** 2, 0) if lower > 0 else 0
@@ -134,6 +187,7 @@ class Poromechanics:
         return self.pore_barrier * (collapse + overdistension)
 
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
+        """s·ψ(F) + W_bulk(Φs) (+ W_pore(J − Φs) when η > 0), in Pa."""
         phi_s = fields["phi_s"]
         density = self.skeleton_energy(material, F) + self.bulk_energy(phi_s)
         if not (isinstance(self.pore_barrier, numbers.Real) and self.pore_barrier == 0):
@@ -141,6 +195,7 @@ class Poromechanics:
         return density
 
     def initial_values(self) -> dict[str, float | fem.Function]:
+        """Φs starts at Φs0 (the unloaded state)."""
         return {"phi_s": self.phi_s0}
 
     def output_fields(self, model) -> dict[str, Expr]:
@@ -195,7 +250,20 @@ def _cell_values(path: Path, mesh) -> np.ndarray:
 
 @dataclass(frozen=True)
 class AlveolarPressure(Named):
-    """Air pressure p_f in the alveoli ("internal" loading): the potential −p_f Φf = −p_f (J − Φs)."""
+    """Air pressure p_f in the alveoli ("internal" loading): the potential −p_f Φf = −p_f (J − Φs).
+
+    Scene load ``type = "alveolar_pressure"``. Needs the :class:`Poromechanics` formulation.
+
+    Parameters
+    ----------
+    value : float
+        p_f (Pa) at ramp value 1; positive inflates (a ventilator's pressure).
+    ramp : Ramp
+        The factor (1) ``value`` is multiplied by at time t (s); default 0 → 1 over t ∈ [0, 1]
+        (:class:`lungmech.fem.ramp.Ramp`).
+    name : str
+        Its label in outputs (default "alveolar pressure").
+    """
 
     value: float
     ramp: Ramp = field(default_factory=Ramp)
@@ -206,6 +274,7 @@ class AlveolarPressure(Named):
         self._check(None)
 
     def potential(self, model, value: Expr) -> ufl.Form:
+        """−∫ p_f (J − Φs) dX (J): the work of the air pressure on the air volume."""
         return -value * (ufl.det(model.F) - model.fields["phi_s"]) * model.dx
 
 
