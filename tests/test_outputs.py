@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import meshio
@@ -139,6 +140,11 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
         other.wait()
     assert (out / "a.txt").is_file()
     stranger = subprocess.Popen(["sleep", "60"])  # a live process that is not Python: a reused pid
+    command = Path(f"/proc/{stranger.pid}/cmdline")
+    for _ in range(500):  # until exec: a child runs the parent's (Python's) command line before it
+        if not command.exists() or command.read_bytes().startswith(b"sleep"):
+            break
+        time.sleep(0.01)
     try:
         (alive / destination.MARKER).write_text(json.dumps(staging_marker(stranger.pid)))
         write_result(out, {"b.txt": "2"})
