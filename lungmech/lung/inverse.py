@@ -99,6 +99,7 @@ def unloaded_reference(
         monitor=None if monitor is None else lambda step: None,
     )
     report.newton_iterations += first.newton_iterations
+    raising = stepping or Stepping(initial_step=0.25)
     relaxation, previous = 1.0, None
     while True:
         residual = imaged - mesh.geometry.x[:, :gdim] - displacement()
@@ -120,13 +121,26 @@ def unloaded_reference(
         mesh_nodes.move(mesh, relaxation * residual)
         previous = residual
         model.set_time(time)
-        report.newton_iterations += _newton(solver)
+        report.newton_iterations += _direct(model, solver, time, raising)
     report.seconds = perf_counter() - tic
     return report
 
 
-def _newton(solver: NewtonSolver) -> int:
+def _direct(model, solver: NewtonSolver, time: float, stepping: Stepping) -> int:
+    """The direct problem on the corrected reference: Newton from the last state, or, when the
+    correction was too large for that (a soft material), the loads raised again from zero."""
     result = solver.solve()
-    if not result.converged:
-        raise SolverError(f"inverse: the direct solve on the corrected reference failed ({result.reason})")
-    return result.iterations
+    if result.converged:
+        return result.iterations
+    model.reset()
+    try:
+        again = solve(
+            model, stepping, solver=solver, drive=lambda s: model.set_time(time, s), monitor=lambda step: None
+        )
+    except SolverError as error:
+        raise SolverError(
+            f"inverse: the direct solve on the corrected reference failed ({result.reason}), and so did raising "
+            f"the loads again on it ({error})"
+        ) from None
+    model.set_time(time)
+    return result.iterations + again.newton_iterations
