@@ -137,7 +137,9 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
         "# Reduced breathing lung over a 3-parameter box",
         "",
         f"Command: `python benchmarks/rom_parameters.py --train {args.train} --test {args.test} "
-        f"--sizes {' '.join(map(str, args.sizes))}` on {cpu}, {memory}, 1 rank. Full model: {dofs} dofs.",
+        f"--sizes {' '.join(map(str, args.sizes))}` on {cpu}, {memory}, 1 rank. Full model: {dofs} dofs. "
+        "Times are wall-clock times on the machine as it was (other jobs may have run beside): the errors "
+        "are the result, the times an indication.",
         "",
         "Parameters: "
         + "; ".join(f"{name} = {spec['target']} in {spec['range']}" for name, spec in PARAMETERS.items()),
@@ -163,8 +165,8 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
         "s-",
         label="volume / volume change (max)",
     )
-    axes.axhline(1e-3, color="grey", lw=0.8, ls="--")
-    axes.axhline(1e-4, color="grey", lw=0.8, ls=":")
+    axes.axhline(1e-3, color="grey", lw=0.8, ls="--", label="target of the state: 1e-3")
+    axes.axhline(1e-4, color="grey", lw=0.8, ls=":", label="target of the volume: 1e-4")
     axes.set_xlabel("basis size k [1]")
     axes.set_ylabel("relative error over unseen points [1]")
     axes.set_title("Reduced lung over stiffness × breath × posture")

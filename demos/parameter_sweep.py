@@ -150,12 +150,15 @@ def main() -> None:
 def _picture(tidal: np.ndarray, path: Path) -> None:
     figure, axes = plt.subplots(figsize=(5.5, 4))
     for pleural, row in zip(PLEURAL, tidal):
-        axes.plot(STIFFNESS, row, "o-", label=f"p_pl = {pleural:g} Pa at end-expiration")
+        axes.plot(STIFFNESS, row, "o-", label=f"{pleural:g} Pa → {2 * pleural:g} Pa")
     axes.set_xscale("log")
+    axes.set_xticks(STIFFNESS, [f"{s:g}" for s in STIFFNESS])
+    axes.minorticks_off()
+    axes.set_ylim(0.0, 1.05 * tidal.max())
     axes.set_xlabel("skeleton stiffness c1 [Pa]")
     axes.set_ylabel("tidal volume [L]")
-    axes.set_title("Breathing lung: the pleural pressure doubles in each breath")
-    axes.legend(fontsize=8)
+    axes.set_title("Right lung phantom: tidal volume of one breath", fontsize=11)
+    axes.legend(title="pleural pressure, expiration → inspiration", fontsize=8, title_fontsize=8, loc="lower left")
     figure.tight_layout()
     figure.savefig(path, dpi=150)
 

@@ -203,3 +203,18 @@ def test_register_lung(tmp_path):
     ratios, errors = ratios.split(", "), errors.split(" → ")
     demo_ratios, demo_errors = demo_ratios.split()[: len(ratios)], demo_errors.split(" → ")
     check((worst, compactness, *ratios, *errors), (demo_worst, demo_compactness, *demo_ratios, *demo_errors))
+
+
+# --- parameter_sweep -----------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_parameter_sweep(tmp_path):
+    """The 3 × 3 sweep from Python: no FFCx call after the build, and the README's tidal volumes.
+    (The sweep through 'lungmech run --set' is tested on a small scene in test_parameters.py.)"""
+    output = run("parameter_sweep", tmp_path)
+    assert printed(r"FFCx calls during the 9-point Python sweep: (\d+)", output) == ("0",)
+    assert "**0 FFCx calls**" in README
+    for pleural in ("300", "500", "700"):
+        readme = quoted(rf"\| −{pleural} Pa \| {NUMBER} \| {NUMBER} \| {NUMBER} \|")
+        check(readme, printed(rf"\s+-{pleural}\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}", output))
