@@ -23,8 +23,9 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check lungmech tests demos benchmarks
 	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks
 
+# Two workers (pytest-xdist) on the two cores CI has; the slowest tests are listed at the end.
 test-serial: $(STAMP)
-	$(PY) -m pytest -m "not mpi" tests
+	$(PY) -m pytest -m "not mpi" -n 2 --dist worksteal --durations=12 tests
 
 test-mpi: $(STAMP)
 	# A test failing on one rank only would leave the other waiting: bound the run.
