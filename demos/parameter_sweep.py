@@ -133,7 +133,13 @@ def _toml(table: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("-o", "--output", default="demos/output/parameter_sweep", help="output folder")
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path(__file__).resolve().parent / "output" / "parameter_sweep",
+        help="output folder (staged; replaced only on success, and only if it is empty or lungmech's own)",
+    )
     parser.add_argument("--cli", action="store_true", help="also sweep through 'lungmech run --set'")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
