@@ -286,7 +286,7 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         from lungmech.rom import store
 
         prepare, inputs = reduced_order(args.model), [args.model]
-        note = trained_range(store.read_on_root(args.model, comm)[0]["extra"], scale)
+        note = trained_range(store.read_on_root(args.model, comm, arrays=False)[0]["extra"], scale)
     default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
     output = args.output if args.output is not None else RESULTS / default
     if comm.rank == 0:

@@ -16,6 +16,7 @@ and saved and loaded by :mod:`lungmech.rom.store` with its start state and train
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -23,7 +24,7 @@ import numpy as np
 from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
-from lungmech.rom.basis import Basis, reference_state
+from lungmech.rom.basis import Basis, inner_product, reference_state
 from lungmech.rom.galerkin import ReducedSolver
 
 __all__ = ["ReducedModel"]
@@ -76,6 +77,11 @@ class ReducedModel:
             self.outputs.probe_points,
             self.training,
         )
+
+    @functools.cached_property
+    def energy_product(self):
+        """The energy inner product at rest (PETSc matrix), for the errors of :mod:`lungmech.rom.reductor`."""
+        return inner_product(self.model, "energy")
 
     @property
     def size(self) -> int:

@@ -19,7 +19,7 @@ import numpy as np
 from lungmech.errors import ParameterError
 from lungmech.fem.parametric import FullOrderModel, Solution
 from lungmech.parallel.linalg import apply, gram
-from lungmech.rom.basis import inner_product, origin, reference_state
+from lungmech.rom.basis import origin, reference_state
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.reduced import ReducedModel
 
@@ -79,7 +79,7 @@ def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Erro
         raise ParameterError("errors: the two solutions have different output times")
     model = reduced.model
     comm = model.geometry.mesh.comm
-    W = inner_product(model, "energy")
+    W = reduced.energy_product  # assembled once per reduced model
     owned = reduced.basis.vectors.shape[0]
     error, change = 0.0, 0.0
     for index in range(len(full.times)):
@@ -89,7 +89,6 @@ def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Erro
         difference = np.column_stack([x - x_r, x - x_0])
         norms = np.sqrt(np.abs(np.diag(gram(difference, apply(W, difference, comm), comm))))
         error, change = max(error, norms[0]), max(change, norms[1])
-    W.destroy()
     V, V_r = full.outputs["volume"], approximate.outputs["volume"]
     V_0 = reduced.start_volume
     E, E_r = full.outputs["strain_energy"], approximate.outputs["strain_energy"]

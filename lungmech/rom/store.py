@@ -97,8 +97,10 @@ class _Older(Exception):
     """A reduced-model file of another format version."""
 
 
-def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
-    """The metadata and arrays of a reduced-model file, checked to be one (any mesh)."""
+def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndarray | None]]:
+    """The metadata and arrays of a reduced-model file, checked to be one (any mesh). With
+    ``arrays=False`` only the metadata is read (the arrays' names map to None)."""
+    wanted = arrays
     path = Path(path)
     if path.is_dir():
         raise ModelFileError(f"reduced model '{path}' is a folder; name the .npz file 'lungmech rom build' wrote")
@@ -116,7 +118,7 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
                 raise ValueError(
                     f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
                 )
-            arrays = {name: data[name] for name in data.files if name != "metadata"}
+            arrays = {name: data[name] if wanted else None for name in data.files if name != "metadata"}
         for key in ("vectors", "values"):
             if key not in arrays:
                 raise KeyError(f"no array '{key}'")
@@ -134,10 +136,10 @@ def read(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     return metadata, arrays
 
 
-def read_on_root(path: str | Path, comm: MPI.Comm) -> tuple[dict, dict[str, np.ndarray | None]]:
+def read_on_root(path: str | Path, comm: MPI.Comm, arrays: bool = True) -> tuple[dict, dict[str, np.ndarray | None]]:
     """Collective: :func:`read` on rank 0 only. The metadata on every rank; the arrays on rank 0,
     and the same names with None on the others. An error reading is raised on every rank."""
-    found = on_root(comm, lambda: read(path))
+    found = on_root(comm, lambda: read(path, arrays))
     metadata, names = comm.bcast((found[0], sorted(found[1])) if found is not None else None)
     return metadata, found[1] if found is not None else dict.fromkeys(names)
 
