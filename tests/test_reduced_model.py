@@ -158,3 +158,13 @@ def test_a_model_file_of_another_version_is_refused_with_what_to_do(tmp_path):
     np.savez(path, metadata=json.dumps({"format": "lungmech-rom/1"}), vectors=np.zeros((3, 1)), values=np.ones(1))
     with pytest.raises(ModelFileError, match="another lungmech version.*rebuild it"):
         store.read(path)
+
+
+def test_bad_training_counts_are_one_line_errors(tmp_path):
+    table = tomllib.loads(MESHED.replace('file = "block.xdmf"', 'builder = "box"\ncells = [2, 2, 2]'))
+    scene = scenes.parse(table)
+    with pytest.raises(ParameterError, match="training samples must be >= 1"):
+        reduce_app.build(scene, tmp_path / "m.npz", samples=0)
+    with pytest.raises(ParameterError, match="training seed must be >= 0"):
+        reduce_app.build(scene, tmp_path / "m.npz", samples=2, seed=-1)
+    assert not (tmp_path / "m.npz").exists()

@@ -91,6 +91,7 @@ def build(
     if samples is None:
         samples = 8 if box else 1
     checks.integer("training samples", samples, minimum=1)
+    checks.integer("training seed", seed, minimum=0)
     training = box.sample(samples, seed) if box else [{}]
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
@@ -309,6 +310,12 @@ def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterato
                 if isinstance(region, dict) and Path(str(region.get("image", ""))).name == Path(source).name:
                     region["image"] = unpacked
         yield scenes.parse(table, folder=Path(folder))
-    finally:
-        comm.barrier()
-        on_root(comm, lambda: shutil.rmtree(folder, ignore_errors=True))
+    except BaseException:
+        # Not collective: a failure (or Ctrl-C) may have reached this rank alone, and a barrier
+        # here would hang it; the folder is temporary, so rank 0 removes it as it can.
+        if comm.rank == 0:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    comm.barrier()  # every rank is done with the files
+    if comm.rank == 0:
+        shutil.rmtree(folder, ignore_errors=True)
