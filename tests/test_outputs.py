@@ -119,6 +119,16 @@ def test_a_failed_job_leaves_the_old_result_and_no_staging(tmp_path, monkeypatch
         assert [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
+def _until_exec(pid: int, marker: bytes) -> None:
+    """Wait until process ``pid`` has exec'd its own command (containing ``marker``): a forked
+    child shows its parent's command line, then briefly none, before that."""
+    command = Path(f"/proc/{pid}/cmdline")
+    for _ in range(500):
+        if not command.exists() or marker in command.read_bytes():
+            return
+        time.sleep(0.01)
+
+
 def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "out"
@@ -129,6 +139,7 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
     write_result(out, {"a.txt": "1"})
     assert not dead.exists() and (out / "a.txt").is_file()
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live Python run
+    _until_exec(other.pid, b"import time")
     try:
         alive = tmp_path / f".out.lungmech-staging-{other.pid}-abc123"
         alive.mkdir()
@@ -140,11 +151,7 @@ def test_stale_staging_of_a_killed_run_is_removed_and_a_live_one_respected(tmp_p
         other.wait()
     assert (out / "a.txt").is_file()
     stranger = subprocess.Popen(["sleep", "60"])  # a live process that is not Python: a reused pid
-    command = Path(f"/proc/{stranger.pid}/cmdline")
-    for _ in range(500):  # until exec: a child runs the parent's (Python's) command line before it
-        if not command.exists() or command.read_bytes().startswith(b"sleep"):
-            break
-        time.sleep(0.01)
+    _until_exec(stranger.pid, b"sleep")
     try:
         (alive / destination.MARKER).write_text(json.dumps(staging_marker(stranger.pid)))
         write_result(out, {"b.txt": "2"})

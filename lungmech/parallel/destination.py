@@ -255,7 +255,9 @@ def _alive(pid: int) -> bool:
         command = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         return True  # no /proc here: assume the worst
-    return b"python" in command or b"lungmech" in command
+    # An empty command line is a process between fork and exec (or exiting): not known to be
+    # someone else's, so its staging is kept.
+    return not command or b"python" in command or b"lungmech" in command
 
 
 class _Staging:
