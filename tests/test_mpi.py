@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from fem import MESHES as MESHES_DIR
 from fem import inflated_sphere, mean_inner_radius
 from mpi4py import MPI
 
@@ -20,7 +21,7 @@ from lungmech.fem.model import Model
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import Poromechanics, skeleton
-from lungmech.mesh import box, sphere
+from lungmech.mesh import box, from_file, sphere
 
 pytestmark = pytest.mark.mpi
 RTOL = 1e-10
@@ -443,3 +444,25 @@ def test_parametric_full_and_reduced_models_same_on_all_ranks_as_on_one(tmp_path
     parallel = reduce_app.load(path).solve({"stiffness": 12.0}).outputs["volume"]
     serial = reduce_app.load(path, MPI.COMM_SELF).solve({"stiffness": 12.0}).outputs["volume"]
     assert parallel == pytest.approx(serial, rel=1e-10)
+
+
+def test_balanced_gravity_converges_alike_on_all_ranks_and_on_one():
+    """The rank-12 tangent (distributed columns, Allreduced products) is the same Newton on 2 ranks."""
+    from test_gravity import DENSITY, SURROUNDING, G
+
+    from lungmech.lung.gravity import Gravity
+
+    def run(comm):
+        lung = from_file(MESHES_DIR / "lung_phantom_right.msh", comm)
+        model = Model(
+            lung,
+            NeoHookean.from_young(1e4, 0.3),
+            loads=[Gravity(DENSITY, G, balanced_on=SURROUNDING)],
+            constraints=[clamp("hilum")],
+        )
+        report = solve(model)
+        return report.newton_iterations, deformed_volume(model)()
+
+    (iterations, volume), (serial_iterations, serial_volume) = run(MPI.COMM_WORLD), run(MPI.COMM_SELF)
+    assert iterations == serial_iterations
+    assert volume == pytest.approx(serial_volume, rel=1e-10)

@@ -9,11 +9,12 @@ from lungmech.fem.constraints import clamp
 from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
 from lungmech.fem.materials import NeoHookean, SaintVenantKirchhoff
 from lungmech.fem.model import Model
+from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
 from lungmech.mesh import box
 
 
-def bent_block(loads_scale: float = 1.0) -> Model:
+def bent_block(loads_scale: float = 1.0, ramp: Ramp = Ramp()) -> Model:
     """A clamped block under shear traction, gravity and a follower pressure: a non-trivial state."""
     geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2))
     return Model(
@@ -22,9 +23,9 @@ def bent_block(loads_scale: float = 1.0) -> Model:
         degree=2,
         constraints=[clamp("x0")],
         loads=[
-            Traction("x1", (0.0, 0.0, -0.5 * loads_scale)),
-            BodyForce((0.0, 0.1 * loads_scale, 0.0)),
-            FollowerPressure("z1", 0.3 * loads_scale),
+            Traction("x1", (0.0, 0.0, -0.5 * loads_scale), ramp=ramp),
+            BodyForce((0.0, 0.1 * loads_scale, 0.0), ramp=ramp),
+            FollowerPressure("z1", 0.3 * loads_scale, ramp=ramp),
         ],
     )
 
@@ -55,6 +56,33 @@ def test_adaptive_stepping_cuts_back_and_recovers():
     cautious = bent_block(1.0)
     solve(cautious, Stepping(initial_step=0.1, growth=1.0))
     assert np.allclose(model.state.x.array, cautious.state.x.array, atol=1e-9)
+
+
+def test_the_automatic_first_step_does_not_start_with_a_failure():
+    """The load that fails in one step (above) starts with a step the tangent judged safe."""
+    model = bent_block(1.0)
+    report = solve(model, Stepping(), NewtonOptions(line_search="none"))
+    assert report.failures == 0
+    assert 0.01 < report.steps[0].step < 1.0
+    assert report.accepted[-1].time == pytest.approx(1.0)
+
+
+def test_the_automatic_first_step_takes_a_gentle_load_in_one_go():
+    model = bent_block(0.01)
+    report = solve(model, Stepping())
+    assert [s.step for s in report.steps] == [1.0]
+
+
+def test_the_predictor_does_not_extrapolate_across_a_load_reversal():
+    """Loading then unloading at equal steps. The first step back starts from the turning point,
+    at most one Newton iteration dearer than the last step out (which had a good predictor).
+    Extrapolated across the turn, it would start twice as far from its solution (8 iterations
+    here, against 5 for the last step out)."""
+    model = bent_block(0.5, Ramp((0.0, 1.0, 2.0), (0.0, 1.0, 0.0)))
+    report = solve(model, Stepping(end=2.0, initial_step=0.25, growth=1.0))
+    iterations = {round(s.time, 6): s.iterations for s in report.accepted}
+    assert report.failures == 0
+    assert iterations[1.25] <= iterations[1.0] + 1, iterations
 
 
 def test_failure_is_reported_and_last_state_kept():

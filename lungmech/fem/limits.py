@@ -18,6 +18,7 @@ Two are recognised:
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 
 import basix
@@ -29,29 +30,58 @@ from petsc4py import PETSc
 
 from lungmech.fem.linear import factorised, use_lu
 
-__all__ = ["RUNAWAY", "STABILITY_LOST", "Inversion", "compliance", "diagnose", "min_jacobian", "smallest_eigenvalue"]
+__all__ = [
+    "RUNAWAY",
+    "STABILITY_LOST",
+    "Inversion",
+    "compliance",
+    "diagnose",
+    "displacement_gradient",
+    "min_jacobian",
+    "smallest_eigenvalue",
+]
 
 STABILITY_LOST = 0.05  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
-def min_jacobian(model) -> Callable[[], float]:
-    """A function returning the smallest J = det F at the quadrature points (nan if undefined)."""
+def _at_quadrature_points(model, expression) -> Callable[[], np.ndarray]:
+    """A function returning ``expression`` at the quadrature points of this rank's owned cells,
+    shaped (cells, points, *value shape)."""
     mesh = model.geometry.mesh
     degree = max(model.dx.metadata().get("quadrature_degree", 2), 1)
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], degree)
-    expression = fem.Expression(ufl.det(model.F), points)
+    compiled = fem.Expression(expression, points)
     cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
+    shape = (len(cells), len(points), *expression.ufl_shape)
+    return lambda: compiled.eval(mesh, cells).reshape(shape)
+
+
+def min_jacobian(model) -> Callable[[], float]:
+    """A function returning the smallest J = det F at the quadrature points (nan if undefined)."""
+    at_points = _at_quadrature_points(model, ufl.det(model.F))
+    comm = model.geometry.mesh.comm
 
     def evaluate() -> float:
-        values = expression.eval(mesh, cells)
+        values = at_points()
         local = float(np.min(values)) if values.size else np.inf
         if values.size and not np.isfinite(values).all():
             local = np.nan
-        found = mesh.comm.allgather(local)
+        found = comm.allgather(local)
         return np.nan if any(np.isnan(v) for v in found) else float(min(found))
 
     return evaluate
+
+
+def displacement_gradient(model) -> Callable[[], np.ndarray]:
+    """A function returning F = I + ∇u at this rank's quadrature points, (cells, points, d, d);
+    compiled once per model."""
+    if model not in _gradients:
+        _gradients[model] = _at_quadrature_points(model, model.F)
+    return _gradients[model]
+
+
+_gradients: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 class Inversion:

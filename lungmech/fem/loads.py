@@ -24,16 +24,16 @@ from lungmech.fem.ramp import Ramp
 
 
 class StateDependentWork(NamedTuple):
-    """A virtual work whose coefficients θ are global functionals of the state, θ = G(u).
+    """A virtual work W(u, θ; v) whose coefficients θ are global functionals of the state, θ = Θ(u).
 
-    ``evaluate()`` returns G(u) for the current state without touching the form;
-    ``assign(θ)`` sets the coefficients the form uses. The solver freezes θ during a Newton
-    solve and iterates θ ← G(u(θ)) (accelerated) until it settles.
+    ``update()`` sets θ = Θ(u) for the model's current state; ``linearise()`` returns, at that
+    state, the columns ∂W/∂θ_j and dΘ_j/du (owned dofs of the model's space), so that the
+    tangent of −W(u, Θ(u)) is the frozen-θ tangent plus −(∂W/∂θ)(dΘ/du), a low-rank term.
     """
 
     form: ufl.Form
-    evaluate: Callable[[], np.ndarray]
-    assign: Callable[[np.ndarray], None]
+    update: Callable[[], None]
+    linearise: Callable[[], tuple[np.ndarray, np.ndarray]]
 
 
 class Named:

@@ -32,8 +32,9 @@ h = 10⁻⁵ of the parameter's range: ≈ 10⁻⁹ for ν in [0.2, 0.4]).
 The direct method solves once per parameter and serves every output (volume, energy, each probe
 component, loads); an adjoint would pay off only for more parameters than outputs.
 
-Loads whose coefficients depend on the state (balanced gravity) are frozen by the solver in a
-fixed point, so K is not the Jacobian of the converged map; those models are refused.
+Loads whose coefficients depend on the state (balanced gravity) are refused: their tangent is
+K + U Vᵀ (:mod:`lungmech.fem.state_dependent`) and their coefficients also depend on μ (the
+weight), which these direct solves do not yet carry.
 """
 
 from __future__ import annotations
@@ -149,7 +150,7 @@ def _refuse_state_dependent(model) -> None:
     if model.state_dependent:
         raise ParameterError(
             "sensitivities: this model has loads with state-dependent coefficients (balanced gravity), "
-            "which the solver settles in a fixed point, so they are not exactly differentiable; leave balanced_on out"
+            "whose dependence on the parameters is not differentiated yet; leave balanced_on out"
         )
 
 

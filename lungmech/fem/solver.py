@@ -14,17 +14,18 @@ import math
 import time
 import weakref
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-from dolfinx.fem.petsc import NonlinearProblem
+from dolfinx.fem.petsc import NonlinearProblem, assign
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech import checks
 from lungmech.errors import Interrupted, ParameterError, SolverError
 from lungmech.fem import convergence, limits
+from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import gram_schmidt
 
 log = logging.getLogger("lungmech")
@@ -118,14 +119,16 @@ class NewtonOptions:
 class Stepping:
     """Adaptive pseudo-time stepping from ``start`` to ``end``.
 
-    Steps grow by ``growth`` after a step that took at most ``easy_iterations`` Newton
-    iterations and are halved after a failure; ``times`` (and every ramp breakpoint) are hit
-    exactly, so outputs can be requested there.
+    Steps grow by ``growth`` after a Newton solve of at most ``easy_iterations`` iterations and
+    are halved after a failure; ``times`` (and every ramp breakpoint) are hit exactly, so outputs
+    can be requested there. ``initial_step`` None (the default) chooses the first step from the
+    tangent: the first interval, shortened until one linear solve predicts a displacement-gradient
+    increment of at most :data:`FIRST_STRAIN_INCREMENT` anywhere.
     """
 
     end: float = 1.0
     start: float = 0.0
-    initial_step: float = 0.25
+    initial_step: float | None = None
     min_step: float = 1e-5
     max_step: float = 1.0
     growth: float = 1.5
@@ -133,8 +136,10 @@ class Stepping:
     times: tuple[float, ...] = ()
 
     def __post_init__(self):
-        for name in ("end", "start", "initial_step", "min_step", "growth"):
+        for name in ("end", "start", "min_step", "growth"):
             checks.real(name, getattr(self, name))
+        if self.initial_step is not None:
+            checks.real("initial_step", self.initial_step)
         checks.real("max_step", self.max_step, infinite=True)
         checks.integer("easy_iterations", self.easy_iterations, minimum=0)
         if not isinstance(self.times, tuple):
@@ -147,10 +152,15 @@ class Stepping:
                 f"times {outside} lie outside (start, end] = ({self.start:g}, {self.end:g}]: "
                 "outputs can only be asked for inside the run"
             )
-        if not 0 < self.min_step <= self.initial_step <= self.max_step:
+        if (
+            not 0
+            < self.min_step
+            <= (self.min_step if self.initial_step is None else self.initial_step)
+            <= self.max_step
+        ):
+            given = "automatic" if self.initial_step is None else f"{self.initial_step:g}"
             raise ParameterError(
-                f"need 0 < min_step <= initial_step <= max_step (got {self.min_step:g}, "
-                f"{self.initial_step:g}, {self.max_step:g})"
+                f"need 0 < min_step <= initial_step <= max_step (got {self.min_step:g}, {given}, {self.max_step:g})"
             )
         if not self.growth >= 1:
             raise ParameterError(f"growth must be >= 1 (got {self.growth:g})")
@@ -219,20 +229,97 @@ class NewtonSolver:
         snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
         self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
         self.inversion = limits.Inversion(model)
+        limits.displacement_gradient(model)  # compiled now, for the first step: later solves compile nothing
         self.description = "full order"
-        snes.setConvergenceTest(
-            lambda snes, it, norms: self.test(snes.getFunction()[0], it, snes.getJacobian()[0], snes.getSolution())
-        )
+        K = self.problem.A  # the assembled tangent at frozen load coefficients (the round-off floors use it)
+        snes.setConvergenceTest(lambda snes, it, norms: self.test(snes.getFunction()[0], it, K, snes.getSolution()))
+        self.state_dependent = StateDependent(model)
+        self._exact_step = None
+        if self.state_dependent:
+            self._couple_state_dependent()
 
     def solve(self) -> NewtonResult:
-        """One Newton solve from the current state: (converged, iterations, residuals, reason).
-
-        Loads whose coefficients depend on the whole state (balanced gravity) are frozen during
-        a Newton solve, which then converges quadratically, and updated between solves until
-        they stop changing: a fixed point around an exact Newton method.
-        """
+        """One Newton solve from the current state: (converged, iterations, residuals, reason)."""
         self.test.new_step()
-        return settle_state_dependent(self.model, self._newton, self.options)
+        return self._newton()
+
+    def _couple_state_dependent(self) -> None:
+        """Newton on R(u, Θ(u)) for loads with state-dependent coefficients θ (balanced gravity):
+        θ is recomputed from every iterate before the residual, the operator is the exact tangent
+        K + U Vᵀ (a PETSc LRC matrix), and only K is assembled, factorised or preconditioned. With
+        a direct solver the step K⁻¹F is made exact by Woodbury's identity before the line search
+        (see :mod:`lungmech.fem.state_dependent`); a Krylov solver applies K + U Vᵀ itself."""
+        snes, coupled, K = self.problem.solver, self.state_dependent, self.problem.A
+        state = self.model.state
+        vector, (assemble_residual, args, kargs) = snes.getFunction()
+
+        def take(x: PETSc.Vec) -> None:
+            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            state.x.array[: coupled.owned] = x.array_r
+            state.x.scatter_forward()
+            coupled.update()
+
+        def residual(snes, x, b):
+            take(x)
+            assemble_residual(snes, x, b, *args, **kargs)
+
+        coupled.update()
+        U, V = coupled.low_rank()
+        factors = [PETSc.Mat().createDense(((coupled.owned, None), (None, U.shape[1])), comm=K.comm) for _ in "UV"]
+        for factor in factors:
+            factor.setUp()
+        operator = PETSc.Mat().createLRC(K, factors[0], None, factors[1])
+        _, _, (assemble_jacobian, jargs, jkargs) = snes.getJacobian()
+        low_rank = {}
+
+        def jacobian(snes, x, J, P):
+            take(x)
+            assemble_jacobian(snes, x, K, None, *jargs, **jkargs)
+            low_rank["U"], low_rank["V"] = coupled.low_rank()
+            for factor, values in zip(factors, (low_rank["U"], low_rank["V"])):
+                factor.getDenseArray(readonly=False)[:] = values
+                factor.assemble()
+            operator.assemble()
+
+        def exact_step(x: PETSc.Vec, y: PETSc.Vec) -> bool:
+            ksp = snes.getKSP()
+            if ksp.getType() != PETSc.KSP.Type.PREONLY:  # a Krylov solver had the exact operator
+                return False
+            pc, rhs, solution = ksp.getPC(), K.createVecRight(), K.createVecRight()
+
+            def solve(b: np.ndarray) -> np.ndarray:
+                rhs.array[:] = b
+                pc.apply(rhs, solution)
+                return solution.array.copy()
+
+            y.array[:] = coupled.woodbury(y.array_r.copy(), low_rank["U"], low_rank["V"], solve)
+            return True
+
+        snes.setFunction(residual, vector)
+        snes.setJacobian(jacobian, operator, K)
+        snes.setLineSearchPreCheck(exact_step)
+        self._exact_step = exact_step
+        weakref.finalize(self, lambda: [m.destroy() for m in (operator, *factors)])
+
+    def linear_step(self) -> None:
+        """Move the state by one Newton step at the current loads, without a line search or a
+        convergence test: from an equilibrium, the tangent's response to the change of load."""
+        problem, snes = self.problem, self.problem.solver
+        x, b = problem.x, problem.b
+        assign(self.model.state, x)
+        snes.computeFunction(x, b)
+        operator, K, _ = snes.getJacobian()
+        snes.computeJacobian(x, operator, K)
+        ksp = snes.getKSP()
+        ksp.setOperators(operator, K)
+        step = x.duplicate()
+        ksp.solve(b, step)
+        if self._exact_step is not None:
+            self._exact_step(x, step)
+        x.axpy(-1.0, step)
+        step.destroy()
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        assign(x, self.model.state)
 
     def start_path(self) -> None:
         """A new load path begins: the fields' load scales start again (see :mod:`lungmech.fem.convergence`)."""
@@ -278,18 +365,12 @@ class NewtonSolver:
 
 @dataclass(frozen=True)
 class NewtonResult:
-    """What a Newton solve did (or several, for loads whose coefficients settle in a fixed point)."""
+    """What a Newton solve did."""
 
     converged: bool
     iterations: int
     residuals: tuple[float, ...]  # the norm of the whole residual at each iteration
     reason: str  # PETSc's converged reason, and what failed when it did not converge
-
-    def then(self, later: NewtonResult) -> NewtonResult:
-        """This solve followed by ``later``: iterations and residuals add up; ``later`` decides."""
-        return NewtonResult(
-            later.converged, self.iterations + later.iterations, self.residuals + later.residuals, later.reason
-        )
 
 
 class Solver(Protocol):
@@ -307,6 +388,10 @@ class Solver(Protocol):
         """A load path begins (the solver may rescale its convergence test)."""
         ...
 
+    def linear_step(self) -> None:
+        """One Newton step from the model's current state at its current loads (no line search)."""
+        ...
+
     @property
     def residual_form(self) -> Any: ...
 
@@ -314,53 +399,6 @@ class Solver(Protocol):
     def jacobian_form(self) -> Any: ...
 
     def destroy(self) -> None: ...
-
-
-def settle_state_dependent(model, newton: Callable[[], NewtonResult], options: NewtonOptions) -> NewtonResult:
-    """Run ``newton`` with the state-dependent load coefficients frozen, update them from the
-    solution and repeat (Anderson-accelerated) until they stop changing (relative ``rtol``)."""
-    terms = model.state_dependent
-    if not terms:
-        return newton()
-    splits = np.cumsum([len(term.evaluate()) for term in terms])[:-1]
-
-    def assign(theta: np.ndarray) -> None:
-        for term, part in zip(terms, np.split(theta, splits)):
-            term.assign(part)
-
-    theta = np.concatenate([term.evaluate() for term in terms])
-    assign(theta)
-    result = newton()
-    anderson = _Anderson()
-    for _ in range(options.max_iterations):
-        if not result.converged:
-            break
-        image = np.concatenate([term.evaluate() for term in terms])
-        if np.linalg.norm(image - theta) <= options.rtol * max(np.linalg.norm(image), 1e-300):
-            break
-        theta = anderson.next(theta, image)
-        assign(theta)
-        result = result.then(newton())
-    else:
-        result = replace(result, converged=False, reason="state-dependent load coefficients did not settle")
-    return result
-
-
-class _Anderson:
-    """Anderson acceleration of a fixed point θ = G(θ): the next iterate from the last few."""
-
-    def __init__(self, depth: int = 5):
-        self.depth, self.thetas, self.images = depth, [], []
-
-    def next(self, theta: np.ndarray, image: np.ndarray) -> np.ndarray:
-        self.thetas, self.images = [*self.thetas, theta][-self.depth - 1 :], [*self.images, image][-self.depth - 1 :]
-        if len(self.thetas) == 1:
-            return image
-        residuals = np.array(self.images) - np.array(self.thetas)  # rows: G(θ_i) − θ_i
-        dF = np.diff(residuals, axis=0).T
-        dG = np.diff(np.array(self.images), axis=0).T
-        gamma = np.linalg.lstsq(dF, residuals[-1], rcond=None)[0]
-        return image - dG @ gamma
 
 
 # PETSc errors of settings, not of numbers: no support, wrong argument, out of range, unknown type.
@@ -434,10 +472,14 @@ def solve(
     report = SolveReport()
     started = time.perf_counter()
 
-    t, dt = stepping.start, stepping.initial_step
+    t = stepping.start
     drive(t)
     first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
     solver.start_path()
+    dt = stepping.initial_step
+    if dt is None:
+        dt = first_step(model, solver, drive, t, min(stepping.max_step, targets[0] - t), stepping.min_step)
+    kinks = [b for b in breakpoints if stepping.start < b < stepping.end]
     last, previous, previous_dt = state.copy(), None, None
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
@@ -456,6 +498,8 @@ def solve(
             if converged:
                 previous, previous_dt, last = last, dt, state.copy()
                 t += dt
+                if any(abs(t - kink) <= 1e-12 * (stepping.end - stepping.start) for kink in kinks):
+                    previous = None  # the load turns here: extrapolating the last step would cross it
                 if on_step is not None:
                     on_step(step)
                 if result.iterations <= stepping.easy_iterations:
@@ -473,6 +517,37 @@ def solve(
             dt = max(dt / 2, stepping.min_step)
     report.seconds = time.perf_counter() - started
     return report
+
+
+FIRST_STRAIN_INCREMENT = 0.1  # the largest |ΔF| the tangent may predict for an automatic first step
+
+
+def first_step(
+    model, solver: Solver, drive: Callable[[float], None], t: float, interval: float, min_step: float
+) -> float:
+    """The first step from t: ``interval``, shortened to interval · s/|ΔF|_max when one linear
+    solve of the tangent at the start state predicts a displacement-gradient increment
+    |ΔF|_max (Frobenius, at the quadrature points) above s = FIRST_STRAIN_INCREMENT. Newton
+    converges from the linearised response of small strain increments; the estimate is
+    conservative for stiffening laws. The state and the loads are left as they were."""
+    gradient = limits.displacement_gradient(model)
+    with model.kept_state():
+        before = gradient()
+        drive(t + interval)
+        try:
+            solver.linear_step()
+            change = np.linalg.norm(gradient() - before, axis=(-2, -1))
+            local = float(change.max()) if change.size else 0.0
+            if not np.isfinite(change).all():
+                local = np.inf
+        except PETSc.Error:  # a singular tangent at the start: no estimate, the stepping adapts
+            local = 0.0
+        finally:
+            drive(t)
+    largest = model.geometry.mesh.comm.allreduce(local, op=MPI.MAX)
+    if largest <= FIRST_STRAIN_INCREMENT:
+        return interval
+    return max(min_step, interval * FIRST_STRAIN_INCREMENT / largest)
 
 
 def _log_step(step: StepReport) -> None:

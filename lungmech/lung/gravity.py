@@ -14,9 +14,11 @@ x_G at the volume centroid, B = 0 and b = L M g/|ω|: the hydrostatic pressure o
 lung's mean density. The moment condition needs the quadratic term otherwise, since a
 pressure linear in x has the moment of a buoyant body about the volume centroid.
 
-The coefficients are global functionals of the state. The solver freezes them for a Newton
-solve (exact, quadratic: it differentiates q through x and the surface) and updates them
-between solves until they settle, so the converged state is balanced exactly.
+The coefficients are global functionals of the state, θ = Θ(u). They are kept exact: θ is
+recomputed from the state before every residual evaluation, and the Newton tangent carries their
+derivative dΘ/du (a rank-12 term, see :mod:`lungmech.fem.state_dependent`), so one Newton solve
+converges quadratically to a state that is balanced exactly. The length L is a Constant, so
+another mesh of the same kind reuses the compiled forms.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import ClassVar
 
 import numpy as np
 import ufl
-from dolfinx import fem
+from dolfinx import fem, la
 from ufl.core.expr import Expr
 
 from lungmech import checks
@@ -93,62 +95,128 @@ class Gravity(Named):
     def virtual_work(self, model, v: Expr, value: Expr) -> StateDependentWork | None:
         if not self.balanced_on:
             return None
+        pressure = _BalancingPressure(self, model, v, value)
+        return StateDependentWork(pressure.form, pressure.update, pressure.linearise)
+
+
+class _BalancingPressure:
+    """The balancing pressure q = Σ c_k φ_k((x − x_G)/L) on the balanced boundaries: its virtual
+    work, its coefficients θ = (x_G, c) = Θ(u) and their derivatives.
+
+    Θ is defined by x_G = ∫ρ0 x dX / ∫ρ0 dX and the least-correction conditions
+
+        [N  Aᵀ] [c]   [   0   ]
+        [A  0 ] [λ] = [−M g; 0]     (A c: the force and moment of q about x_G; N: the |B|² weights)
+
+    so dΘ/du follows from the implicit-function theorem: with dA = A_u δu + A_xG δx_G,
+    [dc; dλ] = −K⁺ [dAᵀλ; dA c]. Row j of dc/du is the derivative of the one functional
+    Σ_ik T⁽ʲ⁾_ik A_ik(u, x_G), T⁽ʲ⁾ = λ ⊗ K⁺_{j,c} + K⁺_{j,λ} ⊗ c, so one compiled form serves
+    all nine rows.
+    """
+
+    def __init__(self, gravity: Gravity, model, v: Expr, value: Expr):
         geometry = model.geometry
         mesh = geometry.mesh
-        length = geometry.size
-        X = ufl.SpatialCoordinate(mesh)
-        x = X + model.u
-        centre = fem.Constant(mesh, np.zeros(3))
-        coefficients = fem.Constant(mesh, np.zeros(9))
-        basis = _quadratic_basis((x - centre) / length)
-        q = sum(coefficients[k] * phi for k, phi in enumerate(basis))
+        self.value, self.space = value, model.space
+        # A Constant, not a literal: a new mesh (a new patient) reuses the compiled forms.
+        length = fem.Constant(mesh, geometry.size)
+        self.centre = fem.Constant(mesh, np.zeros(3))
+        self.coefficients = fem.Constant(mesh, np.zeros(9))
+        centre = ufl.variable(self.centre)  # so that ∂/∂x_G is ufl.diff
+        x = ufl.SpatialCoordinate(mesh) + model.u
+        y = x - centre
+        basis = ufl.as_vector(_quadratic_basis(y / length))
+        q = ufl.dot(self.coefficients, basis)
         F = model.F
         n_da = ufl.det(F) * ufl.inv(F).T * ufl.FacetNormal(mesh)  # Nanson: current n da on the reference
-        surface = geometry.ds(self.balanced_on)
-        y = x - centre
-        # Resultant force and moment (about x_G) of −φ_k n da for each basis pressure φ_k.
-        response = vector_integral(
-            ufl.as_matrix(
-                [[-phi * n_da[i] for phi in basis] for i in range(3)]
-                + [[-phi * ufl.cross(y, n_da)[i] for phi in basis] for i in range(3)]
-            ),
-            surface,
-            mesh,
+        surface = geometry.ds(gravity.balanced_on)
+        self.form = -q * ufl.dot(n_da, v) * surface
+
+        # A: resultant force and moment (about x_G) of −φ_k n da for each basis pressure φ_k.
+        response = ufl.as_matrix(
+            [[-basis[k] * n_da[i] for k in range(9)] for i in range(3)]
+            + [[-basis[k] * ufl.cross(y, n_da)[i] for k in range(9)] for i in range(3)]
         )
+        self._response = vector_integral(response, surface, mesh)
         # [mass, first moment]: recomputed with the rest, as the reference itself may move (inverse problem)
-        moments = vector_integral(self.density * ufl.as_vector([1, *x]), model.dx, mesh)
+        self._moments = vector_integral(gravity.density * ufl.as_vector([1, *x]), model.dx, mesh)
 
-        def evaluate() -> np.ndarray:
-            """(x_G / L, coefficients) of the current state."""
-            mass, first_moment = np.split(moments(), [1])
-            previous = centre.value.copy()
-            centre.value = first_moment / mass  # the response is measured about the new centre
-            weight = mass * np.asarray(value.value, dtype=float)
-            # The pressure's force cancels the weight; its moment about x_G is zero, like the weight's.
-            balanced = _least_correction(response(), np.concatenate([-weight, np.zeros(3)]))
-            centre.value = previous
-            return np.concatenate([first_moment / mass / length, balanced])
-
-        def assign(theta: np.ndarray) -> None:
-            centre.value = theta[:3] * length
-            coefficients.value = theta[3:]
+        w = ufl.TestFunction(model.space)
+        # ∂W/∂θ · (d, a), W the virtual work above
+        self._direction = fem.Constant(mesh, np.zeros(3)), fem.Constant(mesh, np.zeros(9))
+        d, a = self._direction
+        self._work_derivative = fem.form(
+            -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
+        )
+        # Σ T_ik A_ik and its derivatives in u (a vector) and in x_G (three numbers)
+        self._weights = fem.Constant(mesh, np.zeros((6, 9)))
+        contraction = ufl.inner(self._weights, response)
+        self._contraction_u = fem.form(ufl.derivative(contraction * surface, model.state, w))
+        self._contraction_centre = vector_integral(ufl.diff(contraction, centre), surface, mesh)
+        # ∂(∫ρ0 x dX)/∂u · e
+        self._axis = fem.Constant(mesh, np.zeros(3))
+        self._first_moment_u = fem.form(
+            ufl.derivative(gravity.density * ufl.dot(self._axis, x) * model.dx, model.state, w)
+        )
+        self._vector = fem.Function(model.space).x
 
         # Can these boundaries balance a weight along g at all? Checked once, on the reference.
-        mass, first_moment = np.split(moments(), [1])
-        centre.value = first_moment / mass
-        direction = np.asarray(self.acceleration, dtype=float)
-        A = response()
-        target = np.concatenate([-mass * direction, np.zeros(3)])
-        if np.linalg.norm(A @ _least_correction(A, target) - target) > 1e-8 * np.linalg.norm(target):
+        mass, first_moment = np.split(self._moments(), [1])
+        self.centre.value = first_moment / mass
+        A = self._response()
+        target = np.concatenate([-mass * np.asarray(gravity.acceleration, dtype=float), np.zeros(3)])
+        if np.linalg.norm(A @ _least_correction(A, target)[0] - target) > 1e-8 * np.linalg.norm(target):
             raise ParameterError(
-                f"gravity: no pressure on {', '.join(self.balanced_on)} can balance the weight's force "
+                f"gravity: no pressure on {', '.join(gravity.balanced_on)} can balance the weight's force "
                 "and moment; name the boundaries that surround the body (e.g. pleura, diaphragm, mediastinum)"
             )
-        return StateDependentWork(-q * ufl.dot(n_da, v) * surface, evaluate, assign)
+
+    def update(self) -> None:
+        """θ ← Θ(u): the centre of mass and the least correction balancing the current weight."""
+        mass, first_moment = np.split(self._moments(), [1])
+        self.mass = float(mass[0])
+        self.centre.value = first_moment / mass  # the response is measured about the new centre
+        self._A = self._response()
+        weight = mass * np.asarray(self.value.value, dtype=float)
+        # The pressure's force cancels the weight; its moment about x_G is zero, like the weight's.
+        self.coefficients.value, self._multipliers, self._kkt_inverse = _least_correction(
+            self._A, np.concatenate([-weight, np.zeros(3)])
+        )
+
+    def linearise(self) -> tuple[np.ndarray, np.ndarray]:
+        """(∂W/∂θ, dΘ/du) at the current state (after :meth:`update`), as owned-dof columns."""
+        d, a = self._direction
+        work = []
+        for k in range(12):
+            d.value, a.value = np.eye(12)[k, :3], np.eye(12)[k, 3:]
+            work.append(self._assemble(self._work_derivative))
+        d.value, a.value = np.zeros(3), np.zeros(9)
+        centre = []  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
+        for axis in np.eye(3):
+            self._axis.value = axis
+            centre.append(self._assemble(self._first_moment_u) / self.mass)
+        Q, c, lam = self._kkt_inverse[:9], self.coefficients.value, self._multipliers
+        coefficients = []
+        for j in range(9):
+            self._weights.value = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
+            row = self._assemble(self._contraction_u) + sum(
+                g * dxg for g, dxg in zip(self._contraction_centre(), centre)
+            )
+            coefficients.append(-row)
+        return np.column_stack(work), np.column_stack(centre + coefficients)
+
+    def _assemble(self, form) -> np.ndarray:
+        vector = self._vector
+        vector.array[:] = 0.0
+        fem.assemble_vector(vector.array, form)
+        vector.scatter_reverse(la.InsertMode.add)
+        index_map = self.space.dofmap.index_map
+        return vector.array[: index_map.size_local * self.space.dofmap.index_map_bs].copy()
 
 
-def _least_correction(A: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Coefficients c of A c = target with the smallest |B| (a KKT solve; b is left free)."""
-    kkt = np.block([[_NORM, A.T], [A, np.zeros((6, 6))]])
-    rhs = np.concatenate([np.zeros(9), target])
-    return np.linalg.lstsq(kkt, rhs, rcond=None)[0][:9]
+def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coefficients c of A c = target with the smallest |B| (b is left free), their multipliers λ
+    and the (pseudo-)inverse of the KKT matrix [[N, Aᵀ], [A, 0]] they solve."""
+    inverse = np.linalg.pinv(np.block([[_NORM, A.T], [A, np.zeros((6, 6))]]))
+    solution = inverse @ np.concatenate([np.zeros(9), target])
+    return solution[:9], solution[9:], inverse

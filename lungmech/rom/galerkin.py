@@ -18,8 +18,9 @@ from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields
-from lungmech.fem.limits import Inversion
-from lungmech.fem.solver import NewtonOptions, NewtonResult, settle_state_dependent
+from lungmech.fem.limits import Inversion, displacement_gradient
+from lungmech.fem.solver import NewtonOptions, NewtonResult
+from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import Basis, inner_product, origin, reference_state
@@ -64,6 +65,8 @@ class ReducedSolver:
         self._matrix = create_matrix(self._jacobian)
         self._fields = Fields(model)
         self.inversion = Inversion(model)
+        displacement_gradient(model)  # compiled now, for the first step: later solves compile nothing
+        self.state_dependent = StateDependent(model)
         self.coordinates = np.zeros(basis.size)
         self.description = f"reduced Galerkin: {basis.kind} basis of {basis.size} vectors"
         self.iterations_total = 0
@@ -73,7 +76,13 @@ class ReducedSolver:
 
     def solve(self) -> NewtonResult:
         """One reduced Newton solve from (the projection of) the current state."""
-        return settle_state_dependent(self.model, self._newton, self.options)
+        return self._newton()
+
+    def linear_step(self) -> None:
+        """One reduced Newton step from the current state at the current loads (no line search)."""
+        q = self.project()
+        r = self.reduced_residual(q)
+        self.reconstruct(q + np.linalg.solve(self.reduced_jacobian(), -r))
 
     def project(self) -> np.ndarray:
         """Coordinates q of the model's current state: (W V)ᵀ (x − x₀)."""
@@ -90,6 +99,7 @@ class ReducedSolver:
     def reduced_residual(self, q: np.ndarray) -> np.ndarray:
         """Vᵀ R(x₀ + V q) (sets the model's state)."""
         self.reconstruct(q)
+        self.state_dependent.update()  # θ = Θ(x₀ + V q): balanced exactly at every iterate
         vector = self._vector
         vector.array[:] = 0.0
         fem.assemble_vector(vector.array, self._residual)
@@ -97,12 +107,17 @@ class ReducedSolver:
         return gram(self.V, vector.array[: self.owned, None], self.comm)[:, 0]
 
     def reduced_jacobian(self) -> np.ndarray:
-        """Vᵀ K V at the model's current state."""
+        """Vᵀ (K + U Wᵀ) V at the model's current state, U Wᵀ the tangent of state-dependent load
+        coefficients (:mod:`lungmech.fem.state_dependent`)."""
         A = self._matrix
         A.zeroEntries()
         assemble_matrix(A, self._jacobian)
         A.assemble()
-        return gram(self.V, apply(A, self.V, self.comm), self.comm)
+        reduced = gram(self.V, apply(A, self.V, self.comm), self.comm)
+        if self.state_dependent:
+            U, W = self.state_dependent.low_rank()
+            reduced += gram(self.V, U[: self.owned], self.comm) @ gram(W[: self.owned], self.V, self.comm)
+        return reduced
 
     def _newton(self) -> NewtonResult:
         options = self.options

@@ -1,0 +1,54 @@
+"""Loads whose coefficients are global functionals of the state, kept exact inside Newton.
+
+A :class:`lungmech.fem.loads.StateDependentWork` W(u, θ; v) has coefficients θ = Θ(u) (balanced
+gravity: the centre of mass and the pressure that carries the weight). The residual seen by Newton
+is R(u, Θ(u)), with θ recomputed from every iterate, and its tangent is
+
+    J = K + U Vᵀ,   K = ∂R/∂u at frozen θ,   U = ∂R/∂θ = −∂W/∂θ,   V = (dΘ/du)ᵀ,
+
+a sparse matrix plus a correction of rank m = dim θ (12 for gravity). Newton on this J converges
+quadratically, and only K is ever factorised: the exact step follows from Woodbury's identity
+
+    J⁻¹ r = y − Z (I + Vᵀ Z)⁻¹ Vᵀ y,   y = K⁻¹ r,   Z = K⁻¹ U,
+
+i.e. m + 1 solves with the one factorisation; a Krylov solver applies J itself instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lungmech.parallel.linalg import gram
+
+
+class StateDependent:
+    """The state-dependent loads of one model: θ ← Θ(u), and the low-rank part of the tangent."""
+
+    def __init__(self, model):
+        self.terms = model.state_dependent
+        space = model.space
+        self.owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+        self.comm = space.mesh.comm
+        self._constrained = model.constrained_dofs()  # their rows carry the constraint: U vanishes there
+
+    def __bool__(self) -> bool:
+        return bool(self.terms)
+
+    def update(self) -> None:
+        """Set every term's coefficients from the model's current state: θ = Θ(u)."""
+        for term in self.terms:
+            term.update()
+
+    def low_rank(self) -> tuple[np.ndarray, np.ndarray]:
+        """(U, V), owned rows × m, with J = K + U Vᵀ at the current state (after :meth:`update`)."""
+        pairs = [term.linearise() for term in self.terms]
+        U = -np.hstack([work for work, _ in pairs])
+        V = np.hstack([gradient for _, gradient in pairs])
+        U[self._constrained] = 0.0
+        return U, V
+
+    def woodbury(self, y: np.ndarray, U: np.ndarray, V: np.ndarray, solve) -> np.ndarray:
+        """(K + U Vᵀ)⁻¹ r from y = K⁻¹ r, with ``solve(b)`` = K⁻¹ b (owned rows; collective)."""
+        Z = np.column_stack([solve(U[:, j]) for j in range(U.shape[1])])
+        small = np.eye(U.shape[1]) + gram(V, Z, self.comm)
+        return y - Z @ np.linalg.solve(small, gram(V, y[:, None], self.comm)[:, 0])
