@@ -111,3 +111,24 @@ def test_balanced_gravity_converges_quadratically_in_one_newton_solve(lung):
     # r_{k+1} / r_k² stays bounded while r falls by orders of magnitude: quadratic, not linear
     rates = [np.log(r2 / r1) / np.log(r1 / r0) for r0, r1, r2 in zip(residuals, residuals[1:], residuals[2:])]
     assert max(rates) > 1.7, residuals
+
+
+def test_another_mesh_of_the_same_kind_reuses_the_compiled_forms():
+    """The balancing pressure's forms hold no number of the mesh (its length L is a Constant):
+    a larger lung (another patient) has the same UFL signatures, the key of the FFCx cache."""
+    from lungmech.mesh.nodes import move
+
+    def signatures(scale: float) -> set[str]:
+        geometry = from_file(MESHES / "lung_phantom_right.msh", MPI.COMM_WORLD)
+        move(geometry.mesh, (scale - 1.0) * geometry.mesh.geometry.x[:, :3])
+        model = Model(
+            geometry,
+            NeoHookean.from_young(1e4, 0.3),
+            loads=[Gravity(DENSITY, G, balanced_on=SURROUNDING)],
+            constraints=[clamp("hilum")],
+        )
+        assert geometry.size == pytest.approx(scale * lung_size)
+        return {model.residual.signature(), model.jacobian.signature()}
+
+    lung_size = from_file(MESHES / "lung_phantom_right.msh", MPI.COMM_WORLD).size
+    assert signatures(1.0) == signatures(1.3)
