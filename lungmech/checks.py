@@ -33,12 +33,14 @@ def real(
     return value
 
 
-def vector(name: str, value: object, size: int = 3) -> tuple[float, ...]:
-    """``value`` as a tuple of ``size`` finite numbers (a list, tuple or 1-D array)."""
+def vector(name: str, value: object, size: int | tuple[int, ...] = 3) -> tuple[float, ...]:
+    """``value`` as a tuple of ``size`` finite numbers (a list, tuple or 1-D array); ``size`` may
+    list the lengths allowed."""
+    sizes = (size,) if isinstance(size, int) else size
     if isinstance(value, np.ndarray) and value.ndim == 1:
         value = value.tolist()
-    if isinstance(value, str | bytes) or not isinstance(value, Sequence) or len(value) != size:
-        raise ParameterError(f"{name} must be {size} numbers (got {value!r})")
+    if isinstance(value, str | bytes) or not isinstance(value, Sequence) or len(value) not in sizes:
+        raise ParameterError(f"{name} must be {' or '.join(map(str, sizes))} numbers (got {value!r})")
     return tuple(real(f"{name}[{i}]", v) for i, v in enumerate(value))
 
 

@@ -64,11 +64,11 @@ def swap(old: str, new: str, base: str = TINY) -> str:
 # (scene text, what the message must say). The scene is written to scene.toml and run into out/.
 SCENES = {
     # numbers where numbers belong
-    "traction is a word": (swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'), "loads[0]: value must be 3 numbers"),
+    "traction is a word": (swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'), "loads[0]: value must be 2 or 3 numbers"),
     "traction component is a word": (swap("[0.0, 0.0, -10.0]", '["a", 0.0, -10.0]'), "value[0] must be a number"),
-    "traction of 2 components": (swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"), "value must be 3 numbers"),
-    "traction of 4 components": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -10.0, 1.0]"), "value must be 3 numbers"),
-    "traction is true": (swap("value = [0.0, 0.0, -10.0]", "value = true"), "value must be 3 numbers"),
+    "traction of 2 components": (swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"), "its value has 2 components, the mesh is 3-D"),
+    "traction of 4 components": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -10.0, 1.0]"), "value must be 2 or 3 numbers"),
+    "traction is true": (swap("value = [0.0, 0.0, -10.0]", "value = true"), "value must be 2 or 3 numbers"),
     "pressure is a word": (
         swap(
             'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
@@ -90,7 +90,7 @@ SCENES = {
     ),
     "probe of 2 coordinates": (
         swap("fields = false", "fields = false\nprobes = [[1.0, 0.5]]"),
-        "probes[0] must be 3 numbers",
+        "probe points need 3 coordinates each on a 3-D mesh",
     ),
     "probes a table": (swap("fields = false", "fields = false\nprobes = { x = 1.0 }"), "probes must be a list"),
     "probe outside the body": (
@@ -153,7 +153,7 @@ SCENES = {
     ),
     "gravity in 2-D": (
         TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, -9.81]\n',
-        "acceleration needs 3 components",
+        "load 'gravity': its value has 2 components, the mesh is 3-D",
     ),
     "gravity nan": (
         TINY + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, nan]\n',
@@ -205,7 +205,7 @@ SCENES = {
     ),
     "constraint value of 2 components": (
         swap('type = "clamp"\nboundary = "x0"', 'type = "displacement"\nboundary = "x0"\nvalue = [1.0, 2.0]'),
-        "value must be 3 numbers",
+        "imposed displacement on 'x0' needs 3 components",
     ),
     "unknown boundary": (swap('boundary = "x0"', 'boundary = "hilum"'), "unknown boundary 'hilum'"),
     "stepping end inf": (TINY + "[stepping]\nend = inf\n", "stepping.end: inf is not allowed"),

@@ -56,7 +56,7 @@ BAD = {
     "inverse unknown key": (TINY + "[inverse]\ntol = 1e-6\n", "inverse.tol: unknown key"),
     "gravity in 2-D": (
         TINY + GRAVITY.replace("[0.0, 0.0, -9.81]", "[0.0, -9.81]"),
-        "loads[1]: gravity: acceleration needs 3 components",
+        "load 'gravity': its value has 2 components, the mesh is 3-D",
     ),
 }
 

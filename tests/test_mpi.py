@@ -466,3 +466,23 @@ def test_balanced_gravity_converges_alike_on_all_ranks_and_on_one():
     (iterations, volume), (serial_iterations, serial_volume) = run(MPI.COMM_WORLD), run(MPI.COMM_SELF)
     assert iterations == serial_iterations
     assert volume == pytest.approx(serial_volume, rel=1e-10)
+
+
+def test_cook_membrane_in_plane_stress_same_on_all_ranks_as_on_one():
+    """2-D: plane stress with its thickness-stretch field, P2, on a distributed mesh."""
+    from lungmech.fem.materials import NeoHookean as Law
+    from lungmech.mesh import cook_membrane
+
+    def tip(comm) -> float:
+        model = Model(
+            cook_membrane(comm, cells=(8, 8)),
+            Law.from_young(1.0, 1.0 / 3.0),
+            degree=2,
+            plane="stress",
+            constraints=[clamp("clamped")],
+            loads=[Traction("loaded", (0.0, 0.1 / 16.0))],
+        )
+        solve(model)
+        return float(Probe(model.geometry.mesh, [[48.0, 60.0]])(model.displacement())[0, 1])
+
+    assert tip(MPI.COMM_WORLD) == pytest.approx(tip(MPI.COMM_SELF), rel=1e-10)

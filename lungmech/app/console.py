@@ -22,6 +22,11 @@ CMH2O = 98.0665  # Pa per cmH2O
 log = logging.getLogger("lungmech")
 
 
+def per_metre_of_thickness(volume: float) -> str:
+    """A 2-D body's volume (m³ per m of thickness), for people."""
+    return f"{volume:.4g} m³ per m of thickness"
+
+
 def litres(volume: float) -> str:
     """A volume in m³, written in litres."""
     return f"{1e3 * volume:.4g} L"
@@ -97,12 +102,13 @@ def end_of_run(summary: dict, folder: Path) -> str:
     """The closing line of a run: the work done and the volumes a physiologist reads."""
     largest = summary["largest_volume"]
     start = "imaged (start)" if summary.get("inverse") else "start"
+    show = litres if not summary.get("plane") else per_metre_of_thickness
     text = (
         f"lungmech: done in {summary['steps']} steps ({summary['cut_steps']} cut back), "
         f"{summary['newton_iterations']} Newton iterations, {summary['timings_seconds']['solve']:.1f} s "
-        f"({summary['solver']}); volume: {start} {litres(summary['start_volume'])}, largest "
-        f"{litres(largest['volume'])} at t = {largest['time']:.3g} s, final {litres(summary['deformed_volume'])}"
+        f"({summary['solver']}); volume: {start} {show(summary['start_volume'])}, largest "
+        f"{show(largest['volume'])} at t = {largest['time']:.3g} s, final {show(summary['deformed_volume'])}"
     )
     if summary.get("inverse"):
-        text += f"; unloaded reference {litres(summary['reference_volume'])}"
+        text += f"; unloaded reference {show(summary['reference_volume'])}"
     return text + f"; outputs in {folder}"

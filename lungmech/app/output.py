@@ -100,7 +100,7 @@ class FieldWriter:
         step = len(self._times)
         self._times.append(float(t))
         cells, points = self._grid
-        point_data = {f.name: f.x.array.reshape(len(points), -1) for f in self._point}
+        point_data = {f.name: _as_vtk(f.x.array.reshape(len(points), -1)) for f in self._point}
         cell_data = {f.name: [f.x.array[self._cell_dofs]] for f, _ in self._cells}
         name = f"fields_{step:06d}"
         piece = f"{name}.vtu" if comm.size == 1 else f"{name}_p{comm.rank}.vtu"
@@ -162,11 +162,20 @@ def _grid(space: fem.FunctionSpace) -> tuple[tuple[str, np.ndarray], np.ndarray]
 # VTK's Lagrange cells of order 2 are its quadratic cells, up to the order of two hexahedron edges.
 _HEX27 = [*range(18), 19, 18, *range(20, 27)]
 _MESHIO_TYPES = {
+    (5, 3): ("triangle", None),
+    (69, 6): ("triangle6", None),
+    (9, 4): ("quad", None),
+    (70, 9): ("quad9", None),
     (10, 4): ("tetra", None),
     (71, 10): ("tetra10", None),
     (12, 8): ("hexahedron", None),
     (72, 27): ("hexahedron27", _HEX27),
 }
+
+
+def _as_vtk(values: np.ndarray) -> np.ndarray:
+    """Point data as VTK reads vectors: an in-plane (2-D) vector gets its zero z component."""
+    return np.column_stack([values, np.zeros(len(values))]) if values.shape[1] == 2 else values
 
 
 def write_json(path: Path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:

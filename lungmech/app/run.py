@@ -29,7 +29,7 @@ from mpi4py import MPI
 
 import lungmech
 from lungmech import lung
-from lungmech.app.console import Progress, litres
+from lungmech.app.console import Progress, litres, per_metre_of_thickness
 from lungmech.app.console import pressure as show_pressure
 from lungmech.app.output import FieldWriter, write_json
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
@@ -95,6 +95,7 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
         geometry,
         scene.law() if material_parameters else scene.material,
         degree=scene.degree,
+        plane=scene.plane,
         formulation=scene.formulation,
         loads=scene.loads,
         constraints=scene.constraints,
@@ -269,7 +270,7 @@ def run(
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
             if probe is not None:
                 for i, value in enumerate(probe(model.displacement())):
-                    row |= {f"probe{i}_u{letter}": value[c] for c, letter in enumerate("xyz")}
+                    row |= {f"probe{i}_u{letter}": component for letter, component in zip("xyz", value)}
             history.append(row)
             if row["volume"] > largest["volume"]:
                 largest.update(volume=row["volume"], state=model.state.x.array.copy(), time=model.time)
@@ -284,7 +285,7 @@ def run(
             progress.update(
                 (model.time - stepping.start) / (stepping.end - stepping.start),
                 f"step {len(history) - 1}  t = {model.time:.3g}/{stepping.end:g} s{shown}  "
-                f"volume {litres(row['volume'])}{newton}",
+                f"volume {(litres if model.plane is None else per_metre_of_thickness)(row['volume'])}{newton}",
             )
 
         def cut(step: StepReport) -> None:
@@ -340,7 +341,8 @@ def run(
                 "points": [list(p) for p in scene.output.probes],
                 "displacement": probe(model.displacement()).tolist() if probe is not None else [],
             },
-            "units": SUMMARY_UNITS,
+            "plane": model.plane,
+            "units": per_thickness(SUMMARY_UNITS) if model.plane else SUMMARY_UNITS,
         }
         write_json(staging / "summary.json", summary, comm)
         on_root(comm, lambda: _write_history(scene, history, staging))
@@ -369,11 +371,19 @@ def _write_history(scene: Scene, history: list[dict], folder: Path) -> None:
     """history.csv, its columns named with their units (rank 0)."""
     labels = {load.label for load in scene.loads}
     columns = list(dict.fromkeys(k for row in history for k in row))
-    header = [f"{k} [{_column_unit(k, labels)}]" for k in columns]
+    units = {k: _column_unit(k, labels) for k in columns}
+    if scene.plane:
+        units = per_thickness(units)
+    header = [f"{k} [{units[k]}]" for k in columns]
     with open(folder / "history.csv", "w", newline="") as stream:
         table = csv.writer(stream)
         table.writerow(header)
         table.writerows([[row.get(k, "") for k in columns] for row in history])
+
+
+def per_thickness(units: dict[str, str]) -> dict[str, str]:
+    """The units of a 2-D body's results: volumes and energies are per metre of thickness."""
+    return {key: {"m^3": "m^3/m", "J": "J/m"}.get(unit, unit) for key, unit in units.items()}
 
 
 def _column_unit(key: str, loads: set[str]) -> str:

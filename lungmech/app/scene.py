@@ -26,6 +26,7 @@ from lungmech.app.output import FORMATS as FIELD_FORMATS
 from lungmech.errors import LungmechError, ParameterError, SceneError
 from lungmech.fem.constraints import Displacement, clamp, symmetry
 from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
+from lungmech.fem.kinematics import PLANES
 from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
 from lungmech.fem.materials import LAWS, Material, Sum
 from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
@@ -53,6 +54,9 @@ BUILDERS: dict[str, Callable] = {
     "sphere": _geometry.sphere,
     "ellipsoid": _geometry.ellipsoid,
     "lung_phantom": _geometry.lung_phantom,
+    "rectangle": _geometry.rectangle,
+    "cook_membrane": _geometry.cook_membrane,
+    "quarter_annulus": _geometry.quarter_annulus,
 }
 LOADS = {
     "body_force": BodyForce,
@@ -81,7 +85,9 @@ class Output:
             raise ParameterError(f"format must be one of {', '.join(FIELD_FORMATS)} (got {self.format!r})")
         if not isinstance(self.probes, Sequence) or isinstance(self.probes, str):
             raise ParameterError(f"probes must be a list of points [x, y, z] (got {self.probes!r})")
-        object.__setattr__(self, "probes", tuple(checks.vector(f"probes[{i}]", p) for i, p in enumerate(self.probes)))
+        object.__setattr__(
+            self, "probes", tuple(checks.vector(f"probes[{i}]", p, (2, 3)) for i, p in enumerate(self.probes))
+        )
 
 
 @dataclass(frozen=True)
@@ -89,6 +95,7 @@ class Scene:
     geometry: dict[str, Any]
     material: Material
     degree: int = 1
+    plane: str | None = None  # of a 2-D mesh: "strain" or "stress"
     formulation: Formulation = field(default_factory=PureDisplacement)
     constraints: tuple = ()
     loads: tuple = ()
@@ -169,6 +176,9 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
     formulation = dict(_section(table, "formulation"))
     degree = _typed(formulation.pop("degree", 1), int, "formulation.degree")
     kind = formulation.pop("type", "displacement")
+    plane = formulation.pop("plane", None)
+    if plane is not None and plane not in PLANES:
+        raise SceneError(f"formulation.plane: 'strain' or 'stress' (got {plane!r}); a 3-D mesh takes none")
     if kind not in FORMULATIONS:
         raise SceneError(f"formulation.type: unknown type {kind!r} (available: {', '.join(FORMULATIONS)})")
     if isinstance(formulation.get("phi_s0"), str):  # a file of cell values, next to the scene
@@ -181,6 +191,7 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
         geometry=_geometry_spec(_section(table, "geometry"), folder),
         material=material(_section(table, "material")),
         degree=degree,
+        plane=plane,
         formulation=_call(FORMULATIONS[kind], formulation, "formulation"),
         constraints=tuple(_entries(table, "constraints", CONSTRAINTS)),
         loads=tuple(_entries(table, "loads", LOADS)),

@@ -40,7 +40,7 @@ class Displacement:
             raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
         if not callable(self.value):
             scalar = isinstance(self.value, numbers.Real) and not isinstance(self.value, bool)
-            value = checks.real("value", self.value) if scalar else checks.vector("value", self.value)
+            value = checks.real("value", self.value) if scalar else checks.vector("value", self.value, (2, 3))
             object.__setattr__(self, "value", value)
         if isinstance(self.component, bool):
             raise ParameterError(f"component must be 0, 1, 2 or x, y, z (got {self.component!r})")
@@ -78,6 +78,12 @@ class ImposedValue:
 
 def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> ImposedValue:
     """The DirichletBC of ``constraint`` on the displacement (sub)space ``space``."""
+    gdim = geometry.mesh.geometry.dim
+    if constraint.component is not None and constraint.component >= gdim:
+        raise ParameterError(
+            f"imposed displacement on '{constraint.boundary}': component {'xyz'[constraint.component]} "
+            f"does not exist on a {gdim}-D mesh"
+        )
     sub = space if constraint.component is None else space.sub(constraint.component)
     values = sub.collapse()[0] if sub.component() else sub
     facets = geometry.facets(constraint.boundary)
@@ -98,6 +104,8 @@ def _as_callable(constraint: Displacement, size: int) -> Callable[[np.ndarray], 
     if callable(constraint.value):
         return constraint.value
     value = np.atleast_1d(np.asarray(constraint.value, dtype=float))
+    if value.size == 3 and size == 2 and value[2] == 0.0:
+        value = value[:2]  # a vector without z-part (e.g. a clamp's zeros) is the in-plane one
     if value.size != size:
         what = "a scalar" if size == 1 else f"{size} components"
         raise ParameterError(f"imposed displacement on '{constraint.boundary}' needs {what} (got {list(value)})")

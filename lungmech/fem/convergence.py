@@ -49,7 +49,7 @@ class Fields:
     def __init__(self, model):
         comm = model.geometry.mesh.comm
         constrained = model.constrained_dofs()
-        units = {"u": "N", **getattr(model.formulation, "residual_units", {})}
+        units = {"u": "N" if model.plane is None else "N/m", **getattr(model.formulation, "residual_units", {})}
         self.fields = [
             Field(name, units.get(name, "?"), np.setdiff1d(rows, constrained))
             for name, rows in model.field_dofs().items()

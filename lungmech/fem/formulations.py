@@ -150,3 +150,43 @@ class TaylorHood:
     def initial_values(self) -> dict[str, float]:
         """p starts at 0 (the stress-free state)."""
         return {}
+
+
+@dataclass(frozen=True)
+class PlaneStress:
+    """The displacement formulation of a thin plate: 2-D, plane stress (``Model(plane="stress")``).
+    u lies in the plane, in Lagrange P_k; the thickness stretch λ₃ is an unknown in DG_{k−1}.
+
+    .. math:: Π(u, λ₃) = ∫ ψ(F) dA + (load potentials),   F = [[I + ∇u, 0], [0, λ₃]]
+
+    Stationarity in λ₃ gives ∂ψ/∂λ₃ = S₃₃ λ₃ = 0: the faces of the plate are stress-free. It
+    holds at every point for P1 triangles (F is constant per cell, λ₃ too) and in the mean
+    against DG_{k−1} otherwise. Every compressible law works; energies and forces are per unit
+    reference thickness. No parameters.
+    """
+
+    fields: ClassVar[tuple[str, ...]] = ("thickness_stretch",)
+    residual_units: ClassVar[dict[str, str]] = {"thickness_stretch": "N/m"}  # ∫ ∂ψ/∂λ₃ μ dA, per unit thickness
+
+    def bind(self, mesh) -> PlaneStress:
+        """Itself: there are no data to place."""
+        return self
+
+    def check(self, material: Material, degree: int) -> None:
+        """Refuse an incompressible law: its energy is not defined off J = 1."""
+        if _incompressible(material):
+            raise ParameterError(
+                "an incompressible law (bulk = inf) cannot be used in plane stress here; give it a finite bulk modulus"
+            )
+
+    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+        """λ₃ in discontinuous Lagrange DG_{k−1}."""
+        return [basix.ufl.element("DG", cell, degree - 1)]
+
+    def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
+        """ψ(F) (Pa), F holding λ₃."""
+        return material.psi(F)
+
+    def initial_values(self) -> dict[str, float]:
+        """λ₃ starts at 1 (the unstretched plate)."""
+        return {"thickness_stretch": 1.0}

@@ -20,6 +20,7 @@ from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem.kinematics import current_area_normal
 from lungmech.fem.ramp import Ramp
 
 
@@ -50,15 +51,14 @@ class Named:
         where = (where,) if isinstance(where, str) else where
         return self.name or (f"{self.kind} on {'+'.join(where)}" if where else self.kind)
 
-    def _check(self, value_size: int | None) -> None:
-        """Validate name, ramp and value (a number, or ``value_size`` numbers), and the boundary."""
+    def _check(self, vector: bool) -> None:
+        """Validate name, ramp and value (a number, or a vector of 2 or 3 numbers: the model
+        checks it against the mesh's dimension), and the boundary."""
         if not isinstance(self.name, str):
             raise ParameterError(f"name must be a string (got {self.name!r})")
         if not isinstance(self.ramp, Ramp):
             raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
-        value = (
-            checks.real("value", self.value) if value_size is None else checks.vector("value", self.value, value_size)
-        )
+        value = checks.vector("value", self.value, (2, 3)) if vector else checks.real("value", self.value)
         object.__setattr__(self, "value", value)
         if hasattr(self, "boundary"):
             names = (self.boundary,) if isinstance(self.boundary, str) else self.boundary
@@ -82,7 +82,7 @@ class BodyForce(Named):
     kind: ClassVar[str] = "body force"
 
     def __post_init__(self):
-        self._check(3)
+        self._check(vector=True)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -ufl.dot(value, model.u) * ufl.dx(domain=model.geometry.mesh)
@@ -99,7 +99,7 @@ class Traction(Named):
     kind: ClassVar[str] = "traction"
 
     def __post_init__(self):
-        self._check(3)
+        self._check(vector=True)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         return -ufl.dot(value, model.u) * model.geometry.ds(self.boundary)
@@ -121,12 +121,11 @@ class FollowerPressure(Named):
     kind: ClassVar[str] = "follower pressure"
 
     def __post_init__(self):
-        self._check(None)
+        self._check(vector=False)
 
     def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
-        F = model.F
-        N = ufl.FacetNormal(model.geometry.mesh)
-        return -value * ufl.dot(ufl.det(F) * ufl.inv(F).T * N, v) * model.geometry.ds(self.boundary)
+        n_da = current_area_normal(model.F, ufl.FacetNormal(model.geometry.mesh))
+        return -value * ufl.dot(n_da, v) * model.geometry.ds(self.boundary)
 
 
 Load = BodyForce | Traction | FollowerPressure

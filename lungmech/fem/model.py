@@ -21,8 +21,8 @@ from lungmech.errors import ParameterError
 from lungmech.fem import binding
 from lungmech.fem import constraints as _constraints
 from lungmech.fem.constraints import Displacement
-from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
-from lungmech.fem.kinematics import deformation_gradient
+from lungmech.fem.formulations import Formulation, PlaneStress, PureDisplacement, TaylorHood
+from lungmech.fem.kinematics import PLANES, deformation_gradient
 from lungmech.fem.loads import Load, StateDependentWork
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
@@ -43,6 +43,9 @@ class Model:
         loads: body forces, tractions, follower pressures (:mod:`lungmech.fem.loads`).
         constraints: imposed displacements (:mod:`lungmech.fem.constraints`).
         quadrature_degree: overrides the law's own choice.
+        plane: on a 2-D mesh, ``"strain"`` (a long body, λ₃ = 1) or ``"stress"`` (a thin plate,
+            λ₃ solved for; the displacement formulation only), see
+            :mod:`lungmech.fem.kinematics`. Required in 2-D, refused in 3-D.
         parameters: named parameters μ (:mod:`lungmech.fem.parameters`), set with
             :meth:`set_parameters` without recompiling anything.
     """
@@ -59,8 +62,10 @@ class Model:
         constraints: Sequence[Displacement] = (),
         quadrature_degree: int | None = None,
         parameters: Sequence[Parameter] = (),
+        plane: str | None = None,
     ):
         mesh = geometry.mesh
+        self.plane = _plane(mesh, plane)
         self.geometry = geometry
         self.parameters = Parameters(parameters)
         self._interfaces = {p.name: fem.Constant(mesh, p.default) for p in self.parameters if p.kind == "interface"}
@@ -68,9 +73,22 @@ class Model:
         material = law_at(binding.outside_keys(self.parameters, self.parameters.defaults))
         self.material, assign_material = binding.material(law_at, self.parameters, geometry, self._interfaces)
         unbound = formulation or (TaylorHood() if mixed else PureDisplacement())
+        if self.plane == "stress":
+            if not isinstance(unbound, PureDisplacement):
+                raise ParameterError(
+                    f"plane stress works with the displacement formulation only (got {type(unbound).__name__}); "
+                    "use plane = 'strain'"
+                )
+            unbound = PlaneStress()
         self.formulation = unbound.bind(mesh)
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
+        for load in self.loads:
+            if np.ndim(load.value) == 1 and len(load.value) != mesh.geometry.dim:
+                raise ParameterError(
+                    f"load '{getattr(load, 'label', type(load).__name__)}': its value has {len(load.value)} "
+                    f"components, the mesh is {mesh.geometry.dim}-D"
+                )
         if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
             raise ParameterError(f"the displacement degree must be an integer >= 1 (got {degree!r})")
         if degree < mesh.geometry.cmaps[0].degree:
@@ -98,7 +116,7 @@ class Model:
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
         self.u = self.fields["u"]
 
-        self.F = deformation_gradient(self.u)
+        self.F = deformation_gradient(self.u, self.fields.get("thickness_stretch"))
         self.energy_density = self.formulation.energy_density(self.material, self.F, self.fields)
 
         v = ufl.TestFunction(self.space)
@@ -255,3 +273,24 @@ class Model:
         gradient_degree = self.degree - 1 if affine else self.degree
         gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
         return self.material.quadrature_degree(gradient_degree)
+
+
+def _plane(mesh, plane: str | None) -> str | None:
+    """The plane hypothesis of a 2-D mesh (required), None for a 3-D one (where it is refused)."""
+    tdim, gdim = mesh.topology.dim, mesh.geometry.dim
+    if tdim == 2:
+        if gdim != 2:
+            raise ParameterError(
+                f"a 2-D mesh needs 2-D coordinates (its nodes have {gdim}); read or build it with 2 coordinates"
+            )
+        if plane not in PLANES:
+            raise ParameterError(
+                f"a 2-D mesh needs plane = 'strain' (a long body) or 'stress' (a thin plate) (got {plane!r}; "
+                "in a scene: [formulation] plane)"
+            )
+        return plane
+    if tdim != 3:
+        raise ParameterError(f"meshes of dimension 2 or 3 are supported (got {tdim})")
+    if plane is not None:
+        raise ParameterError(f"plane = {plane!r} is for 2-D meshes; this mesh is 3-D")
+    return None

@@ -62,8 +62,13 @@ class Probe:
 
     def __init__(self, mesh, points: Sequence[Sequence[float]]):
         self.points = np.atleast_2d(np.asarray(points, dtype=float))
-        if self.points.shape[1] != 3:
-            raise ParameterError(f"probe points need 3 coordinates each (got shape {self.points.shape})")
+        gdim = mesh.geometry.dim
+        if self.points.ndim != 2 or self.points.shape[1] != gdim:
+            raise ParameterError(
+                f"probe points need {gdim} coordinates each on a {gdim}-D mesh (got shape {self.points.shape})"
+            )
+        if gdim == 2:  # DOLFINx locates points by 3 coordinates
+            self.points = np.column_stack([self.points, np.zeros(len(self.points))])
         tree = dgeometry.bb_tree(mesh, mesh.topology.dim)
         candidates = dgeometry.compute_collisions_points(tree, self.points)
         colliding = dgeometry.compute_colliding_cells(mesh, candidates, self.points)

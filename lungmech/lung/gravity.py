@@ -71,9 +71,9 @@ class Gravity(Named):
     def __post_init__(self):
         checks.real("gravity: density", self.density, positive=True)
         try:
-            object.__setattr__(self, "acceleration", checks.vector("acceleration", self.acceleration))
+            object.__setattr__(self, "acceleration", checks.vector("acceleration", self.acceleration, (2, 3)))
         except ParameterError:
-            raise ParameterError(f"gravity: acceleration needs 3 components (got {self.acceleration!r})") from None
+            raise ParameterError(f"gravity: acceleration needs 2 or 3 components (got {self.acceleration!r})") from None
         balanced_on = (self.balanced_on,) if isinstance(self.balanced_on, str) else self.balanced_on
         if (
             isinstance(balanced_on, bytes)
@@ -95,6 +95,10 @@ class Gravity(Named):
     def virtual_work(self, model, v: Expr, value: Expr) -> StateDependentWork | None:
         if not self.balanced_on:
             return None
+        if model.geometry.mesh.geometry.dim != 3:
+            raise ParameterError(
+                "gravity: balanced_on is for 3-D bodies; in 2-D the weight is carried where it is held"
+            )
         pressure = _BalancingPressure(self, model, v, value)
         return StateDependentWork(pressure.form, pressure.update, pressure.linearise)
 

@@ -271,7 +271,7 @@ class AlveolarPressure(Named):
     kind: ClassVar[str] = "alveolar pressure"
 
     def __post_init__(self):
-        self._check(None)
+        self._check(vector=False)
 
     def potential(self, model, value: Expr) -> ufl.Form:
         """−∫ p_f (J − Φs) dX (J): the work of the air pressure on the air volume."""

@@ -1,10 +1,10 @@
 """Meshes with named boundaries: the :class:`Geometry`, its builders, mesh files, and its nodes.
 
-``geometry`` (the class and its measures) · ``builders`` (box, sphere, ellipsoid, lung phantom) ·
+``geometry`` (the class and its measures) · ``builders`` (box, rectangle, Cook's membrane, quarter annulus, sphere, ellipsoid, lung phantom) ·
 ``files`` (.msh and .xdmf in and out) · ``nodes`` (the one owner of node moves) · ``lung_shape``.
 """
 
-from lungmech.mesh.builders import box, ellipsoid, lung_phantom, sphere
+from lungmech.mesh.builders import box, cook_membrane, ellipsoid, lung_phantom, quarter_annulus, rectangle, sphere
 from lungmech.mesh.files import companions, from_file, is_lungmech_mesh, write
 from lungmech.mesh.geometry import Geometry, diameter
 from lungmech.mesh.lung_shape import LungShape
@@ -15,12 +15,15 @@ __all__ = [
     "LungShape",
     "box",
     "companions",
+    "cook_membrane",
     "diameter",
     "ellipsoid",
     "from_file",
     "is_lungmech_mesh",
     "lung_phantom",
     "node_dofs",
+    "quarter_annulus",
+    "rectangle",
     "sphere",
     "write",
 ]
