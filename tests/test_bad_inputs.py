@@ -64,9 +64,15 @@ def swap(old: str, new: str, base: str = TINY) -> str:
 # (scene text, what the message must say). The scene is written to scene.toml and run into out/.
 SCENES = {
     # numbers where numbers belong
-    "traction is a word": (swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'), "loads[0]: value must be 2 or 3 numbers"),
+    "traction is a word": (
+        swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'),
+        "loads[0]: value must be 2 or 3 numbers",
+    ),
     "traction component is a word": (swap("[0.0, 0.0, -10.0]", '["a", 0.0, -10.0]'), "value[0] must be a number"),
-    "traction of 2 components": (swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"), "its value has 2 components, the mesh is 3-D"),
+    "traction of 2 components": (
+        swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"),
+        "its value has 2 components, the mesh is 3-D",
+    ),
     "traction of 4 components": (swap("[0.0, 0.0, -10.0]", "[0.0, 0.0, -10.0, 1.0]"), "value must be 2 or 3 numbers"),
     "traction is true": (swap("value = [0.0, 0.0, -10.0]", "value = true"), "value must be 2 or 3 numbers"),
     "pressure is a word": (
