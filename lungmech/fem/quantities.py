@@ -21,6 +21,15 @@ def integral(form: ufl.Form, comm: MPI.Comm) -> Callable[[], float]:
     return lambda: comm.allreduce(fem.assemble_scalar(compiled), op=MPI.SUM)
 
 
+def assemble_owned(form: fem.Form, vector: la.Vector, owned: int) -> np.ndarray:
+    """The owned entries of the linear ``form`` assembled into ``vector`` (a work vector of the
+    form's space, overwritten); contributions of ghost cells go to their owners. Collective."""
+    vector.array[:] = 0.0
+    fem.assemble_vector(vector.array, form)
+    vector.scatter_reverse(la.InsertMode.add)
+    return vector.array[:owned].copy()
+
+
 def vector_integral(expr: ufl.core.expr.Expr, measure: ufl.Measure, mesh) -> Callable[[], np.ndarray]:
     """A function returning the global integral of a vector or tensor expression, all components at once.
 

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import ufl
-from dolfinx import fem, la
+from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -56,6 +56,7 @@ from ufl.algorithms.map_integrands import map_integrands
 
 from lungmech.errors import ParameterError
 from lungmech.fem.linear import factorised
+from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram
 
 __all__ = [
@@ -251,10 +252,7 @@ def residual_derivatives(model, derivatives: ValueDerivatives | None = None) -> 
         forms.set_weights(derivatives, i)
         if forms.residual is None:
             break
-        vector.array[:] = 0.0
-        fem.assemble_vector(vector.array, forms.residual)
-        vector.scatter_reverse(la.InsertMode.add)
-        columns[:, i] = vector.array[:owned]
+        columns[:, i] = assemble_owned(forms.residual, vector, owned)
     return columns
 
 
@@ -355,10 +353,7 @@ def output_derivatives(
     vector = fem.Function(model.space).x
 
     def gradient(form) -> np.ndarray:
-        vector.array[:] = 0.0
-        fem.assemble_vector(vector.array, form)
-        vector.scatter_reverse(la.InsertMode.add)
-        return vector.array[:owned, None].copy()
+        return assemble_owned(form, vector, owned)[:, None]
 
     volume = gram(gradient(forms.volume_gradient), dx, comm)[0]
     energy = gram(gradient(forms.energy_gradient), dx, comm)[0]

@@ -29,13 +29,13 @@ from typing import ClassVar
 
 import numpy as np
 import ufl
-from dolfinx import fem, la
+from dolfinx import fem
 from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import Named, StateDependentWork
-from lungmech.fem.quantities import vector_integral
+from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.fem.ramp import Ramp
 
 
@@ -210,12 +210,8 @@ class _BalancingPressure:
         return np.column_stack(work), np.column_stack(centre + coefficients)
 
     def _assemble(self, form) -> np.ndarray:
-        vector = self._vector
-        vector.array[:] = 0.0
-        fem.assemble_vector(vector.array, form)
-        vector.scatter_reverse(la.InsertMode.add)
         index_map = self.space.dofmap.index_map
-        return vector.array[: index_map.size_local * self.space.dofmap.index_map_bs].copy()
+        return assemble_owned(form, self._vector, index_map.size_local * self.space.dofmap.index_map_bs)
 
 
 def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

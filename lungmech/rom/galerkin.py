@@ -13,12 +13,13 @@ same load stepping (:func:`lungmech.fem.solver.solve`), outputs and state-depend
 from __future__ import annotations
 
 import numpy as np
-from dolfinx import fem, la
+from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields
 from lungmech.fem.limits import Inversion, displacement_gradient
+from lungmech.fem.quantities import assemble_owned
 from lungmech.fem.solver import NewtonOptions, NewtonResult
 from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.layout import layout
@@ -100,11 +101,8 @@ class ReducedSolver:
         """Vᵀ R(x₀ + V q) (sets the model's state)."""
         self.reconstruct(q)
         self.state_dependent.update()  # θ = Θ(x₀ + V q): balanced exactly at every iterate
-        vector = self._vector
-        vector.array[:] = 0.0
-        fem.assemble_vector(vector.array, self._residual)
-        vector.scatter_reverse(la.InsertMode.add)
-        return gram(self.V, vector.array[: self.owned, None], self.comm)[:, 0]
+        residual = assemble_owned(self._residual, self._vector, self.owned)
+        return gram(self.V, residual[:, None], self.comm)[:, 0]
 
     def reduced_jacobian(self) -> np.ndarray:
         """Vᵀ (K + U Wᵀ) V at the model's current state, U Wᵀ the tangent of state-dependent load
@@ -116,7 +114,7 @@ class ReducedSolver:
         reduced = gram(self.V, apply(A, self.V, self.comm), self.comm)
         if self.state_dependent:
             U, W = self.state_dependent.low_rank()
-            reduced += gram(self.V, U[: self.owned], self.comm) @ gram(W[: self.owned], self.V, self.comm)
+            reduced += gram(self.V, U, self.comm) @ gram(W, self.V, self.comm)
         return reduced
 
     def _newton(self) -> NewtonResult:
