@@ -63,6 +63,23 @@ def swap(old: str, new: str, base: str = TINY) -> str:
 
 # (scene text, what the message must say). The scene is written to scene.toml and run into out/.
 SCENES = {
+    # 2-D bodies
+    "2-D mesh without a plane": (
+        swap(
+            "value = [0.0, 0.0, -10.0]",
+            "value = [0.0, -10.0]",
+            swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', 'builder = "rectangle"'),
+        ),
+        "a 2-D mesh needs plane = 'strain' (a long body) or 'stress' (a thin plate) (got None; in a scene: [formulation] plane)",
+    ),
+    "unknown plane": (
+        swap("[[constraints]]", '[formulation]\nplane = "diagonal"\n[[constraints]]'),
+        "formulation.plane: 'strain' or 'stress'",
+    ),
+    "plane on a 3-D mesh": (
+        swap("[[constraints]]", '[formulation]\nplane = "strain"\n[[constraints]]'),
+        "plane = 'strain' is for 2-D meshes; this mesh is 3-D",
+    ),
     # numbers where numbers belong
     "traction is a word": (
         swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'),

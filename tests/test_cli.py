@@ -85,6 +85,26 @@ def test_run_writes_outputs(tmp_path):
     assert (tmp_path / "out" / "history.csv").read_text().startswith("time [s],volume [m^3],strain_energy [J]")
 
 
+PLANE_STRAIN = (
+    TINY.replace(
+        'builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]',
+        'builder = "rectangle"\ncells = [2, 1]\nlengths = [2.0, 1.0]',
+    )
+    .replace("value = [0.0, 0.0, -10.0]", "value = [0.0, -10.0]")
+    .replace("[[constraints]]", '[formulation]\nplane = "strain"\n[[constraints]]')
+    .replace("fields = false", "fields = true\nprobes = [[2.0, 1.0]]")
+)
+
+
+def test_a_two_dimensional_scene_reports_per_metre_of_thickness(tmp_path):
+    summary = run(scenes.load(write(tmp_path, PLANE_STRAIN)), tmp_path / "out")
+    assert summary["plane"] == "strain" and summary["units"]["deformed_volume"] == "m^3/m"
+    assert summary["start_volume"] == pytest.approx(2.0)  # the 2 m × 1 m rectangle, per metre of thickness
+    header = (tmp_path / "out" / "history.csv").read_text().splitlines()[0]
+    assert header.startswith("time [s],volume [m^3/m],strain_energy [J/m]") and "probe0_uy [m]" in header
+    assert "probe0_uz" not in header and (tmp_path / "out" / "fields_000001.vtu").is_file()
+
+
 def test_failed_run_keeps_previous_results(tmp_path):
     good = tmp_path / "out"
     run(scenes.load(write(tmp_path, TINY)), good)
