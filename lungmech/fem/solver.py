@@ -226,13 +226,17 @@ class NewtonSolver:
             self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
         self._residuals: list[float] = []
         snes = self.problem.solver
-        snes.setMonitor(lambda snes, it, norm: self._residuals.append(float(norm)))
+        # Callbacks PETSc holds capture no `self`: Python's collector cannot see PETSc's references,
+        # so a solver in such a cycle would never be freed (nor its mesh and its MPI communicators).
+        residuals = self._residuals
+        snes.setMonitor(lambda snes, it, norm: residuals.append(float(norm)))
         self.test = convergence.Test(convergence.Fields(model), self.options.rtol, self.options.atol)
         self.inversion = limits.Inversion(model)
         limits.displacement_gradient(model)  # compiled now, for the first step: later solves compile nothing
         self.description = "full order"
         K = self.problem.A  # the assembled tangent at frozen load coefficients (the round-off floors use it)
-        snes.setConvergenceTest(lambda snes, it, norms: self.test(snes.getFunction()[0], it, K, snes.getSolution()))
+        test = self.test
+        snes.setConvergenceTest(lambda snes, it, norms: test(snes.getFunction()[0], it, K, snes.getSolution()))
         self.state_dependent = StateDependent(model)
         self._exact_step = None
         if self.state_dependent:
