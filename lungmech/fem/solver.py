@@ -213,7 +213,8 @@ class NewtonSolver:
                 "use the direct solver with the mixed formulation"
             )
         prefix = f"lungmech_{next(_prefixes)}_"
-        self.problem = NonlinearProblem(
+        PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
+        self.problem = _Problem(
             model.residual if residual is None else residual,
             model.state,
             bcs=model.bcs,
@@ -303,7 +304,6 @@ class NewtonSolver:
         snes.setJacobian(jacobian, operator, K)
         snes.setLineSearchPreCheck(exact_step)
         self._exact_step = exact_step
-        weakref.finalize(self, lambda: [m.destroy() for m in (operator, *factors)])
 
     def linear_step(self) -> None:
         """Move the state by one Newton step at the current loads, without a line search or a
@@ -365,6 +365,17 @@ class NewtonSolver:
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
+
+
+class _Problem(NonlinearProblem):
+    """DOLFINx's NonlinearProblem, left to petsc4py to free. DOLFINx destroys its PETSc objects
+    when Python collects it, which may happen at another moment on each rank (a collector cycle,
+    an exception's traceback held on one rank only); destroying a MUMPS factorisation is
+    collective, so that could hang. petsc4py instead puts distributed objects on PETSc's garbage
+    list, which NewtonSolver empties collectively (``PETSc.garbage_cleanup``)."""
+
+    def __del__(self):
+        pass
 
 
 @dataclass(frozen=True)
