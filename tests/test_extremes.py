@@ -67,13 +67,13 @@ def test_a_softening_law_stops_at_its_limit_point(lung):
 
 
 def test_a_slender_bar_crushed_buckles():
+    """The path stops at the bifurcation: its last converged state has a tangent with an
+    eigenvalue of the wrong sign, or one that kept less than a tenth of its value at rest."""
     geometry = box(MPI.COMM_SELF, (1.0, 0.2, 0.2), (6, 2, 2))
     model = Model(
         geometry, NeoHookean.from_young(10.0, NU), constraints=[clamp("x0"), Displacement("x1", (-1.5, 0.0, 0.0))]
     )
-    with pytest.raises(
-        SolverError, match="loss of stability: the tangent stiffness has an eigenvalue of the wrong sign"
-    ):
+    with pytest.raises(SolverError, match="loss of stability: the tangent stiffness .*buckling, or a bifurcation"):
         solve(model, STEPPING, NEWTON, monitor=lambda step: None)
 
 

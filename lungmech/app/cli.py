@@ -96,6 +96,13 @@ def main(argv: list[str] | None = None) -> int:
                 130, "lungmech: interrupted; nothing was written and earlier results are unchanged", interrupted=True
             )
         except Exception as error:  # a bug: say so in one line, with the traceback on request
+            if Interrupted.pending is not None:  # a signal inside a PETSc callback, surfacing as its error
+                return _fail(
+                    128 + Interrupted.pending,
+                    f"lungmech: interrupted by {Interrupted(Interrupted.pending).name}; nothing was written and "
+                    "earlier results are unchanged",
+                    interrupted=True,
+                )
             if os.environ.get("LUNGMECH_DEBUG"):
                 raise
             return _fail(

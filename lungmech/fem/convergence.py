@@ -6,9 +6,10 @@ all, nor every stiffness from 1 Pa to 1 GPa. So each field b is judged on its ow
 
     |r_b| <= max(rtol · R_b, atol, floor_b),
 
-where R_b is the field's load scale — the largest residual it starts a Newton solve with along
-the current load path (the first step's load, for a path from rest), rows next to imposed
-displacements left out — and floor_b the round-off floor of its residual,
+where R_b is the field's load scale — the largest load a step of the current load path has put
+on the last equilibrium (the residual there at the step's loads: the first step's load, for a
+path from rest; not the residual of a predicted state), rows next to imposed displacements left
+out — and floor_b the round-off floor of its residual,
 
     floor_b = ε · ‖(|K| s)_b‖,    s = |x| + h·(1 on the displacement),
 
@@ -19,7 +20,11 @@ x − g and must vanish to 1000 ε·h.
 
 A residual may stop at its floor only after falling to it quadratically (the last step cut it
 tenfold, or the one before already sat within ten floors): a Newton solve that merely stalls is
-not called converged. A solve that does not converge says which field failed which test.
+not called converged. One that stalls — no field's residual falls by STALL_GAIN (1 %) in
+STALL_ITERATIONS (5) iterations in a row — is stopped as diverged: a damped Newton crawling
+along a curved valley (a nearly incompressible solid asked for too large a step) rarely arrives
+within the iteration limit, and a shorter load step is cheaper. A solve that does not converge
+says which field failed which test.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from petsc4py import PETSc
 __all__ = ["Fields", "absolute_product"]
 
 EPS = float(np.finfo(float).eps)
+STALL_GAIN, STALL_ITERATIONS = 0.01, 5  # a Newton solve gaining less, that many times in a row, has stalled
 
 
 @dataclass(frozen=True)
@@ -138,12 +144,12 @@ def _coupled(space, constrained: np.ndarray) -> np.ndarray:
 
 class Test:
     """The convergence test of a solver's Newton solves. :meth:`start_path` when a load path
-    begins (the scales start again), :meth:`new_step` when a load step begins, :meth:`start`
-    before each Newton solve.
+    begins (the scales start again), :meth:`new_step` when a load step begins, :meth:`load`
+    with its load, :meth:`start` before each Newton solve.
 
-    A field's scale R_b is the largest starting residual (iteration 0) of the path's solves,
-    leaving out the rows next to imposed displacements, where a moved constraint shows as a
-    residual that is no load (a rigid translation imposed on a body, say).
+    A field's scale R_b is the largest step load of the path, leaving out the rows next to
+    imposed displacements, where a moved constraint shows as a residual that is no load (a rigid
+    translation imposed on a body, say).
     """
 
     def __init__(self, fields: Fields, rtol: float, atol: float):
@@ -158,16 +164,20 @@ class Test:
         self.floor: np.ndarray | None = None  # from the step's first tangent
         self.start()
 
+    def load(self, residual: PETSc.Vec) -> None:
+        """A Newton solve's load: its starting residual at the last equilibrium (collective)."""
+        self.scale = np.maximum(self.scale, self.fields.norms(residual, leave_out=self.fields.lifted)[0])
+
     def start(self) -> None:
         self.history: list[np.ndarray] = []
         self.constrained = 0.0
+        self.stalled = False
 
     def __call__(self, residual: PETSc.Vec, iteration: int, jacobian: PETSc.Mat | None, x: PETSc.Vec) -> int:
         """0 (go on) or a PETSc converged reason (> 0) for the residual at ``iteration``."""
         norms, self.constrained = self.fields.norms(residual)
         self.history.append(norms)
         if iteration == 0 or jacobian is None:
-            self.scale = np.maximum(self.scale, self.fields.norms(residual, leave_out=self.fields.lifted)[0])
             return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS if not norms.any() and not self.constrained else 0
         if self.floor is None:
             self.floor = self.fields.floors(jacobian, x)
@@ -182,12 +192,21 @@ class Test:
                 if np.all(below)
                 else PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
             )
+        recent = np.array(self.history[-STALL_ITERATIONS - 1 :])
+        if len(recent) > STALL_ITERATIONS and np.all(recent[1:] > (1 - STALL_GAIN) * recent[:-1]):
+            self.stalled = True
+            return PETSc.SNES.ConvergedReason.DIVERGED_DTOL
         return 0
 
     def describe(self) -> str:
         """What the last residual lacked, field by field (for a failure message)."""
         if not self.history:
             return "the residual is not a finite number (nan or inf)"
+        if self.stalled:
+            return (
+                f"stalled: no residual fell by {STALL_GAIN:.0%} in {STALL_ITERATIONS} iterations in a row "
+                f"({', '.join(f'{f.name} {n:.2e} {f.unit}' for f, n in zip(self.fields.fields, self.history[-1]))})"
+            )
         norms = self.history[-1]
         floors = self.floor if self.floor is not None else [None] * len(norms)
         parts = []

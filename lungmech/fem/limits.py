@@ -41,7 +41,7 @@ __all__ = [
     "smallest_eigenvalue",
 ]
 
-STABILITY_LOST = 0.05  # |λ_min| below this fraction of its value at rest
+STABILITY_LOST = 0.1  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 

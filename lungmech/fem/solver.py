@@ -243,10 +243,31 @@ class NewtonSolver:
         if self.state_dependent:
             self._couple_state_dependent()
 
-    def solve(self) -> NewtonResult:
-        """One Newton solve from the current state: (converged, iterations, residuals, reason)."""
+    def solve(self, start: np.ndarray | None = None) -> NewtonResult:
+        """One Newton solve at the current loads: (converged, iterations, residuals, reason).
+
+        It starts from the current state, or from ``start`` (a prediction, owned and ghost
+        entries of the state array). Either way the step's load — the residual at the current
+        state, the last equilibrium — sets the convergence test's scale, not the residual of a
+        prediction (which is small when it is good, and large where a nearly incompressible
+        solid leaves its isochoric manifold)."""
         self.test.new_step()
+        try:
+            self.test.load(self._residual())
+        except PETSc.Error as error:  # e.g. a callback of a state-dependent load that failed
+            Interrupted.raise_pending()  # or a Ctrl-C inside it
+            return NewtonResult(False, 0, (), f"PETSc error {error.ierr}: {_petsc_message(error)}")
+        if start is not None:
+            self.model.state.x.array[:] = start
+            self.model.state.x.scatter_forward()
         return self._newton()
+
+    def _residual(self) -> PETSc.Vec:
+        """The residual at the current state and loads (the problem's residual vector)."""
+        x, b = self.problem.x, self.problem.b
+        assign(self.model.state, x)
+        self.problem.solver.computeFunction(x, b)
+        return b
 
     def _couple_state_dependent(self) -> None:
         """Newton on R(u, Θ(u)) for loads with state-dependent coefficients θ (balanced gravity):
@@ -395,8 +416,9 @@ class Solver(Protocol):
     model: Any
     description: str  # for summaries, e.g. "full order"
 
-    def solve(self) -> NewtonResult:
-        """One Newton solve from the model's current state, at its current loads."""
+    def solve(self, start: np.ndarray | None = None) -> NewtonResult:
+        """One Newton solve at the model's current loads, from its current state or ``start``
+        (a prediction; the current state is the last equilibrium)."""
         ...
 
     def start_path(self) -> None:
@@ -491,38 +513,45 @@ def solve(
     drive(t)
     first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
     solver.start_path()
-    dt = stepping.initial_step
+    dt, rate = stepping.initial_step, None
     if dt is None:
-        dt = first_step(model, solver, drive, t, min(stepping.max_step, targets[0] - t), stepping.min_step)
+        dt, rate = first_step(model, solver, drive, t, min(stepping.max_step, targets[0] - t), stepping.min_step)
     kinks = [b for b in breakpoints if stepping.start < b < stepping.end]
-    last, previous, previous_dt = state.copy(), None, None
+    path = _Path(t, state)
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
             dt = min(dt, stepping.max_step, target - t)
-            if previous is not None:  # linear predictor from the last two converged states
-                state[:] = last + (dt / previous_dt) * (last - previous)
             drive(t + dt)
             tic = time.perf_counter()
-            result = solver.solve()
+            prediction, linear_solves = path.predict(t + dt, solver, rate)
+            result = solver.solve(start=prediction)
             converged = result.converged
             step = StepReport(
-                t + dt, dt, result.iterations, result.residuals, result.reason, time.perf_counter() - tic, converged
+                t + dt,
+                dt,
+                linear_solves + result.iterations,
+                result.residuals,
+                result.reason,
+                time.perf_counter() - tic,
+                converged,
             )
             report.steps.append(step)
             (monitor or _log_step)(step)
             if converged:
-                previous, previous_dt, last = last, dt, state.copy()
                 t += dt
+                rate = None  # the tangent at the start predicts the first step only
                 if any(abs(t - kink) <= 1e-12 * (stepping.end - stepping.start) for kink in kinks):
-                    previous = None  # the load turns here: extrapolating the last step would cross it
+                    path = _Path(t, state)  # the load turns here: extrapolating across it would mislead
+                else:
+                    path.append(t, state)
                 if on_step is not None:
                     on_step(step)
-                if result.iterations <= stepping.easy_iterations:
+                if step.iterations <= stepping.easy_iterations:
                     dt *= stepping.growth
                 continue
             final = dt <= stepping.min_step * (1 + 1e-12)
             smallest_J = limits.min_jacobian(model)() if final else None  # of the failed iterate
-            state[:] = last
+            state[:] = path.last
             model.state.x.scatter_forward()
             if final:
                 drive(t)
@@ -539,15 +568,20 @@ FIRST_STRAIN_INCREMENT = 0.1  # the largest |ΔF| the tangent may predict for an
 
 def first_step(
     model, solver: Solver, drive: Callable[[float], None], t: float, interval: float, min_step: float
-) -> float:
-    """The first step from t: ``interval``, shortened to interval · s/|ΔF|_max when one linear
-    solve of the tangent at the start state predicts a displacement-gradient increment
-    |ΔF|_max (Frobenius, at the quadrature points) above s = FIRST_STRAIN_INCREMENT. Newton
-    converges from the linearised response of small strain increments; the estimate is
-    conservative for stiffening laws. The state and the loads are left as they were."""
+) -> tuple[float, np.ndarray | None]:
+    """The first step from t, and the tangent's rate of change of the state there.
+
+    The step is ``interval``, shortened to interval · s/|ΔF|_max when one linear solve of the
+    tangent at the start state predicts a displacement-gradient increment |ΔF|_max (Frobenius, at
+    the quadrature points) above s = FIRST_STRAIN_INCREMENT. Newton converges from the linearised
+    response of small strain increments; the estimate is conservative for stiffening laws. The
+    rate Δx/interval (None if the tangent was singular) predicts the first step's state: the loads
+    are linear in t within the interval, so the tangent's response is too. The state and the loads
+    are left as they were."""
     gradient = limits.displacement_gradient(model)
+    rate = None
     with model.kept_state():
-        before = gradient()
+        before, start = gradient(), model.state.x.array.copy()
         drive(t + interval)
         try:
             solver.linear_step()
@@ -555,14 +589,57 @@ def first_step(
             local = float(change.max()) if change.size else 0.0
             if not np.isfinite(change).all():
                 local = np.inf
+            rate = (model.state.x.array - start) / interval
         except PETSc.Error:  # a singular tangent at the start: no estimate, the stepping adapts
+            Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
             local = 0.0
         finally:
             drive(t)
     largest = model.geometry.mesh.comm.allreduce(local, op=MPI.MAX)
+    if not np.isfinite(largest) or model.geometry.mesh.comm.allreduce(rate is None, op=MPI.LOR):
+        rate = None
     if largest <= FIRST_STRAIN_INCREMENT:
-        return interval
-    return max(min_step, interval * FIRST_STRAIN_INCREMENT / largest)
+        return interval, rate
+    return max(min_step, interval * FIRST_STRAIN_INCREMENT / largest), rate
+
+
+class _Path:
+    """The converged states of one smooth stretch of a load path (from its start or its last
+    ramp breakpoint), kept to predict the next step's state (the last three at most)."""
+
+    def __init__(self, t: float, state: np.ndarray):
+        self.times, self.states = [t], [state.copy()]
+
+    @property
+    def last(self) -> np.ndarray:
+        return self.states[-1]
+
+    def append(self, t: float, state: np.ndarray) -> None:
+        self.times, self.states = [*self.times[-2:], t], [*self.states[-2:], state.copy()]
+
+    def predict(self, t: float, solver: Solver, rate: np.ndarray | None) -> tuple[np.ndarray | None, int]:
+        """A prediction of the state at t (the loads already at t), and how many linear solves it
+        cost. With two or three converged states: their Lagrange extrapolation,
+        x(t) ≈ Σ_i x_i Π_{j≠i} (t − t_j)/(t_i − t_j), exact for a path of that degree in t. With
+        one: the tangent's response x_0 + K⁻¹(load increment), taken in full. Newton's first step
+        from an equilibrium is that same response, but a line search judging it by the energy may
+        crawl along it where the path curves (a nearly incompressible solid: a tangential step
+        leaves the isochoric manifold to second order, at a bulk modulus' cost), while from the
+        prediction Newton corrects back onto the path. None: no prediction (a singular tangent)."""
+        if len(self.times) > 1:
+            return sum(
+                x_i * math.prod((t - t_j) / (t_i - t_j) for j, t_j in enumerate(self.times) if j != i)
+                for i, (t_i, x_i) in enumerate(zip(self.times, self.states))
+            ), 0
+        if rate is not None:
+            return self.last + (t - self.times[0]) * rate, 0
+        with solver.model.kept_state():
+            try:
+                solver.linear_step()
+            except PETSc.Error:  # a singular tangent: Newton starts from the last state
+                Interrupted.raise_pending()
+                return None, 1
+            return solver.model.state.x.array.copy(), 1
 
 
 def _log_step(step: StepReport) -> None:

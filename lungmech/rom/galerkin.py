@@ -75,8 +75,12 @@ class ReducedSolver:
     def start_path(self) -> None:
         """A new load path begins (each reduced solve scales its own residual)."""
 
-    def solve(self) -> NewtonResult:
-        """One reduced Newton solve from (the projection of) the current state."""
+    def solve(self, start: np.ndarray | None = None) -> NewtonResult:
+        """One reduced Newton solve from (the projection of) the current state, or of ``start``
+        (a prediction; each reduced solve scales its own residual)."""
+        if start is not None:
+            self.model.state.x.array[:] = start
+            self.model.state.x.scatter_forward()
         return self._newton()
 
     def linear_step(self) -> None:
