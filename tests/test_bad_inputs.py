@@ -521,10 +521,10 @@ COMMANDS = {
     "scene is a folder": ([lambda r: (r / "scenes").mkdir()], ["run", "scenes", "-o", "out"], "is a folder"),
     "scene missing": ([], ["run", "none.toml", "-o", "out"], "scene file 'none.toml' not found"),
     # meshes
-    "2-D mesh": (
+    "2-D mesh file without a plane": (
         [_write("scene.toml", _mesh_scene("square.msh"))],
         ["run", "scene.toml", "-o", "out"],
-        "holds a 2-D mesh (triangle cells); lungmech solves 3-D bodies only",
+        "a 2-D mesh needs plane = 'strain' (a long body) or 'stress' (a thin plate)",
     ),
     "xdmf without its data": (
         [lambda r: (r / "box.h5").rename(r / "elsewhere.h5"), _write("scene.toml", _mesh_scene("box.xdmf"))],
@@ -798,7 +798,7 @@ COMMANDS = {
     "register onto a 2-D reference": (
         [],
         ["register", "lung.nii.gz", "--reference", "square.msh", "-o", "fit"],
-        "holds a 2-D mesh",
+        "holds a 2-D mesh (triangle cells); a 3-D body is needed here",
     ),
     "register onto no reference": (
         [],

@@ -103,6 +103,14 @@ def test_a_two_dimensional_scene_reports_per_metre_of_thickness(tmp_path):
     header = (tmp_path / "out" / "history.csv").read_text().splitlines()[0]
     assert header.startswith("time [s],volume [m^3/m],strain_energy [J/m]") and "probe0_uy [m]" in header
     assert "probe0_uz" not in header and (tmp_path / "out" / "fields_000001.vtu").is_file()
+    assert (tmp_path / "out" / "deformed.png").is_file()  # seen from +z, y up
+
+
+def test_the_colour_bar_shows_a_nearly_incompressible_body_s_spread_of_j():
+    from lungmech.app.plot import _colour_format
+
+    assert _colour_format(0.9998, 1.0007) % 0.9998 != _colour_format(0.9998, 1.0007) % 1.0007
+    assert _colour_format(0.8, 1.6) == "%.3g"
 
 
 def test_failed_run_keeps_previous_results(tmp_path):

@@ -486,3 +486,46 @@ def test_cook_membrane_in_plane_stress_same_on_all_ranks_as_on_one():
         return float(Probe(model.geometry.mesh, [[48.0, 60.0]])(model.displacement())[0, 1])
 
     assert tip(MPI.COMM_WORLD) == pytest.approx(tip(MPI.COMM_SELF), rel=1e-10)
+
+
+def test_a_2d_mesh_file_reads_alike_on_all_ranks_with_rigid_modes_in_its_plane(tmp_path):
+    """gmsh on rank 0 tells every rank the mesh is plane; AMG's near-nullspace of a plane body
+    has 3 modes (two translations, one rotation), each strain-free."""
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix
+
+    from lungmech.fem.materials import LinearElastic
+    from lungmech.fem.solver import rigid_body_modes
+    from lungmech.mesh import from_file, write
+
+    comm = MPI.COMM_WORLD
+    folder = comm.bcast(str(tmp_path) if comm.rank == 0 else None)
+    if comm.rank == 0:
+        import gmsh
+
+        gmsh.initialize(interruptible=False)
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("plate")
+        gmsh.model.occ.addRectangle(0.0, 0.0, 0.0, 2.0, 1.0)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(1, [4], 7, "x0")
+        gmsh.model.addPhysicalGroup(2, [1], 1, "plate")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
+        gmsh.model.mesh.generate(2)
+        gmsh.write(f"{folder}/plate.msh")
+        gmsh.finalize()
+    comm.Barrier()
+    read = from_file(f"{folder}/plate.msh", comm)
+    write(read, f"{folder}/plate.xdmf")
+    geometry = from_file(f"{folder}/plate.xdmf", comm)
+    assert geometry.mesh.geometry.dim == 2 and geometry.boundaries["x0"] == 7
+    assert geometry.volume() == pytest.approx(2.0, rel=1e-12)
+    model = Model(geometry, LinearElastic.from_young(1.0, 0.3), plane="strain")
+    K = assemble_matrix(fem.form(model.jacobian))
+    K.assemble()
+    modes = rigid_body_modes(model.space).getVecs()
+    assert len(modes) == 3
+    for mode in modes:
+        product = mode.duplicate()
+        K.mult(mode, product)
+        assert product.norm() <= 1e-12 * K.norm() * mode.norm()

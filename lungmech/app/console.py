@@ -16,7 +16,7 @@ from typing import TextIO
 
 from mpi4py import MPI
 
-__all__ = ["CMH2O", "Progress", "end_of_run", "litres", "pressure"]
+__all__ = ["CMH2O", "Progress", "end_of_run", "litres", "pressure", "volume_text"]
 
 CMH2O = 98.0665  # Pa per cmH2O
 log = logging.getLogger("lungmech")
@@ -30,6 +30,11 @@ def per_metre_of_thickness(volume: float) -> str:
 def litres(volume: float) -> str:
     """A volume in m³, written in litres."""
     return f"{1e3 * volume:.4g} L"
+
+
+def volume_text(value: float, planar: bool = False) -> str:
+    """A body's volume for people: litres, or m³ per m of thickness for a plane (2-D) body."""
+    return per_metre_of_thickness(value) if planar else litres(value)
 
 
 def pressure(value: float) -> str:
@@ -102,7 +107,9 @@ def end_of_run(summary: dict, folder: Path) -> str:
     """The closing line of a run: the work done and the volumes a physiologist reads."""
     largest = summary["largest_volume"]
     start = "imaged (start)" if summary.get("inverse") else "start"
-    show = litres if not summary.get("plane") else per_metre_of_thickness
+    def show(value: float) -> str:
+        return volume_text(value, bool(summary.get("plane")))
+
     text = (
         f"lungmech: done in {summary['steps']} steps ({summary['cut_steps']} cut back), "
         f"{summary['newton_iterations']} Newton iterations, {summary['timings_seconds']['solve']:.1f} s "

@@ -39,12 +39,16 @@ def pressure_volume(
     label: str,
     title: str = "",
     note: Sequence[str] = (),
+    planar: bool = False,
 ) -> None:
-    """The P–V curve: volume (m³, drawn in L) against ``pressure`` (Pa, drawn in kPa, with
-    cmH2O on the top axis), inspiration (volume rising) and expiration drawn apart. ``label``
-    names the pressure; ``note`` lines say what it is made of."""
-    kpa, litres = np.asarray(pressure, dtype=float) / 1e3, 1e3 * np.asarray(volume, dtype=float)
-    rising = np.diff(litres) >= 0
+    """The P–V curve: volume (m³, drawn in L; a ``planar`` body's in m³ per m of thickness)
+    against ``pressure`` (Pa, drawn in kPa, with cmH2O on the top axis), inspiration (volume
+    rising) and expiration drawn apart. ``label`` names the pressure; ``note`` lines say what
+    it is made of."""
+    kpa = np.asarray(pressure, dtype=float) / 1e3
+    shown = np.asarray(volume, dtype=float) * (1.0 if planar else 1e3)
+    unit = "m³/m" if planar else "L"
+    rising = np.diff(shown) >= 0
     fig, ax = plt.subplots(figsize=(6, 4.4))
     branches = (
         (rising, dict(color="tab:blue", ls="-", marker="o", ms=4, lw=2.5), "inspiration (volume rising)"),
@@ -56,9 +60,9 @@ def pressure_volume(
     )
     for branch, style, name in branches:
         for k, i in enumerate(np.flatnonzero(branch)):
-            ax.plot(kpa[i : i + 2], litres[i : i + 2], **style, label=name if k == 0 else None)
+            ax.plot(kpa[i : i + 2], shown[i : i + 2], **style, label=name if k == 0 else None)
     ax.set_xlabel(f"{label} [kPa]")
-    ax.set_ylabel("lung volume [L]" if label.startswith("transpulmonary") else "volume [L]")
+    ax.set_ylabel(f"{'lung volume' if label.startswith('transpulmonary') else 'volume'} [{unit}]")
     top = ax.secondary_xaxis("top", functions=(lambda p: 1e3 * p / CMH2O, lambda c: c * CMH2O / 1e3))
     top.set_xlabel("[cmH$_2$O]")
     ax.grid(alpha=0.3)
@@ -91,12 +95,22 @@ def deformed_body(model, path: Path, title: str = "") -> None:
     J = fem.Function(dg0)
     J.interpolate(fem.Expression(ufl.det(model.F), dg0.element.interpolation_points))
     J_cells = J.x.array[dg0.dofmap.list[:cells_owned, 0]]
-    displacement = u.x.array.reshape(-1, 3)[: len(x)]
+    gdim = mesh.geometry.dim
+    displacement = np.zeros((len(x), 3))  # VTK's points are 3-D; a plane body's z stays 0
+    displacement[:, :gdim] = u.x.array.reshape(-1, gdim)[: len(x)]
     pieces = mesh.comm.gather((topology, types, x, displacement, J_cells), root=0)
-    on_root(mesh.comm, lambda: _draw(pieces, path, title))
+    on_root(mesh.comm, lambda: _draw(pieces, path, title, planar=gdim == 2))
 
 
-def _draw(pieces, path: Path, title: str) -> None:
+def _colour_format(low: float, high: float) -> str:
+    """Enough significant digits for the colour bar's labels to differ across [low, high] (a
+    nearly incompressible body's J spans 1 ± 1e-4)."""
+    spread, size = high - low, max(abs(low), abs(high))
+    digits = 3 if spread <= 0 or size == 0 else 3 + max(0, int(np.ceil(np.log10(size / spread))) - 1)
+    return f"%.{min(digits, 10)}g"
+
+
+def _draw(pieces, path: Path, title: str, planar: bool = False) -> None:
     import pyvista
     import vtk
 
@@ -110,6 +124,7 @@ def _draw(pieces, path: Path, title: str) -> None:
             lower.append(x.min(axis=0))
             upper.append(x.max(axis=0))
     body = pyvista.merge(bodies) if len(bodies) > 1 else bodies[0]
+    low, high = (float(f(body.cell_data["J"])) for f in (np.min, np.max)) if body.n_cells else (1.0, 1.0)
 
     plotter = pyvista.Plotter(off_screen=True, window_size=(1000, 760))
     plotter.add_mesh(
@@ -125,7 +140,7 @@ def _draw(pieces, path: Path, title: str) -> None:
             "position_y": 0.15,
             "width": 0.07,
             "height": 0.7,
-            "fmt": "%.3g",
+            "fmt": _colour_format(low, high),
             "title_font_size": 14,
             "label_font_size": 12,
         },
@@ -133,18 +148,21 @@ def _draw(pieces, path: Path, title: str) -> None:
     if title:
         plotter.add_text(title, font_size=10)
     plotter.add_axes(line_width=3, labels_off=False)
-    # A fixed camera: medial-anterior view (the hilum side of a lung), framed by the reference
-    # with room for the body to grow and for the colour bar on the right.
+    # A fixed camera: medial-anterior view (the hilum side of a lung), or a plane body seen from
+    # +z with y up, framed by the reference with room for the body to grow and for the colour
+    # bar on the right.
     lower, upper = np.min(lower, axis=0), np.max(upper, axis=0)  # of the reference configuration
     centre, size = (lower + upper) / 2, float(np.linalg.norm(upper - lower))
-    view = np.array([-1.0, -0.7, 0.35])
+    view, up = (
+        (np.array([0.0, 0.0, 1.0]), (0.0, 1.0, 0.0)) if planar else (np.array([-1.0, -0.7, 0.35]), (0.0, 0.0, 1.0))
+    )
     view /= np.linalg.norm(view)
-    right = np.cross(view, [0.0, 0.0, 1.0])
+    right = np.cross(view, up)
     right /= np.linalg.norm(right)
     focus = centre - 0.12 * size * right  # shifts the body left, clear of the colour bar
     plotter.camera.focal_point = focus
     plotter.camera.position = focus + 2.6 * size * view  # pyvista: the camera sits along +view
-    plotter.camera.up = (0.0, 0.0, 1.0)
+    plotter.camera.up = up
     plotter.camera.view_angle = 30.0
     plotter.screenshot(str(path))
     plotter.close()

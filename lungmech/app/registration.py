@@ -49,7 +49,7 @@ def register_image(
     """
     inputs = [reference, *([image.source] if image.source is not None else [])]
     with output_folder(out, comm, inputs=inputs, command="lungmech register") as staging:
-        geometry = geometries.from_file(reference, comm)
+        geometry = geometries.from_file(reference, comm, dimension=3)
         check_target(geometry, image, "implausible" in accept)
         start = time.perf_counter()
         result = register(geometry.mesh, image, options)
@@ -168,7 +168,7 @@ def build_shape_modes(
     Every image is checked as in :func:`register_image` (``accept`` as there)."""
     inputs = [reference, *(image.source for image in sources.values() if image.source is not None)]
     with output_folder(out, comm, inputs=inputs, command="lungmech shape-modes") as staging:
-        geometry = geometries.from_file(reference, comm)
+        geometry = geometries.from_file(reference, comm, dimension=3)
         for image in sources.values():
             check_target(geometry, image, "implausible" in accept)
         start = time.perf_counter()

@@ -211,7 +211,7 @@ def _shape(args, comm) -> int:
         companions=[p.name for p in geometry.companions(args.output)],
     ) as path:
         modes = ShapeModes.load(args.modes)
-        new = modes.geometry(geometry.from_file(args.reference, comm), coefficients)
+        new = modes.geometry(geometry.from_file(args.reference, comm, dimension=3), coefficients)
         geometry.write(new, path)
         volume = new.volume()  # collective
     if comm.rank == 0:

@@ -29,7 +29,7 @@ from mpi4py import MPI
 
 import lungmech
 from lungmech import lung
-from lungmech.app.console import Progress, litres, per_metre_of_thickness
+from lungmech.app.console import Progress, volume_text
 from lungmech.app.console import pressure as show_pressure
 from lungmech.app.output import FieldWriter, write_json
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
@@ -196,8 +196,8 @@ def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> d
 
     report = unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver, monitor=show)
     progress.close(
-        f"unloaded reference found in {report.iterations} iterations, volume {litres(model.geometry.volume())} "
-        f"(imaged {litres(imaged_volume)})"
+        f"unloaded reference found in {report.iterations} iterations, volume "
+        f"{volume_text(model.geometry.volume(), model.plane is not None)} (imaged {volume_text(imaged_volume, model.plane is not None)})"
     )
     write_geometry(model.geometry, folder / "reference.xdmf")
     return {
@@ -285,7 +285,7 @@ def run(
             progress.update(
                 (model.time - stepping.start) / (stepping.end - stepping.start),
                 f"step {len(history) - 1}  t = {model.time:.3g}/{stepping.end:g} s{shown}  "
-                f"volume {(litres if model.plane is None else per_metre_of_thickness)(row['volume'])}{newton}",
+                f"volume {volume_text(row["volume"], model.plane is not None)}{newton}",
             )
 
         def cut(step: StepReport) -> None:
@@ -349,7 +349,8 @@ def run(
         with model.kept_state():
             model.state.x.array[:] = largest["state"]
             model.state.x.scatter_forward()
-            title = f"{scene.title}\nlargest volume {litres(largest['volume'])}, t = {largest['time']:.3g} s"
+            shown = volume_text(largest["volume"], model.plane is not None)
+            title = f"{scene.title}\nlargest volume {shown}, t = {largest['time']:.3g} s"
             drawn(comm, staging / "deformed.png", lambda: deformed_body(model, staging / "deformed.png", title))
         if axis is not None:
             label, value, parts = axis
@@ -360,7 +361,13 @@ def run(
                 lambda: on_root(
                     comm,
                     lambda: pressure_volume(
-                        pressures, volumes, staging / "pressure_volume.png", label, title=scene.title, note=parts
+                        pressures,
+                        volumes,
+                        staging / "pressure_volume.png",
+                        label,
+                        title=scene.title,
+                        note=parts,
+                        planar=model.plane is not None,
                     ),
                 ),
             )

@@ -105,7 +105,7 @@ class Probe:
 
 
 class Reaction(NamedTuple):
-    force: np.ndarray  # resultant, shape (3,)
+    force: np.ndarray  # resultant, shape (3,) (a plane body's: per unit thickness, z = 0)
     moment: np.ndarray  # about the origin, with the nodes at their current positions
 
 
@@ -132,8 +132,10 @@ def reaction(model, boundary: str) -> Callable[[], Reaction]:
         vector.array[:] = 0.0
         fem.assemble_vector(vector.array, residual)
         vector.scatter_reverse(la.InsertMode.add)
-        forces = vector.array[dofs]
-        positions = nodes + model.state.x.array[dofs]
+        # 3-D vectors: a plane body's reaction lies in its plane, its moment along z
+        forces, positions = np.zeros((len(dofs), 3)), np.zeros((len(dofs), 3))
+        forces[:, :bs] = vector.array[dofs]
+        positions[:, :bs] = nodes + model.state.x.array[dofs]
         local = np.concatenate([forces.sum(axis=0), np.cross(positions, forces).sum(axis=0)])
         total = np.empty_like(local)
         model.geometry.mesh.comm.Allreduce(local, total, op=MPI.SUM)

@@ -664,7 +664,9 @@ def _failure_message(t: float, dt: float, step: StepReport, cause: str) -> str:
 
 
 def rigid_body_modes(space) -> PETSc.NullSpace:
-    """The 6 rigid-body modes of a 3-D vector space, orthonormalised: AMG's near-nullspace."""
+    """The rigid-body modes of a vector space, orthonormalised: AMG's near-nullspace. Six in
+    3-D (three translations, three rotations ω × x), three in a plane (two translations, the
+    rotation about z: (−y, x))."""
     index_map, bs = space.dofmap.index_map, space.dofmap.index_map_bs
     n = index_map.size_local
     comm = space.mesh.comm
@@ -672,10 +674,8 @@ def rigid_body_modes(space) -> PETSc.NullSpace:
     # Rotations about one point for all ranks (the global centre: better conditioned than the origin).
     total = comm.allreduce(np.concatenate([x.sum(axis=0), [len(x)]]), op=MPI.SUM)
     x = x - total[:3] / total[3]
-    modes = np.zeros((6, n, bs))
-    for i in range(3):
-        modes[i, :, i] = 1.0
-        modes[3 + i] = np.cross(np.eye(3)[i], x)
-    orthonormal, _ = gram_schmidt(modes.reshape(6, -1).T, None, comm, tolerance=0.0)
+    rotations = [np.cross(axis, x)[:, :bs] for axis in (np.eye(3) if bs == 3 else [(0.0, 0.0, 1.0)])]
+    modes = np.array([*np.eye(bs)[:, None, :].repeat(n, axis=1), *rotations])
+    orthonormal, _ = gram_schmidt(modes.reshape(len(modes), -1).T, None, comm, tolerance=0.0)
     vectors = [PETSc.Vec().createWithArray(mode.copy(), bsize=bs, comm=comm) for mode in orthonormal.T]
     return PETSc.NullSpace().create(vectors=vectors, comm=comm)

@@ -29,13 +29,19 @@ __all__ = ["companions", "from_file", "is_lungmech_mesh", "write"]
 
 
 def from_file(
-    path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, boundaries: Mapping[str, int] | None = None
+    path: str | Path,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    boundaries: Mapping[str, int] | None = None,
+    dimension: int | None = None,
 ) -> Geometry:
     """Read a geometry from a gmsh ``.msh`` or a DOLFINx ``.xdmf`` file.
 
-    Boundary names come from ``boundaries`` if given, else from the gmsh physical names of
-    dimension 2 (``.msh``) or the sidecar ``<stem>.tags.json`` written by :func:`write`
-    (``.xdmf``); tag values without a name are named by their number, e.g. ``"3"``.
+    A 3-D body (tetrahedra or hexahedra) or a plane one (triangles or quadrilaterals in the
+    x–y plane: a 2-D gmsh mesh has z = 0 everywhere, and is read with two coordinates);
+    ``dimension`` asks for one of them. Boundary names come from ``boundaries`` if given, else
+    from the gmsh physical names of the facets' dimension (surfaces in 3-D, curves in 2-D;
+    ``.msh``) or the sidecar ``<stem>.tags.json`` written by :func:`write` (``.xdmf``); tag values
+    without a name are named by their number, e.g. ``"3"``.
     """
     path = Path(path)
     if path.suffix not in (".msh", ".xdmf"):
@@ -43,6 +49,12 @@ def from_file(
     if not path.is_file():
         raise GeometryError(f"mesh file '{path}' not found")
     geometry = _read_msh(path, comm) if path.suffix == ".msh" else _read_xdmf(path, comm)
+    found = geometry.mesh.topology.dim
+    if dimension is not None and found != dimension:
+        raise GeometryError(
+            f"mesh file '{path}' holds a {found}-D mesh ({geometry.mesh.topology.cell_name()} cells); "
+            f"a {dimension}-D body is needed here"
+        )
 
     present = _global_values(geometry.facet_tags, comm)
     names = dict(boundaries if boundaries is not None else geometry.boundaries)
@@ -63,11 +75,12 @@ def from_file(
 
 
 def _check_solid(mesh: dolfinx.mesh.Mesh, path: Path) -> None:
-    """A 3-D body with finite node coordinates (collective)."""
-    if mesh.topology.dim != 3:
+    """A 3-D body or a plane one (x, y only), with finite node coordinates (collective)."""
+    if mesh.topology.dim not in (2, 3) or mesh.geometry.dim != mesh.topology.dim:
         raise GeometryError(
-            f"mesh file '{path}' holds a {mesh.topology.dim}-D mesh ({mesh.topology.cell_name()} "
-            "cells); lungmech solves 3-D bodies only (tetrahedra or hexahedra)"
+            f"mesh file '{path}' holds a {mesh.topology.dim}-D mesh ({mesh.topology.cell_name()} cells) "
+            f"in {mesh.geometry.dim}-D space; lungmech solves 3-D bodies (tetrahedra or hexahedra) and "
+            "plane ones (triangles or quadrilaterals in the x-y plane)"
         )
     finite = mesh.comm.allreduce(bool(np.isfinite(mesh.geometry.x).all()), op=MPI.LAND)
     if not finite:
@@ -111,17 +124,35 @@ def _read_msh(path: Path, comm: MPI.Comm) -> Geometry:
     """Read a .msh file quietly (dolfinx.io.gmsh.read_from_msh is not quiet, and finalizes gmsh)."""
     root = 0
     if comm.rank != root:
-        if failure := comm.bcast(None, root=root):
+        failure, gdim = comm.bcast(None, root=root)
+        if failure:
             raise GeometryError(failure)
-        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(None, comm, root, gdim=3))
+        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(None, comm, root, gdim=gdim))
     with gmsh_session({}) as gmsh:
         try:
             gmsh.merge(str(path))
+            gdim = _gmsh_dimension(gmsh, path)
         except Exception as e:
-            comm.bcast(f"cannot read mesh file '{path}': {e}", root=root)
-            raise GeometryError(f"cannot read mesh file '{path}': {e}") from e
-        comm.bcast(None, root=root)
-        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, root, gdim=3))
+            failure = str(e) if isinstance(e, GeometryError) else f"cannot read mesh file '{path}': {e}"
+            comm.bcast((failure, None), root=root)
+            raise GeometryError(failure) from e
+        comm.bcast((None, gdim), root=root)
+        return _to_geometry(path, lambda: dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, root, gdim=gdim))
+
+
+def _gmsh_dimension(gmsh: Any, path: Path) -> int:
+    """The space dimension to read a gmsh model in: its own (the highest of its elements), with
+    a 2-D mesh required to lie in the plane z = 0."""
+    dimension = gmsh.model.getDimension()
+    if dimension == 2:
+        _, coordinates, _ = gmsh.model.mesh.getNodes()
+        z = np.abs(np.asarray(coordinates).reshape(-1, 3)[:, 2])
+        if z.size and z.max() > 1e-12 * max(1.0, float(np.abs(coordinates).max())):
+            raise GeometryError(
+                f"mesh file '{path}' holds a 2-D mesh that does not lie in the plane z = 0 "
+                f"(|z| up to {z.max():.3g}): a plane body is meshed in the x-y plane"
+            )
+    return dimension
 
 
 def _to_geometry(path: Path, read: Callable[[], Any]) -> Geometry:
@@ -131,7 +162,9 @@ def _to_geometry(path: Path, read: Callable[[], Any]) -> Geometry:
         raise GeometryError(f"cannot read mesh file '{path}': {e}") from e
     _check_solid(data.mesh, path)
     if data.facet_tags is None:
-        raise GeometryError(f"mesh file '{path}' has no facet tags (no 2D physical groups)")
+        fdim = data.mesh.topology.dim - 1
+        kind = "surfaces" if fdim == 2 else "curves"
+        raise GeometryError(f"mesh file '{path}' has no facet tags (no physical groups of {kind}, dimension {fdim})")
     return from_meshdata(data)
 
 

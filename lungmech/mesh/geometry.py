@@ -106,6 +106,8 @@ def _integrate(mesh: dolfinx.mesh.Mesh, measure: ufl.Measure) -> float:
 
 
 def from_meshdata(data: Any) -> Geometry:
-    """Geometry from ``dolfinx.io.gmsh`` MeshData, its boundaries named by the 2-D physical groups."""
-    boundaries = {name: group.tag for name, group in data.physical_groups.items() if group.dim == 2 and name}
+    """Geometry from ``dolfinx.io.gmsh`` MeshData, its boundaries named by the physical groups of
+    the facets (surfaces of a 3-D mesh, curves of a 2-D one)."""
+    fdim = data.mesh.topology.dim - 1
+    boundaries = {name: group.tag for name, group in data.physical_groups.items() if group.dim == fdim and name}
     return Geometry(data.mesh, data.facet_tags, boundaries, data.cell_tags)
