@@ -956,71 +956,105 @@ class LungParams:
     phi_s0: float = 0.5
 
 
-def lung_skeleton_stress(J: float, p: LungParams) -> float:
-    """Cauchy stress σ_skel of the skeleton under isotropic stretch λ = J^(1/3) (VERIFICATION.md).
+def lung_skeleton_principal_stress(stretches: tuple[float, float, float], p: LungParams) -> float:
+    """Cauchy stress σ_11 of the skeleton at principal stretches (λ1, λ2, λ3), J = λ1 λ2 λ3:
 
-    σ_skel(J) = (2/J)(c1 λ² + 2 c2 λ⁴) − (2c1 + 4c2)/J + αγ e^{γ(J²−1−2lnJ)} (2J − 2/J).
+    σ_11 = (λ1/J) ∂W/∂λ1 = (λ1/J)[2c1 λ1 + 2c2 λ1 (λ2² + λ3²)] + ∂W/∂J,
+    ∂W/∂J = αγ e^{γ(J²−1−2lnJ)} (2J − 2/J) − (2c1 + 4c2)/J,
+
+    from W = α(e^{γ(J²−1−2lnJ)} − 1) + c1(I1 − 3 − 2lnJ) + c2(I2 − 3 − 4lnJ), I1 = Σλi², I2 = Σ_{i<j} λi²λj².
     """
-    lam = J ** (1.0 / 3.0)
-    return (
-        2.0 / J * (p.c1 * lam**2 + 2.0 * p.c2 * lam**4)
-        - (2.0 * p.c1 + 4.0 * p.c2) / J
-        + p.alpha * p.gamma * math.exp(p.gamma * (J**2 - 1.0 - 2.0 * math.log(J))) * (2.0 * J - 2.0 / J)
-    )
+    l1, l2, l3 = stretches
+    J = l1 * l2 * l3
+    volumetric = p.alpha * p.gamma * math.exp(p.gamma * (J**2 - 1.0 - 2.0 * math.log(J))) * (2.0 * J - 2.0 / J)
+    return l1 / J * (2.0 * p.c1 * l1 + 2.0 * p.c2 * l1 * (l2**2 + l3**2)) + volumetric - (2.0 * p.c1 + 4.0 * p.c2) / J
 
 
-def lung_inflation(p_f: float, p: LungParams) -> dict[str, float]:
-    """Homogeneous free inflation of a lung sample by the alveolar (fluid) pressure p_f.
+def lung_skeleton_stress(J: float, p: LungParams, plane: bool = False) -> float:
+    """In-plane Cauchy stress σ_skel of the skeleton under a homogeneous dilation of volume ratio J:
+    isotropic, λ = J^(1/3) (VERIFICATION.md: σ_skel(J) = (2/J)(c1 λ² + 2 c2 λ⁴) − (2c1 + 4c2)/J +
+    αγ e^{γ(J²−1−2lnJ)} (2J − 2/J)), or in plane strain (``plane``), λ1 = λ2 = √J, λ3 = 1."""
+    stretches = (math.sqrt(J), math.sqrt(J), 1.0) if plane else (J ** (1.0 / 3.0),) * 3
+    return lung_skeleton_principal_stress(stretches, p)
 
-    The skeleton balances the fluid pressure, σ_skel(J) = p_f; the solid fraction solves
-    ∂W_bulk/∂Φs + p_f = 0, i.e. Φs = 1/(1/Φs0 + p_f/κ). Returns the volume ratio J, the
-    Green–Lagrange strain E_ii = (J^(2/3) − 1)/2, Φs, Φf = J − Φs and φs = Φs/J.
+
+def lung_scalings(p: LungParams, scaling: str) -> tuple[float, float]:
+    """(s_skel, s_bulk): which energies Φs0 multiplies — "none", "skeleton" or "linear" (all)."""
+    return (p.phi_s0 if scaling in ("skeleton", "linear") else 1.0), (p.phi_s0 if scaling == "linear" else 1.0)
+
+
+def lung_inflation(p_f: float, p: LungParams, scaling: str = "none", plane: bool = False) -> dict[str, float]:
+    """Homogeneous free inflation of a lung sample by the alveolar (fluid) pressure p_f, in 3-D or
+    in plane strain (``plane``: the sample held in z, free in x and y).
+
+    The skeleton balances the fluid pressure in the free directions, s_skel σ_skel(J) = p_f; the
+    solid fraction solves s_bulk ∂W_bulk/∂Φs + p_f = 0, i.e. Φs = 1/(1/Φs0 + p_f/(s_bulk κ)).
+    Returns the volume ratio J, the Green–Lagrange strain E of a free direction ((J^(2/3) − 1)/2,
+    or (J − 1)/2 in plane strain), Φs, Φf = J − Φs and φs = Φs/J.
     """
+    s_skel, s_bulk = lung_scalings(p, scaling)
     J = 1.0
     if p_f != 0.0:
         # σ_skel increases with J: grow a bracket from J = 1 towards the root (no overflow).
         factor = 1.25 if p_f > 0 else 0.8
         end = factor
-        while (lung_skeleton_stress(end, p) - p_f) * (0.0 - p_f) > 0:
+        while (s_skel * lung_skeleton_stress(end, p, plane) - p_f) * (0.0 - p_f) > 0:
             end *= factor
         J = brentq(
-            lambda j: lung_skeleton_stress(j, p) - p_f,
+            lambda j: s_skel * lung_skeleton_stress(j, p, plane) - p_f,
             min(1.0, end),
             max(1.0, end),
             xtol=1e-15,
             rtol=4 * np.finfo(float).eps,
         )
-    phi_s = 1.0 / (1.0 / p.phi_s0 + p_f / p.kappa)
-    return {"J": J, "E": 0.5 * (J ** (2.0 / 3.0) - 1.0), "phi_s": phi_s, "phi_f": J - phi_s, "phi_s_current": phi_s / J}
+    phi_s = 1.0 / (1.0 / p.phi_s0 + p_f / (s_bulk * p.kappa))
+    strain = 0.5 * (J - 1.0) if plane else 0.5 * (J ** (2.0 / 3.0) - 1.0)
+    return {"J": J, "E": strain, "phi_s": phi_s, "phi_f": J - phi_s, "phi_s_current": phi_s / J}
 
 
-def pore_barrier_derivative(phi_f: float, phi_s0: float, eta: float, lower: float, upper: float) -> float:
-    """dW_pore/dΦf of W_pore = η(lower/r − 1)² (r < lower), η(r/upper − 1)² (r > upper), else 0; r = Φf/(1 − Φs0)."""
+def pore_barrier_derivative(
+    phi_f: float, phi_s0: float, eta: float, lower: float, upper: float, exponent: float = 2.0
+) -> float:
+    """dW_pore/dΦf of W_pore = η(lower/r − 1)^m (r < lower), η(r/upper − 1)^m (r > upper), else 0;
+    r = Φf/(1 − Φs0)."""
     phi_f0 = 1.0 - phi_s0
-    r = phi_f / phi_f0
+    r, m = phi_f / phi_f0, exponent
     if r < lower:
-        return 2.0 * eta * (lower / r - 1.0) * (-lower / r**2) / phi_f0
+        return m * eta * (lower / r - 1.0) ** (m - 1) * (-lower / r**2) / phi_f0
     if r > upper:
-        return 2.0 * eta * (r / upper - 1.0) / upper / phi_f0
+        return m * eta * (r / upper - 1.0) ** (m - 1) / upper / phi_f0
     return 0.0
 
 
 def lung_inflation_with_pore_barrier(
-    p_f: float, p: LungParams, eta: float, lower: float, upper: float
+    p_f: float,
+    p: LungParams,
+    eta: float,
+    lower: float,
+    upper: float,
+    exponent: float = 2.0,
+    scaling: str = "none",
+    plane: bool = False,
 ) -> dict[str, float]:
     """Homogeneous inflation with the porosity barrier: two scalar equations for (J, Φs).
 
-    u-equation: σ_skel(J) + W_pore'(J − Φs) − p_f = 0;  Φs-equation: κ(1/Φs0 − 1/Φs) − W_pore'(J − Φs) + p_f = 0.
+    u-equation: s_skel σ_skel(J) + s_bulk W_pore'(J − Φs) − p_f = 0;
+    Φs-equation: s_bulk [κ(1/Φs0 − 1/Φs) − W_pore'(J − Φs)] + p_f = 0.
     """
     from scipy.optimize import fsolve
 
+    s_skel, s_bulk = lung_scalings(p, scaling)
+
     def equations(z):
         J, phi_s = z
-        w = pore_barrier_derivative(J - phi_s, p.phi_s0, eta, lower, upper)
-        return [lung_skeleton_stress(J, p) + w - p_f, p.kappa * (1.0 / p.phi_s0 - 1.0 / phi_s) - w + p_f]
+        w = pore_barrier_derivative(J - phi_s, p.phi_s0, eta, lower, upper, exponent)
+        return [
+            s_skel * lung_skeleton_stress(J, p, plane) + s_bulk * w - p_f,
+            s_bulk * (p.kappa * (1.0 / p.phi_s0 - 1.0 / phi_s) - w) + p_f,
+        ]
 
-    start = lung_inflation(p_f, p)
+    start = lung_inflation(p_f, p, scaling, plane)
     (J, phi_s), info, ok, message = fsolve(equations, [start["J"], start["phi_s"]], xtol=1e-14, full_output=True)
-    if ok != 1:
+    if np.abs(equations((J, phi_s))).max() > 1e-13 * max(1.0, abs(p_f)):  # fsolve may stop at round-off
         raise RuntimeError(message)
     return {"J": J, "phi_s": phi_s, "phi_f": J - phi_s}

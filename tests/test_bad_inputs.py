@@ -97,7 +97,7 @@ SCENES = {
             'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
             'type = "follower_pressure"\nboundary = "x1"\nvalue = "abc"',
         ),
-        "value must be a number",
+        "loads[0]: value: unknown name 'abc'",
     ),
     "pressure on no boundary": (
         swap(
@@ -138,12 +138,32 @@ SCENES = {
         "non-empty list of laws",
     ),
     "kappa inf": (swap("kappa = 1.0e4", "kappa = inf", LUNG), "formulation.kappa: inf is not allowed"),
-    "kappa a word": (swap("kappa = 1.0e4", 'kappa = "abc"', LUNG), "kappa must be a number"),
+    "kappa a missing file": (swap("kappa = 1.0e4", 'kappa = "abc"', LUNG), "formulation.kappa: file"),
+    "kappa a list": (
+        swap("kappa = 1.0e4", "kappa = [1.0, 2.0]", LUNG),
+        "kappa must be a number or a file of cell values",
+    ),
     "phi_s0 above one": (swap("phi_s0 = 0.3", "phi_s0 = 1.5", LUNG), "phi_s0 must lie in (0, 1)"),
     "phi_s0 nan": (swap("phi_s0 = 0.3", "phi_s0 = nan", LUNG), "formulation.phi_s0: nan is not a value"),
-    "scale_skeleton a word": (
-        swap("phi_s0 = 0.3", 'phi_s0 = 0.3\nscale_skeleton = "yes"', LUNG),
-        "scale_skeleton must be true or false",
+    "scaling unknown": (
+        swap("phi_s0 = 0.3", 'phi_s0 = 0.3\nscaling = "yes"', LUNG),
+        "scaling must be one of 'none', 'skeleton', 'linear' (got 'yes')",
+    ),
+    "pore exponent one": (
+        swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_exponent = 1.0", LUNG),
+        "pore_exponent must be > 1",
+    ),
+    "phi_s0 and imaged porosity": (
+        swap("phi_s0 = 0.3", "phi_s0 = 0.3\nimaged_porosity = 0.7", LUNG) + "\n[inverse]\n",
+        "needs exactly one of phi_s0 (the reference solid fraction) or imaged_porosity",
+    ),
+    "imaged porosity without an inverse problem": (
+        swap("phi_s0 = 0.3", "imaged_porosity = 0.7", LUNG),
+        "formulation.imaged_porosity: the porosity of an imaged lung needs [inverse]",
+    ),
+    "imaged porosity of one": (
+        swap("phi_s0 = 0.3", "imaged_porosity = 1.0", LUNG) + "\n[inverse]\n",
+        "imaged porosity imaged_porosity must lie in (0, 1) (got 1.0)",
     ),
     "pore_range of one number": (
         swap("phi_s0 = 0.3", "phi_s0 = 0.3\npore_range = [0.5]", LUNG),

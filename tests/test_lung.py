@@ -17,26 +17,37 @@ from lungmech.fem.quantities import deformed_volume
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
-from lungmech.mesh import box
+from lungmech.lung.inverse import InverseOptions, unloaded_reference
+from lungmech.mesh import box, nodes, rectangle
 
 PARAMS = an.LungParams()  # α = 0.16, γ = 0.5, c1 = 0.2, c2 = 0.4, κ = 100, Φs0 = 0.5
 
 
-def unit_cube(pressure: float, ramp: Ramp = Ramp(), comm=MPI.COMM_WORLD, **formulation) -> Model:
-    """VERIFICATION.md: symmetry on the three faces through the origin, the others free."""
+def unit_cube(
+    pressure: float, ramp: Ramp = Ramp(), comm=MPI.COMM_WORLD, plane: bool = False, cells: int = 2, **formulation
+) -> Model:
+    """VERIFICATION.md: symmetry on the three faces through the origin, the others free; or the
+    unit square in plane strain (``plane``), symmetric on x = 0 and y = 0."""
+    geometry = rectangle(comm, cells=(cells, cells)) if plane else box(comm, cells=(cells,) * 3)
+    axes = "xy" if plane else "xyz"
+    if "imaged_porosity" not in formulation:
+        formulation.setdefault("phi_s0", PARAMS.phi_s0)
     return Model(
-        box(comm, cells=(2, 2, 2)),
+        geometry,
         skeleton(PARAMS.alpha, PARAMS.gamma, PARAMS.c1, PARAMS.c2),
-        formulation=Poromechanics(PARAMS.kappa, formulation.pop("phi_s0", PARAMS.phi_s0), **formulation),
-        constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
+        formulation=Poromechanics(formulation.pop("kappa", PARAMS.kappa), **formulation),
+        constraints=[symmetry(f"{axis}0", axis) for axis in axes],
         loads=[AlveolarPressure(pressure, ramp)],
+        plane="strain" if plane else None,
     )
 
 
 def averages(model: Model) -> dict[str, float]:
     state = {name: mean() for name, mean in lung.averages(model).items()}
-    # On the unit cube (volume 1) the mean Green–Lagrange strain is E_ii of the homogeneous state.
-    return {"J": deformed_volume(model)(), "E": state.pop("green_lagrange_mean"), **state}
+    # On the unit cube (volume 1) the mean Green–Lagrange strain is E_ii of the homogeneous state;
+    # in plane strain E_zz = 0, so E_xx = E_yy is 3/2 of the mean.
+    strain = state.pop("green_lagrange_mean") * (1.5 if model.plane else 1.0)
+    return {"J": deformed_volume(model)(), "E": strain, **state}
 
 
 def test_unit_cube_cross_code_reference():
@@ -109,10 +120,101 @@ def test_porosity_barrier_matches_the_closed_form(pressure, bounds):
 
 def test_skeleton_scaled_by_the_solid_fraction():
     """W = Φs0 W_skel: the cube inflates like one whose α, c1, c2 are multiplied by Φs0."""
-    model = unit_cube(0.2, scale_skeleton=True)
+    model = unit_cube(0.2, scaling="skeleton")
     solve(model, Stepping(initial_step=0.25))
     scaled = an.LungParams(alpha=0.5 * PARAMS.alpha, c1=0.5 * PARAMS.c1, c2=0.5 * PARAMS.c2)
     assert averages(model)["J"] == pytest.approx(an.lung_inflation(0.2, scaled)["J"], rel=1e-10)
+
+
+KEYS = ("J", "E", "phi_s", "phi_f", "phi_s_current")
+
+
+@pytest.mark.parametrize("plane", [False, True], ids=["3-D", "plane strain"])
+@pytest.mark.parametrize("scaling", ["none", "linear"])
+def test_lung_cube_matches_its_closed_form(plane, scaling):
+    """Free inflation, in 3-D and in plane strain (J = λ², λ3 = 1), with the skeleton, bulk and
+    pore energies all scaled by Φs0 ("linear", as Patte et al. and dolfin_mech) or none:
+    s_skel σ_skel(J) = p_f in the free directions, Φs = 1/(1/Φs0 + p_f/(s_bulk κ))."""
+    model = unit_cube(0.4, plane=plane, scaling=scaling, phi_s0=0.3)
+    solve(model, Stepping(), monitor=lambda step: None)
+    state = averages(model)
+    exact = an.lung_inflation(0.4, an.LungParams(phi_s0=0.3), scaling, plane)
+    for key in KEYS:
+        assert state[key] == pytest.approx(exact[key], rel=1e-9), key
+    if scaling == "linear":  # Φs0 = 0.3 softens every energy: the lung inflates further
+        assert exact["J"] > 1.05 * an.lung_inflation(0.4, an.LungParams(phi_s0=0.3), "none", plane)["J"]
+
+
+@pytest.mark.parametrize(
+    ("plane", "bounds", "exponent", "scaling"),
+    [
+        (False, (1.0, 1.0), 2.0, "linear"),  # dolfin_mech's barrier, n = p = q = 1, on Patte's scaling
+        (True, (0.8, 1.1), 3.0, "none"),  # another exponent, in plane strain
+    ],
+)
+def test_porosity_barrier_forms_match_the_closed_form(plane, bounds, exponent, scaling):
+    model = unit_cube(0.5, plane=plane, scaling=scaling, pore_barrier=0.1, pore_range=bounds, pore_exponent=exponent)
+    solve(model, Stepping(), monitor=lambda step: None)
+    state = averages(model)
+    exact = an.lung_inflation_with_pore_barrier(0.5, PARAMS, 0.1, *bounds, exponent, scaling, plane)
+    free = an.lung_inflation(0.5, PARAMS, scaling, plane)
+    assert abs(exact["J"] - free["J"]) > 1e-3  # the barrier is active
+    for key in ("J", "phi_s", "phi_f"):
+        assert state[key] == pytest.approx(exact[key], rel=1e-9), key
+
+
+def test_bulk_modulus_and_barrier_as_fields():
+    """κ(x) per cell: Φs = 1/(1/Φs0 + p_f/κ) in every cell, whatever the (inhomogeneous)
+    deformation; a barrier field that is 0 everywhere changes nothing."""
+    model = unit_cube(
+        0.3, kappa=lambda x: 50.0 + 100.0 * x[0], pore_barrier=lambda x: 0.0 * x[0], pore_range=(0.99, 1.01)
+    )
+    solve(model, Stepping(), monitor=lambda step: None)
+    kappa = model.formulation.kappa.x.array
+    phi_s = model.state.sub(1).collapse().x.array
+    assert np.ptp(kappa) > 50.0
+    assert phi_s == pytest.approx(1 / (1 / PARAMS.phi_s0 + 0.3 / kappa), rel=1e-10)
+    assert averages(model)["J"] == pytest.approx(an.lung_inflation(0.3, PARAMS)["J"], rel=1e-9)
+
+
+def _imaged_porosity(x):
+    return 0.6 + 0.2 * x[0] * x[1] + 0.05 * x[2]
+
+
+@pytest.mark.parametrize("scaling", ["none", "linear"])
+def test_inverse_problem_with_the_imaged_porosity_round_trips(scaling):
+    """What CT gives: the loaded geometry and its porosity (here heterogeneous). The inverse
+    problem finds the unloaded reference and Φs0 together; the direct problem from them gives
+    back the imaged nodes and every cell's porosity."""
+    imaged = unit_cube(0.5, cells=3, scaling=scaling, imaged_porosity=_imaged_porosity)
+    nodes_imaged = imaged.geometry.mesh.geometry.x.copy()
+    report = unloaded_reference(imaged, time=1.0, options=InverseOptions(tolerance=1e-11))
+    assert report.iterations <= 15, report.mismatch
+    assert report.porosity[-1] <= 1e-11
+
+    direct = unit_cube(0.5, cells=3, scaling=scaling, phi_s0=0.5)
+    direct.geometry.mesh.geometry.x[:] = imaged.geometry.mesh.geometry.x
+    direct.formulation.phi_s0.x.array[:] = imaged.formulation.phi_s0.x.array
+    direct.reset()
+    solve(direct, Stepping(), monitor=lambda step: None)
+    moved = direct.geometry.mesh.geometry.x + np.pad(
+        nodes.sampler(direct.geometry.mesh)(direct.displacement()), ((0, 0), (0, 0))
+    )
+    assert np.abs(moved - nodes_imaged).max() <= 1e-8
+    object.__setattr__(direct.formulation, "imaged_porosity", imaged.formulation.imaged_porosity)
+    assert lung.poromechanics.ImagedPorosity(direct).mismatch() <= 1e-8
+
+
+def test_inverse_problem_with_the_imaged_porosity_matches_the_closed_form():
+    """A homogeneous lung imaged at p_f with porosity φ̂: its reference is the cube shrunk by
+    J^(1/3), with σ_skel(J) = p_f, and Φs0 = 1/(1/Φs − p_f/κ), Φs = (1 − φ̂) J."""
+    model = unit_cube(0.5, imaged_porosity=0.7)
+    report = unloaded_reference(model, time=1.0, options=InverseOptions(tolerance=1e-12))
+    J = an.lung_inflation(0.5, PARAMS)["J"]
+    phi_s0 = 1 / (1 / ((1 - 0.7) * J) - 0.5 / PARAMS.kappa)
+    assert model.geometry.volume() == pytest.approx(1 / J, rel=1e-10)
+    assert model.formulation.phi_s0.x.array == pytest.approx(phi_s0, rel=1e-10)
+    assert report.iterations <= 8
 
 
 def _solid_fraction(x):
@@ -197,7 +299,7 @@ def test_lung_scene_errors():
     }
     with pytest.raises(SceneError, match="formulation.type: unknown type 'poro'"):
         scenes.parse({**base, "formulation": {"type": "poro"}})
-    with pytest.raises(SceneError, match="formulation: missing key"):
+    with pytest.raises(SceneError, match="formulation: poromechanics needs exactly one of phi_s0"):
         scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0}})
     with pytest.raises(SceneError, match="phi_s0"):
         scenes.parse({**base, "formulation": {"type": "poromechanics", "kappa": 1.0, "phi_s0": 2.0}})

@@ -488,6 +488,35 @@ def test_cook_membrane_in_plane_stress_same_on_all_ranks_as_on_one():
     assert tip(MPI.COMM_WORLD) == pytest.approx(tip(MPI.COMM_SELF), rel=1e-10)
 
 
+def test_lung_in_plane_strain_and_imaged_porosity_same_on_all_ranks_as_on_one():
+    """The lung square in plane strain, and the inverse problem that finds Φs0 from an imaged
+    (heterogeneous) porosity: the same reference, Φs0 and porosity on every rank count."""
+    from test_lung import _imaged_porosity, averages, unit_cube
+
+    from lungmech.lung.inverse import InverseOptions, unloaded_reference
+    from lungmech.lung.poromechanics import ImagedPorosity
+
+    def state(comm) -> list[float]:
+        plane = unit_cube(0.5, comm=comm, plane=True, scaling="linear")
+        solve(plane, Stepping(), monitor=lambda step: None)
+        imaged = unit_cube(0.5, comm=comm, cells=3, scaling="linear", imaged_porosity=_imaged_porosity)
+        report = unloaded_reference(imaged, time=1.0, options=InverseOptions(tolerance=1e-10))
+        phi_s0 = imaged.formulation.phi_s0.x
+        owned = phi_s0.index_map.size_local
+        total = comm.allreduce(float(phi_s0.array[:owned].sum()), op=MPI.SUM)
+        return [
+            *averages(plane).values(),
+            imaged.geometry.volume(),
+            total,
+            ImagedPorosity(imaged).mismatch(),
+            report.iterations,
+        ]
+
+    parallel, serial = state(MPI.COMM_WORLD), state(MPI.COMM_SELF)
+    assert parallel[:-2] == pytest.approx(serial[:-2], rel=1e-8)
+    assert parallel[-2] <= 1e-10 and parallel[-1] == serial[-1]
+
+
 def test_a_2d_mesh_file_reads_alike_on_all_ranks_with_rigid_modes_in_its_plane(tmp_path):
     """gmsh on rank 0 tells every rank the mesh is plane; AMG's near-nullspace of a plane body
     has 3 modes (two translations, one rotation), each strain-free."""

@@ -253,15 +253,14 @@ def _plain(scales) -> list:
 
 def _embedded_names(scene: Scene) -> dict[str, str]:
     """Where each file the scene reads goes inside the model file: the mesh (with its companions)
-    under mesh/, a Φs0 file under data/."""
+    under mesh/, a file of cell values (Φs0, κ, …) under data/<key>/."""
     names = {}
     if "file" in scene.geometry:
         mesh = Path(scene.geometry["file"])
         for part in [mesh, *(p for p in companions(mesh) if p.exists())]:
             names[f"mesh/{part.name}"] = str(part)
-    phi_s0 = getattr(scene.formulation, "phi_s0", None)
-    if isinstance(phi_s0, str | Path):
-        names[f"data/{Path(phi_s0).name}"] = str(phi_s0)
+    for key, path in scenes.cell_data(scene.formulation).items():
+        names[f"data/{key}/{path.name}"] = str(path)
     for parameter in scene.parameters:  # label images of regions, with their data files
         marker = getattr(parameter.region, "marker", None)
         if isinstance(marker, ImageLabel):
@@ -303,8 +302,9 @@ def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterato
             unpacked = str(Path(folder) / name)
             if name.startswith("mesh/") and Path(source).name == Path(table["geometry"].get("file", "")).name:
                 table["geometry"]["file"] = unpacked
-            if name.startswith("data/") and isinstance(table.get("formulation", {}).get("phi_s0"), str):
-                table["formulation"]["phi_s0"] = unpacked
+            if name.startswith("data/"):  # data/<key>/<file>: a file of cell values (data/<file>: Φs0, before 0.3)
+                parts = name.split("/")
+                table["formulation"][parts[1] if len(parts) > 2 else "phi_s0"] = unpacked
             for entry in table.get("parameters", {}).values():
                 region = entry.get("region")
                 if isinstance(region, dict) and Path(str(region.get("image", ""))).name == Path(source).name:

@@ -207,7 +207,7 @@ def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> d
         "seconds": report.seconds,
         "imaged_volume": imaged_volume,
         "reference_volume": model.geometry.volume(),
-    }
+    } | ({"porosity_mismatch": report.porosity} if report.porosity else {})
 
 
 def _is_lung(scene: Scene) -> bool:

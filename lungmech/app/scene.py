@@ -128,9 +128,7 @@ class Scene:
         if "file" in self.geometry:
             mesh = Path(self.geometry["file"])
             files += [mesh] + [p for p in _geometry.companions(mesh) if p.exists()]
-        phi_s0 = getattr(self.formulation, "phi_s0", None)
-        if isinstance(phi_s0, str | Path):
-            files.append(Path(phi_s0))
+        files += list(cell_data(self.formulation).values())
         files += [
             Path(p.region.marker.path)
             for p in self.parameters
@@ -181,11 +179,18 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
         raise SceneError(f"formulation.plane: 'strain' or 'stress' (got {plane!r}); a 3-D mesh takes none")
     if kind not in FORMULATIONS:
         raise SceneError(f"formulation.type: unknown type {kind!r} (available: {', '.join(FORMULATIONS)})")
-    if isinstance(formulation.get("phi_s0"), str):  # a file of cell values, next to the scene
-        path = folder / formulation["phi_s0"]
-        if not path.is_file():
-            raise SceneError(f"formulation.phi_s0: file '{path}' not found")
-        formulation["phi_s0"] = str(path)
+    for key in getattr(FORMULATIONS[kind], "cellwise", ()):
+        if isinstance(formulation.get(key), str):  # a file of cell values, next to the scene
+            path = folder / formulation[key]
+            if not path.is_file():
+                raise SceneError(f"formulation.{key}: file '{path}' not found")
+            formulation[key] = str(path)
+    if formulation.get("imaged_porosity") is not None and "inverse" not in table:
+        raise SceneError(
+            "formulation.imaged_porosity: the porosity of an imaged lung needs [inverse] (the geometry is the "
+            "imaged one, and its unloaded reference and solid fraction phi_s0 are found together); give "
+            "phi_s0 instead for a reference geometry"
+        )
     output = _section(table, "output")
     return Scene(
         geometry=_geometry_spec(_section(table, "geometry"), folder),
@@ -220,10 +225,18 @@ def physics(scene: Scene) -> dict[str, Any]:
     }
     described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
     described["stepping.start"] = scene.stepping.start
-    phi_s0 = getattr(scene.formulation, "phi_s0", None)
-    if isinstance(phi_s0, str | Path):
-        described["formulation"] = {**described["formulation"], "phi_s0": _sha256(Path(phi_s0))}
+    if files := cell_data(scene.formulation):
+        described["formulation"] = described["formulation"] | {key: _sha256(path) for key, path in files.items()}
     return json.loads(json.dumps(described, default=str), parse_int=float)
+
+
+def cell_data(formulation) -> dict[str, Path]:
+    """The formulation's values given by files of cell values (Φs0, κ, …), by key."""
+    return {
+        key: Path(value)
+        for key in getattr(formulation, "cellwise", ())
+        if isinstance(value := getattr(formulation, key), str | Path)
+    }
 
 
 def differences(built: dict[str, Any], given: dict[str, Any]) -> list[str]:
@@ -433,6 +446,8 @@ _UNITS = {
     "nu": "1",
     "gamma": "1",
     "phi_s0": "1",
+    "imaged_porosity": "1",
+    "pore_exponent": "1",
     "c2_share": "1",
     "value": "Pa",
     "amplitude": "1",

@@ -26,9 +26,11 @@ from lungmech.mesh import nodes as mesh_nodes
 
 @dataclass
 class InverseReport:
-    """Mismatch max |X + u − x̂| / size after each iteration, and the totals."""
+    """Mismatch after each iteration — max |X + u − x̂| / size, or the imaged porosity's max
+    |φf − φ̂f| where that is larger — and the totals."""
 
     mismatch: list[float] = field(default_factory=list)
+    porosity: list[float] = field(default_factory=list)  # max |φf − φ̂f| (with an imaged porosity)
     newton_iterations: int = 0
     seconds: float = 0.0
 
@@ -72,7 +74,11 @@ def unloaded_reference(
     """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
 
     On return the mesh holds the reference X and ``model.state`` the loaded state at ``time``,
-    whose nodes X + u match the imaged ones to ``options.tolerance`` × the body's size. ``stepping``
+    whose nodes X + u match the imaged ones to ``options.tolerance`` × the body's size. A lung
+    given its imaged porosity (``Poromechanics(imaged_porosity=...)``) has its reference solid
+    fraction Φs0 found with X, each iteration correcting both, until the loaded porosity matches
+    the imaged one to ``options.tolerance`` as well (see
+    :class:`lungmech.lung.poromechanics.ImagedPorosity`). ``stepping``
     raises the loads of ``time`` from zero (a load factor from 0 to 1) for the first direct solve;
     imposed displacements keep their values at ``time``. ``monitor(report)`` is called after
     every iteration (progress). Raises :class:`SolverError` when the iteration does not converge.
@@ -80,15 +86,16 @@ def unloaded_reference(
     tic = perf_counter()
     mesh = model.geometry.mesh
     gdim, comm = mesh.geometry.dim, mesh.comm
-    imaged = mesh.geometry.x[:, :gdim].copy()
+    nodes = mesh.geometry.x[:, :gdim].copy()  # imaged
     owned = mesh.geometry.index_map().size_local
     size = model.geometry.size
     displacement = node_displacements(model)
     solver = solver or NewtonSolver(model, newton)
     report = InverseReport()
+    imaged = getattr(model.formulation, "imaged", lambda model: None)(model)  # data beside the geometry
 
     def dot(a: np.ndarray, b: np.ndarray) -> float:
-        return comm.allreduce(float(np.sum(a[:owned] * b[:owned])), op=MPI.SUM)
+        return comm.allreduce(float(a @ b), op=MPI.SUM)
 
     model.reset()  # first direct solve: the loads of ``time``, raised from zero
     first = solve(
@@ -102,8 +109,13 @@ def unloaded_reference(
     raising = stepping or Stepping(initial_step=0.25)
     relaxation, previous = 1.0, None
     while True:
-        residual = imaged - mesh.geometry.x[:, :gdim] - displacement()
+        residual = nodes - mesh.geometry.x[:, :gdim] - displacement()
         worst = comm.allreduce(float(np.abs(residual[:owned]).max(initial=0.0)), op=MPI.MAX) / size
+        # The fixed point's step, relative: node moves per size, and ln Φs0 where imaged data adds it.
+        step = np.concatenate([residual[:owned].ravel() / size, imaged.correction() if imaged else []])
+        if imaged is not None:
+            report.porosity.append(imaged.mismatch())
+            worst = max(worst, report.porosity[-1])
         report.mismatch.append(worst)
         if monitor is not None:
             monitor(report)
@@ -116,10 +128,12 @@ def unloaded_reference(
                 "for the material, or the imaged geometry is not a deformed state of it"
             )
         if previous is not None:  # Aitken: the relaxation that would have cancelled the last change
-            change = residual - previous
+            change = step - previous
             relaxation = -relaxation * dot(previous, change) / dot(change, change)
+        if imaged is not None:
+            imaged.apply(relaxation * step[residual[:owned].size :])
         mesh_nodes.move(mesh, relaxation * residual)
-        previous = residual
+        previous = step
         model.set_time(time)
         report.newton_iterations += _direct(model, solver, time, raising)
     report.seconds = perf_counter() - tic
