@@ -85,7 +85,14 @@ SCENES = {
         swap("value = [0.0, 0.0, -10.0]", 'value = "abc"'),
         "loads[0]: value must be 2 or 3 numbers",
     ),
-    "traction component is a word": (swap("[0.0, 0.0, -10.0]", '["a", 0.0, -10.0]'), "value[0] must be a number"),
+    "traction component is a word": (
+        swap("[0.0, 0.0, -10.0]", '["a", 0.0, -10.0]'),
+        "loads[0]: value[0]: unknown name 'a' in 'a' (known: x, y, z, t, pi, e)",
+    ),
+    "traction formula not a formula": (
+        swap("[0.0, 0.0, -10.0]", '["10 kPa", 0.0, -10.0]'),
+        "'10 kPa' is not a formula",
+    ),
     "traction of 2 components": (
         swap("[0.0, 0.0, -10.0]", "[0.0, -10.0]"),
         "its value has 2 components, the mesh is 3-D",

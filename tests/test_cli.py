@@ -55,6 +55,16 @@ BAD = {
     "not toml": ("[geometry\nbuilder = 1", "not valid TOML"),
     "inverse tolerance": (TINY + "[inverse]\ntolerance = 2.0\n", "inverse: tolerance must lie in (0, 1)"),
     "inverse unknown key": (TINY + "[inverse]\ntol = 1e-6\n", "inverse.tol: unknown key"),
+    "formula with an unknown name": (
+        TINY.replace("value = [0.0, 0.0, -10.0]", 'value = [0.0, 0.0, "-10 * w"]'),
+        "loads[0]: value[2]: unknown name 'w' in '-10 * w' (known: x, y, z, t, pi, e)",
+    ),
+    "force given by a formula": (
+        TINY.replace('type = "traction"', 'type = "force"').replace(
+            "value = [0.0, 0.0, -10.0]", 'value = [0.0, 0.0, "t"]'
+        ),
+        "loads[0]: value[2] must be a number",
+    ),
     "gravity in 2-D": (
         TINY + GRAVITY.replace("[0.0, 0.0, -9.81]", "[0.0, -9.81]"),
         "load 'gravity': its value has 2 components, the mesh is 3-D",
@@ -214,6 +224,26 @@ def test_a_lung_imaged_with_its_porosity_is_unloaded_then_breathes(tmp_path):
     assert inverse["iterations"] <= 15
     assert summary["start_volume"] == pytest.approx(1.0, rel=1e-9)  # the imaged cube
     assert inverse["reference_volume"] < 0.95
+
+
+def test_loads_as_formulas_force_and_dead_pressure_from_a_scene(tmp_path):
+    """A traction formula of x and t equals its numbers at the probe's end state; a total force
+    and a dead normal pressure run from a scene."""
+    formula = TINY.replace(
+        "value = [0.0, 0.0, -10.0]",
+        'value = [0.0, 0.0, "-10 * t * (1 + 0 * x)"]\nramp = {times = [0.0], values = [1.0]}',
+    )
+    by_formula = run(scenes.load(write(tmp_path, formula)), tmp_path / "a")
+    by_numbers = run(scenes.load(write(tmp_path, TINY)), tmp_path / "b")
+    assert by_formula["deformed_volume"] == pytest.approx(by_numbers["deformed_volume"], rel=1e-12)
+    assert by_formula["strain_energy"] == pytest.approx(by_numbers["strain_energy"], rel=1e-10)
+    others = TINY.replace(
+        'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+        'type = "force"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+    )
+    others += '[[loads]]\ntype = "normal_pressure"\nboundary = "x1"\nvalue = "100 * y"\n'
+    summary = run(scenes.load(write(tmp_path, others)), tmp_path / "c")
+    assert summary["steps"] >= 1
 
 
 def test_every_bundled_scene_parses():

@@ -25,7 +25,7 @@ from lungmech.registration.sobolev import Options
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "docs" / "units.md"
-UNITS = {"—", "1", "m", "mm", "voxel", "s", "Pa", "N/m³", "kg/m³", "m/s²", "residual's unit"}
+UNITS = {"—", "1", "m", "mm", "voxel", "s", "Pa", "N", "N/m³", "kg/m³", "m/s²", "residual's unit"}
 # Command-line options that take no parameter of the physics: where results go, and quiet.
 NOT_PARAMETERS = {"--help", "--output", "--quiet"}
 

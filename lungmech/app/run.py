@@ -35,7 +35,7 @@ from lungmech.app.output import FieldWriter, write_json
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ParameterError
-from lungmech.fem.loads import FollowerPressure
+from lungmech.fem.loads import FollowerPressure, is_pressure
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
@@ -126,7 +126,7 @@ def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> dict[str, float]:
     values = {}
     factors = np.broadcast_to(np.asarray(scale, dtype=float), (len(scene.loads),))
     for load, factor in zip(scene.loads, factors):
-        if np.ndim(load.value) == 0:
+        if is_pressure(load):
             base = load.ramp(scene.stepping.start)
             values[load.label] = (base + factor * (load.ramp(t) - base)) * load.value
     return values
@@ -137,7 +137,7 @@ def pressure_axis(scene: Scene) -> tuple[str, Callable[[dict[str, float]], float
     what it is made of. For a lung (the lung model, an alveolar pressure, or a follower pressure
     on the pleura), the transpulmonary pressure p_alv − p_pl (p_pl: the follower pressure on the
     pleura, or the first one); otherwise the first pressure load. None without pressure loads."""
-    scalars = [load for load in scene.loads if np.ndim(load.value) == 0]
+    scalars = [load for load in scene.loads if is_pressure(load)]
     if not scalars:
         return None
     alveolar = [load.label for load in scalars if isinstance(load, lung.AlveolarPressure)]

@@ -27,7 +27,7 @@ from lungmech.errors import LungmechError, ParameterError, SceneError
 from lungmech.fem.constraints import Displacement, clamp, symmetry
 from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.fem.kinematics import PLANES
-from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
+from lungmech.fem.loads import BodyForce, FollowerPressure, Force, NormalPressure, Traction
 from lungmech.fem.materials import LAWS, Material, Sum
 from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
 from lungmech.fem.ramp import Ramp
@@ -61,6 +61,8 @@ BUILDERS: dict[str, Callable] = {
 LOADS = {
     "body_force": BodyForce,
     "traction": Traction,
+    "force": Force,
+    "normal_pressure": NormalPressure,
     "follower_pressure": FollowerPressure,
     "alveolar_pressure": AlveolarPressure,
     "gravity": Gravity,

@@ -19,6 +19,7 @@ import numpy as np
 from dolfinx import fem
 
 from lungmech.errors import ParameterError
+from lungmech.fem.loads import is_pressure
 from lungmech.fem.materials import Material, numbers_of, with_values
 from lungmech.fem.parameters import LOAD_ATTRIBUTES, Parameter, Parameters
 
@@ -130,8 +131,10 @@ def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, floa
         load = base[named[name]]
         if attribute not in LOAD_ATTRIBUTES:
             raise ParameterError(f"parameter '{p.name}': a load's target is one of {', '.join(LOAD_ATTRIBUTES)}")
-        if attribute == "value" and np.ndim(load.value) != 0:
-            raise ParameterError(f"parameter '{p.name}': load '{name}' has a vector value; use {name}.amplitude")
+        if attribute == "value" and not is_pressure(load):
+            raise ParameterError(
+                f"parameter '{p.name}': load '{name}' has a vector value or a formula; use {name}.amplitude"
+            )
         if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
             raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
 

@@ -2,6 +2,9 @@
 
 A load is a frozen description: a value, where it acts, and a :class:`Ramp`. The model gives it
 the current value as a UFL ``Constant`` (``ramp(t) · value``), so a load step recompiles nothing.
+Tractions, body forces and pressures may also be formulas of the reference position and the time
+(:mod:`lungmech.fem.expressions`), e.g. ``Traction("top", (0.0, "-1e3 * x * sin(pi * t)"))``;
+the Constant then holds ramp(t) alone.
 Conservative loads define ``potential(model, value)`` (the energy of the load, −work); follower
 loads define ``virtual_work(model, v, value)``; a load may define both (its virtual work may be
 a :class:`StateDependentWork`). Both read the model's kinematics (u, F,
@@ -16,10 +19,12 @@ from typing import ClassVar, NamedTuple
 
 import numpy as np
 import ufl
+from mpi4py import MPI
 from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem import expressions
 from lungmech.fem.kinematics import current_area_normal
 from lungmech.fem.ramp import Ramp
 
@@ -51,14 +56,18 @@ class Named:
         where = (where,) if isinstance(where, str) else where
         return self.name or (f"{self.kind} on {'+'.join(where)}" if where else self.kind)
 
-    def _check(self, vector: bool) -> None:
+    def _check(self, vector: bool, formulas: bool = False) -> None:
         """Validate name, ramp and value (a number, or a vector of 2 or 3 numbers: the model
-        checks it against the mesh's dimension), and the boundary."""
+        checks it against the mesh's dimension; with ``formulas``, any of them may be a formula
+        of x, y, z, t), and the boundary."""
         if not isinstance(self.name, str):
             raise ParameterError(f"name must be a string (got {self.name!r})")
         if not isinstance(self.ramp, Ramp):
             raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
-        value = checks.vector("value", self.value, (2, 3)) if vector else checks.real("value", self.value)
+        if formulas and _has_formula(self.value):
+            value = _formulas(self.value, vector)
+        else:
+            value = checks.vector("value", self.value, (2, 3)) if vector else checks.real("value", self.value)
         object.__setattr__(self, "value", value)
         if hasattr(self, "boundary"):
             names = (self.boundary,) if isinstance(self.boundary, str) else self.boundary
@@ -71,38 +80,129 @@ class Named:
                 raise ParameterError(f"boundary must be a boundary name or a list of them (got {self.boundary!r})")
             object.__setattr__(self, "boundary", self.boundary if isinstance(self.boundary, str) else tuple(names))
 
+    @property
+    def magnitude(self) -> np.ndarray:
+        """What the model's Constant holds at ramp 1: the value, or 1 for a formula."""
+        return np.ones(()) if _has_formula(self.value) else np.asarray(self.value, dtype=float)
+
+    def current(self, model, value: Expr) -> Expr:
+        """The load at the model's time as UFL: ``value`` (the model's Constant, ramp(t) ×
+        magnitude), times the formulas of the reference position and t where there are any."""
+        if not _has_formula(self.value):
+            return value
+        position, time = ufl.SpatialCoordinate(model.geometry.mesh), model.time_constant
+
+        def component(item, i: int | None) -> Expr | float:
+            where = f"load '{self.label}': value" + ("" if i is None else f"[{i}]")
+            return expressions.to_ufl(item, where, position, time) if isinstance(item, str) else item
+
+        if isinstance(self.value, str):
+            return value * component(self.value, None)
+        return value * ufl.as_vector([component(item, i) for i, item in enumerate(self.value)])
+
+
+def is_pressure(load) -> bool:
+    """Whether a load's value is one number (a pressure, Pa): not a vector, not a formula."""
+    return np.ndim(load.value) == 0 and not isinstance(load.value, str)
+
+
+def _has_formula(value) -> bool:
+    return isinstance(value, str) or (isinstance(value, tuple | list) and any(isinstance(v, str) for v in value))
+
+
+def _formulas(value, vector: bool) -> str | tuple:
+    """A value with formulas, checked: each one parses (the names against the mesh come later)."""
+    if not vector:
+        if not isinstance(value, str):
+            raise ParameterError(f"value must be a number or a formula (got {value!r})")
+        expressions.check(value, "value")
+        return value
+    if not isinstance(value, tuple | list) or len(value) not in (2, 3):
+        raise ParameterError(f"value must be 2 or 3 numbers or formulas (got {value!r})")
+    for i, item in enumerate(value):
+        if isinstance(item, str):
+            expressions.check(item, f"value[{i}]")
+        else:
+            checks.real(f"value[{i}]", item)
+    return tuple(item if isinstance(item, str) else float(item) for item in value)
+
 
 @dataclass(frozen=True)
 class BodyForce(Named):
     """Dead body force per unit reference volume (e.g. ρ₀ g)."""
 
-    value: Sequence[float]
+    value: Sequence[float | str]
     ramp: Ramp = field(default_factory=Ramp)
     name: str = ""
     kind: ClassVar[str] = "body force"
 
     def __post_init__(self):
-        self._check(vector=True)
+        self._check(vector=True, formulas=True)
 
     def potential(self, model, value: Expr) -> ufl.Form:
-        return -ufl.dot(value, model.u) * ufl.dx(domain=model.geometry.mesh)
+        return -ufl.dot(self.current(model, value), model.u) * ufl.dx(domain=model.geometry.mesh)
 
 
 @dataclass(frozen=True)
 class Traction(Named):
-    """Dead traction per unit reference area on a named boundary."""
+    """Dead traction per unit reference area on a named boundary (Pa; numbers, or formulas of
+    the reference position and the time)."""
 
     boundary: str
-    value: Sequence[float]
+    value: Sequence[float | str]
     ramp: Ramp = field(default_factory=Ramp)
     name: str = ""
     kind: ClassVar[str] = "traction"
 
     def __post_init__(self):
+        self._check(vector=True, formulas=True)
+
+    def potential(self, model, value: Expr) -> ufl.Form:
+        return -ufl.dot(self.current(model, value), model.u) * model.geometry.ds(self.boundary)
+
+
+@dataclass(frozen=True)
+class Force(Named):
+    """A total force on a named boundary (N; N per metre of thickness in 2-D), spread as a dead
+    traction over its reference area A: t = f/A, A measured when the model is built."""
+
+    boundary: str
+    value: Sequence[float]
+    ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "force"
+
+    def __post_init__(self):
         self._check(vector=True)
 
     def potential(self, model, value: Expr) -> ufl.Form:
-        return -ufl.dot(value, model.u) * model.geometry.ds(self.boundary)
+        from dolfinx import fem
+
+        ds = model.geometry.ds(self.boundary)
+        mesh = model.geometry.mesh
+        area = mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ds)), op=MPI.SUM)
+        per_area = fem.Constant(mesh, 1.0 / area)  # not a literal: another mesh compiles nothing
+        return -per_area * ufl.dot(value, model.u) * ds
+
+
+@dataclass(frozen=True)
+class NormalPressure(Named):
+    """Dead pressure on a named boundary, along its reference outward normal: t = −p N (Pa;
+    a number or a formula). Unlike a :class:`FollowerPressure` it does not turn with the
+    surface: it derives from the potential ∫ p N·u dA."""
+
+    boundary: str | tuple[str, ...]
+    value: float | str
+    ramp: Ramp = field(default_factory=Ramp)
+    name: str = ""
+    kind: ClassVar[str] = "normal pressure"
+
+    def __post_init__(self):
+        self._check(vector=False, formulas=True)
+
+    def potential(self, model, value: Expr) -> ufl.Form:
+        N = ufl.FacetNormal(model.geometry.mesh)
+        return self.current(model, value) * ufl.dot(N, model.u) * model.geometry.ds(self.boundary)
 
 
 @dataclass(frozen=True)
@@ -115,17 +215,17 @@ class FollowerPressure(Named):
     """
 
     boundary: str | tuple[str, ...]  # one boundary, or several under the same pressure
-    value: float
+    value: float | str
     ramp: Ramp = field(default_factory=Ramp)
     name: str = ""
     kind: ClassVar[str] = "follower pressure"
 
     def __post_init__(self):
-        self._check(vector=False)
+        self._check(vector=False, formulas=True)
 
     def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
         n_da = current_area_normal(model.F, ufl.FacetNormal(model.geometry.mesh))
-        return -value * ufl.dot(n_da, v) * model.geometry.ds(self.boundary)
+        return -self.current(model, value) * ufl.dot(n_da, v) * model.geometry.ds(self.boundary)
 
 
-Load = BodyForce | Traction | FollowerPressure
+Load = BodyForce | Traction | Force | NormalPressure | FollowerPressure

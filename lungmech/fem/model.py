@@ -23,7 +23,7 @@ from lungmech.fem import constraints as _constraints
 from lungmech.fem.constraints import Displacement
 from lungmech.fem.formulations import Formulation, PlaneStress, PureDisplacement, TaylorHood
 from lungmech.fem.kinematics import PLANES, deformation_gradient
-from lungmech.fem.loads import Load, StateDependentWork
+from lungmech.fem.loads import Load, StateDependentWork, is_pressure
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
 
@@ -121,7 +121,8 @@ class Model:
 
         v = ufl.TestFunction(self.space)
         v_u = ufl.split(v)[0] if self.mixed else v
-        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.value))) for load in self.loads]
+        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(_magnitude(load)))) for load in self.loads]
+        self.time_constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
         self.potential = self.energy_density * self.dx
         virtual_work, self._state_dependent = [], []
         for load, value in zip(self.loads, self._load_values):
@@ -188,10 +189,11 @@ class Model:
         ramp(t₀))): a deeper or shallower breath from the same end-expiration, say.
         """
         self.time = t
+        self.time_constant.value = t
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor, amplitude in zip(self.loads, self._load_values, factors, self._amplitudes):
             base = 0.0 if about is None else load.ramp(about)
-            current = (base + factor * (load.ramp(t) - base)) * amplitude * np.asarray(load.value, dtype=float)
+            current = (base + factor * (load.ramp(t) - base)) * amplitude * _magnitude(load)
             if not np.all(np.isfinite(current)):
                 label = getattr(load, "label", type(load).__name__)
                 raise ParameterError(
@@ -204,9 +206,7 @@ class Model:
     def scalar_loads(self) -> dict[str, float]:
         """The current value of every scalar load (a pressure, Pa) by label, as :meth:`set_time` set it."""
         return {
-            load.label: float(value.value)
-            for load, value in zip(self.loads, self._load_values)
-            if np.ndim(load.value) == 0
+            load.label: float(value.value) for load, value in zip(self.loads, self._load_values) if is_pressure(load)
         }
 
     @contextlib.contextmanager
@@ -294,3 +294,8 @@ def _plane(mesh, plane: str | None) -> str | None:
     if plane is not None:
         raise ParameterError(f"plane = {plane!r} is for 2-D meshes; this mesh is 3-D")
     return None
+
+
+def _magnitude(load) -> np.ndarray:
+    """What a load's Constant holds at ramp 1: its value, or 1 where it is a formula."""
+    return load.magnitude if hasattr(load, "magnitude") else np.asarray(load.value, dtype=float)
