@@ -1,0 +1,143 @@
+"""Cook's membrane, nearly incompressible: the three discretisations side by side.
+
+    python benchmarks/cook.py            # meshes 4, 8, 16, 32 (about a minute)
+    python benchmarks/cook.py --quick    # meshes 4, 8
+
+The trapezoid (0, 0), (48, 44), (48, 60), (0, 44) (m), clamped at x = 0, sheared by a total force
+of 100 N per metre of thickness on x = 48; compressible neo-Hookean, E = 240.565 Pa, ν = 0.4999,
+plane strain (VERIFICATION.md). The corner (48, 60) moves ≈ 6.91 m vertically on very fine meshes.
+Each formulation (P1, P2 displacement; Taylor–Hood P2/P1 mixed) is solved on n × n meshes with
+lungmech's default solver and automatic stepping, and the table gives the corner's displacement,
+its error against 6.91, and what the load path cost: Newton iterations in all (failed steps
+included, each linear predictor solve counted as one), steps and cut-backs, and time.
+
+Writes results/cook.md, results/cook.csv and results/cook.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+from mpi4py import MPI
+
+from lungmech.fem.constraints import clamp
+from lungmech.fem.loads import Traction
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import Probe
+from lungmech.fem.solver import Stepping, solve
+from lungmech.mesh import cook_membrane
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from machine import cpu_and_memory  # noqa: E402
+
+REFERENCE = 6.91  # m: v(48, 60) on very fine meshes (VERIFICATION.md)
+E, NU, FORCE = 240.565, 0.4999, 100.0  # Pa, 1, N per metre of thickness over the 16 m edge
+FORMULATIONS = {"P1": dict(degree=1), "P2": dict(degree=2), "mixed P2/P1": dict(degree=2, mixed=True)}
+RESULTS = Path(__file__).parent / "results"
+
+
+def case(name: str, cells: int) -> dict:
+    geometry = cook_membrane(MPI.COMM_WORLD, cells=(cells, cells))
+    model = Model(
+        geometry,
+        NeoHookean.from_young(E, NU),
+        plane="strain",
+        constraints=[clamp("clamped")],
+        loads=[Traction("loaded", (0.0, FORCE / 16.0))],
+        **FORMULATIONS[name],
+    )
+    tic = time.perf_counter()
+    report = solve(model, Stepping(), monitor=lambda step: None)
+    seconds = time.perf_counter() - tic
+    v = float(Probe(geometry.mesh, [[48.0, 60.0]])(model.displacement())[0, 1])
+    space = model.space.dofmap
+    return {
+        "formulation": name,
+        "cells": cells,
+        "dofs": space.index_map.size_global * space.index_map_bs,
+        "v_corner_m": v,
+        "error": abs(v - REFERENCE) / REFERENCE,
+        "newton_iterations": report.newton_iterations,
+        "steps": len(report.accepted),
+        "cut_backs": report.failures,
+        "seconds": seconds,
+    }
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    import dolfinx  # after lungmech, which loads the MPI library its bindings need
+
+    cpu, memory = cpu_and_memory()
+    lines = [
+        "# Cook's membrane, nearly incompressible (ν = 0.4999), plane strain",
+        "",
+        f"`{command}` — {time.strftime('%Y-%m-%d')}, {cpu}, {memory}, DOLFINx {dolfinx.__version__}, one rank. "
+        "Default solver (MUMPS LU, `cp` line search, rtol 1e-10) and automatic stepping. Newton iterations "
+        "count every attempt, failed steps included, and each linear predictor solve as one.",
+        "",
+        "| formulation | mesh | dofs | v(48, 60) [m] | error vs 6.91 | Newton iterations | steps (cut back) | time [s] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['formulation']} | {r['cells']} × {r['cells']} | {r['dofs']} | {r['v_corner_m']:.4f} | "
+            f"{100 * r['error']:.2f} % | {r['newton_iterations']} | {r['steps']} ({r['cut_backs']}) | "
+            f"{r['seconds']:.2f} |"
+        )
+    lines += [
+        "",
+        "P1 locks (ν → 1/2 leaves it too few incompressible modes); P2 converges to the reference, "
+        "slower than the mixed formulation, which also needs fewer Newton iterations. The reference 6.91 m "
+        "is known to three digits: errors below 0.1 % are not resolved.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for name in FORMULATIONS:
+        mine = [r for r in rows if r["formulation"] == name]
+        ax.loglog([r["dofs"] for r in mine], [100 * r["error"] for r in mine], "o-", label=name)
+    ax.set_xlabel("degrees of freedom [-]")
+    ax.set_ylabel("|v(48, 60) − 6.91 m| / 6.91 m [%]")
+    ax.set_title("Cook's membrane, ν = 0.4999, plane strain")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="meshes 4 and 8 only")
+    args = parser.parse_args()
+    meshes = (4, 8) if args.quick else (4, 8, 16, 32)
+    rows = []
+    for name in FORMULATIONS:
+        for cells in meshes:
+            rows.append(case(name, cells))
+            r = rows[-1]
+            print(f"{name:12s} {cells:3d}: v = {r['v_corner_m']:.4f} m, {r['newton_iterations']} Newton iterations")
+    RESULTS.mkdir(exist_ok=True)
+    stem = "cook_quick" if args.quick else "cook"
+    command = "python benchmarks/cook.py" + (" --quick" if args.quick else "")
+    (RESULTS / f"{stem}.md").write_text(markdown(rows, command))
+    with open(RESULTS / f"{stem}.csv", "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot(rows, RESULTS / f"{stem}.png")
+    print((RESULTS / f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()
