@@ -107,6 +107,7 @@ def end_of_run(summary: dict, folder: Path) -> str:
     """The closing line of a run: the work done and the volumes a physiologist reads."""
     largest = summary["largest_volume"]
     start = "imaged (start)" if summary.get("inverse") else "start"
+
     def show(value: float) -> str:
         return volume_text(value, bool(summary.get("plane")))
 

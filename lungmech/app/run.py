@@ -285,7 +285,7 @@ def run(
             progress.update(
                 (model.time - stepping.start) / (stepping.end - stepping.start),
                 f"step {len(history) - 1}  t = {model.time:.3g}/{stepping.end:g} s{shown}  "
-                f"volume {volume_text(row["volume"], model.plane is not None)}{newton}",
+                f"volume {volume_text(row['volume'], model.plane is not None)}{newton}",
             )
 
         def cut(step: StepReport) -> None:
