@@ -281,7 +281,7 @@ SCENES = {
     "iterative mixed": (
         TINY.replace("nu = 0.3", "nu = 0.4")
         + '[formulation]\ntype = "mixed"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
-        "the iterative linear solver handles the displacement formulation only",
+        "the iterative linear solver has no preconditioner for the fields u, p yet",
     ),
     "petsc options a word": (TINY + '[solver]\npetsc_options = "fast"\n', "petsc_options must be a table"),
     "petsc option a table": (

@@ -558,3 +558,19 @@ def test_a_2d_mesh_file_reads_alike_on_all_ranks_with_rigid_modes_in_its_plane(t
         product = mode.duplicate()
         K.mult(mode, product)
         assert product.norm() <= 1e-12 * K.norm() * mode.norm()
+
+
+def test_the_iterative_lung_solver_same_on_all_ranks_as_on_one():
+    """The Schur split of (u, Φs) with AMG and an inexact Newton: the same inflation on 2 ranks."""
+    from test_lung import averages, unit_cube
+
+    from lungmech.fem.solver import NewtonOptions
+
+    def state(comm) -> dict:
+        model = unit_cube(0.5, comm=comm, cells=4, scaling="linear")
+        solve(model, Stepping(), NewtonOptions(linear_solver="iterative"), monitor=lambda step: None)
+        return averages(model)
+
+    parallel, serial = state(MPI.COMM_WORLD), state(MPI.COMM_SELF)
+    for key in serial:
+        assert parallel[key] == pytest.approx(serial[key], rel=1e-8), key

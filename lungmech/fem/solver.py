@@ -43,9 +43,12 @@ class NewtonOptions:
     """Nonlinear and linear solver settings.
 
     ``linear_solver`` is "direct" (MUMPS LU, robust, the default) or "iterative" (GMRES with
-    smoothed-aggregation AMG and the rigid-body near-nullspace, for large displacement-only
-    problems). ``petsc_options`` overrides or extends any PETSc option; one PETSc refuses or
-    does not use is an error.
+    smoothed-aggregation AMG and the rigid-body near-nullspace on the displacement, for large
+    problems; the lung's (u, Φs) is split by blocks, Φs condensed exactly, see
+    :func:`iterative_layout`; each linear solve is as exact as Newton's progress and its stopping
+    test need, :meth:`lungmech.fem.convergence.Test.forcing`, unless ``ksp_rtol`` is given).
+    ``petsc_options`` overrides or extends any PETSc option; one PETSc refuses or does not use
+    is an error.
 
     A Newton solve has converged when every field's residual has fallen to ``rtol`` times its load
     scale, or to ``atol`` (in the residual's own unit; 0: no absolute test), or quadratically to
@@ -83,7 +86,8 @@ class NewtonOptions:
             ):
                 raise ParameterError(f"petsc_options.{key}: expected a string, number or boolean (got {value!r})")
 
-    def petsc(self) -> dict:
+    def petsc(self, iterative: dict | None = None) -> dict:
+        """The PETSc options; ``iterative`` replaces the default Krylov solver's (a layout's)."""
         options = {
             "snes_type": "newtonls",
             "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
@@ -102,17 +106,100 @@ class NewtonOptions:
         else:
             options |= {
                 "ksp_type": "gmres",
+                # right-preconditioned: GMRES stops on the true residual, which the inexact Newton's
+                # tolerance is about (left, a weak preconditioner's residual misled it: 17 Newton
+                # iterations for 6 on the lung)
+                "ksp_pc_side": "right",
                 "ksp_rtol": 1e-9,
                 "ksp_max_it": 500,
-                "pc_type": "gamg",
-                "pc_gamg_type": "agg",
-                "mg_levels_ksp_type": "chebyshev",
-                "mg_levels_pc_type": "jacobi",
-            }
+            } | (iterative if iterative is not None else AMG)
         # A true flag is set as a bare option (PETSc reads "" as true, and as "on" for a viewer);
-        # a false one is left out (off, PETSc's default).
+        # a false one is left out (off, PETSc's default), also where lungmech would set it.
         given = {k: "" if v is True else v for k, v in self.petsc_options.items() if v is not False}
-        return options | given
+        off = {k for k, v in self.petsc_options.items() if v is False}
+        return {k: v for k, v in options.items() if k not in off} | given
+
+
+AMG = {  # smoothed aggregation, Chebyshev–Jacobi smoothing: for an elastic displacement block
+    "pc_type": "gamg",
+    "pc_gamg_type": "agg",
+    "mg_levels_ksp_type": "chebyshev",
+    "mg_levels_pc_type": "jacobi",
+}
+
+
+def _prefixed(prefix: str, options: dict) -> dict:
+    return {prefix + key: value for key, value in options.items()}
+
+
+def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
+    """The Krylov preconditioner of ``model``'s tangent: PETSc options, and a function of the KSP
+    and the tangent matrix that gives them what the options need (the index sets of the fields,
+    the rigid-body near-nullspace).
+
+    - Displacement only: AMG with the rigid-body modes.
+    - The lung (u, Φs): Φs is cell-local — its equation holds cell by cell, and K_ΦΦ is
+      diagonal (DG0) — so it is condensed exactly: a Schur-complement field split with Φs first,
+      its block solved by Jacobi (exact for a diagonal), and S = K_uu − K_uΦ K_ΦΦ⁻¹ K_Φu formed
+      exactly by ``selfp`` (which uses diag(K_ΦΦ), K_ΦΦ itself), solved with AMG.
+    - Taylor–Hood (u, p) is refused: its Schur complement needs a pressure mass matrix, and
+      ``selfp`` with AMG did not converge on a nearly incompressible block.
+    """
+    fields = ("u", *model.formulation.fields)
+    if len(fields) == 1:
+        space = model.space
+        return dict(AMG), lambda ksp, A: A.setNearNullSpace(rigid_body_modes(space))
+    if fields == ("u", "phi_s") or fields == ("u", "thickness_stretch") and model.degree == 1:
+        local = fields[1]
+        order = (local, "u")  # the cell-local field first: A00, inverted exactly
+        options = {
+            "pc_type": "fieldsplit",
+            "pc_fieldsplit_type": "schur",
+            "pc_fieldsplit_schur_fact_type": "full",
+            "pc_fieldsplit_schur_precondition": "selfp",
+            f"fieldsplit_{local}_ksp_type": "preonly",
+            f"fieldsplit_{local}_pc_type": "jacobi",
+            "fieldsplit_u_ksp_type": "preonly",
+        } | _prefixed("fieldsplit_u_", AMG)
+    else:
+        raise ParameterError(
+            f"the iterative linear solver has no preconditioner for the fields {', '.join(fields)} yet "
+            "(the mixed u-p formulation, or plane stress above degree 1); use linear_solver = 'direct'"
+        )
+
+    def set_splits(ksp: PETSc.KSP, A: PETSc.Mat) -> None:
+        pc = ksp.getPC()
+        sets = _field_index_sets(model)
+        pc.setFieldSplitIS(*[(name, sets[name]) for name in order])
+        modes = rigid_body_modes(model.space.sub(0).collapse()[0])  # in the u block's row order
+
+        def give_modes(ksp, b, x) -> None:
+            """Before each solve: AMG on the Schur complement gets the rigid-body modes (its matrix
+            is made when the field split is set up, and kept for the next tangents)."""
+            pc = ksp.getPC()  # not captured: PETSc holds this function, and would hold the PC
+            pc.setUp()  # a no-op once set up for this tangent
+            schur = pc.getFieldSplitSubKSP()[-1]  # the u block's solver: its matrices are S, S_p
+            S_p = schur.getOperators()[1]
+            if S_p.getNearNullSpace().handle == 0:  # before AMG is built on it, at its first use
+                S_p.setNearNullSpace(modes)
+
+        ksp.setPreSolve(give_modes)
+
+    return options, set_splits
+
+
+def _field_index_sets(model) -> dict[str, PETSc.IS]:
+    """Global rows of each field, owned by this rank, in the order of the field's own collapsed
+    space (so the u block's rows follow its rigid-body modes)."""
+    space = model.space
+    first = space.dofmap.index_map.local_range[0] * space.dofmap.index_map_bs
+    sets = {}
+    for i, name in enumerate(("u", *model.formulation.fields)):
+        collapsed, parent = space.sub(i).collapse()
+        owned = collapsed.dofmap.index_map.size_local * collapsed.dofmap.index_map_bs
+        rows = np.asarray(parent).ravel()[:owned]
+        sets[name] = PETSc.IS().createGeneral((rows + first).astype(PETSc.IntType), comm=space.mesh.comm)
+    return sets
 
 
 @dataclass(frozen=True)
@@ -207,11 +294,7 @@ class NewtonSolver:
     def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
         self.model = model
         self.options = options or NewtonOptions()
-        if self.options.linear_solver == "iterative" and model.mixed:
-            raise ParameterError(
-                "the iterative linear solver handles the displacement formulation only; "
-                "use the direct solver with the mixed formulation"
-            )
+        layout = iterative_layout(model) if self.options.linear_solver == "iterative" else None
         prefix = f"lungmech_{next(_prefixes)}_"
         PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
         self.problem = _Problem(
@@ -221,10 +304,10 @@ class NewtonSolver:
             J=model.jacobian if jacobian is None else jacobian,
             petsc_options_prefix=prefix,
         )
-        options = self.options.petsc()
+        options = self.options.petsc(layout[0] if layout else None)
         _configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
-        if self.options.linear_solver == "iterative":
-            self.problem.A.setNearNullSpace(rigid_body_modes(model.space))
+        if layout is not None:
+            layout[1](self.problem.solver.getKSP(), self.problem.A)
         self._residuals: list[float] = []
         snes = self.problem.solver
         # Callbacks PETSc holds capture no `self`: Python's collector cannot see PETSc's references,
@@ -237,7 +320,15 @@ class NewtonSolver:
         self.description = "full order"
         K = self.problem.A  # the assembled tangent at frozen load coefficients (the round-off floors use it)
         test = self.test
-        snes.setConvergenceTest(lambda snes, it, norms: test(snes.getFunction()[0], it, K, snes.getSolution()))
+        inexact = layout is not None and "ksp_rtol" not in self.options.petsc_options
+
+        def converged(snes, it, norms):
+            reason = test(snes.getFunction()[0], it, K, snes.getSolution())
+            if inexact and reason == 0:  # the next linear solve only as exact as Newton needs
+                snes.getKSP().setTolerances(rtol=test.forcing())
+            return reason
+
+        snes.setConvergenceTest(converged)
         self.state_dependent = StateDependent(model)
         self._exact_step = None
         if self.state_dependent:
