@@ -156,7 +156,7 @@ def run_lungmech(geometry, formulation: str, pressure: float, nu: float, steps: 
     )
     build = time.perf_counter() - tic
     tic = time.perf_counter()
-    solver = NewtonSolver(model, NewtonOptions(line_search=line_search))
+    solver = NewtonSolver(model, NewtonOptions(linear_solver="direct", line_search=line_search))
     setup = time.perf_counter() - tic
     out = {
         "build_seconds": build,

@@ -45,7 +45,7 @@ def measure(formulation: str, h: float, pairs: int, steps: int, line_search: str
         loads=[FollowerPressure("inner", pressure)],
         constraints=[symmetry("x0", "x"), symmetry("y0", "y"), symmetry("z0", "z")],
     )
-    solver = NewtonSolver(model, NewtonOptions(line_search=line_search))
+    solver = NewtonSolver(model, NewtonOptions(linear_solver="direct", line_search=line_search))
     stepping = Stepping(initial_step=1.0 / steps, growth=1.0)
     hand = Problem(geometry, formulation, 1.0, lame(nu), pressure, line_search=line_search)
     lm, hw, its = [], [], set()

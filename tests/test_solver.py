@@ -145,3 +145,40 @@ def test_petsc_options_of_the_user_only_are_checked():
     model = Model(geometry, SaintVenantKirchhoff.from_young(1.0, 0.3), constraints=[clamp("x0")])
     NewtonSolver(model, NewtonOptions(petsc_options={"snes_type": "newtontr"}))
     NewtonSolver(model, NewtonOptions(petsc_options={"snes_type": "ksponly", "ksp_view": False}))
+
+
+def test_auto_takes_the_iterative_solver_for_large_problems_where_one_fits(monkeypatch):
+    """Above ITERATIVE_FROM_DOFS unknowns "auto" is iterative, unless no preconditioner fits
+    the formulation (the mixed u-p one): then it stays direct."""
+    import lungmech.fem.solver as solver_module
+    from lungmech.mesh import box as make_box
+
+    monkeypatch.setattr(solver_module, "ITERATIVE_FROM_DOFS", 10)
+    assert NewtonSolver(bent_block()).linear_solver == "iterative"
+    mixed = Model(make_box(MPI.COMM_WORLD, cells=(1, 1, 1)), NeoHookean(1.0, 100.0), degree=2, mixed=True)
+    assert NewtonSolver(mixed).linear_solver == "direct"
+    monkeypatch.setattr(solver_module, "ITERATIVE_FROM_DOFS", 10**9)
+    assert NewtonSolver(bent_block()).linear_solver == "direct"
+
+
+def test_auto_leaves_a_factorisation_that_runs_out_of_memory(caplog):
+    """MUMPS capped at 1 MB (ICNTL(23)) fails in its first factorisation: "auto" says so once,
+    goes on with the iterative solver and reaches the direct solver's answer; "direct" fails."""
+    from test_lung import averages, unit_cube
+
+    capped = {"mat_mumps_icntl_23": 1}
+    model, reference = unit_cube(0.5, cells=4), unit_cube(0.5, cells=4)
+    solver = NewtonSolver(model, NewtonOptions(petsc_options=capped))
+    with caplog.at_level("WARNING", logger="lungmech"):
+        solve(model, Stepping(), solver=solver, monitor=lambda step: None)
+    assert solver.linear_solver == "iterative"
+    assert sum("ran out of memory" in r.message for r in caplog.records) == 1
+    solve(reference, Stepping(), monitor=lambda step: None)
+    assert averages(model)["J"] == pytest.approx(averages(reference)["J"], rel=1e-9)
+    with pytest.raises(SolverError):
+        solve(
+            unit_cube(0.5, cells=4),
+            Stepping(min_step=0.1),
+            NewtonOptions(linear_solver="direct", petsc_options=capped),
+            monitor=lambda step: None,
+        )

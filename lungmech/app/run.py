@@ -337,6 +337,7 @@ def run(
             "inverse": inverse,
             "load_scale": np.asarray(scale, dtype=float).tolist(),
             "solver": solver.description,
+            "linear_solver": getattr(solver, "linear_solver", None),  # what "auto" chose, or was pushed to
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
                 "displacement": probe(model.displacement()).tolist() if probe is not None else [],

@@ -42,7 +42,9 @@ _prefixes = itertools.count()
 class NewtonOptions:
     """Nonlinear and linear solver settings.
 
-    ``linear_solver`` is "direct" (MUMPS LU, robust, the default) or "iterative" (GMRES with
+    ``linear_solver`` is "auto" (the default: direct below :data:`ITERATIVE_FROM_DOFS` unknowns
+    or where no preconditioner fits the formulation, iterative above, and iterative after the
+    direct factorisation ran out of memory), "direct" (MUMPS LU, robust) or "iterative" (GMRES with
     smoothed-aggregation AMG and the rigid-body near-nullspace on the displacement, for large
     problems; the lung's (u, Φs) is split by blocks, Φs condensed exactly, see
     :func:`iterative_layout`; each linear solve is as exact as Newton's progress and its stopping
@@ -57,7 +59,7 @@ class NewtonOptions:
     ‖R‖² is not).
     """
 
-    linear_solver: str = "direct"
+    linear_solver: str = "auto"
     rtol: float = 1e-10
     atol: float = 0.0
     max_iterations: int = 25
@@ -65,8 +67,8 @@ class NewtonOptions:
     petsc_options: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        if self.linear_solver not in ("direct", "iterative"):
-            raise ParameterError(f"linear_solver must be 'direct' or 'iterative' (got {self.linear_solver!r})")
+        if self.linear_solver not in ("auto", "direct", "iterative"):
+            raise ParameterError(f"linear_solver must be 'auto', 'direct' or 'iterative' (got {self.linear_solver!r})")
         if self.line_search not in ("bt", "l2", "cp", "basic", "none"):
             raise ParameterError(f"line_search must be bt, l2, cp, basic or none (got {self.line_search!r})")
         checks.real("rtol", self.rtol, positive=True)
@@ -87,7 +89,8 @@ class NewtonOptions:
                 raise ParameterError(f"petsc_options.{key}: expected a string, number or boolean (got {value!r})")
 
     def petsc(self, iterative: dict | None = None) -> dict:
-        """The PETSc options; ``iterative`` replaces the default Krylov solver's (a layout's)."""
+        """The PETSc options: of the direct solver, or with ``iterative`` (a layout's preconditioner,
+        see :func:`iterative_layout`) of the Krylov one."""
         options = {
             "snes_type": "newtonls",
             "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
@@ -96,7 +99,7 @@ class NewtonOptions:
             "snes_max_it": self.max_iterations,
             "snes_max_funcs": 10 * self.max_iterations + 100,
         }
-        if self.linear_solver == "direct":
+        if iterative is None:
             options |= {
                 "ksp_type": "preonly",
                 "pc_type": "lu",
@@ -112,12 +115,21 @@ class NewtonOptions:
                 "ksp_pc_side": "right",
                 "ksp_rtol": 1e-9,
                 "ksp_max_it": 500,
-            } | (iterative if iterative is not None else AMG)
+            } | iterative
         # A true flag is set as a bare option (PETSc reads "" as true, and as "on" for a viewer);
         # a false one is left out (off, PETSc's default), also where lungmech would set it.
         given = {k: "" if v is True else v for k, v in self.petsc_options.items() if v is not False}
         off = {k for k, v in self.petsc_options.items() if v is False}
         return {k: v for k, v in options.items() if k not in off} | given
+
+
+# Above this many unknowns "auto" takes the iterative solver: on the P1 lung (benchmarks/
+# large_lung.py, 2 ranks) the two cross near 135k, and at 483k the iterative one was 2.2 times
+# faster with half the memory (at 1.1M: 4.9 times, a third).
+ITERATIVE_FROM_DOFS = 200_000
+_NOT_CONVERGED = 91  # PETSC_ERR_NOT_CONVERGED
+# MUMPS INFOG(1) of a factorisation that ran out of memory (workspace, allocation, ICNTL(23))
+_MUMPS_OUT_OF_MEMORY = (-8, -9, -11, -12, -13, -14, -15, -17, -19, -20)
 
 
 AMG = {  # smoothed aggregation, Chebyshev–Jacobi smoothing: for an elastic displacement block
@@ -186,6 +198,14 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
         ksp.setPreSolve(give_modes)
 
     return options, set_splits
+
+
+def _layout_if_any(model):
+    """:func:`iterative_layout`, or None where no preconditioner fits the formulation."""
+    try:
+        return iterative_layout(model)
+    except ParameterError:
+        return None
 
 
 def _field_index_sets(model) -> dict[str, PETSc.IS]:
@@ -294,8 +314,16 @@ class NewtonSolver:
     def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
         self.model = model
         self.options = options or NewtonOptions()
-        layout = iterative_layout(model) if self.options.linear_solver == "iterative" else None
-        prefix = f"lungmech_{next(_prefixes)}_"
+        self._layout = _layout_if_any(model) if self.options.linear_solver != "direct" else None
+        if self.options.linear_solver == "iterative" and self._layout is None:
+            iterative_layout(model)  # raises, saying why
+        size = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
+        chosen = self.options.linear_solver
+        if chosen == "auto":
+            chosen = "iterative" if self._layout is not None and size >= ITERATIVE_FROM_DOFS else "direct"
+        self.linear_solver = chosen  # what this solver uses now
+        layout = self._layout if chosen == "iterative" else None
+        self._prefix = prefix = f"lungmech_{next(_prefixes)}_"
         PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
         self.problem = _Problem(
             model.residual if residual is None else residual,
@@ -320,11 +348,11 @@ class NewtonSolver:
         self.description = "full order"
         K = self.problem.A  # the assembled tangent at frozen load coefficients (the round-off floors use it)
         test = self.test
-        inexact = layout is not None and "ksp_rtol" not in self.options.petsc_options
+        mode = self._mode = {"inexact": layout is not None and "ksp_rtol" not in self.options.petsc_options}
 
         def converged(snes, it, norms):
             reason = test(snes.getFunction()[0], it, K, snes.getSolution())
-            if inexact and reason == 0:  # the next linear solve only as exact as Newton needs
+            if mode["inexact"] and reason == 0:  # the next linear solve only as exact as Newton needs
                 snes.getKSP().setTolerances(rtol=test.forcing())
             return reason
 
@@ -430,6 +458,13 @@ class NewtonSolver:
         ksp.setOperators(operator, K)
         step = x.duplicate()
         ksp.solve(b, step)
+        if ksp.getConvergedReason() < 0 and self._out_of_memory():
+            self._switch_to_iterative()
+            ksp.setOperators(operator, K)
+            ksp.solve(b, step)
+        if ksp.getConvergedReason() < 0:  # a singular tangent, say: the callers carry on without
+            step.destroy()
+            raise PETSc.Error(_NOT_CONVERGED)
         if self._exact_step is not None:
             self._exact_step(x, step)
         x.axpy(-1.0, step)
@@ -457,6 +492,9 @@ class NewtonSolver:
                 False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}"
             )
         Interrupted.raise_pending()
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and self._out_of_memory():
+            self._switch_to_iterative()
+            return self._newton()
         converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
         name = _REASONS.get(reason, str(reason))
         if not converged:
@@ -464,6 +502,32 @@ class NewtonSolver:
         elif wrong := self.inversion():
             converged, name = False, f"{name} to {wrong}"
         return NewtonResult(bool(converged), snes.getIterationNumber(), tuple(self._residuals), name)
+
+    def _out_of_memory(self) -> bool:
+        """Whether "auto" may leave a direct factorisation that ran out of memory (collective)."""
+        if self.options.linear_solver != "auto" or self.linear_solver != "direct" or self._layout is None:
+            return False
+        try:
+            info = self.problem.solver.getKSP().getPC().getFactorMatrix().getMumpsInfog(1)
+        except PETSc.Error:
+            return False
+        return info in _MUMPS_OUT_OF_MEMORY
+
+    def _switch_to_iterative(self) -> None:
+        """From now on, the iterative solver (the state is the last one Newton started from)."""
+        options, configure = self._layout
+        database = PETSc.Options()
+        for key in ("pc_factor_mat_solver_type", "mat_mumps_icntl_14"):
+            database.delValue(self._prefix + key)
+        chosen = self.options.petsc(options)
+        _persistent_options(self, self._prefix, chosen)
+        ksp = self.problem.solver.getKSP()
+        ksp.getPC().reset()
+        ksp.setFromOptions()
+        configure(ksp, self.problem.A)
+        self.linear_solver = "iterative"
+        self._mode["inexact"] = "ksp_rtol" not in self.options.petsc_options
+        log.warning("lungmech: the direct factorisation ran out of memory; switching to the iterative linear solver")
 
     @property
     def residual_form(self):
