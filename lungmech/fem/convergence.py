@@ -186,7 +186,7 @@ class Test:
             self.floor = self.fields.floors(jacobian, x)
         if self.constrained > 1e3 * EPS * self.fields.cell_size:
             return 0
-        below = norms <= np.maximum(self.rtol * self.scale, self.atol)
+        below = norms <= self.targets()
         previous = self.history[-2]
         at_floor = (norms <= self.floor) & ((norms <= 0.1 * previous) | (previous <= 10 * self.floor))
         if np.all(below | at_floor):
@@ -201,6 +201,10 @@ class Test:
             return PETSc.SNES.ConvergedReason.DIVERGED_DTOL
         return 0
 
+    def targets(self) -> np.ndarray:
+        """Each field's tolerance but the round-off floor: max(rtol · R_b, atol)."""
+        return np.maximum(self.rtol * self.scale, self.atol)
+
     def forcing(self) -> float:
         """The relative tolerance of the next linear solve of an inexact Newton: η = min(η_max, q),
         q = max over fields of |r_b|/|r_b,0| (η → 0 with the residual: superlinear, Dembo–Eisenstat–
@@ -209,7 +213,7 @@ class Test:
         norms, first = self.history[-1], self.history[0]
         with np.errstate(divide="ignore", invalid="ignore"):
             progress = np.where(first > 0, norms / first, 0.0).max(initial=0.0)
-            targets = np.maximum(self.rtol * self.scale, self.atol)
+            targets = self.targets()
             if self.floor is not None:
                 targets = np.maximum(targets, self.floor)
             needed = np.where(norms > 0, targets / norms, np.inf).min(initial=np.inf)
@@ -227,8 +231,7 @@ class Test:
         norms = self.history[-1]
         floors = self.floor if self.floor is not None else [None] * len(norms)
         parts = []
-        for f, norm, big, floor in zip(self.fields.fields, norms, self.scale, floors):
-            target = max(self.rtol * big, self.atol)
+        for f, norm, big, target, floor in zip(self.fields.fields, norms, self.scale, self.targets(), floors):
             if not np.isfinite(norm):
                 parts.append(f"{f.name} residual is not a finite number")
             elif norm > max(target, floor or 0.0):

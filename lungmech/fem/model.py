@@ -121,7 +121,7 @@ class Model:
 
         v = ufl.TestFunction(self.space)
         v_u = ufl.split(v)[0] if self.mixed else v
-        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(_magnitude(load)))) for load in self.loads]
+        self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.magnitude))) for load in self.loads]
         self.time_constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
         self.potential = self.energy_density * self.dx
         virtual_work, self._state_dependent = [], []
@@ -193,7 +193,7 @@ class Model:
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor, amplitude in zip(self.loads, self._load_values, factors, self._amplitudes):
             base = 0.0 if about is None else load.ramp(about)
-            current = (base + factor * (load.ramp(t) - base)) * amplitude * _magnitude(load)
+            current = (base + factor * (load.ramp(t) - base)) * amplitude * load.magnitude
             if not np.all(np.isfinite(current)):
                 label = getattr(load, "label", type(load).__name__)
                 raise ParameterError(
@@ -294,8 +294,3 @@ def _plane(mesh, plane: str | None) -> str | None:
     if plane is not None:
         raise ParameterError(f"plane = {plane!r} is for 2-D meshes; this mesh is 3-D")
     return None
-
-
-def _magnitude(load) -> np.ndarray:
-    """What a load's Constant holds at ramp 1: its value, or 1 where it is a formula."""
-    return load.magnitude if hasattr(load, "magnitude") else np.asarray(load.value, dtype=float)

@@ -426,11 +426,13 @@ class NewtonSolver:
                 factor.assemble()
             operator.assemble()
 
+        rhs, solution = K.createVecRight(), K.createVecRight()  # work vectors of the m + 1 solves
+
         def exact_step(x: PETSc.Vec, y: PETSc.Vec) -> bool:
             ksp = snes.getKSP()
             if ksp.getType() != PETSc.KSP.Type.PREONLY:  # a Krylov solver had the exact operator
                 return False
-            pc, rhs, solution = ksp.getPC(), K.createVecRight(), K.createVecRight()
+            pc = ksp.getPC()
 
             def solve(b: np.ndarray) -> np.ndarray:
                 rhs.array[:] = b
