@@ -16,12 +16,13 @@ from mpi4py import MPI
 
 from lungmech import meshes
 from lungmech.errors import SolverError
+from lungmech.fem import limits
 from lungmech.fem.constraints import Displacement, clamp
 from lungmech.fem.loads import FollowerPressure
 from lungmech.fem.materials import NeoHookean, SaintVenantKirchhoff
 from lungmech.fem.model import Model
 from lungmech.fem.quantities import deformed_volume
-from lungmech.fem.solver import NewtonOptions, Stepping, solve
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
 from lungmech.mesh import box, from_file
 
 pytestmark = pytest.mark.slow
@@ -66,15 +67,40 @@ def test_a_softening_law_stops_at_its_limit_point(lung):
         breathe(lung, SaintVenantKirchhoff.from_young(1e3, NU), 300.0)
 
 
-def test_a_slender_bar_crushed_buckles():
-    """The path stops at the bifurcation: its last converged state has a tangent with an
-    eigenvalue of the wrong sign, or one that kept less than a tenth of its value at rest."""
+def slender_bar() -> Model:
+    """A 1 × 0.2 × 0.2 m bar, clamped at both ends, its end x = 1 pushed 1.5 m towards the other
+    (t = 1). On this mesh its straight path bifurcates (Euler buckling) near t = 0.175."""
     geometry = box(MPI.COMM_SELF, (1.0, 0.2, 0.2), (6, 2, 2))
-    model = Model(
+    return Model(
         geometry, NeoHookean.from_young(10.0, NU), constraints=[clamp("x0"), Displacement("x1", (-1.5, 0.0, 0.0))]
     )
-    with pytest.raises(SolverError, match="loss of stability: the tangent stiffness .*buckling, or a bifurcation"):
-        solve(model, STEPPING, NEWTON, monitor=lambda step: None)
+
+
+@pytest.mark.parametrize(
+    "t, diagnosis",
+    [
+        (0.10, "^$"),  # half-way to the bifurcation: nothing to report
+        (0.17, "kept [0-9.]+ % of its smallest eigenvalue at rest .buckling, or a bifurcation"),
+        (0.18, "an eigenvalue of the wrong sign .buckling, or a bifurcation"),
+    ],
+)
+def test_a_bifurcation_is_diagnosed_from_the_tangent(t, diagnosis):
+    """The straight path of a compressed bar, just before and just past its first bifurcation:
+    the tangent's eigenvalue nearest 0 has lost most of its value at rest, then changed sign."""
+    model = slender_bar()
+    solver = NewtonSolver(model)
+    rest = model.state.x.array.copy()
+    solve(model, Stepping(end=t, max_step=0.01), solver=solver, monitor=lambda step: None)
+    assert re.search(diagnosis, limits.diagnose(model, solver, model.set_time, t, (rest, 0.0), 1.0))
+
+
+def test_a_slender_bar_crushed_stops_at_a_named_limit():
+    """Far past its bifurcations (the symmetric mesh keeps it straight, unstable), crushed to a
+    few % of its volume: the path stops, and says where and why."""
+    with pytest.raises(SolverError) as error:
+        solve(slender_bar(), STEPPING, NEWTON, monitor=lambda step: None)
+    assert any(limit in str(error.value) for limit in LIMITS), str(error.value)
+    assert re.match(r"the load path stopped at t = \S+ s: ", str(error.value))
 
 
 def test_a_block_driven_through_itself_inverts():

@@ -488,6 +488,29 @@ def test_cook_membrane_in_plane_stress_same_on_all_ranks_as_on_one():
     assert tip(MPI.COMM_WORLD) == pytest.approx(tip(MPI.COMM_SELF), rel=1e-10)
 
 
+def test_nearly_incompressible_cook_same_on_all_ranks_as_on_one():
+    """P2, ν = 0.4999: Newton's linearised bulk stress lives at the quadrature points of each
+    rank's cells; the path (iterations) and the answer are those of one rank."""
+    from lungmech.mesh import cook_membrane
+
+    def run(comm) -> tuple[float, list[int]]:
+        model = Model(
+            cook_membrane(comm, cells=(8, 8)),
+            NeoHookean.from_young(240.565, 0.4999),
+            degree=2,
+            plane="strain",
+            constraints=[clamp("clamped")],
+            loads=[Traction("loaded", (0.0, 100.0 / 16.0))],
+        )
+        report = solve(model, monitor=lambda step: None)
+        tip = float(Probe(model.geometry.mesh, [[48.0, 60.0]])(model.displacement())[0, 1])
+        return tip, [step.iterations for step in report.steps]
+
+    (parallel, path), (serial, serial_path) = run(MPI.COMM_WORLD), run(MPI.COMM_SELF)
+    assert parallel == pytest.approx(serial, rel=1e-9)
+    assert path == serial_path
+
+
 def test_lung_in_plane_strain_and_imaged_porosity_same_on_all_ranks_as_on_one():
     """The lung square in plane strain, and the inverse problem that finds Φs0 from an imaged
     (heterogeneous) porosity: the same reference, Φs0 and porosity on every rank count."""

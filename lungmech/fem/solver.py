@@ -8,6 +8,7 @@ state is never returned as a result.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import math
@@ -18,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem, assign
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -25,6 +27,7 @@ from petsc4py import PETSc
 from lungmech import checks
 from lungmech.errors import Interrupted, ParameterError, SolverError
 from lungmech.fem import convergence, limits
+from lungmech.fem.linearised_pressure import LinearisedPressure
 from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import gram_schmidt
 
@@ -308,7 +311,10 @@ class NewtonSolver:
     """One SNES for one model: forms are compiled once, then reused for every step.
 
     ``residual`` and ``jacobian`` replace the model's own forms (same unknowns), e.g. the
-    incremental potential of a time step (:mod:`lungmech.fem.dynamics`).
+    incremental potential of a time step (:mod:`lungmech.fem.dynamics`). Otherwise a
+    displacement model with a volumetrically split law is solved with the tangent of
+    :mod:`lungmech.fem.linearised_pressure` (the mixed formulation's Newton path, the same
+    solution); :attr:`jacobian_form` stays the exact tangent.
     """
 
     def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
@@ -325,13 +331,16 @@ class NewtonSolver:
         layout = self._layout if chosen == "iterative" else None
         self._prefix = prefix = f"lungmech_{next(_prefixes)}_"
         PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
+        self._pressure = LinearisedPressure.of(model) if residual is None and jacobian is None else None
+        tangent = jacobian if jacobian is not None else model.jacobian
         self.problem = _Problem(
             model.residual if residual is None else residual,
             model.state,
             bcs=model.bcs,
-            J=model.jacobian if jacobian is None else jacobian,
+            J=tangent if self._pressure is None else self._pressure.tangent,
             petsc_options_prefix=prefix,
         )
+        self._exact_tangent = tangent
         options = self.options.petsc(layout[0] if layout else None)
         _configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
         if layout is not None:
@@ -357,6 +366,8 @@ class NewtonSolver:
             return reason
 
         snes.setConvergenceTest(converged)
+        if self._pressure is not None:
+            snes.setUpdate(_pressure_update(self._pressure))
         self.state_dependent = StateDependent(model)
         self._exact_step = None
         if self.state_dependent:
@@ -376,6 +387,8 @@ class NewtonSolver:
         except PETSc.Error as error:  # e.g. a callback of a state-dependent load that failed
             Interrupted.raise_pending()  # or a Ctrl-C inside it
             return NewtonResult(False, 0, (), f"PETSc error {error.ierr}: {_petsc_message(error)}")
+        if self._pressure is not None:
+            self._pressure.at_equilibrium()
         if start is not None:
             self.model.state.x.array[:] = start
             self.model.state.x.scatter_forward()
@@ -452,6 +465,8 @@ class NewtonSolver:
         convergence test: from an equilibrium, the tangent's response to the change of load."""
         problem, snes = self.problem, self.problem.solver
         x, b = problem.x, problem.b
+        if self._pressure is not None:
+            self._pressure.at_equilibrium()
         assign(self.model.state, x)
         snes.computeFunction(x, b)
         operator, K, _ = snes.getJacobian()
@@ -536,13 +551,31 @@ class NewtonSolver:
         """The compiled residual form."""
         return self.problem.F
 
-    @property
+    @functools.cached_property
     def jacobian_form(self):
-        """The compiled Jacobian form."""
-        return self.problem.J
+        """The compiled exact Jacobian form (sensitivities, stability), which Newton's own tangent
+        may differ from away from an equilibrium (:mod:`lungmech.fem.linearised_pressure`)."""
+        if self._pressure is None:
+            return self.problem.J
+        return fem.form(self._exact_tangent)  # compiled when first asked for (collective)
 
     def destroy(self) -> None:
         self.problem.solver.destroy()
+
+
+def _pressure_update(pressure: LinearisedPressure) -> Callable[[PETSc.SNES, int], None]:
+    """SNES's hook at the start of every Newton iteration: the bulk stress moves along the step
+    just taken (from the iterate recorded at the previous call; at iteration 0, the solve's
+    start, s is already set, see :meth:`NewtonSolver.solve`)."""
+    previous = {}
+
+    def update(snes: PETSc.SNES, iteration: int) -> None:
+        x = snes.getSolution().getArray(readonly=True)
+        if iteration > 0:
+            pressure.advance(previous["x"], x - previous["x"])
+        previous["x"] = x.copy()
+
+    return update
 
 
 class _Problem(NonlinearProblem):
