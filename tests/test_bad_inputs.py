@@ -278,10 +278,14 @@ SCENES = {
     "max iterations fractional": (TINY + "[solver]\nmax_iterations = 2.5\n", "max_iterations must be an integer"),
     "unknown line search": (TINY + '[solver]\nline_search = "fast"\n', "line_search must be"),
     "unknown linear solver": (TINY + '[solver]\nlinear_solver = "cg"\n', "linear_solver must be"),
-    "iterative mixed": (
-        TINY.replace("nu = 0.3", "nu = 0.4")
-        + '[formulation]\ntype = "mixed"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
-        "the iterative linear solver has no preconditioner for the fields u, p yet",
+    "iterative plane stress P2": (
+        swap(
+            "value = [0.0, 0.0, -10.0]",
+            "value = [0.0, -10.0]",
+            swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', 'builder = "rectangle"'),
+        )
+        + '[formulation]\nplane = "stress"\ndegree = 2\n[solver]\nlinear_solver = "iterative"\n',
+        "the iterative linear solver has no preconditioner for the fields u, thickness_stretch yet",
     ),
     "petsc options a word": (TINY + '[solver]\npetsc_options = "fast"\n', "petsc_options must be a table"),
     "petsc option a table": (

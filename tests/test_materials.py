@@ -6,6 +6,7 @@ import re
 import analytic as A
 import numpy as np
 import pytest
+import ufl
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError
@@ -89,3 +90,24 @@ def test_laws_registry_names():
         "ciarlet_geymonat",
         "exponential_ciarlet_geymonat",
     }
+
+
+@pytest.mark.parametrize(
+    "law, mu",
+    [
+        (M.NeoHookean(3.0, 7.0), 3.0),
+        (M.NeoHookean.incompressible(3.0), 3.0),
+        (M.MooneyRivlin(1.5, 0.25, 10.0), 2 * (1.5 + 0.25)),
+        (M.SaintVenantKirchhoff(3.0, 7.0), 3.0),
+        (M.LinearElastic(3.0, 7.0), 3.0),
+        (M.CiarletGeymonat.from_young(9.0, 0.25), 9.0 / 2.5),
+    ],
+)
+def test_the_shear_modulus_is_the_second_derivative_in_simple_shear(law, mu):
+    """μ₀ = ∂²ψ/∂γ² of F = I + γ e₁⊗e₂ at γ = 0: the Lamé μ (Mooney–Rivlin: 2(c1 + c2);
+    from E and ν: E / (2(1 + ν)))."""
+    from dolfinx import fem
+
+    mesh = box(MPI.COMM_SELF, cells=(1, 1, 1)).mesh
+    value = fem.assemble_scalar(fem.form(M.shear_modulus(law, mesh) * ufl.dx(domain=mesh)))
+    assert value == pytest.approx(mu, rel=1e-12)

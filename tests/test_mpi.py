@@ -511,6 +511,28 @@ def test_nearly_incompressible_cook_same_on_all_ranks_as_on_one():
     assert path == serial_path
 
 
+def test_the_iterative_mixed_solver_same_on_all_ranks_as_on_one():
+    """Taylor–Hood with the Schur split (AMG on u, the weighted pressure mass for S) on a
+    distributed mesh: the direct solver's answer on one rank."""
+    from lungmech.fem.solver import NewtonOptions
+    from lungmech.mesh import cook_membrane
+
+    def tip(comm, linear_solver: str) -> float:
+        model = Model(
+            cook_membrane(comm, cells=(8, 8)),
+            NeoHookean.from_young(240.565, 0.4999),
+            degree=2,
+            mixed=True,
+            plane="strain",
+            constraints=[clamp("clamped")],
+            loads=[Traction("loaded", (0.0, 100.0 / 16.0))],
+        )
+        solve(model, options=NewtonOptions(linear_solver=linear_solver), monitor=lambda step: None)
+        return float(Probe(model.geometry.mesh, [[48.0, 60.0]])(model.displacement())[0, 1])
+
+    assert tip(MPI.COMM_WORLD, "iterative") == pytest.approx(tip(MPI.COMM_SELF, "direct"), rel=1e-9)
+
+
 def test_lung_in_plane_strain_and_imaged_porosity_same_on_all_ranks_as_on_one():
     """The lung square in plane strain, and the inverse problem that finds Φs0 from an imaged
     (heterogeneous) porosity: the same reference, Φs0 and porosity on every rank count."""
@@ -597,3 +619,21 @@ def test_the_iterative_lung_solver_same_on_all_ranks_as_on_one():
     parallel, serial = state(MPI.COMM_WORLD), state(MPI.COMM_SELF)
     for key in serial:
         assert parallel[key] == pytest.approx(serial[key], rel=1e-8), key
+
+
+def test_the_memory_estimate_and_the_memory_at_hand_agree_on_every_rank():
+    """What "auto" decides from must be the same on every rank, or the ranks would pick
+    different solvers and hang."""
+    from dolfinx.fem.petsc import assemble_matrix
+
+    from lungmech.fem.linear import available_memory, factorisation_memory
+    from lungmech.fem.solver import NewtonSolver
+
+    geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4))
+    model = Model(geometry, NeoHookean.from_young(10.0, 0.3), constraints=[clamp("x0")])
+    K = assemble_matrix(NewtonSolver(model).jacobian_form, bcs=model.bcs)
+    K.assemble()
+    need, have = factorisation_memory(K), available_memory(MPI.COMM_WORLD)
+    K.destroy()
+    assert need > 0 and have > 0
+    assert MPI.COMM_WORLD.allgather((need, have)) == [(need, have)] * MPI.COMM_WORLD.size

@@ -109,11 +109,49 @@ def test_iterative_solver_matches_direct():
     )
 
 
-def test_iterative_solver_refuses_mixed():
-    from lungmech.mesh import box as make_box
+@pytest.mark.parametrize("law", ["nearly incompressible", "incompressible"])
+def test_the_iterative_solver_splits_the_mixed_formulation(law):
+    """Taylor–Hood (u, p): Schur split, AMG on u, the pressure mass matrix weighted by
+    1/μ₀ + 1/κ for S. The direct solver's state, and Krylov iterations that barely grow with the
+    mesh where the pressure block is preconditioned well (an exact u block: the same count on
+    two meshes)."""
+    from lungmech.mesh import cook_membrane
 
-    model = Model(make_box(MPI.COMM_WORLD, cells=(1, 1, 1)), NeoHookean(1.0, 100.0), degree=2, mixed=True)
-    with pytest.raises(ParameterError, match="no preconditioner for the fields u, p yet"):
+    def cook(cells: int, linear_solver: str, petsc_options=None) -> tuple[Model, int]:
+        material = (
+            NeoHookean.incompressible(80.0) if law == "incompressible" else NeoHookean.from_young(240.565, 0.4999)
+        )
+        model = Model(
+            cook_membrane(MPI.COMM_WORLD, cells=(cells, cells)),
+            material,
+            degree=2,
+            mixed=True,
+            plane="strain",
+            constraints=[clamp("clamped")],
+            loads=[Traction("loaded", (0.0, 100.0 / 16.0))],
+        )
+        options = NewtonOptions(linear_solver=linear_solver, petsc_options=petsc_options or {})
+        solver = NewtonSolver(model, options)
+        ksp, krylov = solver.problem.solver.getKSP(), []
+        solver.problem.solver.setMonitor(lambda snes, it, norm: krylov.append(ksp.getIterationNumber()))
+        report = solve(model, Stepping(), solver=solver, monitor=lambda step: None)
+        assert report.failures == 0
+        return model, sum(krylov) / report.newton_iterations
+
+    direct, _ = cook(8, "direct")
+    iterative, _ = cook(8, "iterative")
+    scale = np.abs(direct.state.x.array).max()
+    assert np.allclose(iterative.state.x.array, direct.state.x.array, rtol=0, atol=1e-8 * scale)
+    exact_u = {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"}
+    coarse, fine = cook(4, "iterative", exact_u)[1], cook(16, "iterative", exact_u)[1]
+    assert fine < 1.5 * coarse + 5, (coarse, fine)
+
+
+def test_the_iterative_solver_refuses_plane_stress_above_p1():
+    from lungmech.mesh import rectangle
+
+    model = Model(rectangle(MPI.COMM_WORLD, cells=(1, 1)), NeoHookean(1.0, 1.0), degree=2, plane="stress")
+    with pytest.raises(ParameterError, match="no preconditioner for the fields u, thickness_stretch yet"):
         NewtonSolver(model, NewtonOptions(linear_solver="iterative"))
 
 
@@ -151,15 +189,53 @@ def test_petsc_options_of_the_user_only_are_checked():
 
 def test_auto_takes_the_iterative_solver_for_large_problems_where_one_fits(monkeypatch):
     """Above ITERATIVE_FROM_DOFS unknowns "auto" is iterative, unless no preconditioner fits
-    the formulation (the mixed u-p one): then it stays direct."""
+    the formulation (plane stress above P1): then it stays direct."""
     import lungmech.fem.solver as solver_module
-    from lungmech.mesh import box as make_box
+    from lungmech.mesh import rectangle
 
     monkeypatch.setattr(solver_module, "ITERATIVE_FROM_DOFS", 10)
     assert NewtonSolver(bent_block()).linear_solver == "iterative"
-    mixed = Model(make_box(MPI.COMM_WORLD, cells=(1, 1, 1)), NeoHookean(1.0, 100.0), degree=2, mixed=True)
-    assert NewtonSolver(mixed).linear_solver == "direct"
+    plate = Model(rectangle(MPI.COMM_WORLD, cells=(2, 2)), NeoHookean(1.0, 1.0), degree=2, plane="stress")
+    assert NewtonSolver(plate).linear_solver == "direct"
     monkeypatch.setattr(solver_module, "ITERATIVE_FROM_DOFS", 10**9)
+    assert NewtonSolver(bent_block()).linear_solver == "direct"
+
+
+def test_mumps_estimates_its_memory_before_it_factorises():
+    """The analysis alone (INFOG(16)): an estimate that grows with the mesh and bounds, within a
+    small factor, the memory the factorisation then takes (INFOG(21), measured by MUMPS)."""
+    from dolfinx.fem.petsc import assemble_matrix
+
+    from lungmech.fem.linear import factorisation_memory, factorised
+
+    estimates, used = [], []
+    for cells in (2, 4):
+        geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(6 * cells, 2 * cells, 2 * cells))
+        model = Model(geometry, NeoHookean.from_young(10.0, 0.3), constraints=[clamp("x0")])
+        K = assemble_matrix(NewtonSolver(model).jacobian_form, bcs=model.bcs)
+        K.assemble()
+        estimates.append(factorisation_memory(K))
+        ksp = factorised(K)
+        ksp.setUp()
+        used.append(ksp.getPC().getFactorMatrix().getMumpsInfog(21) * 1e6 / 2**20)  # MB to MiB
+        ksp.destroy(), K.destroy()
+    assert estimates[1] > 2 * estimates[0]
+    for estimate, measured in zip(estimates, used):
+        assert measured <= estimate <= 3 * measured, (estimates, used)
+
+
+def test_auto_takes_the_iterative_solver_where_a_factorisation_would_not_fit(monkeypatch, caplog):
+    """Below ITERATIVE_FROM_DOFS, "auto" compares MUMPS's estimate with the memory a rank may
+    count on: direct on this machine, iterative on one with 1 MiB to spare (and says why)."""
+    import lungmech.fem.solver as solver_module
+
+    monkeypatch.setattr(solver_module, "MEMORY_CHECK_FROM_DOFS", 10)
+    assert NewtonSolver(bent_block()).linear_solver == "direct"
+    monkeypatch.setattr(solver_module.linear, "available_memory", lambda comm: 1.0)
+    with caplog.at_level("INFO", logger="lungmech"):
+        assert NewtonSolver(bent_block()).linear_solver == "iterative"
+    assert any("MiB per rank of the 1 MiB available" in r.message for r in caplog.records)
+    monkeypatch.setattr(solver_module, "MEMORY_CHECK_FROM_DOFS", 10**9)  # too small to ask
     assert NewtonSolver(bent_block()).linear_solver == "direct"
 
 

@@ -57,7 +57,7 @@ class Formulation(Protocol):
         ...
 
 
-def _incompressible(material: Material) -> bool:
+def incompressible(material: Material) -> bool:
     """Whether the law is the incompressible limit of a volumetric split (bulk = inf)."""
     bulk = getattr(material, "bulk", None)
     return isinstance(bulk, numbers.Real) and math.isinf(bulk)
@@ -83,7 +83,7 @@ class PureDisplacement:
 
     def check(self, material: Material, degree: int) -> None:
         """Refuse an incompressible law: J = 1 needs the mixed formulation."""
-        if _incompressible(material):
+        if incompressible(material):
             raise ParameterError(f"the incompressible law '{material.name}' needs the mixed formulation")
 
     def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
@@ -143,7 +143,7 @@ class TaylorHood:
         """ψ_iso(F) − p g(J) − p²/(2 bulk) (Pa); without the last term for bulk = inf."""
         p = fields["p"]
         density = material.psi_iso(F) - p * material.volumetric(ufl.det(F))
-        if not _incompressible(material):
+        if not incompressible(material):
             density -= p**2 / (2 * material.bulk)
         return density
 
@@ -174,7 +174,7 @@ class PlaneStress:
 
     def check(self, material: Material, degree: int) -> None:
         """Refuse an incompressible law: its energy is not defined off J = 1."""
-        if _incompressible(material):
+        if incompressible(material):
             raise ParameterError(
                 "an incompressible law (bulk = inf) cannot be used in plane stress here; give it a finite bulk modulus"
             )

@@ -35,7 +35,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from lungmech.fem.formulations import PlaneStress, PureDisplacement, _incompressible
+from lungmech.fem.formulations import PlaneStress, PureDisplacement, incompressible
 from lungmech.fem.materials import VolumetricSplit
 
 __all__ = ["LinearisedPressure"]
@@ -72,7 +72,7 @@ class LinearisedPressure:
         fields, a law without a split has no bulk stress)."""
         if not isinstance(model.formulation, PureDisplacement | PlaneStress):
             return None
-        if not isinstance(model.material, VolumetricSplit) or _incompressible(model.material):
+        if not isinstance(model.material, VolumetricSplit) or incompressible(model.material):
             return None
         return LinearisedPressure(model)
 

@@ -595,6 +595,19 @@ def first_piola(law: Material, F: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
     return ufl.diff(law.psi(F), F)
 
 
+def shear_modulus(law: Material, mesh) -> ufl.core.expr.Expr:
+    """The initial shear modulus μ₀ = ∂²ψ/∂γ² at γ = 0 of a simple shear F = I + γ e₁⊗e₂ (Pa; a
+    UFL expression, a field where the law's parameters are). J = 1 in simple shear, so a split
+    law's bulk term adds nothing and ψ_iso is used (it is defined also for bulk = inf).
+    Neo-Hookean: μ; Mooney–Rivlin: 2(c1 + c2)."""
+    from dolfinx import fem
+
+    gamma = ufl.variable(fem.Constant(mesh, 0.0))
+    F = ufl.variable(ufl.Identity(3) + gamma * ufl.outer(ufl.unit_vector(0, 3), ufl.unit_vector(1, 3)))
+    psi = law.psi_iso(F) if isinstance(law, VolumetricSplit) else law.psi(F)
+    return ufl.diff(ufl.diff(psi, gamma), gamma)
+
+
 # The laws a scene names by `law = "..."` (besides the composite `sum` and `lung_skeleton`).
 LAWS: dict[str, type] = {
     law.name: law

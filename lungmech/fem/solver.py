@@ -19,15 +19,18 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+import ufl
 from dolfinx import fem
-from dolfinx.fem.petsc import NonlinearProblem, assign
+from dolfinx.fem.petsc import NonlinearProblem, assemble_matrix, assign
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech import checks
 from lungmech.errors import Interrupted, ParameterError, SolverError
-from lungmech.fem import convergence, limits
+from lungmech.fem import convergence, limits, linear
+from lungmech.fem.formulations import incompressible
 from lungmech.fem.linearised_pressure import LinearisedPressure
+from lungmech.fem.materials import shear_modulus
 from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import gram_schmidt
 
@@ -46,8 +49,9 @@ class NewtonOptions:
     """Nonlinear and linear solver settings.
 
     ``linear_solver`` is "auto" (the default: direct below :data:`ITERATIVE_FROM_DOFS` unknowns
-    or where no preconditioner fits the formulation, iterative above, and iterative after the
-    direct factorisation ran out of memory), "direct" (MUMPS LU, robust) or "iterative" (GMRES with
+    or where no preconditioner fits the formulation, iterative above or where MUMPS's analysis
+    says its factorisation would not fit in memory, and iterative after the direct
+    factorisation ran out of memory), "direct" (MUMPS LU, robust) or "iterative" (GMRES with
     smoothed-aggregation AMG and the rigid-body near-nullspace on the displacement, for large
     problems; the lung's (u, Φs) is split by blocks, Φs condensed exactly, see
     :func:`iterative_layout`; each linear solve is as exact as Newton's progress and its stopping
@@ -130,6 +134,10 @@ class NewtonOptions:
 # large_lung.py, 2 ranks) the two cross near 135k, and at 483k the iterative one was 2.2 times
 # faster with half the memory (at 1.1M: 4.9 times, a third).
 ITERATIVE_FROM_DOFS = 200_000
+# Below, "auto" asks MUMPS's analysis how much memory its factorisation would take, and takes the
+# iterative solver when that is more than this share of what a rank may count on (the rest:
+# assembly, vectors, other processes). Smaller problems never come near a machine's memory.
+MEMORY_CHECK_FROM_DOFS, DIRECT_MEMORY_SHARE = 20_000, 0.5
 _NOT_CONVERGED = 91  # PETSC_ERR_NOT_CONVERGED
 # MUMPS INFOG(1) of a factorisation that ran out of memory (workspace, allocation, ICNTL(23))
 _MUMPS_OUT_OF_MEMORY = (-8, -9, -11, -12, -13, -14, -15, -17, -19, -20)
@@ -157,8 +165,13 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
       diagonal (DG0) — so it is condensed exactly: a Schur-complement field split with Φs first,
       its block solved by Jacobi (exact for a diagonal), and S = K_uu − K_uΦ K_ΦΦ⁻¹ K_Φu formed
       exactly by ``selfp`` (which uses diag(K_ΦΦ), K_ΦΦ itself), solved with AMG.
-    - Taylor–Hood (u, p) is refused: its Schur complement needs a pressure mass matrix, and
-      ``selfp`` with AMG did not converge on a nearly incompressible block.
+    - Taylor–Hood (u, p): a Schur-complement field split with u first, K_uu by AMG with the
+      rigid-body modes, and the Schur complement S = −M/κ − B K_uu⁻¹ Bᵀ preconditioned by the
+      pressure mass matrix it is spectrally equivalent to (Elman, Silvester & Wathen),
+      S_p = −∫ (1/μ₀ + 1/κ) p q dX, μ₀ the law's shear modulus where it is (a field for a
+      heterogeneous law; 1/κ = 0 when incompressible), reassembled before each solve so that
+      it follows the parameters. ``selfp`` (diag(K_uu)⁻¹) with AMG did not converge on a nearly
+      incompressible block.
     """
     fields = ("u", *model.formulation.fields)
     if len(fields) == 1:
@@ -176,10 +189,12 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
             f"fieldsplit_{local}_pc_type": "jacobi",
             "fieldsplit_u_ksp_type": "preonly",
         } | _prefixed("fieldsplit_u_", AMG)
+    elif fields == ("u", "p"):
+        return _taylor_hood_layout(model)
     else:
         raise ParameterError(
             f"the iterative linear solver has no preconditioner for the fields {', '.join(fields)} yet "
-            "(the mixed u-p formulation, or plane stress above degree 1); use linear_solver = 'direct'"
+            "(plane stress above degree 1); use linear_solver = 'direct'"
         )
 
     def set_splits(ksp: PETSc.KSP, A: PETSc.Mat) -> None:
@@ -199,6 +214,45 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
                 S_p.setNearNullSpace(modes)
 
         ksp.setPreSolve(give_modes)
+
+    return options, set_splits
+
+
+def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
+    """The (u, p) field split of :func:`iterative_layout`: options, and what the KSP needs."""
+    options = {
+        "pc_type": "fieldsplit",
+        "pc_fieldsplit_type": "schur",
+        "pc_fieldsplit_schur_fact_type": "upper",
+        "pc_fieldsplit_schur_precondition": "user",
+        "fieldsplit_u_ksp_type": "preonly",
+        "fieldsplit_p_ksp_type": "preonly",
+        "fieldsplit_p_pc_type": "jacobi",  # a P_k mass matrix: diagonal up to a bounded factor
+    } | _prefixed("fieldsplit_u_", AMG)
+    pressures = model.space.sub(1).collapse()[0]
+    p, q = ufl.TrialFunction(pressures), ufl.TestFunction(pressures)
+    material = model.material
+    compliance = 1 / shear_modulus(material, model.geometry.mesh)
+    if not incompressible(material):
+        compliance += 1 / material.bulk
+    mass = fem.form(-compliance * p * q * model.dx)
+
+    def set_splits(ksp: PETSc.KSP, A: PETSc.Mat) -> None:
+        sets = _field_index_sets(model)
+        sets["u"].compose("nearnullspace", rigid_body_modes(model.space.sub(0).collapse()[0]))
+        S_p = assemble_matrix(mass)
+        S_p.assemble()
+        pc = ksp.getPC()
+        pc.setFieldSplitIS(("u", sets["u"]), ("p", sets["p"]))
+        pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, S_p)
+
+        def reassemble(ksp, b, x) -> None:
+            """Before each solve: S_p at the current parameters (μ₀ and κ may have changed)."""
+            S_p.zeroEntries()
+            assemble_matrix(S_p, mass)
+            S_p.assemble()
+
+        ksp.setPreSolve(reassemble)
 
     return options, set_splits
 
@@ -323,12 +377,6 @@ class NewtonSolver:
         self._layout = _layout_if_any(model) if self.options.linear_solver != "direct" else None
         if self.options.linear_solver == "iterative" and self._layout is None:
             iterative_layout(model)  # raises, saying why
-        size = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
-        chosen = self.options.linear_solver
-        if chosen == "auto":
-            chosen = "iterative" if self._layout is not None and size >= ITERATIVE_FROM_DOFS else "direct"
-        self.linear_solver = chosen  # what this solver uses now
-        layout = self._layout if chosen == "iterative" else None
         self._prefix = prefix = f"lungmech_{next(_prefixes)}_"
         PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
         self._pressure = LinearisedPressure.of(model) if residual is None and jacobian is None else None
@@ -341,6 +389,9 @@ class NewtonSolver:
             petsc_options_prefix=prefix,
         )
         self._exact_tangent = tangent
+        chosen = self.options.linear_solver
+        self.linear_solver = chosen if chosen != "auto" else self._automatic_choice()  # what this solver uses now
+        layout = self._layout if self.linear_solver == "iterative" else None
         options = self.options.petsc(layout[0] if layout else None)
         _configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
         if layout is not None:
@@ -372,6 +423,35 @@ class NewtonSolver:
         self._exact_step = None
         if self.state_dependent:
             self._couple_state_dependent()
+
+    def _automatic_choice(self) -> str:
+        """ "auto": direct where no preconditioner fits; iterative from ITERATIVE_FROM_DOFS
+        unknowns (faster there), or from MEMORY_CHECK_FROM_DOFS where MUMPS's own estimate of
+        its factorisation (its analysis of the tangent at the current state) exceeds
+        DIRECT_MEMORY_SHARE of the memory a rank may count on; direct otherwise (collective)."""
+        model = self.model
+        size = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
+        if self._layout is None:
+            return "direct"
+        if size >= ITERATIVE_FROM_DOFS:
+            return "iterative"
+        if size < MEMORY_CHECK_FROM_DOFS:
+            return "direct"
+        K = assemble_matrix(self.problem.J, bcs=model.bcs)
+        K.assemble()
+        direct = self.options.petsc()
+        need = linear.factorisation_memory(K, {k: v for k, v in direct.items() if k.startswith("mat_mumps_")})
+        K.destroy()
+        have = linear.available_memory(model.geometry.mesh.comm)
+        if need is None or have is None or need <= DIRECT_MEMORY_SHARE * have:
+            return "direct"
+        log.info(
+            "lungmech: a direct factorisation would need %.0f MiB per rank of the %.0f MiB available: "
+            "the iterative linear solver",
+            need,
+            have,
+        )
+        return "iterative"
 
     def solve(self, start: np.ndarray | None = None) -> NewtonResult:
         """One Newton solve at the current loads: (converged, iterations, residuals, reason).
