@@ -27,6 +27,18 @@ def cpu_and_memory() -> tuple[str, str]:
     return cpu, memory
 
 
+def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -> None:
+    """``stem``.md (the table, as written) and ``stem``.csv (the rows) in ``directory``."""
+    import csv
+
+    directory.mkdir(exist_ok=True)
+    (directory / f"{stem}.md").write_text(markdown)
+    with open(directory / f"{stem}.csv", "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def relaunch(ranks: int, script: str, command_variable: str) -> None:
     """Re-run ``script`` under ``mpiexec -n ranks`` (without ``--ranks``) unless already under MPI;
     the original arguments go to the environment variable ``command_variable``."""

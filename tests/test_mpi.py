@@ -637,3 +637,29 @@ def test_the_memory_estimate_and_the_memory_at_hand_agree_on_every_rank():
     K.destroy()
     assert need > 0 and have > 0
     assert MPI.COMM_WORLD.allgather((need, have)) == [(need, have)] * MPI.COMM_WORLD.size
+
+
+def test_ecsw_same_on_all_ranks_as_on_one():
+    """ECSW on a distributed mesh: the greedy NNLS picks its cells over all ranks, the online
+    solve assembles those only, and the answer matches one rank's Galerkin model within the
+    bound of τ (the samples may differ: ties between ranks are broken by cell number)."""
+    from test_ecsw import UNSEEN, block, path, train
+
+    from lungmech import rom
+    from lungmech.rom.ecsw import HyperReducedSolver, Sample
+
+    def unseen(comm, basis, sample=None):
+        model = block(comm)
+        solver = rom.ReducedSolver(model, basis) if sample is None else HyperReducedSolver(model, basis, sample)
+        path(model, UNSEEN, solver=solver)
+        return float(deformed_volume(model)()), solver
+
+    serial_basis, _ = train(MPI.COMM_SELF)
+    galerkin, _ = unseen(MPI.COMM_SELF, serial_basis)
+    basis, training = train(MPI.COMM_WORLD)
+    everyone, _ = unseen(MPI.COMM_WORLD, basis, Sample.every_cell(training.forms))
+    assert everyone == pytest.approx(galerkin, rel=1e-10)
+    sample = training.sample(1e-4)
+    volume, solver = unseen(MPI.COMM_WORLD, basis, sample)
+    assert solver.assembled_cells == sample.count(MPI.COMM_WORLD)
+    assert volume == pytest.approx(galerkin, rel=3e-4)  # 3 τ, as in tests/test_ecsw.py

@@ -45,21 +45,23 @@ STABILITY_LOST = 0.1  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
-def _at_quadrature_points(model, expression) -> Callable[[], np.ndarray]:
-    """A function returning ``expression`` at the quadrature points of this rank's owned cells,
-    shaped (cells, points, *value shape)."""
+def _at_quadrature_points(model, expression, cells: np.ndarray | None = None) -> Callable[[], np.ndarray]:
+    """A function returning ``expression`` at the quadrature points of this rank's owned cells
+    (or of ``cells``, local indices), shaped (cells, points, *value shape)."""
     mesh = model.geometry.mesh
     degree = max(model.dx.metadata().get("quadrature_degree", 2), 1)
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], degree)
     compiled = fem.Expression(expression, points)
-    cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
+    if cells is None:
+        cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
     shape = (len(cells), len(points), *expression.ufl_shape)
     return lambda: compiled.eval(mesh, cells).reshape(shape)
 
 
-def min_jacobian(model) -> Callable[[], float]:
-    """A function returning the smallest J = det F at the quadrature points (nan if undefined)."""
-    at_points = _at_quadrature_points(model, ufl.det(model.F))
+def min_jacobian(model, cells: np.ndarray | None = None) -> Callable[[], float]:
+    """A function returning the smallest J = det F at the quadrature points of the owned cells
+    (or of ``cells``) (nan if undefined; collective)."""
+    at_points = _at_quadrature_points(model, ufl.det(model.F), cells)
     comm = model.geometry.mesh.comm
 
     def evaluate() -> float:
@@ -87,10 +89,11 @@ _gradients: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 class Inversion:
     """Whether the model's state turns a cell inside out: J = det F ≤ 0 (or undefined) at a
     quadrature point. Such a state is no equilibrium of a real body, even where a law without a
-    barrier on J (Saint Venant–Kirchhoff) balances it. Small-strain laws are not checked."""
+    barrier on J (Saint Venant–Kirchhoff) balances it. Small-strain laws are not checked.
+    ``cells`` (local indices) checks those only: a hyper-reduced model's sample."""
 
-    def __init__(self, model):
-        self._smallest = None if getattr(model.material, "small_strain", False) else min_jacobian(model)
+    def __init__(self, model, cells: np.ndarray | None = None):
+        self._smallest = None if getattr(model.material, "small_strain", False) else min_jacobian(model, cells)
 
     def __call__(self) -> str:
         """ "" for a state without inverted cells, else what is wrong with it (collective)."""

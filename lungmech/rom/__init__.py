@@ -2,11 +2,13 @@
 Newton solves on PETSc, and reduced models saved with their metadata.
 
 Offline: ``snapshots`` → ``pod`` (or ``modal_basis``, ``with_modal_derivatives``,
-``polynomial_basis``, ``enrich``) → ``save``. Online: ``load`` → ``ReducedSolver`` → the usual
-load stepping (:func:`lungmech.fem.solver.solve`).
+``polynomial_basis``, ``enrich``) → ``save``; hyper-reduction samples cells (:mod:`lungmech.rom.ecsw`).
+Online: ``load`` → ``ReducedSolver`` (or ``HyperReducedSolver``) → the usual load stepping
+(:func:`lungmech.fem.solver.solve`).
 """
 
 from lungmech.rom.basis import Basis, enrich, inner_product
+from lungmech.rom.ecsw import HyperReducedSolver
 from lungmech.rom.galerkin import ReducedSolver, reduced_solver
 from lungmech.rom.modes import modal_basis, modal_derivatives, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
@@ -15,6 +17,7 @@ from lungmech.rom.store import load, save
 
 __all__ = [
     "Basis",
+    "HyperReducedSolver",
     "ReducedSolver",
     "enrich",
     "inner_product",

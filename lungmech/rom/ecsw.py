@@ -1,0 +1,318 @@
+"""Energy-conserving sampling and weighting (ECSW): the reduced residual from a few weighted cells.
+
+The reduced residual sums every cell's contribution,
+
+.. math:: Vᵀ R(x) = Σ_e Vᵀ r_e(x) + Σ_f Vᵀ r_f(x),
+
+r_e from the integrals over cell e and r_f from those over its exterior facets (the loads on
+the boundary), two families sampled apart. ECSW (Farhat, Chapman & Avery 2015) keeps a sample
+E of each with weights ξ_e > 0,
+
+.. math:: Vᵀ R(x) ≈ Σ_{e∈E} ξ_e Vᵀ r_e(x),
+
+chosen on training states x_s so that their reduced forces are reproduced to a tolerance τ:
+
+.. math:: ‖G ξ − b‖ ≤ τ ‖b‖,   G_{(s, i), e} = (Vᵀ r_e(x_s))_i / ‖b_s‖,   b = G 1,
+
+each state's block scaled by its own reduced force b_s, so that every state counts alike. This
+is a sparse non-negative least-squares problem, solved by the greedy Lawson–Hanson variant of
+Chapman et al. (2017, IJNME 109), which stops as soon as τ is met (:func:`sparse_nnls`). Weights
+that are positive keep the reduced tangent a positively weighted sum of cell tangents, so a
+hyper-reduced model of a stable, conservative full model stays stable and conservative (the
+"energy-conserving" of the name).
+
+The weights enter the forms as two piecewise-constant (DG0) fields, one for the cells' volume
+integrals and one for their exterior-facet integrals (an exterior facet has one cell): the same
+forms give the Galerkin reduced model (all weights 1), the training matrix G (their derivative
+with respect to the weights: column e is r_e), and, integrated over the sampled cells only, the
+hyper-reduced one (:class:`HyperReducedSolver`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+from dolfinx.fem.petsc import assemble_matrix, create_matrix
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lungmech.errors import ParameterError
+from lungmech.fem.limits import Inversion
+from lungmech.rom.galerkin import ReducedSolver
+
+__all__ = ["FAMILIES", "Sample", "Training", "WeightedForms", "sparse_nnls", "HyperReducedSolver"]
+
+FAMILIES = ("cell", "exterior_facet")  # the integral types sampled, each with its own weights
+_SAMPLED = 1  # the subdomain id of the sampled cells in the online forms
+
+
+class WeightedForms:
+    """A residual form whose cell and exterior-facet integrals carry a weight per cell.
+
+    ``weights[family]`` is the DG0 field of that family's weights (1 everywhere: the form is
+    the residual itself). :meth:`contribution` is the derivative with respect to one family's
+    weights, a rectangular form whose assembled column e is the residual of cell e's integrals
+    of that family."""
+
+    def __init__(self, model, residual: ufl.Form | None = None):
+        residual = model.residual if residual is None else residual
+        kinds = {integral.integral_type() for integral in residual.integrals()}
+        if unsupported := kinds - set(FAMILIES):
+            raise ParameterError(
+                f"ECSW samples cell and exterior-facet integrals; this residual also has {sorted(unsupported)}"
+            )
+        space = fem.functionspace(model.geometry.mesh, ("DG", 0))
+        self.space = space
+        self.weights = {family: fem.Function(space, name=f"{family}_weight") for family in FAMILIES}
+        for weight in self.weights.values():
+            weight.x.array[:] = 1.0
+        self.residual = ufl.Form(
+            [
+                integral.reconstruct(integrand=self.weights[integral.integral_type()] * integral.integrand())
+                for integral in residual.integrals()
+            ]
+        )
+        self.families = tuple(family for family in FAMILIES if family in kinds)
+
+    def contribution(self, family: str) -> ufl.Form:
+        """∂R_ξ/∂ξ_family: column e is the residual of cell e's ``family`` integrals."""
+        only = ufl.Form([i for i in self.residual.integrals() if i.integral_type() == family])
+        return ufl.derivative(only, self.weights[family], ufl.TrialFunction(self.space))
+
+
+class Training:
+    """The matrix G of ECSW, one training state at a time (collective).
+
+    Each :meth:`add` takes the model's current state and loads: for every family, the reduced
+    contributions Vᵀ r_e of the owned cells, scaled by the state's reduced force ‖b_s‖. States
+    whose reduced force vanishes (the unloaded start) carry nothing to reproduce and are skipped.
+    """
+
+    def __init__(self, model, V: np.ndarray, residual: ufl.Form | None = None):
+        _refuse_state_dependent(model)
+        self.model, self.V = model, np.ascontiguousarray(V)
+        self.forms = WeightedForms(model, residual)
+        self.comm = model.geometry.mesh.comm
+        self._compiled = {family: fem.form(self.forms.contribution(family)) for family in self.forms.families}
+        self._matrices = {family: create_matrix(form) for family, form in self._compiled.items()}
+        self.cells = self.forms.space.dofmap.index_map.size_local
+        self.blocks: dict[str, list[np.ndarray]] = {family: [] for family in self.forms.families}
+
+    def add(self) -> bool:
+        """Add the model's current state (True), or skip it when its reduced force is 0 (False)."""
+        k = self.V.shape[1]
+        dense = PETSc.Mat().createDense(((self.V.shape[0], None), (None, k)), array=self.V, comm=self.comm)
+        local = {}
+        for family, form in self._compiled.items():
+            C = self._matrices[family]
+            C.zeroEntries()
+            assemble_matrix(C, form)
+            C.assemble()
+            product = C.transposeMatMult(dense)  # (cells × k): row e is (Vᵀ r_e)ᵀ
+            local[family] = product.getDenseArray()[: self.cells].T.copy()
+            product.destroy()
+        dense.destroy()
+        force = sum(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM) for block in local.values())
+        scale = float(np.linalg.norm(force))
+        if scale == 0.0:
+            return False
+        for family, block in local.items():
+            self.blocks[family].append(block / scale)
+        return True
+
+    def add_state(self, state: np.ndarray, time: float, load_factor: float = 1.0) -> bool:
+        """Set the model to a stored state (its whole local array) at its time and load factor,
+        then :meth:`add` it."""
+        self.model.state.x.array[:] = state
+        self.model.state.x.scatter_forward()
+        self.model.set_time(time, load_factor=load_factor)
+        return self.add()
+
+    @property
+    def states(self) -> int:
+        return len(next(iter(self.blocks.values()))) if self.blocks else 0
+
+    def matrix(self, family: str) -> np.ndarray:
+        """G of one family: rows (state, reduced component), columns the owned cells."""
+        if not self.states:
+            raise ParameterError("ECSW has no training state with a load (add states first)")
+        return np.vstack(self.blocks[family])
+
+    def sample(self, tolerance: float) -> Sample:
+        """The sparse positive weights of each family that reproduce the training reduced forces
+        to ``tolerance`` (relative, per family), see :func:`sparse_nnls`."""
+        chosen = {family: sparse_nnls(self.matrix(family), tolerance, self.comm) for family in self.forms.families}
+        return Sample(
+            {family: cells for family, (cells, _) in chosen.items()},
+            {family: weights for family, (_, weights) in chosen.items()},
+            tolerance,
+        )
+
+    def destroy(self) -> None:
+        for matrix in self._matrices.values():
+            matrix.destroy()
+
+
+@dataclass(frozen=True)
+class Sample:
+    """The sampled owned cells of each family (local indices) and their weights (> 0)."""
+
+    cells: dict[str, np.ndarray]
+    weights: dict[str, np.ndarray]
+    tolerance: float
+
+    def count(self, comm: MPI.Comm) -> dict[str, int]:
+        """How many cells each family samples, over all ranks."""
+        return {family: comm.allreduce(len(cells), op=MPI.SUM) for family, cells in self.cells.items()}
+
+    @staticmethod
+    def every_cell(forms: WeightedForms) -> Sample:
+        """All owned cells at weight 1: the Galerkin reduced model."""
+        cells = np.arange(forms.space.dofmap.index_map.size_local, dtype=np.int32)
+        return Sample(
+            {family: cells for family in forms.families},
+            {family: np.ones(len(cells)) for family in forms.families},
+            0.0,
+        )
+
+
+def sparse_nnls(G: np.ndarray, tolerance: float, comm: MPI.Comm) -> tuple[np.ndarray, np.ndarray]:
+    """A sparse ξ ≥ 0 with ‖G ξ − b‖ ≤ tolerance ‖b‖, b = G 1 (collective; the columns of G are
+    the owned cells of this rank). Returns the local column indices it uses and their weights.
+
+    Greedy Lawson–Hanson (Chapman et al. 2017): add the column most correlated with the residual
+    b − G ξ; solve the least-squares problem on the chosen columns; where a weight would turn
+    negative, step back to the boundary and drop that column; repeat until the tolerance is met.
+    The chosen columns are gathered on every rank, which all solve the same small problem."""
+    local_b = G.sum(axis=1)
+    b = np.empty_like(local_b)
+    comm.Allreduce(local_b, b, op=MPI.SUM)
+    target = tolerance * float(np.linalg.norm(b))
+    offsets = np.cumsum([0, *comm.allgather(G.shape[1])])
+    start = offsets[comm.rank]
+    chosen: list[int] = []  # global column numbers
+    excluded: set[int] = set()  # columns whose least-squares weight was not positive when added
+    columns = np.zeros((G.shape[0], 0))
+    weights = np.zeros(0)
+    residual = b.copy()
+    while float(np.linalg.norm(residual)) > target:
+        correlation = G.T @ residual
+        if taken := [c - start for c in (*chosen, *excluded) if start <= c < start + G.shape[1]]:
+            correlation[taken] = -np.inf
+        best = int(np.argmax(correlation)) if correlation.size else -1
+        value = float(correlation[best]) if best >= 0 else -np.inf
+        candidates = comm.allgather((value, start + best))
+        value, column = max(candidates)
+        if not value > 0:  # nothing left that lowers the residual: the tolerance is out of reach
+            break
+        owner = int(np.searchsorted(offsets, column, side="right") - 1)
+        vector = comm.bcast(G[:, column - start] if comm.rank == owner else None, root=owner)
+        chosen.append(column)
+        columns = np.column_stack([columns, vector])
+        weights = np.append(weights, 0.0)
+        while True:
+            trial = np.linalg.lstsq(columns, b, rcond=None)[0]
+            if np.all(trial > 0):
+                weights = trial
+                break
+            negative = trial <= 0
+            steps = weights[negative] / (weights[negative] - trial[negative])
+            weights = weights + steps.min() * (trial - weights)
+            keep = weights > 1e-14 * max(1.0, weights.max())
+            keep[np.flatnonzero(negative)[np.argmin(steps)]] = False
+            if not keep[-1]:  # the new column itself (round-off; never in exact arithmetic)
+                excluded.add(chosen[-1])
+            chosen = [c for c, k in zip(chosen, keep) if k]
+            columns, weights = columns[:, keep], weights[keep]
+        residual = b - columns @ weights
+    mine = np.array([i for i, c in enumerate(chosen) if start <= c < start + G.shape[1]], dtype=int)
+    cells = np.array([chosen[i] - start for i in mine], dtype=np.int32)
+    order = np.argsort(cells)
+    return cells[order], weights[mine][order]
+
+
+class HyperReducedSolver(ReducedSolver):
+    """The reduced Galerkin solver with ECSW: its residual and tangent integrate over the sampled
+    cells (and the sampled cells' exterior facets) only, with their weights. Same interface as
+    :class:`~lungmech.rom.galerkin.ReducedSolver`; :attr:`assembled_cells` counts what one
+    assembly visits."""
+
+    def __init__(self, model, basis, sample: Sample, options=None, start: np.ndarray | None = None):
+        _refuse_state_dependent(model)
+        forms = WeightedForms(model)
+        self.sample = sample
+        for family, weight in forms.weights.items():
+            weight.x.array[:] = 0.0
+            if family in sample.cells:
+                weight.x.array[sample.cells[family]] = sample.weights[family]
+            weight.x.scatter_forward()
+        restricted = _restricted(forms.residual, model.geometry.mesh, sample)
+        jacobian = ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space))
+        super().__init__(model, basis, options, residual=restricted, jacobian=jacobian, start=start)
+        # J > 0 is checked where the model is evaluated: on the sampled cells (an O(mesh) check
+        # at every converged solve would cost more than the solve)
+        self.inversion = Inversion(model, np.unique(np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)])))
+        self.description = (
+            f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
+            + ", ".join(f"{n} {family} samples" for family, n in sample.count(self.comm).items())
+        )
+
+    @property
+    def assembled_cells(self) -> dict[str, int]:
+        """How many cells (of "cell") and facets (of "exterior_facet") one assembly of the
+        residual visits, over all ranks."""
+        form = self.residual_form._cpp_object
+        counts = {}
+        for family, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
+            local = 0
+            if kind in form.integral_types:
+                for i in range(form.num_integrals(kind, 0)):
+                    entities = np.asarray(form.domains(kind, i))
+                    local += len(entities) if kind == fem.IntegralType.cell else entities.size // 2
+            counts[family] = self.comm.allreduce(local, op=MPI.SUM)
+        return counts
+
+
+def _refuse_state_dependent(model) -> None:
+    if model.state_dependent:
+        raise ParameterError(
+            "ECSW does not reduce state-dependent loads (balanced gravity) yet: their coefficients "
+            "are integrals over the whole mesh"
+        )
+
+
+def _restricted(form: ufl.Form, mesh, sample: Sample) -> ufl.Form:
+    """``form`` with its cell integrals over the sampled cells only, and its exterior-facet
+    integrals over the facets of the sampled boundary cells only (their boundary tags kept)."""
+    tdim = mesh.topology.dim
+    cells = sample.cells.get("cell", np.zeros(0, np.int32))
+    cell_tags = dmesh.meshtags(mesh, tdim, cells, np.full(len(cells), _SAMPLED, dtype=np.int32))
+    integrals = []
+    facet_tags = {}
+    for integral in form.integrals():
+        kind = integral.integral_type()
+        if kind == "cell":
+            integrals.append(integral.reconstruct(subdomain_id=_SAMPLED, subdomain_data=cell_tags))
+            continue
+        tags = integral.subdomain_data()
+        if tags is None:  # lungmech's loads name their boundaries; an untagged ds is not sampled
+            raise ParameterError("ECSW samples boundary integrals over named (tagged) boundaries only")
+        key = id(tags)
+        if key not in facet_tags:
+            facet_tags[key] = _facets_of(mesh, tags, sample.cells.get("exterior_facet", np.zeros(0, np.int32)))
+        integrals.append(integral.reconstruct(subdomain_data=facet_tags[key]))
+    return ufl.Form(integrals)
+
+
+def _facets_of(mesh, tags, cells: np.ndarray):
+    """The boundary facet tags ``tags`` kept on the facets of ``cells`` only."""
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim, tdim - 1)
+    connectivity = mesh.topology.connectivity(tdim, tdim - 1)
+    mine = np.unique(np.concatenate([connectivity.links(c) for c in cells])) if len(cells) else np.zeros(0, np.int32)
+    keep = np.isin(tags.indices, mine)
+    return dmesh.meshtags(mesh, tdim - 1, tags.indices[keep], tags.values[keep])
