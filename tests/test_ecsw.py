@@ -146,3 +146,19 @@ def test_ecsw_refuses_what_it_cannot_sample(trained):
     assert not training.add()  # at rest: no reduced force
     with pytest.raises(ParameterError, match="no training state with a load"):
         training.sample(1e-2)
+
+
+def test_a_sample_exports_by_input_cell_and_places_back(trained):
+    """Export: input cell indices and weights, the same on every rank. Placed back on the same
+    mesh: the same sample; on a mesh without those cells: an error."""
+    _, training = trained
+    sample = training.sample(1e-4)
+    mesh = training.model.geometry.mesh
+    data = sample.export(mesh)
+    placed = Sample.place(mesh, data, sample.tolerance)
+    for family in training.forms.families:
+        assert np.array_equal(placed.cells[family], sample.cells[family])
+        assert np.array_equal(placed.weights[family], sample.weights[family])
+    small = box(MPI.COMM_WORLD, cells=(1, 1, 1)).mesh
+    with pytest.raises(ParameterError, match="sample .cell integrals. names input cells this mesh does not have"):
+        Sample.place(small, data, 1e-4)

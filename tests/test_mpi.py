@@ -639,14 +639,17 @@ def test_the_memory_estimate_and_the_memory_at_hand_agree_on_every_rank():
     assert MPI.COMM_WORLD.allgather((need, have)) == [(need, have)] * MPI.COMM_WORLD.size
 
 
-def test_ecsw_same_on_all_ranks_as_on_one():
+def test_ecsw_same_on_all_ranks_as_on_one(tmp_path):
     """ECSW on a distributed mesh: the greedy NNLS picks its cells over all ranks, the online
     solve assembles those only, and the answer matches one rank's Galerkin model within the
-    bound of τ (the samples may differ: ties between ranks are broken by cell number)."""
+    bound of τ. The sample exported by input cell and the basis saved, both placed on one rank,
+    give the distributed answer to round-off."""
     from test_ecsw import UNSEEN, block, path, train
 
     from lungmech import rom
     from lungmech.rom.ecsw import HyperReducedSolver, Sample
+
+    saved = MPI.COMM_WORLD.bcast(str(tmp_path / "block.npz"))
 
     def unseen(comm, basis, sample=None):
         model = block(comm)
@@ -663,3 +666,10 @@ def test_ecsw_same_on_all_ranks_as_on_one():
     volume, solver = unseen(MPI.COMM_WORLD, basis, sample)
     assert solver.assembled_cells == sample.count(MPI.COMM_WORLD)
     assert volume == pytest.approx(galerkin, rel=3e-4)  # 3 τ, as in tests/test_ecsw.py
+    rom.save(saved, training.model, basis)
+    exported = sample.export(training.model.geometry.mesh)
+    alone = block(MPI.COMM_SELF)
+    loaded, _, _ = rom.load(saved, alone)
+    placed = Sample.place(alone.geometry.mesh, exported, sample.tolerance)
+    assert placed.count(MPI.COMM_SELF) == sample.count(MPI.COMM_WORLD)
+    assert unseen(MPI.COMM_SELF, loaded, placed)[0] == pytest.approx(volume, rel=1e-10)

@@ -169,6 +169,41 @@ class Sample:
         """How many cells each family samples, over all ranks."""
         return {family: comm.allreduce(len(cells), op=MPI.SUM) for family, cells in self.cells.items()}
 
+    def export(self, mesh) -> dict[str, np.ndarray]:
+        """The sample in a partition-independent form, the same on every rank (collective): per
+        family, the input (mesh-file) indices of the sampled cells, sorted, and their weights;
+        arrays named ``<family>_cells`` and ``<family>_weights``."""
+        original = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)
+        data = {}
+        for family, cells in self.cells.items():
+            pairs = mesh.comm.allgather((original[cells], self.weights[family]))
+            indices = np.concatenate([i for i, _ in pairs])
+            order = np.argsort(indices)
+            data[f"{family}_cells"] = indices[order]
+            data[f"{family}_weights"] = np.concatenate([w for _, w in pairs])[order]
+        return data
+
+    @staticmethod
+    def place(mesh, data: dict[str, np.ndarray], tolerance: float) -> Sample:
+        """The sample :meth:`export` gave, on this mesh and partition: each rank keeps its owned
+        cells. Collective; a cell index the mesh does not have is an error."""
+        owned = mesh.topology.index_map(mesh.topology.dim).size_local
+        original = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[:owned]
+        local = np.argsort(original)
+        cells, weights = {}, {}
+        for family in FAMILIES:
+            if f"{family}_cells" not in data:
+                continue
+            wanted, given = np.asarray(data[f"{family}_cells"]), np.asarray(data[f"{family}_weights"])
+            found = np.isin(wanted, original)
+            if mesh.comm.allreduce(int(found.sum()), op=MPI.SUM) != len(wanted):
+                raise ParameterError(f"the ECSW sample ({family} integrals) names input cells this mesh does not have")
+            position = local[np.searchsorted(original[local], wanted[found])]
+            order = np.argsort(position)
+            cells[family] = position[order].astype(np.int32)
+            weights[family] = given[found][order]
+        return Sample(cells, weights, tolerance)
+
     @staticmethod
     def every_cell(forms: WeightedForms) -> Sample:
         """All owned cells at weight 1: the Galerkin reduced model."""
