@@ -665,7 +665,7 @@ def test_ecsw_same_on_all_ranks_as_on_one(tmp_path):
     sample = training.sample(1e-4)
     volume, solver = unseen(MPI.COMM_WORLD, basis, sample)
     assert solver.assembled_cells == sample.count(MPI.COMM_WORLD)
-    assert volume == pytest.approx(galerkin, rel=3e-4)  # 3 τ, as in tests/test_ecsw.py
+    assert volume == pytest.approx(galerkin, rel=5e-4)  # 5 τ, as in tests/test_ecsw.py
     rom.save(saved, training.model, basis)
     exported = sample.export(training.model.geometry.mesh)
     alone = block(MPI.COMM_SELF)

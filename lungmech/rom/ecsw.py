@@ -88,8 +88,10 @@ class Training:
     """The matrix G of ECSW, one training state at a time (collective).
 
     Each :meth:`add` takes the model's current state and loads: for every family, the reduced
-    contributions Vᵀ r_e of the owned cells, scaled by the state's reduced force ‖b_s‖. States
-    whose reduced force vanishes (the unloaded start) carry nothing to reproduce and are skipped.
+    contributions Vᵀ r_e of the owned cells, scaled by that family's reduced force ‖b_s‖ (the
+    sum of the families' forces is the reduced residual, 0 at an equilibrium). A family whose
+    reduced force vanishes at a state (at rest, or no load on the boundary yet) has nothing to
+    reproduce there and skips it.
     """
 
     def __init__(self, model, V: np.ndarray, residual: ufl.Form | None = None):
@@ -116,13 +118,15 @@ class Training:
             local[family] = product.getDenseArray()[: self.cells].T.copy()
             product.destroy()
         dense.destroy()
-        force = sum(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM) for block in local.values())
-        scale = float(np.linalg.norm(force))
-        if scale == 0.0:
-            return False
+        added = False
         for family, block in local.items():
-            self.blocks[family].append(block / scale)
-        return True
+            # each family's own reduced force: at an equilibrium the families' forces cancel
+            # (the cells' internal forces balance the boundary loads), so their sum is no scale
+            scale = float(np.linalg.norm(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM)))
+            if scale > 0.0:
+                self.blocks[family].append(block / scale)
+                added = True
+        return added
 
     def add_state(self, state: np.ndarray, time: float, load_factor: float = 1.0) -> bool:
         """Set the model to a stored state (its whole local array) at its time and load factor,
@@ -132,19 +136,37 @@ class Training:
         self.model.set_time(time, load_factor=load_factor)
         return self.add()
 
+    def watch(self, solver) -> None:
+        """From now on, :meth:`add` every Newton iterate of ``solver`` (a full
+        :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
+        not only the converged ones, so that the sample also reproduces the reduced forces away
+        from equilibrium. Each iterate is added at the solver's loads of the moment."""
+        state = self.model.state
+
+        def add_iterate(snes, iteration, norm) -> None:
+            x = snes.getSolution()
+            state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)
+            state.x.scatter_forward()
+            self.add()
+
+        solver.problem.solver.setMonitor(add_iterate)
+
     @property
     def states(self) -> int:
-        return len(next(iter(self.blocks.values()))) if self.blocks else 0
+        """The most training states any family holds."""
+        return max((len(blocks) for blocks in self.blocks.values()), default=0)
 
     def matrix(self, family: str) -> np.ndarray:
         """G of one family: rows (state, reduced component), columns the owned cells."""
-        if not self.states:
-            raise ParameterError("ECSW has no training state with a load (add states first)")
+        if not self.blocks[family]:
+            raise ParameterError(f"ECSW has no training state with a load on its {family} integrals (add states first)")
         return np.vstack(self.blocks[family])
 
     def sample(self, tolerance: float) -> Sample:
         """The sparse positive weights of each family that reproduce the training reduced forces
         to ``tolerance`` (relative, per family), see :func:`sparse_nnls`."""
+        if not self.states:
+            raise ParameterError("ECSW has no training state with a load (add states first)")
         chosen = {family: sparse_nnls(self.matrix(family), tolerance, self.comm) for family in self.forms.families}
         return Sample(
             {family: cells for family, (cells, _) in chosen.items()},
