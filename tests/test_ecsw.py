@@ -85,33 +85,35 @@ def test_the_sample_reproduces_the_training_forces_to_its_tolerance(trained, tol
     for family in training.forms.families:
         assert np.all(sample.weights[family] > 0)
         total = comm.allreduce(training.matrix(family).shape[1], op=MPI.SUM)
-        assert sample.count(comm)[family] < total / 10  # sparse: a few % of the 768 cells
+        assert sample.count(comm)[family] < total / 10  # sparse: a few % of the cells
 
 
 def assert_reproduces(training: Training, sample: Sample) -> None:
-    """‖G ξ − G 1‖ ≤ τ ‖G 1‖ for every family."""
+    """‖G ξ − G 1‖ ≤ τ ‖|G| 1‖ for every family: the training states' reduced forces to τ of the
+    gross force the cells carry."""
     comm = MPI.COMM_WORLD
     for family in training.forms.families:
         G = training.matrix(family)
         weights = np.zeros(G.shape[1])
         weights[sample.cells[family]] = sample.weights[family]
         error, force = comm.allreduce(G @ weights, op=MPI.SUM), comm.allreduce(G.sum(axis=1), op=MPI.SUM)
-        assert np.linalg.norm(error - force) <= sample.tolerance * np.linalg.norm(force)
+        gross = comm.allreduce(np.abs(G).sum(axis=1), op=MPI.SUM)
+        assert np.linalg.norm(error - force) <= sample.tolerance * np.linalg.norm(gross)
 
 
 def test_the_hyper_reduced_solution_approaches_the_galerkin_one(trained):
     """On an unseen load, the relative distance to the Galerkin state is a few τ down to
-    τ = 1e-4 (measured 3.5e-2, 1.7e-4); below, how well the training states cover the unseen one
-    limits it (4e-5 at τ = 1e-6). Each assembly visits the sampled cells and facets only."""
+    τ = 1e-4 (measured 1.1e-2, 1.9e-4); below, how well the training states cover the unseen one
+    limits it (8.5e-5 at τ = 1e-6). Each assembly visits the sampled cells and facets only."""
     basis, training = trained
     galerkin = unseen(rom.ReducedSolver, basis)
     scale = np.linalg.norm(galerkin)
     errors = []
-    for tolerance, bound in ((1e-2, 5e-2), (1e-4, 5e-4), (1e-6, 1e-4)):
+    for tolerance, bound in ((1e-2, 5e-2), (1e-4, 5e-4), (1e-6, 2e-4)):
         sample = training.sample(tolerance)
         model = block()
         solver = HyperReducedSolver(model, basis, sample)
-        assert solver.assembled_cells == sample.count(MPI.COMM_WORLD)
+        assert solver.assembled_cells == sample.cells_per_type(MPI.COMM_WORLD)
         path(model, UNSEEN, solver=solver)
         errors.append(np.linalg.norm(model.state.x.array - galerkin) / scale)
         assert errors[-1] <= bound, (tolerance, errors)
@@ -119,17 +121,17 @@ def test_the_hyper_reduced_solution_approaches_the_galerkin_one(trained):
 
 
 def test_sparse_nnls_meets_its_tolerance_with_few_positive_weights():
-    """Against SciPy's NNLS on a random problem: b = G 1 is reachable (NNLS residual 0); the
-    greedy solution meets τ with far fewer columns than G has."""
+    """Against SciPy's NNLS on a random problem with entries of both signs: b = G 1 is reachable
+    (NNLS residual 0); the greedy solution meets τ with far fewer columns than G has."""
     rng = np.random.default_rng(3)
-    G = rng.random((60, 400))
+    G = rng.random((60, 400)) - 0.3
     b = G.sum(axis=1)
     assert nnls(G, b)[1] < 1e-8 * np.linalg.norm(b)
     for tolerance in (1e-1, 1e-3):
         cells, weights = sparse_nnls(G, tolerance, MPI.COMM_SELF)
         xi = np.zeros(G.shape[1])
         xi[cells] = weights
-        assert np.linalg.norm(G @ xi - b) <= tolerance * np.linalg.norm(b)
+        assert np.linalg.norm(G @ xi - b) <= tolerance * np.linalg.norm(np.abs(G).sum(axis=1))
         assert np.all(weights > 0) and len(cells) <= 60  # at most as many columns as rows
 
 
@@ -167,7 +169,7 @@ def test_a_sample_exports_by_input_cell_and_places_back(trained):
         assert np.array_equal(placed.cells[family], sample.cells[family])
         assert np.array_equal(placed.weights[family], sample.weights[family])
     small = box(MPI.COMM_WORLD, cells=(1, 1, 1)).mesh
-    with pytest.raises(ParameterError, match="sample .cell integrals. names input cells this mesh does not have"):
+    with pytest.raises(ParameterError, match="sample .internal integrals. names input cells this mesh does not have"):
         Sample.place(small, data, 1e-4)
 
 
@@ -190,3 +192,47 @@ def test_training_on_newton_iterates(trained):
     galerkin = unseen(rom.ReducedSolver, basis)
     hyper = unseen(HyperReducedSolver, basis, sample)
     assert np.linalg.norm(hyper - galerkin) <= 5e-4 * np.linalg.norm(galerkin)
+
+
+def test_the_internal_forces_and_the_loads_add_up_to_the_residual():
+    from dolfinx import fem as dfem
+    from dolfinx.fem.petsc import assemble_vector
+
+    model = block()
+    path(model, 0.5)
+    model.set_time(1.0)  # off equilibrium: every part counts
+    parts = [
+        assemble_vector(dfem.form(form)) for form in (model.residual, model.internal_residual, model.load_residual)
+    ]
+    total, internal, loads = (p.getArray() for p in parts)
+    assert np.abs(internal + loads - total).max() <= 1e-13 * np.abs(internal).max()
+    assert np.abs(loads).max() > 0.1 * np.abs(internal).max()
+
+
+def test_a_body_loaded_by_its_weight_alone_trains_on_equilibria():
+    """Only cell integrals: at an equilibrium the internal forces and the weight cancel cell by
+    cell in sum. Sampled apart, each has a force to reproduce, and the converged states alone
+    give a sample that tracks the Galerkin model (a sum-based sample would be empty)."""
+
+    def weighed() -> Model:
+        return Model(
+            box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4)),
+            NeoHookean.from_young(10.0, 0.3),
+            constraints=[clamp("x0")],
+            loads=[BodyForce((0.0, 0.0, -1.0))],
+        )
+
+    model = weighed()
+    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    states = []
+    for scale in TRAINING:
+        path(model, scale, on_step=lambda step, s=scale: states.append((model.state.x.array.copy(), model.time, s)))
+    basis = rom.pod(model, np.column_stack([x[:owned] for x, _, _ in states]), inner="energy", size=6)
+    training = Training(model, basis.vectors)
+    assert all(training.add_state(x, t, scale) for x, t, scale in states)
+    sample = training.sample(1e-4)
+    assert set(sample.cells) == {"internal", "cell_load"}
+    galerkin, hyper = weighed(), weighed()
+    path(galerkin, UNSEEN, solver=rom.ReducedSolver(galerkin, basis))
+    path(hyper, UNSEEN, solver=HyperReducedSolver(hyper, basis, sample))
+    assert np.linalg.norm(hyper.state.x.array - galerkin.state.x.array) <= 5e-4 * np.linalg.norm(galerkin.state.x.array)

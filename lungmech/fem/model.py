@@ -125,9 +125,11 @@ class Model:
         self.time_constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
         self.potential = self.energy_density * self.dx
         virtual_work, self._state_dependent = [], []
+        load_potentials = []
         for load, value in zip(self.loads, self._load_values):
             if hasattr(load, "potential"):
-                self.potential += load.potential(self, value)
+                load_potentials.append(load.potential(self, value))
+                self.potential += load_potentials[-1]
             work = load.virtual_work(self, v_u, value) if hasattr(load, "virtual_work") else None
             if isinstance(work, StateDependentWork):
                 self._state_dependent.append(work)
@@ -137,6 +139,14 @@ class Model:
         self.residual = ufl.derivative(self.potential, self.state, v)
         for work in virtual_work:
             self.residual -= work
+        # the same residual in its two parts, R = R_int + R_load: the internal forces (of the
+        # energy density) and the loads' (hyper-reduction samples them apart)
+        self.internal_residual = ufl.derivative(self.energy_density * self.dx, self.state, v)
+        self.load_residual = sum(
+            (ufl.derivative(potential, self.state, v) for potential in load_potentials), ufl.Form([])
+        )
+        for work in virtual_work:
+            self.load_residual -= work
         self.jacobian = ufl.derivative(self.residual, self.state, ufl.TrialFunction(self.space))
 
         self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]

@@ -138,7 +138,7 @@ ITERATIVE_FROM_DOFS = 200_000
 # iterative solver when that is more than this share of what a rank may count on (the rest:
 # assembly, vectors, other processes). Smaller problems never come near a machine's memory.
 MEMORY_CHECK_FROM_DOFS, DIRECT_MEMORY_SHARE = 20_000, 0.5
-_NOT_CONVERGED = 91  # PETSC_ERR_NOT_CONVERGED
+NOT_CONVERGED = 91  # PETSC_ERR_NOT_CONVERGED: what a linear step raises when its tangent is singular
 # MUMPS INFOG(1) of a factorisation that ran out of memory (workspace, allocation, ICNTL(23))
 _MUMPS_OUT_OF_MEMORY = (-8, -9, -11, -12, -13, -14, -15, -17, -19, -20)
 
@@ -561,7 +561,7 @@ class NewtonSolver:
             ksp.solve(b, step)
         if ksp.getConvergedReason() < 0:  # a singular tangent, say: the callers carry on without
             step.destroy()
-            raise PETSc.Error(_NOT_CONVERGED)
+            raise PETSc.Error(NOT_CONVERGED)
         if self._exact_step is not None:
             self._exact_step(x, step)
         x.axpy(-1.0, step)

@@ -2,10 +2,10 @@
 
 The reduced residual sums every cell's contribution,
 
-.. math:: Vᵀ R(x) = Σ_e Vᵀ r_e(x) + Σ_f Vᵀ r_f(x),
+.. math:: Vᵀ R(x) = Σ_e Vᵀ r_e(x),
 
-r_e from the integrals over cell e and r_f from those over its exterior facets (the loads on
-the boundary), two families sampled apart. ECSW (Farhat, Chapman & Avery 2015) keeps a sample
+r_e from the integrals over cell e, in three families sampled apart: its internal forces (of
+the energy density), the loads on it (weight) and on its exterior facets (pressures). ECSW (Farhat, Chapman & Avery 2015) keeps a sample
 E of each with weights ξ_e > 0,
 
 .. math:: Vᵀ R(x) ≈ Σ_{e∈E} ξ_e Vᵀ r_e(x),
@@ -14,15 +14,17 @@ chosen on training states x_s so that their reduced forces are reproduced to a t
 
 .. math:: ‖G ξ − b‖ ≤ τ ‖b‖,   G_{(s, i), e} = (Vᵀ r_e(x_s))_i / ‖b_s‖,   b = G 1,
 
-each state's block scaled by its own reduced force b_s, so that every state counts alike. This
+each state's block scaled by its own reduced force b_s, so that every state counts alike. The
+internal forces (of the energy density) and the loads are sampled apart, as in Farhat et al.:
+at an equilibrium their sum, the residual, vanishes, and would leave nothing to reproduce. This
 is a sparse non-negative least-squares problem, solved by the greedy Lawson–Hanson variant of
 Chapman et al. (2017, IJNME 109), which stops as soon as τ is met (:func:`sparse_nnls`). Weights
 that are positive keep the reduced tangent a positively weighted sum of cell tangents, so a
 hyper-reduced model of a stable, conservative full model stays stable and conservative (the
 "energy-conserving" of the name).
 
-The weights enter the forms as two piecewise-constant (DG0) fields, one for the cells' volume
-integrals and one for their exterior-facet integrals (an exterior facet has one cell): the same
+The weights enter the forms as piecewise-constant (DG0) fields, one per family (an exterior
+facet has one cell, whose weight it takes): the same
 forms give the Galerkin reduced model (all weights 1), the training matrix G (their derivative
 with respect to the weights: column e is r_e), and, integrated over the sampled cells only, the
 hyper-reduced one (:class:`HyperReducedSolver`).
@@ -46,58 +48,63 @@ from lungmech.rom.galerkin import ReducedSolver
 
 __all__ = ["FAMILIES", "Sample", "Training", "WeightedForms", "sparse_nnls", "HyperReducedSolver"]
 
-FAMILIES = ("cell", "exterior_facet")  # the integral types sampled, each with its own weights
-_SAMPLED = 1  # the subdomain id of the sampled cells in the online forms
+# The families sampled, each with its own weights, and their integral type: the cells' internal
+# forces (of the energy density), the loads on cells (weight) and on the boundary (pressures).
+FAMILIES = {"internal": "cell", "cell_load": "cell", "boundary_load": "exterior_facet"}
 
 
 class WeightedForms:
-    """A residual form whose cell and exterior-facet integrals carry a weight per cell.
+    """The model's residual R = R_int + R_load with a weight per cell on each family's integrals.
 
-    ``weights[family]`` is the DG0 field of that family's weights (1 everywhere: the form is
-    the residual itself). :meth:`contribution` is the derivative with respect to one family's
-    weights, a rectangular form whose assembled column e is the residual of cell e's integrals
-    of that family."""
+    ``weights[family]`` is the DG0 field of that family's weights (1 everywhere: ``residual`` is
+    the model's). :meth:`contribution` is the derivative with respect to one family's weights,
+    a rectangular form whose assembled column e is the residual of cell e's integrals of that
+    family (an exterior facet's: of its one cell)."""
 
-    def __init__(self, model, residual: ufl.Form | None = None):
-        residual = model.residual if residual is None else residual
-        kinds = {integral.integral_type() for integral in residual.integrals()}
-        if unsupported := kinds - set(FAMILIES):
+    def __init__(self, model):
+        parts = {
+            "internal": _integrals(model.internal_residual, "cell"),
+            "cell_load": _integrals(model.load_residual, "cell"),
+            "boundary_load": _integrals(model.load_residual, "exterior_facet"),
+        }
+        kinds = {i.integral_type() for form in (model.internal_residual, model.load_residual) for i in form.integrals()}
+        if unsupported := kinds - {"cell", "exterior_facet"}:
             raise ParameterError(
                 f"ECSW samples cell and exterior-facet integrals; this residual also has {sorted(unsupported)}"
             )
-        space = fem.functionspace(model.geometry.mesh, ("DG", 0))
-        self.space = space
+        self.space = space = fem.functionspace(model.geometry.mesh, ("DG", 0))
         self.weights = {family: fem.Function(space, name=f"{family}_weight") for family in FAMILIES}
         for weight in self.weights.values():
             weight.x.array[:] = 1.0
-        self.residual = ufl.Form(
-            [
-                integral.reconstruct(integrand=self.weights[integral.integral_type()] * integral.integrand())
-                for integral in residual.integrals()
-            ]
-        )
-        self.families = tuple(family for family in FAMILIES if family in kinds)
+        self.families = tuple(family for family, integrals in parts.items() if integrals)
+        self.parts = {
+            family: [i.reconstruct(integrand=self.weights[family] * i.integrand()) for i in parts[family]]
+            for family in self.families
+        }
+        self.residual = ufl.Form([i for family in self.families for i in self.parts[family]])
 
     def contribution(self, family: str) -> ufl.Form:
         """∂R_ξ/∂ξ_family: column e is the residual of cell e's ``family`` integrals."""
-        only = ufl.Form([i for i in self.residual.integrals() if i.integral_type() == family])
-        return ufl.derivative(only, self.weights[family], ufl.TrialFunction(self.space))
+        return ufl.derivative(ufl.Form(self.parts[family]), self.weights[family], ufl.TrialFunction(self.space))
+
+
+def _integrals(form: ufl.Form, kind: str) -> list:
+    return [integral for integral in form.integrals() if integral.integral_type() == kind]
 
 
 class Training:
     """The matrix G of ECSW, one training state at a time (collective).
 
     Each :meth:`add` takes the model's current state and loads: for every family, the reduced
-    contributions Vᵀ r_e of the owned cells, scaled by that family's reduced force ‖b_s‖ (the
-    sum of the families' forces is the reduced residual, 0 at an equilibrium). A family whose
-    reduced force vanishes at a state (at rest, or no load on the boundary yet) has nothing to
-    reproduce there and skips it.
+    contributions Vᵀ r_e of the owned cells, scaled by the family's reduced force ‖b_s‖ (the
+    internal forces and the loads each: they balance at an equilibrium, neither vanishes). A
+    family without force at a state (at rest; a load not applied yet) skips it.
     """
 
-    def __init__(self, model, V: np.ndarray, residual: ufl.Form | None = None):
+    def __init__(self, model, V: np.ndarray):
         _refuse_state_dependent(model)
         self.model, self.V = model, np.ascontiguousarray(V)
-        self.forms = WeightedForms(model, residual)
+        self.forms = WeightedForms(model)
         self.comm = model.geometry.mesh.comm
         self._compiled = {family: fem.form(self.forms.contribution(family)) for family in self.forms.families}
         self._matrices = {family: create_matrix(form) for family, form in self._compiled.items()}
@@ -120,8 +127,6 @@ class Training:
         dense.destroy()
         added = False
         for family, block in local.items():
-            # each family's own reduced force: at an equilibrium the families' forces cancel
-            # (the cells' internal forces balance the boundary loads), so their sum is no scale
             scale = float(np.linalg.norm(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM)))
             if scale > 0.0:
                 self.blocks[family].append(block / scale)
@@ -191,6 +196,15 @@ class Sample:
         """How many cells each family samples, over all ranks."""
         return {family: comm.allreduce(len(cells), op=MPI.SUM) for family, cells in self.cells.items()}
 
+    def cells_per_type(self, comm: MPI.Comm) -> dict[str, int]:
+        """How many distinct cells the sample holds per integral type, over all ranks."""
+        counts = {}
+        for kind in ("cell", "exterior_facet"):
+            cells = [c for family, c in self.cells.items() if FAMILIES[family] == kind]
+            mine = len(np.unique(np.concatenate(cells))) if cells else 0
+            counts[kind] = comm.allreduce(mine, op=MPI.SUM)
+        return counts
+
     def export(self, mesh) -> dict[str, np.ndarray]:
         """The sample in a partition-independent form, the same on every rank (collective): per
         family, the input (mesh-file) indices of the sampled cells, sorted, and their weights;
@@ -245,9 +259,7 @@ def sparse_nnls(G: np.ndarray, tolerance: float, comm: MPI.Comm) -> tuple[np.nda
     b − G ξ; solve the least-squares problem on the chosen columns; where a weight would turn
     negative, step back to the boundary and drop that column; repeat until the tolerance is met.
     The chosen columns are gathered on every rank, which all solve the same small problem."""
-    local_b = G.sum(axis=1)
-    b = np.empty_like(local_b)
-    comm.Allreduce(local_b, b, op=MPI.SUM)
+    b = comm.allreduce(G.sum(axis=1), op=MPI.SUM)
     target = tolerance * float(np.linalg.norm(b))
     offsets = np.cumsum([0, *comm.allgather(G.shape[1])])
     start = offsets[comm.rank]
@@ -307,7 +319,7 @@ class HyperReducedSolver(ReducedSolver):
             if family in sample.cells:
                 weight.x.array[sample.cells[family]] = sample.weights[family]
             weight.x.scatter_forward()
-        restricted = _restricted(forms.residual, model.geometry.mesh, sample)
+        restricted = _restricted(forms, model.geometry.mesh, sample)
         jacobian = ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space))
         super().__init__(model, basis, options, residual=restricted, jacobian=jacobian, start=start)
         # J > 0 is checked where the model is evaluated: on the sampled cells (an O(mesh) check
@@ -320,17 +332,18 @@ class HyperReducedSolver(ReducedSolver):
 
     @property
     def assembled_cells(self) -> dict[str, int]:
-        """How many cells (of "cell") and facets (of "exterior_facet") one assembly of the
-        residual visits, over all ranks."""
+        """How many distinct cells one assembly of the residual visits, over all ranks: with its
+        cell integrals ("cell"), and through its exterior-facet integrals ("exterior_facet");
+        compare :meth:`Sample.cells_per_type`."""
         form = self.residual_form._cpp_object
         counts = {}
-        for family, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
-            local = 0
+        for name, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
+            cells = [np.zeros(0, np.int32)]
             if kind in form.integral_types:
                 for i in range(form.num_integrals(kind, 0)):
-                    entities = np.asarray(form.domains(kind, i))
-                    local += len(entities) if kind == fem.IntegralType.cell else entities.size // 2
-            counts[family] = self.comm.allreduce(local, op=MPI.SUM)
+                    entities = np.asarray(form.domains(kind, i)).reshape(-1)
+                    cells.append(entities if kind == fem.IntegralType.cell else entities[::2])
+            counts[name] = self.comm.allreduce(len(np.unique(np.concatenate(cells))), op=MPI.SUM)
         return counts
 
 
@@ -342,26 +355,31 @@ def _refuse_state_dependent(model) -> None:
         )
 
 
-def _restricted(form: ufl.Form, mesh, sample: Sample) -> ufl.Form:
-    """``form`` with its cell integrals over the sampled cells only, and its exterior-facet
-    integrals over the facets of the sampled boundary cells only (their boundary tags kept)."""
+def _restricted(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
+    """The weighted residual with each family's integrals over its sampled cells only (boundary
+    loads: over the sampled cells' facets, their boundary tags kept). The cells of the two cell
+    families share one tag set: bit 1 internal, bit 2 cell load."""
     tdim = mesh.topology.dim
-    cells = sample.cells.get("cell", np.zeros(0, np.int32))
-    cell_tags = dmesh.meshtags(mesh, tdim, cells, np.full(len(cells), _SAMPLED, dtype=np.int32))
+    owned = mesh.topology.index_map(tdim).size_local
+    bits = np.zeros(owned, dtype=np.int32)
+    for bit, family in ((1, "internal"), (2, "cell_load")):
+        bits[sample.cells.get(family, np.zeros(0, np.int32))] |= bit
+    tagged = np.flatnonzero(bits).astype(np.int32)
+    cell_tags = dmesh.meshtags(mesh, tdim, tagged, bits[tagged])
     integrals = []
     facet_tags = {}
-    for integral in form.integrals():
-        kind = integral.integral_type()
-        if kind == "cell":
-            integrals.append(integral.reconstruct(subdomain_id=_SAMPLED, subdomain_data=cell_tags))
-            continue
-        tags = integral.subdomain_data()
-        if tags is None:  # lungmech's loads name their boundaries; an untagged ds is not sampled
-            raise ParameterError("ECSW samples boundary integrals over named (tagged) boundaries only")
-        key = id(tags)
-        if key not in facet_tags:
-            facet_tags[key] = _facets_of(mesh, tags, sample.cells.get("exterior_facet", np.zeros(0, np.int32)))
-        integrals.append(integral.reconstruct(subdomain_data=facet_tags[key]))
+    for family in forms.families:
+        for integral in forms.parts[family]:
+            if FAMILIES[family] == "cell":
+                bit = 1 if family == "internal" else 2
+                integrals.append(integral.reconstruct(subdomain_id=(bit, 3), subdomain_data=cell_tags))
+                continue
+            tags = integral.subdomain_data()
+            if tags is None:  # lungmech's loads name their boundaries; an untagged ds is not sampled
+                raise ParameterError("ECSW samples boundary integrals over named (tagged) boundaries only")
+            if id(tags) not in facet_tags:
+                facet_tags[id(tags)] = _facets_of(mesh, tags, sample.cells.get(family, np.zeros(0, np.int32)))
+            integrals.append(integral.reconstruct(subdomain_data=facet_tags[id(tags)]))
     return ufl.Form(integrals)
 
 

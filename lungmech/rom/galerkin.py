@@ -15,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
+from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields
 from lungmech.fem.limits import Inversion, displacement_gradient
 from lungmech.fem.quantities import assemble_owned
-from lungmech.fem.solver import NewtonOptions, NewtonResult
+from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
 from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
@@ -87,7 +88,11 @@ class ReducedSolver:
         """One reduced Newton step from the current state at the current loads (no line search)."""
         q = self.project()
         r = self.reduced_residual(q)
-        self.reconstruct(q + np.linalg.solve(self.reduced_jacobian(), -r))
+        try:
+            step = np.linalg.solve(self.reduced_jacobian(), -r)
+        except np.linalg.LinAlgError:  # a singular reduced tangent: as the full solver says it
+            raise PETSc.Error(NOT_CONVERGED) from None
+        self.reconstruct(q + step)
 
     def project(self) -> np.ndarray:
         """Coordinates q of the model's current state: (W V)ᵀ (x − x₀)."""
