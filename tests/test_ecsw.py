@@ -44,9 +44,10 @@ def path(model: Model, scale: float, solver=None, on_step=None) -> None:
     )
 
 
-def train(comm=MPI.COMM_WORLD) -> tuple[rom.Basis, Training]:
-    """A POD basis of the training paths, and the ECSW training matrix on the same states."""
-    model = block(comm)
+def train(comm=MPI.COMM_WORLD, make=block) -> tuple[rom.Basis, Training]:
+    """A POD basis of the training paths of ``make(comm)``, and the ECSW training matrix on the
+    same (converged) states."""
+    model = make(comm)
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
     states = []
     for scale in TRAINING:
@@ -214,22 +215,16 @@ def test_a_body_loaded_by_its_weight_alone_trains_on_equilibria():
     cell in sum. Sampled apart, each has a force to reproduce, and the converged states alone
     give a sample that tracks the Galerkin model (a sum-based sample would be empty)."""
 
-    def weighed() -> Model:
+    def weighed(comm=MPI.COMM_WORLD) -> Model:
         return Model(
-            box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4)),
+            box(comm, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4)),
             NeoHookean.from_young(10.0, 0.3),
             constraints=[clamp("x0")],
             loads=[BodyForce((0.0, 0.0, -1.0))],
         )
 
-    model = weighed()
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
-    states = []
-    for scale in TRAINING:
-        path(model, scale, on_step=lambda step, s=scale: states.append((model.state.x.array.copy(), model.time, s)))
-    basis = rom.pod(model, np.column_stack([x[:owned] for x, _, _ in states]), inner="energy", size=6)
-    training = Training(model, basis.vectors)
-    assert all(training.add_state(x, t, scale) for x, t, scale in states)
+    basis, training = train(make=weighed)
+    assert training.states == len(training.blocks["internal"]) == len(training.blocks["cell_load"]) > 0
     sample = training.sample(1e-4)
     assert set(sample.cells) == {"internal", "cell_load"}
     galerkin, hyper = weighed(), weighed()
