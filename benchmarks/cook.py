@@ -18,7 +18,6 @@ Writes results/cook.md, results/cook.csv and results/cook.png.
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from pathlib import Path
 
@@ -36,7 +35,7 @@ from lungmech.mesh import cook_membrane
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from machine import cpu_and_memory  # noqa: E402
+from machine import cpu_and_memory, write_results  # noqa: E402
 
 REFERENCE = 6.91  # m: v(48, 60) on very fine meshes (VERIFICATION.md)
 E, NU, FORCE = 240.565, 0.4999, 100.0  # Pa, 1, N per metre of thickness over the 16 m edge
@@ -146,14 +145,9 @@ def main() -> None:
             rows.append(case(name, cells))
             r = rows[-1]
             print(f"{name:12s} {cells:3d}: v = {r['v_corner_m']:.4f} m, {r['newton_iterations']} Newton iterations")
-    RESULTS.mkdir(exist_ok=True)
     stem = "cook_quick" if args.quick else "cook"
     command = "python benchmarks/cook.py" + (" --quick" if args.quick else "")
-    (RESULTS / f"{stem}.md").write_text(markdown(rows, command))
-    with open(RESULTS / f"{stem}.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_results(RESULTS, stem, rows, markdown(rows, command))
     plot(rows, RESULTS / f"{stem}.png")
     print((RESULTS / f"{stem}.md").read_text())
 

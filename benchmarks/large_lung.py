@@ -17,7 +17,6 @@ case run again replaces its row), and results/large_lung.{md,csv,png} show them 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import subprocess
@@ -189,13 +188,10 @@ def main() -> None:
         row = json.loads(line)
         latest[(row["mesh_mm"], row["solver"], row["ranks"])] = row
     rows = sorted(latest.values(), key=lambda r: (r["ranks"], -r["mesh_mm"], r["solver"]))
-    RESULTS.mkdir(exist_ok=True)
+    from machine import write_results
+
     command = "python benchmarks/large_lung.py " + " ".join(sys.argv[1:])
-    (RESULTS / "large_lung.md").write_text(markdown(rows, command.strip()))
-    with open(RESULTS / "large_lung.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=sorted({k for r in rows for k in r}))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_results(RESULTS, "large_lung", rows, markdown(rows, command.strip()))
     plot(rows, RESULTS / "large_lung.png")
     print((RESULTS / "large_lung.md").read_text())
 

@@ -28,13 +28,14 @@ def cpu_and_memory() -> tuple[str, str]:
 
 
 def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -> None:
-    """``stem``.md (the table, as written) and ``stem``.csv (the rows) in ``directory``."""
+    """``stem``.md (the table, as written) and ``stem``.csv (the rows; the columns of all rows,
+    in the order they first appear) in ``directory``."""
     import csv
 
     directory.mkdir(exist_ok=True)
     (directory / f"{stem}.md").write_text(markdown)
     with open(directory / f"{stem}.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
         writer.writeheader()
         writer.writerows(rows)
 

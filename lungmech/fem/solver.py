@@ -229,15 +229,15 @@ def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], N
         "fieldsplit_p_ksp_type": "preonly",
         "fieldsplit_p_pc_type": "jacobi",  # a P_k mass matrix: diagonal up to a bounded factor
     } | _prefixed("fieldsplit_u_", AMG)
-    pressures = model.space.sub(1).collapse()[0]
-    p, q = ufl.TrialFunction(pressures), ufl.TestFunction(pressures)
-    material = model.material
-    compliance = 1 / shear_modulus(material, model.geometry.mesh)
-    if not incompressible(material):
-        compliance += 1 / material.bulk
-    mass = fem.form(-compliance * p * q * model.dx)
 
     def set_splits(ksp: PETSc.KSP, A: PETSc.Mat) -> None:
+        # compiled here, when the iterative solver is set up, not for every mixed model's solver
+        pressures = model.space.sub(1).collapse()[0]
+        p, q = ufl.TrialFunction(pressures), ufl.TestFunction(pressures)
+        compliance = 1 / shear_modulus(model.material, model.geometry.mesh)
+        if not incompressible(model.material):
+            compliance += 1 / model.material.bulk
+        mass = fem.form(-compliance * p * q * model.dx)
         sets = _field_index_sets(model)
         sets["u"].compose("nearnullspace", rigid_body_modes(model.space.sub(0).collapse()[0]))
         S_p = assemble_matrix(mass)

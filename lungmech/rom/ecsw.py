@@ -110,21 +110,20 @@ class Training:
         self._matrices = {family: create_matrix(form) for family, form in self._compiled.items()}
         self.cells = self.forms.space.dofmap.index_map.size_local
         self.blocks: dict[str, list[np.ndarray]] = {family: [] for family in self.forms.families}
+        rows, k = self.V.shape  # V as a distributed dense matrix, wrapping self.V's memory
+        self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)
 
     def add(self) -> bool:
         """Add the model's current state (True), or skip it when its reduced force is 0 (False)."""
-        k = self.V.shape[1]
-        dense = PETSc.Mat().createDense(((self.V.shape[0], None), (None, k)), array=self.V, comm=self.comm)
         local = {}
         for family, form in self._compiled.items():
             C = self._matrices[family]
             C.zeroEntries()
             assemble_matrix(C, form)
             C.assemble()
-            product = C.transposeMatMult(dense)  # (cells × k): row e is (Vᵀ r_e)ᵀ
+            product = C.transposeMatMult(self._basis)  # (cells × k): row e is (Vᵀ r_e)ᵀ
             local[family] = product.getDenseArray()[: self.cells].T.copy()
             product.destroy()
-        dense.destroy()
         added = False
         for family, block in local.items():
             scale = float(np.linalg.norm(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM)))
@@ -180,7 +179,7 @@ class Training:
         )
 
     def destroy(self) -> None:
-        for matrix in self._matrices.values():
+        for matrix in (*self._matrices.values(), self._basis):
             matrix.destroy()
 
 
