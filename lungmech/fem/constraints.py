@@ -68,12 +68,13 @@ class ImposedValue:
 
     bc: fem.DirichletBC
     target: fem.Function
-    base: np.ndarray
+    base: np.ndarray  # the value at the entries ``where`` of target
     ramp: Ramp
+    where: np.ndarray  # the entries of target the condition reads: its dofs (a surface's, not the mesh's)
     amplitude: float = 1.0  # a parameter's factor on the value
 
     def set_time(self, t: float) -> None:
-        self.target.x.array[:] = self.amplitude * self.ramp(t) * self.base
+        self.target.x.array[self.where] = self.amplitude * self.ramp(t) * self.base
 
 
 def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> ImposedValue:
@@ -94,10 +95,13 @@ def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> Impos
     if sub.component():  # a subspace: dofs come in (sub, collapsed) pairs
         dofs = fem.locate_dofs_topological((sub, values), fdim, facets)
         bc = fem.dirichletbc(target, dofs, sub)
+        where = np.asarray(dofs[1])
     else:
         dofs = fem.locate_dofs_topological(sub, fdim, facets)
         bc = fem.dirichletbc(target, dofs)
-    return ImposedValue(bc, target, base.x.array.copy(), constraint.ramp)
+        bs = values.dofmap.index_map_bs
+        where = (bs * np.asarray(dofs)[:, None] + np.arange(bs)).reshape(-1)
+    return ImposedValue(bc, target, base.x.array[where].copy(), constraint.ramp, where)
 
 
 def _as_callable(constraint: Displacement, size: int) -> Callable[[np.ndarray], np.ndarray]:
