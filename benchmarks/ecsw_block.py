@@ -39,10 +39,10 @@ TRAINING, UNSEEN, TOLERANCE, SIZE = (0.2, 0.4, 0.6), 0.3, 1e-4, 6
 MESHES = (4, 8, 12)  # n: 3n × n × n boxes of 6 tetrahedra each
 RESULTS = Path(__file__).parent / "results"
 READING = (
-    "Times are for the whole load path (several load steps and their Newton iterations). The ECSW "
-    "forms integrate over the sampled cells only, but the reduced solver still works on full-length "
-    "vectors (reconstruction x₀ + V q, the products with V, the round-off floor), so its time still "
-    "grows with the mesh; a reduced mesh removes that."
+    "Times are for the whole load path (several load steps and their Newton iterations), as the load "
+    "stepping reports it. The ECSW solver iterates on q and assembles on a reduced mesh of the sampled "
+    "cells (a DOLFINx submesh, the basis restricted to its dofs): no online operation touches the full "
+    "mesh. Writing the full state x₀ + V q, needed here for the error only, is not timed."
 )
 
 
@@ -56,7 +56,10 @@ def block(n: int) -> Model:
 
 
 def path(model: Model, scale: float, solver=None, on_step=None):
+    """The load path at ``scale`` from rest (the solver's state too)."""
     model.reset()
+    if isinstance(solver, HyperReducedSolver):
+        solver.set_state(solver.project())
     return solve(
         model,
         Stepping(max_step=0.25),
@@ -87,9 +90,9 @@ def case(n: int) -> dict:
     tic = time.perf_counter()  # a second pass: every Newton iterate of the training paths
     iterates = Training(model, basis.vectors)
     solver = NewtonSolver(model)
-    iterates.watch(solver)
-    for scale in TRAINING:
-        path(model, scale, solver=solver)
+    with iterates.watching(solver):
+        for scale in TRAINING:
+            path(model, scale, solver=solver)
     sample_iterates = iterates.sample(TOLERANCE)
     ecsw_iterates = time.perf_counter() - tic
     row = {
@@ -113,9 +116,10 @@ def case(n: int) -> dict:
         solver = make(online)
         best = np.inf
         for _ in range(3):
-            tic = time.perf_counter()
             report = path(online, UNSEEN, solver=solver)
-            best = min(best, time.perf_counter() - tic)
+            best = min(best, report.seconds)
+        if solver is not None:
+            solver.update_model()  # the full state, for the error (not timed: online work is in q)
         finals[name] = online.state.x.array.copy()
         row[f"{name}_ms"] = 1e3 * best
         row[f"{name}_newton"] = report.newton_iterations

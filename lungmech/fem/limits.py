@@ -34,10 +34,13 @@ __all__ = [
     "RUNAWAY",
     "STABILITY_LOST",
     "Inversion",
+    "at_quadrature_points",
     "compliance",
     "diagnose",
     "displacement_gradient",
     "min_jacobian",
+    "quadrature_degree",
+    "smallest",
     "smallest_eigenvalue",
 ]
 
@@ -45,12 +48,10 @@ STABILITY_LOST = 0.1  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
-def _at_quadrature_points(model, expression, cells: np.ndarray | None = None) -> Callable[[], np.ndarray]:
-    """A function returning ``expression`` at the quadrature points of this rank's owned cells
-    (or of ``cells``, local indices), shaped (cells, points, *value shape)."""
-    mesh = model.geometry.mesh
-    degree = max(model.dx.metadata().get("quadrature_degree", 2), 1)
-    points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], degree)
+def at_quadrature_points(expression, mesh, degree: int, cells: np.ndarray | None = None) -> Callable[[], np.ndarray]:
+    """A function returning ``expression`` at the degree-``degree`` quadrature points of the
+    owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points, *value shape)."""
+    points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], max(degree, 1))
     compiled = fem.Expression(expression, points)
     if cells is None:
         cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
@@ -58,28 +59,38 @@ def _at_quadrature_points(model, expression, cells: np.ndarray | None = None) ->
     return lambda: compiled.eval(mesh, cells).reshape(shape)
 
 
+def quadrature_degree(model) -> int:
+    """The quadrature degree of the model's cell integrals (2 if it leaves it to UFL)."""
+    return model.dx.metadata().get("quadrature_degree", 2)
+
+
+def smallest(values: Callable[[], np.ndarray], comm) -> Callable[[], float]:
+    """A function returning the smallest of ``values()`` over all ranks (nan if any is nan or
+    infinite; collective)."""
+
+    def evaluate() -> float:
+        found = values()
+        local = float(np.min(found)) if found.size else np.inf
+        if found.size and not np.isfinite(found).all():
+            local = np.nan
+        every = comm.allgather(local)
+        return np.nan if any(np.isnan(v) for v in every) else float(min(every))
+
+    return evaluate
+
+
 def min_jacobian(model, cells: np.ndarray | None = None) -> Callable[[], float]:
     """A function returning the smallest J = det F at the quadrature points of the owned cells
     (or of ``cells``) (nan if undefined; collective)."""
-    at_points = _at_quadrature_points(model, ufl.det(model.F), cells)
-    comm = model.geometry.mesh.comm
-
-    def evaluate() -> float:
-        values = at_points()
-        local = float(np.min(values)) if values.size else np.inf
-        if values.size and not np.isfinite(values).all():
-            local = np.nan
-        found = comm.allgather(local)
-        return np.nan if any(np.isnan(v) for v in found) else float(min(found))
-
-    return evaluate
+    mesh = model.geometry.mesh
+    return smallest(at_quadrature_points(ufl.det(model.F), mesh, quadrature_degree(model), cells), mesh.comm)
 
 
 def displacement_gradient(model) -> Callable[[], np.ndarray]:
     """A function returning F = I + ∇u at this rank's quadrature points, (cells, points, d, d);
     compiled once per model."""
     if model not in _gradients:
-        _gradients[model] = _at_quadrature_points(model, model.F)
+        _gradients[model] = at_quadrature_points(model.F, model.geometry.mesh, quadrature_degree(model))
     return _gradients[model]
 
 
@@ -90,10 +101,13 @@ class Inversion:
     """Whether the model's state turns a cell inside out: J = det F ≤ 0 (or undefined) at a
     quadrature point. Such a state is no equilibrium of a real body, even where a law without a
     barrier on J (Saint Venant–Kirchhoff) balances it. Small-strain laws are not checked.
-    ``cells`` (local indices) checks those only: a hyper-reduced model's sample."""
+    ``smallest`` returns the smallest J where the state is checked (default: every owned cell's
+    quadrature points, :func:`min_jacobian`); a hyper-reduced model checks its sample."""
 
-    def __init__(self, model, cells: np.ndarray | None = None):
-        self._smallest = None if getattr(model.material, "small_strain", False) else min_jacobian(model, cells)
+    def __init__(self, model, smallest: Callable[[], float] | None = None):
+        self._smallest = None
+        if not getattr(model.material, "small_strain", False):
+            self._smallest = smallest or min_jacobian(model)
 
     def __call__(self) -> str:
         """ "" for a state without inverted cells, else what is wrong with it (collective)."""

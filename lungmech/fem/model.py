@@ -230,6 +230,15 @@ class Model:
             self.state.x.scatter_forward()
 
     @property
+    def imposed(self) -> list[_constraints.ImposedValue]:
+        """The imposed displacements as built (their conditions are :attr:`bcs`, in order)."""
+        return self._imposed
+
+    def imposed_amplitudes(self) -> np.ndarray:
+        """Each imposed displacement's factor on its base value now: amplitude · ramp(t)."""
+        return np.array([imposed.amplitude * imposed.ramp(self.time) for imposed in self._imposed])
+
+    @property
     def state_dependent(self) -> list[StateDependentWork]:
         """Load terms whose coefficients are global functionals of the state (solver-managed)."""
         return self._state_dependent

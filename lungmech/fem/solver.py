@@ -470,9 +470,25 @@ class NewtonSolver:
         if self._pressure is not None:
             self._pressure.at_equilibrium()
         if start is not None:
-            self.model.state.x.array[:] = start
-            self.model.state.x.scatter_forward()
+            self.set_state(start)
         return self._newton()
+
+    @property
+    def state(self) -> np.ndarray:
+        """The unknowns Newton iterates on: the model's state array (owned and ghost entries)."""
+        return self.model.state.x.array
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Set the model's state (owned and ghost entries)."""
+        self.model.state.x.array[:] = state
+        self.model.state.x.scatter_forward()
+
+    def update_model(self) -> None:
+        """Nothing to do: the model's state is this solver's."""
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F = I + ∇u at the quadrature points of this rank's cells, (cells, points, d, d)."""
+        return limits.displacement_gradient(self.model)()
 
     def _residual(self) -> PETSc.Vec:
         """The residual at the current state and loads (the problem's residual vector)."""
@@ -691,6 +707,22 @@ class Solver(Protocol):
         (a prediction; the current state is the last equilibrium)."""
         ...
 
+    @property
+    def state(self) -> np.ndarray:
+        """The unknowns it iterates on (the model's state array, or reduced coordinates q): the
+        load stepping keeps, extrapolates and restores these."""
+        ...
+
+    def set_state(self, state: np.ndarray) -> None: ...
+
+    def update_model(self) -> None:
+        """Write the solver's state into the model's (a reduced solver need not keep it there)."""
+        ...
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F at the quadrature points where the solver evaluates the model, (cells, points, d, d)."""
+        ...
+
     def start_path(self) -> None:
         """A load path begins (the solver may rescale its convergence test)."""
         ...
@@ -767,11 +799,12 @@ def solve(
     unless ``drive(s)`` is given to apply it otherwise (e.g. as a load factor). Steps land on
     ``breakpoints`` (default: the model's ramp breakpoints, unless ``drive`` is given). Raises
     :class:`SolverError` when a step below ``stepping.min_step`` still fails; the model then
-    holds the last converged state.
+    holds the last converged state. The path starts from the solver's state (:attr:`Solver.state`)
+    and ends there: a hyper-reduced solver iterates on q and writes the model's state only when
+    asked (``update_model()``), so that no step touches the full mesh.
     """
     stepping = stepping or Stepping()
     solver = solver or NewtonSolver(model, options)
-    state = model.state.x.array
     if breakpoints is None:
         breakpoints = model.breakpoints if drive is None else []
     drive = drive or model.set_time
@@ -781,13 +814,13 @@ def solve(
 
     t = stepping.start
     drive(t)
-    first = state.copy()  # where the load path starts (for a diagnosis of where it ends)
+    first = solver.state.copy()  # where the load path starts (for a diagnosis of where it ends)
     solver.start_path()
     dt, rate = stepping.initial_step, None
     if dt is None:
         dt, rate = first_step(model, solver, drive, t, min(stepping.max_step, targets[0] - t), stepping.min_step)
     kinks = [b for b in breakpoints if stepping.start < b < stepping.end]
-    path = _Path(t, state)
+    path = _Path(t, solver.state)
     for target in targets:
         while t < target - 1e-12 * (stepping.end - stepping.start):
             dt = min(dt, stepping.max_step, target - t)
@@ -811,21 +844,26 @@ def solve(
                 t += dt
                 rate = None  # the tangent at the start predicts the first step only
                 if any(abs(t - kink) <= 1e-12 * (stepping.end - stepping.start) for kink in kinks):
-                    path = _Path(t, state)  # the load turns here: extrapolating across it would mislead
+                    path = _Path(t, solver.state)  # the load turns here: extrapolating across it would mislead
                 else:
-                    path.append(t, state)
+                    path.append(t, solver.state)
                 if on_step is not None:
                     on_step(step)
                 if step.iterations <= stepping.easy_iterations:
                     dt *= stepping.growth
                 continue
             final = dt <= stepping.min_step * (1 + 1e-12)
-            smallest_J = limits.min_jacobian(model)() if final else None  # of the failed iterate
-            state[:] = path.last
-            model.state.x.scatter_forward()
+            if final:  # the diagnosis judges full states
+                solver.update_model()
+                smallest_J = limits.min_jacobian(model)()  # of the failed iterate
+                solver.set_state(first)
+                solver.update_model()
+                began = model.state.x.array.copy()
+            solver.set_state(path.last)
             if final:
+                solver.update_model()
                 drive(t)
-                cause = limits.diagnose(model, solver, drive, t, (first, stepping.start), smallest_J)
+                cause = limits.diagnose(model, solver, drive, t, (began, stepping.start), smallest_J)
                 report.seconds = time.perf_counter() - started
                 raise SolverError(_failure_message(t, dt, step, cause))
             dt = max(dt / 2, stepping.min_step)
@@ -848,23 +886,22 @@ def first_step(
     rate Δx/interval (None if the tangent was singular) predicts the first step's state: the loads
     are linear in t within the interval, so the tangent's response is too. The state and the loads
     are left as they were."""
-    gradient = limits.displacement_gradient(model)
     rate = None
-    with model.kept_state():
-        before, start = gradient(), model.state.x.array.copy()
-        drive(t + interval)
-        try:
-            solver.linear_step()
-            change = np.linalg.norm(gradient() - before, axis=(-2, -1))
-            local = float(change.max()) if change.size else 0.0
-            if not np.isfinite(change).all():
-                local = np.inf
-            rate = (model.state.x.array - start) / interval
-        except PETSc.Error:  # a singular tangent at the start: no estimate, the stepping adapts
-            Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
-            local = 0.0
-        finally:
-            drive(t)
+    before, start = solver.deformation_gradient(), solver.state.copy()
+    drive(t + interval)
+    try:
+        solver.linear_step()
+        change = np.linalg.norm(solver.deformation_gradient() - before, axis=(-2, -1))
+        local = float(change.max()) if change.size else 0.0
+        if not np.isfinite(change).all():
+            local = np.inf
+        rate = (solver.state - start) / interval
+    except PETSc.Error:  # a singular tangent at the start: no estimate, the stepping adapts
+        Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
+        local = 0.0
+    finally:
+        solver.set_state(start)
+        drive(t)
     largest = model.geometry.mesh.comm.allreduce(local, op=MPI.MAX)
     if not np.isfinite(largest) or model.geometry.mesh.comm.allreduce(rate is None, op=MPI.LOR):
         rate = None
@@ -903,13 +940,15 @@ class _Path:
             ), 0
         if rate is not None:
             return self.last + (t - self.times[0]) * rate, 0
-        with solver.model.kept_state():
-            try:
-                solver.linear_step()
-            except PETSc.Error:  # a singular tangent: Newton starts from the last state
-                Interrupted.raise_pending()
-                return None, 1
-            return solver.model.state.x.array.copy(), 1
+        try:
+            solver.linear_step()
+        except PETSc.Error:  # a singular tangent: Newton starts from the last state
+            Interrupted.raise_pending()
+            return None, 1
+        finally:
+            predicted = solver.state.copy()
+            solver.set_state(self.last)
+        return predicted, 1
 
 
 def _log_step(step: StepReport) -> None:

@@ -32,25 +32,47 @@ hyper-reduced one (:class:`HyperReducedSolver`).
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import time
+import weakref
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import ufl
-from dolfinx import fem
+from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
-from lungmech.fem.limits import Inversion
-from lungmech.rom.galerkin import ReducedSolver
+from lungmech.fem.convergence import EPS, Fields
+from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
+from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import inner_product, origin, reference_state
+from lungmech.rom.galerkin import check_basis, newton
+from lungmech.rom.reduced_mesh import ReducedMesh
 
-__all__ = ["FAMILIES", "Sample", "Training", "WeightedForms", "sparse_nnls", "HyperReducedSolver"]
+__all__ = [
+    "FAMILIES",
+    "FUNCTIONALS",
+    "HyperReducedSolver",
+    "Sample",
+    "Training",
+    "WeightedForms",
+    "sparse_nnls",
+    "train",
+]
 
 # The families sampled, each with its own weights, and their integral type: the cells' internal
 # forces (of the energy density), the loads on cells (weight) and on the boundary (pressures).
 FAMILIES = {"internal": "cell", "cell_load": "cell", "boundary_load": "exterior_facet"}
+# Scalar functionals (cell integrals) sampled the same way, for outputs: their cells' values are
+# the columns, each training state one row scaled by the functional's value there.
+FUNCTIONALS = ("strain_energy",)
 
 
 class WeightedForms:
@@ -59,7 +81,8 @@ class WeightedForms:
     ``weights[family]`` is the DG0 field of that family's weights (1 everywhere: ``residual`` is
     the model's). :meth:`contribution` is the derivative with respect to one family's weights,
     a rectangular form whose assembled column e is the residual of cell e's integrals of that
-    family (an exterior facet's: of its one cell)."""
+    family (an exterior facet's: of its one cell). ``functionals`` are the scalar outputs
+    sampled alike (:data:`FUNCTIONALS`: the strain energy ∫ ψ dX), with weights of their own."""
 
     def __init__(self, model):
         parts = {
@@ -73,7 +96,7 @@ class WeightedForms:
                 f"ECSW samples cell and exterior-facet integrals; this residual also has {sorted(unsupported)}"
             )
         self.space = space = fem.functionspace(model.geometry.mesh, ("DG", 0))
-        self.weights = {family: fem.Function(space, name=f"{family}_weight") for family in FAMILIES}
+        self.weights = {name: fem.Function(space, name=f"{name}_weight") for name in (*FAMILIES, *FUNCTIONALS)}
         for weight in self.weights.values():
             weight.x.array[:] = 1.0
         self.families = tuple(family for family, integrals in parts.items() if integrals)
@@ -82,10 +105,19 @@ class WeightedForms:
             for family in self.families
         }
         self.residual = ufl.Form([i for family in self.families for i in self.parts[family]])
+        self.functionals = {"strain_energy": self.weights["strain_energy"] * model.energy_density * model.dx}
 
-    def contribution(self, family: str) -> ufl.Form:
-        """∂R_ξ/∂ξ_family: column e is the residual of cell e's ``family`` integrals."""
-        return ufl.derivative(ufl.Form(self.parts[family]), self.weights[family], ufl.TrialFunction(self.space))
+    def contribution(self, name: str) -> ufl.Form:
+        """∂R_ξ/∂ξ_family: column e is the residual of cell e's ``family`` integrals; for a
+        functional, entry e is its integral over cell e."""
+        if name in self.functionals:
+            return ufl.derivative(self.functionals[name], self.weights[name], ufl.TestFunction(self.space))
+        return ufl.derivative(ufl.Form(self.parts[name]), self.weights[name], ufl.TrialFunction(self.space))
+
+    @property
+    def sampled(self) -> tuple[str, ...]:
+        """Every family and functional that gets a sample."""
+        return (*self.families, *self.functionals)
 
 
 def _integrals(form: ufl.Form, kind: str) -> list:
@@ -97,8 +129,9 @@ class Training:
 
     Each :meth:`add` takes the model's current state and loads: for every family, the reduced
     contributions Vᵀ r_e of the owned cells, scaled by the family's reduced force ‖b_s‖ (the
-    internal forces and the loads each: they balance at an equilibrium, neither vanishes). A
-    family without force at a state (at rest; a load not applied yet) skips it.
+    internal forces and the loads each: they balance at an equilibrium, neither vanishes); for
+    every functional, its cells' values scaled by its value. A family without force at a state
+    (at rest; a load not applied yet) skips it.
     """
 
     def __init__(self, model, V: np.ndarray):
@@ -106,18 +139,20 @@ class Training:
         self.model, self.V = model, np.ascontiguousarray(V)
         self.forms = WeightedForms(model)
         self.comm = model.geometry.mesh.comm
-        self._compiled = {family: fem.form(self.forms.contribution(family)) for family in self.forms.families}
-        self._matrices = {family: create_matrix(form) for family, form in self._compiled.items()}
+        self._compiled = {name: fem.form(self.forms.contribution(name)) for name in self.forms.sampled}
+        self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         self.cells = self.forms.space.dofmap.index_map.size_local
-        self.blocks: dict[str, list[np.ndarray]] = {family: [] for family in self.forms.families}
+        self.blocks: dict[str, list[np.ndarray]] = {name: [] for name in self.forms.sampled}
         rows, k = self.V.shape  # V as a distributed dense matrix, wrapping self.V's memory
         self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)
 
     def add(self) -> bool:
         """Add the model's current state (True), or skip it when its reduced force is 0 (False)."""
         local = {}
-        for family, form in self._compiled.items():
-            C = self._matrices[family]
+        for name in self.forms.functionals:  # a DG0 vector: entry e is cell e's integral
+            local[name] = fem.assemble_vector(self._compiled[name]).array[None, : self.cells].copy()
+        for family in self.forms.families:
+            form, C = self._compiled[family], self._matrices[family]
             C.zeroEntries()
             assemble_matrix(C, form)
             C.assemble()
@@ -140,20 +175,26 @@ class Training:
         self.model.set_time(time, load_factor=load_factor)
         return self.add()
 
-    def watch(self, solver) -> None:
-        """From now on, :meth:`add` every Newton iterate of ``solver`` (a full
+    @contextlib.contextmanager
+    def watching(self, solver) -> Iterator[Training]:
+        """Within the block, :meth:`add` every Newton iterate of ``solver`` (a full
         :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
         not only the converged ones, so that the sample also reproduces the reduced forces away
         from equilibrium. Each iterate is added at the solver's loads of the moment."""
-        state = self.model.state
+        active, training = [True], weakref.ref(self)  # PETSc keeps the monitor: it must not keep us
 
         def add_iterate(snes, iteration, norm) -> None:
-            x = snes.getSolution()
-            state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)
-            state.x.scatter_forward()
-            self.add()
+            if active[0] and (this := training()) is not None:
+                x, state = snes.getSolution(), this.model.state
+                state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)
+                state.x.scatter_forward()
+                this.add()
 
         solver.problem.solver.setMonitor(add_iterate)
+        try:
+            yield self
+        finally:
+            active[0] = False
 
     @property
     def states(self) -> int:
@@ -171,7 +212,7 @@ class Training:
         to ``tolerance`` (relative, per family), see :func:`sparse_nnls`."""
         if not self.states:
             raise ParameterError("ECSW has no training state with a load (add states first)")
-        chosen = {family: sparse_nnls(self.matrix(family), tolerance, self.comm) for family in self.forms.families}
+        chosen = {name: sparse_nnls(self.matrix(name), tolerance, self.comm) for name in self.forms.sampled}
         return Sample(
             {family: cells for family, (cells, _) in chosen.items()},
             {family: weights for family, (_, weights) in chosen.items()},
@@ -181,6 +222,29 @@ class Training:
     def destroy(self) -> None:
         for matrix in (*self._matrices.values(), self._basis):
             matrix.destroy()
+
+
+def train(
+    model, basis, solver, runs: Callable[[], object], tolerance: float, timings: dict[str, float] | None = None
+) -> Sample:
+    """The ECSW sample of ``model`` on ``basis`` at ``tolerance``, trained on every Newton
+    iterate (converged states included) ``solver`` takes while ``runs()`` drives it along the
+    training load paths. ``timings``, if given, receives the seconds of the training pass and of
+    the NNLS. Collective."""
+    tic = time.perf_counter()
+    training = Training(model, basis.vectors)
+    try:
+        with training.watching(solver):
+            runs()
+        seconds = {"ecsw_training": time.perf_counter() - tic}
+        tic = time.perf_counter()
+        sample = training.sample(tolerance)
+        seconds["nnls"] = time.perf_counter() - tic
+    finally:
+        training.destroy()
+    if timings is not None:
+        timings.update(seconds)
+    return sample
 
 
 @dataclass(frozen=True)
@@ -196,10 +260,11 @@ class Sample:
         return {family: comm.allreduce(len(cells), op=MPI.SUM) for family, cells in self.cells.items()}
 
     def cells_per_type(self, comm: MPI.Comm) -> dict[str, int]:
-        """How many distinct cells the sample holds per integral type, over all ranks."""
+        """How many distinct cells the residual's sample holds per integral type, over all ranks
+        (what a Newton iteration assembles; the functionals' samples are assembled for outputs)."""
         counts = {}
         for kind in ("cell", "exterior_facet"):
-            cells = [c for family, c in self.cells.items() if FAMILIES[family] == kind]
+            cells = [c for family, c in self.cells.items() if FAMILIES.get(family) == kind]
             mine = len(np.unique(np.concatenate(cells))) if cells else 0
             counts[kind] = comm.allreduce(mine, op=MPI.SUM)
         return counts
@@ -226,7 +291,7 @@ class Sample:
         original = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[:owned]
         local = np.argsort(original)
         cells, weights = {}, {}
-        for family in FAMILIES:
+        for family in (*FAMILIES, *FUNCTIONALS):
             if f"{family}_cells" not in data:
                 continue
             wanted, given = np.asarray(data[f"{family}_cells"]), np.asarray(data[f"{family}_weights"])
@@ -244,8 +309,8 @@ class Sample:
         """All owned cells at weight 1: the Galerkin reduced model."""
         cells = np.arange(forms.space.dofmap.index_map.size_local, dtype=np.int32)
         return Sample(
-            {family: cells for family in forms.families},
-            {family: np.ones(len(cells)) for family in forms.families},
+            {name: cells for name in forms.sampled},
+            {name: np.ones(len(cells)) for name in forms.sampled},
             0.0,
         )
 
@@ -303,38 +368,185 @@ def sparse_nnls(G: np.ndarray, tolerance: float, comm: MPI.Comm) -> tuple[np.nda
     return cells[order], weights[mine][order]
 
 
-class HyperReducedSolver(ReducedSolver):
-    """The reduced Galerkin solver with ECSW: its residual and tangent integrate over the sampled
-    cells (and the sampled cells' exterior facets) only, with their weights. Same interface as
-    :class:`~lungmech.rom.galerkin.ReducedSolver`; :attr:`assembled_cells` counts what one
-    assembly visits."""
+class HyperReducedSolver:
+    """Reduced Newton in q with ECSW: the residual and tangent integrate over the sampled cells
+    (and their exterior facets) only, with their weights, on a :class:`ReducedMesh` of them, so
+    that no online operation touches the full mesh. The solver's state is q; the model's state
+    is written only when asked (:meth:`update_model`). Same interface as
+    :class:`~lungmech.rom.galerkin.ReducedSolver` otherwise; :attr:`assembled_cells` counts
+    what one assembly visits.
+
+    ``start`` is the full state the basis is relative to (default: the unloaded state)."""
 
     def __init__(self, model, basis, sample: Sample, options=None, start: np.ndarray | None = None):
         _refuse_state_dependent(model)
+        check_basis(model, basis)
+        self.model, self.basis, self.sample = model, basis, sample
+        self.options = options or NewtonOptions()
+        self.comm = model.geometry.mesh.comm
         forms = WeightedForms(model)
-        self.sample = sample
         for family, weight in forms.weights.items():
             weight.x.array[:] = 0.0
             if family in sample.cells:
                 weight.x.array[sample.cells[family]] = sample.weights[family]
             weight.x.scatter_forward()
         restricted = _restricted(forms, model.geometry.mesh, sample)
-        jacobian = ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space))
-        super().__init__(model, basis, options, residual=restricted, jacobian=jacobian, start=start)
-        # J > 0 is checked where the model is evaluated: on the sampled cells (an O(mesh) check
-        # at every converged solve would cost more than the solve)
-        self.inversion = Inversion(model, np.unique(np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)])))
+        self._weights = forms  # the forms reach the weights' Functions: keep them alive
+        self.mesh = reduced = ReducedMesh(model, np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
+        self._residual = reduced.form(restricted)
+        self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
+        self._vector = fem.assemble_vector(self._residual)
+        mesh = model.geometry.mesh
+        self._functionals = {
+            name: reduced.form(_sampled(forms.functionals[name], mesh, sample.cells[name]))
+            for name in forms.functionals
+            if name in sample.cells
+        }
+        self._matrix = fem.create_matrix(self._jacobian, block_mode=la.BlockMode.expanded)
+        self.V = reduced.restrict_columns(np.ascontiguousarray(basis.vectors))  # sub dofs, ghosts too
+        # Each rank reduces its own cells' contributions, ghost rows included, and one Allreduce
+        # sums them: no ghost exchange. The matrix numbers its rows and columns its own way.
+        self._rows, self._columns = (_positions(self._matrix.index_map(i), reduced.space) for i in (0, 1))
+        self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
+        self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
+        self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
+        self._imposed = origin(model, self.reference)  # x₀; the imposed dofs are rewritten at each solve
+        self._origin = reduced.restrict(self._imposed)
+        degree = quadrature_degree(model)
+        self._gradient = at_quadrature_points(reduced.expression(model.F), reduced.mesh, degree)
+        jacobians = at_quadrature_points(reduced.expression(ufl.det(model.F)), reduced.mesh, degree)
+        # J > 0 is checked where the model is evaluated: on the sampled cells
+        self.inversion = Inversion(model, smallest(jacobians, self.comm))
+        self._magnitude = _displacement_magnitude(model, reduced)
+        self.coordinates = self.project()
         self.description = (
             f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
             + ", ".join(f"{n} {family} samples" for family, n in sample.count(self.comm).items())
         )
+        self.iterations_total = 0
+
+    @property
+    def state(self) -> np.ndarray:
+        """The reduced coordinates q (the load stepping keeps and extrapolates these)."""
+        return self.coordinates
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.coordinates[:] = state
+
+    def reconstruct(self, q: np.ndarray) -> None:
+        """Set q, and the model's state to x₀ + V q at its current time."""
+        self.set_state(q)
+        self.update_model()
+
+    def update_model(self) -> None:
+        """Set the model's state to x₀ + V q (the only O(mesh) operation; collective)."""
+        state = self.model.state.x
+        owned = self.basis.vectors.shape[0]
+        state.array[:] = origin(self.model, self.reference)
+        state.array[:owned] += self.basis.vectors @ self.coordinates
+        state.scatter_forward()
+
+    def project(self) -> np.ndarray:
+        """Coordinates q of the model's current state, (W V)ᵀ (x − x₀): where to start from after
+        moving the model (O(mesh); collective)."""
+        return _projection(self.model, self.basis, self.reference)
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F at the quadrature points of the sampled cells, (cells, points, d, d)."""
+        self._set(self.coordinates)
+        return self._gradient()
+
+    def start_path(self) -> None:
+        """A new load path begins (each reduced solve scales its own residual)."""
+
+    def solve(self, start: np.ndarray | None = None) -> NewtonResult:
+        """One reduced Newton solve at the model's current loads from q, or from ``start`` (q)."""
+        self._at_loads()
+        q, converged, iterations, residuals, reason = newton(
+            self, self.coordinates if start is None else np.array(start, dtype=float), self.options
+        )
+        self.iterations_total += iterations
+        converged = converged and bool(np.all(np.isfinite(q)))
+        if converged and (wrong := self.inversion()):
+            converged, reason = False, f"{reason} to {wrong}"
+        if converged:
+            self.coordinates[:] = q
+        return NewtonResult(converged, iterations, tuple(residuals), reason)
+
+    def linear_step(self) -> None:
+        """One reduced Newton step from q at the current loads (no line search)."""
+        self._at_loads()
+        r = self.reduced_residual(self.coordinates)
+        try:
+            step = np.linalg.solve(self.reduced_jacobian(), -r)
+        except np.linalg.LinAlgError:  # a singular reduced tangent: as the full solver says it
+            raise PETSc.Error(NOT_CONVERGED) from None
+        self.coordinates += step
+
+    def functional(self, name: str, q: np.ndarray) -> float:
+        """The sampled functional ``name`` (:data:`FUNCTIONALS`), Σ_e ξ_e f_e(x₀ + V q) over its
+        sample, at the loads of the last solve (collective)."""
+        if name not in self._functionals:
+            raise ParameterError(f"this ECSW sample has no cells for the functional {name!r} (train it)")
+        self._set(q)
+        return self.comm.allreduce(fem.assemble_scalar(self._functionals[name]), op=MPI.SUM)
+
+    def _at_loads(self) -> None:
+        """x₀ on the reduced mesh with the imposed displacements of the current loads (DOLFINx
+        writes the imposed dofs only: O(boundary))."""
+        for bc in self.model.bcs:
+            bc.set(self._imposed)
+        self._origin = self.mesh.restrict(self._imposed)
+
+    def _on_columns(self, x: np.ndarray) -> np.ndarray:
+        """Rows of ``x`` (on the sub dofs) on the matrix's columns: 0 on its extra ghost columns,
+        which only other ranks' rows reach."""
+        found = self._columns >= 0
+        shape = (len(self._columns), *x.shape[1:])
+        on_columns = np.zeros(shape)
+        on_columns[found] = x[self._columns[found]]
+        return on_columns
+
+    def _set(self, q: np.ndarray) -> None:
+        self.mesh.state.x.array[:] = self._origin + self.V @ q
+
+    def reduced_residual(self, q: np.ndarray) -> np.ndarray:
+        """Σ_e ξ_e Vᵀ r_e(x₀ + V q) over the sample (sets the reduced mesh's state)."""
+        self._set(q)
+        b = self._vector.array
+        b[:] = 0.0
+        fem.assemble_vector(b, self._residual)
+        return gram(self.V, b[:, None], self.comm)[:, 0]
+
+    def reduced_jacobian(self) -> np.ndarray:
+        """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state."""
+        self._matrix.set_value(0.0)
+        fem.assemble_matrix(self._matrix, self._jacobian)
+        return gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
+
+    def floor(self) -> float:
+        """‖|V|ᵀ ε|K|s‖, s = |x| + h on the displacement: the round-off floor of the reduced
+        residual (see :mod:`lungmech.fem.convergence`), at the last tangent's state."""
+        s = np.abs(self.mesh.state.x.array) + self._magnitude
+        rounding = EPS * (abs(self._tangent) @ self._on_columns(s))
+        return float(np.linalg.norm(gram(np.abs(self._row_basis), rounding[:, None], self.comm)))
+
+    @functools.cached_property
+    def residual_form(self):
+        """The full model's compiled residual (for a diagnosis of a failed load path)."""
+        return fem.form(self.model.residual)
+
+    @functools.cached_property
+    def jacobian_form(self):
+        """The full model's compiled tangent."""
+        return fem.form(self.model.jacobian)
 
     @property
     def assembled_cells(self) -> dict[str, int]:
         """How many distinct cells one assembly of the residual visits, over all ranks: with its
         cell integrals ("cell"), and through its exterior-facet integrals ("exterior_facet");
         compare :meth:`Sample.cells_per_type`."""
-        form = self.residual_form._cpp_object
+        form = self._residual._cpp_object
         counts = {}
         for name, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
             cells = [np.zeros(0, np.int32)]
@@ -344,6 +556,42 @@ class HyperReducedSolver(ReducedSolver):
                     cells.append(entities if kind == fem.IntegralType.cell else entities[::2])
             counts[name] = self.comm.allreduce(len(np.unique(np.concatenate(cells))), op=MPI.SUM)
         return counts
+
+    def destroy(self) -> None:
+        """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
+
+
+def _positions(index_map, space) -> np.ndarray:
+    """For each local index of a matrix's (expanded) row or column ``index_map``, the local sub
+    dof of ``space`` with the same global number (unrolled), or -1."""
+    dofs, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+    blocks = dofs.local_to_global(np.arange(dofs.size_local + dofs.num_ghosts, dtype=np.int32))
+    numbers = (bs * blocks[:, None] + np.arange(bs)).reshape(-1)
+    wanted = index_map.local_to_global(np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32))
+    order = np.argsort(numbers)
+    at = np.minimum(np.searchsorted(numbers[order], wanted), len(numbers) - 1)
+    return np.where(numbers[order][at] == wanted, order[at], -1)
+
+
+def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
+    """h on the sub dofs of the displacement, 0 on other fields: what F's rounding adds to |x|."""
+    h = Fields(model).cell_size
+    if not model.mixed:
+        return np.full(len(reduced.parent_dofs), h)
+    magnitude = np.zeros(len(reduced.parent_dofs))
+    magnitude[reduced.space.sub(0).collapse()[1]] = h
+    return magnitude
+
+
+def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
+    """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
+    W = inner_product(model, basis.inner_product)
+    dual = apply(W, np.ascontiguousarray(basis.vectors), model.geometry.mesh.comm)
+    if W is not None:
+        W.destroy()
+    owned = basis.vectors.shape[0]
+    x = model.state.x.array[:owned] - origin(model, reference)[:owned]
+    return gram(dual, x[:, None], model.geometry.mesh.comm)[:, 0]
 
 
 def _refuse_state_dependent(model) -> None:
@@ -380,6 +628,13 @@ def _restricted(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
                 facet_tags[id(tags)] = _facets_of(mesh, tags, sample.cells.get(family, np.zeros(0, np.int32)))
             integrals.append(integral.reconstruct(subdomain_data=facet_tags[id(tags)]))
     return ufl.Form(integrals)
+
+
+def _sampled(functional: ufl.Form, mesh, cells: np.ndarray) -> ufl.Form:
+    """A weighted functional's cell integrals over ``cells`` only."""
+    cells = np.unique(cells).astype(np.int32)
+    tags = dmesh.meshtags(mesh, mesh.topology.dim, cells, np.ones(len(cells), dtype=np.int32))
+    return ufl.Form([i.reconstruct(subdomain_id=1, subdomain_data=tags) for i in functional.integrals()])
 
 
 def _facets_of(mesh, tags, cells: np.ndarray):

@@ -45,12 +45,7 @@ class ReducedSolver:
         jacobian=None,
         start: np.ndarray | None = None,
     ):
-        fingerprint = layout(model.space).fingerprint
-        if basis.fingerprint != fingerprint:
-            raise ParameterError(
-                f"the basis was built on another mesh or space (fingerprint {basis.fingerprint}, "
-                f"this model has {fingerprint})"
-            )
+        check_basis(model, basis)
         self.model, self.basis = model, basis
         self.options = options or NewtonOptions()
         self.comm = model.geometry.mesh.comm
@@ -80,9 +75,25 @@ class ReducedSolver:
         """One reduced Newton solve from (the projection of) the current state, or of ``start``
         (a prediction; each reduced solve scales its own residual)."""
         if start is not None:
-            self.model.state.x.array[:] = start
-            self.model.state.x.scatter_forward()
+            self.set_state(start)
         return self._newton()
+
+    @property
+    def state(self) -> np.ndarray:
+        """The model's state array: the reduced solver keeps it at x₀ + V q."""
+        return self.model.state.x.array
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Set the model's state (owned and ghost entries)."""
+        self.model.state.x.array[:] = state
+        self.model.state.x.scatter_forward()
+
+    def update_model(self) -> None:
+        """Nothing to do: the model holds x₀ + V q after every evaluation."""
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F = I + ∇u at the quadrature points of this rank's cells, (cells, points, d, d)."""
+        return displacement_gradient(self.model)()
 
     def linear_step(self) -> None:
         """One reduced Newton step from the current state at the current loads (no line search)."""
@@ -127,56 +138,7 @@ class ReducedSolver:
         return reduced
 
     def _newton(self) -> NewtonResult:
-        options = self.options
-        q = self.project()
-        r = self.reduced_residual(q)
-        residuals, floor = [float(np.linalg.norm(r))], 0.0
-        for iteration in range(1, options.max_iterations + 1):
-            if not np.isfinite(residuals[-1]):
-                return self._finish(q, False, iteration - 1, residuals, "DIVERGED_NANORINF")
-            if iteration > 1 and residuals[-1] <= max(options.rtol * max(residuals), options.atol, floor):
-                return self._finish(q, True, iteration - 1, residuals, "CONVERGED_FNORM")
-            try:
-                jacobian = self.reduced_jacobian()
-                if iteration == 1:  # the round-off floor of Vᵀ R, from the first tangent
-                    floor = self._floor()
-                step = np.linalg.solve(jacobian, -r)
-            except np.linalg.LinAlgError:
-                return self._finish(q, False, iteration - 1, residuals, "DIVERGED_LINEAR_SOLVE")
-            alpha, trial = 1.0, None
-            while True:
-                trial = self.reduced_residual(q + alpha * step)
-                norm = float(np.linalg.norm(trial))
-                if (
-                    options.line_search in ("none", "basic")
-                    or norm <= (1 - 1e-4 * alpha) * residuals[-1]
-                    or alpha < 2**-10
-                ):
-                    break
-                alpha /= 2
-            q, r = q + alpha * step, trial
-            residuals.append(norm)
-        return self._finish(
-            q,
-            False,
-            options.max_iterations,
-            residuals,
-            f"DIVERGED_MAX_IT: reduced residual {residuals[-1]:.2e} > "
-            f"{max(options.rtol * max(residuals), options.atol, floor):.2e}",
-        )
-
-    def _floor(self) -> float:
-        """‖|V|ᵀ ε|K|s‖: the round-off floor of Vᵀ R (see :mod:`lungmech.fem.convergence`)."""
-        rounding = self._fields.rounding(self._matrix, self.model.state.x.petsc_vec)
-        floor = float(
-            np.linalg.norm(gram(np.abs(self.V), rounding.getArray(readonly=True)[: self.owned, None], self.comm))
-        )
-        rounding.destroy()
-        return floor
-
-    def _finish(
-        self, q: np.ndarray, converged: bool, iterations: int, residuals: list[float], reason: str
-    ) -> NewtonResult:
+        q, converged, iterations, residuals, reason = newton(self, self.project(), self.options)
         self.iterations_total += iterations
         converged = converged and bool(np.all(np.isfinite(self.model.state.x.array)))
         if converged and (wrong := self.inversion()):
@@ -184,6 +146,15 @@ class ReducedSolver:
         if converged:
             self.coordinates = q
         return NewtonResult(converged, iterations, tuple(residuals), reason)
+
+    def floor(self) -> float:
+        """‖|V|ᵀ ε|K|s‖: the round-off floor of Vᵀ R (see :mod:`lungmech.fem.convergence`)."""
+        rounding = self._fields.rounding(self._matrix, self.model.state.x.petsc_vec)
+        floor = float(
+            np.linalg.norm(gram(np.abs(self.V), rounding.getArray(readonly=True)[: self.owned, None], self.comm))
+        )
+        rounding.destroy()
+        return floor
 
     @property
     def residual_form(self):
@@ -204,4 +175,52 @@ def reduced_solver(basis: Basis, options: NewtonOptions | None = None):
     (:class:`lungmech.fem.dynamics.ImplicitEuler`): ``solver_factory`` of ``integrate``."""
     return lambda scheme: ReducedSolver(
         scheme.model, basis, options, residual=scheme.residual, jacobian=scheme.jacobian
+    )
+
+
+def check_basis(model, basis: Basis) -> None:
+    """A basis of another mesh or space is an error (collective)."""
+    fingerprint = layout(model.space).fingerprint
+    if basis.fingerprint != fingerprint:
+        raise ParameterError(
+            f"the basis was built on another mesh or space (fingerprint {basis.fingerprint}, "
+            f"this model has {fingerprint})"
+        )
+
+
+def newton(problem, q: np.ndarray, options: NewtonOptions) -> tuple[np.ndarray, bool, int, list[float], str]:
+    """Newton's method on a reduced residual r(q) = 0 from ``q``, with a backtracking line search
+    on ‖r‖: (q, converged, iterations, residual norms, reason). ``problem`` evaluates
+    ``reduced_residual(q)``, then ``reduced_jacobian()`` and ``floor()`` (the round-off floor of r) at that q.
+    Converged when ‖r‖ ≤ max(rtol · the largest ‖r‖ met, atol, floor)."""
+    r = problem.reduced_residual(q)
+    residuals, floor = [float(np.linalg.norm(r))], 0.0
+    for iteration in range(1, options.max_iterations + 1):
+        if not np.isfinite(residuals[-1]):
+            return q, False, iteration - 1, residuals, "DIVERGED_NANORINF"
+        if iteration > 1 and residuals[-1] <= max(options.rtol * max(residuals), options.atol, floor):
+            return q, True, iteration - 1, residuals, "CONVERGED_FNORM"
+        try:
+            jacobian = problem.reduced_jacobian()
+            if iteration == 1:  # the round-off floor of r, from the first tangent
+                floor = problem.floor()
+            step = np.linalg.solve(jacobian, -r)
+        except np.linalg.LinAlgError:
+            return q, False, iteration - 1, residuals, "DIVERGED_LINEAR_SOLVE"
+        alpha = 1.0
+        while True:
+            trial = problem.reduced_residual(q + alpha * step)
+            norm = float(np.linalg.norm(trial))
+            if options.line_search in ("none", "basic") or norm <= (1 - 1e-4 * alpha) * residuals[-1] or alpha < 2**-10:
+                break
+            alpha /= 2
+        q, r = q + alpha * step, trial
+        residuals.append(norm)
+    limit = max(options.rtol * max(residuals), options.atol, floor)
+    return (
+        q,
+        False,
+        options.max_iterations,
+        residuals,
+        f"DIVERGED_MAX_IT: reduced residual {residuals[-1]:.2e} > {limit:.2e}",
     )

@@ -11,7 +11,10 @@ full field of any state.
 
 Without hyper-reduction the reduced residual and tangent are still assembled on the full mesh,
 so the model keeps the full model's forms; it is made by :func:`lungmech.rom.reductor.reduce`
-and saved and loaded by :mod:`lungmech.rom.store` with its start state and training box.
+and saved and loaded by :mod:`lungmech.rom.store` with its start state and training box. With an
+ECSW ``sample`` (:mod:`lungmech.rom.ecsw`) it is hyper-reduced: Newton in q on a reduced mesh of
+the sampled cells, outputs from reduced operators (:mod:`lungmech.rom.outputs`), so that a solve
+never touches the full mesh; :meth:`reconstruct` forms a full field on request.
 """
 
 from __future__ import annotations
@@ -21,11 +24,14 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from lungmech.errors import ParameterError
 from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.rom.basis import Basis, inner_product, reference_state
+from lungmech.rom.ecsw import HyperReducedSolver, Sample
 from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.outputs import ReducedOutputs
 
 __all__ = ["ReducedModel"]
 
@@ -41,6 +47,7 @@ class ReducedModel:
         start: the state the basis is relative to (full state array; default: the unloaded state).
         probes: points whose displacement is an output.
         training: the parameter points the basis was trained on (what the model has seen).
+        sample: an ECSW sample of the model's cells (trained on this basis): hyper-reduced.
     """
 
     def __init__(
@@ -52,18 +59,31 @@ class ReducedModel:
         start: np.ndarray | None = None,
         probes: Sequence[Sequence[float]] = (),
         training: Sequence[Mapping[str, float]] = (),
+        sample: Sample | None = None,
     ):
-        self.model, self.basis, self.stepping = model, basis, stepping
+        self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
         self.parameters = model.parameters
         self.start = reference_state(model) if start is None else np.array(start, dtype=float)
-        self.solver = ReducedSolver(model, basis, newton, start=self.start)
-        self.outputs = Outputs(model, probes)
+        if sample is None:
+            self.solver = ReducedSolver(model, basis, newton, start=self.start)
+            self.outputs = Outputs(model, probes)
+        else:
+            self.solver = HyperReducedSolver(model, basis, sample, newton, start=self.start)
+            self.outputs = ReducedOutputs(self.solver, probes)
         self.times = output_times(model, stepping)
         self.training = [dict(point) for point in training]
         with model.kept_state():
-            model.state.x.array[:] = self.start
-            model.state.x.scatter_forward()
+            self.restart()
             self.start_volume = self.outputs()["volume"]  # m³, of the start state
+
+    def restart(self) -> None:
+        """The solver at the start state: the model's state for the Galerkin solver, q = 0 (the
+        basis is relative to it) for the hyper-reduced one, which leaves the model's alone."""
+        if self.sample is None:
+            self.model.state.x.array[:] = self.start
+            self.model.state.x.scatter_forward()
+        else:
+            self.solver.set_state(np.zeros(self.basis.size))
 
     def truncated(self, size: int) -> ReducedModel:
         """The same model on the first ``size`` basis vectors (a POD basis is nested: the smaller
@@ -76,6 +96,7 @@ class ReducedModel:
             self.start,
             self.outputs.probe_points,
             self.training,
+            self.sample,
         )
 
     @functools.cached_property
@@ -90,10 +111,13 @@ class ReducedModel:
 
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
         """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
-        model = self.model
-        model.set_parameters(self.parameters.defaults)
-        model.state.x.array[:] = self.start
-        model.state.x.scatter_forward()
+        if sensitivities and self.sample is not None:
+            raise ParameterError(
+                "sensitivities of a hyper-reduced model are not available yet: solve the Galerkin model "
+                "(without the ECSW sample) for them"
+            )
+        self.model.set_parameters(self.parameters.defaults)
+        self.restart()
         return trajectory(
             self,
             self.parameters.values(mu),
@@ -107,7 +131,7 @@ class ReducedModel:
         model = self.model
         model.set_parameters(solution.parameters)
         model.set_time(float(solution.times[index]))
-        self.solver.reconstruct(solution.states[index])
+        self.solver.reconstruct(solution.states[index])  # the full field: O(mesh)
         return model.state.x.array[: self.basis.vectors.shape[0]].copy()
 
     def _sensitivities(self) -> dict[str, object]:

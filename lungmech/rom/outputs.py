@@ -1,0 +1,181 @@
+"""A hyper-reduced model's outputs from reduced operators: no full field is formed online.
+
+The state of a reduced model is affine in a few numbers,
+
+.. math:: x = r + Z z,   Z = [V, D],   z = (q, a(t)),
+
+q the reduced coordinates and a the imposed displacements' factors amplitude · ramp(t), D their
+directions (each constraint's imposed values at factor 1) and r the start state with the
+imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` follow:
+
+* **probes** are linear in x: p(z) = p(r) + Σ z_i p(Z_i), exact;
+* **the volume** ∫ det F dX is a cubic polynomial of x (F is affine in the state, det a cubic;
+  a quadratic in 2-D), so exactly
+  f(z) = c₀ + c₁·z + ½ zᵀC₂z + ⅙ C₃[z, z, z] with c₁ = Zᵀ∇f(r), C₂ = Zᵀ∇²f(r)Z and
+  C₃[i] = Zᵀ(∇²f(r + Z_i) − ∇²f(r))Z: k + 2 assemblies offline (:func:`cubic`), checked at a
+  random z;
+* **the strain energy** ∫ ψ dX is not polynomial: it is sampled as an ECSW functional
+  (:data:`lungmech.rom.ecsw.FUNCTIONALS`) and summed on the reduced mesh;
+* **the loads** are the model's scalar load values (no field).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix
+from mpi4py import MPI
+
+from lungmech.errors import ParameterError
+from lungmech.fem.quantities import Probe, assemble_owned
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import origin
+
+__all__ = ["Cubic", "ReducedOutputs", "cubic", "imposed_directions"]
+
+
+@dataclass(frozen=True)
+class Cubic:
+    """f(z) = c₀ + c₁·z + ½ zᵀC₂z + ⅙ C₃[z, z, z], C₂ and C₃ symmetric."""
+
+    c0: float
+    c1: np.ndarray
+    c2: np.ndarray
+    c3: np.ndarray
+
+    def __call__(self, z: np.ndarray) -> float:
+        return float(self.c0 + self.c1 @ z + 0.5 * z @ self.c2 @ z + np.einsum("ijk,i,j,k", self.c3, z, z, z) / 6)
+
+    def gradient(self, z: np.ndarray) -> np.ndarray:
+        """∂f/∂z = c₁ + C₂z + ½ C₃[·, z, z]."""
+        return self.c1 + self.c2 @ z + 0.5 * np.einsum("ijk,j,k->i", self.c3, z, z)
+
+
+def cubic(model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray, check: float = 1e-9) -> Cubic:
+    """The functional f(start + Z z) (a 0-form of ``model.state``, a polynomial of degree ≤ 3 in
+    it) as a :class:`Cubic` in z, from its derivatives: ``start`` a full local state array,
+    ``directions`` Z the owned rows of the directions (columns). Collective; the model's state is
+    kept. A functional that is not a cubic of the state (off by more than ``check`` relative at
+    a random z) is an error."""
+    state, comm = model.state, model.geometry.mesh.comm
+    owned, size = directions.shape
+    gradient = ufl.derivative(functional, state, ufl.TestFunction(model.space))
+    compiled = fem.form(functional), fem.form(gradient)
+    hessian = fem.form(ufl.derivative(gradient, state, ufl.TrialFunction(model.space)))
+    scratch = fem.Function(model.space).x
+
+    def at(z: np.ndarray) -> None:
+        state.x.array[:] = start
+        state.x.array[:owned] += directions @ z
+        state.x.scatter_forward()
+
+    def value() -> float:
+        return comm.allreduce(fem.assemble_scalar(compiled[0]), op=MPI.SUM)
+
+    def projected_hessian() -> np.ndarray:
+        H = assemble_matrix(hessian)
+        H.assemble()
+        reduced = gram(directions, apply(H, directions, comm), comm)
+        H.destroy()
+        return reduced
+
+    with model.kept_state():
+        at(np.zeros(size))
+        c0 = value()
+        c1 = gram(directions, assemble_owned(compiled[1], scratch, owned)[:, None], comm)[:, 0]
+        c2 = projected_hessian()
+        c3 = np.empty((size, size, size))
+        for i in range(size):
+            at(np.eye(size)[i])
+            c3[i] = projected_hessian() - c2
+        result = Cubic(c0, c1, c2, c3)
+        # a check at a random z of moderate size (every direction moves the body by ~10 %)
+        largest = np.empty(size)
+        comm.Allreduce(np.abs(directions).max(axis=0, initial=0.0), largest, op=MPI.MAX)  # the same z on every rank
+        z = np.random.default_rng(0).uniform(-0.1, 0.1, size) / np.where(largest > 0, largest, 1.0)
+        at(z)
+        exact = value()
+    off = comm.allreduce(abs(result(z) - exact), op=MPI.MAX)  # one decision for all ranks
+    if off > check * max(abs(exact), abs(c0), np.finfo(float).tiny):
+        raise ParameterError(
+            f"this functional is not a cubic polynomial of the state (off by {off:.2e} at a test "
+            "point): it cannot be reduced exactly"
+        )
+    return result
+
+
+def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """r, D and the constraints they cover, with origin(model, reference) = r + D a for a the
+    factors of those constraints (:meth:`~lungmech.fem.model.Model.imposed_amplitudes`): r the
+    reference with every imposed dof at 0, D (full local arrays, columns) what each constraint
+    imposes at factor 1 where it has the last word (conditions are set in order). Constraints
+    that impose 0 (clamps, symmetry) are left out. Collective; the imposed values are kept."""
+    imposed = model.imposed
+    saved = [i.target.x.array.copy() for i in imposed]
+
+    def at(factors) -> np.ndarray:
+        for i, factor in zip(imposed, factors):
+            i.target.x.array[i.where] = factor * i.base
+        return origin(model, reference)
+
+    try:
+        count = len(imposed)
+        r = at(np.zeros(count))
+        directions = [at(np.eye(count)[c]) - r for c in range(count)]
+    finally:
+        for i, values in zip(imposed, saved):
+            i.target.x.array[:] = values
+    comm = model.geometry.mesh.comm
+    kept = np.array([c for c in range(len(imposed)) if comm.allreduce(bool(np.any(directions[c])), op=MPI.LOR)], int)
+    D = np.column_stack([directions[c] for c in kept]) if kept.size else np.zeros((len(r), 0))
+    return r, D, kept
+
+
+class ReducedOutputs:
+    """The outputs of :class:`~lungmech.fem.parametric.Outputs` of a hyper-reduced solver's
+    state (its q, the model's time), from reduced operators (collective; offline: O(k) full
+    assemblies). ``solver`` is a :class:`~lungmech.rom.ecsw.HyperReducedSolver`."""
+
+    def __init__(self, solver, probes=()):
+        model = self.model = solver.model
+        self.solver = solver
+        owned = solver.basis.vectors.shape[0]
+        start, imposed, self._constraints = imposed_directions(model, solver.reference)
+        directions = np.hstack([solver.basis.vectors, imposed[:owned]])
+        self._volume = cubic(model, ufl.det(model.F) * model.dx, start, directions)
+        self.probe_points = tuple(tuple(float(c) for c in point) for point in probes)
+        self._probes = None
+        if len(probes):
+            probe = Probe(model.geometry.mesh, probes)
+
+            def displacement_at(x: np.ndarray) -> np.ndarray:
+                model.state.x.array[:] = x
+                model.state.x.scatter_forward()
+                return probe(model.displacement())
+
+            with model.kept_state():
+                at_start = displacement_at(start)
+                each = []
+                for column in directions.T:
+                    x = np.zeros_like(start)
+                    x[:owned] = column
+                    each.append(displacement_at(x))
+            self._probes = (at_start, np.stack(each, axis=-1))  # p(r), and p(Z_i) on the last axis
+
+    def coordinates(self) -> np.ndarray:
+        """z = (q, a): the solver's q and the imposed displacements' factors now."""
+        return np.concatenate([self.solver.state, self.model.imposed_amplitudes()[self._constraints]])
+
+    def __call__(self) -> dict[str, object]:
+        z = self.coordinates()
+        values: dict[str, object] = {
+            "volume": self._volume(z),
+            "strain_energy": self.solver.functional("strain_energy", self.solver.state),
+        }
+        if self._probes is not None:
+            values["probes"] = self._probes[0] + self._probes[1] @ z
+        values["loads"] = self.model.scalar_loads()
+        return values

@@ -1,0 +1,202 @@
+"""The hyper-reduced model online: Newton in q on a reduced mesh of the sampled cells, outputs
+from reduced operators (lungmech.rom.reduced_mesh, lungmech.rom.outputs). It never reads or
+writes the full state; its volume and probes are the full model's functionals of its state to
+round-off, its strain energy within a few τ; imposed displacements that move with time are
+covered exactly."""
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+
+from lungmech import rom
+from lungmech.errors import ParameterError
+from lungmech.fem.constraints import Displacement, clamp
+from lungmech.fem.loads import BodyForce, FollowerPressure, Traction
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.fem.parametric import FullOrderModel, Outputs
+from lungmech.fem.ramp import Ramp
+from lungmech.fem.solver import Stepping
+from lungmech.mesh import box, rectangle
+from lungmech.rom.basis import origin, reference_state
+from lungmech.rom.ecsw import Training
+from lungmech.rom.outputs import cubic, imposed_directions
+from lungmech.rom.reduced import ReducedModel
+from lungmech.rom.reduced_mesh import ReducedMesh
+
+STEPPING = Stepping(max_step=0.25, times=(0.25, 0.5, 0.75))
+PROBES = [(3.0, 1.0, 1.0), (1.5, 0.5, 0.5)]
+TOLERANCE = 1e-4
+
+
+def stretched(comm=MPI.COMM_WORLD) -> Model:
+    """A block clamped at x = 0 and pulled along x at x = 3 by an imposed displacement that
+    grows with time, sheared by its weight and pressed by a follower pressure on its top."""
+    return Model(
+        box(comm, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4)),
+        NeoHookean.from_young(10.0, 0.3),
+        constraints=[clamp("x0"), Displacement("x1", (0.3, 0.0, 0.0), ramp=Ramp((0.0, 1.0), (0.0, 1.0)))],
+        loads=[BodyForce((0.0, 0.0, -0.2)), FollowerPressure("z1", 0.2), Traction("y1", (0.0, 0.0, -0.1))],
+    )
+
+
+def hyper_reduced(make=stretched, comm=MPI.COMM_WORLD):
+    """The full, Galerkin and hyper-reduced (τ = 1e-4) models of ``make(comm)``, trained on its
+    load path (converged states and Newton iterates)."""
+    model = make(comm)
+    full = FullOrderModel(model, STEPPING, probes=PROBES)
+    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    states = []
+
+    def keep(step) -> None:
+        states.append((model.state.x.array.copy(), model.time))
+
+    from lungmech.fem.solver import solve
+
+    model.reset()
+    solve(model, STEPPING, solver=full.solver, on_step=keep, monitor=lambda step: None)
+    basis = rom.pod(
+        model,
+        np.column_stack([x[:owned] - origin(model, reference_state(model))[:owned] for x, _ in states]),
+        inner="energy",
+        size=8,
+    )
+    training = Training(model, basis.vectors)
+    with training.watching(full.solver):
+        model.reset()
+        solve(model, STEPPING, solver=full.solver, monitor=lambda step: None)
+    sample = training.sample(TOLERANCE)
+    galerkin = ReducedModel(make(comm), basis, STEPPING, probes=PROBES)
+    hyper = ReducedModel(make(comm), basis, STEPPING, probes=PROBES, sample=sample)
+    return full, galerkin, hyper
+
+
+@pytest.fixture(scope="module")
+def models():
+    return hyper_reduced()
+
+
+def test_the_hyper_reduced_solve_never_touches_the_full_state(models):
+    """The model's state is NaN through a whole hyper-reduced solve: every output is finite,
+    and the state is still NaN (nothing read it, nothing wrote it)."""
+    _, _, hyper = models
+    state = hyper.model.state.x.array
+    state[:] = np.nan
+    solution = hyper.solve()
+    assert np.isnan(state).all()
+    for name, values in solution.outputs.items():
+        assert np.isfinite(values).all(), name
+    assert hyper.solver.mesh.cells.size == np.unique(np.concatenate(list(hyper.sample.cells.values()))).size
+
+
+def test_its_outputs_are_the_full_functionals_of_its_state(models):
+    """At every output time: the volume (a cubic in q and the imposed displacement's factor) and
+    the probes (linear) equal the full model's of the reconstructed state x₀ + V q to round-off;
+    the strain energy, an ECSW functional, is within 5 τ of it."""
+    _, _, hyper = models
+    solution = hyper.solve()
+    outputs = Outputs(hyper.model, PROBES)
+    for index in range(len(solution.times)):
+        hyper.reconstruct(solution, index)
+        exact = outputs()
+        assert solution.outputs["volume"][index] == pytest.approx(exact["volume"], rel=1e-12)
+        assert (
+            np.abs(solution.outputs["probes"][index] - exact["probes"]).max() <= 1e-12 * np.abs(exact["probes"]).max()
+        )
+        assert solution.outputs["strain_energy"][index] == pytest.approx(exact["strain_energy"], rel=5 * TOLERANCE)
+
+
+def test_it_tracks_the_galerkin_and_full_models(models):
+    """Outputs within a few τ of the Galerkin model's on the training path; the Galerkin model
+    within its own (basis) error of the full one."""
+    full, galerkin, hyper = models
+    f, g, h = full.solve(), galerkin.solve(), hyper.solve()
+    for name in ("volume", "strain_energy", "probes"):
+        scale = np.abs(f.outputs[name]).max()
+        assert np.abs(h.outputs[name] - g.outputs[name]).max() <= 10 * TOLERANCE * scale, name
+        assert np.abs(g.outputs[name] - f.outputs[name]).max() <= 1e-6 * scale, name
+    assert np.linalg.norm(h.states[-1] - g.states[-1]) <= 10 * TOLERANCE * np.linalg.norm(g.states[-1])
+
+
+def test_the_reduced_mesh_holds_the_sampled_cells_and_their_dofs():
+    """On P2: every sub dof sits where its full dof does; a residual integrated over the cells
+    is the same on the reduced mesh as on the full one, dof by dof (cell and facet integrals)."""
+    model = Model(
+        box(MPI.COMM_SELF, lengths=(3.0, 1.0, 1.0), cells=(6, 2, 2)),
+        NeoHookean.from_young(10.0, 0.3),
+        degree=2,
+        constraints=[clamp("x0")],
+        loads=[FollowerPressure("z1", 0.3)],
+    )
+    model.state.interpolate(lambda x: 0.05 * np.array([x[1] * x[2], x[0] ** 2 / 9, np.sin(x[0])]))
+    cells = np.array([0, 5, 17, 40, 71], dtype=np.int32)
+    reduced = ReducedMesh(model, cells)
+    full_coordinates = model.space.tabulate_dof_coordinates()
+    blocks = reduced.parent_dofs[::3] // 3
+    assert np.abs(reduced.space.tabulate_dof_coordinates() - full_coordinates[blocks]).max() < 1e-14
+    mesh = model.geometry.mesh
+    tags = dmesh.meshtags(mesh, 3, cells, np.ones(len(cells), dtype=np.int32))
+    facets = model.geometry.facet_tags
+    mesh.topology.create_connectivity(3, 2)
+    ours = np.unique(np.concatenate([mesh.topology.connectivity(3, 2).links(c) for c in cells]))
+    keep = np.isin(facets.indices, ours)
+    on_cells = dmesh.meshtags(mesh, 2, facets.indices[keep], facets.values[keep])
+    integrals = [
+        i.reconstruct(subdomain_id=1, subdomain_data=tags)
+        if i.integral_type() == "cell"
+        else i.reconstruct(subdomain_data=on_cells)
+        for i in model.residual.integrals()
+    ]
+    residual = ufl.Form(integrals)
+    whole = fem.assemble_vector(fem.form(residual)).array
+    reduced.state.x.array[:] = reduced.restrict(model.state.x.array)
+    sub = fem.assemble_vector(reduced.form(residual)).array
+    assert np.abs(sub - whole[reduced.parent_dofs]).max() <= 1e-13 * np.abs(whole).max()
+    assert np.abs(np.delete(whole, reduced.parent_dofs)).max() == 0.0  # nothing outside the cells
+
+
+def test_the_volume_is_an_exact_cubic_of_the_coordinates():
+    """∫ det F dX at x = r + Z z: the cubic from k + 2 assemblies against the assembled volume at
+    random z (not the one it checks itself); in 2-D (plane strain) a quadratic, C₃ = 0; and a
+    functional of higher degree (∫ J² dX, a sextic) is refused."""
+    rng = np.random.default_rng(5)
+    for model in (
+        Model(box(MPI.COMM_WORLD, cells=(3, 3, 3)), NeoHookean.from_young(1.0, 0.3)),
+        Model(rectangle(MPI.COMM_WORLD, cells=(4, 4)), NeoHookean.from_young(1.0, 0.3), plane="strain"),
+    ):
+        owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+        start = reference_state(model)
+        Z = rng.uniform(-0.05, 0.05, (owned, 4))
+        volume = ufl.det(model.F) * model.dx
+        polynomial = cubic(model, volume, start, Z)
+        compiled = fem.form(volume)
+        for _ in range(3):
+            z = rng.uniform(-2.0, 2.0, 4)
+            model.state.x.array[:] = start
+            model.state.x.array[:owned] += Z @ z
+            model.state.x.scatter_forward()
+            exact = MPI.COMM_WORLD.allreduce(fem.assemble_scalar(compiled), op=MPI.SUM)
+            assert polynomial(z) == pytest.approx(exact, rel=1e-12)
+            step = 1e-6 * rng.standard_normal(4)
+            assert polynomial(z + step) - polynomial(z - step) == pytest.approx(
+                2 * polynomial.gradient(z) @ step, rel=1e-6
+            )
+        if model.plane is not None:
+            assert np.abs(polynomial.c3).max() <= 1e-12 * np.abs(polynomial.c2).max()
+        with pytest.raises(ParameterError, match="not a cubic polynomial"):
+            cubic(model, ufl.det(model.F) ** 2 * model.dx, start, Z)
+
+
+def test_imposed_displacements_are_affine_in_their_factors():
+    """origin(x₀) = r + D a(t) at every time, with a clamp and a moving boundary sharing the
+    edge dofs (the later condition wins there, in both); the clamp gets no direction."""
+    model = stretched()
+    reference = reference_state(model)
+    r, D, kept = imposed_directions(model, reference)
+    assert list(kept) == [1]
+    for t in (0.0, 0.3, 1.0):
+        model.set_time(t)
+        assert np.abs(origin(model, reference) - (r + D @ model.imposed_amplitudes()[kept])).max() == 0.0
