@@ -672,6 +672,21 @@ COMMANDS = {
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--basis", "wavelet"],
         "basis kind must be",
     ),
+    "rom build of an unknown hyper-reduction": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--hyper", "deim"],
+        "hyper-reduction must be one of ecsw",
+    ),
+    "rom build of an ECSW tolerance above 1": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--hyper", "ecsw", "--ecsw-tolerance", "2"],
+        "the ECSW tolerance must lie in (0, 1)",
+    ),
+    "rom build of an ECSW tolerance of nan": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--hyper", "ecsw", "--ecsw-tolerance", "nan"],
+        "ECSW tolerance",
+    ),
     "rom build of size zero": (
         [],
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],

@@ -67,6 +67,17 @@ def parser() -> argparse.ArgumentParser:
     build.add_argument("--seed", type=int, default=0, help="seed of the training samples (default 0)")
     build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")
     build.add_argument("--order", type=int, default=2, help="order of a polynomial basis")
+    build.add_argument(
+        "--hyper",
+        default=None,
+        help="hyper-reduction: ecsw (online work on a few sampled cells, independent of the mesh size)",
+    )
+    build.add_argument(
+        "--ecsw-tolerance",
+        type=float,
+        default=1e-4,
+        help="ECSW: reproduce the training reduced forces to this relative tolerance (default 1e-4)",
+    )
     build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
@@ -257,11 +268,21 @@ def _rom_build(args) -> int:
         inner=args.inner,
         order=args.order,
         comm=comm,
+        hyper=args.hyper,
+        hyper_tolerance=args.ecsw_tolerance,
     )
     if comm.rank == 0:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
+        hyper = summary["hyper"]
+        sampled = (
+            f", hyper-reduced by ECSW at τ = {hyper['tolerance']:g} on "
+            + ", ".join(f"{n} {name.replace('_', ' ')}" for name, n in hyper["samples"].items())
+            + f" sampled cells of {hyper['cells']}"
+            if hyper
+            else ""
+        )
         print(
-            f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs "
+            f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs{sampled} "
             f"({seconds}); saved to {Path(args.output).resolve()}"
         )
     return 0

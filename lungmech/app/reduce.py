@@ -34,7 +34,7 @@ from lungmech.app.scene import ImageLabel, Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import approach
-from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.solver import NewtonSolver, Solver
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
 from lungmech.mesh.files import companions
@@ -42,15 +42,15 @@ from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.registration.image import companions as image_companions
-from lungmech.rom import store
+from lungmech.rom import ecsw, store
 from lungmech.rom.basis import Basis, enrich
-from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.polynomial import polynomial_basis
 from lungmech.rom.reduced import ReducedModel
 
 KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
+HYPER = ("ecsw",)  # hyper-reductions
 
 
 def build(
@@ -65,6 +65,8 @@ def build(
     comm: MPI.Comm = MPI.COMM_WORLD,
     samples: int | None = None,
     seed: int = 0,
+    hyper: str | None = None,
+    hyper_tolerance: float = 1e-4,
 ) -> dict:
     """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
@@ -74,11 +76,19 @@ def build(
     training points are ``samples`` Sobol' points of the scene's parameter box (``seed``;
     default 8 when the scene has [parameters], else its one point) times the load ``scales``
     (default 0.5, 1, 1.5 without parameters, 1 with them).
+    ``hyper`` = "ecsw" hyper-reduces it (:mod:`lungmech.rom.ecsw`): a second pass over the
+    training runs samples the cells that reproduce the reduced forces of every Newton iterate to
+    ``hyper_tolerance`` (τ), and the sample is saved with the basis.
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
     if kind not in KINDS:
         raise ParameterError(f"basis kind must be one of {', '.join(KINDS)} (got {kind!r})")
+    if hyper is not None and hyper not in HYPER:
+        raise ParameterError(f"hyper-reduction must be one of {', '.join(HYPER)} (got {hyper!r})")
+    checks.real("ECSW tolerance", hyper_tolerance)
+    if not 0 < hyper_tolerance < 1:
+        raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper_tolerance!r})")
     if isinstance(size, bool) or not (isinstance(size, int) and size >= 1):
         raise ParameterError(f"basis size must be a positive integer (got {size!r})")
     if scales is None:
@@ -95,7 +105,8 @@ def build(
     training = box.sample(samples, seed) if box else [{}]
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
-        return _build(scene, staging, kind, size, scales, training, inner, order, density, comm)
+        hyper = (hyper, hyper_tolerance) if hyper else None
+        return _build(scene, staging, kind, size, scales, training, inner, order, density, comm, hyper)
 
 
 def _build(
@@ -109,10 +120,16 @@ def _build(
     order: int,
     density: float,
     comm: MPI.Comm,
+    hyper: tuple[str, float] | None,
 ) -> dict:
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm)
+    if hyper is not None and model.state_dependent:
+        raise ParameterError(
+            "--hyper ecsw: this scene has balanced gravity, whose coefficients are integrals over the whole "
+            "mesh; ECSW does not reduce it yet (build without --hyper)"
+        )
     where = layout(model.space)  # its dof order stays valid when [inverse] moves the nodes
     node_space, node_order = nodes.displacement_space(model.geometry.mesh)
     solver = NewtonSolver(model, scene.newton)
@@ -147,6 +164,19 @@ def _build(
     basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
 
     arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}  # canonical, on rank 0 (None elsewhere)
+    hyper_summary = None
+    if hyper is not None:
+        sample = ecsw.train(
+            model,
+            basis,
+            solver,
+            lambda: snapshots(model, scene.stepping, scales, solver=solver, start=start, parameters=training),
+            hyper[1],
+            timings,
+        )
+        arrays |= {f"ecsw/{name}": data for name, data in sample.export(model.geometry.mesh).items()}
+        cells = model.geometry.mesh.topology.index_map(model.geometry.mesh.topology.dim).size_global
+        hyper_summary = {"method": hyper[0], "tolerance": hyper[1], "samples": sample.count(comm), "cells": cells}
     if scene.inverse is not None:
         arrays["reference_nodes"] = nodes.positions(node_space, node_order)
     extra = {
@@ -161,6 +191,7 @@ def _build(
         "offline_seconds": timings,
         "scene_table": scene.table,
         "files": _embedded_names(scene),
+        "hyper": hyper_summary,
     }
     arrays |= {f"file:{name}": data for name, data in _file_bytes(scene, comm).items()}
     store.write(path, model, basis, extra=extra, arrays=arrays)
@@ -170,6 +201,7 @@ def _build(
         "dofs": where.size,
         "values": basis.values.tolist(),
         "offline_seconds": timings,
+        "hyper": hyper_summary,
     }
 
 
@@ -178,13 +210,14 @@ def reduced_order(path: str | Path):
     return partial(_prepare, Path(path))
 
 
-def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[ReducedSolver, dict | None]:
+def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[Solver, dict | None]:
     values = dict(model.parameter_values)  # the scene's, with --set
     reduced, placed = _reduced(path, model, scene)
     # The stored start is an equilibrium at the default parameters: move it to the asked ones.
     model.set_parameters(model.parameters.defaults)
     model.state.x.array[:] = reduced.start
     model.state.x.scatter_forward()
+    reduced.restart()
     approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start)
     return reduced.solver, {"reference": "from the reduced model"} if placed else None
 
@@ -215,8 +248,20 @@ def _reduced(path: Path, model, scene: Scene) -> tuple[ReducedModel, bool]:
     start = model.state.x.array.copy()
     model.set_time(scene.stepping.start)
     training = metadata["extra"].get("training", [])
-    reduced = ReducedModel(model, basis, scene.stepping, scene.newton, start, scene.output.probes, training)
+    sample = _sample(model, metadata["extra"].get("hyper"), arrays)
+    reduced = ReducedModel(model, basis, scene.stepping, scene.newton, start, scene.output.probes, training, sample)
     return reduced, "reference_nodes" in arrays
+
+
+def _sample(model, hyper: dict | None, arrays: dict) -> ecsw.Sample | None:
+    """The ECSW sample stored with a hyper-reduced model (arrays on rank 0), placed on this mesh."""
+    if hyper is None:
+        return None
+    mesh = model.geometry.mesh
+    data = mesh.comm.bcast({name[len("ecsw/") :]: a for name, a in arrays.items() if name.startswith("ecsw/")})
+    if "internal_cells" not in data or not all(f"{name}_weights" in data for name in ("internal", "strain_energy")):
+        raise ModelFileError("the reduced model is damaged: its ECSW sample is incomplete; rebuild it")
+    return ecsw.Sample.place(mesh, data, hyper["tolerance"])
 
 
 def check_physics(path: Path, extra: dict, scene: Scene) -> None:

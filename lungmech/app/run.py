@@ -39,7 +39,7 @@ from lungmech.fem.loads import FollowerPressure, is_pressure
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
-from lungmech.fem.solver import NewtonSolver, StepReport, solve
+from lungmech.fem.solver import NewtonSolver, Solver, StepReport, solve
 from lungmech.lung.inverse import InverseReport, unloaded_reference
 from lungmech.mesh import write as write_geometry
 from lungmech.parallel import on_root
@@ -222,7 +222,7 @@ def run(
     comm: MPI.Comm = MPI.COMM_WORLD,
     *,
     scale: Scale = 1.0,
-    prepare: Callable[[Model, Scene, Path], tuple[NewtonSolver, dict | None]] = full_order,
+    prepare: Callable[[Model, Scene, Path], tuple[Solver, dict | None]] = full_order,
     inputs: Sequence[str | Path] = (),
 ) -> dict:
     """Solve ``scene`` and write its results into the folder ``out`` (see the module's doc).
@@ -262,6 +262,7 @@ def run(
         largest = {"volume": -np.inf, "state": None, "time": 0.0}  # pictured at the end
 
         def record(step: StepReport | None) -> None:
+            solver.update_model()  # a hyper-reduced solver iterates on q: the fields written need x
             row = {"time": model.time, "volume": volume(), "strain_energy": energy()}
             loads = load_values(scene, model.time, scale)
             row |= loads
