@@ -200,3 +200,50 @@ def test_imposed_displacements_are_affine_in_their_factors():
     for t in (0.0, 0.3, 1.0):
         model.set_time(t)
         assert np.abs(origin(model, reference) - (r + D @ model.imposed_amplitudes()[kept])).max() == 0.0
+
+
+def test_hyper_reduced_sensitivities_are_those_of_its_own_answer():
+    assert_sensitivities_of_own_answer(MPI.COMM_SELF)
+
+
+def assert_sensitivities_of_own_answer(comm) -> None:
+    """d(outputs)/dμ of the hyper-reduced model (its sampled residual, tangent and energy, the
+    cubic volume, the linear probes) against central differences of its own solves: for the
+    Young's modulus and Poisson's ratio (law constants), a follower pressure (a load value), an
+    imposed displacement's amplitude (dx₀/dμ), a region's stiffness and an interface's position
+    (Functions of the forms)."""
+    from test_sensitivity import BLOCK, BLOCK_MU, PROBES, RTOL, disagreement, finite_differences
+
+    def parametric_block(parameters) -> Model:  # test_sensitivity's block, on a finer mesh
+        return Model(
+            box(comm, cells=(6, 3, 3)),
+            lambda c: NeoHookean.from_young(c["E"], c["nu"]),
+            constraints=[clamp("x0"), Displacement("x1", 0.05, component="y", name="pull")],
+            loads=[FollowerPressure("x1", 0.5, name="push")],
+            parameters=parameters,
+        )
+
+    from lungmech.fem.solver import NewtonSolver
+
+    stepping = Stepping(times=(0.5,))
+    model = parametric_block(parameters=BLOCK)
+    reference = reference_state(model)
+    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    solver = NewtonSolver(model)
+    full = FullOrderModel(model, stepping, solver=solver)
+    points = model.parameters.sample(8, seed=1)
+    snapshots = [(state - origin(model, reference)[:owned]) for mu in points for state in full.solve(mu).states]
+    basis = rom.pod(model, np.column_stack(snapshots), inner="energy", size=8)
+    training = Training(model, basis.vectors)
+    with training.watching(solver):
+        for mu in points:
+            full.solve(mu)
+    sample = training.sample(1e-3)
+    cells = model.geometry.mesh.topology.index_map(3).size_global
+    assert sample.count(MPI.COMM_WORLD)["internal"] < cells / 4  # a sample, not every cell
+    hyper = ReducedModel(parametric_block(parameters=BLOCK), basis, stepping, probes=PROBES, sample=sample)
+    solution = hyper.solve(BLOCK_MU, sensitivities=True)
+    for i, name in enumerate(hyper.parameters.names):
+        differences = finite_differences(hyper, BLOCK_MU, name)
+        for key in ("volume", "strain_energy", "probes"):
+            assert disagreement(solution.sensitivities[key][..., i], differences[key]) < RTOL, (name, key)

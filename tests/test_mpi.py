@@ -695,3 +695,11 @@ def test_hyper_reduced_model_on_two_ranks():
     exact = Outputs(hyper.model, PROBES)()
     assert h.outputs["volume"][-1] == pytest.approx(exact["volume"], rel=1e-12)
     assert np.abs(h.outputs["probes"][-1] - exact["probes"]).max() <= 1e-12 * np.abs(exact["probes"]).max()
+
+
+def test_hyper_reduced_sensitivities_on_two_ranks():
+    """d(outputs)/dμ of a hyper-reduced model trained and solved on 2 ranks: the central
+    differences of its own solves, as on one."""
+    from test_hyper_reduced import assert_sensitivities_of_own_answer
+
+    assert_sensitivities_of_own_answer(MPI.COMM_WORLD)

@@ -61,7 +61,9 @@ from lungmech.parallel.linalg import apply, gram
 
 __all__ = [
     "STEP",
+    "DerivativeForms",
     "ValueDerivatives",
+    "derivative_forms",
     "output_derivatives",
     "reduced_state_derivatives",
     "residual_derivatives",
@@ -79,7 +81,8 @@ class ValueDerivatives:
     ``constants[c]`` (the shape of the Constant c + (n,)) and ``functions[f]`` (the local entries of
     the Function f, ghosts included, n) cover every one the model's forms hold; ``imposed`` is
     dx_D/dμ, the derivative of the imposed values as a state vector (local entries, n; zero on
-    free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label.
+    free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label;
+    ``amplitudes`` that of each imposed displacement's factor amplitude · ramp(t) (constraints, n).
     """
 
     names: tuple[str, ...]
@@ -87,29 +90,40 @@ class ValueDerivatives:
     functions: dict[fem.Function, np.ndarray]
     imposed: np.ndarray
     loads: dict[str, np.ndarray]
+    amplitudes: np.ndarray
 
 
-class _Forms:
+class DerivativeForms:
     """The derivative forms of one model, compiled once (collective).
 
     ``constants`` and ``functions`` are every ``Constant`` and (non-state) ``Function`` of the
     residual and of the strain energy: whatever a parameter may set. ``weights`` are their
     directions (w_k, δf_j); ``residual`` = Σ_k w_k · ∂R/∂c_k + Σ_j ∂R/∂f_j [δf_j], ``energy`` the
     same of ∫ ψ dX, ``volume_gradient`` = ∂(∫ det F dX)/∂x, ``energy_gradient`` = ∂(∫ ψ dX)/∂x.
+
+    A hyper-reduced model gives its own ``residual`` and ``energy`` (weighted, over sampled
+    cells), ``compile`` (onto its reduced mesh) and ``like``, the full model's forms, whose
+    constants and functions are the ones the parameters set; it has no ``volume_gradient``.
     """
 
-    def __init__(self, model):
-        residual = expand_derivatives(model.residual)
-        energy = model.energy_density * model.dx
-        found_constants = {c: None for form in (residual, energy) for c in form.constants()}
-        found_functions = {f: None for form in (residual, energy) for f in form.coefficients() if f is not model.state}
-        self.constants, self.functions = tuple(found_constants), tuple(found_functions)
+    def __init__(self, model, residual=None, energy=None, compile=fem.form, like: DerivativeForms | None = None):
+        residual = expand_derivatives(model.residual if residual is None else residual)
+        energy = model.energy_density * model.dx if energy is None else energy
+        if like is None:
+            found_constants = {c: None for form in (residual, energy) for c in form.constants()}
+            found_functions = {
+                f: None for form in (residual, energy) for f in form.coefficients() if f is not model.state
+            }
+            self.constants, self.functions = tuple(found_constants), tuple(found_functions)
+        else:
+            self.constants, self.functions = like.constants, like.functions
         mesh = model.geometry.mesh
         self.weights = tuple(fem.Constant(mesh, np.zeros(c.ufl_shape)) for c in self.constants)
         self.directions = tuple(fem.Function(f.function_space) for f in self.functions)
+        self._compile = compile
         self.residual, self.energy = self._explicit(residual), self._explicit(energy)  # None: no parameter acts
-        self.volume_gradient = fem.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
-        self.energy_gradient = fem.form(ufl.derivative(energy, model.state))
+        self.volume_gradient = None if like else fem.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
+        self.energy_gradient = compile(ufl.derivative(energy, model.state))
         self.comm = mesh.comm
 
     def _explicit(self, form: ufl.Form) -> fem.Form | None:
@@ -127,7 +141,7 @@ class _Forms:
         for f, direction in zip(self.functions, self.directions):
             derivative = derivative + ufl.derivative(form, f, direction)
         derivative = expand_derivatives(derivative)
-        return None if derivative.empty() else fem.form(derivative)
+        return None if derivative.empty() else self._compile(derivative)
 
     def set_weights(self, derivatives: ValueDerivatives, i: int) -> None:
         """The directions of parameter i: w_k = ∂c_k/∂μ_i, δf_j = ∂f_j/∂μ_i."""
@@ -140,10 +154,10 @@ class _Forms:
 _compiled: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _forms(model) -> _Forms:
+def derivative_forms(model) -> DerivativeForms:
     """The model's derivative forms, compiled on first use (collective) and kept with the model."""
     if model not in _compiled:
-        _compiled[model] = _Forms(model)
+        _compiled[model] = DerivativeForms(model)
     return _compiled[model]
 
 
@@ -169,7 +183,7 @@ def _stencil(parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @contextlib.contextmanager
-def _restored(model, forms: _Forms) -> Iterator[None]:
+def _restored(model, forms: DerivativeForms) -> Iterator[None]:
     """Whatever the block does to the parameters, constants, imposed values and state, they are
     restored afterwards (also on an error)."""
     values, state = dict(model.parameter_values), model.state.x.array.copy()
@@ -202,13 +216,14 @@ def value_derivatives(model) -> ValueDerivatives:
     compiles the model's derivative forms).
     """
     _refuse_state_dependent(model)
-    forms = _forms(model)
+    forms = derivative_forms(model)
     parameters = model.parameters
     size = len(model.state.x.array)
     constants = {c: np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants}
     functions = {f: np.zeros((len(f.x.array), len(parameters))) for f in forms.functions}
     imposed = np.zeros((size, len(parameters)))
     loads = {label: np.zeros(len(parameters)) for label in model.scalar_loads()}
+    amplitudes = np.zeros((len(model.imposed), len(parameters)))
     with _restored(model, forms):
         current = dict(model.parameter_values)
         given = [np.array(v.value, copy=True) for v in model._load_values]
@@ -231,8 +246,9 @@ def value_derivatives(model) -> ValueDerivatives:
                 imposed[:, i] += weight * x_D
                 for label, value in model.scalar_loads().items():
                     loads[label][i] += weight * value
+                amplitudes[:, i] += weight * model.imposed_amplitudes()
             model.set_parameters(current)
-    return ValueDerivatives(parameters.names, constants, functions, imposed, loads)
+    return ValueDerivatives(parameters.names, constants, functions, imposed, loads, amplitudes)
 
 
 def _owned(model) -> int:
@@ -243,7 +259,7 @@ def residual_derivatives(model, derivatives: ValueDerivatives | None = None) -> 
     """∂R/∂μ_i = Σ_k ∂R/∂c_k ∂c_k/∂μ_i at the current state (fixed x, imposed rows included):
     owned rows, one column per parameter. One assembly of the compiled form per parameter.
     Collective."""
-    forms = _forms(model)
+    forms = derivative_forms(model)
     derivatives = derivatives or value_derivatives(model)
     vector = fem.Function(model.space).x
     owned = _owned(model)
@@ -341,7 +357,7 @@ def output_derivatives(
     sensitivities with ``solver.jacobian_form``, which must be the exact Jacobian of
     ``model.residual``. Collective.
     """
-    forms = _forms(model)
+    forms = derivative_forms(model)
     derivatives = derivatives or value_derivatives(model)
     comm, owned, n = forms.comm, _owned(model), len(derivatives.names)
     dx = (

@@ -50,6 +50,7 @@ from petsc4py import PETSc
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
+from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import inner_product, origin, reference_state
@@ -390,18 +391,19 @@ class HyperReducedSolver:
             if family in sample.cells:
                 weight.x.array[sample.cells[family]] = sample.weights[family]
             weight.x.scatter_forward()
-        restricted = _restricted(forms, model.geometry.mesh, sample)
+        restricted = self._restricted = _restricted(forms, model.geometry.mesh, sample)
         self._weights = forms  # the forms reach the weights' Functions: keep them alive
         self.mesh = reduced = ReducedMesh(model, np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
         self._residual = reduced.form(restricted)
         self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
         self._vector = fem.assemble_vector(self._residual)
         mesh = model.geometry.mesh
-        self._functionals = {
-            name: reduced.form(_sampled(forms.functionals[name], mesh, sample.cells[name]))
+        self._sampled = {
+            name: _sampled(forms.functionals[name], mesh, sample.cells[name])
             for name in forms.functionals
             if name in sample.cells
         }
+        self._functionals = {name: reduced.form(functional) for name, functional in self._sampled.items()}
         self._matrix = fem.create_matrix(self._jacobian, block_mode=la.BlockMode.expanded)
         self.V = reduced.restrict_columns(np.ascontiguousarray(basis.vectors))  # sub dofs, ghosts too
         # Each rank reduces its own cells' contributions, ghost rows included, and one Allreduce
@@ -490,6 +492,47 @@ class HyperReducedSolver:
             raise ParameterError(f"this ECSW sample has no cells for the functional {name!r} (train it)")
         self._set(q)
         return self.comm.allreduce(fem.assemble_scalar(self._functionals[name]), op=MPI.SUM)
+
+    @functools.cached_property
+    def derivative_forms(self) -> DerivativeForms:
+        """∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the
+        reduced mesh (compiled on first use; collective)."""
+        if "strain_energy" not in self._sampled:
+            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
+        return DerivativeForms(
+            self.model, self._restricted, self._sampled["strain_energy"], self.mesh.form, derivative_forms(self.model)
+        )
+
+    def state_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
+        """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
+        the exact derivative of this model's own answer, (k, parameters). Collective."""
+        forms = self.derivative_forms
+        self._set(self.coordinates)
+        jacobian = self.reduced_jacobian()  # and K on the reduced mesh, at q
+        imposed = self._on_columns(self.mesh.restrict(derivatives.imposed))
+        rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
+        b = self._vector.array
+        for i in range(len(derivatives.names) if forms.residual is not None else 0):
+            forms.set_weights(derivatives, i)
+            b[:] = 0.0
+            fem.assemble_vector(b, forms.residual)
+            rhs[:, i] += gram(self.V, b[:, None], self.comm)[:, 0]
+        return -np.linalg.solve(jacobian, rhs)
+
+    def energy_derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> np.ndarray:
+        """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
+        at the current q, (parameters,). Collective."""
+        forms = self.derivative_forms
+        self._set(self.coordinates)
+        g = self._vector.array
+        g[:] = 0.0
+        fem.assemble_vector(g, forms.energy_gradient)
+        total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
+        total = total + gram(g[:, None], self.mesh.restrict(derivatives.imposed), self.comm)[0]
+        for i in range(len(derivatives.names) if forms.energy is not None else 0):
+            forms.set_weights(derivatives, i)
+            total[i] += self.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
+        return total
 
     def _at_loads(self) -> None:
         """x₀ on the reduced mesh with the imposed displacements of the current loads (DOLFINx

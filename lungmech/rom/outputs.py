@@ -165,6 +165,22 @@ class ReducedOutputs:
                     each.append(displacement_at(x))
             self._probes = (at_start, np.stack(each, axis=-1))  # p(r), and p(Z_i) on the last axis
 
+    def derivatives(self, dq: np.ndarray, derivatives) -> dict[str, object]:
+        """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives
+        (:class:`~lungmech.fem.sensitivity.ValueDerivatives`), in the structure of
+        :func:`~lungmech.fem.sensitivity.output_derivatives`: with dz/dμ = (dq/dμ, da/dμ), the
+        volume's ∇f(z) · dz/dμ, the probes' P dz/dμ, the sampled energy's derivative and the loads'.
+        Collective."""
+        dz = np.vstack([dq, derivatives.amplitudes[self._constraints]])
+        result: dict[str, object] = {
+            "volume": self._volume.gradient(self.coordinates()) @ dz,
+            "strain_energy": self.solver.energy_derivatives(dq, derivatives),
+        }
+        if self._probes is not None:
+            result["probes"] = self._probes[1] @ dz
+        result["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
+        return result
+
     def coordinates(self) -> np.ndarray:
         """z = (q, a): the solver's q and the imposed displacements' factors now."""
         return np.concatenate([self.solver.state, self.model.imposed_amplitudes()[self._constraints]])

@@ -24,7 +24,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from lungmech.errors import ParameterError
 from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
@@ -111,11 +110,6 @@ class ReducedModel:
 
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
         """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
-        if sensitivities and self.sample is not None:
-            raise ParameterError(
-                "sensitivities of a hyper-reduced model are not available yet: solve the Galerkin model "
-                "(without the ECSW sample) for them"
-            )
         self.model.set_parameters(self.parameters.defaults)
         self.restart()
         return trajectory(
@@ -135,9 +129,12 @@ class ReducedModel:
         return model.state.x.array[: self.basis.vectors.shape[0]].copy()
 
     def _sensitivities(self) -> dict[str, object]:
-        """Reduced sensitivities: dx/dμ = V dq/dμ + dx₀/dμ, dq/dμ = −(VᵀKV)⁻¹Vᵀ(∂R/∂μ + K dx₀/dμ)."""
+        """Reduced sensitivities: dx/dμ = V dq/dμ + dx₀/dμ, dq/dμ = −(VᵀKV)⁻¹Vᵀ(∂R/∂μ + K dx₀/dμ);
+        hyper-reduced, with the sample's r and K, and the outputs' from reduced operators."""
         model, V = self.model, self.basis.vectors
         derivatives = value_derivatives(model)
+        if self.sample is not None:
+            return self.outputs.derivatives(self.solver.state_derivatives(derivatives), derivatives)
         dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
         dx = V @ dq + derivatives.imposed[: V.shape[0]]
         return output_derivatives(model, self.outputs, None, state_derivative=dx, derivatives=derivatives)
