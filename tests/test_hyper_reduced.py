@@ -247,3 +247,63 @@ def assert_sensitivities_of_own_answer(comm) -> None:
         differences = finite_differences(hyper, BLOCK_MU, name)
         for key in ("volume", "strain_energy", "probes"):
             assert disagreement(solution.sensitivities[key][..., i], differences[key]) < RTOL, (name, key)
+
+
+def test_each_solve_starts_afresh_at_its_own_loads(models):
+    """A second solve takes the same path as the first: the automatic first step measures F at
+    the start's loads, not at the loads the last solve ended with."""
+    _, _, hyper = models
+    first, second = hyper.solve(), hyper.solve()
+    assert first.newton_iterations == second.newton_iterations
+    for name in first.outputs:
+        assert np.abs(first.outputs[name] - second.outputs[name]).max() <= 1e-12 * np.abs(first.outputs[name]).max()
+
+
+def test_a_failed_path_leaves_a_consistent_model(models):
+    """Up to t = 0.5 s, then Newton allowed one iteration and steps no shorter than 0.5 s: the
+    path fails with one clear error, and the model holds x₀ + V q of its last equilibrium at
+    t = 0.5 s, its moved boundary included, and so does the solver."""
+    from lungmech.errors import SolverError
+    from lungmech.fem.solver import NewtonOptions, solve
+    from lungmech.rom.ecsw import HyperReducedSolver
+
+    _, _, hyper = models
+    model = stretched()
+    solver = HyperReducedSolver(model, hyper.basis, hyper.sample)
+    solve(model, Stepping(end=0.5, max_step=0.25), solver=solver, monitor=lambda step: None)
+    equilibrium = solver.state.copy()
+    solver.options = NewtonOptions(max_iterations=1)
+    with pytest.raises(SolverError, match="the load path stopped at t = 0.5 s"):
+        solve(model, Stepping(start=0.5, initial_step=0.5, min_step=0.5), solver=solver, monitor=lambda step: None)
+    assert model.time == 0.5 and np.array_equal(solver.state, equilibrium) and np.abs(equilibrium).max() > 0
+    expected = origin(model, reference_state(model))
+    expected[: hyper.basis.vectors.shape[0]] += hyper.basis.vectors @ equilibrium
+    assert np.abs(model.state.x.array - expected).max() <= 1e-14
+
+
+def test_a_full_order_model_refuses_a_solver_of_reduced_coordinates(models):
+    from lungmech.rom.ecsw import HyperReducedSolver
+
+    _, _, hyper = models
+    model = stretched()
+    with pytest.raises(ParameterError, match="iterates on reduced coordinates"):
+        FullOrderModel(model, STEPPING, solver=HyperReducedSolver(model, hyper.basis, hyper.sample))
+
+
+def test_outside_a_solve_it_evaluates_at_the_current_loads(models):
+    """F (for the automatic first step) and the sampled functionals are evaluated at the loads
+    of the moment, not at those of the last solve: back at t = 0 after a path that ended with
+    the boundary moved, q = 0 is the start state on the reduced mesh, dof by dof."""
+    _, _, hyper = models
+    hyper.solve()
+    model, solver = hyper.model, hyper.solver
+    at_end = solver.mesh.state.x.array.copy()
+    model.set_time(0.0)
+    solver.set_state(np.zeros(hyper.basis.size))
+    start = solver.mesh.restrict(origin(model, reference_state(model)))
+    assert np.abs(at_end - start).max() > 0.1  # the reduced mesh holds moved boundary dofs
+    solver.deformation_gradient()
+    assert np.abs(solver.mesh.state.x.array - start).max() == 0.0
+    model.set_time(1.0)
+    solver.functional("strain_energy", np.zeros(hyper.basis.size))
+    assert np.abs(solver.mesh.state.x.array - solver.mesh.restrict(origin(model, reference_state(model)))).max() == 0.0

@@ -38,7 +38,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem.solver import NewtonOptions, NewtonResult, NewtonSolver, SolveReport, StepReport
+from lungmech.fem.solver import NewtonOptions, NewtonResult, NewtonSolver, SolveReport, StepReport, steps_model_state
 
 __all__ = [
     "ImplicitEuler",
@@ -350,6 +350,11 @@ def integrate(
     if velocity is not None:
         scheme.set_velocity(velocity)
     solver = (solver_factory or full_solver())(scheme)
+    if not steps_model_state(solver):
+        raise ParameterError(
+            f"integrate steps the model's state; this solver ({solver.description}) iterates on reduced "
+            "coordinates (a hyper-reduced solver is for static load paths)"
+        )
     try:
         report = march(scheme, solver, steps, on_step)
     finally:

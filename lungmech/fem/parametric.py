@@ -23,10 +23,11 @@ from typing import Protocol
 
 import numpy as np
 
+from lungmech.errors import ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.sensitivity import output_derivatives
-from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve, steps_model_state
 
 __all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "approach", "output_times", "trajectory"]
 
@@ -191,6 +192,11 @@ class FullOrderModel:
         self.parameters = model.parameters
         self.stepping = stepping or Stepping()
         self.solver = solver or NewtonSolver(model, newton)
+        if not steps_model_state(self.solver):
+            raise ParameterError(
+                f"FullOrderModel steps the model's state; this solver ({self.solver.description}) iterates on "
+                "reduced coordinates: use ReducedModel(..., sample=...) for a hyper-reduced model"
+            )
         self.outputs = Outputs(model, probes)
         self.start = start
         self.times = output_times(model, self.stepping)

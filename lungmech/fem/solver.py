@@ -703,14 +703,17 @@ class Solver(Protocol):
     description: str  # for summaries, e.g. "full order"
 
     def solve(self, start: np.ndarray | None = None) -> NewtonResult:
-        """One Newton solve at the model's current loads, from its current state or ``start``
-        (a prediction; the current state is the last equilibrium)."""
+        """One Newton solve at the model's current loads, from its :attr:`state` or ``start``
+        (a prediction; the current state is the last equilibrium). A failed solve leaves its
+        last iterate there (the load stepping restores the last equilibrium)."""
         ...
 
     @property
     def state(self) -> np.ndarray:
-        """The unknowns it iterates on (the model's state array, or reduced coordinates q): the
-        load stepping keeps, extrapolates and restores these."""
+        """The unknowns it iterates on: the load stepping keeps, extrapolates and restores these.
+        The full and Galerkin solvers' is the model's state array; a hyper-reduced solver's is q,
+        and it reads or writes the model's state only on request (``project()``,
+        :meth:`update_model`): code that moves the model's state must move q too."""
         ...
 
     def set_state(self, state: np.ndarray) -> None: ...
@@ -779,6 +782,11 @@ def _persistent_options(owner, prefix: str, options: dict) -> None:
     for key, value in options.items():
         database[prefix + key] = value
     weakref.finalize(owner, lambda: [database.delValue(prefix + key) for key in options])
+
+
+def steps_model_state(solver: Solver) -> bool:
+    """Whether ``solver`` iterates on the model's own state array (not on reduced coordinates)."""
+    return np.shares_memory(solver.state, solver.model.state.x.array)
 
 
 def solve(
@@ -853,16 +861,17 @@ def solve(
                     dt *= stepping.growth
                 continue
             final = dt <= stepping.min_step * (1 + 1e-12)
-            if final:  # the diagnosis judges full states
+            if final:  # the diagnosis judges full states, each at its own loads
                 solver.update_model()
                 smallest_J = limits.min_jacobian(model)()  # of the failed iterate
+                drive(stepping.start)
                 solver.set_state(first)
                 solver.update_model()
                 began = model.state.x.array.copy()
             solver.set_state(path.last)
             if final:
-                solver.update_model()
                 drive(t)
+                solver.update_model()
                 cause = limits.diagnose(model, solver, drive, t, (began, stepping.start), smallest_J)
                 report.seconds = time.perf_counter() - started
                 raise SolverError(_failure_message(t, dt, step, cause))

@@ -420,7 +420,7 @@ class HyperReducedSolver:
         # J > 0 is checked where the model is evaluated: on the sampled cells
         self.inversion = Inversion(model, smallest(jacobians, self.comm))
         self._magnitude = _displacement_magnitude(model, reduced)
-        self.coordinates = self.project()
+        self.coordinates = np.zeros(basis.size)  # at the start state (set_state(project()) follows a moved model)
         self.description = (
             f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
             + ", ".join(f"{n} {family} samples" for family, n in sample.count(self.comm).items())
@@ -455,7 +455,7 @@ class HyperReducedSolver:
 
     def deformation_gradient(self) -> np.ndarray:
         """F at the quadrature points of the sampled cells, (cells, points, d, d)."""
-        self._set(self.coordinates)
+        self._at(self.coordinates)
         return self._gradient()
 
     def start_path(self) -> None:
@@ -471,8 +471,7 @@ class HyperReducedSolver:
         converged = converged and bool(np.all(np.isfinite(q)))
         if converged and (wrong := self.inversion()):
             converged, reason = False, f"{reason} to {wrong}"
-        if converged:
-            self.coordinates[:] = q
+        self.coordinates[:] = q  # a failed iterate too, as a full solver's state: the stepping restores
         return NewtonResult(converged, iterations, tuple(residuals), reason)
 
     def linear_step(self) -> None:
@@ -490,7 +489,7 @@ class HyperReducedSolver:
         sample, at the loads of the last solve (collective)."""
         if name not in self._functionals:
             raise ParameterError(f"this ECSW sample has no cells for the functional {name!r} (train it)")
-        self._set(q)
+        self._at(q)
         return self.comm.allreduce(fem.assemble_scalar(self._functionals[name]), op=MPI.SUM)
 
     @functools.cached_property
@@ -507,7 +506,7 @@ class HyperReducedSolver:
         """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
         the exact derivative of this model's own answer, (k, parameters). Collective."""
         forms = self.derivative_forms
-        self._set(self.coordinates)
+        self._at(self.coordinates)
         jacobian = self.reduced_jacobian()  # and K on the reduced mesh, at q
         imposed = self._on_columns(self.mesh.restrict(derivatives.imposed))
         rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
@@ -523,7 +522,7 @@ class HyperReducedSolver:
         """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
         at the current q, (parameters,). Collective."""
         forms = self.derivative_forms
-        self._set(self.coordinates)
+        self._at(self.coordinates)
         g = self._vector.array
         g[:] = 0.0
         fem.assemble_vector(g, forms.energy_gradient)
@@ -551,7 +550,14 @@ class HyperReducedSolver:
         return on_columns
 
     def _set(self, q: np.ndarray) -> None:
+        """The reduced mesh's state x₀ + V q, x₀ at the loads of the last :meth:`_at_loads`."""
         self.mesh.state.x.array[:] = self._origin + self.V @ q
+
+    def _at(self, q: np.ndarray) -> None:
+        """The reduced mesh's state x₀ + V q at the current loads (outside a solve, where they may
+        have moved since: a new time, new parameters)."""
+        self._at_loads()
+        self._set(q)
 
     def reduced_residual(self, q: np.ndarray) -> np.ndarray:
         """Σ_e ξ_e Vᵀ r_e(x₀ + V q) over the sample (sets the reduced mesh's state)."""
