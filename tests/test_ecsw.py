@@ -15,7 +15,7 @@ from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.solver import Stepping, solve
 from lungmech.mesh import box
-from lungmech.rom.ecsw import HyperReducedSolver, Sample, Training, WeightedForms, sparse_nnls
+from lungmech.rom.ecsw import HyperReducedSolver, Sample, Training, sparse_nnls
 
 STEPPING = Stepping(max_step=0.25)
 TRAINING = (0.5, 1.0, 1.5)  # load factors
@@ -142,21 +142,9 @@ def test_sparse_nnls_meets_its_tolerance_with_few_positive_weights():
         assert np.all(weights > 0) and len(cells) <= 60  # at most as many columns as rows
 
 
-def test_ecsw_refuses_what_it_cannot_sample(trained):
-    """Balanced gravity's coefficients are integrals over the whole mesh (not sampled yet); a
-    training without a loaded state has no force to reproduce."""
-    from lungmech.lung.gravity import Gravity
-
+def test_ecsw_refuses_a_training_without_load(trained):
+    """A training without a loaded state has no force to reproduce."""
     basis, _ = trained
-    geometry = box(MPI.COMM_WORLD, lengths=(3.0, 1.0, 1.0), cells=(12, 4, 4))
-    weighed = Model(
-        geometry,
-        NeoHookean.from_young(10.0, 0.3),
-        constraints=[clamp("x0")],
-        loads=[Gravity(1.0, (0.0, 0.0, -1.0), balanced_on=("x1", "y0", "y1", "z0", "z1"))],
-    )
-    with pytest.raises(ParameterError, match="does not reduce state-dependent loads"):
-        HyperReducedSolver(weighed, basis, Sample.every_cell(WeightedForms(weighed)))
     resting = block()
     training = Training(resting, basis.vectors)
     assert not training.add()  # at rest: no reduced force
@@ -176,7 +164,7 @@ def test_a_sample_exports_by_input_cell_and_places_back(trained):
         assert np.array_equal(placed.cells[family], sample.cells[family])
         assert np.array_equal(placed.weights[family], sample.weights[family])
     small = box(MPI.COMM_WORLD, cells=(1, 1, 1)).mesh
-    with pytest.raises(ParameterError, match="sample .internal integrals. names input cells this mesh does not have"):
+    with pytest.raises(ParameterError, match=r"sample \(\w+ integrals\) names input cells this mesh does not have"):
         Sample.place(small, data, 1e-4)
 
 

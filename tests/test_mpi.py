@@ -703,3 +703,11 @@ def test_hyper_reduced_sensitivities_on_two_ranks():
     from test_hyper_reduced import assert_sensitivities_of_own_answer
 
     assert_sensitivities_of_own_answer(MPI.COMM_WORLD)
+
+
+def test_hyper_reduced_balanced_gravity_on_two_ranks():
+    """Balanced gravity hyper-reduced on 2 ranks: the sampled response and the exact moments
+    give the Galerkin model's answer within a few τ, with an exact tangent."""
+    from test_hyper_reduced import assert_balanced_gravity_reduces
+
+    assert_balanced_gravity_reduces(MPI.COMM_WORLD)

@@ -125,11 +125,6 @@ def _build(
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm)
-    if hyper is not None and model.state_dependent:
-        raise ParameterError(
-            "--hyper ecsw: this scene has balanced gravity, whose coefficients are integrals over the whole "
-            "mesh; ECSW does not reduce it yet (build without --hyper)"
-        )
     where = layout(model.space)  # its dof order stays valid when [inverse] moves the nodes
     node_space, node_order = nodes.displacement_space(model.geometry.mesh)
     solver = NewtonSolver(model, scene.newton)

@@ -35,11 +35,20 @@ class StateDependentWork(NamedTuple):
     ``update()`` sets θ = Θ(u) for the model's current state; ``linearise()`` returns, at that
     state, the columns ∂W/∂θ_j and dΘ_j/du (owned dofs of the model's space), so that the
     tangent of −W(u, Θ(u)) is the frozen-θ tangent plus −(∂W/∂θ)(dΘ/du), a low-rank term.
+
+    ``integrals`` names the integrals Θ is computed from
+    (:class:`lungmech.fem.state_dependent.Integral`), and ``bind(integration)`` gives an object
+    with the same ``update()`` and ``linearise()``, and ``rounding()`` (the size of θ's rounding
+    errors), with every integral and column evaluated by ``integration``
+    (:class:`lungmech.fem.state_dependent.Integration`): a hyper-reduced model evaluates them from
+    its reduced coordinates and its sample instead of the whole mesh.
     """
 
     form: ufl.Form
     update: Callable[[], None]
     linearise: Callable[[], tuple[np.ndarray, np.ndarray]]
+    integrals: dict = {}
+    bind: Callable | None = None
 
 
 class Named:

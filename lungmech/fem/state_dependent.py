@@ -16,9 +16,58 @@ i.e. m + 1 solves with the one factorisation; a Krylov solver applies J itself i
 
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
 
+import numpy as np
+import ufl
+from dolfinx import fem
+
+from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.parallel.linalg import gram
+
+
+@dataclass(frozen=True)
+class Integral:
+    """An integral a state-dependent load's coefficients are computed from: ∫ ``expr`` over
+    ``measure`` (any value shape). ``affine``: affine in the state (e.g. the first moment of
+    mass, ∫ρ₀ x dX with x = X + u), which a reduced model evaluates exactly."""
+
+    expr: ufl.core.expr.Expr
+    measure: ufl.Measure
+    affine: bool = False
+
+
+class Integration(Protocol):
+    """How a state-dependent load evaluates what its coefficients need (collective calls)."""
+
+    def vector(self, name: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
+        """∫ ``expr`` over ``measure``: the integral ``name`` (one of the load's ``integrals``) or
+        a derivative of it with respect to a coefficient."""
+        ...
+
+    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
+        """A linear ``form`` in the model's test function, as a column of the solver's unknowns:
+        the derivative with respect to the state of the integral ``name``, or, for ``name`` =
+        "residual", of the load's own virtual work."""
+        ...
+
+
+class FullIntegration:
+    """Integrals over the whole mesh, columns as the owned dofs of the model's space."""
+
+    def __init__(self, model):
+        self.mesh, space = model.geometry.mesh, model.space
+        self._vector = fem.Function(space).x
+        self._owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+
+    def vector(self, name: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
+        return vector_integral(expr, measure, self.mesh)
+
+    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
+        compiled = fem.form(form)
+        return lambda: assemble_owned(compiled, self._vector, self._owned)
 
 
 class StateDependent:

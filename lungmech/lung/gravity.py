@@ -35,8 +35,8 @@ from ufl.core.expr import Expr
 from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import Named, StateDependentWork
-from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.fem.ramp import Ramp
+from lungmech.fem.state_dependent import FullIntegration, Integral, Integration
 
 
 def _quadratic_basis(y: Expr) -> list[Expr]:
@@ -100,12 +100,14 @@ class Gravity(Named):
                 "gravity: balanced_on is for 3-D bodies; in 2-D the weight is carried where it is held"
             )
         pressure = _BalancingPressure(self, model, v, value)
-        return StateDependentWork(pressure.form, pressure.update, pressure.linearise)
+        full = pressure.bind(FullIntegration(model))
+        return StateDependentWork(pressure.form, full.update, full.linearise, pressure.integrals, pressure.bind)
 
 
 class _BalancingPressure:
     """The balancing pressure q = Σ c_k φ_k((x − x_G)/L) on the balanced boundaries: its virtual
-    work, its coefficients θ = (x_G, c) = Θ(u) and their derivatives.
+    work, and the integrals its coefficients θ = (x_G, c) = Θ(u) and their derivatives come from
+    (:meth:`bind` evaluates them on the whole mesh, or on a hyper-reduced model's sample).
 
     Θ is defined by x_G = ∫ρ0 x dX / ∫ρ0 dX and the least-correction conditions
 
@@ -121,7 +123,7 @@ class _BalancingPressure:
     def __init__(self, gravity: Gravity, model, v: Expr, value: Expr):
         geometry = model.geometry
         mesh = geometry.mesh
-        self.value, self.space = value, model.space
+        self.value = value
         # A Constant, not a literal: a new mesh (a new patient) reuses the compiled forms.
         length = fem.Constant(mesh, geometry.size)
         self.centre = fem.Constant(mesh, np.zeros(3))
@@ -133,41 +135,37 @@ class _BalancingPressure:
         q = ufl.dot(self.coefficients, basis)
         F = model.F
         n_da = ufl.det(F) * ufl.inv(F).T * ufl.FacetNormal(mesh)  # Nanson: current n da on the reference
-        surface = geometry.ds(gravity.balanced_on)
+        self.surface = surface = geometry.ds(gravity.balanced_on)
         self.form = -q * ufl.dot(n_da, v) * surface
 
-        # A: resultant force and moment (about x_G) of −φ_k n da for each basis pressure φ_k.
+        # A: resultant force and moment (about x_G) of −φ_k n da for each basis pressure φ_k;
+        # [mass, first moment]: recomputed with the rest, as the reference itself may move (inverse problem)
         response = ufl.as_matrix(
             [[-basis[k] * n_da[i] for k in range(9)] for i in range(3)]
             + [[-basis[k] * ufl.cross(y, n_da)[i] for k in range(9)] for i in range(3)]
         )
-        self._response = vector_integral(response, surface, mesh)
-        # [mass, first moment]: recomputed with the rest, as the reference itself may move (inverse problem)
-        self._moments = vector_integral(gravity.density * ufl.as_vector([1, *x]), model.dx, mesh)
-
+        self.integrals = {
+            "moments": Integral(gravity.density * ufl.as_vector([1, *x]), model.dx, affine=True),
+            "response": Integral(response, surface),
+        }
         w = ufl.TestFunction(model.space)
         # ∂W/∂θ · (d, a), W the virtual work above
-        self._direction = fem.Constant(mesh, np.zeros(3)), fem.Constant(mesh, np.zeros(9))
-        d, a = self._direction
-        self._work_derivative = fem.form(
-            -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
-        )
+        self.direction = fem.Constant(mesh, np.zeros(3)), fem.Constant(mesh, np.zeros(9))
+        d, a = self.direction
+        self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
         # Σ T_ik A_ik and its derivatives in u (a vector) and in x_G (three numbers)
-        self._weights = fem.Constant(mesh, np.zeros((6, 9)))
-        contraction = ufl.inner(self._weights, response)
-        self._contraction_u = fem.form(ufl.derivative(contraction * surface, model.state, w))
-        self._contraction_centre = vector_integral(ufl.diff(contraction, centre), surface, mesh)
-        # ∂(∫ρ0 x dX)/∂u · e
-        self._axis = fem.Constant(mesh, np.zeros(3))
-        self._first_moment_u = fem.form(
-            ufl.derivative(gravity.density * ufl.dot(self._axis, x) * model.dx, model.state, w)
-        )
-        self._vector = fem.Function(model.space).x
+        self.weights = fem.Constant(mesh, np.zeros((6, 9)))
+        contraction = ufl.inner(self.weights, response)
+        self.contraction_u = ufl.derivative(contraction * surface, model.state, w)
+        self.contraction_centre = ufl.diff(contraction, centre)
+        # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
+        self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
 
         # Can these boundaries balance a weight along g at all? Checked once, on the reference.
-        mass, first_moment = np.split(self._moments(), [1])
+        full = FullIntegration(model)
+        mass, first_moment = np.split(full.vector("moments", *self._integral("moments"))(), [1])
         self.centre.value = first_moment / mass
-        A = self._response()
+        A = full.vector("response", *self._integral("response"))()
         target = np.concatenate([-mass * np.asarray(gravity.acceleration, dtype=float), np.zeros(3)])
         if np.linalg.norm(A @ _least_correction(A, target)[0] - target) > 1e-8 * np.linalg.norm(target):
             raise ParameterError(
@@ -175,43 +173,68 @@ class _BalancingPressure:
                 "and moment; name the boundaries that surround the body (e.g. pleura, diaphragm, mediastinum)"
             )
 
+    def _integral(self, name: str) -> tuple[Expr, ufl.Measure]:
+        return self.integrals[name].expr, self.integrals[name].measure
+
+    def bind(self, integration: Integration) -> _Balance:
+        """θ = Θ(u) and its linearisation, with every integral evaluated by ``integration``."""
+        return _Balance(self, integration)
+
+
+class _Balance:
+    """Θ and dΘ/du of one balancing pressure, its integrals evaluated by one integration."""
+
+    def __init__(self, pressure: _BalancingPressure, integration: Integration):
+        self.pressure = p = pressure
+        self._moments = integration.vector("moments", *p._integral("moments"))
+        self._response = integration.vector("response", *p._integral("response"))
+        self._work_derivative = integration.column("residual", p.work_derivative)
+        self._contraction_u = integration.column("response", p.contraction_u)
+        self._contraction_centre = integration.vector("response", p.contraction_centre, p.surface)
+        self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
+
     def update(self) -> None:
         """θ ← Θ(u): the centre of mass and the least correction balancing the current weight."""
+        p = self.pressure
         mass, first_moment = np.split(self._moments(), [1])
         self.mass = float(mass[0])
-        self.centre.value = first_moment / mass  # the response is measured about the new centre
+        p.centre.value = first_moment / mass  # the response is measured about the new centre
         self._A = self._response()
-        weight = mass * np.asarray(self.value.value, dtype=float)
+        weight = mass * np.asarray(p.value.value, dtype=float)
         # The pressure's force cancels the weight; its moment about x_G is zero, like the weight's.
-        self.coefficients.value, self._multipliers, self._kkt_inverse = _least_correction(
+        p.coefficients.value, self._multipliers, self._kkt_inverse = _least_correction(
             self._A, np.concatenate([-weight, np.zeros(3)])
         )
 
     def linearise(self) -> tuple[np.ndarray, np.ndarray]:
-        """(∂W/∂θ, dΘ/du) at the current state (after :meth:`update`), as owned-dof columns."""
-        d, a = self._direction
+        """(∂W/∂θ, dΘ/du) at the current state (after :meth:`update`), as columns of the
+        integration's unknowns."""
+        p = self.pressure
+        d, a = p.direction
         work = []
         for k in range(12):
             d.value, a.value = np.eye(12)[k, :3], np.eye(12)[k, 3:]
-            work.append(self._assemble(self._work_derivative))
+            work.append(self._work_derivative())
         d.value, a.value = np.zeros(3), np.zeros(9)
-        centre = []  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
-        for axis in np.eye(3):
-            self._axis.value = axis
-            centre.append(self._assemble(self._first_moment_u) / self.mass)
-        Q, c, lam = self._kkt_inverse[:9], self.coefficients.value, self._multipliers
+        centre = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
+        Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         coefficients = []
         for j in range(9):
-            self._weights.value = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
-            row = self._assemble(self._contraction_u) + sum(
-                g * dxg for g, dxg in zip(self._contraction_centre(), centre)
-            )
+            p.weights.value = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
+            row = self._contraction_u() + sum(g * dxg for g, dxg in zip(self._contraction_centre(), centre))
             coefficients.append(-row)
         return np.column_stack(work), np.column_stack(centre + coefficients)
 
-    def _assemble(self, form) -> np.ndarray:
-        index_map = self.space.dofmap.index_map
-        return assemble_owned(form, self._vector, index_map.size_local * self.space.dofmap.index_map_bs)
+    def rounding(self) -> np.ndarray:
+        """The size of θ's rounding errors (after :meth:`update`): ε |x_G| for the centre, and
+        ε κ |c| for the coefficients, κ the condition number of the KKT system they solve."""
+        p = self.pressure
+        kkt = np.block([[_NORM, self._A.T], [self._A, np.zeros((6, 6))]])
+        condition = np.linalg.norm(kkt, 2) * np.linalg.norm(self._kkt_inverse, 2)
+        eps = np.finfo(float).eps
+        return np.concatenate(
+            [eps * np.abs(p.centre.value), np.full(9, eps * condition * np.abs(p.coefficients.value).max())]
+        )
 
 
 def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,6 +23,12 @@ that are positive keep the reduced tangent a positively weighted sum of cell tan
 hyper-reduced model of a stable, conservative full model stays stable and conservative (the
 "energy-conserving" of the name).
 
+A load whose coefficients are global functionals of the state (balanced gravity, see
+:mod:`lungmech.fem.state_dependent`) declares the integrals they come from: the affine ones are
+evaluated exactly from (q, imposed factors), the others are sampled like functionals (vector
+valued: the pressure's 54 response entries per training state), and its rank-12 tangent term
+comes from the same samples (:class:`_SampledIntegration`).
+
 The weights enter the forms as piecewise-constant (DG0) fields, one per family (an exterior
 facet has one cell, whose weight it takes): the same
 forms give the Galerkin reduced model (all weights 1), the training matrix G (their derivative
@@ -50,11 +56,14 @@ from petsc4py import PETSc
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
+from lungmech.fem.quantities import vector_integral
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
+from lungmech.fem.state_dependent import FullIntegration, StateDependent
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import inner_product, origin, reference_state
 from lungmech.rom.galerkin import check_basis, newton
+from lungmech.rom.outputs import affine, imposed_directions
 from lungmech.rom.reduced_mesh import ReducedMesh
 
 __all__ = [
@@ -97,7 +106,16 @@ class WeightedForms:
                 f"ECSW samples cell and exterior-facet integrals; this residual also has {sorted(unsupported)}"
             )
         self.space = space = fem.functionspace(model.geometry.mesh, ("DG", 0))
-        self.weights = {name: fem.Function(space, name=f"{name}_weight") for name in (*FAMILIES, *FUNCTIONALS)}
+        # the integrals state-dependent loads compute their coefficients from (balanced gravity:
+        # the pressure's response), but the affine ones, which a reduced model evaluates exactly
+        self.integrals = {
+            f"load{index}_{name}": integral
+            for index, term in enumerate(model.state_dependent)
+            for name, integral in term.integrals.items()
+            if not integral.affine
+        }
+        names = (*FAMILIES, *FUNCTIONALS, *self.integrals)
+        self.weights = {name: fem.Function(space, name=f"{name}_weight") for name in names}
         for weight in self.weights.values():
             weight.x.array[:] = 1.0
         self.families = tuple(family for family, integrals in parts.items() if integrals)
@@ -117,8 +135,25 @@ class WeightedForms:
 
     @property
     def sampled(self) -> tuple[str, ...]:
-        """Every family and functional that gets a sample."""
-        return (*self.families, *self.functionals)
+        """Every family, functional and state-dependent load's integral that gets a sample."""
+        return (*self.families, *self.functionals, *self.integrals)
+
+    def cell_values(self, name: str) -> tuple[ufl.Form, fem.FunctionSpace]:
+        """A form whose assembled vector holds each cell's contribution to the integral ``name``
+        (its entries flattened: a DG0 field with as many components), and its space."""
+        integral = self.integrals[name]
+        flat = _flat(integral.expr)
+        mesh = self.space.mesh
+        space = fem.functionspace(mesh, ("DG", 0, (flat.ufl_shape[0],)))
+        return ufl.inner(flat, ufl.TestFunction(space)) * integral.measure, space
+
+
+def _flat(expr) -> ufl.core.expr.Expr:
+    """A vector of the entries of a scalar, vector or tensor expression."""
+    shape = expr.ufl_shape
+    if len(shape) == 1:
+        return expr
+    return ufl.as_vector([expr[index] for index in np.ndindex(shape)] if shape else [expr])
 
 
 def _integrals(form: ufl.Form, kind: str) -> list:
@@ -136,11 +171,16 @@ class Training:
     """
 
     def __init__(self, model, V: np.ndarray):
-        _refuse_state_dependent(model)
         self.model, self.V = model, np.ascontiguousarray(V)
         self.forms = WeightedForms(model)
         self.comm = model.geometry.mesh.comm
-        self._compiled = {name: fem.form(self.forms.contribution(name)) for name in self.forms.sampled}
+        self._state_dependent = StateDependent(model)
+        self._integrals = {}
+        for name in self.forms.integrals:
+            form, space = self.forms.cell_values(name)
+            self._integrals[name] = (fem.form(form), fem.Function(space).x, space.dofmap.index_map_bs)
+        names = (*self.forms.families, *self.forms.functionals)
+        self._compiled = {name: fem.form(self.forms.contribution(name)) for name in names}
         self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         self.cells = self.forms.space.dofmap.index_map.size_local
         self.blocks: dict[str, list[np.ndarray]] = {name: [] for name in self.forms.sampled}
@@ -149,7 +189,13 @@ class Training:
 
     def add(self) -> bool:
         """Add the model's current state (True), or skip it when its reduced force is 0 (False)."""
+        self._state_dependent.update()  # θ = Θ(x) of this state, as a solve would have it
         local = {}
+        for name, (form, vector, size) in self._integrals.items():  # each cell's entries of the integral
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, form)
+            vector.scatter_reverse(la.InsertMode.add)  # a facet's contribution to its cell's owner
+            local[name] = vector.array[: self.cells * size].reshape(self.cells, size).T.copy()
         for name in self.forms.functionals:  # a DG0 vector: entry e is cell e's integral
             local[name] = fem.assemble_vector(self._compiled[name]).array[None, : self.cells].copy()
         for family in self.forms.families:
@@ -292,9 +338,7 @@ class Sample:
         original = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[:owned]
         local = np.argsort(original)
         cells, weights = {}, {}
-        for family in (*FAMILIES, *FUNCTIONALS):
-            if f"{family}_cells" not in data:
-                continue
+        for family in sorted(name[: -len("_cells")] for name in data if name.endswith("_cells")):
             wanted, given = np.asarray(data[f"{family}_cells"]), np.asarray(data[f"{family}_weights"])
             found = np.isin(wanted, original)
             if mesh.comm.allreduce(int(found.sum()), op=MPI.SUM) != len(wanted):
@@ -380,7 +424,6 @@ class HyperReducedSolver:
     ``start`` is the full state the basis is relative to (default: the unloaded state)."""
 
     def __init__(self, model, basis, sample: Sample, options=None, start: np.ndarray | None = None):
-        _refuse_state_dependent(model)
         check_basis(model, basis)
         self.model, self.basis, self.sample = model, basis, sample
         self.options = options or NewtonOptions()
@@ -421,9 +464,20 @@ class HyperReducedSolver:
         self.inversion = Inversion(model, smallest(jacobians, self.comm))
         self._magnitude = _displacement_magnitude(model, reduced)
         self.coordinates = np.zeros(basis.size)  # at the start state (set_state(project()) follows a moved model)
+        self._q = self.coordinates.copy()  # where the reduced mesh's state is
+        self._works: list[np.ndarray] = []  # Vᵀ ∂W/∂θ of each state-dependent load, at the last tangent
+        # state-dependent loads (balanced gravity): their coefficients from affine integrals in
+        # z = (q, imposed factors), exactly, and from the others' samples on the reduced mesh
+        self._coupled = []
+        if model.state_dependent:
+            start_state, imposed, self._constraints = imposed_directions(model, self.reference)
+            self._affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
+            for index, term in enumerate(model.state_dependent):
+                self._coupled.append(term.bind(_SampledIntegration(self, index, term.integrals)))
         self.description = (
             f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
-            + ", ".join(f"{n} {family} samples" for family, n in sample.count(self.comm).items())
+            + ", ".join(f"{n} {family.replace('_', ' ')}" for family, n in sample.count(self.comm).items())
+            + " sampled cells"
         )
         self.iterations_total = 0
 
@@ -551,7 +605,12 @@ class HyperReducedSolver:
 
     def _set(self, q: np.ndarray) -> None:
         """The reduced mesh's state x₀ + V q, x₀ at the loads of the last :meth:`_at_loads`."""
+        self._q = np.array(q, dtype=float)
         self.mesh.state.x.array[:] = self._origin + self.V @ q
+
+    def _z(self) -> np.ndarray:
+        """z = (q, imposed factors) of the reduced mesh's state."""
+        return np.concatenate([self._q, self.model.imposed_amplitudes()[self._constraints]])
 
     def _at(self, q: np.ndarray) -> None:
         """The reduced mesh's state x₀ + V q at the current loads (outside a solve, where they may
@@ -560,25 +619,80 @@ class HyperReducedSolver:
         self._set(q)
 
     def reduced_residual(self, q: np.ndarray) -> np.ndarray:
-        """Σ_e ξ_e Vᵀ r_e(x₀ + V q) over the sample (sets the reduced mesh's state)."""
+        """Σ_e ξ_e Vᵀ r_e(x₀ + V q) over the sample (sets the reduced mesh's state); state-dependent
+        loads with θ = Θ(q), balanced exactly at every iterate."""
         self._set(q)
+        for term in self._coupled:
+            term.update()
         b = self._vector.array
         b[:] = 0.0
         fem.assemble_vector(b, self._residual)
         return gram(self.V, b[:, None], self.comm)[:, 0]
 
     def reduced_jacobian(self) -> np.ndarray:
-        """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state."""
+        """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state, plus the state-dependent loads' low-rank
+        term −(Vᵀ ∂W/∂θ)(Vᵀ dΘ/du)ᵀ (:mod:`lungmech.fem.state_dependent`)."""
         self._matrix.set_value(0.0)
         fem.assemble_matrix(self._matrix, self._jacobian)
-        return gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
+        reduced = gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
+        self._works = []
+        for term in self._coupled:
+            work, gradient = term.linearise()
+            reduced -= work @ gradient.T
+            self._works.append(work)
+        return reduced
+
+    def sampled_vector(self, family: str, expr, measure) -> Callable[[], np.ndarray]:
+        """Σ_e ξ_e ∫_e ``expr`` over the sample of ``family`` (any value shape), on the reduced
+        mesh at its state (collective)."""
+        flat = _flat(expr)
+        size = flat.ufl_shape[0]
+        space = fem.functionspace(self.mesh.mesh, ("DG", 0, (size,)))
+        form = ufl.inner(self._weights.weights[family] * flat, ufl.TestFunction(space)) * measure
+        compiled = self.mesh.form(_over(form, self.model.geometry.mesh, self.sample.cells.get(family, _NONE)))
+        vector = fem.Function(space).x
+
+        def evaluate() -> np.ndarray:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled)
+            total = np.empty(size)
+            self.comm.Allreduce(vector.array.reshape(-1, size).sum(axis=0), total, op=MPI.SUM)
+            return total.reshape(expr.ufl_shape)
+
+        return evaluate
+
+    def sampled_column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
+        """Vᵀ b of a linear ``form`` (in the model's test function) over the samples: each
+        integral over the sample of ``families[its type]``, with its weights (collective)."""
+        mesh = self.model.geometry.mesh
+        weighted: dict[str, list] = {}  # by family: one restricted tag set per integral type
+        for integral in form.integrals():
+            family = families[integral.integral_type()]
+            integrand = self._weights.weights[family] * integral.integrand()
+            weighted.setdefault(family, []).append(integral.reconstruct(integrand=integrand))
+        integrals = [
+            restricted
+            for family, parts in weighted.items()
+            for restricted in _over(ufl.Form(parts), mesh, self.sample.cells.get(family, _NONE)).integrals()
+        ]
+        compiled = self.mesh.form(ufl.Form(integrals))
+        vector = fem.Function(self.mesh.space).x
+
+        def evaluate() -> np.ndarray:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled)
+            return gram(self.V, vector.array[:, None], self.comm)[:, 0]
+
+        return evaluate
 
     def floor(self) -> float:
         """‖|V|ᵀ ε|K|s‖, s = |x| + h on the displacement: the round-off floor of the reduced
         residual (see :mod:`lungmech.fem.convergence`), at the last tangent's state."""
         s = np.abs(self.mesh.state.x.array) + self._magnitude
         rounding = EPS * (abs(self._tangent) @ self._on_columns(s))
-        return float(np.linalg.norm(gram(np.abs(self._row_basis), rounding[:, None], self.comm)))
+        floor = float(np.linalg.norm(gram(np.abs(self._row_basis), rounding[:, None], self.comm)))
+        # and that of state-dependent coefficients θ (balanced gravity: a KKT solve), through ∂r/∂θ
+        return floor + sum(float(np.linalg.norm(np.abs(w) @ t.rounding())) for w, t in zip(self._works, self._coupled))
 
     @functools.cached_property
     def residual_form(self):
@@ -643,14 +757,6 @@ def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
     return gram(dual, x[:, None], model.geometry.mesh.comm)[:, 0]
 
 
-def _refuse_state_dependent(model) -> None:
-    if model.state_dependent:
-        raise ParameterError(
-            "ECSW does not reduce state-dependent loads (balanced gravity) yet: their coefficients "
-            "are integrals over the whole mesh"
-        )
-
-
 def _restricted(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
     """The weighted residual with each family's integrals over its sampled cells only (boundary
     loads: over the sampled cells' facets, their boundary tags kept). The cells of the two cell
@@ -679,11 +785,61 @@ def _restricted(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
     return ufl.Form(integrals)
 
 
+_NONE = np.zeros(0, np.int32)
+
+
 def _sampled(functional: ufl.Form, mesh, cells: np.ndarray) -> ufl.Form:
     """A weighted functional's cell integrals over ``cells`` only."""
+    return _over(functional, mesh, cells)
+
+
+def _over(form: ufl.Form, mesh, cells: np.ndarray) -> ufl.Form:
+    """``form``'s cell integrals over ``cells`` only, its exterior-facet integrals over their
+    facets (their boundary tags kept)."""
     cells = np.unique(cells).astype(np.int32)
     tags = dmesh.meshtags(mesh, mesh.topology.dim, cells, np.ones(len(cells), dtype=np.int32))
-    return ufl.Form([i.reconstruct(subdomain_id=1, subdomain_data=tags) for i in functional.integrals()])
+    integrals, facet_tags = [], {}  # one restricted tag set per boundary tag set: DOLFINx wants one per type
+    for integral in form.integrals():
+        if integral.integral_type() == "cell":
+            integrals.append(integral.reconstruct(subdomain_id=1, subdomain_data=tags))
+            continue
+        boundary = integral.subdomain_data()
+        if boundary is None:
+            raise ParameterError("ECSW samples boundary integrals over named (tagged) boundaries only")
+        if id(boundary) not in facet_tags:
+            facet_tags[id(boundary)] = _facets_of(mesh, boundary, cells)
+        integrals.append(integral.reconstruct(subdomain_data=facet_tags[id(boundary)]))
+    return ufl.Form(integrals)
+
+
+class _SampledIntegration:
+    """The integrals of state-dependent load ``index`` on a hyper-reduced solver
+    (:class:`~lungmech.fem.state_dependent.Integration`): the affine ones exactly in z = (q,
+    imposed factors), from k + 2 full evaluations offline; the others over their ECSW sample on
+    the reduced mesh; columns as Vᵀ b, over the sample of the integral they derive from (the
+    load's own work: the load families')."""
+
+    def __init__(self, solver: HyperReducedSolver, index: int, integrals: dict):
+        self.solver, self.index, self.integrals = solver, index, integrals
+
+    def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
+        solver = self.solver
+        if not self.integrals[name].affine:
+            return solver.sampled_vector(f"load{self.index}_{name}", expr, measure)
+        model = solver.model
+        f0, F1 = affine(model, vector_integral(expr, measure, model.geometry.mesh), *solver._affine_basis)
+        return lambda: (f0 + F1 @ solver._z()).reshape(expr.ufl_shape)
+
+    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
+        solver = self.solver
+        if name == "residual":
+            return solver.sampled_column(form, {"cell": "cell_load", "exterior_facet": "boundary_load"})
+        if not self.integrals[name].affine:
+            family = f"load{self.index}_{name}"
+            return solver.sampled_column(form, {"cell": family, "exterior_facet": family})
+        # the derivative of an affine integral is a constant: once, on the whole mesh
+        constant = gram(solver.basis.vectors, FullIntegration(solver.model).column(name, form)()[:, None], solver.comm)
+        return lambda: constant[:, 0]
 
 
 def _facets_of(mesh, tags, cells: np.ndarray):

@@ -21,6 +21,7 @@ imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` foll
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +35,7 @@ from lungmech.fem.quantities import Probe, assemble_owned
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import origin
 
-__all__ = ["Cubic", "ReducedOutputs", "cubic", "imposed_directions"]
+__all__ = ["Cubic", "ReducedOutputs", "affine", "cubic", "imposed_directions"]
 
 
 @dataclass(frozen=True)
@@ -92,10 +93,7 @@ def cubic(model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray
             at(np.eye(size)[i])
             c3[i] = projected_hessian() - c2
         result = Cubic(c0, c1, c2, c3)
-        # a check at a random z of moderate size (every direction moves the body by ~10 %)
-        largest = np.empty(size)
-        comm.Allreduce(np.abs(directions).max(axis=0, initial=0.0), largest, op=MPI.MAX)  # the same z on every rank
-        z = np.random.default_rng(0).uniform(-0.1, 0.1, size) / np.where(largest > 0, largest, 1.0)
+        z = _test_point(directions, comm)
         at(z)
         exact = value()
     off = comm.allreduce(abs(result(z) - exact), op=MPI.MAX)  # one decision for all ranks
@@ -105,6 +103,38 @@ def cubic(model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray
             "point): it cannot be reduced exactly"
         )
     return result
+
+
+def affine(
+    model, evaluate: Callable[[], np.ndarray], start: np.ndarray, directions: np.ndarray, check: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """(f₀, F₁) with f(start + Z z) = f₀ + F₁ z for a vector functional ``evaluate()`` of the
+    model's state that is affine in it (e.g. ∫ρ₀ x dX): k + 2 evaluations, the last a check at
+    a random z (a functional that is not affine is an error). Collective; the state is kept."""
+    state, comm = model.state, model.geometry.mesh.comm
+    owned, size = directions.shape
+
+    def at(z: np.ndarray) -> np.ndarray:
+        state.x.array[:] = start
+        state.x.array[:owned] += directions @ z
+        state.x.scatter_forward()
+        return np.asarray(evaluate(), dtype=float).reshape(-1)
+
+    with model.kept_state():
+        f0 = at(np.zeros(size))
+        F1 = np.column_stack([at(unit) - f0 for unit in np.eye(size)]) if size else np.zeros((f0.size, 0))
+        z = _test_point(directions, comm)
+        off = np.abs(at(z) - (f0 + F1 @ z)).max(initial=0.0)
+    if off > check * max(np.abs(f0).max(initial=0.0), np.finfo(float).tiny):
+        raise ParameterError(f"this functional is not affine in the state (off by {off:.2e} at a test point)")
+    return f0, F1
+
+
+def _test_point(directions: np.ndarray, comm) -> np.ndarray:
+    """A random z of moderate size, the same on every rank: each direction moves the body ~10 %."""
+    largest = np.empty(directions.shape[1])
+    comm.Allreduce(np.abs(directions).max(axis=0, initial=0.0), largest, op=MPI.MAX)
+    return np.random.default_rng(0).uniform(-0.1, 0.1, directions.shape[1]) / np.where(largest > 0, largest, 1.0)
 
 
 def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -71,9 +71,11 @@ class ReducedMesh:
 
     def form(self, form: ufl.Form) -> fem.Form:
         """``form`` (in the model's state, test and trial functions; integrals over the sampled
-        cells) compiled with them on the submesh."""
+        cells) compiled with them on the submesh. Arguments of other spaces (already on the
+        submesh) stay."""
         expanded = expand_derivatives(form)
         mapping = {self.model.state: self.state}
         for argument in expanded.arguments():
-            mapping[argument] = ufl.Argument(self.space, argument.number(), argument.part())
+            if argument.ufl_function_space() == self.model.space:
+                mapping[argument] = ufl.Argument(self.space, argument.number(), argument.part())
         return fem.form(ufl.replace(expanded, mapping), entity_maps=[self.entity_map])
