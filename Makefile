@@ -7,7 +7,7 @@ PY      := $(VENV)/bin/python
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
 
-.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml
 	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
@@ -36,6 +36,10 @@ bench: $(STAMP)
 
 bench-rom: $(STAMP)
 	$(PY) benchmarks/rom.py
+
+bench-ecsw: $(STAMP)
+	$(PY) benchmarks/ecsw_block.py
+	$(PY) benchmarks/ecsw_lung.py
 
 bench-registration: $(STAMP)
 	$(PY) benchmarks/registration.py

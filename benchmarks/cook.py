@@ -35,7 +35,7 @@ from lungmech.mesh import cook_membrane
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from machine import cpu_and_memory, write_results  # noqa: E402
+from machine import provenance, write_results  # noqa: E402
 
 REFERENCE = 6.91  # m: v(48, 60) on very fine meshes (VERIFICATION.md)
 E, NU, FORCE = 240.565, 0.4999, 100.0  # Pa, 1, N per metre of thickness over the 16 m edge
@@ -81,13 +81,10 @@ def case(name: str, cells: int) -> dict:
 
 
 def markdown(rows: list[dict], command: str) -> str:
-    import dolfinx  # after lungmech, which loads the MPI library its bindings need
-
-    cpu, memory = cpu_and_memory()
     lines = [
         "# Cook's membrane, nearly incompressible (ν = 0.4999), plane strain",
         "",
-        f"`{command}` — {time.strftime('%Y-%m-%d')}, {cpu}, {memory}, DOLFINx {dolfinx.__version__}, one rank. "
+        f"{provenance(command)} "
         "Default solver (MUMPS LU, `cp` line search, rtol 1e-10) and automatic stepping. Newton iterations "
         "count every attempt, failed steps included, and each linear predictor solve as one.",
         "",

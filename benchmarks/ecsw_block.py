@@ -18,8 +18,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import matplotlib
 import numpy as np
+from machine import provenance, time_against_dofs, write_results  # noqa: E402
 from mpi4py import MPI
 
 from lungmech import rom
@@ -30,10 +30,6 @@ from lungmech.fem.model import Model
 from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.mesh import box
 from lungmech.rom.ecsw import FAMILIES, HyperReducedSolver, Training
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from machine import cpu_and_memory, write_results  # noqa: E402
 
 TRAINING, UNSEEN, TOLERANCE, SIZE = (0.2, 0.4, 0.6), 0.3, 1e-4, 6
 MESHES = (4, 8, 12)  # n: 3n × n × n boxes of 6 tetrahedra each
@@ -135,14 +131,10 @@ def sampled(row: dict, prefix: str) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    import dolfinx  # after lungmech, which loads the MPI library its bindings need
-
-    cpu, memory = cpu_and_memory()
     lines = [
         "# ECSW against the Galerkin ROM and the full model (neo-Hookean block)",
         "",
-        f"`python benchmarks/ecsw_block.py` — {time.strftime('%Y-%m-%d')}, {cpu}, {memory}, "
-        f"DOLFINx {dolfinx.__version__}, one rank. POD of {SIZE} vectors, ECSW at τ = {TOLERANCE:g}; online: "
+        f"{provenance('python benchmarks/ecsw_block.py')} POD of {SIZE} vectors, ECSW at τ = {TOLERANCE:g}; online: "
         f"the unseen load factor {UNSEEN} along the same steps, best of three warm runs.",
         "",
         "| dofs | cells | full [ms] | Galerkin [ms] | ECSW: sampled cells (internal / weight / boundary) | [ms] | "
@@ -163,26 +155,6 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join([*lines, "", READING]) + "\n"
 
 
-def plot(rows: list[dict], path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(8.5, 4.2))
-    dofs = [r["dofs"] for r in rows]
-    for name, label in (
-        ("full", "full model"),
-        ("galerkin", "Galerkin ROM"),
-        ("ecsw", "ECSW on converged states, τ = 1e-4"),
-        ("ecsw_iterates", "ECSW on Newton iterates, τ = 1e-4"),
-    ):
-        ax.loglog(dofs, [r[f"{name}_ms"] for r in rows], "o-", label=label)
-    ax.set_xlabel("degrees of freedom [-]")
-    ax.set_ylabel("online time for the load path [ms]")
-    ax.set_title("Neo-Hookean block, unseen load: online time")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def main() -> None:
     rows = []
     for n in MESHES:
@@ -192,7 +164,18 @@ def main() -> None:
             f"{r['dofs']} dofs: full {r['full_ms']:.0f} ms, Galerkin {r['galerkin_ms']:.0f} ms, ECSW {r['ecsw_ms']:.1f} ms"
         )
     write_results(RESULTS, "ecsw_block", rows, markdown(rows))
-    plot(rows, RESULTS / "ecsw_block.png")
+    time_against_dofs(
+        rows,
+        [
+            ("full_ms", "full model"),
+            ("galerkin_ms", "Galerkin ROM"),
+            ("ecsw_ms", f"ECSW on converged states, τ = {TOLERANCE:g}"),
+            ("ecsw_iterates_ms", f"ECSW on Newton iterates, τ = {TOLERANCE:g}"),
+        ],
+        "online time for the load path [ms]",
+        "Neo-Hookean block, unseen load: online time",
+        RESULTS / "ecsw_block.png",
+    )
     print((RESULTS / "ecsw_block.md").read_text())
 
 

@@ -27,6 +27,35 @@ def cpu_and_memory() -> tuple[str, str]:
     return cpu, memory
 
 
+def provenance(command: str, ranks: str = "one rank") -> str:
+    """The header line of a table: the command, the date, the machine, DOLFINx and the ranks."""
+    import dolfinx  # after lungmech, which loads the MPI library its bindings need
+
+    cpu, memory = cpu_and_memory()
+    return f"`{command}` — {time.strftime('%Y-%m-%d')}, {cpu}, {memory}, DOLFINx {dolfinx.__version__}, {ranks}."
+
+
+def time_against_dofs(rows: list[dict], series: list[tuple[str, str]], ylabel: str, title: str, path: Path) -> None:
+    """A log-log plot of each row's ``key`` against its "dofs", one line per (key, label)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.5, 4.2))
+    dofs = [r["dofs"] for r in rows]
+    for key, label in series:
+        ax.loglog(dofs, [r[key] for r in rows], "o-", label=label)
+    ax.set_xlabel("degrees of freedom [-]")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -> None:
     """``stem``.md (the table, as written) and ``stem``.csv (the rows; the columns of all rows,
     in the order they first appear) in ``directory``."""
