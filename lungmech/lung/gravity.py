@@ -153,11 +153,10 @@ class _BalancingPressure:
         self.direction = fem.Constant(mesh, np.zeros(3)), fem.Constant(mesh, np.zeros(9))
         d, a = self.direction
         self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
-        # Σ T_ik A_ik and its derivatives in u (a vector) and in x_G (three numbers)
+        # Σ T_ik A_ik's derivative in u (a vector); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
         self.weights = fem.Constant(mesh, np.zeros((6, 9)))
-        contraction = ufl.inner(self.weights, response)
-        self.contraction_u = ufl.derivative(contraction * surface, model.state, w)
-        self.contraction_centre = ufl.diff(contraction, centre)
+        self.contraction_u = ufl.derivative(ufl.inner(self.weights, response) * surface, model.state, w)
+        self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
 
@@ -190,7 +189,7 @@ class _Balance:
         self._response = integration.vector("response", *p._integral("response"))
         self._work_derivative = integration.column("residual", p.work_derivative)
         self._contraction_u = integration.column("response", p.contraction_u)
-        self._contraction_centre = integration.vector("response", p.contraction_centre, p.surface)
+        self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
 
     def update(self) -> None:
@@ -218,10 +217,12 @@ class _Balance:
         d.value, a.value = np.zeros(3), np.zeros(9)
         centre = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
+        response_centre = self._response_centre()
         coefficients = []
         for j in range(9):
-            p.weights.value = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
-            row = self._contraction_u() + sum(g * dxg for g, dxg in zip(self._contraction_centre(), centre))
+            p.weights.value = weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
+            along = np.einsum("ik,ikd->d", weights, response_centre)  # ∂(Σ T_ik A_ik)/∂x_G
+            row = self._contraction_u() + sum(g * dxg for g, dxg in zip(along, centre))
             coefficients.append(-row)
         return np.column_stack(work), np.column_stack(centre + coefficients)
 

@@ -677,10 +677,13 @@ class HyperReducedSolver:
         ]
         compiled = self.mesh.form(ufl.Form(integrals))
         vector = fem.Function(self.mesh.space).x
+        packed = {"at": None, "coefficients": None}  # packed once per state: only Constants vary in between
 
         def evaluate() -> np.ndarray:
+            if packed["at"] is not self._q:
+                packed["at"], packed["coefficients"] = self._q, fem.pack_coefficients(compiled)
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled)
+            fem.assemble_vector(vector.array, compiled, coeffs=packed["coefficients"])
             return gram(self.V, vector.array[:, None], self.comm)[:, 0]
 
         return evaluate
