@@ -26,7 +26,7 @@ import numpy as np
 from lungmech.errors import ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
-from lungmech.fem.sensitivity import output_derivatives
+from lungmech.fem.sensitivity import check_differentiable, output_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve, steps_model_state
 
 __all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "approach", "output_times", "trajectory"]
@@ -107,6 +107,8 @@ def trajectory(
     the load stepping, recording ``outputs()``, ``state()`` and ``derivatives()`` at every output
     time. Collective."""
     model, stepping = owner.model, owner.stepping
+    if derivatives is not None:
+        check_differentiable(model)  # before the solve, not after it
     tic = time.perf_counter()
     iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start)
     rows, states, derived = [], [], []

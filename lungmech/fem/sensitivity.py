@@ -63,6 +63,7 @@ __all__ = [
     "STEP",
     "DerivativeForms",
     "ValueDerivatives",
+    "check_differentiable",
     "derivative_forms",
     "output_derivatives",
     "reduced_state_derivatives",
@@ -161,7 +162,8 @@ def derivative_forms(model) -> DerivativeForms:
     return _compiled[model]
 
 
-def _refuse_state_dependent(model) -> None:
+def check_differentiable(model) -> None:
+    """Refuse, in one line, a model whose sensitivities are not available (state-dependent loads)."""
     if model.state_dependent:
         raise ParameterError(
             "sensitivities: this model has loads with state-dependent coefficients (balanced gravity), "
@@ -215,7 +217,7 @@ def value_derivatives(model) -> ValueDerivatives:
     factor); a model whose loads were set otherwise is refused. Collective (the first call
     compiles the model's derivative forms).
     """
-    _refuse_state_dependent(model)
+    check_differentiable(model)
     forms = derivative_forms(model)
     parameters = model.parameters
     size = len(model.state.x.array)

@@ -228,19 +228,26 @@ class _Balance:
 
     def rounding(self) -> np.ndarray:
         """The size of θ's rounding errors (after :meth:`update`): ε |x_G| for the centre, and
-        ε κ |c| for the coefficients, κ the condition number of the KKT system they solve."""
+        for the coefficients Skeel's componentwise bound on the KKT solve that gives them,
+        ε |K⁺| (|K| |s| + |b|), s = (c, λ) and b its right-hand side (a normwise condition number
+        would be far too pessimistic: the force and moment rows of A carry m² and m³)."""
         p = self.pressure
         kkt = np.block([[_NORM, self._A.T], [self._A, np.zeros((6, 6))]])
-        condition = np.linalg.norm(kkt, 2) * np.linalg.norm(self._kkt_inverse, 2)
+        solution = np.concatenate([p.coefficients.value, self._multipliers])
+        weight = self.mass * np.asarray(p.value.value, dtype=float)
+        rhs = np.concatenate([np.zeros(9), -weight, np.zeros(3)])
         eps = np.finfo(float).eps
-        return np.concatenate(
-            [eps * np.abs(p.centre.value), np.full(9, eps * condition * np.abs(p.coefficients.value).max())]
-        )
+        bound = eps * np.abs(self._kkt_inverse) @ (np.abs(kkt) @ np.abs(solution) + np.abs(rhs))
+        return np.concatenate([eps * np.abs(p.centre.value), bound[:9]])
 
 
 def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Coefficients c of A c = target with the smallest |B| (b is left free), their multipliers λ
     and the (pseudo-)inverse of the KKT matrix [[N, Aᵀ], [A, 0]] they solve."""
-    inverse = np.linalg.pinv(np.block([[_NORM, A.T], [A, np.zeros((6, 6))]]))
+    kkt = np.block([[_NORM, A.T], [A, np.zeros((6, 6))]])
+    # symmetric equilibration before the SVD: A's force and moment rows carry m² and m³, and the
+    # unscaled system's condition number (~1e9 on a lung) would round c to ~1e-7 of itself
+    scale = 1.0 / np.sqrt(np.abs(kkt).max(axis=1))
+    inverse = scale[:, None] * np.linalg.pinv(scale[:, None] * kkt * scale[None, :]) * scale[None, :]
     solution = inverse @ np.concatenate([np.zeros(9), target])
     return solution[:9], solution[9:], inverse

@@ -429,6 +429,14 @@ class HyperReducedSolver:
         self.options = options or NewtonOptions()
         self.comm = model.geometry.mesh.comm
         forms = WeightedForms(model)
+        if missing := [name for name in forms.sampled if name not in sample.cells and name not in FUNCTIONALS]:
+            raise ParameterError(
+                f"the ECSW sample has no cells for {', '.join(missing)}: it was trained on another model (train it again)"
+            )
+        if any(term.bind is None for term in model.state_dependent):
+            raise ParameterError(
+                "ECSW reduces state-dependent loads that declare their integrals (bind); this one does not"
+            )
         for family, weight in forms.weights.items():
             weight.x.array[:] = 0.0
             if family in sample.cells:
@@ -495,12 +503,17 @@ class HyperReducedSolver:
         self.update_model()
 
     def update_model(self) -> None:
-        """Set the model's state to x₀ + V q (the only O(mesh) operation; collective)."""
+        """Set the model's state to x₀ + V q, and the coefficients of its state-dependent loads
+        to the full model's Θ(x) (this solver sets them from its sample while it iterates), so
+        that what reads the model's forms next (a reaction, a diagnosis) sees a consistent
+        model. The only O(mesh) operation; collective."""
         state = self.model.state.x
         owned = self.basis.vectors.shape[0]
         state.array[:] = origin(self.model, self.reference)
         state.array[:owned] += self.basis.vectors @ self.coordinates
         state.scatter_forward()
+        for term in self.model.state_dependent:
+            term.update()
 
     def project(self) -> np.ndarray:
         """Coordinates q of the model's current state, (W V)ᵀ (x − x₀): where to start from after
