@@ -29,7 +29,8 @@ from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.mesh import box
-from lungmech.rom.ecsw import FAMILIES, HyperReducedSolver, Training
+from lungmech.rom.ecsw import FAMILIES, Training
+from lungmech.rom.hyper_reduced import HyperReducedSolver
 
 TRAINING, UNSEEN, TOLERANCE, SIZE = (0.2, 0.4, 0.6), 0.3, 1e-4, 6
 MESHES = (4, 8, 12)  # n: 3n × n × n boxes of 6 tetrahedra each

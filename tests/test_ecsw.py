@@ -15,7 +15,8 @@ from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.solver import Stepping, solve
 from lungmech.mesh import box
-from lungmech.rom.ecsw import HyperReducedSolver, Sample, Training, sparse_nnls
+from lungmech.rom.ecsw import Sample, Training, sparse_nnls
+from lungmech.rom.hyper_reduced import HyperReducedSolver
 
 STEPPING = Stepping(max_step=0.25)
 TRAINING = (0.5, 1.0, 1.5)  # load factors

@@ -265,7 +265,7 @@ def test_a_failed_path_leaves_a_consistent_model(models):
     t = 0.5 s, its moved boundary included, and so does the solver."""
     from lungmech.errors import SolverError
     from lungmech.fem.solver import NewtonOptions, solve
-    from lungmech.rom.ecsw import HyperReducedSolver
+    from lungmech.rom.hyper_reduced import HyperReducedSolver
 
     _, _, hyper = models
     model = stretched()
@@ -282,7 +282,7 @@ def test_a_failed_path_leaves_a_consistent_model(models):
 
 
 def test_a_full_order_model_refuses_a_solver_of_reduced_coordinates(models):
-    from lungmech.rom.ecsw import HyperReducedSolver
+    from lungmech.rom.hyper_reduced import HyperReducedSolver
 
     _, _, hyper = models
     model = stretched()
@@ -373,7 +373,8 @@ def assert_balanced_gravity_reduces(comm) -> ReducedModel:
 def test_balanced_gravity_reduces():
     """And what it cannot do is said before any work: a sample without the pressure's response
     (trained on another model), and sensitivities (not differentiated for these loads yet)."""
-    from lungmech.rom.ecsw import HyperReducedSolver, Sample
+    from lungmech.rom.ecsw import Sample
+    from lungmech.rom.hyper_reduced import HyperReducedSolver
 
     hyper = assert_balanced_gravity_reduces(MPI.COMM_WORLD)
     partial = Sample(

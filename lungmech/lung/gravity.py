@@ -247,7 +247,8 @@ def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np
     kkt = np.block([[_NORM, A.T], [A, np.zeros((6, 6))]])
     # symmetric equilibration before the SVD: A's force and moment rows carry m² and m³, and the
     # unscaled system's condition number (~1e9 on a lung) would round c to ~1e-7 of itself
-    scale = 1.0 / np.sqrt(np.abs(kkt).max(axis=1))
+    largest = np.abs(kkt).max(axis=1)
+    scale = 1.0 / np.sqrt(np.where(largest > 0, largest, 1.0))  # a zero row (an unbalanceable load) stays
     inverse = scale[:, None] * np.linalg.pinv(scale[:, None] * kkt * scale[None, :]) * scale[None, :]
     solution = inverse @ np.concatenate([np.zeros(9), target])
     return solution[:9], solution[9:], inverse

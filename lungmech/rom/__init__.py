@@ -8,8 +8,8 @@ Online: ``load`` → ``ReducedSolver`` (or ``HyperReducedSolver``) → the usual
 """
 
 from lungmech.rom.basis import Basis, enrich, inner_product
-from lungmech.rom.ecsw import HyperReducedSolver
 from lungmech.rom.galerkin import ReducedSolver, reduced_solver
+from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.modes import modal_basis, modal_derivatives, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.polynomial import polynomial_basis

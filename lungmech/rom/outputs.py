@@ -167,7 +167,7 @@ def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.nda
 class ReducedOutputs:
     """The outputs of :class:`~lungmech.fem.parametric.Outputs` of a hyper-reduced solver's
     state (its q, the model's time), from reduced operators (collective; offline: O(k) full
-    assemblies). ``solver`` is a :class:`~lungmech.rom.ecsw.HyperReducedSolver`."""
+    assemblies). ``solver`` is a :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`."""
 
     def __init__(self, solver, probes=()):
         model = self.model = solver.model

@@ -28,8 +28,9 @@ from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.rom.basis import Basis, inner_product, reference_state
-from lungmech.rom.ecsw import HyperReducedSolver, Sample
+from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.outputs import ReducedOutputs
 
 __all__ = ["ReducedModel"]

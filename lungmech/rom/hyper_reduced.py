@@ -1,0 +1,427 @@
+"""The hyper-reduced solver: Newton in q on a reduced mesh of an ECSW sample.
+
+:class:`HyperReducedSolver` evaluates the sampled residual and tangent of
+:mod:`lungmech.rom.ecsw` on a :class:`~lungmech.rom.reduced_mesh.ReducedMesh` of the sampled
+cells, iterates on the reduced coordinates q and writes the model's full state only on request:
+no online operation touches the full mesh. Loads whose coefficients are global functionals of
+the state (balanced gravity) evaluate the integrals they declare through a
+:class:`_SampledIntegration`: exactly where they are affine in (q, imposed factors), over their
+own ECSW sample otherwise.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+import ufl
+from dolfinx import fem, la
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from lungmech.errors import ParameterError
+from lungmech.fem.convergence import EPS, Fields
+from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
+from lungmech.fem.quantities import vector_integral
+from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
+from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
+from lungmech.fem.state_dependent import FullIntegration
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import inner_product, origin, reference_state
+from lungmech.rom.ecsw import FUNCTIONALS, NO_CELLS, Sample, WeightedForms, flattened, over_cells, sampled_residual
+from lungmech.rom.galerkin import check_basis, newton
+from lungmech.rom.outputs import affine, imposed_directions
+from lungmech.rom.reduced_mesh import ReducedMesh
+
+__all__ = ["HyperReducedSolver"]
+
+
+class HyperReducedSolver:
+    """Reduced Newton in q with ECSW: the residual and tangent integrate over the sampled cells
+    (and their exterior facets) only, with their weights, on a :class:`ReducedMesh` of them, so
+    that no online operation touches the full mesh. The solver's state is q; the model's state
+    is written only when asked (:meth:`update_model`). Same interface as
+    :class:`~lungmech.rom.galerkin.ReducedSolver` otherwise; :attr:`assembled_cells` counts
+    what one assembly visits.
+
+    ``start`` is the full state the basis is relative to (default: the unloaded state)."""
+
+    def __init__(self, model, basis, sample: Sample, options=None, start: np.ndarray | None = None):
+        check_basis(model, basis)
+        self.model, self.basis, self.sample = model, basis, sample
+        self.options = options or NewtonOptions()
+        self.comm = model.geometry.mesh.comm
+        forms = WeightedForms(model)
+        if missing := [name for name in forms.sampled if name not in sample.cells and name not in FUNCTIONALS]:
+            raise ParameterError(
+                f"the ECSW sample has no cells for {', '.join(missing)}: it was trained on another model (train it again)"
+            )
+        if any(term.bind is None for term in model.state_dependent):
+            raise ParameterError(
+                "ECSW reduces state-dependent loads that declare their integrals (bind); this one does not"
+            )
+        for family, weight in forms.weights.items():
+            weight.x.array[:] = 0.0
+            if family in sample.cells:
+                weight.x.array[sample.cells[family]] = sample.weights[family]
+            weight.x.scatter_forward()
+        restricted = self._restricted = sampled_residual(forms, model.geometry.mesh, sample)
+        self._weights = forms  # the forms reach the weights' Functions: keep them alive
+        self.mesh = reduced = ReducedMesh(model, np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
+        self._residual = reduced.form(restricted)
+        self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
+        self._vector = fem.assemble_vector(self._residual)
+        mesh = model.geometry.mesh
+        self._sampled = {
+            name: over_cells(forms.functionals[name], mesh, sample.cells[name])
+            for name in forms.functionals
+            if name in sample.cells
+        }
+        self._functionals = {name: reduced.form(functional) for name, functional in self._sampled.items()}
+        self._matrix = fem.create_matrix(self._jacobian, block_mode=la.BlockMode.expanded)
+        self.V = reduced.restrict_columns(np.ascontiguousarray(basis.vectors))  # sub dofs, ghosts too
+        # Each rank reduces its own cells' contributions, ghost rows included, and one Allreduce
+        # sums them: no ghost exchange. The matrix numbers its rows and columns its own way.
+        self._rows, self._columns = (_positions(self._matrix.index_map(i), reduced.space) for i in (0, 1))
+        self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
+        self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
+        self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
+        self._imposed = origin(model, self.reference)  # x₀; the imposed dofs are rewritten at each solve
+        self._origin = reduced.restrict(self._imposed)
+        degree = quadrature_degree(model)
+        self._gradient = at_quadrature_points(reduced.expression(model.F), reduced.mesh, degree)
+        jacobians = at_quadrature_points(reduced.expression(ufl.det(model.F)), reduced.mesh, degree)
+        # J > 0 is checked where the model is evaluated: on the sampled cells
+        self.inversion = Inversion(model, smallest(jacobians, self.comm))
+        self._magnitude = _displacement_magnitude(model, reduced)
+        self.coordinates = np.zeros(basis.size)  # at the start state (set_state(project()) follows a moved model)
+        self._q = self.coordinates.copy()  # where the reduced mesh's state is
+        self._works: list[np.ndarray] = []  # Vᵀ ∂W/∂θ of each state-dependent load, at the last tangent
+        # state-dependent loads (balanced gravity): their coefficients from affine integrals in
+        # z = (q, imposed factors), exactly, and from the others' samples on the reduced mesh
+        self._coupled = []
+        if model.state_dependent:
+            start_state, imposed, self._constraints = imposed_directions(model, self.reference)
+            self._affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
+            for index, term in enumerate(model.state_dependent):
+                self._coupled.append(term.bind(_SampledIntegration(self, index, term.integrals)))
+        self.description = (
+            f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
+            + ", ".join(f"{n} {family.replace('_', ' ')}" for family, n in sample.count(self.comm).items())
+            + " sampled cells"
+        )
+        self.iterations_total = 0
+
+    @property
+    def state(self) -> np.ndarray:
+        """The reduced coordinates q (the load stepping keeps and extrapolates these)."""
+        return self.coordinates
+
+    def set_state(self, state: np.ndarray) -> None:
+        self.coordinates[:] = state
+
+    def reconstruct(self, q: np.ndarray) -> None:
+        """Set q, and the model's state to x₀ + V q at its current time."""
+        self.set_state(q)
+        self.update_model()
+
+    def update_model(self) -> None:
+        """Set the model's state to x₀ + V q, and the coefficients of its state-dependent loads
+        to the full model's Θ(x) (this solver sets them from its sample while it iterates), so
+        that what reads the model's forms next (a reaction, a diagnosis) sees a consistent
+        model. The only O(mesh) operation; collective."""
+        state = self.model.state.x
+        owned = self.basis.vectors.shape[0]
+        state.array[:] = origin(self.model, self.reference)
+        state.array[:owned] += self.basis.vectors @ self.coordinates
+        state.scatter_forward()
+        for term in self.model.state_dependent:
+            term.update()
+
+    def project(self) -> np.ndarray:
+        """Coordinates q of the model's current state, (W V)ᵀ (x − x₀): where to start from after
+        moving the model (O(mesh); collective)."""
+        return _projection(self.model, self.basis, self.reference)
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F at the quadrature points of the sampled cells, (cells, points, d, d)."""
+        self._at(self.coordinates)
+        return self._gradient()
+
+    def start_path(self) -> None:
+        """A new load path begins (each reduced solve scales its own residual)."""
+
+    def solve(self, start: np.ndarray | None = None) -> NewtonResult:
+        """One reduced Newton solve at the model's current loads from q, or from ``start`` (q)."""
+        self._at_loads()
+        q, converged, iterations, residuals, reason = newton(
+            self, self.coordinates if start is None else np.array(start, dtype=float), self.options
+        )
+        self.iterations_total += iterations
+        converged = converged and bool(np.all(np.isfinite(q)))
+        if converged and (wrong := self.inversion()):
+            converged, reason = False, f"{reason} to {wrong}"
+        self.coordinates[:] = q  # a failed iterate too, as a full solver's state: the stepping restores
+        return NewtonResult(converged, iterations, tuple(residuals), reason)
+
+    def linear_step(self) -> None:
+        """One reduced Newton step from q at the current loads (no line search)."""
+        self._at_loads()
+        r = self.reduced_residual(self.coordinates)
+        try:
+            step = np.linalg.solve(self.reduced_jacobian(), -r)
+        except np.linalg.LinAlgError:  # a singular reduced tangent: as the full solver says it
+            raise PETSc.Error(NOT_CONVERGED) from None
+        self.coordinates += step
+
+    def functional(self, name: str, q: np.ndarray) -> float:
+        """The sampled functional ``name`` (:data:`FUNCTIONALS`), Σ_e ξ_e f_e(x₀ + V q) over its
+        sample, at the loads of the last solve (collective)."""
+        if name not in self._functionals:
+            raise ParameterError(f"this ECSW sample has no cells for the functional {name!r} (train it)")
+        self._at(q)
+        return self.comm.allreduce(fem.assemble_scalar(self._functionals[name]), op=MPI.SUM)
+
+    @functools.cached_property
+    def derivative_forms(self) -> DerivativeForms:
+        """∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the
+        reduced mesh (compiled on first use; collective)."""
+        if "strain_energy" not in self._sampled:
+            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
+        return DerivativeForms(
+            self.model, self._restricted, self._sampled["strain_energy"], self.mesh.form, derivative_forms(self.model)
+        )
+
+    def state_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
+        """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
+        the exact derivative of this model's own answer, (k, parameters). Collective."""
+        forms = self.derivative_forms
+        self._at(self.coordinates)
+        jacobian = self.reduced_jacobian()  # and K on the reduced mesh, at q
+        imposed = self._on_columns(self.mesh.restrict(derivatives.imposed))
+        rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
+        b = self._vector.array
+        for i in range(len(derivatives.names) if forms.residual is not None else 0):
+            forms.set_weights(derivatives, i)
+            b[:] = 0.0
+            fem.assemble_vector(b, forms.residual)
+            rhs[:, i] += gram(self.V, b[:, None], self.comm)[:, 0]
+        return -np.linalg.solve(jacobian, rhs)
+
+    def energy_derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> np.ndarray:
+        """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
+        at the current q, (parameters,). Collective."""
+        forms = self.derivative_forms
+        self._at(self.coordinates)
+        g = self._vector.array
+        g[:] = 0.0
+        fem.assemble_vector(g, forms.energy_gradient)
+        total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
+        total = total + gram(g[:, None], self.mesh.restrict(derivatives.imposed), self.comm)[0]
+        for i in range(len(derivatives.names) if forms.energy is not None else 0):
+            forms.set_weights(derivatives, i)
+            total[i] += self.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
+        return total
+
+    def _at_loads(self) -> None:
+        """x₀ on the reduced mesh with the imposed displacements of the current loads (DOLFINx
+        writes the imposed dofs only: O(boundary))."""
+        for bc in self.model.bcs:
+            bc.set(self._imposed)
+        self._origin = self.mesh.restrict(self._imposed)
+
+    def _on_columns(self, x: np.ndarray) -> np.ndarray:
+        """Rows of ``x`` (on the sub dofs) on the matrix's columns: 0 on its extra ghost columns,
+        which only other ranks' rows reach."""
+        found = self._columns >= 0
+        shape = (len(self._columns), *x.shape[1:])
+        on_columns = np.zeros(shape)
+        on_columns[found] = x[self._columns[found]]
+        return on_columns
+
+    def _set(self, q: np.ndarray) -> None:
+        """The reduced mesh's state x₀ + V q, x₀ at the loads of the last :meth:`_at_loads`."""
+        self._q = np.array(q, dtype=float)
+        self.mesh.state.x.array[:] = self._origin + self.V @ q
+
+    def _z(self) -> np.ndarray:
+        """z = (q, imposed factors) of the reduced mesh's state."""
+        return np.concatenate([self._q, self.model.imposed_amplitudes()[self._constraints]])
+
+    def _at(self, q: np.ndarray) -> None:
+        """The reduced mesh's state x₀ + V q at the current loads (outside a solve, where they may
+        have moved since: a new time, new parameters)."""
+        self._at_loads()
+        self._set(q)
+
+    def reduced_residual(self, q: np.ndarray) -> np.ndarray:
+        """Σ_e ξ_e Vᵀ r_e(x₀ + V q) over the sample (sets the reduced mesh's state); state-dependent
+        loads with θ = Θ(q), balanced exactly at every iterate."""
+        self._set(q)
+        for term in self._coupled:
+            term.update()
+        b = self._vector.array
+        b[:] = 0.0
+        fem.assemble_vector(b, self._residual)
+        return gram(self.V, b[:, None], self.comm)[:, 0]
+
+    def reduced_jacobian(self) -> np.ndarray:
+        """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state, plus the state-dependent loads' low-rank
+        term −(Vᵀ ∂W/∂θ)(Vᵀ dΘ/du)ᵀ (:mod:`lungmech.fem.state_dependent`)."""
+        self._matrix.set_value(0.0)
+        fem.assemble_matrix(self._matrix, self._jacobian)
+        reduced = gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
+        self._works = []
+        for term in self._coupled:
+            work, gradient = term.linearise()
+            reduced -= work @ gradient.T
+            self._works.append(work)
+        return reduced
+
+    def sampled_vector(self, family: str, expr, measure) -> Callable[[], np.ndarray]:
+        """Σ_e ξ_e ∫_e ``expr`` over the sample of ``family`` (any value shape), on the reduced
+        mesh at its state (collective)."""
+        flat = flattened(expr)
+        size = flat.ufl_shape[0]
+        space = fem.functionspace(self.mesh.mesh, ("DG", 0, (size,)))
+        form = ufl.inner(self._weights.weights[family] * flat, ufl.TestFunction(space)) * measure
+        compiled = self.mesh.form(over_cells(form, self.model.geometry.mesh, self.sample.cells.get(family, NO_CELLS)))
+        vector = fem.Function(space).x
+
+        def evaluate() -> np.ndarray:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled)
+            total = np.empty(size)
+            self.comm.Allreduce(vector.array.reshape(-1, size).sum(axis=0), total, op=MPI.SUM)
+            return total.reshape(expr.ufl_shape)
+
+        return evaluate
+
+    def sampled_column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
+        """Vᵀ b of a linear ``form`` (in the model's test function) over the samples: each
+        integral over the sample of ``families[its type]``, with its weights (collective)."""
+        mesh = self.model.geometry.mesh
+        weighted: dict[str, list] = {}  # by family: one restricted tag set per integral type
+        for integral in form.integrals():
+            family = families[integral.integral_type()]
+            integrand = self._weights.weights[family] * integral.integrand()
+            weighted.setdefault(family, []).append(integral.reconstruct(integrand=integrand))
+        integrals = [
+            restricted
+            for family, parts in weighted.items()
+            for restricted in over_cells(ufl.Form(parts), mesh, self.sample.cells.get(family, NO_CELLS)).integrals()
+        ]
+        compiled = self.mesh.form(ufl.Form(integrals))
+        vector = fem.Function(self.mesh.space).x
+        packed = {"at": None, "coefficients": None}  # packed once per state: only Constants vary in between
+
+        def evaluate() -> np.ndarray:
+            if packed["at"] is not self._q:
+                packed["at"], packed["coefficients"] = self._q, fem.pack_coefficients(compiled)
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled, coeffs=packed["coefficients"])
+            return gram(self.V, vector.array[:, None], self.comm)[:, 0]
+
+        return evaluate
+
+    def floor(self) -> float:
+        """‖|V|ᵀ ε|K|s‖, s = |x| + h on the displacement: the round-off floor of the reduced
+        residual (see :mod:`lungmech.fem.convergence`), at the last tangent's state."""
+        s = np.abs(self.mesh.state.x.array) + self._magnitude
+        rounding = EPS * (abs(self._tangent) @ self._on_columns(s))
+        floor = float(np.linalg.norm(gram(np.abs(self._row_basis), rounding[:, None], self.comm)))
+        # and that of state-dependent coefficients θ (balanced gravity: a KKT solve), through ∂r/∂θ
+        return floor + sum(float(np.linalg.norm(np.abs(w) @ t.rounding())) for w, t in zip(self._works, self._coupled))
+
+    @functools.cached_property
+    def residual_form(self):
+        """The full model's compiled residual (for a diagnosis of a failed load path)."""
+        return fem.form(self.model.residual)
+
+    @functools.cached_property
+    def jacobian_form(self):
+        """The full model's compiled tangent."""
+        return fem.form(self.model.jacobian)
+
+    @property
+    def assembled_cells(self) -> dict[str, int]:
+        """How many distinct cells one assembly of the residual visits, over all ranks: with its
+        cell integrals ("cell"), and through its exterior-facet integrals ("exterior_facet");
+        compare :meth:`Sample.cells_per_type`."""
+        form = self._residual._cpp_object
+        counts = {}
+        for name, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
+            cells = [np.zeros(0, np.int32)]
+            if kind in form.integral_types:
+                for i in range(form.num_integrals(kind, 0)):
+                    entities = np.asarray(form.domains(kind, i)).reshape(-1)
+                    cells.append(entities if kind == fem.IntegralType.cell else entities[::2])
+            counts[name] = self.comm.allreduce(len(np.unique(np.concatenate(cells))), op=MPI.SUM)
+        return counts
+
+    def destroy(self) -> None:
+        """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
+
+
+def _positions(index_map, space) -> np.ndarray:
+    """For each local index of a matrix's (expanded) row or column ``index_map``, the local sub
+    dof of ``space`` with the same global number (unrolled), or -1."""
+    dofs, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+    blocks = dofs.local_to_global(np.arange(dofs.size_local + dofs.num_ghosts, dtype=np.int32))
+    numbers = (bs * blocks[:, None] + np.arange(bs)).reshape(-1)
+    wanted = index_map.local_to_global(np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32))
+    order = np.argsort(numbers)
+    at = np.minimum(np.searchsorted(numbers[order], wanted), len(numbers) - 1)
+    return np.where(numbers[order][at] == wanted, order[at], -1)
+
+
+def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
+    """h on the sub dofs of the displacement, 0 on other fields: what F's rounding adds to |x|."""
+    h = Fields(model).cell_size
+    if not model.mixed:
+        return np.full(len(reduced.parent_dofs), h)
+    magnitude = np.zeros(len(reduced.parent_dofs))
+    magnitude[reduced.space.sub(0).collapse()[1]] = h
+    return magnitude
+
+
+def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
+    """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
+    W = inner_product(model, basis.inner_product)
+    dual = apply(W, np.ascontiguousarray(basis.vectors), model.geometry.mesh.comm)
+    if W is not None:
+        W.destroy()
+    owned = basis.vectors.shape[0]
+    x = model.state.x.array[:owned] - origin(model, reference)[:owned]
+    return gram(dual, x[:, None], model.geometry.mesh.comm)[:, 0]
+
+
+class _SampledIntegration:
+    """The integrals of state-dependent load ``index`` on a hyper-reduced solver
+    (:class:`~lungmech.fem.state_dependent.Integration`): the affine ones exactly in z = (q,
+    imposed factors), from k + 2 full evaluations offline; the others over their ECSW sample on
+    the reduced mesh; columns as Vᵀ b, over the sample of the integral they derive from (the
+    load's own work: the load families')."""
+
+    def __init__(self, solver: HyperReducedSolver, index: int, integrals: dict):
+        self.solver, self.index, self.integrals = solver, index, integrals
+
+    def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
+        solver = self.solver
+        if not self.integrals[name].affine:
+            return solver.sampled_vector(f"load{self.index}_{name}", expr, measure)
+        model = solver.model
+        f0, F1 = affine(model, vector_integral(expr, measure, model.geometry.mesh), *solver._affine_basis)
+        return lambda: (f0 + F1 @ solver._z()).reshape(expr.ufl_shape)
+
+    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
+        solver = self.solver
+        if name == "residual":
+            return solver.sampled_column(form, {"cell": "cell_load", "exterior_facet": "boundary_load"})
+        if not self.integrals[name].affine:
+            family = f"load{self.index}_{name}"
+            return solver.sampled_column(form, {"cell": family, "exterior_facet": family})
+        # the derivative of an affine integral is a constant: once, on the whole mesh
+        constant = gram(solver.basis.vectors, FullIntegration(solver.model).column(name, form)()[:, None], solver.comm)
+        return lambda: constant[:, 0]
