@@ -212,16 +212,10 @@ def assert_sensitivities_of_own_answer(comm) -> None:
     Young's modulus and Poisson's ratio (law constants), a follower pressure (a load value), an
     imposed displacement's amplitude (dx₀/dμ), a region's stiffness and an interface's position
     (Functions of the forms)."""
-    from test_sensitivity import BLOCK, BLOCK_MU, PROBES, RTOL, disagreement, finite_differences
+    from test_sensitivity import BLOCK, BLOCK_MU, PROBES, RTOL, block, disagreement, finite_differences
 
     def parametric_block(parameters) -> Model:  # test_sensitivity's block, on a finer mesh
-        return Model(
-            box(comm, cells=(6, 3, 3)),
-            lambda c: NeoHookean.from_young(c["E"], c["nu"]),
-            constraints=[clamp("x0"), Displacement("x1", 0.05, component="y", name="pull")],
-            loads=[FollowerPressure("x1", 0.5, name="push")],
-            parameters=parameters,
-        )
+        return block(comm, parameters, cells=(6, 3, 3))
 
     from lungmech.fem.solver import NewtonSolver
 

@@ -38,10 +38,10 @@ LUNG_MU = {"kappa": 120.0, "eta": 1.5, "phi": 0.45, "c1": 0.25, "pf": 0.6}
 PROBES = [[1.0, 0.5, 0.5], [1.0, 1.0, 1.0]]
 
 
-def block(comm=MPI.COMM_SELF, parameters=BLOCK) -> Model:
+def block(comm=MPI.COMM_SELF, parameters=BLOCK, cells=(3, 2, 2)) -> Model:
     """A neo-Hookean block clamped at x = 0, pushed on x = 1 and pulled sideways there."""
     return Model(
-        box(comm, cells=(3, 2, 2)),
+        box(comm, cells=cells),
         lambda c: NeoHookean.from_young(c["E"], c["nu"]),
         constraints=[clamp("x0"), Displacement("x1", 0.05, component="y", name="pull")],
         loads=[FollowerPressure("x1", 0.5, name="push")],

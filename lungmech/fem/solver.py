@@ -361,7 +361,31 @@ class SolveReport:
         return sum(not s.converged for s in self.steps)
 
 
-class NewtonSolver:
+class StepsModelState:
+    """The :class:`Solver` part of a solver that iterates on the model's own state array (the
+    full and the Galerkin solvers): the load stepping keeps, extrapolates and restores it."""
+
+    model: Any
+
+    @property
+    def state(self) -> np.ndarray:
+        """The model's state array (owned and ghost entries)."""
+        return self.model.state.x.array
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Set the model's state (owned and ghost entries)."""
+        self.model.state.x.array[:] = state
+        self.model.state.x.scatter_forward()
+
+    def update_model(self) -> None:
+        """Nothing to do: the model's state is this solver's."""
+
+    def deformation_gradient(self) -> np.ndarray:
+        """F = I + ∇u at the quadrature points of this rank's cells, (cells, points, d, d)."""
+        return limits.displacement_gradient(self.model)()
+
+
+class NewtonSolver(StepsModelState):
     """One SNES for one model: forms are compiled once, then reused for every step.
 
     ``residual`` and ``jacobian`` replace the model's own forms (same unknowns), e.g. the
@@ -472,23 +496,6 @@ class NewtonSolver:
         if start is not None:
             self.set_state(start)
         return self._newton()
-
-    @property
-    def state(self) -> np.ndarray:
-        """The unknowns Newton iterates on: the model's state array (owned and ghost entries)."""
-        return self.model.state.x.array
-
-    def set_state(self, state: np.ndarray) -> None:
-        """Set the model's state (owned and ghost entries)."""
-        self.model.state.x.array[:] = state
-        self.model.state.x.scatter_forward()
-
-    def update_model(self) -> None:
-        """Nothing to do: the model's state is this solver's."""
-
-    def deformation_gradient(self) -> np.ndarray:
-        """F = I + ∇u at the quadrature points of this rank's cells, (cells, points, d, d)."""
-        return limits.displacement_gradient(self.model)()
 
     def _residual(self) -> PETSc.Vec:
         """The residual at the current state and loads (the problem's residual vector)."""

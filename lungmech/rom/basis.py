@@ -18,7 +18,7 @@ from dolfinx.fem.petsc import assemble_matrix
 from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
-from lungmech.parallel.linalg import gram_schmidt
+from lungmech.parallel.linalg import apply, gram_schmidt
 
 INNER_PRODUCTS = ("l2", "mass", "energy")
 
@@ -99,6 +99,16 @@ def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
     kinds = "+".join(dict.fromkeys(b.kind for b in bases))
     source = {"parts": [{"kind": b.kind, "size": b.size, **b.source} for b in bases]}
     return Basis(vectors, values, "enriched" if len(bases) > 1 else kinds, inner, bases[0].fingerprint, source)
+
+
+def dual(model, basis: Basis) -> np.ndarray:
+    """W V, owned rows: the coordinates of a state are q = (W V)ᵀ (x − x₀), V being W-orthonormal
+    (collective; one assembly of W)."""
+    W = inner_product(model, basis.inner_product)
+    result = apply(W, np.ascontiguousarray(basis.vectors), model.geometry.mesh.comm)
+    if W is not None:
+        W.destroy()
+    return result
 
 
 def zero_imposed(model, vectors: np.ndarray) -> np.ndarray:

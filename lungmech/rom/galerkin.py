@@ -21,14 +21,14 @@ from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields
 from lungmech.fem.limits import Inversion, displacement_gradient
 from lungmech.fem.quantities import assemble_owned
-from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
+from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult, StepsModelState
 from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
-from lungmech.rom.basis import Basis, inner_product, origin, reference_state
+from lungmech.rom.basis import Basis, dual, origin, reference_state
 
 
-class ReducedSolver:
+class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every evaluation
     """Newton on Vᵀ R(x₀ + V q) = 0 for one model and one basis; forms are compiled once.
 
     ``start`` is the state the basis is relative to (x₀ without the imposed displacements;
@@ -51,10 +51,7 @@ class ReducedSolver:
         self.comm = model.geometry.mesh.comm
         self.owned = basis.vectors.shape[0]
         self.V = np.ascontiguousarray(basis.vectors)
-        W = inner_product(model, basis.inner_product)
-        self.dual = apply(W, self.V, self.comm)  # q = (W V)ᵀ (x − x₀): V is W-orthonormal
-        if W is not None:
-            W.destroy()
+        self.dual = dual(model, basis)
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self._residual = fem.form(model.residual if residual is None else residual)
         self._jacobian = fem.form(model.jacobian if jacobian is None else jacobian)
@@ -77,23 +74,6 @@ class ReducedSolver:
         if start is not None:
             self.set_state(start)
         return self._newton()
-
-    @property
-    def state(self) -> np.ndarray:
-        """The model's state array: the reduced solver keeps it at x₀ + V q."""
-        return self.model.state.x.array
-
-    def set_state(self, state: np.ndarray) -> None:
-        """Set the model's state (owned and ghost entries)."""
-        self.model.state.x.array[:] = state
-        self.model.state.x.scatter_forward()
-
-    def update_model(self) -> None:
-        """Nothing to do: the model holds x₀ + V q after every evaluation."""
-
-    def deformation_gradient(self) -> np.ndarray:
-        """F = I + ∇u at the quadrature points of this rank's cells, (cells, points, d, d)."""
-        return displacement_gradient(self.model)()
 
     def linear_step(self) -> None:
         """One reduced Newton step from the current state at the current loads (no line search)."""

@@ -27,8 +27,8 @@ from lungmech.fem.quantities import vector_integral
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
 from lungmech.fem.state_dependent import FullIntegration
-from lungmech.parallel.linalg import apply, gram
-from lungmech.rom.basis import inner_product, origin, reference_state
+from lungmech.parallel.linalg import gram
+from lungmech.rom.basis import dual, origin, reference_state
 from lungmech.rom.ecsw import FUNCTIONALS, NO_CELLS, Sample, WeightedForms, flattened, over_cells, sampled_residual
 from lungmech.rom.galerkin import check_basis, newton
 from lungmech.rom.outputs import affine, imposed_directions
@@ -388,13 +388,9 @@ def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
 
 def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
     """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
-    W = inner_product(model, basis.inner_product)
-    dual = apply(W, np.ascontiguousarray(basis.vectors), model.geometry.mesh.comm)
-    if W is not None:
-        W.destroy()
     owned = basis.vectors.shape[0]
     x = model.state.x.array[:owned] - origin(model, reference)[:owned]
-    return gram(dual, x[:, None], model.geometry.mesh.comm)[:, 0]
+    return gram(dual(model, basis), x[:, None], model.geometry.mesh.comm)[:, 0]
 
 
 class _SampledIntegration:
