@@ -9,11 +9,14 @@ import ufl
 from mpi4py import MPI
 
 import lungmech.meshes
-from lungmech.fem.constraints import Displacement, symmetry
+from lungmech.fem.constraints import Displacement, clamp, symmetry
 from lungmech.fem.loads import FollowerPressure
 from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
+from lungmech.fem.parameters import Parameter
+from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.quantities import integral
+from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import NewtonOptions, Stepping, solve
 from lungmech.mesh import box, sphere
 
@@ -120,3 +123,23 @@ def mean_inner_radius(model: Model) -> float:
     x = ufl.SpatialCoordinate(geometry.mesh)
     radius = ufl.sqrt(ufl.dot(x + model.u, x + model.u))
     return integral(radius * geometry.ds("inner"), geometry.mesh.comm)() / geometry.area("inner")
+
+
+BOX = [
+    Parameter("E", "material.E", 10.0, (5.0, 20.0), log=True),
+    Parameter("nu", "material.nu", 0.3, (0.2, 0.45)),
+    Parameter("p", "loads.push.value", 1.0, (0.2, 2.0)),
+]
+
+
+def pushed_block(comm=MPI.COMM_SELF, cells=(6, 2, 2)) -> FullOrderModel:
+    """A clamped neo-Hookean block under a follower pressure that rises and falls, over a box of
+    stiffness, Poisson's ratio and pressure."""
+    model = Model(
+        box(comm, cells=cells),
+        lambda c: NeoHookean.from_young(c["E"], c["nu"]),
+        constraints=[clamp("x0")],
+        loads=[FollowerPressure("x1", 1.0, name="push", ramp=Ramp((0, 1, 2), (0, 1, 0)))],
+        parameters=BOX,
+    )
+    return FullOrderModel(model, Stepping(end=2.0, times=(0.5, 1.5)), probes=[(1.0, 0.5, 0.5)])

@@ -687,6 +687,21 @@ COMMANDS = {
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--hyper", "ecsw", "--ecsw-tolerance", "nan"],
         "ECSW tolerance",
     ),
+    "rom build to a tolerance above 1": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--tolerance", "2"],
+        "the tolerance (a relative energy-norm error) must lie in (0, 1)",
+    ),
+    "rom build to a tolerance of nan": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--tolerance", "nan"],
+        "tolerance must be a finite number",
+    ),
+    "rom build to a tolerance without parameters": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--tolerance", "0.01"],
+        "--tolerance trains over the scene's [parameters] box, and this scene has none",
+    ),
     "rom build of size zero": (
         [],
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],

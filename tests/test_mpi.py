@@ -712,3 +712,20 @@ def test_hyper_reduced_balanced_gravity_on_two_ranks():
     from test_hyper_reduced import assert_balanced_gravity_reduces
 
     assert_balanced_gravity_reduces(MPI.COMM_WORLD)
+
+
+def test_greedy_training_same_on_all_ranks_as_on_one():
+    """The greedy picks the same points with the same indicators and errors on any partition."""
+    from fem import BOX, pushed_block
+
+    from lungmech.fem.parameters import Parameters
+    from lungmech.rom.greedy import greedy
+
+    candidates = Parameters(BOX).sample(8, seed=1)
+    here, alone = (greedy(pushed_block(comm), candidates, 1e-3) for comm in (MPI.COMM_WORLD, MPI.COMM_SELF))
+    assert [r.point for r in here.rounds] == [r.point for r in alone.rounds]
+    for mine, theirs in zip(here.rounds, alone.rounds):
+        assert mine.indicator == pytest.approx(theirs.indicator, rel=1e-6)
+        assert (mine.error is None) == (theirs.error is None)
+        assert mine.error is None or mine.error == pytest.approx(theirs.error, rel=1e-6)
+    assert here.met == alone.met and here.basis.size == alone.basis.size

@@ -6,34 +6,20 @@ import tomllib
 
 import numpy as np
 import pytest
+from fem import BOX, pushed_block
 from mpi4py import MPI
 
 from lungmech.app import reduce as reduce_app
 from lungmech.app import scene as scenes
 from lungmech.errors import ParameterError
-from lungmech.fem import FollowerPressure, Model, NeoHookean, Ramp, Stepping, clamp
-from lungmech.fem.parameters import Parameter, Parameters
-from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.parameters import Parameters
 from lungmech.mesh import box
 from lungmech.rom.reductor import errors, reduce
-
-BOX = [
-    Parameter("E", "material.E", 10.0, (5.0, 20.0), log=True),
-    Parameter("nu", "material.nu", 0.3, (0.2, 0.45)),
-    Parameter("p", "loads.push.value", 1.0, (0.2, 2.0)),
-]
 
 
 @pytest.fixture(scope="module")
 def full():
-    model = Model(
-        box(MPI.COMM_SELF, cells=(6, 2, 2)),
-        lambda c: NeoHookean.from_young(c["E"], c["nu"]),
-        constraints=[clamp("x0")],
-        loads=[FollowerPressure("x1", 1.0, name="push", ramp=Ramp((0, 1, 2), (0, 1, 0)))],
-        parameters=BOX,
-    )
-    return FullOrderModel(model, Stepping(end=2.0, times=(0.5, 1.5)), probes=[(1.0, 0.5, 0.5)])
+    return pushed_block()
 
 
 @pytest.fixture(scope="module")

@@ -65,6 +65,13 @@ def parser() -> argparse.ArgumentParser:
         help="training points: Sobol' samples of the scene's [parameters] box (default 8; 1 without parameters)",
     )
     build.add_argument("--seed", type=int, default=0, help="seed of the training samples (default 0)")
+    build.add_argument(
+        "--tolerance",
+        type=float,
+        default=None,
+        help="train greedily over the [parameters] box until the reduced model's error indicator (relative "
+        "energy-norm error) is below this at every candidate point (--samples of them, default 32)",
+    )
     build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")
     build.add_argument("--order", type=int, default=2, help="order of a polynomial basis")
     build.add_argument(
@@ -270,6 +277,7 @@ def _rom_build(args) -> int:
         comm=comm,
         hyper=args.hyper,
         hyper_tolerance=args.ecsw_tolerance,
+        tolerance=args.tolerance,
     )
     if comm.rank == 0:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
@@ -285,7 +293,25 @@ def _rom_build(args) -> int:
             f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs{sampled} "
             f"({seconds}); saved to {Path(args.output).resolve()}"
         )
+        if greedy := summary["greedy"]:
+            print(_greedy_report(greedy))
     return 0
+
+
+def _greedy_report(greedy: dict) -> str:
+    """The greedy training in a few lines: each full solve's indicator next to the true error."""
+    last = greedy["rounds"][-1]
+    verdict = "met" if greedy["met"] else "NOT met (the candidates or full solves ran out)"
+    lines = [
+        f"lungmech: greedy training: tolerance {greedy['tolerance']:g} {verdict} with {greedy['full_solves']} full "
+        f"solves; largest indicator over the candidates {last['indicator']:.2e} × safety {greedy['safety']:.2f} "
+        "(relative energy-norm errors [1])"
+    ]
+    for r in greedy["rounds"][:-1]:
+        shown = f"{r['indicator']:.2e}" if r["indicator"] is not None else "failed solve"
+        error = f"{r['error']:.2e}" if r["error"] is not None else "n/a"
+        lines.append(f"  {r['size']:3d} vectors: indicator {shown}, true error {error} at {r['where']}")
+    return "\n".join(lines)
 
 
 def _run(args) -> int:

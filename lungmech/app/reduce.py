@@ -33,7 +33,7 @@ from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import ImageLabel, Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.parametric import approach
+from lungmech.fem.parametric import FullOrderModel, approach
 from lungmech.fem.solver import NewtonSolver, Solver
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
@@ -44,6 +44,7 @@ from lungmech.parallel.layout import layout
 from lungmech.registration.image import companions as image_companions
 from lungmech.rom import ecsw, store
 from lungmech.rom.basis import Basis, enrich
+from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.polynomial import polynomial_basis
@@ -67,6 +68,7 @@ def build(
     seed: int = 0,
     hyper: str | None = None,
     hyper_tolerance: float = 1e-4,
+    tolerance: float | None = None,
 ) -> dict:
     """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
@@ -79,6 +81,10 @@ def build(
     ``hyper`` = "ecsw" hyper-reduces it (:mod:`lungmech.rom.ecsw`): a second pass over the
     training runs samples the cells that reproduce the reduced forces of every Newton iterate to
     ``hyper_tolerance`` (τ), and the sample is saved with the basis.
+    ``tolerance`` trains the POD basis greedily (:mod:`lungmech.rom.greedy`) instead of at
+    fixed points: full solves are added at the candidate — of ``samples`` Sobol' points (default
+    32) — where the reduced model's error indicator is largest, until it meets ``tolerance``
+    (relative energy-norm error) there; ``size`` then caps the basis.
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
@@ -91,6 +97,8 @@ def build(
         raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper_tolerance!r})")
     if isinstance(size, bool) or not (isinstance(size, int) and size >= 1):
         raise ParameterError(f"basis size must be a positive integer (got {size!r})")
+    if tolerance is not None:
+        _check_greedy(scene, kind, scales, tolerance)
     if scales is None:
         scales = (1.0,) if scene.parameters else (0.5, 1.0, 1.5)
     if not scales:
@@ -99,14 +107,33 @@ def build(
         check_scale(scene, scale)
     box = Parameters(scene.parameters)
     if samples is None:
-        samples = 8 if box else 1
+        samples = (32 if tolerance is not None else 8) if box else 1
     checks.integer("training samples", samples, minimum=1)
     checks.integer("training seed", seed, minimum=0)
     training = box.sample(samples, seed) if box else [{}]
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
         hyper = (hyper, hyper_tolerance) if hyper else None
-        return _build(scene, staging, kind, size, scales, training, inner, order, density, comm, hyper)
+        return _build(scene, staging, kind, size, scales, training, inner, order, density, comm, hyper, tolerance)
+
+
+def _check_greedy(scene: Scene, kind: str, scales, tolerance) -> None:
+    """Refuse a greedy build it cannot do, in one line."""
+    checks.real("tolerance", tolerance)
+    if not 0 < tolerance < 1:
+        raise ParameterError(f"the tolerance (a relative energy-norm error) must lie in (0, 1) (got {tolerance!r})")
+    if not scene.parameters:
+        raise ParameterError(
+            "--tolerance trains over the scene's [parameters] box, and this scene has none: add [parameters] "
+            "(e.g. a load amplitude), or give --size"
+        )
+    if kind != "pod":
+        raise ParameterError(f"--tolerance trains a POD basis (got --basis {kind})")
+    if scales is not None:
+        raise ParameterError(
+            "--tolerance trains at the scene's loads over its [parameters] box; put a load's amplitude in "
+            "[parameters] instead of giving --scales"
+        )
 
 
 def _build(
@@ -121,6 +148,7 @@ def _build(
     density: float,
     comm: MPI.Comm,
     hyper: tuple[str, float] | None,
+    tolerance: float | None,
 ) -> dict:
     timings = {}
     tic = time.perf_counter()
@@ -138,7 +166,13 @@ def _build(
     timings["inverse"] = time.perf_counter() - tic
 
     parts: list[Basis] = []
-    if kind in ("pod", "pod+modal"):
+    trained = None
+    if tolerance is not None:
+        full = FullOrderModel(model, scene.stepping, solver=solver, probes=scene.output.probes, start=start)
+        trained = greedy(full, training, tolerance, size=size, inner=inner, timings=timings)
+        training = trained.training
+        parts.append(trained.basis)
+    elif kind in ("pod", "pod+modal"):
         tic = time.perf_counter()
         data = snapshots(model, scene.stepping, scales, solver=solver, start=start, parameters=training)
         timings["snapshots"] = time.perf_counter() - tic
@@ -187,6 +221,7 @@ def _build(
         "scene_table": scene.table,
         "files": _embedded_names(scene),
         "hyper": hyper_summary,
+        "greedy": _greedy_summary(trained, tolerance, model.parameters),
     }
     arrays |= {f"file:{name}": data for name, data in _file_bytes(scene, comm).items()}
     store.write(path, model, basis, extra=extra, arrays=arrays)
@@ -197,6 +232,30 @@ def _build(
         "values": basis.values.tolist(),
         "offline_seconds": timings,
         "hyper": hyper_summary,
+        "greedy": extra["greedy"],
+    }
+
+
+def _greedy_summary(trained: Greedy | None, tolerance: float | None, parameters: Parameters) -> dict | None:
+    """What the greedy training did, as plain values (an indicator of inf — the reduced solve
+    failed there — as None)."""
+    if trained is None:
+        return None
+    return {
+        "tolerance": tolerance,
+        "met": trained.met,
+        "safety": trained.safety,
+        "full_solves": len(trained.training),
+        "rounds": [
+            {
+                "size": r.size,
+                "point": r.point,
+                "where": parameters.text(r.point),
+                "indicator": r.indicator if np.isfinite(r.indicator) else None,
+                "error": r.error,
+            }
+            for r in trained.rounds
+        ],
     }
 
 

@@ -260,6 +260,14 @@ class Parameters(Sequence[Parameter]):
         base = self.defaults | dict(start or {})
         return {p.name: p.check(given[p.name]) if p.name in given else base[p.name] for p in self._items}
 
+    def text(self, values: Mapping[str, float]) -> str:
+        """``values`` for a person: "c1 = 250 Pa, breath = 1.2" (the defaults: "the defaults")."""
+        parts = []
+        for name, value in values.items():
+            unit = self.named(name).unit
+            parts.append(f"{name} = {value:.4g}" + (f" {unit}" if unit and unit != "1" else ""))
+        return ", ".join(parts) if parts and values != self.defaults else "the defaults"
+
     def to_unit(self, values: Mapping[str, float]) -> np.ndarray:
         """Coordinates in the unit box [0, 1]^n (log parameters in log μ)."""
         return np.array([_unit(p, values[p.name]) for p in self._items])

@@ -100,20 +100,23 @@ def trajectory(
     values: dict[str, float],
     state: Callable[[], np.ndarray],
     derivatives: Callable[[], dict] | None = None,
+    on_step: Callable | None = None,
 ) -> Solution:
     """The load path of ``owner`` (a full or reduced model: its ``model``, ``solver``,
     ``stepping``, ``outputs``, ``times``, ``parameters``) at ``values``, from the state the model
     holds (an equilibrium at the default parameters at ``stepping.start``): :func:`approach`, then
     the load stepping, recording ``outputs()``, ``state()`` and ``derivatives()`` at every output
-    time. Collective."""
+    time. ``on_step(step)`` is called after every accepted step of both (a snapshot). Collective."""
     model, stepping = owner.model, owner.stepping
     if derivatives is not None:
         check_differentiable(model)  # before the solve, not after it
     tic = time.perf_counter()
-    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start)
+    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start, on_step)
     rows, states, derived = [], [], []
 
     def record(step) -> None:
+        if on_step is not None:
+            on_step(step)
         if np.min(np.abs(owner.times - model.time)) <= 1e-9 * (stepping.end - stepping.start):
             rows.append(owner.outputs())
             states.append(state())
@@ -203,9 +206,11 @@ class FullOrderModel:
         self.start = start
         self.times = output_times(model, self.stepping)
 
-    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
+    def solve(
+        self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False, on_step: Callable | None = None
+    ) -> Solution:
         """The outputs (and states) at the output times for the parameters ``mu`` (the others at
-        their defaults)."""
+        their defaults). ``on_step(step)`` sees every accepted step (e.g. to keep snapshots)."""
         owned = self.model.space.dofmap.index_map.size_local * self.model.space.dofmap.index_map_bs
         self.reset()
         return trajectory(
@@ -213,6 +218,7 @@ class FullOrderModel:
             self.parameters.values(mu),
             state=lambda: self.model.state.x.array[:owned].copy(),
             derivatives=self.sensitivities if sensitivities else None,
+            on_step=on_step,
         )
 
     def reset(self) -> None:

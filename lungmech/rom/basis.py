@@ -62,8 +62,10 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     """The Gram operator W of ``kind`` on the state space (None for l2, i.e. W = I).
 
     mass: ∫ Σ_fields a·b dX; energy: the second variation of the stored energy ∫ψ at the
-    unloaded state (positive definite for a stable law with enough imposed displacements).
-    Imposed dofs get 1 on the diagonal: basis vectors vanish there anyway.
+    unloaded state and the default parameters (positive definite for a stable law with enough
+    imposed displacements): one norm for every parameter point, so that a basis stays
+    orthonormal, and errors compare, across the box. Imposed dofs get 1 on the diagonal: basis
+    vectors vanish there anyway.
     """
     if kind not in INNER_PRODUCTS:
         raise ParameterError(f"inner product must be one of {', '.join(INNER_PRODUCTS)} (got {kind!r})")
@@ -76,10 +78,15 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     else:
         stored = model.energy_density * model.dx
         form = ufl.derivative(ufl.derivative(stored, model.state, b), model.state, a)
+    current = model.parameter_values
     with model.kept_state():
+        model.set_parameters(model.parameters.defaults)
         model.reset()
-        W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
-        W.assemble()
+        try:
+            W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
+            W.assemble()
+        finally:
+            model.set_parameters(current)
     return W
 
 

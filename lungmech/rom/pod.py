@@ -38,12 +38,11 @@ def snapshots(
         raise ParameterError("snapshots: give at least one load scale and one parameter point")
     solver = solver or NewtonSolver(model, options)
     start = reference_state(model) if start is None else start.copy()
-    owned = _owned(model)
     columns = []
     defaults = model.parameters.defaults
 
     def keep(step) -> None:
-        columns.append((model.state.x.array - origin(model, start))[:owned].copy())
+        columns.append(snapshot(model, start))
 
     for point in parameters:
         for scale in scales:
@@ -64,6 +63,12 @@ def snapshots(
     model.set_parameters(model.parameters.defaults)
     model.set_time(stepping.start)
     return np.column_stack(columns)
+
+
+def snapshot(model, start: np.ndarray) -> np.ndarray:
+    """The model's state minus ``start`` (with the imposed displacements of the current time):
+    one column of snapshots, owned rows."""
+    return (model.state.x.array - origin(model, start))[: _owned(model)].copy()
 
 
 def pod(

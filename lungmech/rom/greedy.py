@@ -1,0 +1,172 @@
+"""Weak greedy training of a reduced basis over a parameter box, to an error tolerance.
+
+Start from the full load path at the default parameters. Each round makes the POD basis of
+every snapshot so far, solves that reduced model at every candidate point of the box (cheap) and
+measures its error indicator η (:mod:`lungmech.rom.indicator`). If the largest η meets the
+tolerance, the basis is done. Otherwise the full model solves the load path at that candidate:
+its states become snapshots, and the reduced model's true error there (energy norm, as
+:func:`lungmech.rom.reductor.errors`) is measured on the way, so every round reports the
+indicator next to the error it estimates, and the largest ratio error / indicator seen so far
+(at least 1) scales the indicator before it is compared with the tolerance: an indicator that
+has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
+divided by their largest norm (a small load path weighs as much as a large one), and the POD
+keeps the fewest vectors whose discarded energy of these lies below (tolerance / 10)²: the
+truncation does not spend the error budget.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from lungmech import checks
+from lungmech.errors import ParameterError, SolverError
+from lungmech.fem.parametric import FullOrderModel
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import Basis, inner_product, reference_state
+from lungmech.rom.indicator import ResidualIndicator
+from lungmech.rom.pod import pod, snapshot
+from lungmech.rom.reduced import ReducedModel
+from lungmech.rom.reductor import errors
+
+__all__ = ["Greedy", "Round", "greedy"]
+
+log = logging.getLogger("lungmech")
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round: the reduced model of ``size`` vectors judged every candidate; ``point`` had the
+    largest indicator η (inf: the reduced solve failed there). ``error`` is that model's true
+    energy-norm error at ``point``, measured by the full solve that followed (None when the
+    round ended the training)."""
+
+    size: int
+    point: dict[str, float]
+    indicator: float
+    error: float | None
+
+
+@dataclass(frozen=True)
+class Greedy:
+    """The trained basis, the points whose full load paths it holds (the first: the defaults),
+    the rounds, and whether the largest indicator met the tolerance."""
+
+    basis: Basis
+    training: list[dict[str, float]]
+    rounds: list[Round]
+    met: bool
+
+    @property
+    def safety(self) -> float:
+        """The largest error / indicator the rounds measured, at least 1."""
+        return _safety(self.rounds)
+
+
+def greedy(
+    full: FullOrderModel,
+    candidates: Sequence[Mapping[str, float]],
+    tolerance: float,
+    size: int = 40,
+    inner: str = "energy",
+    most: int | None = None,
+    timings: dict[str, float] | None = None,
+) -> Greedy:
+    """Train a POD basis of ``full`` until every candidate's indicator is ≤ ``tolerance``.
+
+    ``candidates``: parameter points of the box (e.g. a Sobol' sample), where the reduced model
+    is judged and from which full solves are chosen; ``size`` caps the basis; ``most`` caps the
+    full solves (default: one per candidate, and the defaults'). ``timings`` receives the
+    seconds of the full solves, the POD and the judging. Each round is logged ("lungmech",
+    INFO). Collective.
+    """
+    checks.real("greedy tolerance", tolerance)
+    if not 0 < tolerance < 1:
+        raise ParameterError(f"the greedy tolerance must lie in (0, 1) (got {tolerance!r})")
+    if not candidates:
+        raise ParameterError("the greedy training needs at least one candidate parameter point")
+    most = len(candidates) + 1 if most is None else checks.integer("greedy full solves", most, minimum=1)
+    model, seconds = full.model, {"snapshots": 0.0, "pod": 0.0, "judging": 0.0}
+    start = reference_state(model) if full.start is None else full.start
+    remaining = [full.parameters.values(point) for point in candidates]
+    training, paths, rounds = [], [], []
+    indicator = ResidualIndicator(model)
+    weight = inner_product(model, inner)
+
+    def add(point: dict[str, float], reduced: ReducedModel | None = None, approximate=None) -> float | None:
+        tic = time.perf_counter()
+        columns = []
+        solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
+        path = np.column_stack(columns)
+        largest = np.sqrt(
+            np.max(np.abs(np.diag(gram(path, apply(weight, path, model.geometry.mesh.comm), model.geometry.mesh.comm))))
+        )
+        paths.append(path / largest if largest > 0 else path)
+        training.append(point)
+        seconds["snapshots"] += time.perf_counter() - tic
+        return errors(reduced, solution, approximate).energy if approximate is not None else None
+
+    try:
+        add(full.parameters.defaults)
+        while True:
+            tic = time.perf_counter()
+            data = np.hstack(paths)
+            basis = _truncated(pod(model, data, inner=inner, source={"training": list(training)}), size, tolerance)
+            seconds["pod"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            reduced = ReducedModel(
+                model, basis, full.stepping, full.solver.options, start, full.outputs.probe_points, training
+            )
+            judged = [_judge(reduced, indicator, point) for point in remaining]
+            seconds["judging"] += time.perf_counter() - tic
+            worst = int(np.argmax([eta for eta, _ in judged])) if judged else None
+            if worst is None or judged[worst][0] * _safety(rounds) <= tolerance or len(training) >= most:
+                eta = judged[worst][0] if worst is not None else 0.0
+                rounds.append(Round(basis.size, remaining[worst] if worst is not None else {}, eta, None))
+                log.info(
+                    f"greedy: {basis.size} vectors, largest indicator {eta:.2e} × safety {_safety(rounds):.2f} "
+                    f"(tolerance {tolerance:.0e})"
+                )
+                break
+            eta, approximate = judged[worst]
+            point = remaining.pop(worst)
+            error = add(point, reduced, approximate)
+            rounds.append(Round(basis.size, point, eta, error))
+            shown = f"{error:.2e}" if error is not None else "n/a (its reduced solve failed)"
+            log.info(
+                f"greedy: {basis.size} vectors, largest indicator {eta:.2e} at {full.parameters.text(point)}: true error {shown}"
+            )
+    finally:
+        indicator.destroy()
+        if weight is not None:
+            weight.destroy()
+        full.reset()
+    if timings is not None:
+        timings.update(seconds)
+    met = rounds[-1].indicator * _safety(rounds) <= tolerance
+    return Greedy(basis, training, rounds, met)
+
+
+def _safety(rounds: Sequence[Round]) -> float:
+    ratios = [r.error / r.indicator for r in rounds if r.error is not None and 0 < r.indicator < np.inf]
+    return max([1.0, *ratios])
+
+
+def _judge(reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str, float]):
+    """(η, the reduced answer) at ``point``; (inf, None) when the reduced solve fails there."""
+    try:
+        approximate = reduced.solve(point)
+    except SolverError:
+        return np.inf, None
+    return indicator(reduced, approximate), approximate
+
+
+def _truncated(basis: Basis, size: int, tolerance: float) -> Basis:
+    """The fewest leading vectors whose discarded snapshot energy is ≤ (tolerance / 10)², at
+    most ``size``."""
+    kept = basis.truncate(energy=1 - (tolerance / 10) ** 2) if basis.size > 1 else basis
+    return kept.truncate(min(size, kept.size))

@@ -1,0 +1,96 @@
+"""The error indicator of a reduced answer: the length of the full Newton correction at it.
+
+At a reduced state x_r the full residual R(x_r) is what the reduced model leaves unbalanced. The
+step a full Newton iteration would take from there, with the tangent K_μ at rest at the
+answer's parameters μ, measured in the energy norm E of the errors (the second variation of the
+stored energy at rest, default parameters),
+
+    η(t) = ‖K_μ⁻¹ R(x_r(t))‖_E,
+
+is the error x − x_r itself for a linear model (K = K_μ) and its first-order estimate for a
+nonlinear one. An answer's indicator is
+
+    η = max_t η(t) / max_t ‖x_r(t) − x₀(t)‖_E,
+
+relative to the largest change along the load path as
+:attr:`lungmech.rom.reductor.Errors.energy` is, so the two are compared number for number. Each
+answer costs one MUMPS factorisation of K_μ, and each output time one residual assembly and one
+back-substitution: O(mesh), the offline check of the greedy training
+(:mod:`lungmech.rom.greedy`) and of a model's validation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix, create_matrix
+
+from lungmech.fem.linear import factorised
+from lungmech.fem.parametric import Solution
+from lungmech.fem.quantities import assemble_owned
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import inner_product, origin
+
+__all__ = ["ResidualIndicator"]
+
+
+class ResidualIndicator:
+    """η of reduced answers of ``model`` (collective; :meth:`destroy` frees the factorisation).
+
+    K_μ has 1 on the diagonal of imposed dofs, where the residual is set to 0: a reduced state
+    meets its imposed displacements exactly."""
+
+    def __init__(self, model):
+        self.model = model
+        self.comm = model.geometry.mesh.comm
+        self._energy = inner_product(model, "energy")
+        self._residual, self._jacobian = fem.form(model.residual), fem.form(model.jacobian)
+        self._tangent = create_matrix(self._jacobian)
+        self._solver = factorised(self._tangent)
+        self._work = fem.Function(model.space).x  # ghosted: assembly adds into ghost rows
+        self._correction, self._vector = self._tangent.createVecs()
+        self._constrained = model.constrained_dofs()
+
+    def factorise(self) -> None:
+        """K_μ: the tangent at rest at the model's current parameters, factorised."""
+        model, K = self.model, self._tangent
+        with model.kept_state():
+            model.reset()
+            K.zeroEntries()
+            assemble_matrix(K, self._jacobian, bcs=model.bcs, diag=1.0)
+            K.assemble()
+        self._solver.setOperators(K)
+
+    def at_state(self) -> float:
+        """η(t) = ‖K_μ⁻¹ R‖_E at the model's current state, parameters and loads (its
+        state-dependent load coefficients set from that state first), K_μ that of the last
+        :meth:`factorise`."""
+        for term in self.model.state_dependent:
+            term.update()
+        b = self._vector
+        b.array[:] = assemble_owned(self._residual, self._work, len(b.array))
+        b.array[self._constrained] = 0.0
+        self._solver.solve(b, self._correction)
+        return self._norm(self._correction.array)
+
+    def __call__(self, reduced, solution: Solution) -> float:
+        """η of ``solution``, an answer of the reduced model ``reduced`` on this model:
+        max_t η(t) / max_t ‖x_r(t) − x₀(t)‖_E. Leaves the model at the last output's state."""
+        owned = reduced.basis.vectors.shape[0]
+        self.model.set_parameters(solution.parameters)
+        self.factorise()
+        worst, change = 0.0, 0.0
+        for index in range(len(solution.times)):
+            x_r = reduced.reconstruct(solution, index)  # and the parameters and time of that output
+            worst = max(worst, self.at_state())
+            change = max(change, self._norm(x_r - origin(self.model, reduced.start)[:owned]))
+        return worst / change if change > 0 else worst
+
+    def _norm(self, x: np.ndarray) -> float:
+        """‖x‖_E of owned rows."""
+        column = x[:, None]
+        return float(np.sqrt(abs(gram(column, apply(self._energy, column, self.comm), self.comm)[0, 0])))
+
+    def destroy(self) -> None:
+        for item in (self._solver, self._tangent, self._energy, self._correction, self._vector):
+            item.destroy()

@@ -1,0 +1,145 @@
+"""Greedy training to a tolerance: the residual indicator estimates the error it reports next
+to, and the trained model meets its tolerance at points it never saw."""
+
+import numpy as np
+import pytest
+from fem import BOX, TINY_SCENE, pushed_block
+from mpi4py import MPI
+
+from lungmech.errors import ParameterError
+from lungmech.fem import BodyForce, LinearElastic, Model, Stepping, Traction, clamp
+from lungmech.fem.parameters import Parameter, Parameters
+from lungmech.fem.parametric import FullOrderModel
+from lungmech.mesh import box
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.greedy import greedy
+from lungmech.rom.indicator import ResidualIndicator
+from lungmech.rom.reduced import ReducedModel
+from lungmech.rom.reductor import errors, reduce
+
+
+@pytest.fixture(scope="module")
+def full():
+    return pushed_block()
+
+
+@pytest.fixture(scope="module")
+def trained(full):
+    return greedy(full, Parameters(BOX).sample(16, seed=1), 1e-3)
+
+
+def test_the_trained_model_meets_its_tolerance_where_it_never_looked(full, trained):
+    """Six points of another seed: each true energy-norm error is below the tolerance, and the
+    indicator of each answer is within a factor 2 of it."""
+    assert trained.met and trained.training[0] == full.parameters.defaults
+    reduced = ReducedModel(full.model, trained.basis, full.stepping, start=None, training=trained.training)
+    indicator = ResidualIndicator(full.model)
+    for mu in Parameters(BOX).sample(6, seed=77):
+        answer = reduced.solve(mu)
+        error = errors(reduced, full.solve(mu), answer).energy
+        assert error <= 1e-3
+        assert 1 / 2 <= indicator(reduced, answer) / error <= 2
+    indicator.destroy()
+
+
+def test_each_round_reports_its_indicator_next_to_the_true_error(trained):
+    """Every full solve measured the error it was chosen for; the indicator is within a factor 2
+    of it, the errors fall, and the last round's indicator (with the measured safety) meets the
+    tolerance."""
+    chosen = trained.rounds[:-1]
+    assert len(chosen) == len(trained.training) - 1 >= 2
+    for round in chosen:
+        assert 1 / 2 <= round.indicator / round.error <= 2
+    assert chosen[-1].error < chosen[0].error / 10
+    assert trained.rounds[-1].error is None and trained.rounds[-1].indicator * trained.safety <= 1e-3
+    assert trained.safety == max(1.0, *(r.error / r.indicator for r in chosen))
+
+
+def test_the_indicator_is_the_error_itself_for_a_linear_model():
+    """K = E for linear elasticity under dead loads: the Newton correction E⁻¹ R(x_r) is x − x_r
+    exactly, so the indicator equals the true error (relative to the reduced change, not the
+    full one: the two differ by the error's own share)."""
+    model = Model(
+        box(MPI.COMM_SELF, cells=(6, 2, 2)),
+        lambda c: LinearElastic.from_young(c["E"], 0.3),
+        constraints=[clamp("x0")],
+        loads=[Traction("x1", (0.0, 0.0, -0.1), name="pull"), BodyForce((0.0, 0.05, 0.0), name="weight")],
+        parameters=[
+            Parameter("E", "material.E", 10.0, (5.0, 20.0)),
+            Parameter("g", "loads.weight.amplitude", 0.0, (0.0, 1.0)),
+        ],
+    )
+    full = FullOrderModel(model, Stepping(end=1.0, times=(0.5,)))
+    poor = reduce(full, [{"E": 5.0}], size=1)  # the traction's response alone
+    indicator = ResidualIndicator(model)
+    mu = {"E": 17.0, "g": 0.7}
+    answer = poor.solve(mu)
+    error = errors(poor, full.solve(mu), answer).energy
+    assert error > 1e-3  # one vector of one load path: not exact elsewhere
+    eta = indicator(poor, answer)
+    indicator.destroy()
+    # both are largest at the end of the linear path; η is relative to ‖x_r‖_E, the error to ‖x‖_E
+    end = len(answer.times) - 1
+    states = np.column_stack([full.solve(mu).states[end], poor.reconstruct(answer, end)])
+    W = poor.energy_product
+    norms = np.sqrt(np.diag(gram(states, apply(W, states, MPI.COMM_SELF), MPI.COMM_SELF)))
+    assert eta == pytest.approx(error * norms[0] / norms[1], rel=1e-8)
+
+
+def test_a_tolerance_out_of_reach_is_reported_not_met(full):
+    """Allowed two full solves, the training cannot reach 1e-6: it says so, and the rounds show
+    the indicator it stopped at."""
+    stopped = greedy(full, Parameters(BOX).sample(8, seed=1), 1e-6, most=2)
+    assert not stopped.met and len(stopped.training) == 2
+    assert stopped.rounds[-1].indicator > 1e-6
+
+
+@pytest.mark.parametrize(
+    ("tolerance", "candidates", "said"),
+    [
+        (float("nan"), None, "greedy tolerance must be a finite number"),
+        (2.0, None, "must lie in \\(0, 1\\)"),
+        (1e-3, [], "at least one candidate"),
+    ],
+)
+def test_bad_greedy_inputs_are_refused(full, tolerance, candidates, said):
+    with pytest.raises(ParameterError, match=said):
+        greedy(full, Parameters(BOX).sample(2) if candidates is None else candidates, tolerance)
+
+
+SCENE = (
+    TINY_SCENE.replace("cells = [2, 1, 1]", "cells = [6, 2, 2]").replace("-10.0]", '-10.0]\nname = "pull"')
+    + """
+[parameters.stiffness]
+target = "material.E"
+range = [500.0, 2000.0]
+scale = "log"
+[parameters.pull]
+target = "loads.pull.amplitude"
+range = [0.5, 5.0]
+"""
+)
+
+
+def test_rom_build_to_a_tolerance_from_the_command_line(tmp_path, capsys):
+    """rom build --tolerance: greedy over the box, each round's indicator next to its true error
+    (with units for the points), the model file records it, and rom solve answers within it."""
+    from lungmech.app.cli import main
+    from lungmech.rom import store
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    model = tmp_path / "m.npz"
+    assert main(["rom", "build", str(scene), "-o", str(model), "--tolerance", "1e-3", "--samples", "8", "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "greedy training: tolerance 0.001 met with" in said and "true error" in said and " Pa, pull = " in said
+    recorded = store.read(model, arrays=False)[0]["extra"]["greedy"]
+    assert recorded["met"] and recorded["full_solves"] == len(recorded["rounds"]) >= 2
+    assert all(r["error"] is not None for r in recorded["rounds"][:-1])
+    for refused, said in (
+        (["--scales", "0.5,1"], "put a load's amplitude in [parameters] instead of giving --scales"),
+        (["--basis", "modal"], "--tolerance trains a POD basis (got --basis modal)"),
+    ):
+        assert main(["rom", "build", str(scene), "-o", str(tmp_path / "n.npz"), "--tolerance", "0.01", *refused]) == 2
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "n.npz").exists()
