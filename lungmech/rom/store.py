@@ -89,7 +89,7 @@ def _content(arrays: dict[str, np.ndarray]) -> str:
 def _suffix(path: str | Path) -> Path:
     path = Path(path)
     if path.suffix != ".npz":
-        raise ParameterError(f"reduced models are saved as .npz (got {path.name})")
+        raise ParameterError(f"reduced models are saved as .npz (got {path.name or path})")
     return path
 
 
