@@ -1,6 +1,9 @@
 """Greedy training to a tolerance: the residual indicator estimates the error it reports next
 to, and the trained model meets its tolerance at points it never saw."""
 
+import json
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from fem import BOX, TINY_SCENE, pushed_block
@@ -86,6 +89,46 @@ def test_the_indicator_is_the_error_itself_for_a_linear_model():
     assert eta == pytest.approx(error * norms[0] / norms[1], rel=1e-8)
 
 
+@pytest.fixture(scope="module")
+def online(full, trained):
+    """The Galerkin and hyper-reduced models of the trained basis, each answer with the online
+    indicator of the next four POD directions (the ECSW sample trained on them too)."""
+    from lungmech.rom import ecsw
+    from lungmech.rom.pod import snapshots
+
+    model, k = full.model, trained.basis.size
+    W = trained.modes.vectors[:, k : k + 4]
+    extended = replace(trained.basis, vectors=np.hstack([trained.basis.vectors, W]))
+    runs = lambda: snapshots(model, full.stepping, solver=full.solver, parameters=trained.training)  # noqa: E731
+    sample = ecsw.train(model, extended, full.solver, runs, 1e-5)
+    galerkin = ReducedModel(model, trained.basis, full.stepping, training=trained.training, enrichment=W)
+    hyper = ReducedModel(model, trained.basis, full.stepping, training=trained.training, sample=sample, enrichment=W)
+    return galerkin, hyper
+
+
+def test_every_online_answer_carries_its_indicator(full, online):
+    """At six unseen points the online indicator (the Newton correction along the next POD
+    directions) lies between a third of the true error and 1.5 times it, for the Galerkin and
+    the hyper-reduced model alike; the hyper-reduced one never reads the full state."""
+    galerkin, hyper = online
+    for mu in Parameters(BOX).sample(6, seed=77):
+        reference = full.solve(mu)
+        for reduced in (galerkin, hyper):
+            answer = reduced.solve(mu)
+            error = errors(reduced, reference, answer).energy
+            assert error / 3 <= answer.indicator <= 1.5 * error, (reduced.solver.description, mu)
+    state = hyper.model.state.x.array
+    state[:] = np.nan
+    assert np.isfinite(hyper.solve({"E": 7.0}).indicator) and np.isnan(state).all()
+    hyper.model.reset()
+
+
+def test_a_model_without_enrichment_gives_no_indicator(full, trained):
+    """Without directions beyond its basis the model does not pretend to know its error."""
+    plain = ReducedModel(full.model, trained.basis, full.stepping)
+    assert plain.solve({"E": 7.0}).indicator is None and full.solve({"E": 7.0}).indicator is None
+
+
 def test_a_tolerance_out_of_reach_is_reported_not_met(full):
     """Allowed two full solves, the training cannot reach 1e-6: it says so, and the rounds show
     the indicator it stopped at."""
@@ -136,6 +179,13 @@ def test_rom_build_to_a_tolerance_from_the_command_line(tmp_path, capsys):
     recorded = store.read(model, arrays=False)[0]["extra"]["greedy"]
     assert recorded["met"] and recorded["full_solves"] == len(recorded["rounds"]) >= 2
     assert all(r["error"] is not None for r in recorded["rounds"][:-1])
+    out = tmp_path / "answer"
+    assert main(["rom", "solve", str(model), "-o", str(out), "--set", "stiffness=700", "--set", "pull=4", "-q"]) == 0
+    assert "estimated error" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert 0 < summary["error_indicator"] < 1e-2
+    header = (out / "history.csv").read_text().splitlines()[0]
+    assert "error_indicator [1]" in header
     for refused, said in (
         (["--scales", "0.5,1"], "put a load's amplitude in [parameters] instead of giving --scales"),
         (["--basis", "modal"], "--tolerance trains a POD basis (got --basis modal)"),

@@ -119,4 +119,6 @@ def end_of_run(summary: dict, folder: Path) -> str:
     )
     if summary.get("inverse"):
         text += f"; unloaded reference {show(summary['reference_volume'])}"
+    if summary.get("error_indicator") is not None:
+        text += f"; estimated error {summary['error_indicator']:.1e} (relative, energy norm)"
     return text + f"; outputs in {folder}"

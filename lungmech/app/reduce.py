@@ -21,6 +21,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -29,12 +30,12 @@ from mpi4py import MPI
 
 from lungmech import checks
 from lungmech.app import scene as scenes
-from lungmech.app.run import Scale, build_model, check_scale
+from lungmech.app.run import Prepared, Scale, build_model, check_scale
 from lungmech.app.scene import ImageLabel, Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel, approach
-from lungmech.fem.solver import NewtonSolver, Solver
+from lungmech.fem.solver import NewtonSolver
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
 from lungmech.mesh.files import companions
@@ -166,11 +167,11 @@ def _build(
     timings["inverse"] = time.perf_counter() - tic
 
     parts: list[Basis] = []
-    trained = None
+    trained = modes = None
     if tolerance is not None:
         full = FullOrderModel(model, scene.stepping, solver=solver, probes=scene.output.probes, start=start)
         trained = greedy(full, training, tolerance, size=size, inner=inner, timings=timings)
-        training = trained.training
+        training, modes = trained.training, trained.modes
         parts.append(trained.basis)
     elif kind in ("pod", "pod+modal"):
         tic = time.perf_counter()
@@ -178,7 +179,8 @@ def _build(
         timings["snapshots"] = time.perf_counter() - tic
         tic = time.perf_counter()
         source = {"scales": _plain(scales), "training": training}
-        parts.append(pod(model, data, inner=inner, size=size, source=source))
+        modes = pod(model, data, inner=inner, source=source)
+        parts.append(modes.truncate(min(size, modes.size)))
         timings["svd"] = time.perf_counter() - tic
     if kind in ("modal", "modal+derivatives", "pod+modal"):
         tic = time.perf_counter()
@@ -193,11 +195,13 @@ def _build(
     basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
 
     arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}  # canonical, on rank 0 (None elsewhere)
+    enrichment = _enrichment(basis, modes if kind == "pod" else None)
+    arrays["enrichment"] = where.gather(enrichment)
     hyper_summary = None
     if hyper is not None:
         sample = ecsw.train(
             model,
-            basis,
+            replace(basis, vectors=np.hstack([basis.vectors, enrichment])),  # W's residual is sampled too
             solver,
             lambda: snapshots(model, scene.stepping, scales, solver=solver, start=start, parameters=training),
             hyper[1],
@@ -236,6 +240,17 @@ def _build(
     }
 
 
+ENRICHMENT = 8  # at most: the online indicator's directions beyond the basis
+
+
+def _enrichment(basis: Basis, modes: Basis | None) -> np.ndarray:
+    """The POD directions next after ``basis`` (at most :data:`ENRICHMENT`, owned rows), where the
+    online error indicator looks: none for a basis that is not the head of ``modes``."""
+    if modes is None or basis.size >= modes.size or basis.kind != "pod":
+        return np.zeros((basis.vectors.shape[0], 0))
+    return modes.vectors[:, basis.size : basis.size + ENRICHMENT].copy()
+
+
 def _greedy_summary(trained: Greedy | None, tolerance: float | None, parameters: Parameters) -> dict | None:
     """What the greedy training did, as plain values (an indicator of inf — the reduced solve
     failed there — as None)."""
@@ -264,7 +279,7 @@ def reduced_order(path: str | Path):
     return partial(_prepare, Path(path))
 
 
-def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[Solver, dict | None]:
+def _prepare(path: Path, model, scene: Scene, folder: Path) -> Prepared:
     values = dict(model.parameter_values)  # the scene's, with --set
     reduced, placed = _reduced(path, model, scene)
     # The stored start is an equilibrium at the default parameters: move it to the asked ones.
@@ -273,7 +288,7 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> tuple[Solver, dic
     model.state.x.scatter_forward()
     reduced.restart()
     approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start)
-    return reduced.solver, {"reference": "from the reduced model"} if placed else None
+    return Prepared(reduced.solver, {"reference": "from the reduced model"} if placed else None, reduced.estimate)
 
 
 def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
@@ -303,7 +318,10 @@ def _reduced(path: Path, model, scene: Scene) -> tuple[ReducedModel, bool]:
     model.set_time(scene.stepping.start)
     training = metadata["extra"].get("training", [])
     sample = _sample(model, metadata["extra"].get("hyper"), arrays)
-    reduced = ReducedModel(model, basis, scene.stepping, scene.newton, start, scene.output.probes, training, sample)
+    enrichment = where.scatter(arrays["enrichment"]) if "enrichment" in arrays else None
+    reduced = ReducedModel(
+        model, basis, scene.stepping, scene.newton, start, scene.output.probes, training, sample, enrichment
+    )
     return reduced, "reference_nodes" in arrays
 
 

@@ -22,6 +22,7 @@ import json
 import platform
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,7 @@ from lungmech.lung.inverse import InverseReport, unloaded_reference
 from lungmech.mesh import write as write_geometry
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_folder
+from lungmech.rom.indicator import relative
 
 Scale = float | Sequence[float]
 
@@ -73,6 +75,7 @@ SUMMARY_UNITS = {
     "inverse.seconds": "s",
     "inverse.imaged_volume": "m^3",
     "inverse.reference_volume": "m^3",
+    "error_indicator": "1 (a reduced model's estimate of its relative energy-norm error)",
 }
 _COLUMN_UNITS = {
     "time": "s",
@@ -84,6 +87,7 @@ _COLUMN_UNITS = {
     "phi_f": "1",
     "phi_s_current": "1",
     "green_lagrange_mean": "1",
+    "error_indicator": "1",
 }
 
 
@@ -172,10 +176,21 @@ def check_scale(scene: Scene, scale: Scale) -> Scale:
     return scale
 
 
-def full_order(model: Model, scene: Scene, folder: Path) -> tuple[NewtonSolver, dict | None]:
+@dataclass(frozen=True)
+class Prepared:
+    """What a run's ``prepare`` step gives: the solver; what it did to the reference (the inverse
+    problem's report, or None); and for a reduced model that estimates its error, the estimate
+    at the current state, (η̂(t), ‖V q‖_E) (:class:`lungmech.rom.indicator.EnrichedIndicator`)."""
+
+    solver: Solver
+    reference: dict | None = None
+    estimate: Callable[[], tuple[float, float]] | None = None
+
+
+def full_order(model: Model, scene: Scene, folder: Path) -> Prepared:
     """The full-order solver, after unloading the imaged mesh when the scene asks for it."""
     solver = NewtonSolver(model, scene.newton)
-    return solver, _unload(model, scene, solver, folder) if scene.inverse is not None else None
+    return Prepared(solver, _unload(model, scene, solver, folder) if scene.inverse is not None else None)
 
 
 def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> dict:
@@ -222,7 +237,7 @@ def run(
     comm: MPI.Comm = MPI.COMM_WORLD,
     *,
     scale: Scale = 1.0,
-    prepare: Callable[[Model, Scene, Path], tuple[Solver, dict | None]] = full_order,
+    prepare: Callable[[Model, Scene, Path], Prepared] = full_order,
     inputs: Sequence[str | Path] = (),
 ) -> dict:
     """Solve ``scene`` and write its results into the folder ``out`` (see the module's doc).
@@ -230,9 +245,9 @@ def run(
     A scene with [inverse] first moves its (imaged) mesh to the unloaded reference; stepping
     then starts from the imaged state. ``scale`` multiplies the loads' change from the start
     (one factor, or one per load): a deeper breath from the same end-expiration.
-    ``prepare(model, scene, folder)`` returns the solver (default :func:`full_order`; a reduced
-    model's is in :mod:`lungmech.app.reduce`) and what it did to the reference (the inverse
-    problem's report, or None). ``inputs`` are further files the run reads (beyond the scene's
+    ``prepare(model, scene, folder)`` returns the :class:`Prepared` solver (default
+    :func:`full_order`; a reduced model's is in :mod:`lungmech.app.reduce`, whose error
+    estimate, if it has one, becomes the history's ``error_indicator`` column and the summary's). ``inputs`` are further files the run reads (beyond the scene's
     own), which ``out`` must not hold.
 
     ``out`` is checked before any work (see :func:`lungmech.parallel.destination.output_folder`) and
@@ -246,7 +261,8 @@ def run(
         model = build_model(scene, comm)
         timings["build"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        solver, inverse = prepare(model, scene, staging)
+        prepared = prepare(model, scene, staging)
+        solver, inverse = prepared.solver, prepared.reference
         timings["prepare"] = time.perf_counter() - tic
         tic = time.perf_counter()
         volume, energy = deformed_volume(model), strain_energy(model)
@@ -260,6 +276,7 @@ def run(
         progress = Progress("breathing" if axis and axis[0].startswith("transpulmonary") else "loading")
         history = []
         largest = {"volume": -np.inf, "state": None, "time": 0.0}  # pictured at the end
+        estimates = []  # (η̂(t), change(t)) of a reduced model that estimates its error
 
         def record(step: StepReport | None) -> None:
             solver.update_model()  # a hyper-reduced solver iterates on q: the fields written need x
@@ -269,6 +286,9 @@ def run(
             row |= {name: mean() for name, mean in fractions.items()}
             if step is not None:
                 row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
+            if prepared.estimate is not None:
+                estimates.append(prepared.estimate())
+                row["error_indicator"] = relative(estimates)  # of the path so far
             if probe is not None:
                 for i, value in enumerate(probe(model.displacement())):
                     row |= {f"probe{i}_u{letter}": component for letter, component in zip("xyz", value)}
@@ -338,6 +358,7 @@ def run(
             "inverse": inverse,
             "load_scale": np.asarray(scale, dtype=float).tolist(),
             "solver": solver.description,
+            "error_indicator": relative(estimates) if prepared.estimate is not None else None,
             "linear_solver": getattr(solver, "linear_solver", None),  # what "auto" chose, or was pushed to
             "probes": {
                 "points": [list(p) for p in scene.output.probes],

@@ -42,7 +42,9 @@ class Solution:
     in m³, strain_energy in J, probes in m with shape (times, points, 3), loads in Pa by label).
     ``states`` has one row per output time: the owned entries of the full state vector, or the
     reduced coordinates q. ``sensitivities[name]`` (when asked) holds ∂output/∂μ with the
-    parameters on the last axis, in ``parameter_names`` order.
+    parameters on the last axis, in ``parameter_names`` order. ``indicator``: a reduced
+    model's estimate of its relative energy-norm error along this path (None: the full model,
+    or a reduced model without an enrichment), see :mod:`lungmech.rom.indicator`.
     """
 
     parameters: dict[str, float]
@@ -54,6 +56,7 @@ class Solution:
     sensitivities: dict[str, np.ndarray] | None = None
     parameter_names: tuple[str, ...] = ()
     units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
+    indicator: float | None = None
 
 
 class ParametricModel(Protocol):

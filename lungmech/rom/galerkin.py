@@ -34,6 +34,8 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
     ``start`` is the state the basis is relative to (x₀ without the imposed displacements;
     default: the unloaded state), e.g. the imaged end-expiration state of a lung.
     ``residual`` and ``jacobian`` replace the model's own forms, as for NewtonSolver.
+    ``enrichment`` (owned rows): directions beyond the basis, whose residual and tangent
+    :meth:`enriched_terms` gives (the online error indicator's).
     """
 
     def __init__(
@@ -44,6 +46,7 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         residual=None,
         jacobian=None,
         start: np.ndarray | None = None,
+        enrichment: np.ndarray | None = None,
     ):
         check_basis(model, basis)
         self.model, self.basis = model, basis
@@ -51,6 +54,7 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         self.comm = model.geometry.mesh.comm
         self.owned = basis.vectors.shape[0]
         self.V = np.ascontiguousarray(basis.vectors)
+        self.W = None if enrichment is None else np.ascontiguousarray(enrichment)
         self.dual = dual(model, basis)
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self._residual = fem.form(model.residual if residual is None else residual)
@@ -99,19 +103,33 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
 
     def reduced_residual(self, q: np.ndarray) -> np.ndarray:
         """Vᵀ R(x₀ + V q) (sets the model's state)."""
+        return gram(self.V, self._residual_at(q)[:, None], self.comm)[:, 0]
+
+    def _residual_at(self, q: np.ndarray) -> np.ndarray:
+        """R(x₀ + V q), owned rows (sets the model's state)."""
         self.reconstruct(q)
         self.state_dependent.update()  # θ = Θ(x₀ + V q): balanced exactly at every iterate
-        residual = assemble_owned(self._residual, self._vector, self.owned)
-        return gram(self.V, residual[:, None], self.comm)[:, 0]
+        return assemble_owned(self._residual, self._vector, self.owned)
 
-    def reduced_jacobian(self) -> np.ndarray:
-        """Vᵀ (K + U Wᵀ) V at the model's current state, U Wᵀ the tangent of state-dependent load
-        coefficients (:mod:`lungmech.fem.state_dependent`)."""
+    def _tangent(self) -> PETSc.Mat:
+        """K at the model's current state (the solver's matrix, overwritten)."""
         A = self._matrix
         A.zeroEntries()
         assemble_matrix(A, self._jacobian)
         A.assemble()
-        reduced = gram(self.V, apply(A, self.V, self.comm), self.comm)
+        return A
+
+    def enriched_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, Wᵀ R, Wᵀ K W) at x₀ + V q, q that of the model's state, W the enrichment: the
+        residual and tangent in the directions the basis leaves out (collective)."""
+        q = self.project()
+        residual, W = self._residual_at(q), self.W
+        return q, gram(W, residual[:, None], self.comm)[:, 0], gram(W, apply(self._tangent(), W, self.comm), self.comm)
+
+    def reduced_jacobian(self) -> np.ndarray:
+        """Vᵀ (K + U Wᵀ) V at the model's current state, U Wᵀ the tangent of state-dependent load
+        coefficients (:mod:`lungmech.fem.state_dependent`)."""
+        reduced = gram(self.V, apply(self._tangent(), self.V, self.comm), self.comm)
         if self.state_dependent:
             U, W = self.state_dependent.low_rank()
             reduced += gram(self.V, U, self.comm) @ gram(W, self.V, self.comm)

@@ -54,12 +54,14 @@ class Round:
 @dataclass(frozen=True)
 class Greedy:
     """The trained basis, the points whose full load paths it holds (the first: the defaults),
-    the rounds, and whether the largest indicator met the tolerance."""
+    the rounds, whether the largest indicator met the tolerance, and every POD direction of
+    the last round (``basis`` leads them; the next ones are an enrichment)."""
 
     basis: Basis
     training: list[dict[str, float]]
     rounds: list[Round]
     met: bool
+    modes: Basis
 
     @property
     def safety(self) -> float:
@@ -114,8 +116,8 @@ def greedy(
         add(full.parameters.defaults)
         while True:
             tic = time.perf_counter()
-            data = np.hstack(paths)
-            basis = _truncated(pod(model, data, inner=inner, source={"training": list(training)}), size, tolerance)
+            modes = pod(model, np.hstack(paths), inner=inner, source={"training": list(training)})
+            basis = _truncated(modes, size, tolerance)
             seconds["pod"] += time.perf_counter() - tic
             tic = time.perf_counter()
             reduced = ReducedModel(
@@ -148,7 +150,7 @@ def greedy(
     if timings is not None:
         timings.update(seconds)
     met = rounds[-1].indicator * _safety(rounds) <= tolerance
-    return Greedy(basis, training, rounds, met)
+    return Greedy(basis, training, rounds, met, modes)
 
 
 def _safety(rounds: Sequence[Round]) -> float:

@@ -45,9 +45,20 @@ class HyperReducedSolver:
     :class:`~lungmech.rom.galerkin.ReducedSolver` otherwise; :attr:`assembled_cells` counts
     what one assembly visits.
 
-    ``start`` is the full state the basis is relative to (default: the unloaded state)."""
+    ``start`` is the full state the basis is relative to (default: the unloaded state).
+    ``enrichment`` (owned rows): directions beyond the basis, whose sampled residual and tangent
+    :meth:`enriched_terms` gives (the online error indicator's; the sample must be trained on
+    them too)."""
 
-    def __init__(self, model, basis, sample: Sample, options=None, start: np.ndarray | None = None):
+    def __init__(
+        self,
+        model,
+        basis,
+        sample: Sample,
+        options=None,
+        start: np.ndarray | None = None,
+        enrichment: np.ndarray | None = None,
+    ):
         check_basis(model, basis)
         self.model, self.basis, self.sample = model, basis, sample
         self.options = options or NewtonOptions()
@@ -85,6 +96,7 @@ class HyperReducedSolver:
         # sums them: no ghost exchange. The matrix numbers its rows and columns its own way.
         self._rows, self._columns = (_positions(self._matrix.index_map(i), reduced.space) for i in (0, 1))
         self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
+        self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
         self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self._imposed = origin(model, self.reference)  # x₀; the imposed dofs are rewritten at each solve
@@ -265,6 +277,17 @@ class HyperReducedSolver:
         b[:] = 0.0
         fem.assemble_vector(b, self._residual)
         return gram(self.V, b[:, None], self.comm)[:, 0]
+
+    def enriched_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, Σ_e ξ_e Wᵀ r_e, Σ_e ξ_e Wᵀ K_e W) at the current q, W the enrichment: the sampled
+        residual and tangent in the directions the basis leaves out, on the reduced mesh
+        (collective)."""
+        self._at(self.coordinates)
+        self.reduced_residual(self.coordinates)
+        r = gram(self.W, self._vector.array[:, None], self.comm)[:, 0]
+        self._matrix.set_value(0.0)
+        fem.assemble_matrix(self._matrix, self._jacobian)
+        return self.coordinates.copy(), r, gram(self.W[self._rows], self._tangent @ self._on_columns(self.W), self.comm)
 
     def reduced_jacobian(self) -> np.ndarray:
         """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state, plus the state-dependent loads' low-rank

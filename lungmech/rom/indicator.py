@@ -1,4 +1,9 @@
-"""The error indicator of a reduced answer: the length of the full Newton correction at it.
+"""Error indicators of reduced answers: the length of the Newton correction at them.
+
+Offline, :class:`ResidualIndicator` takes the full correction (O(mesh)); online,
+:class:`EnrichedIndicator` takes it in the span of an enrichment W, the POD directions next
+after the basis, from the reduced solver's own (sampled) residual and tangent, so that every
+online answer carries its indicator without touching the full mesh.
 
 At a reduced state x_r the full residual R(x_r) is what the reduced model leaves unbalanced. The
 step a full Newton iteration would take from there, with the tangent K_μ at rest at the
@@ -31,7 +36,7 @@ from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import inner_product, origin
 
-__all__ = ["ResidualIndicator"]
+__all__ = ["EnrichedIndicator", "ResidualIndicator"]
 
 
 class ResidualIndicator:
@@ -94,3 +99,48 @@ class ResidualIndicator:
     def destroy(self) -> None:
         for item in (self._solver, self._tangent, self._energy, self._correction, self._vector):
             item.destroy()
+
+
+class EnrichedIndicator:
+    """The online error indicator: the Newton correction in the span of the enrichment W,
+
+        δ(t) = (Wᵀ K W)⁻¹ Wᵀ R(x_r(t)),   η̂(t) = ‖W δ‖_E = √(δᵀ G_W δ),
+
+    with Wᵀ R and Wᵀ K W from the reduced solver (``enriched_terms()``: sampled on the reduced
+    mesh for a hyper-reduced model), against the change ‖V q(t)‖_E = √(qᵀ G_V q). An answer's
+    indicator is max_t η̂(t) / max_t ‖V q(t)‖_E, relative as :class:`ResidualIndicator`'s; it
+    sees the error only along W, so it estimates the error from below, as well as the training's
+    next directions describe it. G_V = Vᵀ E V and G_W = Wᵀ E W are assembled once here
+    (O(mesh), with the model); each evaluation costs one sampled residual and tangent."""
+
+    def __init__(self, model, basis: np.ndarray, enrichment: np.ndarray):
+        comm = model.geometry.mesh.comm
+        energy = inner_product(model, "energy")
+        self._gram_basis = gram(basis, apply(energy, basis, comm), comm)
+        self._gram_enrichment = gram(enrichment, apply(energy, enrichment, comm), comm)
+        energy.destroy()
+
+    @property
+    def size(self) -> int:
+        """The number of enrichment directions."""
+        return self._gram_enrichment.shape[0]
+
+    def at(self, solver) -> tuple[float, float]:
+        """(η̂(t), ‖V q‖_E) at the reduced ``solver``'s current state (collective)."""
+        q, residual, tangent = solver.enriched_terms()
+        try:
+            step = np.linalg.solve(tangent, residual)
+        except np.linalg.LinAlgError:
+            return np.inf, _norm(q, self._gram_basis)
+        return _norm(step, self._gram_enrichment), _norm(q, self._gram_basis)
+
+
+def relative(pairs: list[tuple[float, float]]) -> float:
+    """max_t η̂(t) / max_t ‖V q(t)‖_E of (η̂(t), change(t)) pairs along a path."""
+    worst = max((eta for eta, _ in pairs), default=0.0)
+    change = max((c for _, c in pairs), default=0.0)
+    return worst / change if change > 0 else worst
+
+
+def _norm(x: np.ndarray, gram_matrix: np.ndarray) -> float:
+    return float(np.sqrt(abs(x @ gram_matrix @ x)))

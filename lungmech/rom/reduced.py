@@ -20,7 +20,8 @@ never touches the full mesh; :meth:`reconstruct` forms a full field on request.
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from lungmech.rom.basis import Basis, inner_product, reference_state
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
+from lungmech.rom.indicator import EnrichedIndicator, relative
 from lungmech.rom.outputs import ReducedOutputs
 
 __all__ = ["ReducedModel"]
@@ -48,6 +50,10 @@ class ReducedModel:
         probes: points whose displacement is an output.
         training: the parameter points the basis was trained on (what the model has seen).
         sample: an ECSW sample of the model's cells (trained on this basis): hyper-reduced.
+        enrichment: directions beyond the basis (owned rows; the POD vectors next after it):
+            every answer then carries its error indicator
+            (:class:`~lungmech.rom.indicator.EnrichedIndicator`; a hyper-reduced model's sample
+            must be trained on them too).
     """
 
     def __init__(
@@ -60,16 +66,19 @@ class ReducedModel:
         probes: Sequence[Sequence[float]] = (),
         training: Sequence[Mapping[str, float]] = (),
         sample: Sample | None = None,
+        enrichment: np.ndarray | None = None,
     ):
         self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
+        self.enrichment = None if enrichment is None or not enrichment.shape[1] else enrichment
         self.parameters = model.parameters
         self.start = reference_state(model) if start is None else np.array(start, dtype=float)
         if sample is None:
-            self.solver = ReducedSolver(model, basis, newton, start=self.start)
+            self.solver = ReducedSolver(model, basis, newton, start=self.start, enrichment=self.enrichment)
             self.outputs = Outputs(model, probes)
         else:
-            self.solver = HyperReducedSolver(model, basis, sample, newton, start=self.start)
+            self.solver = HyperReducedSolver(model, basis, sample, newton, self.start, self.enrichment)
             self.outputs = ReducedOutputs(self.solver, probes)
+        self.indicator = None if self.enrichment is None else EnrichedIndicator(model, basis.vectors, self.enrichment)
         self.times = output_times(model, stepping)
         self.training = [dict(point) for point in training]
         with model.kept_state():
@@ -97,6 +106,7 @@ class ReducedModel:
             self.outputs.probe_points,
             self.training,
             self.sample,
+            self.enrichment,
         )
 
     @functools.cached_property
@@ -110,15 +120,32 @@ class ReducedModel:
         return self.basis.size
 
     def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
-        """Outputs and reduced coordinates q at the output times, for the parameters ``mu``."""
+        """Outputs and reduced coordinates q at the output times, for the parameters ``mu``;
+        with an enrichment, the answer's error indicator too."""
         self.model.set_parameters(self.parameters.defaults)
         self.restart()
-        return trajectory(
+        estimates = []
+
+        def state() -> np.ndarray:
+            if self.estimate is not None:
+                estimates.append(self.estimate())
+            return self.solver.coordinates.copy()
+
+        solution = trajectory(
             self,
             self.parameters.values(mu),
-            state=lambda: self.solver.coordinates.copy(),
+            state=state,
             derivatives=self._sensitivities if sensitivities else None,
         )
+        return replace(solution, indicator=relative(estimates) if self.estimate is not None else None)
+
+    @property
+    def estimate(self) -> Callable[[], tuple[float, float]] | None:
+        """(η̂(t), ‖V q(t)‖_E) at the solver's current state, or None without an enrichment
+        (:class:`~lungmech.rom.indicator.EnrichedIndicator`; collective)."""
+        if self.indicator is None:
+            return None
+        return functools.partial(self.indicator.at, self.solver)
 
     def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
         """The full state x₀ + V q of output ``index`` of ``solution``, as the model's state
