@@ -44,6 +44,21 @@ fields = false
 """
 
 
+# The tiny scene on a finer mesh, its pull named, over a box of stiffness and pull amplitude.
+PARAMETRIC_SCENE = (
+    TINY_SCENE.replace("cells = [2, 1, 1]", "cells = [6, 2, 2]").replace("-10.0]", '-10.0]\nname = "pull"')
+    + """
+[parameters.stiffness]
+target = "material.E"
+range = [500.0, 2000.0]
+scale = "log"
+[parameters.pull]
+target = "loads.pull.amplitude"
+range = [0.5, 5.0]
+"""
+)
+
+
 def mean_cauchy(model: Model) -> np.ndarray:
     """Volume average of the Cauchy stress over the reference configuration."""
     comm = model.geometry.mesh.comm

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fem import BOX, TINY_SCENE, pushed_block
+from fem import BOX, PARAMETRIC_SCENE, pushed_block
 from mpi4py import MPI
 
 from lungmech.errors import ParameterError
@@ -150,18 +150,7 @@ def test_bad_greedy_inputs_are_refused(full, tolerance, candidates, said):
         greedy(full, Parameters(BOX).sample(2) if candidates is None else candidates, tolerance)
 
 
-SCENE = (
-    TINY_SCENE.replace("cells = [2, 1, 1]", "cells = [6, 2, 2]").replace("-10.0]", '-10.0]\nname = "pull"')
-    + """
-[parameters.stiffness]
-target = "material.E"
-range = [500.0, 2000.0]
-scale = "log"
-[parameters.pull]
-target = "loads.pull.amplitude"
-range = [0.5, 5.0]
-"""
-)
+SCENE = PARAMETRIC_SCENE
 
 
 def test_rom_build_to_a_tolerance_from_the_command_line(tmp_path, capsys):

@@ -90,6 +90,12 @@ def parser() -> argparse.ArgumentParser:
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
     solve.add_argument("scene", nargs="?", help="scene file (default: the scene stored in the model file)")
     _common(solve, "results/<model name>-reduced")
+    solve.add_argument(
+        "--sweep",
+        metavar="CSV",
+        help="solve at every parameter point of this CSV file (a header of parameter names, one row per "
+        "point): sweep.csv, summary.json and sweep.png in the output folder (default results/<model name>-sweep)",
+    )
     registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
     return top
@@ -315,6 +321,8 @@ def _greedy_report(greedy: dict) -> str:
 
 
 def _run(args) -> int:
+    if args.command == "rom" and args.sweep is not None:
+        return _sweep(args)
     if args.command == "rom" and args.scene is None:  # the scene inside the model file
         from lungmech.app.reduce import embedded_scene
 
@@ -323,6 +331,29 @@ def _run(args) -> int:
             return _solve(args, comm, scene, f"the scene inside {args.model}", Path(args.model))
     comm, scene, name, path = _setup(args)
     return _solve(args, comm, scene, name, path)
+
+
+def _sweep(args) -> int:
+    from lungmech.app.sweep import sweep
+
+    comm = _logging(args)
+    if args.scene is not None:
+        raise ParameterError("--sweep solves the scene inside the model file: leave out the scene file")
+    if args.scale != (1.0,):
+        raise ParameterError("--sweep takes no --scale: sweep a load's amplitude as a column of [parameters]")
+    output = args.output if args.output is not None else RESULTS / f"{Path(args.model).stem}-sweep"
+    if comm.rank == 0:
+        print(f"lungmech: sweeping the reduced model {args.model} over the points of {args.sweep}", flush=True)
+    summary = sweep(args.model, args.sweep, output, comm, dict(args.set))
+    if comm.rank == 0:
+        largest = summary["error_indicator_largest"]
+        estimate = f"; largest estimated error {largest:.1e} (relative, energy norm)" if largest is not None else ""
+        print(
+            f"lungmech: {summary['points']} points in {sum(summary['seconds_per_point']):.2f} s "
+            f"(median {1e3 * summary['median_seconds_per_point']:.1f} ms per point){estimate}; outputs in "
+            f"{Path(output).resolve()}"
+        )
+    return 0
 
 
 def _solve(args, comm, scene, name: str, path: Path) -> int:

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 
 from lungmech.app.console import CMH2O  # noqa: E402
 
-__all__ = ["deformed_body", "drawn", "pressure_volume"]
+__all__ = ["deformed_body", "drawn", "pressure_volume", "sweep_volumes"]
 
 
 def drawn(comm, path: Path, draw) -> bool:
@@ -72,6 +72,50 @@ def pressure_volume(
         ax.text(0.98, 0.02, "\n".join(note), transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.35")
     if rising.any() or (~rising).any():
         ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def sweep_volumes(
+    times: Sequence[float],
+    volumes: Sequence[Sequence[float]],
+    labels: Sequence[str],
+    path: Path,
+    title: str = "",
+    planar: bool = False,
+    against: Sequence[tuple[str, Sequence[float]]] = (),
+) -> None:
+    """The volume (m³, drawn in L; a ``planar`` body's in m³ per m of thickness) of every point
+    of a sweep against time (s), one curve per point (the legend names at most ten; more are
+    coloured by their order). A sweep of one output time is drawn against the parameters that
+    vary instead, ``against`` = [(label with its unit, the points' values), …]: the first on
+    the axis, the second (if any) as the points' colour."""
+    scale, unit = (1.0, "m³/m") if planar else (1e3, "L")
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    if len(times) == 1 and against:
+        final = np.asarray(volumes)[:, 0] * scale
+        if len(against) > 1:  # points, not a curve: another parameter varies between them
+            shown = ax.scatter(against[0][1], final, c=against[1][1], cmap="viridis", s=30)
+            fig.colorbar(shown, ax=ax, label=against[1][0])
+        else:
+            order = np.argsort(against[0][1])
+            ax.plot(np.asarray(against[0][1])[order], final[order], "o-", color="tab:blue")
+        ax.set_xlabel(against[0][0])
+        ax.set_ylabel(f"volume at t = {times[0]:g} s [{unit}]")
+    else:
+        colours = plt.cm.viridis(np.linspace(0.0, 0.9, len(volumes)))
+        for volume, label, colour in zip(volumes, labels, colours):
+            ax.plot(times, np.asarray(volume) * scale, "o-", ms=3, lw=1.2, color=colour, label=label)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"volume [{unit}]")
+        if len(volumes) <= 10:
+            ax.legend(fontsize=7, loc="best")
+        else:
+            note = f"{len(volumes)} points, dark → light in file order"
+            ax.text(0.02, 0.98, note, transform=ax.transAxes, va="top", fontsize=7, color="0.35")
+    ax.grid(alpha=0.3)
+    fig.suptitle(title or f"sweep of {len(volumes)} parameter points", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
