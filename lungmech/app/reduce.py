@@ -287,7 +287,7 @@ def _prepare(path: Path, model, scene: Scene, folder: Path) -> Prepared:
     model.state.x.array[:] = reduced.start
     model.state.x.scatter_forward()
     reduced.restart()
-    approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start)
+    approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start, first_step=1.0)
     return Prepared(reduced.solver, {"reference": "from the reduced model"} if placed else None, reduced.estimate)
 
 

@@ -74,10 +74,12 @@ def approach(
     start: Mapping[str, float],
     time: float,
     on_step: Callable | None = None,
+    first_step: float = 0.25,
 ) -> int:
     """Move the model's state, an equilibrium at the parameters ``start`` and time ``time``, to
     the equilibrium at ``values``: a continuation along the straight line between them in the unit
-    box (log parameters in log μ), with the load stepping's adaptive steps. A start state under
+    box (log parameters in log μ), with the load stepping's adaptive steps from ``first_step`` (a
+    fraction of the way; 1: straight there, continuing only when Newton fails). A start state under
     load (a lung imaged at end-expiration) is an equilibrium for its own parameters only; other
     parameters reach it this way rather than in one Newton solve. Returns the Newton iterations
     (0 when the parameters are the start's). Collective."""
@@ -92,7 +94,7 @@ def approach(
         model.set_time(time)
 
     report = solve(
-        model, Stepping(initial_step=0.25), solver=solver, drive=drive, on_step=on_step, monitor=lambda step: None
+        model, Stepping(initial_step=first_step), solver=solver, drive=drive, on_step=on_step, monitor=lambda step: None
     )
     model.set_parameters(values)  # exactly, not through the unit box
     return report.newton_iterations
@@ -104,17 +106,19 @@ def trajectory(
     state: Callable[[], np.ndarray],
     derivatives: Callable[[], dict] | None = None,
     on_step: Callable | None = None,
+    first_step: float = 0.25,
 ) -> Solution:
     """The load path of ``owner`` (a full or reduced model: its ``model``, ``solver``,
     ``stepping``, ``outputs``, ``times``, ``parameters``) at ``values``, from the state the model
     holds (an equilibrium at the default parameters at ``stepping.start``): :func:`approach`, then
     the load stepping, recording ``outputs()``, ``state()`` and ``derivatives()`` at every output
-    time. ``on_step(step)`` is called after every accepted step of both (a snapshot). Collective."""
+    time. ``on_step(step)`` is called after every accepted step of both (a snapshot); ``first_step``
+    is the approach's. Collective."""
     model, stepping = owner.model, owner.stepping
     if derivatives is not None:
         check_differentiable(model)  # before the solve, not after it
     tic = time.perf_counter()
-    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start, on_step)
+    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start, on_step, first_step)
     rows, states, derived = [], [], []
 
     def record(step) -> None:

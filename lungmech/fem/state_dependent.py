@@ -53,6 +53,11 @@ class Integration(Protocol):
         "residual", of the load's own virtual work."""
         ...
 
+    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+        """The columns (as :meth:`column`'s) of a ``form`` linear in ``constant``, one per entry of
+        ``constant`` set to 1 and the others to 0 (in its flattened order), side by side."""
+        ...
+
 
 class FullIntegration:
     """Integrals over the whole mesh, columns as the owned dofs of the model's space."""
@@ -68,6 +73,25 @@ class FullIntegration:
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
         compiled = fem.form(form)
         return lambda: assemble_owned(compiled, self._vector, self._owned)
+
+    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+        column = self.column(name, form)
+        return lambda: each_unit(constant, column)
+
+
+def each_unit(constant: fem.Constant, evaluate: Callable[[], np.ndarray]) -> np.ndarray:
+    """``evaluate()`` with ``constant`` set to each unit vector in turn (flattened order), as
+    columns side by side; ``constant`` keeps its value."""
+    kept = np.array(constant.value, copy=True)
+    units = np.eye(kept.size)
+    try:
+        columns = []
+        for unit in units:
+            constant.value = unit.reshape(kept.shape)
+            columns.append(evaluate())
+    finally:
+        constant.value = kept
+    return np.column_stack(columns)
 
 
 class StateDependent:

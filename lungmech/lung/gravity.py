@@ -150,12 +150,14 @@ class _BalancingPressure:
         }
         w = ufl.TestFunction(model.space)
         # ∂W/∂θ · (d, a), W the virtual work above
-        self.direction = fem.Constant(mesh, np.zeros(3)), fem.Constant(mesh, np.zeros(9))
-        d, a = self.direction
+        self.direction = fem.Constant(mesh, np.zeros(12))  # (d, a): along the centre, along the coefficients
+        d = ufl.as_vector([self.direction[i] for i in range(3)])
+        a = ufl.as_vector([self.direction[3 + i] for i in range(9)])
         self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
-        # Σ T_ik A_ik's derivative in u (a vector); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
-        self.weights = fem.Constant(mesh, np.zeros((6, 9)))
-        self.contraction_u = ufl.derivative(ufl.inner(self.weights, response) * surface, model.state, w)
+        # lᵀ A r's derivative in u (a vector), for the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du;
+        # ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
+        self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
+        self.contraction_u = ufl.derivative(ufl.dot(self.left, response * self.right) * surface, model.state, w)
         self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
@@ -187,8 +189,9 @@ class _Balance:
         self.pressure = p = pressure
         self._moments = integration.vector("moments", *p._integral("moments"))
         self._response = integration.vector("response", *p._integral("response"))
-        self._work_derivative = integration.column("residual", p.work_derivative)
-        self._contraction_u = integration.column("response", p.contraction_u)
+        self._work_derivative = integration.columns("residual", p.work_derivative, p.direction)
+        self._left_u = integration.columns("response", p.contraction_u, p.right)  # λᵀ (∂A/∂u) e_k
+        self._right_u = integration.columns("response", p.contraction_u, p.left)  # e_iᵀ (∂A/∂u) c
         self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
 
@@ -209,22 +212,22 @@ class _Balance:
         """(∂W/∂θ, dΘ/du) at the current state (after :meth:`update`), as columns of the
         integration's unknowns."""
         p = self.pressure
-        d, a = p.direction
-        work = []
-        for k in range(12):
-            d.value, a.value = np.eye(12)[k, :3], np.eye(12)[k, 3:]
-            work.append(self._work_derivative())
-        d.value, a.value = np.zeros(3), np.zeros(9)
+        work = self._work_derivative()  # the 12 directions θ = (x_G, c) at once
         centre = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
+        # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
+        p.left.value = lam
+        left = self._left_u()
+        p.right.value = c
+        right = self._right_u()
         coefficients = []
         for j in range(9):
-            p.weights.value = weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
+            weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
             along = np.einsum("ik,ikd->d", weights, response_centre)  # ∂(Σ T_ik A_ik)/∂x_G
-            row = self._contraction_u() + sum(g * dxg for g, dxg in zip(along, centre))
+            row = left @ Q[j, :9] + right @ Q[j, 9:] + sum(g * dxg for g, dxg in zip(along, centre))
             coefficients.append(-row)
-        return np.column_stack(work), np.column_stack(centre + coefficients)
+        return work, np.column_stack(centre + coefficients)
 
     def rounding(self) -> np.ndarray:
         """The size of θ's rounding errors (after :meth:`update`): ε |x_G| for the centre, and

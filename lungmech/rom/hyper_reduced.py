@@ -17,6 +17,8 @@ from collections.abc import Callable
 import numpy as np
 import ufl
 from dolfinx import fem, la
+from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
+from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -26,7 +28,7 @@ from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degr
 from lungmech.fem.quantities import vector_integral
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
-from lungmech.fem.state_dependent import FullIntegration
+from lungmech.fem.state_dependent import FullIntegration, each_unit
 from lungmech.parallel.linalg import gram
 from lungmech.rom.basis import dual, origin, reference_state
 from lungmech.rom.ecsw import FUNCTIONALS, NO_CELLS, Sample, WeightedForms, flattened, over_cells, sampled_residual
@@ -321,9 +323,9 @@ class HyperReducedSolver:
 
         return evaluate
 
-    def sampled_column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
-        """Vᵀ b of a linear ``form`` (in the model's test function) over the samples: each
-        integral over the sample of ``families[its type]``, with its weights (collective)."""
+    def _sampled_form(self, form: ufl.Form, families: dict[str, str]) -> fem.Form:
+        """``form`` compiled on the reduced mesh, each integral over the sample of
+        ``families[its type]``, with its weights."""
         mesh = self.model.geometry.mesh
         weighted: dict[str, list] = {}  # by family: one restricted tag set per integral type
         for integral in form.integrals():
@@ -335,16 +337,59 @@ class HyperReducedSolver:
             for family, parts in weighted.items()
             for restricted in over_cells(ufl.Form(parts), mesh, self.sample.cells.get(family, NO_CELLS)).integrals()
         ]
-        compiled = self.mesh.form(ufl.Form(integrals))
-        vector = fem.Function(self.mesh.space).x
-        packed = {"at": None, "coefficients": None}  # packed once per state: only Constants vary in between
+        return self.mesh.form(ufl.Form(integrals))
 
-        def evaluate() -> np.ndarray:
+    def _packed(self, compiled: fem.Form) -> Callable[[], dict]:
+        """The coefficients of ``compiled``, packed once per state (only Constants vary in between)."""
+        packed = {"at": None, "coefficients": None}
+
+        def coefficients() -> dict:
             if packed["at"] is not self._q:
                 packed["at"], packed["coefficients"] = self._q, fem.pack_coefficients(compiled)
+            return packed["coefficients"]
+
+        return coefficients
+
+    def sampled_column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
+        """Vᵀ b of a linear ``form`` (in the model's test function) over the samples: each
+        integral over the sample of ``families[its type]``, with its weights (collective)."""
+        compiled = self._sampled_form(form, families)
+        vector = fem.Function(self.mesh.space).x
+        coefficients = self._packed(compiled)
+
+        def evaluate() -> np.ndarray:
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled, coeffs=packed["coefficients"])
+            fem.assemble_vector(vector.array, compiled, coeffs=coefficients())
             return gram(self.V, vector.array[:, None], self.comm)[:, 0]
+
+        return evaluate
+
+    def sampled_columns(
+        self, form: ufl.Form, families: dict[str, str], constant: fem.Constant
+    ) -> Callable[[], np.ndarray]:
+        """Vᵀ [b(e_1) … b(e_n)] of a ``form`` linear in ``constant`` (n entries), b(e_j) its
+        column with ``constant`` = the j-th unit vector: one matrix assembly on the reduced mesh,
+        ``constant`` replaced by a trial function τ of n components per sampled cell, whose
+        columns summed per component (columns are (cell, component), unrolled) are the n columns
+        (collective)."""
+        n = constant.value.size
+        tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
+        replacement = ufl.as_tensor(np.reshape([tau[j] for j in range(n)], constant.ufl_shape).tolist())
+        compiled = self._sampled_form(ufl.replace(form, {constant: replacement}), families)
+        # PETSc's matrix: DOLFINx's own takes square blocks only (here 3 or 1 rows, n columns)
+        matrix = create_petsc_matrix(compiled)
+        owned = self.V[: self.mesh.owned]  # its rows: the owned sub dofs, each summed over the ranks
+        coefficients = self._packed(compiled)
+
+        def evaluate() -> np.ndarray:
+            matrix.zeroEntries()
+            assemble_petsc_matrix(matrix, compiled, coeffs=coefficients())
+            matrix.assemble()
+            indptr, columns, values = matrix.getValuesCSR()
+            rows = len(indptr) - 1
+            at = np.repeat(np.arange(rows), np.diff(indptr)) * n + columns % n
+            summed = np.bincount(at, weights=values, minlength=rows * n).reshape(rows, n)
+            return gram(owned, summed, self.comm)
 
         return evaluate
 
@@ -433,6 +478,16 @@ class _SampledIntegration:
         model = solver.model
         f0, F1 = affine(model, vector_integral(expr, measure, model.geometry.mesh), *solver._affine_basis)
         return lambda: (f0 + F1 @ solver._z()).reshape(expr.ufl_shape)
+
+    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+        solver = self.solver
+        if name == "residual":
+            return solver.sampled_columns(form, {"cell": "cell_load", "exterior_facet": "boundary_load"}, constant)
+        if not self.integrals[name].affine:
+            family = f"load{self.index}_{name}"
+            return solver.sampled_columns(form, {"cell": family, "exterior_facet": family}, constant)
+        column = self.column(name, form)
+        return lambda: each_unit(constant, column)
 
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
         solver = self.solver

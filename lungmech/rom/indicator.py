@@ -6,8 +6,9 @@ after the basis, from the reduced solver's own (sampled) residual and tangent, s
 online answer carries its indicator without touching the full mesh.
 
 At a reduced state x_r the full residual R(x_r) is what the reduced model leaves unbalanced. The
-step a full Newton iteration would take from there, with the tangent K_μ at rest at the
-answer's parameters μ, measured in the energy norm E of the errors (the second variation of the
+step a full Newton iteration would take from there, with the tangent K_μ at the start state x₀
+(the state the basis is relative to: at rest, or a lung's imaged state) and the answer's
+parameters μ, measured in the energy norm E of the errors (the second variation of the
 stored energy at rest, default parameters),
 
     η(t) = ‖K_μ⁻¹ R(x_r(t))‖_E,
@@ -56,11 +57,15 @@ class ResidualIndicator:
         self._correction, self._vector = self._tangent.createVecs()
         self._constrained = model.constrained_dofs()
 
-    def factorise(self) -> None:
-        """K_μ: the tangent at rest at the model's current parameters, factorised."""
+    def factorise(self, start: np.ndarray) -> None:
+        """K_μ: the tangent at the state ``start`` (a state array) and the model's current
+        parameters, factorised."""
         model, K = self.model, self._tangent
         with model.kept_state():
-            model.reset()
+            model.state.x.array[:] = start
+            model.state.x.scatter_forward()
+            for term in model.state_dependent:
+                term.update()
             K.zeroEntries()
             assemble_matrix(K, self._jacobian, bcs=model.bcs, diag=1.0)
             K.assemble()
@@ -83,7 +88,8 @@ class ResidualIndicator:
         max_t η(t) / max_t ‖x_r(t) − x₀(t)‖_E. Leaves the model at the last output's state."""
         owned = reduced.basis.vectors.shape[0]
         self.model.set_parameters(solution.parameters)
-        self.factorise()
+        self.model.set_time(float(reduced.stepping.start))
+        self.factorise(origin(self.model, reduced.start))
         worst, change = 0.0, 0.0
         for index in range(len(solution.times)):
             x_r = reduced.reconstruct(solution, index)  # and the parameters and time of that output

@@ -136,6 +136,7 @@ class ReducedModel:
             self.parameters.values(mu),
             state=state,
             derivatives=self._sensitivities if sensitivities else None,
+            first_step=1.0,  # reduced Newton straight at μ; continuation only where it fails
         )
         return replace(solution, indicator=relative(estimates) if self.estimate is not None else None)
 

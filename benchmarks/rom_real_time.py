@@ -1,0 +1,293 @@
+"""The real-time lung: hyper-reduced (ECSW) over a 3-parameter box, against its full model.
+
+    python benchmarks/rom_real_time.py                          # h = bundled, 8 mm, 5 mm (hours)
+    python benchmarks/rom_real_time.py --sizes default --unseen 6 --candidates 8   # minutes
+
+The bundled breathing lung (``lungmech/scenes/lung_breathing.toml``: poromechanics, balanced
+gravity, unloaded reference found once at the defaults) with 20 output times over the breath and
+the three parameters of ``benchmarks/rom_parameters.py``: the skeleton's stiffness c1 (100–400
+Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (gravity pitched
+−90°–0°). For each mesh size h:
+
+* offline: the greedy training to ``--tolerance`` (:mod:`lungmech.rom.greedy`; POD in the energy
+  norm; ``--candidates`` Sobol' points, seed 0), then one pass over the training load paths
+  watching every Newton iterate (:class:`lungmech.rom.ecsw.Training`, on the basis and its
+  enrichment W of the next 8 POD directions) and an ECSW sample for every τ of ``--taus``;
+* the full model at ``--unseen`` Sobol' points of another seed (each its own default solve from
+  the scene's start: approach to μ, then the breath);
+* for every τ and basis size k (the greedy basis and its leading halves): the hyper-reduced
+  model at the same points: warm time per point (median; one warm-up solve first), the worst
+  and mean errors against the full model (state in the energy norm relative to the breath's
+  change, volume, volume change, probes), its own error indicator against the true error, the
+  sampled cells and facets; and the Galerkin model (no hyper-reduction) of the greedy basis
+  as the baseline.
+
+Writes results/rom_real_time.{md,csv} and the Pareto plot rom_real_time.png (error against
+online time per point, per mesh size, the full and Galerkin models marked). One rank.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import logging
+import statistics
+import time
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from machine import provenance, say, write_results
+from rom_parameters import PARAMETERS
+
+import lungmech  # noqa: F401  (before dolfinx: it loads the MPI library dolfinx's bindings need)
+from lungmech.app import scene as scenes
+from lungmech.app.run import full_order_model
+from lungmech.fem.parameters import Parameters
+from lungmech.rom import ecsw
+from lungmech.rom.greedy import greedy
+from lungmech.rom.pod import snapshots
+from lungmech.rom.reduced import ReducedModel
+from lungmech.rom.reductor import errors
+
+RESULTS = Path(__file__).parent / "results"
+TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs
+ENRICHMENT = 8
+
+
+def lung_scene(size: str) -> scenes.Scene:
+    """The bundled breathing lung with 20 output times, the three parameters and mesh size h
+    mm ("default": the bundled mesh), without field output."""
+    with resources.as_file(resources.files("lungmech.scenes") / "lung_breathing.toml") as path:
+        table = copy.deepcopy(tomllib.loads(Path(path).read_text()))
+    table["loads"][0]["name"], table["loads"][1]["name"] = "pleural", "gravity"
+    table["parameters"] = PARAMETERS
+    table["output"] = {"fields": False, "probes": table["output"]["probes"]}
+    table["stepping"]["times"] = TIMES
+    if size != "default":
+        table["geometry"]["mesh_size"] = float(size) / 1e3
+    return scenes.parse(table)
+
+
+def timed(reduced: ReducedModel, points: list[dict]) -> tuple[list, list[float]]:
+    """The answers at ``points`` and the seconds of each, after one warm-up solve."""
+    reduced.solve(points[0])
+    answers, seconds = [], []
+    for point in points:
+        tic = time.perf_counter()
+        answers.append(reduced.solve(point))
+        seconds.append(time.perf_counter() - tic)
+    return answers, seconds
+
+
+def judged(reduced: ReducedModel, references: list, answers: list) -> dict:
+    """Worst and mean errors of ``answers`` against the full ``references``, and the indicator's."""
+    measured = [errors(reduced, f, a) for f, a in zip(references, answers)]
+    probes = [
+        float(np.abs(a.outputs["probes"] - f.outputs["probes"]).max() / np.abs(f.outputs["probes"]).max())
+        for f, a in zip(references, answers)
+    ]
+    ratios = [a.indicator / m.energy for a, m in zip(answers, measured) if a.indicator is not None and m.energy > 0]
+    return {
+        "error_energy_max": max(m.energy for m in measured),
+        "error_energy_mean": float(np.mean([m.energy for m in measured])),
+        "error_volume_max": max(m.volume for m in measured),
+        "error_volume_change_max": max(m.volume_change for m in measured),
+        "error_probes_max": max(probes),
+        "indicator_over_error_min": min(ratios) if ratios else None,
+        "indicator_over_error_max": max(ratios) if ratios else None,
+    }
+
+
+def case(size: str, args) -> list[dict]:
+    scene = lung_scene(size)
+    box = Parameters(scene.parameters)
+    say(f"h = {size}: building the full model")
+    full = full_order_model(scene)
+    model = full.model
+    dofs = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
+    mesh = model.geometry.mesh
+    cells = mesh.topology.index_map(mesh.topology.dim).size_global
+    offline = {}
+    tic = time.perf_counter()
+    trained = greedy(
+        full, box.sample(args.candidates, seed=0), args.tolerance, size=40, inner="energy", timings=offline
+    )
+    offline["greedy"] = time.perf_counter() - tic
+    k = trained.basis.size
+    say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
+    W = trained.modes.vectors[:, k : k + ENRICHMENT]
+    tic = time.perf_counter()
+    training = ecsw.Training(model, np.hstack([trained.basis.vectors, W]))
+    with training.watching(full.solver):
+        snapshots(model, full.stepping, solver=full.solver, start=full.start, parameters=trained.training)
+    offline["ecsw_training"] = time.perf_counter() - tic
+    samples = {}
+    for tau in args.taus:
+        tic = time.perf_counter()
+        samples[tau] = training.sample(tau)
+        offline[f"nnls_{tau:g}"] = time.perf_counter() - tic
+    training.destroy()
+
+    unseen = box.sample(args.unseen, seed=12345)
+    references, full_seconds = [], []
+    for j, mu in enumerate(unseen):
+        references.append(full.solve(mu))
+        full_seconds.append(references[-1].seconds)
+        say(f"  full model at unseen point {j}: {full_seconds[-1]:.1f} s")
+    full_median = statistics.median(full_seconds)
+    base = {"mesh h [mm]": size, "dofs": dofs, "cells": cells, "full_s_median": full_median}
+    base |= {f"offline_{name}_s": seconds for name, seconds in offline.items()}
+    rows = []
+
+    newton = full.solver.options
+    galerkin = ReducedModel(model, trained.basis, full.stepping, newton, full.start, scene.output.probes)
+    answers, seconds = timed(galerkin, unseen)
+    rows.append(
+        base
+        | {"model": "Galerkin", "k": k, "tau": None, "online_ms_median": 1e3 * statistics.median(seconds)}
+        | {"speed_up": full_median / statistics.median(seconds)}
+        | judged(galerkin, references, answers)
+    )
+    say(f"  Galerkin k = {k}: {rows[-1]['online_ms_median']:.0f} ms, error {rows[-1]['error_energy_max']:.1e}")
+    for tau, sample in samples.items():
+        counted = sample.cells_per_type(mesh.comm)
+        for size_k in sorted({k, max(1, k // 2)}, reverse=True):
+            basis = trained.basis.truncate(size_k)
+            enrichment = trained.modes.vectors[:, size_k : size_k + ENRICHMENT]
+            reduced = ReducedModel(
+                model,
+                basis,
+                full.stepping,
+                newton,
+                full.start,
+                scene.output.probes,
+                sample=sample,
+                enrichment=enrichment,
+            )
+            answers, seconds = timed(reduced, unseen)
+            online = statistics.median(seconds)
+            rows.append(
+                base
+                | {"model": "ECSW", "k": size_k, "tau": tau, "online_ms_median": 1e3 * online}
+                | {
+                    "speed_up": full_median / online,
+                    "online_newton_median": statistics.median(a.newton_iterations for a in answers),
+                }
+                | {"sampled_cells": counted["cell"], "sampled_facet_cells": counted["exterior_facet"]}
+                | {"sampled_percent": 100.0 * (counted["cell"] + counted["exterior_facet"]) / cells}
+                | judged(reduced, references, answers)
+            )
+            r = rows[-1]
+            say(
+                f"  ECSW τ = {tau:g}, k = {size_k}: {r['online_ms_median']:.1f} ms ({r['speed_up']:.0f}×), "
+                f"error {r['error_energy_max']:.1e}, volume {r['error_volume_max']:.1e}"
+            )
+    return rows
+
+
+def markdown(rows: list[dict], command: str, args) -> str:
+    lines = [
+        "# The real-time lung: hyper-reduced over stiffness × breath × posture",
+        "",
+        f"{provenance(command)} Greedy training to {args.tolerance:g} over {args.candidates} candidates; "
+        f"{args.unseen} unseen points (Sobol', another seed); online times are warm medians over the unseen "
+        "points, each a whole breath of 20 outputs from the scene's start (approach to μ, then the breath); "
+        "the full model's the same, by its own default solve.",
+        "",
+        "| h [mm] | dofs | model | k | τ | sampled cells (% of the mesh) | online per point [ms] | full per point [s] | "
+        "speed-up | energy-norm error: max, mean | volume error max | probes error max | indicator / error | "
+        "offline: greedy, ECSW pass, NNLS [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        sampled = (
+            f"{r['sampled_cells'] + r['sampled_facet_cells']} ({r['sampled_percent']:.2f} %)" if r["tau"] else "all"
+        )
+        ratio = (
+            f"{r['indicator_over_error_min']:.2f}–{r['indicator_over_error_max']:.2f}"
+            if r["indicator_over_error_min"] is not None
+            else "—"
+        )
+        nnls = r.get(f"offline_nnls_{r['tau']:g}_s", 0.0) if r["tau"] else 0.0
+        lines.append(
+            f"| {r['mesh h [mm]']} | {r['dofs']} | {r['model']} | {r['k']} | {r['tau'] or '—'} | {sampled} | "
+            f"{r['online_ms_median']:.1f} | {r['full_s_median']:.1f} | {r['speed_up']:.0f}× | "
+            f"{r['error_energy_max']:.1e}, {r['error_energy_mean']:.1e} | {r['error_volume_max']:.1e} | "
+            f"{r['error_probes_max']:.1e} | {ratio} | {r['offline_greedy_s']:.0f}, "
+            f"{r['offline_ecsw_training_s']:.0f}, {nnls:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def pareto(rows: list[dict], path: Path) -> None:
+    """Error against online time per point: ECSW (τ, k) points per mesh size, the Galerkin
+    baseline and the full model (error 0, drawn at the axis' floor)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    sizes = list(dict.fromkeys(r["mesh h [mm]"] for r in rows))
+    colours = dict(zip(sizes, plt.cm.viridis(np.linspace(0.0, 0.8, len(sizes)))))
+    floor = min(r["error_energy_max"] for r in rows) / 3
+    for size in sizes:
+        mine = [r for r in rows if r["mesh h [mm]"] == size]
+        label = f"h = {size} mm ({mine[0]['dofs']} dofs)" if size != "default" else f"bundled ({mine[0]['dofs']} dofs)"
+        ecsw_rows = [r for r in mine if r["model"] == "ECSW"]
+        ax.loglog(
+            [1e-3 * r["online_ms_median"] for r in ecsw_rows],
+            [r["error_energy_max"] for r in ecsw_rows],
+            "o",
+            color=colours[size],
+            label=f"ECSW, {label}",
+        )
+        g = next(r for r in mine if r["model"] == "Galerkin")
+        ax.loglog(
+            1e-3 * g["online_ms_median"],
+            g["error_energy_max"],
+            "s",
+            mfc="none",
+            color=colours[size],
+            label=f"Galerkin (no hyper-reduction), {label}",
+        )
+        ax.loglog(g["full_s_median"], floor, "*", ms=11, color=colours[size], label=f"full model, {label}")
+    ax.axhline(1e-2, color="grey", lw=0.8, ls="--", label="target: 1 % energy-norm error")
+    ax.axvline(1e-2, color="grey", lw=0.8, ls=":", label="target: 10 ms per point")
+    ax.set_xlabel("time per parameter point (a breath of 20 outputs) [s]")
+    ax.set_ylabel("worst energy-norm error over the unseen points [1]")
+    ax.set_title("Breathing lung over stiffness × breath × posture: error against online time", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="default,8,5", help="mesh sizes h in mm, or 'default' (comma-separated)")
+    parser.add_argument("--tolerance", type=float, default=1e-3, help="greedy training tolerance")
+    parser.add_argument("--candidates", type=int, default=16, help="greedy candidate points")
+    parser.add_argument("--unseen", type=int, default=20, help="unseen points")
+    parser.add_argument("--taus", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="ECSW tolerances")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="    %(message)s")
+    rows = []
+    for size in args.sizes.split(","):
+        rows += case(size.strip(), args)
+        command = (
+            "python benchmarks/rom_real_time.py"
+            + (f" --sizes {args.sizes}" if args.sizes != "default,8,5" else "")
+            + (f" --unseen {args.unseen}" if args.unseen != 20 else "")
+            + (f" --candidates {args.candidates}" if args.candidates != 16 else "")
+        )
+        write_results(RESULTS, "rom_real_time", rows, markdown(rows, command, args))  # after each size
+        pareto(rows, RESULTS / "rom_real_time.png")
+    print((RESULTS / "rom_real_time.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
