@@ -124,9 +124,12 @@ def test_every_online_answer_carries_its_indicator(full, online):
 
 
 def test_a_model_without_enrichment_gives_no_indicator(full, trained):
-    """Without directions beyond its basis the model does not pretend to know its error."""
+    """Without directions beyond its basis the model does not pretend to know its error; an
+    enrichment of another space is refused."""
     plain = ReducedModel(full.model, trained.basis, full.stepping)
     assert plain.solve({"E": 7.0}).indicator is None and full.solve({"E": 7.0}).indicator is None
+    with pytest.raises(ParameterError, match="the enrichment must have the basis'"):
+        ReducedModel(full.model, trained.basis, full.stepping, enrichment=np.ones((3, 2)))
 
 
 def test_a_tolerance_out_of_reach_is_reported_not_met(full):

@@ -25,6 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from lungmech.errors import ParameterError
 from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
@@ -69,6 +70,10 @@ class ReducedModel:
         enrichment: np.ndarray | None = None,
     ):
         self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
+        if enrichment is not None and (enrichment.ndim != 2 or enrichment.shape[0] != basis.vectors.shape[0]):
+            raise ParameterError(
+                f"the enrichment must have the basis' {basis.vectors.shape[0]} owned rows (got shape {enrichment.shape})"
+            )
         self.enrichment = None if enrichment is None or not enrichment.shape[1] else enrichment
         self.parameters = model.parameters
         self.start = reference_state(model) if start is None else np.array(start, dtype=float)
