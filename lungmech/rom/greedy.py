@@ -104,9 +104,7 @@ def greedy(
         columns = []
         solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
         path = np.column_stack(columns)
-        largest = np.sqrt(
-            np.max(np.abs(np.diag(gram(path, apply(weight, path, model.geometry.mesh.comm), model.geometry.mesh.comm))))
-        )
+        largest = _largest_norm(path, weight, model.geometry.mesh.comm)
         paths.append(path / largest if largest > 0 else path)
         training.append(point)
         seconds["snapshots"] += time.perf_counter() - tic
@@ -151,6 +149,11 @@ def greedy(
         timings.update(seconds)
     met = rounds[-1].indicator * _safety(rounds) <= tolerance
     return Greedy(basis, training, rounds, met, modes)
+
+
+def _largest_norm(columns: np.ndarray, weight, comm) -> float:
+    """max_j ‖s_j‖_W of the owned rows ``columns`` (collective)."""
+    return float(np.sqrt(np.max(np.abs(np.diag(gram(columns, apply(weight, columns, comm), comm))))))
 
 
 def _safety(rounds: Sequence[Round]) -> float:
