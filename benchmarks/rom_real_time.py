@@ -10,9 +10,11 @@ Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (grav
 −90°–0°). For each mesh size h:
 
 * offline: the greedy training to ``--tolerance`` (:mod:`lungmech.rom.greedy`; POD in the energy
-  norm; ``--candidates`` Sobol' points, seed 0), then one pass over the training load paths
-  watching every Newton iterate (:class:`lungmech.rom.ecsw.Training`, on the basis and its
-  enrichment W of the next 8 POD directions) and an ECSW sample for every τ of ``--taus``;
+  norm; ``--candidates`` Sobol' points, seed 0), judging the hyper-reduced model at
+  ``--judged`` τ (its sample comes with the basis: that is the model's offline build); then,
+  for the τ sweep of this table, one more pass over the training load paths watching every
+  Newton iterate (:class:`lungmech.rom.ecsw.Training`, on the basis and its enrichment W of the
+  next 8 POD directions) and an ECSW sample for every τ of ``--taus``;
 * the full model at ``--unseen`` Sobol' points of another seed (each its own default solve from
   the scene's start: approach to μ, then the breath);
 * for every τ and basis size k (the greedy basis and its leading halves): the hyper-reduced
@@ -296,6 +298,7 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=16, help="greedy candidate points")
     parser.add_argument("--unseen", type=int, default=20, help="unseen points")
     parser.add_argument("--taus", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="ECSW tolerances")
+    parser.add_argument("--judged", type=float, default=1e-4, help="the ECSW tolerance the greedy judges with")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="    %(message)s")
     rows = []

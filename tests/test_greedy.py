@@ -123,6 +123,25 @@ def test_every_online_answer_carries_its_indicator(full, online):
     hyper.model.reset()
 
 
+def test_a_hyper_reduced_greedy_judges_and_meets_its_tolerance_as_itself(full):
+    """With hyper = τ each round judges the hyper-reduced model by its own online indicator (an
+    ECSW sample per round from the full solves' Newton iterates): the model it returns, basis,
+    enrichment and sample, meets the tolerance at unseen points, its indicator within [1/3, 1.5]
+    of its error."""
+    from lungmech.rom.indicator import enrichment
+
+    trained = greedy(full, Parameters(BOX).sample(16, seed=1), 1e-3, hyper=1e-5)
+    assert trained.met and trained.sample is not None
+    W = enrichment(trained.basis, trained.modes)
+    hyper = ReducedModel(full.model, trained.basis, full.stepping, sample=trained.sample, enrichment=W)
+    for mu in Parameters(BOX).sample(6, seed=77):
+        answer = hyper.solve(mu)
+        error = errors(hyper, full.solve(mu), answer).energy
+        assert error <= 1e-3 and error / 3 <= answer.indicator <= 1.5 * error
+    with pytest.raises(ParameterError, match="the ECSW tolerance must lie in"):
+        greedy(full, Parameters(BOX).sample(2), 1e-3, hyper=0.0)
+
+
 def test_a_model_without_enrichment_gives_no_indicator(full, trained):
     """Without directions beyond its basis the model does not pretend to know its error; an
     enrichment of another space is refused."""

@@ -43,7 +43,7 @@ from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.registration.image import companions as image_companions
-from lungmech.rom import ecsw, store
+from lungmech.rom import ecsw, indicator, store
 from lungmech.rom.basis import Basis, enrich
 from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
@@ -85,7 +85,9 @@ def build(
     ``tolerance`` trains the POD basis greedily (:mod:`lungmech.rom.greedy`) instead of at
     fixed points: full solves are added at the candidate — of ``samples`` Sobol' points (default
     32) — where the reduced model's error indicator is largest, until it meets ``tolerance``
-    (relative energy-norm error) there; ``size`` then caps the basis.
+    (relative energy-norm error) there; ``size`` then caps the basis. Hyper-reduced, the greedy
+    judges the hyper-reduced model itself (an ECSW sample per round, from every Newton iterate
+    of its full solves), and its last sample is the model's.
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
@@ -170,7 +172,8 @@ def _build(
     trained = modes = None
     if tolerance is not None:
         full = FullOrderModel(model, scene.stepping, solver=solver, probes=scene.output.probes, start=start)
-        trained = greedy(full, training, tolerance, size=size, inner=inner, timings=timings)
+        judged = hyper[1] if hyper is not None else None  # a hyper-reduced model is judged as itself
+        trained = greedy(full, training, tolerance, size=size, inner=inner, timings=timings, hyper=judged)
         training, modes = trained.training, trained.modes
         parts.append(trained.basis)
     elif kind in ("pod", "pod+modal"):
@@ -184,8 +187,8 @@ def _build(
         timings["svd"] = time.perf_counter() - tic
     if kind in ("modal", "modal+derivatives", "pod+modal"):
         tic = time.perf_counter()
-        modes = modal_basis(model, size, density=density)
-        parts.append(with_modal_derivatives(model, modes) if kind == "modal+derivatives" else modes)
+        eigenmodes = modal_basis(model, size, density=density)
+        parts.append(with_modal_derivatives(model, eigenmodes) if kind == "modal+derivatives" else eigenmodes)
         timings["eigensolve"] = time.perf_counter() - tic
     if kind == "polynomial":
         tic = time.perf_counter()
@@ -195,11 +198,12 @@ def _build(
     basis = basis.truncate(min(size, basis.size)) if kind != "modal+derivatives" else basis
 
     arrays = {"start": where.gather(start[: basis.vectors.shape[0]])}  # canonical, on rank 0 (None elsewhere)
-    enrichment = _enrichment(basis, modes if kind == "pod" else None)
+    enrichment = indicator.enrichment(basis, modes if kind == "pod" and basis.kind == "pod" else None)
     arrays["enrichment"] = where.gather(enrichment)
     hyper_summary = None
     if hyper is not None:
-        sample = ecsw.train(
+        sample = trained.sample if trained is not None else None  # the greedy's, of this basis and W
+        sample = sample or ecsw.train(
             model,
             replace(basis, vectors=np.hstack([basis.vectors, enrichment])),  # W's residual is sampled too
             solver,
@@ -238,17 +242,6 @@ def _build(
         "hyper": hyper_summary,
         "greedy": extra["greedy"],
     }
-
-
-ENRICHMENT = 8  # at most: the online indicator's directions beyond the basis
-
-
-def _enrichment(basis: Basis, modes: Basis | None) -> np.ndarray:
-    """The POD directions next after ``basis`` (at most :data:`ENRICHMENT`, owned rows), where the
-    online error indicator looks: none for a basis that is not the head of ``modes``."""
-    if modes is None or basis.size >= modes.size or basis.kind != "pod":
-        return np.zeros((basis.vectors.shape[0], 0))
-    return modes.vectors[:, basis.size : basis.size + ENRICHMENT].copy()
 
 
 def _greedy_summary(trained: Greedy | None, tolerance: float | None, parameters: Parameters) -> dict | None:

@@ -206,9 +206,13 @@ class Training:
                 added = True
         return added
 
-    def add_state(self, state: np.ndarray, time: float, load_factor: float = 1.0) -> bool:
-        """Set the model to a stored state (its whole local array) at its time and load factor,
-        then :meth:`add` it."""
+    def add_state(
+        self, state: np.ndarray, time: float, load_factor: float = 1.0, parameters: dict[str, float] | None = None
+    ) -> bool:
+        """Set the model to a stored state (its whole local array) at its time, load factor and
+        ``parameters`` (default: as they are), then :meth:`add` it."""
+        if parameters is not None:
+            self.model.set_parameters(parameters)
         self.model.state.x.array[:] = state
         self.model.state.x.scatter_forward()
         self.model.set_time(time, load_factor=load_factor)
@@ -220,20 +224,14 @@ class Training:
         :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
         not only the converged ones, so that the sample also reproduces the reduced forces away
         from equilibrium. Each iterate is added at the solver's loads of the moment."""
-        active, training = [True], weakref.ref(self)  # PETSc keeps the monitor: it must not keep us
+        training = weakref.ref(self)  # PETSc keeps the monitor: it must not keep us
 
-        def add_iterate(snes, iteration, norm) -> None:
-            if active[0] and (this := training()) is not None:
-                x, state = snes.getSolution(), this.model.state
-                state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)
-                state.x.scatter_forward()
+        def add() -> None:
+            if (this := training()) is not None:
                 this.add()
 
-        solver.problem.solver.setMonitor(add_iterate)
-        try:
+        with iterates(solver, add):
             yield self
-        finally:
-            active[0] = False
 
     @property
     def states(self) -> int:
@@ -284,6 +282,30 @@ def train(
     if timings is not None:
         timings.update(seconds)
     return sample
+
+
+@contextlib.contextmanager
+def iterates(solver, seen: Callable[[], None]) -> Iterator[None]:
+    """Within the block, ``seen()`` after every Newton iterate of ``solver`` (a full
+    :class:`~lungmech.fem.solver.NewtonSolver`), with the model's state set to that iterate."""
+    active = [True]
+    model = solver.model
+
+    def monitor(snes, iteration, norm) -> None:
+        if active[0]:
+            x = snes.getSolution()
+            model.state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)
+            model.state.x.scatter_forward()
+            seen()
+
+    snes = solver.problem.solver
+    snes.setMonitor(monitor)
+    try:
+        yield
+    finally:
+        active[0] = False
+        monitors = snes.getMonitor() or []  # petsc4py's own list: leave the solver's monitors only
+        monitors[:] = [entry for entry in monitors if entry[0] is not monitor]
 
 
 @dataclass(frozen=True)

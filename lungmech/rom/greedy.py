@@ -12,10 +12,18 @@ has underestimated the error does not end the training early. Errors are relativ
 divided by their largest norm (a small load path weighs as much as a large one), and the POD
 keeps the fewest vectors whose discarded energy of these lies below (tolerance / 10)²: the
 truncation does not spend the error budget.
+
+With ``hyper`` = τ the rounds judge the hyper-reduced model itself, cheaply: every Newton
+iterate of the full solves is kept, each round trains an ECSW sample (:mod:`lungmech.rom.ecsw`)
+on them for its basis and enrichment W, and each candidate's indicator is the answer's own
+online one (:class:`~lungmech.rom.indicator.EnrichedIndicator`; the residual indicator where
+there is no W). The true errors, and so the tolerance, are then those of the hyper-reduced
+model, and the last round's sample comes with the basis.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Mapping, Sequence
@@ -27,8 +35,10 @@ from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.parallel.linalg import apply, gram
+from lungmech.rom import ecsw
 from lungmech.rom.basis import Basis, inner_product, reference_state
-from lungmech.rom.indicator import ResidualIndicator
+from lungmech.rom.ecsw import Sample
+from lungmech.rom.indicator import ResidualIndicator, enrichment
 from lungmech.rom.pod import pod, snapshot
 from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reductor import errors
@@ -54,14 +64,16 @@ class Round:
 @dataclass(frozen=True)
 class Greedy:
     """The trained basis, the points whose full load paths it holds (the first: the defaults),
-    the rounds, whether the largest indicator met the tolerance, and every POD direction of
-    the last round (``basis`` leads them; the next ones are an enrichment)."""
+    the rounds, whether the largest indicator met the tolerance, every POD direction of the
+    last round (``basis`` leads them; the next ones are an enrichment) and, trained with
+    ``hyper``, the ECSW sample of the basis and its enrichment."""
 
     basis: Basis
     training: list[dict[str, float]]
     rounds: list[Round]
     met: bool
     modes: Basis
+    sample: Sample | None = None
 
     @property
     def safety(self) -> float:
@@ -77,14 +89,16 @@ def greedy(
     inner: str = "energy",
     most: int | None = None,
     timings: dict[str, float] | None = None,
+    hyper: float | None = None,
 ) -> Greedy:
     """Train a POD basis of ``full`` until every candidate's indicator is ≤ ``tolerance``.
 
     ``candidates``: parameter points of the box (e.g. a Sobol' sample), where the reduced model
     is judged and from which full solves are chosen; ``size`` caps the basis; ``most`` caps the
-    full solves (default: one per candidate, and the defaults'). ``timings`` receives the
-    seconds of the full solves, the POD and the judging. Each round is logged ("lungmech",
-    INFO). Collective.
+    full solves (default: one per candidate, and the defaults'). ``hyper``: the ECSW tolerance
+    τ of a hyper-reduced model to judge (see the module's doc). ``timings`` receives the
+    seconds of the full solves, the POD, the ECSW training and NNLS, and the judging. Each round
+    is logged ("lungmech", INFO). Collective.
     """
     checks.real("greedy tolerance", tolerance)
     if not 0 < tolerance < 1:
@@ -92,17 +106,25 @@ def greedy(
     if not candidates:
         raise ParameterError("the greedy training needs at least one candidate parameter point")
     most = len(candidates) + 1 if most is None else checks.integer("greedy full solves", most, minimum=1)
+    if hyper is not None:
+        checks.real("ECSW tolerance", hyper)
+        if not 0 < hyper < 1:
+            raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper!r})")
     model, seconds = full.model, {"snapshots": 0.0, "pod": 0.0, "judging": 0.0}
+    seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
     start = reference_state(model) if full.start is None else full.start
     remaining = [full.parameters.values(point) for point in candidates]
     training, paths, rounds = [], [], []
+    iterates = []  # with hyper: (state, time, parameters) of every Newton iterate of the full solves
     indicator = ResidualIndicator(model)
     weight = inner_product(model, inner)
 
     def add(point: dict[str, float], reduced: ReducedModel | None = None, approximate=None) -> float | None:
         tic = time.perf_counter()
         columns = []
-        solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
+        kept = lambda: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
+        with ecsw.iterates(full.solver, kept) if hyper is not None else contextlib.nullcontext():
+            solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
         path = np.column_stack(columns)
         largest = _largest_norm(path, weight, model.geometry.mesh.comm)
         paths.append(path / largest if largest > 0 else path)
@@ -117,9 +139,19 @@ def greedy(
             modes = pod(model, np.hstack(paths), inner=inner, source={"training": list(training)})
             basis = _truncated(modes, size, tolerance)
             seconds["pod"] += time.perf_counter() - tic
+            W = enrichment(basis, modes)
+            sample = _sampled(model, basis, W, iterates, hyper, seconds) if hyper is not None else None
             tic = time.perf_counter()
             reduced = ReducedModel(
-                model, basis, full.stepping, full.solver.options, start, full.outputs.probe_points, training
+                model,
+                basis,
+                full.stepping,
+                full.solver.options,
+                start,
+                full.outputs.probe_points,
+                training,
+                sample,
+                W if sample is not None else None,
             )
             judged = [_judge(reduced, indicator, point) for point in remaining]
             seconds["judging"] += time.perf_counter() - tic
@@ -148,7 +180,7 @@ def greedy(
     if timings is not None:
         timings.update(seconds)
     met = rounds[-1].indicator * _safety(rounds) <= tolerance
-    return Greedy(basis, training, rounds, met, modes)
+    return Greedy(basis, training, rounds, met, modes, sample)
 
 
 def _largest_norm(columns: np.ndarray, weight, comm) -> float:
@@ -162,12 +194,32 @@ def _safety(rounds: Sequence[Round]) -> float:
 
 
 def _judge(reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str, float]):
-    """(η, the reduced answer) at ``point``; (inf, None) when the reduced solve fails there."""
+    """(η, the reduced answer) at ``point``: the answer's own online indicator, or else the
+    residual one; (inf, None) when the reduced solve fails there."""
     try:
         approximate = reduced.solve(point)
     except SolverError:
         return np.inf, None
+    if approximate.indicator is not None:
+        return approximate.indicator, approximate
     return indicator(reduced, approximate), approximate
+
+
+def _sampled(model, basis: Basis, W: np.ndarray, iterates: list, tolerance: float, seconds: dict) -> Sample:
+    """The ECSW sample of [V W] at ``tolerance``, trained on the stored ``iterates``."""
+    tic = time.perf_counter()
+    training = ecsw.Training(model, np.hstack([basis.vectors, W]))
+    try:
+        with model.kept_state():
+            for state, t, parameters in iterates:
+                training.add_state(state, t, parameters=parameters)
+        seconds["ecsw_training"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        sample = training.sample(tolerance)
+        seconds["nnls"] += time.perf_counter() - tic
+    finally:
+        training.destroy()
+    return sample
 
 
 def _truncated(basis: Basis, size: int, tolerance: float) -> Basis:

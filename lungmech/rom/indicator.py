@@ -37,7 +37,18 @@ from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import inner_product, origin
 
-__all__ = ["EnrichedIndicator", "ResidualIndicator"]
+__all__ = ["ENRICHMENT", "EnrichedIndicator", "ResidualIndicator", "enrichment"]
+
+ENRICHMENT = 8  # at most: the online indicator's directions beyond the basis
+
+
+def enrichment(basis, modes) -> np.ndarray:
+    """The POD directions of ``modes`` next after ``basis`` (its leading vectors; at most
+    :data:`ENRICHMENT`, owned rows), where the online indicator looks: none when ``modes`` is
+    None or holds no more."""
+    if modes is None or basis.size >= modes.size:
+        return np.zeros((basis.vectors.shape[0], 0))
+    return modes.vectors[:, basis.size : basis.size + ENRICHMENT].copy()
 
 
 class ResidualIndicator:
