@@ -11,7 +11,7 @@ Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (grav
 
 * offline: the greedy training to ``--tolerance`` (:mod:`lungmech.rom.greedy`; POD in the energy
   norm; ``--candidates`` Sobol' points, seed 0), judging the hyper-reduced model at
-  ``--judged`` τ (its sample comes with the basis: that is the model's offline build); then,
+  ``--judge-tau`` τ (its sample comes with the basis: that is the model's offline build); then,
   for the τ sweep of this table, one more pass over the training load paths watching every
   Newton iterate (:class:`lungmech.rom.ecsw.Training`, on the basis and its enrichment W of the
   next 8 POD directions) and an ECSW sample for every τ of ``--taus``;
@@ -132,9 +132,8 @@ def case(size: str, args) -> list[dict]:
     cells = mesh.topology.index_map(mesh.topology.dim).size_global
     offline = {}
     tic = time.perf_counter()
-    trained = greedy(
-        full, box.sample(args.candidates, seed=0), args.tolerance, size=40, inner="energy", timings=offline
-    )
+    candidates = box.sample(args.candidates, seed=0)
+    trained = greedy(full, candidates, args.tolerance, 40, "energy", timings=offline, hyper=args.judge_tau)
     offline["greedy"] = time.perf_counter() - tic
     k = trained.basis.size
     say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
@@ -213,7 +212,8 @@ def markdown(rows: list[dict], command: str, args) -> str:
     lines = [
         "# The real-time lung: hyper-reduced over stiffness × breath × posture",
         "",
-        f"{provenance(command)} Greedy training to {args.tolerance:g} over {args.candidates} candidates; "
+        f"{provenance(command)} Greedy training to {args.tolerance:g} over {args.candidates} candidates, judging "
+        f"the hyper-reduced model at τ = {args.judge_tau:g}; "
         f"{args.unseen} unseen points (Sobol', another seed); online times are warm medians over the unseen "
         "points, each a whole breath of 20 outputs from the scene's start (approach to μ, then the breath); "
         "the full model's the same, by its own default solve. A static point is the end-expiration state "
@@ -298,7 +298,7 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=16, help="greedy candidate points")
     parser.add_argument("--unseen", type=int, default=20, help="unseen points")
     parser.add_argument("--taus", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="ECSW tolerances")
-    parser.add_argument("--judged", type=float, default=1e-4, help="the ECSW tolerance the greedy judges with")
+    parser.add_argument("--judge-tau", type=float, default=1e-4, help="the ECSW tolerance the greedy judges with")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="    %(message)s")
     rows = []
