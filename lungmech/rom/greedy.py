@@ -7,8 +7,8 @@ tolerance, the basis is done. Otherwise the full model solves the load path at t
 its states become snapshots, and the reduced model's true error there (energy norm, as
 :func:`lungmech.rom.reductor.errors`) is measured on the way, so every round reports the
 indicator next to the error it estimates, and the largest ratio error / indicator seen so far
-(at least 1) scales the indicator before it is compared with the tolerance: an indicator that
-has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
+near the tolerance (at least 1) scales the indicator before it is compared with the tolerance:
+an indicator that has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
 divided by their largest norm (a small load path weighs as much as a large one), and the POD
 keeps the fewest vectors whose discarded energy of these lies below (tolerance / 10)²: the
 truncation does not spend the error budget.
@@ -74,11 +74,7 @@ class Greedy:
     met: bool
     modes: Basis
     sample: Sample | None = None
-
-    @property
-    def safety(self) -> float:
-        """The largest error / indicator the rounds measured, at least 1."""
-        return _safety(self.rounds)
+    safety: float = 1.0  # the factor on the indicator when it stopped (see _safety)
 
 
 def greedy(
@@ -156,11 +152,11 @@ def greedy(
             judged = [_judge(reduced, indicator, point) for point in remaining]
             seconds["judging"] += time.perf_counter() - tic
             worst = int(np.argmax([eta for eta, _ in judged])) if judged else None
-            if worst is None or judged[worst][0] * _safety(rounds) <= tolerance or len(training) >= most:
+            if worst is None or judged[worst][0] * _safety(rounds, tolerance) <= tolerance or len(training) >= most:
                 eta = judged[worst][0] if worst is not None else 0.0
                 rounds.append(Round(basis.size, remaining[worst] if worst is not None else {}, eta, None))
                 log.info(
-                    f"greedy: {basis.size} vectors, largest indicator {eta:.2e} × safety {_safety(rounds):.2f} "
+                    f"greedy: {basis.size} vectors, largest indicator {eta:.2e} × safety {_safety(rounds, tolerance):.2f} "
                     f"(tolerance {tolerance:.0e})"
                 )
                 break
@@ -179,8 +175,8 @@ def greedy(
         full.reset()
     if timings is not None:
         timings.update(seconds)
-    met = rounds[-1].indicator * _safety(rounds) <= tolerance
-    return Greedy(basis, training, rounds, met, modes, sample)
+    safety = _safety(rounds, tolerance)
+    return Greedy(basis, training, rounds, rounds[-1].indicator * safety <= tolerance, modes, sample, safety)
 
 
 def _largest_norm(columns: np.ndarray, weight, comm) -> float:
@@ -188,8 +184,15 @@ def _largest_norm(columns: np.ndarray, weight, comm) -> float:
     return float(np.sqrt(np.max(np.abs(np.diag(gram(columns, apply(weight, columns, comm), comm))))))
 
 
-def _safety(rounds: Sequence[Round]) -> float:
-    ratios = [r.error / r.indicator for r in rounds if r.error is not None and 0 < r.indicator < np.inf]
+def _safety(rounds: Sequence[Round], tolerance: float) -> float:
+    """The largest error / indicator measured where the error was near the tolerance (at most
+    10 times it: where the indicator decides when to stop; far above, in the nonlinear regime
+    of a poor basis, it only ranks the candidates), at least 1."""
+    ratios = [
+        r.error / r.indicator
+        for r in rounds
+        if r.error is not None and r.error <= 10 * tolerance and 0 < r.indicator < np.inf
+    ]
     return max([1.0, *ratios])
 
 
