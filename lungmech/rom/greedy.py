@@ -6,9 +6,9 @@ measures its error indicator η (:mod:`lungmech.rom.indicator`). If the largest 
 tolerance, the basis is done. Otherwise the full model solves the load path at that candidate:
 its states become snapshots, and the reduced model's true error there (energy norm, as
 :func:`lungmech.rom.reductor.errors`) is measured on the way, so every round reports the
-indicator next to the error it estimates, and the largest ratio error / indicator seen so far
-near the tolerance (at least 1) scales the indicator before it is compared with the tolerance:
-an indicator that has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
+indicator next to the error it estimates, and the largest ratio error / indicator of the last
+three rounds near the tolerance (at least 1) scales the indicator before it is compared with
+the tolerance: an indicator that has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
 divided by their largest norm (a small load path weighs as much as a large one), and the POD
 keeps the fewest vectors whose discarded energy of these lies below (tolerance / 10)²: the
 truncation does not spend the error budget.
@@ -184,16 +184,20 @@ def _largest_norm(columns: np.ndarray, weight, comm) -> float:
     return float(np.sqrt(np.max(np.abs(np.diag(gram(columns, apply(weight, columns, comm), comm))))))
 
 
+SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes
+
+
 def _safety(rounds: Sequence[Round], tolerance: float) -> float:
-    """The largest error / indicator measured where the error was near the tolerance (at most
-    10 times it: where the indicator decides when to stop; far above, in the nonlinear regime
-    of a poor basis, it only ranks the candidates), at least 1."""
+    """The largest error / indicator of the last :data:`SAFETY_ROUNDS` rounds whose error was
+    near the tolerance (at most 10 times it: where the indicator decides when to stop; far
+    above, in the nonlinear regime of a poor basis, it only ranks the candidates), at least 1.
+    The latest: the indicator of the basis at hand, not of the poorer ones before it."""
     ratios = [
         r.error / r.indicator
         for r in rounds
         if r.error is not None and r.error <= 10 * tolerance and 0 < r.indicator < np.inf
     ]
-    return max([1.0, *ratios])
+    return max([1.0, *ratios[-SAFETY_ROUNDS:]])
 
 
 def _judge(reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str, float]):
