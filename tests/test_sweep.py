@@ -84,6 +84,11 @@ def test_a_parameter_without_a_column_keeps_the_set_value(built):
         ("stiffness,pull\n", "holds no points"),
         ("stiffness,pull\n600\n", "line 2: 1 values for 2 columns"),
         ("stiffness,stiffness [Pa]\n600,700\n", "a parameter has two columns"),
+        (
+            "stiffness [kPa]\n0.7\n",
+            "column 'stiffness [kPa]': parameter 'stiffness' is given in [Pa]; write its values in Pa",
+        ),
+        ("pull [Pa]\n2\n", "parameter 'pull' is given in [1]"),
     ],
 )
 def test_a_bad_sweep_file_is_refused_in_one_line(built, capsys, text, said):

@@ -1,8 +1,8 @@
 """Many parameter points at once: a reduced model's answers for a CSV file of points.
 
 ``lungmech rom solve model.npz --sweep points.csv -o OUT`` reads one parameter point per row:
-a header of parameter names (a name may carry its unit in brackets, ``stiffness [Pa]``), values
-in the parameters' units; a parameter without a column keeps the scene's value (``--set``
+a header of parameter names (a name may carry its unit in brackets, ``stiffness [Pa]``: it must
+be the parameter's own, values are not converted), values in the parameters' units; a parameter without a column keeps the scene's value (``--set``
 included). A bad file is refused in one line that names the file, the row and the column: an
 unknown name, a value that is not a finite number, a point outside the trained box. Every point
 is solved by the reduced model from its start (:meth:`ReducedModel.solve`: its outputs from
@@ -37,7 +37,7 @@ from lungmech.rom.reduced import ReducedModel
 
 __all__ = ["read_points", "sweep"]
 
-_UNIT = re.compile(r"\s*\[[^\]]*\]\s*$")  # "stiffness [Pa]" → "stiffness"
+_UNIT = re.compile(r"^(?P<name>.*?)\s*\[(?P<unit>[^\]]*)\]\s*$")  # "stiffness [Pa]"
 
 
 def read_points(path: str | Path, parameters: Parameters, base: dict[str, float]) -> list[dict[str, float]]:
@@ -54,11 +54,20 @@ def read_points(path: str | Path, parameters: Parameters, base: dict[str, float]
         raise SceneError(f"sweep file '{path}' is not a CSV text file ({error})") from None
     if len(rows) < 2:
         raise SceneError(f"sweep file '{path}' holds no points: give a header of parameter names and one row per point")
-    names = [_UNIT.sub("", cell).strip() for cell in rows[0][1]]
-    for name in names:
+    names = []
+    for cell in rows[0][1]:
+        named = _UNIT.match(cell.strip())
+        name = (named["name"] if named else cell).strip()
         if name not in parameters:
             known = ", ".join(parameters.names) or "none"
             raise SceneError(f"sweep file '{path}': column '{name}' is not a parameter of the model ({known})")
+        unit = parameters.named(name).unit or "1"
+        if named and named["unit"].strip() != unit:  # values are not converted: refuse, not misread
+            raise SceneError(
+                f"sweep file '{path}': column '{cell.strip()}': parameter '{name}' is given in [{unit}]; "
+                f"write its values in {unit}"
+            )
+        names.append(name)
     if len(set(names)) < len(names):
         raise SceneError(f"sweep file '{path}': a parameter has two columns")
     points = []
