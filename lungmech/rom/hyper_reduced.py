@@ -486,8 +486,10 @@ class _SampledIntegration:
         if not self.integrals[name].affine:
             family = f"load{self.index}_{name}"
             return solver.sampled_columns(form, {"cell": family, "exterior_facet": family}, constant)
-        column = self.column(name, form)
-        return lambda: each_unit(constant, column)
+        # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
+        full = FullIntegration(solver.model).column(name, form)
+        constant_columns = gram(solver.basis.vectors, each_unit(constant, full), solver.comm)
+        return lambda: constant_columns
 
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
         solver = self.solver
