@@ -50,6 +50,15 @@ def gram(left: np.ndarray, right: np.ndarray, comm: MPI.Comm) -> np.ndarray:
     return total
 
 
+def norms(vectors: np.ndarray, W: Weight, comm: MPI.Comm) -> np.ndarray:
+    """‖v_j‖_W = √(v_jᵀ W v_j) of each column of the owned rows ``vectors`` (the columns' own
+    products only, not the whole Gram matrix), summed over all ranks."""
+    local = np.einsum("ij,ij->j", vectors, apply(W, vectors, comm))
+    total = np.empty_like(local)
+    comm.Allreduce(local, total, op=MPI.SUM)
+    return np.sqrt(np.abs(total))
+
+
 def gram_schmidt(
     vectors: np.ndarray, W: Weight, comm: MPI.Comm, tolerance: float = 1e-10
 ) -> tuple[np.ndarray, np.ndarray]:

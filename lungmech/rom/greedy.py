@@ -34,7 +34,7 @@ import numpy as np
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
-from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.linalg import norms
 from lungmech.rom import ecsw
 from lungmech.rom.basis import Basis, inner_product, reference_state
 from lungmech.rom.ecsw import Sample
@@ -122,7 +122,7 @@ def greedy(
         with ecsw.iterates(full.solver, kept) if hyper is not None else contextlib.nullcontext():
             solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
         path = np.column_stack(columns)
-        largest = _largest_norm(path, weight, model.geometry.mesh.comm)
+        largest = float(np.max(norms(path, weight, model.geometry.mesh.comm)))
         paths.append(path / largest if largest > 0 else path)
         training.append(point)
         seconds["snapshots"] += time.perf_counter() - tic
@@ -177,11 +177,6 @@ def greedy(
         timings.update(seconds)
     safety = _safety(rounds, tolerance)
     return Greedy(basis, training, rounds, rounds[-1].indicator * safety <= tolerance, modes, sample, safety)
-
-
-def _largest_norm(columns: np.ndarray, weight, comm) -> float:
-    """max_j ‖s_j‖_W of the owned rows ``columns`` (collective)."""
-    return float(np.sqrt(np.max(np.abs(np.diag(gram(columns, apply(weight, columns, comm), comm))))))
 
 
 SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes

@@ -34,7 +34,7 @@ from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from lungmech.fem.linear import factorised
 from lungmech.fem.parametric import Solution
 from lungmech.fem.quantities import assemble_owned
-from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.linalg import apply, gram, norms
 from lungmech.rom.basis import inner_product, origin
 
 __all__ = ["ENRICHMENT", "EnrichedIndicator", "ResidualIndicator", "enrichment"]
@@ -110,8 +110,7 @@ class ResidualIndicator:
 
     def _norm(self, x: np.ndarray) -> float:
         """‖x‖_E of owned rows."""
-        column = x[:, None]
-        return float(np.sqrt(abs(gram(column, apply(self._energy, column, self.comm), self.comm)[0, 0])))
+        return float(norms(x[:, None], self._energy, self.comm)[0])
 
     def destroy(self) -> None:
         for item in (self._solver, self._tangent, self._energy, self._correction, self._vector):

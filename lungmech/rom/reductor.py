@@ -18,7 +18,7 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 from lungmech.fem.parametric import FullOrderModel, Solution
-from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.linalg import norms
 from lungmech.rom.basis import origin, reference_state
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.reduced import ReducedModel
@@ -87,8 +87,8 @@ def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Erro
         x_r = reduced.reconstruct(approximate, index)
         x_0 = origin(model, reduced.start)[:owned]  # the start with this time's imposed values
         difference = np.column_stack([x - x_r, x - x_0])
-        norms = np.sqrt(np.abs(np.diag(gram(difference, apply(W, difference, comm), comm))))
-        error, change = max(error, norms[0]), max(change, norms[1])
+        lengths = norms(difference, W, comm)
+        error, change = max(error, lengths[0]), max(change, lengths[1])
     V, V_r = full.outputs["volume"], approximate.outputs["volume"]
     V_0 = reduced.start_volume
     E, E_r = full.outputs["strain_energy"], approximate.outputs["strain_energy"]
