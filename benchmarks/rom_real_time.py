@@ -12,9 +12,9 @@ Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (grav
 * offline: the greedy training to ``--tolerance`` (:mod:`lungmech.rom.greedy`; POD in the energy
   norm; ``--candidates`` Sobol' points, seed 0), judging the hyper-reduced model at
   ``--judge-tau`` τ (its sample comes with the basis: that is the model's offline build); then,
-  for the τ sweep of this table, one more pass over the training load paths watching every
-  Newton iterate (:class:`lungmech.rom.ecsw.Training`, on the basis and its enrichment W of the
-  next 8 POD directions) and an ECSW sample for every τ of ``--taus``;
+  for the τ sweep of this table, the Newton iterates the greedy kept replayed once
+  (:meth:`lungmech.rom.ecsw.Training.replay`, on the basis and its enrichment W of the next 8
+  POD directions) and an ECSW sample for every τ of ``--taus``;
 * the full model at ``--unseen`` Sobol' points of another seed (each its own default solve from
   the scene's start: approach to μ, then the breath);
 * for every τ and basis size k (the greedy basis and its leading halves): the hyper-reduced
@@ -26,7 +26,9 @@ Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (grav
   as the baseline.
 
 Writes results/rom_real_time.{md,csv} and the Pareto plot rom_real_time.png (error against
-online time per point, per mesh size, the full and Galerkin models marked). One rank.
+online time per point, per mesh size, the full and Galerkin models marked). One rank. The rows
+of mesh sizes not measured by this run are kept from the CSV, each with its own command and
+date (the sizes of a run are measured one after another: a run per size is as good).
 """
 
 from __future__ import annotations
@@ -51,7 +53,6 @@ from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import approach
 from lungmech.rom import ecsw
 from lungmech.rom.greedy import greedy
-from lungmech.rom.pod import snapshots
 from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reductor import errors
 
@@ -140,9 +141,8 @@ def case(size: str, args) -> list[dict]:
     W = trained.modes.vectors[:, k : k + ENRICHMENT]
     tic = time.perf_counter()
     training = ecsw.Training(model, np.hstack([trained.basis.vectors, W]))
-    with training.watching(full.solver):
-        snapshots(model, full.stepping, solver=full.solver, start=full.start, parameters=trained.training)
-    offline["ecsw_training"] = time.perf_counter() - tic
+    training.replay(trained.iterates)
+    offline["replay"] = time.perf_counter() - tic
     samples = {}
     for tau in args.taus:
         tic = time.perf_counter()
@@ -158,6 +158,7 @@ def case(size: str, args) -> list[dict]:
         say(f"  full model at unseen point {j}: {full_seconds[-1]:.1f} s")
     full_median = statistics.median(full_seconds)
     base = {"mesh h [mm]": size, "dofs": dofs, "cells": cells, "full_s_median": full_median}
+    base |= {"command": command_line(args), "date": time.strftime("%Y-%m-%d")}
     base |= {f"offline_{name}_s": seconds for name, seconds in offline.items()}
     rows = []
 
@@ -208,7 +209,8 @@ def case(size: str, args) -> list[dict]:
     return rows
 
 
-def markdown(rows: list[dict], command: str, args) -> str:
+def markdown(rows: list[dict], command: str, args, date: str | None = None) -> str:
+    date = date or time.strftime("%Y-%m-%d")
     lines = [
         "# The real-time lung: hyper-reduced over stiffness × breath × posture",
         "",
@@ -218,11 +220,17 @@ def markdown(rows: list[dict], command: str, args) -> str:
         "points, each a whole breath of 20 outputs from the scene's start (approach to μ, then the breath); "
         "the full model's the same, by its own default solve. A static point is the end-expiration state "
         "at μ alone (reduced Newton from the defaults' state) with its outputs.",
+        *[
+            f"Rows of h = {', '.join(dict.fromkeys(str(r['mesh h [mm]']) for r in rows if (r['command'], r['date']) == (c, d)))} "
+            f"(kept from an earlier run): `{c}`, {d}."
+            for c, d in dict.fromkeys((r["command"], r["date"]) for r in rows)
+            if (c, d) != (command, date)
+        ],
         "",
         "| h [mm] | dofs | model | k | τ | sampled cells (% of the mesh) | online per point [ms] | static point [ms] | "
         "full per point [s] | "
         "speed-up | energy-norm error: max, mean | volume error max | probes error max | indicator / error | "
-        "offline: greedy, ECSW pass, NNLS [s] |",
+        "offline [s]: greedy (its full solves, ECSW), NNLS at τ |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -240,8 +248,9 @@ def markdown(rows: list[dict], command: str, args) -> str:
             f"| {r['mesh h [mm]']} | {r['dofs']} | {r['model']} | {r['k']} | {r['tau'] or '—'} | {sampled} | "
             f"{r['online_ms_median']:.1f} | {static} | {r['full_s_median']:.1f} | {r['speed_up']:.0f}× | "
             f"{r['error_energy_max']:.1e}, {r['error_energy_mean']:.1e} | {r['error_volume_max']:.1e} | "
-            f"{r['error_probes_max']:.1e} | {ratio} | {r['offline_greedy_s']:.0f}, "
-            f"{r['offline_ecsw_training_s']:.0f}, {nnls:.1f} |"
+            f"{r['error_probes_max']:.1e} | {ratio} | {r['offline_greedy_s']:.0f} "
+            f"({r['offline_snapshots_s']:.0f}, {r['offline_ecsw_training_s'] + r['offline_nnls_s']:.0f}), "
+            f"{nnls:.1f} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -307,6 +316,14 @@ def pareto(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _kept(measured: list[dict]) -> list[dict]:
+    """The rows of the results CSV as it is now (another run's may have landed meanwhile) of the
+    mesh sizes ``measured`` has not."""
+    path, sizes = RESULTS / "rom_real_time.csv", {str(r["mesh h [mm]"]) for r in measured}
+    earlier = _read(path) if path.exists() else []
+    return [r for r in earlier if str(r["mesh h [mm]"]) not in sizes and "command" in r]
+
+
 def _read(path: Path) -> list[dict]:
     """The rows of a results CSV, numbers as numbers (for --replot)."""
     import csv
@@ -323,6 +340,16 @@ def _read(path: Path) -> list[dict]:
         return [{key: value(text) for key, text in row.items()} for row in csv.DictReader(stream)]
 
 
+def command_line(args) -> str:
+    """This run's command line (the options that differ from the defaults)."""
+    return (
+        "python benchmarks/rom_real_time.py"
+        + (f" --sizes {args.sizes}" if args.sizes != "default,8,5" else "")
+        + (f" --unseen {args.unseen}" if args.unseen != 20 else "")
+        + (f" --candidates {args.candidates}" if args.candidates != 16 else "")
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="default,8,5", help="mesh sizes h in mm, or 'default' (comma-separated)")
@@ -334,19 +361,16 @@ def main() -> None:
     parser.add_argument("--replot", action="store_true", help="redraw the plot from results/rom_real_time.csv")
     args = parser.parse_args()
     if args.replot:
-        pareto(_read(RESULTS / "rom_real_time.csv"), RESULTS / "rom_real_time.png")
+        rows = _read(RESULTS / "rom_real_time.csv")
+        write_results(RESULTS, "rom_real_time", rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
+        pareto(rows, RESULTS / "rom_real_time.png")
         return
     logging.basicConfig(level=logging.INFO, format="    %(message)s")
-    rows = []
-    for size in args.sizes.split(","):
-        rows += case(size.strip(), args)
-        command = (
-            "python benchmarks/rom_real_time.py"
-            + (f" --sizes {args.sizes}" if args.sizes != "default,8,5" else "")
-            + (f" --unseen {args.unseen}" if args.unseen != 20 else "")
-            + (f" --candidates {args.candidates}" if args.candidates != 16 else "")
-        )
-        write_results(RESULTS, "rom_real_time", rows, markdown(rows, command, args))  # after each size
+    measured = []
+    for size in [size.strip() for size in args.sizes.split(",")]:
+        measured += case(size, args)
+        rows = sorted(_kept(measured) + measured, key=lambda r: r["dofs"])
+        write_results(RESULTS, "rom_real_time", rows, markdown(rows, command_line(args), args))  # after each size
         pareto(rows, RESULTS / "rom_real_time.png")
     print((RESULTS / "rom_real_time.md").read_text())
 

@@ -15,6 +15,7 @@ from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.mesh import box
 from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.ecsw import Training
 from lungmech.rom.greedy import greedy
 from lungmech.rom.indicator import ResidualIndicator
 from lungmech.rom.reduced import ReducedModel
@@ -139,6 +140,18 @@ def test_a_hyper_reduced_greedy_judges_and_meets_its_tolerance_as_itself(full):
         answer = hyper.solve(mu)
         error = errors(hyper, full.solve(mu), answer).energy
         assert error <= 1e-3 and error / 3 <= answer.indicator <= 1.5 * error
+    # the Newton iterates it kept give its sample again, and another τ's, without a full solve
+    training = Training(full.model, np.hstack([trained.basis.vectors, W]))
+    training.replay(trained.iterates)
+    again, coarser = training.sample(1e-5), training.sample(1e-2)
+    training.destroy()
+    for family, cells in trained.sample.cells.items():
+        np.testing.assert_array_equal(again.cells[family], cells)
+        np.testing.assert_allclose(again.weights[family], trained.sample.weights[family], rtol=1e-12)
+        assert len(coarser.cells[family]) <= len(cells)
+    assert sum(map(len, coarser.cells.values())) < sum(map(len, trained.sample.cells.values()))
+    loads = {(t, tuple(mu.values())) for _, t, mu in trained.iterates}
+    assert len(loads) < len(trained.iterates)  # several iterates per load: not only the converged ones
     with pytest.raises(ParameterError, match="the ECSW tolerance must lie in"):
         greedy(full, Parameters(BOX).sample(2), 1e-3, hyper=0.0)
 

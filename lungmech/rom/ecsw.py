@@ -41,7 +41,7 @@ from __future__ import annotations
 import contextlib
 import time
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -217,6 +217,14 @@ class Training:
         self.model.state.x.scatter_forward()
         self.model.set_time(time, load_factor=load_factor)
         return self.add()
+
+    def replay(self, states: Iterable[tuple[np.ndarray, float, dict[str, float]]]) -> None:
+        """:meth:`add_state` every stored ``(state, time, parameters)`` (e.g. the Newton iterates
+        a greedy training kept, :attr:`lungmech.rom.greedy.Greedy.iterates`); the model's state
+        is restored afterwards (its time and parameters are the last state's)."""
+        with self.model.kept_state():
+            for state, t, parameters in states:
+                self.add_state(state, t, parameters=parameters)
 
     @contextlib.contextmanager
     def watching(self, solver) -> Iterator[Training]:

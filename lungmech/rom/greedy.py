@@ -66,7 +66,9 @@ class Greedy:
     """The trained basis, the points whose full load paths it holds (the first: the defaults),
     the rounds, whether the largest indicator met the tolerance, every POD direction of the
     last round (``basis`` leads them; the next ones are an enrichment) and, trained with
-    ``hyper``, the ECSW sample of the basis and its enrichment."""
+    ``hyper``, the ECSW sample of the basis and its enrichment and the Newton iterates of the
+    full solves, ``(state, time, parameters)`` each (to sample again at another τ:
+    :meth:`lungmech.rom.ecsw.Training.replay`)."""
 
     basis: Basis
     training: list[dict[str, float]]
@@ -75,6 +77,7 @@ class Greedy:
     modes: Basis
     sample: Sample | None = None
     safety: float = 1.0  # the factor on the indicator when it stopped (see _safety)
+    iterates: tuple = ()
 
 
 def greedy(
@@ -176,7 +179,8 @@ def greedy(
     if timings is not None:
         timings.update(seconds)
     safety = _safety(rounds, tolerance)
-    return Greedy(basis, training, rounds, rounds[-1].indicator * safety <= tolerance, modes, sample, safety)
+    met = rounds[-1].indicator * safety <= tolerance
+    return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates))
 
 
 SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes
@@ -212,9 +216,7 @@ def _sampled(model, basis: Basis, W: np.ndarray, iterates: list, tolerance: floa
     tic = time.perf_counter()
     training = ecsw.Training(model, np.hstack([basis.vectors, W]))
     try:
-        with model.kept_state():
-            for state, t, parameters in iterates:
-                training.add_state(state, t, parameters=parameters)
+        training.replay(iterates)
         seconds["ecsw_training"] += time.perf_counter() - tic
         tic = time.perf_counter()
         sample = training.sample(tolerance)
