@@ -132,3 +132,26 @@ def test_another_mesh_of_the_same_kind_reuses_the_compiled_forms():
 
     lung_size = from_file(MESHES / "lung_phantom_right.msh", MPI.COMM_WORLD).size
     assert signatures(1.0) == signatures(1.3)
+
+
+@pytest.mark.parametrize("rank", [6, 4])
+def test_the_least_correction_is_the_smallest_pressure_that_balances(rank):
+    """The balance's KKT solve (by LU, or by the pseudo-inverse where it is singular) against
+    an independent least-norm solution: c = argmin cᵀNc over A c = t, b free. With A of full
+    rank it balances exactly; with A of rank 4 (a boundary that cannot carry every moment) its
+    force and moment are the closest A can give, as the least-squares balance."""
+    from scipy.optimize import minimize
+
+    from lungmech.lung.gravity import _NORM, _least_correction
+
+    rng = np.random.default_rng(rank)
+    A = rng.standard_normal((6, 9)) * np.array([1e2, 1e2, 1e2, 1e3, 1e3, 1e3])[:, None]  # m² and m³ rows
+    if rank < 6:
+        A[rank:] = 0.0
+    target = A @ rng.standard_normal(9) if rank < 6 else rng.standard_normal(6) * 50
+    c, multipliers, inverse = _least_correction(A, target)
+    assert np.all(np.isfinite(c)) and inverse.shape == (15, 15) and multipliers.shape == (6,)
+    np.testing.assert_allclose(A @ c, target, rtol=1e-9, atol=1e-9 * np.abs(target).max())
+    constraint = {"type": "eq", "fun": lambda x: (A @ x - target)[:rank] / np.abs(target).max()}
+    reference = minimize(lambda x: x @ _NORM @ x, c + 0.1, constraints=[constraint], method="SLSQP", tol=1e-14).x
+    assert c @ _NORM @ c <= reference @ _NORM @ reference * (1 + 1e-6) + 1e-12

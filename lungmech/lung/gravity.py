@@ -154,10 +154,13 @@ class _BalancingPressure:
         d = ufl.as_vector([self.direction[i] for i in range(3)])
         a = ufl.as_vector([self.direction[3 + i] for i in range(9)])
         self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
-        # lᵀ A r's derivative in u (a vector), for the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du;
+        # For the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du: the derivatives in u of λᵀ A r and lᵀ A c,
+        # linear in s = (r, l), so that one evaluation gives all 9 + 6 of their columns;
         # ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
-        self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
-        self.contraction_u = ufl.derivative(ufl.dot(self.left, response * self.right) * surface, model.state, w)
+        self.multipliers, self.pair = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(15))
+        r, l = ufl.as_vector([self.pair[k] for k in range(9)]), ufl.as_vector([self.pair[9 + i] for i in range(6)])
+        contracted = ufl.dot(self.multipliers, response * r) + ufl.dot(l, response * self.coefficients)
+        self.contraction_u = ufl.derivative(contracted * surface, model.state, w)
         self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
@@ -190,8 +193,7 @@ class _Balance:
         self._moments = integration.vector("moments", *p._integral("moments"))
         self._response = integration.vector("response", *p._integral("response"))
         self._work_derivative = integration.columns("residual", p.work_derivative, p.direction)
-        self._left_u = integration.columns("response", p.contraction_u, p.right)  # λᵀ (∂A/∂u) e_k
-        self._right_u = integration.columns("response", p.contraction_u, p.left)  # e_iᵀ (∂A/∂u) c
+        self._contraction_u = integration.columns("response", p.contraction_u, p.pair)  # [λᵀ(∂A/∂u)e_k, e_iᵀ(∂A/∂u)c]
         self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
 
@@ -217,10 +219,8 @@ class _Balance:
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
         # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
-        p.left.value = lam
-        left = self._left_u()
-        p.right.value = c
-        right = self._right_u()
+        p.multipliers.value = lam
+        left, right = np.split(self._contraction_u(), [9], axis=1)
         coefficients = []
         for j in range(9):
             weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
@@ -252,6 +252,24 @@ def _least_correction(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np
     # unscaled system's condition number (~1e9 on a lung) would round c to ~1e-7 of itself
     largest = np.abs(kkt).max(axis=1)
     scale = 1.0 / np.sqrt(np.where(largest > 0, largest, 1.0))  # a zero row (an unbalanceable load) stays
-    inverse = scale[:, None] * np.linalg.pinv(scale[:, None] * kkt * scale[None, :]) * scale[None, :]
+    equilibrated = scale[:, None] * kkt * scale[None, :]
+    inverse = _inverse(equilibrated)
+    inverse = scale[:, None] * inverse * scale[None, :]
     solution = inverse @ np.concatenate([np.zeros(9), target])
     return solution[:9], solution[9:], inverse
+
+
+def _inverse(matrix: np.ndarray) -> np.ndarray:
+    """The inverse of an equilibrated KKT matrix by LU (a tenth of an SVD's cost: it is taken at
+    every residual evaluation, online too), or its pseudo-inverse where it is singular (a
+    boundary that cannot carry a moment: the least-squares balance, as before the LU)."""
+    try:
+        inverse = np.linalg.inv(matrix)
+        if np.all(np.isfinite(inverse)) and np.abs(matrix @ inverse - _IDENTITY).max() <= 1e-10:
+            return inverse
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.pinv(matrix)
+
+
+_IDENTITY = np.eye(15)
