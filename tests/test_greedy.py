@@ -125,6 +125,32 @@ def test_every_online_answer_carries_its_indicator(full, online):
     hyper.model.reset()
 
 
+def test_the_online_indicator_reuses_the_last_newton_assembly(online, monkeypatch):
+    """Right after a solve the indicator assembles nothing: it takes Newton's last residual (at
+    the answer: the numbers a new assembly gives) and its last tangent (at the iterate before:
+    within the last step's size of the answer's); at new loads both are assembled anew."""
+    from dolfinx import fem
+
+    _, hyper = online
+    solver = hyper.solver
+    hyper.solve({"E": 7.0})
+    hyper.model.set_time(1.0)  # the peak of the push
+    assert solver.solve().converged
+    hyper.outputs()  # as an answer records them first (on the reduced mesh, at these loads)
+    assembled = []
+    for name in ("assemble_matrix", "assemble_vector"):
+        original = getattr(fem, name)
+        monkeypatch.setattr(fem, name, lambda *a, _f=original, _n=name, **k: assembled.append(_n) or _f(*a, **k))
+    q, reused, tangent = solver.enriched_terms()
+    assert assembled == [] and np.abs(reused).max() > 0
+    solver.linear_step()  # the loads set anew, and a Newton step from the answer: a round-off one
+    q_again, fresh, fresh_tangent = solver.enriched_terms()
+    assert assembled.count("assemble_matrix") >= 2 and assembled.count("assemble_vector") >= 2
+    np.testing.assert_allclose(q_again, q, rtol=1e-9, atol=1e-9 * np.abs(q).max())
+    np.testing.assert_allclose(fresh, reused, rtol=1e-6, atol=1e-6 * np.abs(reused).max())
+    np.testing.assert_allclose(fresh_tangent, tangent, rtol=1e-4, atol=1e-6 * np.abs(tangent).max())
+
+
 def test_a_hyper_reduced_greedy_judges_and_meets_its_tolerance_as_itself(full):
     """With hyper = τ each round judges the hyper-reduced model by its own online indicator (an
     ECSW sample per round from the full solves' Newton iterates): the model it returns, basis,

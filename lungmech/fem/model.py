@@ -158,6 +158,7 @@ class Model:
         self._constraint_amplitudes = binding.constraints(self.constraints, self.parameters)
         self.parameter_values = self.parameters.defaults
         self.time = 0.0
+        self.loading = 0  # changes whenever the loads are set (what was assembled at one holds)
         self.set_parameters()
 
     def set_parameters(self, values: Mapping[str, float] | None = None, **named: float) -> None:
@@ -199,6 +200,7 @@ class Model:
         ramp(t₀))): a deeper or shallower breath from the same end-expiration, say.
         """
         self.time = t
+        self.loading += 1
         self.time_constant.value = t
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor, amplitude in zip(self.loads, self._load_values, factors, self._amplitudes):

@@ -112,6 +112,10 @@ class HyperReducedSolver:
         self.coordinates = np.zeros(basis.size)  # at the start state (set_state(project()) follows a moved model)
         self._q = self.coordinates.copy()  # where the reduced mesh's state is
         self._works: list[np.ndarray] = []  # Vᵀ ∂W/∂θ of each state-dependent load, at the last tangent
+        # what the residual vector and the tangent hold: the model's loading they were assembled
+        # at, the q of the residual, whether there is a tangent (at the end of a Newton solve: its
+        # last residual at the answer, its last tangent at the iterate before)
+        self._assembled = _Assembled()
         # state-dependent loads (balanced gravity): their coefficients from affine integrals in
         # z = (q, imposed factors), exactly, and from the others' samples on the reduced mesh
         self._coupled = []
@@ -216,6 +220,7 @@ class HyperReducedSolver:
         imposed = self._on_columns(self.mesh.restrict(derivatives.imposed))
         rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
         b = self._vector.array
+        self._assembled.forget_residual()
         for i in range(len(derivatives.names) if forms.residual is not None else 0):
             forms.set_weights(derivatives, i)
             b[:] = 0.0
@@ -229,6 +234,7 @@ class HyperReducedSolver:
         forms = self.derivative_forms
         self._at(self.coordinates)
         g = self._vector.array
+        self._assembled.forget_residual()
         g[:] = 0.0
         fem.assemble_vector(g, forms.energy_gradient)
         total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
@@ -278,17 +284,22 @@ class HyperReducedSolver:
         b = self._vector.array
         b[:] = 0.0
         fem.assemble_vector(b, self._residual)
+        self._assembled.residual(self.model.loading, self._q)
         return gram(self.V, b[:, None], self.comm)[:, 0]
 
     def enriched_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, Σ_e ξ_e Wᵀ r_e, Σ_e ξ_e Wᵀ K_e W) at the current q, W the enrichment: the sampled
         residual and tangent in the directions the basis leaves out, on the reduced mesh
-        (collective)."""
-        self._at(self.coordinates)
-        self.reduced_residual(self.coordinates)
+        (collective). Right after a solve, its last residual (at the answer) and its last
+        tangent (at the iterate before: an indicator needs no quadratic convergence) serve, as
+        assembled; else both are assembled at q."""
+        if not self._assembled.holds(self.model.loading, self.coordinates):
+            self._at(self.coordinates)
+            self.reduced_residual(self.coordinates)
+            self._matrix.set_value(0.0)
+            fem.assemble_matrix(self._matrix, self._jacobian)
+            self._assembled.tangent(self.model.loading)
         r = gram(self.W, self._vector.array[:, None], self.comm)[:, 0]
-        self._matrix.set_value(0.0)
-        fem.assemble_matrix(self._matrix, self._jacobian)
         return self.coordinates.copy(), r, gram(self.W[self._rows], self._tangent @ self._on_columns(self.W), self.comm)
 
     def reduced_jacobian(self) -> np.ndarray:
@@ -296,6 +307,7 @@ class HyperReducedSolver:
         term −(Vᵀ ∂W/∂θ)(Vᵀ dΘ/du)ᵀ (:mod:`lungmech.fem.state_dependent`)."""
         self._matrix.set_value(0.0)
         fem.assemble_matrix(self._matrix, self._jacobian)
+        self._assembled.tangent(self.model.loading)
         reduced = gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
         self._works = []
         for term in self._coupled:
@@ -430,6 +442,32 @@ class HyperReducedSolver:
 
     def destroy(self) -> None:
         """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
+
+
+class _Assembled:
+    """What the solver's residual vector and tangent matrix hold: both at one loading of the
+    model (:attr:`lungmech.fem.model.Model.loading`), the residual at ``at``."""
+
+    def __init__(self):
+        self.loading, self.at, self.has_tangent = None, None, False
+
+    def residual(self, loading: int, q: np.ndarray) -> None:
+        if loading != self.loading:
+            self.loading, self.has_tangent = loading, False
+        self.at = q
+
+    def tangent(self, loading: int) -> None:
+        if loading != self.loading:
+            self.loading, self.at = loading, None
+        self.has_tangent = True
+
+    def holds(self, loading: int, q: np.ndarray) -> bool:
+        """Both a residual at ``q`` and a tangent, at ``loading``."""
+        return loading == self.loading and self.has_tangent and self.at is not None and np.array_equal(self.at, q)
+
+    def forget_residual(self) -> None:
+        """The residual vector was used for something else."""
+        self.at = None
 
 
 def _positions(index_map, space) -> np.ndarray:
