@@ -56,14 +56,20 @@ def train(comm=MPI.COMM_WORLD, make=block) -> tuple[rom.Basis, Training]:
     same (converged) states."""
     model = make(comm)
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
-    states = []
-    for scale in TRAINING:
-        path(model, scale, on_step=lambda step, s=scale: states.append((model.state.x.array.copy(), model.time, s)))
+    states = training_states(model)
     basis = rom.pod(model, np.column_stack([x[:owned] for x, _, _ in states]), inner="energy", size=6)
     training = Training(model, basis.vectors)
     for x, t, scale in states:
         training.add_state(x, t, scale)
     return basis, training
+
+
+def training_states(model: Model) -> list[tuple[np.ndarray, float, float]]:
+    """(state, time, load factor) of every step of the training paths."""
+    states = []
+    for scale in TRAINING:
+        path(model, scale, on_step=lambda step, s=scale: states.append((model.state.x.array.copy(), model.time, s)))
+    return states
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +113,31 @@ def assert_reproduces(training: Training, sample: Sample) -> None:
         error, force = comm.allreduce(G @ weights, op=MPI.SUM), comm.allreduce(G.sum(axis=1), op=MPI.SUM)
         gross = comm.allreduce(np.abs(G).sum(axis=1), op=MPI.SUM)
         assert np.linalg.norm(error - force) <= sample.tolerance * np.linalg.norm(gross)
+
+
+def test_a_compressed_training_matrix_gives_a_sample_that_reproduces_the_whole(trained, monkeypatch):
+    """G held compressed as it grows (every 10 rows here; 1024 by default) has the norms ‖G x‖
+    of the whole G: the sample from it reproduces the whole G's forces to τ, and a few rows
+    stand for all of them (the training states' rows are far from independent)."""
+    from lungmech.rom import ecsw
+
+    basis, whole = trained
+    monkeypatch.setattr(ecsw, "COMPRESS_ROWS", 10)
+    model = block()
+    compressed = Training(model, basis.vectors)
+    for x, t, scale in training_states(model):
+        compressed.add_state(x, t, scale)
+    comm = MPI.COMM_WORLD
+    for family in whole.forms.sampled:
+        G, R = whole.matrix(family), compressed.matrix(family)
+        assert compressed.added[family] == whole.added[family]
+        x = np.random.default_rng(comm.rank).standard_normal(G.shape[1])
+        exact, held = (np.linalg.norm(comm.allreduce(M @ x, op=MPI.SUM)) for M in (G, R))
+        assert abs(held - exact) <= 1e-6 * exact
+        if G.shape[0] > 20:
+            assert R.shape[0] < G.shape[0] / 2, family
+    for tolerance in (1e-2, 1e-4):
+        assert_reproduces(whole, compressed.sample(tolerance))
 
 
 def test_the_hyper_reduced_solution_approaches_the_galerkin_one(trained):
@@ -222,7 +253,7 @@ def test_a_body_loaded_by_its_weight_alone_trains_on_equilibria():
         )
 
     basis, training = train(make=weighed)
-    assert training.states == len(training.blocks["internal"]) == len(training.blocks["cell_load"]) > 0
+    assert training.states == training.added["internal"] == training.added["cell_load"] > 0
     sample = training.sample(1e-4)
     assert set(sample.cells) == {"internal", "cell_load", "strain_energy"}
     galerkin, hyper = weighed(), weighed()

@@ -34,6 +34,14 @@ facet has one cell, whose weight it takes): the same
 forms give the Galerkin reduced model (all weights 1), the training matrix G (their derivative
 with respect to the weights: column e is r_e), and, integrated over the sampled cells only, the
 hyper-reduced one (:class:`lungmech.rom.hyper_reduced.HyperReducedSolver`).
+
+G has a row per training state and reduced component and a column per cell: thousands by
+hundreds of thousands on a large lung, more than a machine holds. The NNLS needs only the
+norms ‖G x‖, and the training states' rows are far from independent, so each family's G is held
+compressed as it grows: a matrix R of few rows with RᵀR = GᵀG to within the squared singular
+values dropped (below :data:`COMPRESSION` times the largest), found from the Gram matrix of
+its rows whenever :data:`COMPRESS_ROWS` new rows have come (the method of snapshots; the
+columns stay distributed over the ranks).
 """
 
 from __future__ import annotations
@@ -56,6 +64,8 @@ from lungmech.errors import ParameterError
 from lungmech.fem.state_dependent import StateDependent
 
 __all__ = [
+    "COMPRESSION",
+    "COMPRESS_ROWS",
     "FAMILIES",
     "FUNCTIONALS",
     "NO_CELLS",
@@ -75,6 +85,12 @@ FAMILIES = {"internal": "cell", "cell_load": "cell", "boundary_load": "exterior_
 # Scalar functionals (cell integrals) sampled the same way, for outputs: their cells' values are
 # the columns, each training state one row scaled by the functional's value there.
 FUNCTIONALS = ("strain_energy",)
+# G of a family is compressed when this many rows have come since (see the module's doc) ...
+COMPRESS_ROWS = 1024
+# ... dropping its singular values below this fraction of the largest: far below any τ
+# (‖G x‖ changes by that fraction of ‖G‖ ‖x‖ at most), and above the Gram matrix's rounding
+# (its eigenvalues are the squares: 1e-14 of the largest, against ε = 2e-16)
+COMPRESSION = 1e-7
 
 
 class WeightedForms:
@@ -175,7 +191,9 @@ class Training:
         self._compiled = {name: fem.form(self.forms.contribution(name)) for name in names}
         self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         self.cells = self.forms.space.dofmap.index_map.size_local
-        self.blocks: dict[str, list[np.ndarray]] = {name: [] for name in self.forms.sampled}
+        self.blocks: dict[str, list[np.ndarray]] = {name: [] for name in self.forms.sampled}  # G's rows, compressed
+        self.added = dict.fromkeys(self.forms.sampled, 0)  # the training states in each family's G
+        self._since = dict.fromkeys(self.forms.sampled, 0)  # its rows since it was compressed
         rows, k = self.V.shape  # V as a distributed dense matrix, wrapping self.V's memory
         self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)
 
@@ -203,8 +221,23 @@ class Training:
             scale = float(np.linalg.norm(self.comm.allreduce(block.sum(axis=1), op=MPI.SUM)))
             if scale > 0.0:
                 self.blocks[family].append(block / scale)
+                self.added[family] += 1
+                self._since[family] += block.shape[0]
+                if self._since[family] >= COMPRESS_ROWS:
+                    self._compress(family)
                 added = True
         return added
+
+    def _compress(self, family: str) -> None:
+        """Replace the rows of ``family``'s G by R = Σ^½ Uᵀ G over the eigenpairs (λ, U) of the
+        rows' Gram matrix G Gᵀ with λ ≥ (:data:`COMPRESSION` λ_max)²: RᵀR = GᵀG but for the
+        dropped ones (the method of snapshots; the Gram matrix sums the ranks' columns)."""
+        rows = np.vstack(self.blocks[family])
+        self.blocks[family] = []  # the blocks go before R comes: one copy of G at a time
+        eigenvalues, vectors = np.linalg.eigh(self.comm.allreduce(rows @ rows.T, op=MPI.SUM))
+        kept = eigenvalues >= COMPRESSION**2 * max(eigenvalues.max(), 0.0)
+        self.blocks[family] = [vectors[:, kept].T @ rows]
+        self._since[family] = 0
 
     def add_state(
         self, state: np.ndarray, time: float, load_factor: float = 1.0, parameters: dict[str, float] | None = None
@@ -244,10 +277,11 @@ class Training:
     @property
     def states(self) -> int:
         """The most training states any family holds."""
-        return max((len(blocks) for blocks in self.blocks.values()), default=0)
+        return max(self.added.values(), default=0)
 
     def matrix(self, family: str) -> np.ndarray:
-        """G of one family: rows (state, reduced component), columns the owned cells."""
+        """G of one family, columns the owned cells: rows (state, reduced component) or, once
+        it was compressed, rows whose norms ‖G x‖ are G's (see the module's doc)."""
         if not self.blocks[family]:
             raise ParameterError(f"ECSW has no training state with a load on its {family} integrals (add states first)")
         return np.vstack(self.blocks[family])
