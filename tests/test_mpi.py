@@ -676,6 +676,24 @@ def test_ecsw_same_on_all_ranks_as_on_one(tmp_path):
     assert unseen(MPI.COMM_SELF, loaded, placed)[0] == pytest.approx(volume, rel=1e-10)
 
 
+def test_a_compressed_ecsw_training_on_two_ranks(monkeypatch):
+    """G compressed as it grows (every 10 rows) from the ranks' columns: the sample from it
+    reproduces the whole distributed G's forces to τ, as on one rank."""
+    from test_ecsw import assert_reproduces, block, train, training_states
+
+    from lungmech.rom import ecsw
+
+    basis, whole = train(MPI.COMM_WORLD)
+    monkeypatch.setattr(ecsw, "COMPRESS_ROWS", 10)
+    model = block(MPI.COMM_WORLD)
+    compressed = ecsw.Training(model, basis.vectors)
+    for x, t, scale in training_states(model):
+        compressed.add_state(x, t, scale)
+    assert compressed.matrix("internal").shape[0] < whole.matrix("internal").shape[0] / 2
+    for tolerance in (1e-2, 1e-4):
+        assert_reproduces(whole, compressed.sample(tolerance))
+
+
 def test_hyper_reduced_model_on_two_ranks():
     """The hyper-reduced model on a distributed mesh: its reduced mesh has ghost dofs, each rank
     reduces its own cells' contributions and one Allreduce sums them. It never touches the full
