@@ -154,13 +154,11 @@ class _BalancingPressure:
         d = ufl.as_vector([self.direction[i] for i in range(3)])
         a = ufl.as_vector([self.direction[3 + i] for i in range(9)])
         self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
-        # For the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du: the derivatives in u of λᵀ A r and lᵀ A c,
-        # linear in s = (r, l), so that one evaluation gives all 9 + 6 of their columns;
-        # ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
-        self.multipliers, self.pair = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(15))
-        r, l = ufl.as_vector([self.pair[k] for k in range(9)]), ufl.as_vector([self.pair[9 + i] for i in range(6)])
-        contracted = ufl.dot(self.multipliers, response * r) + ufl.dot(l, response * self.coefficients)
-        self.contraction_u = ufl.derivative(contracted * surface, model.state, w)
+        # lᵀ A r's derivative in u (a vector), for the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du
+        # (two evaluations, of 9 and 6 columns: one of 15, its form the sum of both, costs the
+        # full model's tangent 3 times more); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
+        self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
+        self.contraction_u = ufl.derivative(ufl.dot(self.left, response * self.right) * surface, model.state, w)
         self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
@@ -193,7 +191,8 @@ class _Balance:
         self._moments = integration.vector("moments", *p._integral("moments"))
         self._response = integration.vector("response", *p._integral("response"))
         self._work_derivative = integration.columns("residual", p.work_derivative, p.direction)
-        self._contraction_u = integration.columns("response", p.contraction_u, p.pair)  # [λᵀ(∂A/∂u)e_k, e_iᵀ(∂A/∂u)c]
+        self._left_u = integration.columns("response", p.contraction_u, p.right)  # λᵀ (∂A/∂u) e_k
+        self._right_u = integration.columns("response", p.contraction_u, p.left)  # e_iᵀ (∂A/∂u) c
         self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
 
@@ -219,8 +218,10 @@ class _Balance:
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
         # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
-        p.multipliers.value = lam
-        left, right = np.split(self._contraction_u(), [9], axis=1)
+        p.left.value = lam
+        left = self._left_u()
+        p.right.value = c
+        right = self._right_u()
         coefficients = []
         for j in range(9):
             weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
