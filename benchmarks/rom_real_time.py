@@ -35,15 +35,18 @@ from __future__ import annotations
 
 import argparse
 import copy
+import hashlib
 import logging
 import statistics
 import time
 import tomllib
+from functools import partial
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 from machine import provenance, say, write_results
+from resumable import cached, code_version
 from rom_parameters import PARAMETERS
 
 import lungmech  # noqa: F401  (before dolfinx: it loads the MPI library dolfinx's bindings need)
@@ -131,11 +134,21 @@ def case(size: str, args) -> list[dict]:
     dofs = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
     mesh = model.geometry.mesh
     cells = mesh.topology.index_map(mesh.topology.dim).size_global
-    offline = {}
-    tic = time.perf_counter()
-    candidates = box.sample(args.candidates, seed=0)
-    trained = greedy(full, candidates, args.tolerance, 40, "energy", timings=offline, hyper=args.judge_tau)
-    offline["greedy"] = time.perf_counter() - tic
+
+    def trained_greedy() -> tuple:
+        offline = {}
+        tic = time.perf_counter()
+        candidates = box.sample(args.candidates, seed=0)
+        trained = greedy(full, candidates, args.tolerance, 40, "energy", timings=offline, hyper=args.judge_tau)
+        offline["greedy"] = time.perf_counter() - tic
+        return trained, offline
+
+    # each kept between runs (see resumable.py): the greedy by the whole code, the full
+    # model's answers by all of it but the reduced models'
+    name = f"rom_real_time-{size}-{_digest(scene)}"
+    trained, offline = cached(
+        f"{name}-greedy-{args.tolerance:g}-{args.candidates}-{args.judge_tau:g}", code_version(), trained_greedy
+    )
     k = trained.basis.size
     say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
     W = trained.modes.vectors[:, k : k + ENRICHMENT]
@@ -153,7 +166,7 @@ def case(size: str, args) -> list[dict]:
     unseen = box.sample(args.unseen, seed=12345)
     references, full_seconds = [], []
     for j, mu in enumerate(unseen):
-        references.append(full.solve(mu))
+        references.append(cached(f"{name}-full-{_digest(mu)}", code_version(["rom"]), partial(full.solve, mu)))
         full_seconds.append(references[-1].seconds)
         say(f"  full model at unseen point {j}: {full_seconds[-1]:.1f} s")
     full_median = statistics.median(full_seconds)
@@ -219,7 +232,9 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
         f"{args.unseen} unseen points (Sobol', another seed); online times are warm medians over the unseen "
         "points, each a whole breath of 20 outputs from the scene's start (approach to μ, then the breath); "
         "the full model's the same, by its own default solve. A static point is the end-expiration state "
-        "at μ alone (reduced Newton from the defaults' state) with its outputs.",
+        "at μ alone (reduced Newton from the defaults' state) with its outputs. A run resumes a stopped one: "
+        "the greedy and the full model's answers of the same code are kept between runs (benchmarks/resumable.py), "
+        "with the times they took then.",
         *[
             f"Rows of h = {', '.join(dict.fromkeys(str(r['mesh h [mm]']) for r in rows if (r['command'], r['date']) == (c, d)))} "
             f"(kept from an earlier run): `{c}`, {d}."
@@ -314,6 +329,11 @@ def pareto(rows: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
+
+
+def _digest(value) -> str:
+    """8 hex digits of ``repr(value)``: a scene, a parameter point."""
+    return hashlib.sha1(repr(value).encode()).hexdigest()[:8]
 
 
 def _kept(measured: list[dict]) -> list[dict]:
