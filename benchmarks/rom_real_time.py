@@ -60,6 +60,8 @@ from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reductor import errors
 
 RESULTS = Path(__file__).parent / "results"
+# the code this run imported, as it started (see resumable.py): all of it, and the full model's
+VERSIONS = {"all": code_version(), "full": code_version(["rom"])}
 TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs
 ENRICHMENT = 8
 
@@ -147,7 +149,7 @@ def case(size: str, args) -> list[dict]:
     # model's answers by all of it but the reduced models'
     name = f"rom_real_time-{size}-{_digest(scene)}"
     trained, offline = cached(
-        f"{name}-greedy-{args.tolerance:g}-{args.candidates}-{args.judge_tau:g}", code_version(), trained_greedy
+        f"{name}-greedy-{args.tolerance:g}-{args.candidates}-{args.judge_tau:g}", VERSIONS["all"], trained_greedy
     )
     k = trained.basis.size
     say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
@@ -166,7 +168,7 @@ def case(size: str, args) -> list[dict]:
     unseen = box.sample(args.unseen, seed=12345)
     references, full_seconds = [], []
     for j, mu in enumerate(unseen):
-        references.append(cached(f"{name}-full-{_digest(mu)}", code_version(["rom"]), partial(full.solve, mu)))
+        references.append(cached(f"{name}-full-{_digest(mu)}", VERSIONS["full"], partial(full.solve, mu)))
         full_seconds.append(references[-1].seconds)
         say(f"  full model at unseen point {j}: {full_seconds[-1]:.1f} s")
     full_median = statistics.median(full_seconds)
