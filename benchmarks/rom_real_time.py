@@ -269,7 +269,75 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
             f"({r['offline_snapshots_s']:.0f}, {r['offline_ecsw_training_s'] + r['offline_nnls_s']:.0f}), "
             f"{nnls:.1f} |"
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join([*lines, "", *targets(rows)]) + "\n"
+
+
+ACCURATE = {"error_energy_max": 1e-2, "error_volume_max": 1e-3}  # the issue's: 1 % energy norm, 0.1 % volume
+
+
+def targets(rows: list[dict]) -> list[str]:
+    """The issue's targets against the rows: per mesh size, the fastest hyper-reduced model as
+    accurate as asked (its breath, static point and speed-up), and how the online time of each
+    (τ, basis) grows from the smallest mesh to the largest. Each says by how much it is met or
+    missed."""
+
+    def verdict(value: float, limit: float, at_most: bool = True) -> str:
+        if at_most:
+            return f"met ({value / limit:.2g} of it)" if value <= limit else f"**missed**: {value / limit:.2g}× over"
+        return f"met ({value / limit:.2g}× it)" if value >= limit else f"**missed**: {limit / value:.2g}× short"
+
+    lines = [
+        "## Targets",
+        "",
+        "Per mesh size, the fastest hyper-reduced model with ≤ 1 % energy-norm and ≤ 0.1 % volume error over "
+        "the unseen points:",
+        "",
+        "| h [mm] | dofs | τ, k | breath ≤ 0.2 s | static point ≤ 10 ms | ≥ 1000× faster |",
+        "|---|---|---|---|---|---|",
+    ]
+    sizes = sorted({(r["dofs"], str(r["mesh h [mm]"])) for r in rows})
+    for dofs, size in sizes:
+        accurate = [
+            r
+            for r in rows
+            if str(r["mesh h [mm]"]) == size
+            and r["model"] == "ECSW"
+            and all(r[key] <= limit for key, limit in ACCURATE.items())
+        ]
+        if not accurate:
+            lines.append(f"| {size} | {dofs} | none as accurate | — | — | — |")
+            continue
+        best = min(accurate, key=lambda r: r["online_ms_median"])
+        lines.append(
+            f"| {size} | {dofs} | {best['tau']:g}, {best['k']} | {best['online_ms_median']:.0f} ms: "
+            f"{verdict(best['online_ms_median'], 200.0)} | {best['static_ms_median']:.1f} ms: "
+            f"{verdict(best['static_ms_median'], 10.0)} | {best['speed_up']:.0f}×: "
+            f"{verdict(best['speed_up'], 1000.0, at_most=False)} |"
+        )
+    if len(sizes) > 1:
+        (small, smallest), (large, largest) = sizes[0], sizes[-1]
+        lines += [
+            "",
+            f"Online time from the smallest mesh ({small} dofs) to the largest ({large} dofs, {large / small:.1f}×; "
+            "the target: flat within 1.5× over ≥ 10×), per τ, for the greedy's basis and its leading half:",
+            "",
+        ]
+        for role in ("greedy basis", "leading half"):
+            for tau in sorted({r["tau"] for r in rows if r["model"] == "ECSW"}):
+                ends = []
+                for size in (smallest, largest):
+                    mine = [r for r in rows if str(r["mesh h [mm]"]) == size and r["tau"] == tau]
+                    if mine:
+                        ends.append((max if role == "greedy basis" else min)(mine, key=lambda r: r["k"]))
+                if len(ends) == 2:
+                    growth = ends[1]["online_ms_median"] / ends[0]["online_ms_median"]
+                    lines.append(
+                        f"- τ = {tau:g}, {role} (k = {ends[0]['k']} → {ends[1]['k']}): "
+                        f"{ends[0]['online_ms_median']:.0f} → {ends[1]['online_ms_median']:.0f} ms, "
+                        f"{growth:.2f}×: {verdict(growth, 1.5)}"
+                        + ("" if large / small >= 10 else " (over less than the 10× range)")
+                    )
+    return lines
 
 
 def pareto(rows: list[dict], path: Path) -> None:
