@@ -43,18 +43,29 @@ def code_version(excluding: Sequence[str] = ()) -> str | None:
 def cached(name: str, version: str | None, compute: Callable[[], T]) -> T:
     """``compute()``, or what it returned before for ``name`` at code ``version`` (None: always
     computed, never kept)."""
+    return kept(name, version, compute)[0]
+
+
+def kept(name: str, version: str | None, compute: Callable[[], T], any_version: bool = False) -> tuple[T, str | None]:
+    """(``compute()`` or what it returned before for ``name`` at code ``version``, the version
+    it is of). With ``any_version``, the newest kept one of any code version serves too (say
+    so where its result is reported)."""
     if version is None:
-        return compute()
+        return compute(), None
     path = CACHE / f"{name}-{version}.pickle"
+    others = [other for other in CACHE.glob(f"{name}-*.pickle") if "-" not in other.stem[len(name) + 1 :]]
+    others.sort(key=lambda other: other.stat().st_mtime)
+    if not path.exists() and any_version and others:
+        path = others[-1]
     if path.exists():
         say(f"  (kept from an earlier run: {path.name})")
-        return pickle.loads(path.read_bytes())
+        return pickle.loads(path.read_bytes()), path.stem[len(name) + 1 :]
     value = compute()
     CACHE.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".{os.getpid()}.partial")
     partial.write_bytes(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
     partial.replace(path)  # whole or not at all: a run stopped while writing leaves no result
-    return value
+    return value, version
 
 
 def _git(*arguments: str) -> str:

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 from machine import provenance, say, write_results
-from resumable import cached, code_version
+from resumable import cached, code_version, kept
 from rom_parameters import PARAMETERS
 
 import lungmech  # noqa: F401  (before dolfinx: it loads the MPI library dolfinx's bindings need)
@@ -148,9 +148,9 @@ def case(size: str, args) -> list[dict]:
     # each kept between runs (see resumable.py): the greedy by the whole code, the full
     # model's answers by all of it but the reduced models'
     name = f"rom_real_time-{size}-{_digest(scene)}"
-    trained, offline = cached(
-        f"{name}-greedy-{args.tolerance:g}-{args.candidates}-{args.judge_tau:g}", VERSIONS["all"], trained_greedy
-    )
+    setup = f"{args.tolerance:g}-{args.candidates}-{args.judge_tau:g}"
+    key = f"{name}-greedy-{setup}"
+    (trained, offline), greedy_code = kept(key, VERSIONS["all"], trained_greedy, any_version=args.reuse_greedy)
     k = trained.basis.size
     say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
     W = trained.modes.vectors[:, k : k + ENRICHMENT]
@@ -174,13 +174,16 @@ def case(size: str, args) -> list[dict]:
     full_median = statistics.median(full_seconds)
     base = {"mesh h [mm]": size, "dofs": dofs, "cells": cells, "full_s_median": full_median}
     base |= {"command": command_line(args), "date": time.strftime("%Y-%m-%d")}
+    base |= {"code": VERSIONS["all"], "greedy_code": greedy_code}  # lungmech's committed tree (resumable.py)
     base |= {f"offline_{name}_s": seconds for name, seconds in offline.items()}
     rows = []
 
     newton = full.solver.options
     galerkin = ReducedModel(model, trained.basis, full.stepping, newton, full.start, scene.output.probes)
     # the baseline touches the whole mesh (minutes a point at 5 mm): kept between runs too
-    answers, seconds = cached(f"{name}-galerkin-{_digest(unseen)}", VERSIONS["all"], partial(timed, galerkin, unseen))
+    answers, seconds = cached(
+        f"{name}-galerkin-{setup}-{greedy_code}-{_digest(unseen)}", VERSIONS["all"], partial(timed, galerkin, unseen)
+    )
     rows.append(
         base
         | {"model": "Galerkin", "k": k, "tau": None, "online_ms_median": 1e3 * statistics.median(seconds)}
@@ -243,6 +246,12 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
             f"(kept from an earlier run): `{c}`, {d}."
             for c, d in dict.fromkeys((r["command"], r["date"]) for r in rows)
             if (c, d) != (command, date)
+        ],
+        *[
+            f"The greedy of h = {r['mesh h [mm]']} was trained by lungmech's code {r['greedy_code']}; its online "
+            f"models are code {r['code']}'s."
+            for r in {str(r["mesh h [mm]"]): r for r in rows}.values()
+            if r.get("greedy_code") and r.get("greedy_code") != r.get("code")
         ],
         "",
         "| h [mm] | dofs | model | k | τ | sampled cells (% of the mesh) | online per point [ms] | static point [ms] | "
@@ -438,6 +447,7 @@ def command_line(args) -> str:
         + (f" --sizes {args.sizes}" if args.sizes != "default,8,5" else "")
         + (f" --unseen {args.unseen}" if args.unseen != 20 else "")
         + (f" --candidates {args.candidates}" if args.candidates != 16 else "")
+        + (" --reuse-greedy" if args.reuse_greedy else "")
     )
 
 
@@ -450,6 +460,11 @@ def main() -> None:
     parser.add_argument("--taus", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="ECSW tolerances")
     parser.add_argument("--judge-tau", type=float, default=1e-4, help="the ECSW tolerance the greedy judges with")
     parser.add_argument("--replot", action="store_true", help="redraw the plot from results/rom_real_time.csv")
+    parser.add_argument(
+        "--reuse-greedy",
+        action="store_true",
+        help="a greedy kept from another code version serves (the online models are this code's; the table says so)",
+    )
     args = parser.parse_args()
     if args.replot:
         rows = _read(RESULTS / "rom_real_time.csv")
