@@ -234,7 +234,10 @@ class Training:
         dropped ones (the method of snapshots; the Gram matrix sums the ranks' columns)."""
         rows = np.vstack(self.blocks[family])
         self.blocks[family] = []  # the blocks go before R comes: one copy of G at a time
-        eigenvalues, vectors = np.linalg.eigh(self.comm.allreduce(rows @ rows.T, op=MPI.SUM))
+        gram_matrix = self.comm.reduce(rows @ rows.T, op=MPI.SUM, root=0)
+        # one rank's eigenvectors for all: each rank's rows of R must be the same combination
+        # (an eigenvector's sign, a degenerate pair's basis, are not the same on rounded copies)
+        eigenvalues, vectors = self.comm.bcast(np.linalg.eigh(gram_matrix) if self.comm.rank == 0 else None, root=0)
         kept = eigenvalues >= COMPRESSION**2 * max(eigenvalues.max(), 0.0)
         self.blocks[family] = [vectors[:, kept].T @ rows]
         self._since[family] = 0
