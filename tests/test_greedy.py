@@ -15,7 +15,7 @@ from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.mesh import box
 from lungmech.parallel.linalg import apply, gram
-from lungmech.rom.ecsw import Training
+from lungmech.rom.ecsw import TANGENT, TANGENT_STATES, Training
 from lungmech.rom.greedy import greedy
 from lungmech.rom.indicator import ResidualIndicator
 from lungmech.rom.reduced import ReducedModel
@@ -169,6 +169,8 @@ def test_a_hyper_reduced_greedy_judges_and_meets_its_tolerance_as_itself(full):
     # the Newton iterates it kept give its sample again, and another τ's, without a full solve
     training = Training(full.model, np.hstack([trained.basis.vectors, W]))
     training.replay(trained.iterates)
+    steps = len({(t, tuple(mu.values())) for _, t, mu in trained.iterates})  # each load step's
+    assert training.added["internal" + TANGENT] == min(TANGENT_STATES, steps)  # tangents at a few
     again, coarser = training.sample(1e-5), training.sample(1e-2)
     training.destroy()
     for family, cells in trained.sample.cells.items():

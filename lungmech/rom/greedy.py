@@ -121,7 +121,7 @@ def greedy(
     def add(point: dict[str, float], reduced: ReducedModel | None = None, approximate=None) -> float | None:
         tic = time.perf_counter()
         columns = []
-        kept = lambda: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
+        kept = lambda iteration: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
         with ecsw.iterates(full.solver, kept) if hyper is not None else contextlib.nullcontext():
             solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
         path = np.column_stack(columns)
