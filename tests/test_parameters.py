@@ -239,3 +239,19 @@ def test_a_sweep_through_set_compiles_once(tmp_path):
         volumes.append(json.loads((out / "summary.json").read_text())["deformed_volume"])
     assert compiled[0] > 0 and compiled[1] == compiled[2] == compiled[0]
     assert len(set(volumes)) == 3
+
+
+def test_new_parameters_keep_the_load_factor_and_its_reference_time():
+    """set_parameters re-evaluates the loads at the current time with the last set_time's load
+    factor and ``about``: changing a parameter on a scaled load path (an inner product assembled
+    at the defaults and restored, say) does not move its loads back to the unscaled ones."""
+    model = block(Parameters([STIFFNESS]))
+    model.set_time(0.8, load_factor=2.5, about=0.2)
+    scaled = model.scalar_loads()["push"]
+    assert scaled == pytest.approx(0.5 * (0.2 + 2.5 * (0.8 - 0.2)))  # the ramp is t
+    model.set_parameters(E=12.0)
+    assert model.scalar_loads()["push"] == scaled
+    model.set_time(0.8)
+    assert model.scalar_loads()["push"] == pytest.approx(0.5 * 0.8)
+    model.set_parameters(E=10.0)
+    assert model.scalar_loads()["push"] == pytest.approx(0.5 * 0.8)

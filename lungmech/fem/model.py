@@ -159,12 +159,14 @@ class Model:
         self.parameter_values = self.parameters.defaults
         self.time = 0.0
         self.loading = 0  # changes whenever the loads are set (what was assembled at one holds)
+        self._scaling: tuple = (1.0, None)  # set_time's load factor and ``about``, kept for set_parameters
         self.set_parameters()
 
     def set_parameters(self, values: Mapping[str, float] | None = None, **named: float) -> None:
         """Set parameters by name (``model.set_parameters(stiffness=2e3)`` or a mapping); the others
         keep their current values. Each value is checked against its range. Only constants change:
-        nothing is recompiled. The loads are re-evaluated at the current time; the state is kept."""
+        nothing is recompiled. The loads are re-evaluated at the current time, with the load factor
+        of the last :meth:`set_time`; the state is kept."""
         given = {**(values or {}), **named}
         current = self.parameters.values(given, start=self.parameter_values)
         self._assign_material(current)
@@ -175,7 +177,7 @@ class Model:
         for name, constant in self._interfaces.items():
             constant.value = current[name]
         self.parameter_values = current
-        self.set_time(self.time)
+        self.set_time(self.time, *self._scaling)
 
     def reset(self) -> None:
         """Back to the unloaded state: u = 0 and every other field at its initial value."""
@@ -199,7 +201,7 @@ class Model:
         With ``about`` = t₀ it scales only their change since t₀ (ramp(t₀) + f (ramp(t) −
         ramp(t₀))): a deeper or shallower breath from the same end-expiration, say.
         """
-        self.time = t
+        self.time, self._scaling = t, (load_factor, about)
         self.loading += 1
         self.time_constant.value = t
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
