@@ -203,7 +203,7 @@ def test_a_complete_basis_gives_the_direct_sensitivities():
     assert np.allclose(reduced, direct, rtol=1e-10, atol=1e-12 * np.abs(direct).max())
 
 
-def test_state_dependent_loads_and_load_factors_are_refused():
+def test_state_dependent_loads_and_loads_set_by_hand_are_refused():
     balanced = Model(
         box(MPI.COMM_SELF, cells=(2, 2, 2)),
         NeoHookean.from_young(10.0, 0.3),
@@ -215,9 +215,22 @@ def test_state_dependent_loads_and_load_factors_are_refused():
         sensitivity.value_derivatives(balanced)
     assert "\n" not in str(error.value)
     model = block()
-    model.set_time(1.0, load_factor=0.5)
-    with pytest.raises(ParameterError, match="load factor"):
+    model.set_time(1.0)
+    model._load_values[0].value = 0.3  # not what set_time sets
+    with pytest.raises(ParameterError, match="not set by Model.set_time"):
         sensitivity.value_derivatives(model)
+
+
+def test_load_derivatives_follow_the_load_factor():
+    """A load path scaled by f (and taken about a reference time) scales the loads' derivatives
+    alike: ∂p/∂μ at factor 0.5 about t₀ = 0.5 is half its change since t₀ (the ramp is t)."""
+    model = block()
+    model.set_time(1.0)
+    whole = sensitivity.value_derivatives(model).loads["push"]
+    model.set_time(1.0, load_factor=0.5, about=0.5)
+    scaled = sensitivity.value_derivatives(model).loads["push"]
+    np.testing.assert_allclose(scaled, (0.5 + 0.5 * (1.0 - 0.5)) * whole, rtol=1e-10, atol=1e-15)
+    assert model.scalar_loads()["push"] == pytest.approx(0.75 * BLOCK[2].default)  # left as it was
 
 
 @pytest.mark.mpi

@@ -213,9 +213,9 @@ def value_derivatives(model) -> ValueDerivatives:
     assembly). Exact for values that depend linearly on μ, second-order accurate otherwise (see
     :func:`_stencil`). The model is left as it was: parameters, constants, time, load values, state.
 
-    The loads are differentiated as :meth:`Model.set_time` sets them at the current time (no load
-    factor); a model whose loads were set otherwise is refused. Collective (the first call
-    compiles the model's derivative forms).
+    The loads are differentiated as :meth:`Model.set_time` last set them (its time, load factor
+    and reference time); a model whose loads were set otherwise is refused. Collective (the
+    first call compiles the model's derivative forms).
     """
     check_differentiable(model)
     forms = derivative_forms(model)
@@ -232,7 +232,7 @@ def value_derivatives(model) -> ValueDerivatives:
         model.set_parameters(current)
         if not all(np.array_equal(v.value, g) for v, g in zip(model._load_values, given)):
             raise ParameterError(
-                "sensitivities: the loads were set with a load factor; derivatives follow Model.set_time(t) alone"
+                "sensitivities: the loads were not set by Model.set_time; derivatives follow what it sets"
             )
         for i, parameter in enumerate(parameters):
             points, weights = _stencil(parameter, current[parameter.name])
