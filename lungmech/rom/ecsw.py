@@ -259,9 +259,9 @@ class Training:
         """Add every family's reduced tangent at the model's current state and loads, in the
         metric of the internal forces' (the elastic) reduced tangent K_V = Σ_e Vᵀ K_e V there:
         the rows of every cell's S Vᵀ K_e V Sᵀ, S = |Λ|^-½ Qᵀ of K_V's symmetric part Q Λ Qᵀ, over
-        √k. An error ε in them is an error ε √k of K_V's eigenvalue, relative, in every
-        direction, the softest as the stiffest: an error relative to ‖K_V‖ would leave the
-        soft ones free, a condition number times looser. False: no family's tangent is
+        √k. An error ε in them moves each of K_V's eigenvalues by at most ε √k of itself, in
+        every direction, the softest as the stiffest: an error relative to ‖K_V‖ would leave
+        the soft ones free, a condition number times looser. False: no family's tangent is
         nonzero. k assemblies of a matrix of the cells' columns per family, for k vectors."""
         self._state_dependent.update()
         owned, k = self.V.shape
@@ -339,7 +339,9 @@ class Training:
         self.model.state.x.scatter_forward()
         self.model.set_time(time, load_factor=load_factor)
         added = self.add()
-        return self.add_tangents() or added if tangents else added
+        if tangents:
+            added = self.add_tangents() or added
+        return added
 
     def replay(self, states: Sequence[tuple[np.ndarray, float, dict[str, float]]]) -> None:
         """:meth:`add_state` every stored Newton iterate ``(state, time, parameters)`` (e.g. those
@@ -359,7 +361,9 @@ class Training:
         """Within the block, :meth:`add` every Newton iterate of ``solver`` (a full
         :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
         not only the converged ones, so that the sample also reproduces the reduced forces away
-        from equilibrium. Each iterate is added at the solver's loads of the moment."""
+        from equilibrium. Each iterate is added at the solver's loads of the moment, and the
+        first of every solve (a load step's start) with its tangents (:meth:`add_tangents`:
+        at every step, where :meth:`replay` picks :data:`TANGENT_STATES` of them)."""
         training = weakref.ref(self)  # PETSc keeps the monitor: it must not keep us
 
         def add(iteration: int) -> None:
