@@ -72,6 +72,20 @@ def training_states(model: Model) -> list[tuple[np.ndarray, float, float]]:
     return states
 
 
+def watched(basis: rom.Basis, comm=MPI.COMM_WORLD):
+    """ECSW training on every Newton iterate of the training paths, and the full solver it
+    watched (watching no more)."""
+    from lungmech.fem.solver import NewtonSolver
+
+    model = block(comm)
+    training = Training(model, basis.vectors)
+    solver = NewtonSolver(model)
+    with training.watching(solver):
+        for scale in TRAINING:
+            path(model, scale, solver=solver)
+    return training, solver
+
+
 @pytest.fixture(scope="module")
 def trained():
     return train()
@@ -204,18 +218,12 @@ def test_training_on_newton_iterates(trained):
     """A second pass over the training paths adds every Newton iterate (off equilibrium) as
     well as the converged states; the sample still meets τ on all of them, and the hyper-reduced
     model stays within its bound of the Galerkin one on the unseen load."""
-    from lungmech.fem.solver import NewtonSolver
-
     basis, converged = trained
-    model = block()
-    training = Training(model, basis.vectors)
-    solver = NewtonSolver(model)
-    with training.watching(solver):
-        for scale in TRAINING:
-            path(model, scale, solver=solver)
-    watched = training.states
+    training, solver = watched(basis)
+    model = training.model
+    states = training.states
     path(model, UNSEEN, solver=solver)
-    assert training.states == watched  # after the block, not watching any more
+    assert training.states == states  # after the block, not watching any more
     assert training.states > 2 * converged.states  # iterates and converged states
     sample = training.sample(1e-4)
     assert_reproduces(training, sample)
@@ -231,16 +239,10 @@ def test_a_sample_trained_on_tangents_too_holds_beyond_its_training_loads(traine
     2.1e-2 from the Galerkin one (at τ = 0.1 the path runs into a limit point that is not the
     body's). Trained on the tangents too, at every load step's start (63 cells), the eigenvalues
     are 0.94–1.05 and the answer 4.1e-3 from it (measured)."""
-    from lungmech.fem.solver import NewtonSolver
     from lungmech.rom.ecsw import TANGENT
 
     basis, force_only = trained
-    model = block()
-    training = Training(model, basis.vectors)
-    solver = NewtonSolver(model)
-    with training.watching(solver):
-        for scale in TRAINING:
-            path(model, scale, solver=solver)
+    training, _ = watched(basis)
     for family in ("internal", "boundary_load"):
         assert 0 < training.added[family + TANGENT] < training.added[family] / 3  # at the steps' starts
     assert "cell_load" + TANGENT not in training.added  # the weight on the cells does not depend on the state

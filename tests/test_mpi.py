@@ -698,20 +698,14 @@ def test_a_tangent_trained_ecsw_sample_on_two_ranks():
     """Tangent rows from the ranks' cells, whitened by rank 0's metric: the sample reproduces
     the distributed forces and tangents to τ, and its answer at twice the largest training load
     is one rank's to round-off (measured: 3e-11 of the volume change)."""
-    from test_ecsw import TRAINING, assert_reproduces, block, path, train
+    from test_ecsw import TRAINING, assert_reproduces, block, path, train, watched
 
-    from lungmech.fem.solver import NewtonSolver
-    from lungmech.rom.ecsw import TANGENT, Training
+    from lungmech.rom.ecsw import TANGENT
     from lungmech.rom.hyper_reduced import HyperReducedSolver
 
     def volume_change(comm) -> float:
         basis, _ = train(comm)
-        model = block(comm)
-        training = Training(model, basis.vectors)
-        solver = NewtonSolver(model)
-        with training.watching(solver):
-            for scale in TRAINING:
-                path(model, scale, solver=solver)
+        training, _ = watched(basis, comm)
         assert training.added["internal" + TANGENT] > 0
         sample = training.sample(1e-2)
         if comm is MPI.COMM_WORLD:  # assert_reproduces sums over the world's ranks
