@@ -222,13 +222,14 @@ class _Balance:
         left = self._left_u()
         p.right.value = c
         right = self._right_u()
-        coefficients = []
-        for j in range(9):
-            weights = np.outer(lam, Q[j, :9]) + np.outer(Q[j, 9:], c)
-            along = np.einsum("ik,ikd->d", weights, response_centre)  # ∂(Σ T_ik A_ik)/∂x_G
-            row = left @ Q[j, :9] + right @ Q[j, 9:] + sum(g * dxg for g, dxg in zip(along, centre))
-            coefficients.append(-row)
-        return work, np.column_stack(centre + coefficients)
+        # along[j, d] = Σ_ik T⁽ʲ⁾_ik ∂A_ik/∂x_G,d, contracted for all nine rows at once (a loop
+        # over j cost a third of the reduced tangent online)
+        along = Q[:, :9] @ np.einsum("i,ikd->kd", lam, response_centre) + Q[:, 9:] @ np.einsum(
+            "k,ikd->id", c, response_centre
+        )
+        centre = np.column_stack(centre)
+        coefficients = -(left @ Q[:, :9].T + right @ Q[:, 9:].T + centre @ along.T)
+        return work, np.hstack([centre, coefficients])
 
     def rounding(self) -> np.ndarray:
         """The size of θ's rounding errors (after :meth:`update`): ε |x_G| for the centre, and
