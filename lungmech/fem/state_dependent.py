@@ -58,6 +58,14 @@ class Integration(Protocol):
         ``constant`` set to 1 and the others to 0 (in its flattened order), side by side."""
         ...
 
+    def bilinear_columns(
+        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        """Both partial derivatives of a ``form`` linear in each of two constants, as columns:
+        (its columns over ``right``'s entries with ``left`` at its value, its columns over
+        ``left``'s entries with ``right`` at its value), each as :meth:`columns`'."""
+        ...
+
 
 class FullIntegration:
     """Integrals over the whole mesh, columns as the owned dofs of the model's space."""
@@ -77,6 +85,13 @@ class FullIntegration:
     def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
         column = self.column(name, form)
         return lambda: each_unit(constant, column)
+
+    def bilinear_columns(
+        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        # two sets of unit evaluations: one merged form would cost every evaluation both terms
+        over_right, over_left = self.columns(name, form, right), self.columns(name, form, left)
+        return lambda: (over_right(), over_left())
 
 
 def each_unit(constant: fem.Constant, evaluate: Callable[[], np.ndarray]) -> np.ndarray:

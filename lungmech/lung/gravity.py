@@ -155,8 +155,8 @@ class _BalancingPressure:
         a = ufl.as_vector([self.direction[3 + i] for i in range(9)])
         self.work_derivative = -(ufl.dot(a, basis) + ufl.dot(ufl.diff(q, centre), d)) * ufl.dot(n_da, v) * surface
         # lᵀ A r's derivative in u (a vector), for the rank-2 weights λ ⊗ q + r ⊗ c of dΘ/du
-        # (two evaluations, of 9 and 6 columns: one of 15, its form the sum of both, costs the
-        # full model's tangent 3 times more); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
+        # (its columns over r with l = λ, and over l with r = c: the integration's bilinear
+        # columns); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
         self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
         self.contraction_u = ufl.derivative(ufl.dot(self.left, response * self.right) * surface, model.state, w)
         self.response_centre = ufl.diff(response, centre)
@@ -191,8 +191,8 @@ class _Balance:
         self._moments = integration.vector("moments", *p._integral("moments"))
         self._response = integration.vector("response", *p._integral("response"))
         self._work_derivative = integration.columns("residual", p.work_derivative, p.direction)
-        self._left_u = integration.columns("response", p.contraction_u, p.right)  # λᵀ (∂A/∂u) e_k
-        self._right_u = integration.columns("response", p.contraction_u, p.left)  # e_iᵀ (∂A/∂u) c
+        # (λᵀ (∂A/∂u) e_k, e_iᵀ (∂A/∂u) c)
+        self._response_u = integration.bilinear_columns("response", p.contraction_u, p.left, p.right)
         self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
 
@@ -218,10 +218,8 @@ class _Balance:
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
         # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
-        p.left.value = lam
-        left = self._left_u()
-        p.right.value = c
-        right = self._right_u()
+        p.left.value, p.right.value = lam, c
+        left, right = self._response_u()
         # along[j, d] = Σ_ik T⁽ʲ⁾_ik ∂A_ik/∂x_G,d, contracted for all nine rows at once (a loop
         # over j cost a third of the reduced tangent online)
         along = Q[:, :9] @ np.einsum("i,ikd->kd", lam, response_centre) + Q[:, 9:] @ np.einsum(

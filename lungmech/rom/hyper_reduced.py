@@ -529,6 +529,31 @@ class _SampledIntegration:
         constant_columns = gram(solver.basis.vectors, each_unit(constant, full), solver.comm)
         return lambda: constant_columns
 
+    def bilinear_columns(
+        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        if name != "residual" and self.integrals[name].affine:
+            over_right, over_left = self.columns(name, form, right), self.columns(name, form, left)
+            return lambda: (over_right(), over_left())
+        # one assembly for both (on a few cells a call's overhead outweighs its work): the form
+        # summed over the two roles, each constant in turn replaced by its own entries of one
+        # constant of both, whose columns are then the two sets side by side
+        n = right.value.size
+        both = fem.Constant(self.solver.model.geometry.mesh, np.zeros(n + left.value.size))
+
+        def entries(constant: fem.Constant, offset: int):
+            parts = [both[offset + j] for j in range(constant.value.size)]
+            return ufl.as_tensor(np.reshape(parts, constant.ufl_shape).tolist()) if constant.ufl_shape else parts[0]
+
+        merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
+        columns = self.columns(name, merged, both)
+
+        def evaluate() -> tuple[np.ndarray, np.ndarray]:
+            found = columns()
+            return found[:, :n], found[:, n:]
+
+        return evaluate
+
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
         solver = self.solver
         if name == "residual":
