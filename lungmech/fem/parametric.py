@@ -90,13 +90,14 @@ def approach(
     a, b = box.to_unit(start), box.to_unit(values)
 
     def drive(s: float) -> None:
-        model.set_parameters(box.from_unit(a + s * (b - a)))
+        model.set_parameters(values if s == 1.0 else box.from_unit(a + s * (b - a)))  # the end exactly
         model.set_time(time)
 
     report = solve(
         model, Stepping(initial_step=first_step), solver=solver, drive=drive, on_step=on_step, monitor=lambda step: None
     )
-    model.set_parameters(values)  # exactly, not through the unit box
+    if model.parameter_values != values:  # the path ended short of s = 1 by rounding
+        model.set_parameters(values)
     return report.newton_iterations
 
 
