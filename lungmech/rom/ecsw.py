@@ -238,6 +238,7 @@ class Training:
         self.added = dict.fromkeys(names, 0)  # the training states in each family's G
         self._since = dict.fromkeys(names, 0)  # its rows since it was compressed
         rows, k = self.V.shape  # V as a distributed dense matrix, wrapping self.V's memory
+        self.seconds = {"tangents": 0.0, "compression": 0.0}  # of the training so far: where its time goes
         self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)
 
     def add(self) -> bool:
@@ -263,6 +264,13 @@ class Training:
         every direction, the softest as the stiffest: an error relative to ‖K_V‖ would leave
         the soft ones free, a condition number times looser. False: no family's tangent is
         nonzero. k assemblies of a matrix of the cells' columns per family, for k vectors."""
+        tic = time.perf_counter()
+        try:
+            return self._add_tangents()
+        finally:
+            self.seconds["tangents"] += time.perf_counter() - tic
+
+    def _add_tangents(self) -> bool:
         self._state_dependent.update()
         owned, k = self.V.shape
         tangents = {}  # family: (j, i, cell) ↦ V_iᵀ K_e V_j
@@ -312,6 +320,7 @@ class Training:
         """Replace the rows of ``family``'s G by R = Σ^½ Uᵀ G over the eigenpairs (λ, U) of the
         rows' Gram matrix G Gᵀ with λ ≥ (:data:`COMPRESSION` λ_max)²: RᵀR = GᵀG but for the
         dropped ones (the method of snapshots; the Gram matrix sums the ranks' columns)."""
+        tic = time.perf_counter()
         rows = np.vstack(self.blocks[family])
         self.blocks[family] = []  # the blocks go before R comes: one copy of G at a time
         gram_matrix = self.comm.reduce(rows @ rows.T, op=MPI.SUM, root=0)
@@ -321,6 +330,7 @@ class Training:
         kept = eigenvalues >= COMPRESSION**2 * max(eigenvalues.max(), 0.0)
         self.blocks[family] = [vectors[:, kept].T @ rows]
         self._since[family] = 0
+        self.seconds["compression"] += time.perf_counter() - tic
 
     def add_state(
         self,
@@ -418,14 +428,15 @@ def train(
 ) -> Sample:
     """The ECSW sample of ``model`` on ``basis`` at ``tolerance``, trained on every Newton
     iterate (converged states included) ``solver`` takes while ``runs()`` drives it along the
-    training load paths. ``timings``, if given, receives the seconds of the training pass and of
-    the NNLS. Collective."""
+    training load paths. ``timings``, if given, receives the seconds of the training pass (and
+    of its tangents and compressions) and of the NNLS. Collective."""
     tic = time.perf_counter()
     training = Training(model, basis.vectors)
     try:
         with training.watching(solver):
             runs()
         seconds = {"ecsw_training": time.perf_counter() - tic}
+        seconds |= {f"ecsw_{part}": value for part, value in training.seconds.items()}
         tic = time.perf_counter()
         sample = training.sample(tolerance)
         seconds["nnls"] = time.perf_counter() - tic

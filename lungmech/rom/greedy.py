@@ -96,8 +96,8 @@ def greedy(
     is judged and from which full solves are chosen; ``size`` caps the basis; ``most`` caps the
     full solves (default: one per candidate, and the defaults'). ``hyper``: the ECSW tolerance
     τ of a hyper-reduced model to judge (see the module's doc). ``timings`` receives the
-    seconds of the full solves, the POD, the ECSW training and NNLS, and the judging. Each round
-    is logged ("lungmech", INFO). Collective.
+    seconds of the full solves, the POD, the ECSW training (and of it, the tangents and the
+    compressions) and NNLS, and the judging. Each round is logged ("lungmech", INFO). Collective.
     """
     checks.real("greedy tolerance", tolerance)
     if not 0 < tolerance < 1:
@@ -110,7 +110,9 @@ def greedy(
         if not 0 < hyper < 1:
             raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper!r})")
     model, seconds = full.model, {"snapshots": 0.0, "pod": 0.0, "judging": 0.0}
-    seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
+    seconds |= (
+        {"ecsw_training": 0.0, "ecsw_tangents": 0.0, "ecsw_compression": 0.0, "nnls": 0.0} if hyper is not None else {}
+    )
     start = reference_state(model) if full.start is None else full.start
     remaining = [full.parameters.values(point) for point in candidates]
     training, paths, rounds = [], [], []
@@ -218,6 +220,8 @@ def _sampled(model, basis: Basis, W: np.ndarray, iterates: list, tolerance: floa
     try:
         training.replay(iterates)
         seconds["ecsw_training"] += time.perf_counter() - tic
+        for part, value in training.seconds.items():  # where the training's time went
+            seconds[f"ecsw_{part}"] += value
         tic = time.perf_counter()
         sample = training.sample(tolerance)
         seconds["nnls"] += time.perf_counter() - tic
