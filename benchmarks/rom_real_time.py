@@ -482,7 +482,8 @@ def main() -> None:
         write_results(RESULTS, "rom_real_time", rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
         pareto(rows, RESULTS / "rom_real_time.png")
         return
-    logging.basicConfig(level=logging.INFO, format="    %(message)s")
+    # the clock time of each greedy round, to see where an offline build goes
+    logging.basicConfig(level=logging.INFO, format="    %(asctime)s %(message)s", datefmt="%H:%M:%S")
     measured = []
     for size in [size.strip() for size in args.sizes.split(",")]:
         measured += case(size, args)
