@@ -533,8 +533,8 @@ class _SampledIntegration:
         self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
         if name != "residual" and self.integrals[name].affine:
-            over_right, over_left = self.columns(name, form, right), self.columns(name, form, left)
-            return lambda: (over_right(), over_left())
+            # columns of an affine integral are computed once, and these vary with the constants
+            raise ParameterError(f"bilinear columns of the affine integral {name!r} are not available (sample it)")
         # one assembly for both (on a few cells a call's overhead outweighs its work): the form
         # summed over the two roles, each constant in turn replaced by its own entries of one
         # constant of both, whose columns are then the two sets side by side
