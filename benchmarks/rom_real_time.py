@@ -477,6 +477,8 @@ def main() -> None:
         "--galerkin-points", type=int, default=0, help="the Galerkin baseline at the first N unseen points (0: all)"
     )
     args = parser.parse_args()
+    if args.galerkin_points < 0:
+        parser.error(f"--galerkin-points: a number of points, 0 for all (got {args.galerkin_points})")
     if args.replot:
         rows = _read(RESULTS / "rom_real_time.csv")
         write_results(RESULTS, "rom_real_time", rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
