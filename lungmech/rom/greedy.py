@@ -110,9 +110,7 @@ def greedy(
         if not 0 < hyper < 1:
             raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper!r})")
     model, seconds = full.model, {"snapshots": 0.0, "pod": 0.0, "judging": 0.0}
-    seconds |= (
-        {"ecsw_training": 0.0, "ecsw_tangents": 0.0, "ecsw_compression": 0.0, "nnls": 0.0} if hyper is not None else {}
-    )
+    seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
     start = reference_state(model) if full.start is None else full.start
     remaining = [full.parameters.values(point) for point in candidates]
     training, paths, rounds = [], [], []
@@ -221,7 +219,7 @@ def _sampled(model, basis: Basis, W: np.ndarray, iterates: list, tolerance: floa
         training.replay(iterates)
         seconds["ecsw_training"] += time.perf_counter() - tic
         for part, value in training.seconds.items():  # where the training's time went
-            seconds[f"ecsw_{part}"] += value
+            seconds[f"ecsw_{part}"] = seconds.get(f"ecsw_{part}", 0.0) + value
         tic = time.perf_counter()
         sample = training.sample(tolerance)
         seconds["nnls"] += time.perf_counter() - tic

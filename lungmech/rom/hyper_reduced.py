@@ -386,7 +386,7 @@ class HyperReducedSolver:
         (collective)."""
         n = constant.value.size
         tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
-        replacement = ufl.as_tensor(np.reshape([tau[j] for j in range(n)], constant.ufl_shape).tolist())
+        replacement = _shaped([tau[j] for j in range(n)], constant.ufl_shape)
         compiled = self._sampled_form(ufl.replace(form, {constant: replacement}), families)
         # PETSc's matrix: DOLFINx's own takes square blocks only (here 3 or 1 rows, n columns)
         matrix = create_petsc_matrix(compiled)
@@ -492,6 +492,11 @@ def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
     return magnitude
 
 
+def _shaped(entries: list, shape: tuple[int, ...]):
+    """The expressions ``entries`` (flattened order) as one of ``shape`` (a scalar for ())."""
+    return ufl.as_tensor(np.reshape(entries, shape).tolist()) if shape else entries[0]
+
+
 def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
     """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
     owned = basis.vectors.shape[0]
@@ -542,8 +547,7 @@ class _SampledIntegration:
         both = fem.Constant(self.solver.model.geometry.mesh, np.zeros(n + left.value.size))
 
         def entries(constant: fem.Constant, offset: int):
-            parts = [both[offset + j] for j in range(constant.value.size)]
-            return ufl.as_tensor(np.reshape(parts, constant.ufl_shape).tolist()) if constant.ufl_shape else parts[0]
+            return _shaped([both[offset + j] for j in range(constant.value.size)], constant.ufl_shape)
 
         merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
         columns = self.columns(name, merged, both)
