@@ -356,63 +356,73 @@ def targets(rows: list[dict]) -> list[str]:
 
 
 def pareto(rows: list[dict], path: Path) -> None:
-    """Error against time per parameter point: each ECSW (τ, k) per mesh size, labelled at the
-    largest mesh (the sizes' points of one (τ, k) lie together when the online time is flat);
-    the Galerkin baseline; the full model (exact: drawn at the bottom)."""
+    """Error against time per parameter point: colour the mesh size, marker the ECSW model
+    (τ, and the greedy's basis or its leading half; a size's points of one model lie together
+    when the online time is flat); the Galerkin baseline; the full model (exact: drawn at the
+    bottom)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8.0, 5.6))
-    sizes = list(dict.fromkeys(r["mesh h [mm]"] for r in rows))
-    colours = dict(zip(sizes, plt.cm.viridis(np.linspace(0.0, 0.75, len(sizes)))))
-    floor = min(r["error_energy_max"] for r in rows) / 3
-    largest = max(sizes, key=lambda size: next(r["dofs"] for r in rows if r["mesh h [mm]"] == size))
-    for size in sizes:
-        mine = [r for r in rows if r["mesh h [mm]"] == size]
-        label = (
-            f"h = {size} mm, {mine[0]['dofs']} dofs" if size != "default" else f"bundled mesh, {mine[0]['dofs']} dofs"
-        )
-        hyper = [r for r in mine if r["model"] == "ECSW"]
-        ax.loglog(
-            [1e-3 * r["online_ms_median"] for r in hyper],
-            [r["error_energy_max"] for r in hyper],
-            "o",
-            color=colours[size],
-            label=f"ECSW ({label})",
-        )
-        for r in hyper if size == largest else []:
-            ax.annotate(
-                f"τ={float(r['tau']):.0e}, k={r['k']}",
-                (1e-3 * r["online_ms_median"], r["error_energy_max"]),
-                textcoords="offset points",
-                xytext=(5, 3),
-                fontsize=6,
-                color=colours[size],
-            )
-        g = next(r for r in mine if r["model"] == "Galerkin")
-        ax.loglog(
-            1e-3 * g["online_ms_median"],
-            g["error_energy_max"],
-            "s",
-            mfc="none",
-            color=colours[size],
-            label=f"Galerkin, no hyper-reduction ({label})",
-        )
-        ax.loglog(g["full_s_median"], floor, "*", ms=11, color=colours[size], label=f"full model, exact ({label})")
-    ax.axhline(1e-2, color="grey", lw=0.8, ls="--", label="target: 1 % energy-norm error")
-    ax.axvline(0.2, color="grey", lw=0.8, ls=":", label="target: 0.2 s per breath of ≥ 20 outputs")
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+    fig, ax = plt.subplots(figsize=(8.0, 6.2))
+    sizes = list(dict.fromkeys(r["mesh h [mm]"] for r in rows))
+    colours = dict(zip(sizes, plt.cm.viridis(np.linspace(0.0, 0.85, len(sizes)))))
+    hyper = [r for r in rows if r["model"] == "ECSW"]
+    greedy_k = {size: max((r["k"] for r in hyper if r["mesh h [mm]"] == size), default=0) for size in sizes}
+    role = {True: "the greedy's basis", False: "its leading half"}
+    models = sorted(
+        {(float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]]) for r in hyper}, key=lambda m: (-m[0], not m[1])
+    )
+    markers = dict(zip(models, "o^vDPXh<>"))
+    floor = min(r["error_energy_max"] for r in rows) / 3
+    for r in hyper:
+        model = (float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]])
+        ax.loglog(
+            1e-3 * r["online_ms_median"],
+            r["error_energy_max"],
+            markers[model],
+            color=colours[r["mesh h [mm]"]],
+            alpha=0.85,
+        )
+    for size in sizes:
+        g = next(r for r in rows if r["mesh h [mm]"] == size and r["model"] == "Galerkin")
+        ax.loglog(1e-3 * g["online_ms_median"], g["error_energy_max"], "s", mfc="none", color=colours[size])
+        ax.loglog(g["full_s_median"], floor, "*", ms=11, color=colours[size])
+    handles = [Patch(color=colours[size]) for size in sizes]
+    labels = [
+        ("bundled mesh" if size == "default" else f"h = {size} mm")
+        + f", {next(r['dofs'] for r in rows if r['mesh h [mm]'] == size)} dofs"
+        for size in sizes
+    ]
+    for (tau, greedy_basis), marker in markers.items():
+        handles.append(Line2D([], [], ls="none", marker=marker, color="grey"))
+        labels.append(f"ECSW, τ = {tau:.0e}, {role[greedy_basis]}")
+    handles += [
+        Line2D([], [], ls="none", marker="s", mfc="none", color="grey"),
+        Line2D([], [], ls="none", marker="*", ms=11, color="grey"),
+        Line2D([], [], color="grey", lw=0.8, ls="--"),
+        Line2D([], [], color="grey", lw=0.8, ls=":"),
+    ]
+    labels += [
+        "Galerkin, no hyper-reduction",
+        "full model, exact (drawn at the bottom)",
+        "target: 1 % energy-norm error",
+        "target: 0.2 s per breath of ≥ 20 outputs",
+    ]
+    ax.axhline(1e-2, color="grey", lw=0.8, ls="--")
+    ax.axvline(0.2, color="grey", lw=0.8, ls=":")
     ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
     ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("time per parameter point: a breath of 20 outputs from the start [s]")
     ax.set_ylabel("worst energy-norm error over the unseen points [1]")
-    ax.set_title("Breathing lung over stiffness × breath × posture", fontsize=10)
+    ax.set_title("Breathing lung over stiffness × breath × posture (colour: mesh; marker: model)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+    ax.legend(handles, labels, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
