@@ -376,17 +376,18 @@ def pareto(rows: list[dict], path: Path) -> None:
     hyper = [r for r in rows if r["model"] == "ECSW"]
     greedy_k = {size: max((r["k"] for r in hyper if r["mesh h [mm]"] == size), default=0) for size in sizes}
     role = {True: "the greedy's basis", False: "its leading half"}
-    models = sorted(
-        {(float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]]) for r in hyper}, key=lambda m: (-m[0], not m[1])
-    )
+
+    def model(r: dict) -> tuple[float, bool]:  # (τ, whether its basis is the greedy's)
+        return float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]]
+
+    models = sorted({model(r) for r in hyper}, key=lambda m: (-m[0], not m[1]))
     markers = dict(zip(models, "o^vDPXh<>"))
     floor = min(r["error_energy_max"] for r in rows) / 3
     for r in hyper:
-        model = (float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]])
         ax.loglog(
             1e-3 * r["online_ms_median"],
             r["error_energy_max"],
-            markers[model],
+            markers[model(r)],
             color=colours[r["mesh h [mm]"]],
             alpha=0.85,
         )
