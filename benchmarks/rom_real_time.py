@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import copy
 import hashlib
+import itertools
 import logging
 import statistics
 import time
@@ -381,7 +382,7 @@ def pareto(rows: list[dict], path: Path) -> None:
         return float(r["tau"]), r["k"] == greedy_k[r["mesh h [mm]"]]
 
     models = sorted({model(r) for r in hyper}, key=lambda m: (-m[0], not m[1]))
-    markers = dict(zip(models, "o^vDPXh<>"))
+    markers = dict(zip(models, itertools.cycle("o^vDPXh<>")))  # more τ than shapes: shapes repeat
     floor = min(r["error_energy_max"] for r in rows) / 3
     for r in hyper:
         ax.loglog(
