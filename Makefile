@@ -1,22 +1,35 @@
 # The two set-up commands: `make demo` (the bundled default scene) and `make test`.
-# Both create the virtual environment on first use. DOLFINX=system uses Debian's DOLFINx.
+# Both create the virtual environment on first use, at the tested versions of
+# requirements/lock.txt. DOLFINX=system uses Debian's DOLFINx (and Debian's versions).
+# `make test-latest` tests the newest versions pyproject.toml allows (in .venv-latest);
+# `make lock` then writes them to the lock.
 VENV    ?= .venv
 DOLFINX ?= wheel
 PY      := $(VENV)/bin/python
 # The wheel ships MPICH's mpiexec in the venv; Debian's DOLFINx uses the system one.
 MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpiexec)
 STAMP   := $(VENV)/.lungmech-installed
+LOCK    ?= requirements/lock.txt
 
-.PHONY: demo test lint test-serial test-mpi bench bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo test test-latest lock lint test-serial test-mpi bench bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
-$(STAMP): pyproject.toml
-	DOLFINX=$(DOLFINX) bash .ci/make-venv $(VENV)
+$(STAMP): pyproject.toml $(wildcard $(LOCK))
+	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
 	touch $@
 
 demo: $(STAMP)
 	$(VENV)/bin/lungmech run -o results/default
 
 test: lint test-serial test-mpi
+
+# The newest versions pyproject.toml allows, in their own venv; run it before `make lock`.
+# LUNGMECH_UNLOCKED tells the suite's version check that these are not the locked versions.
+test-latest:
+	rm -f .venv-latest/.lungmech-installed
+	$(MAKE) test VENV=.venv-latest LOCK=none LUNGMECH_UNLOCKED=1
+
+lock:
+	bash .ci/lock .venv-latest
 
 # ruff's linter and formatter, configured in pyproject.toml.
 lint: $(STAMP)
