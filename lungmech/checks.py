@@ -14,7 +14,7 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 
-__all__ = ["boolean", "integer", "real", "vector"]
+__all__ = ["boolean", "integer", "names", "real", "vector"]
 
 
 def real(
@@ -58,3 +58,20 @@ def boolean(name: str, value: object) -> bool:
     if not isinstance(value, bool):
         raise ParameterError(f"{name} must be true or false (got {value!r})")
     return value
+
+
+def names(name: str, value: object, empty: bool = False) -> tuple[str, ...]:
+    """``value`` — a name, or a list of names — as a tuple of distinct non-empty strings (none
+    only if ``empty``). A name given twice is refused: on a list of boundaries it would count
+    that boundary twice (twice the pressure), not once."""
+    listed = (value,) if isinstance(value, str) else value
+    if (
+        isinstance(listed, bytes)
+        or not isinstance(listed, Sequence)
+        or not (listed or empty)
+        or not all(isinstance(n, str) and n for n in listed)
+    ):
+        raise ParameterError(f"{name} must be a name or a list of them (got {value!r})")
+    if repeated := sorted({n for n in listed if listed.count(n) > 1}):
+        raise ParameterError(f"{name} names {', '.join(repeated)} more than once (got {list(listed)})")
+    return tuple(listed)

@@ -27,6 +27,7 @@ from mpi4py import MPI
 from lungmech import mesh as geometry
 from lungmech import meshes
 from lungmech.app.cli import main
+from lungmech.rom import store
 
 TINY = TINY_SCENE
 LUNG = """title = "lung cube"
@@ -339,6 +340,72 @@ SCENES = {
         swap('builder = "box"\ncells = [2, 1, 1]\nlengths = [2.0, 1.0, 1.0]', 'file = "box.xdmf"\nboundaries = "x0"'),
         "geometry.boundaries: expected a table",
     ),
+    # every parameter acts, or the scene is refused
+    "two parameters on one target": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\n'
+        + '[parameters.b]\ntarget = "material.E"\nrange = [800.0, 1500.0]\n',
+        "parameters: parameters 'a' and 'b' all set material.E: only the last would act; keep one",
+    ),
+    "two parameters on one load": (
+        swap("-10.0]", '-10.0]\nname = "pull"')
+        + '[parameters.a]\ntarget = "loads.pull.amplitude"\nrange = [0.5, 2.0]\n'
+        + '[parameters.b]\ntarget = "loads.pull.amplitude"\nrange = [0.5, 3.0]\n',
+        "parameters 'a' and 'b' all set loads.pull.amplitude",
+    ),
+    "an outside value that another parameter sets": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\n'
+        + '[parameters.b]\ntarget = "material.E"\nrange = [800.0, 1500.0]\noutside = 900.0\n'
+        + "region = { normal = [1.0, 0.0, 0.0], position = 1.0, width = 0.1 }\n",
+        "parameter 'b': its value outside the region would be ignored: parameter 'a' sets material.E there",
+    ),
+    "two regions that disagree outside": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\noutside = 700.0\n'
+        + "region = { normal = [1.0, 0.0, 0.0], position = 1.0, width = 0.1 }\n"
+        + '[parameters.b]\ntarget = "material.E"\nrange = [800.0, 1500.0]\noutside = 900.0\n'
+        + "region = { normal = [-1.0, 0.0, 0.0], position = -1.0, width = 0.1 }\n",
+        "with different values outside them",
+    ),
+    "two parameters on one region": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\n'
+        + "region = { normal = [1.0, 0.0, 0.0], position = 1.0, width = 0.1 }\n"
+        + '[parameters.b]\ntarget = "material.E"\nrange = [800.0, 1500.0]\n'
+        + "region = { normal = [1.0, 0.0, 0.0], position = 1.0, width = 0.1 }\n",
+        "parameters 'a' and 'b' set material.E on the same region",
+    ),
+    "a half-space beside the body": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\n'
+        + "region = { normal = [1.0, 0.0, 0.0], position = -0.5, width = 0.1 }\n",
+        "their half-space region (n·x < s, n = (1, 0, 0), s = -0.5 m) holds no cell of the mesh",
+    ),
+    "a moving half-space that never reaches the body": (
+        TINY
+        + '[parameters.a]\ntarget = "material.E"\nrange = [500.0, 2000.0]\n'
+        + 'region = { normal = [0.0, 0.0, 1.0], position = "front", width = 0.1 }\n'
+        + '[parameters.front]\ntarget = "interface"\ndefault = -1.0\nrange = [-2.0, -0.5]\n',
+        "s = -2 to -0.5 m) holds no cell of the mesh",
+    ),
+    "an interface that moves nothing": (
+        TINY + '[parameters.front]\ntarget = "interface"\ndefault = 0.5\nrange = [0.0, 1.0]\n',
+        "parameter 'front' moves an interface that no region's position names: it would act on nothing",
+    ),
+    "a boundary named twice": (
+        swap(
+            'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',
+            'type = "follower_pressure"\nboundary = ["x1", "y0", "x1"]\nvalue = 1.0',
+        ),
+        "loads[0]: boundary names x1 more than once",
+    ),
+    "a balancing boundary named twice": (
+        TINY
+        + '[[loads]]\ntype = "gravity"\ndensity = 1.0\nacceleration = [0.0, 0.0, -9.81]\n'
+        + 'balanced_on = ["x1", "y0", "y0"]\n',
+        "balanced_on names y0 more than once",
+    ),
     "not TOML": ("[geometry\nbuilder = 1", "not valid TOML"),
     "empty scene": ("", "missing section [geometry]"),
 }
@@ -485,6 +552,43 @@ def _damaged_model(root: Path) -> None:
         arrays = {k: data[k] for k in data.files}
     arrays["vectors"] = np.full_like(arrays["vectors"], np.nan)
     np.savez(root / "nan_model.npz", **arrays)
+
+
+def _edited_model(change, digest: bool = True, name: str = "edited.npz"):
+    """model.npz, changed by ``change(root, metadata, arrays)`` and saved as ``name``; with
+    ``digest`` its digest is recomputed, as anyone who edits a file can (it is no signature)."""
+
+    def make(root: Path) -> None:
+        with np.load(root / "model.npz") as data:
+            arrays = {k: data[k] for k in data.files}
+        metadata = json.loads(str(arrays.pop("metadata")))
+        change(root, metadata, arrays)
+        if digest:
+            metadata["sha256"] = store.digest(metadata, arrays)
+        np.savez(root / name, metadata=json.dumps(metadata), **arrays)
+
+    return make
+
+
+def _embedding(name, content: bytes = b"overwritten by a model file\n", listed: bool = True, stored: bool = True):
+    """A model file that carries a file under ``name`` (a function of the workspace, or a string)."""
+
+    def change(root: Path, metadata: dict, arrays: dict) -> None:
+        embedded = name(root) if callable(name) else name
+        if listed:
+            metadata["extra"]["files"][embedded] = "somewhere/mesh.msh"
+        if stored:
+            arrays[f"file:{embedded}"] = np.frombuffer(content, dtype=np.uint8)
+
+    return _edited_model(change)
+
+
+def _relaw(root: Path, metadata: dict, arrays: dict) -> None:
+    metadata["extra"]["scene_table"]["material"]["law"] = "saint_venant_kirchhoff"
+
+
+def _nan_basis(root: Path, metadata: dict, arrays: dict) -> None:
+    arrays["vectors"] = np.full_like(arrays["vectors"], np.nan)
 
 
 def _lung_result_with(change) -> callable:
@@ -779,7 +883,57 @@ COMMANDS = {
     "model damaged": (
         [_damaged_model],
         ["rom", "solve", "nan_model.npz", "scene.toml", "-o", "out"],
+        "was changed after lungmech wrote it (its SHA-256 digest does not match its content)",
+    ),
+    "model damaged with its digest redone": (
+        [_edited_model(_nan_basis)],
+        ["rom", "solve", "edited.npz", "scene.toml", "-o", "out"],
         "holds values that are not finite numbers",
+    ),
+    "model of an edited law": (
+        [_edited_model(_relaw, digest=False)],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "'edited.npz' was changed after lungmech wrote it",
+    ),
+    "model writing to an absolute path": (
+        [_embedding(lambda root: str(root / "notes.txt"))],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "names an embedded file '/",
+    ),
+    "model writing up the tree": (
+        [_embedding("mesh/../../../notes.txt")],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "names an embedded file 'mesh/../../../notes.txt', which is not a name lungmech writes",
+    ),
+    "model writing into a user folder": (
+        [_embedding("mesh/../mydata/notes.txt")],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "which is not a name lungmech writes",
+    ),
+    "model writing through a sweep": (
+        [_embedding("data/../../notes.txt"), _write("points.csv", "a\n1\n")],
+        ["rom", "solve", "edited.npz", "--sweep", "points.csv", "-o", "out"],
+        "names an embedded file 'data/../../notes.txt'",
+    ),
+    "model writing to a backslash path": (
+        [_embedding("mesh/..\\..\\notes.txt")],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "which is not a name lungmech writes",
+    ),
+    "model writing where lungmech never does": (
+        [_embedding("results/summary.json")],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "names an embedded file 'results/summary.json'",
+    ),
+    "model listing a file it does not hold": (
+        [_embedding("mesh/box.msh", stored=False)],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "lists the embedded file 'mesh/box.msh' but holds no bytes for it",
+    ),
+    "model of a list of files that is not a table": (
+        [_edited_model(lambda root, metadata, arrays: metadata["extra"].update(files=["mesh/a.msh"]))],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "is damaged: its scene or its list of files is not a table",
     ),
     "model of another law": (
         _other_physics(

@@ -771,3 +771,51 @@ def test_greedy_training_same_on_all_ranks_as_on_one():
         assert (mine.error is None) == (theirs.error is None)
         assert mine.error is None or mine.error == pytest.approx(theirs.error, rel=1e-6)
     assert here.met == alone.met and here.basis.size == alone.basis.size
+
+
+def test_a_model_file_is_data_on_every_rank(tmp_path, capsys):
+    """A model file that would write outside its own folder, or was edited, is refused on every
+    rank in one line, through rom solve and its --sweep: the user's file is unchanged."""
+    import json
+
+    from fem import TINY_SCENE
+
+    from lungmech.app.cli import main
+    from lungmech.rom import store
+
+    comm = MPI.COMM_WORLD
+    folder = _scene_folder(tmp_path)
+    if comm.rank == 0:
+        (folder / "scene.toml").write_text(TINY_SCENE)
+        (folder / "notes.txt").write_text("patient 7: do not lose\n")
+        (folder / "points.csv").write_text("a\n1\n")
+    comm.Barrier()
+    assert main(["rom", "build", str(folder / "scene.toml"), "-o", str(folder / "m.npz"), "--size", "3", "-q"]) == 0
+
+    def edited(name: str, redigest: bool) -> str:
+        path = folder / f"edited-{len(name)}-{redigest}.npz"
+        if comm.rank == 0:
+            with np.load(folder / "m.npz") as data:
+                arrays = {k: data[k] for k in data.files}
+            metadata = json.loads(str(arrays.pop("metadata")))
+            metadata["extra"]["files"][name] = "mesh.msh"
+            arrays[f"file:{name}"] = np.frombuffer(b"overwritten\n", dtype=np.uint8)
+            if redigest:
+                metadata["sha256"] = store.digest(metadata, arrays)
+            np.savez(path, metadata=json.dumps(metadata), **arrays)
+        comm.Barrier()
+        return str(path)
+
+    cases = [
+        (edited(str(folder / "notes.txt"), True), [], "which is not a name lungmech writes"),
+        (edited("mesh/../../notes.txt", True), ["--sweep", str(folder / "points.csv")], "not a name lungmech writes"),
+        (edited("mesh/m.msh", False), [], "was changed after lungmech wrote it"),
+    ]
+    for model, extra, message in cases:
+        capsys.readouterr()
+        assert main(["rom", "solve", model, *extra, "-o", str(folder / "out"), "-q"]) == 2
+        err = comm.bcast(capsys.readouterr().err)  # rank 0 prints; every rank judges (no rank left waiting)
+        assert len(err.strip().splitlines()) == 1 and message in err, err
+        assert (folder / "notes.txt").read_text() == "patient 7: do not lose\n"
+        assert not (folder / "out").exists()
+        comm.Barrier()

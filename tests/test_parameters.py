@@ -84,18 +84,28 @@ def test_a_plain_law_is_parametrised_by_its_own_constants():
 
 def test_a_region_covering_the_body_is_the_global_value():
     """A half-space that holds the whole block acts as the global parameter; one that holds none
-    leaves the law alone."""
+    is refused, since its parameter would act nowhere."""
     everywhere = HalfSpace((1.0, 0.0, 0.0), 10.0, 0.01)
     nowhere = HalfSpace((1.0, 0.0, 0.0), -10.0, 0.01)
     reference = volume_at(block([STIFFNESS]), E=6.0)
     inside = volume_at(
         block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=everywhere)]), soft=6.0
     )
-    outside = volume_at(
-        block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=nowhere)]), soft=6.0
-    )
     assert inside == pytest.approx(reference, rel=1e-10)
-    assert outside == pytest.approx(volume_at(block([STIFFNESS])), rel=1e-10)
+    with pytest.raises(ParameterError, match="holds no cell of the mesh, so they would act nowhere"):
+        block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=nowhere)])
+
+
+def test_a_global_and_a_regional_parameter_share_a_target_by_design():
+    """The global parameter is the value outside the region: the block's volume moves with it,
+    and a regional 'outside', which it would override, is refused."""
+    half = HalfSpace((1.0, 0.0, 0.0), 0.5, 0.01)
+    model = block([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=half)])
+    assert volume_at(model, soft=4.0, E=6.0) != pytest.approx(volume_at(model, soft=4.0, E=12.0), rel=1e-6)
+    with pytest.raises(ParameterError, match="its value outside the region would be ignored: parameter 'E'"):
+        Parameters([STIFFNESS, Parameter("soft", "material.E", 10.0, (1.0, 20.0), region=half, outside=8.0)])
+    with pytest.raises(ParameterError, match="parameters 'E' and 'F' all set material.E"):
+        Parameters([STIFFNESS, Parameter("F", "material.E", 10.0, (1.0, 20.0))])
 
 
 def test_a_moving_interface_changes_the_answer_smoothly():

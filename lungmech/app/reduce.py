@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import os
 import shutil
 import tempfile
 import time
@@ -40,7 +41,7 @@ from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
 from lungmech.mesh.files import companions
 from lungmech.parallel import on_root
-from lungmech.parallel.destination import output_file
+from lungmech.parallel.destination import hold_signals_until_swap, output_file
 from lungmech.parallel.layout import layout
 from lungmech.registration.image import companions as image_companions
 from lungmech.rom import ecsw, indicator, store
@@ -219,7 +220,6 @@ def _build(
     extra = {
         "scene": str(Path(scene.source).resolve()) if scene.source else None,
         "title": scene.title,
-        "physics": physics(scene),
         "imaged_fingerprint": where.fingerprint,
         "loads": len(scene.loads),
         "scales": _plain(scales),
@@ -232,6 +232,7 @@ def _build(
         "greedy": _greedy_summary(trained, tolerance, model.parameters),
     }
     arrays |= {f"file:{name}": data for name, data in _file_bytes(scene, comm).items()}
+    hold_signals_until_swap()  # the model file is a collective write
     store.write(path, model, basis, extra=extra, arrays=arrays)
     return {
         "kind": basis.kind,
@@ -267,14 +268,16 @@ def _greedy_summary(trained: Greedy | None, tolerance: float | None, parameters:
     }
 
 
-def reduced_order(path: str | Path):
-    """The ``prepare`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``."""
-    return partial(_prepare, Path(path))
+def reduced_order(path: str | Path, inside: bool = False):
+    """The ``prepare`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``;
+    ``inside``: the run's scene is the one the file holds (:func:`embedded_scene`), else it is
+    checked to model the same physics."""
+    return partial(_prepare, Path(path), inside)
 
 
-def _prepare(path: Path, model, scene: Scene, folder: Path) -> Prepared:
+def _prepare(path: Path, inside: bool, model, scene: Scene, folder: Path) -> Prepared:
     values = dict(model.parameter_values)  # the scene's, with --set
-    reduced, placed = _reduced(path, model, scene)
+    reduced, placed = _reduced(path, model, scene, inside)
     # The stored start is an equilibrium at the default parameters: move it to the asked ones.
     model.set_parameters(model.parameters.defaults)
     model.state.x.array[:] = reduced.start
@@ -289,15 +292,19 @@ def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
     Collective."""
     with embedded_scene(path, comm) as scene:
         model = build_model(scene, comm)
-    return _reduced(Path(path), model, scene)[0]
+    return _reduced(Path(path), model, scene, inside=True)[0]
 
 
-def _reduced(path: Path, model, scene: Scene) -> tuple[ReducedModel, bool]:
+def _reduced(path: Path, model, scene: Scene, inside: bool) -> tuple[ReducedModel, bool]:
     """The reduced model of ``path`` on ``model`` (the scene's, just built), and whether it moved
-    the mesh to the unloaded reference stored with it."""
-    metadata, arrays = store.read_on_root(path, model.geometry.mesh.comm)  # arrays on rank 0 only
+    the mesh to the unloaded reference stored with it. ``inside``: ``scene`` is the file's own;
+    otherwise it must model the physics of the file's scene."""
+    comm = model.geometry.mesh.comm
+    metadata, arrays = store.read_on_root(path, comm)  # arrays on rank 0 only
     extra = metadata["extra"]
-    check_physics(path, extra, scene)
+    if not inside:
+        with embedded_scene(path, comm, content=(metadata, arrays)) as built:
+            check_physics(path, physics(built), scene)
     where = layout(model.space)  # of the imaged mesh; its dof order survives moving the nodes
     if where.fingerprint != extra["imaged_fingerprint"]:
         raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
@@ -329,12 +336,10 @@ def _sample(model, hyper: dict | None, arrays: dict) -> ecsw.Sample | None:
     return ecsw.Sample.place(mesh, data, hyper["tolerance"])
 
 
-def check_physics(path: Path, extra: dict, scene: Scene) -> None:
-    """Refuse a reduced model made for other physics than ``scene``'s (law, parameters, loads,
-    boundaries, formulation, start), saying what differs."""
-    if "physics" not in extra:
-        raise ModelFileError(f"{path} predates lungmech's physics check; rebuild it with 'lungmech rom build'")
-    if lines := differences(extra["physics"], physics(scene)):
+def check_physics(path: Path, built: dict, scene: Scene) -> None:
+    """Refuse a reduced model whose scene models other physics (``built``, its :func:`physics`)
+    than ``scene`` (law, parameters, loads, boundaries, formulation, start), saying what differs."""
+    if lines := differences(built, physics(scene)):
         shown = "; ".join(lines[:4]) + (f"; and {len(lines) - 4} more" if len(lines) > 4 else "")
         raise ModelFileError(
             f"{path} was built for other physics than this scene's: {shown}. Build a reduced model "
@@ -389,35 +394,50 @@ def _file_bytes(scene: Scene, comm: MPI.Comm) -> dict[str, np.ndarray | None]:
 
 
 @contextlib.contextmanager
-def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterator[Scene]:
-    """The scene a model file holds, with its files unpacked into a temporary folder for the
-    duration of the block (rank 0 unpacks; the ranks must share that folder's file system).
-    Collective."""
-    metadata, arrays = store.read_on_root(path, comm)
+def embedded_scene(
+    path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, content: tuple[dict, dict] | None = None
+) -> Iterator[Scene]:
+    """The scene a model file holds, with its files unpacked into a private temporary folder for
+    the duration of the block (rank 0 unpacks; the ranks must share that folder's file system).
+    Collective. ``content``: what :func:`lungmech.rom.store.read_on_root` gave, when the caller
+    has read the file already.
+
+    The file is data: each embedded file's name must be one lungmech writes (:func:`embedded_name`),
+    and it is created new inside the folder, never followed through a link; anything else refuses
+    the model file before a byte is written.
+    """
+    metadata, arrays = content if content is not None else store.read_on_root(path, comm)
     extra = metadata["extra"]
     if "scene_table" not in extra:
         raise ModelFileError(f"{path} holds no scene (built before lungmech 0.2); name the scene after the model file")
-    folder = comm.bcast(tempfile.mkdtemp(prefix="lungmech-model-") if comm.rank == 0 else None)
+    files = extra.get("files")
+    if not isinstance(files, dict) or not isinstance(extra["scene_table"], dict):
+        raise ModelFileError(f"'{path}' is damaged: its scene or its list of files is not a table")
+    for name in files:
+        embedded_name(path, name, arrays)
+    folder = comm.bcast(tempfile.mkdtemp(prefix="lungmech-model-") if comm.rank == 0 else None)  # mode 0700
     try:
 
         def unpack() -> None:
-            for name in extra["files"]:
-                target = Path(folder) / name
+            for name in files:
+                target = Path(folder, *name.split("/"))
                 target.parent.mkdir(parents=True, exist_ok=True)
-                target.write_bytes(arrays[f"file:{name}"].tobytes())
+                # O_EXCL | O_NOFOLLOW: a new file, not one a link points to (none can be there).
+                flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                with os.fdopen(os.open(target, flags, 0o600), "wb") as stream:
+                    stream.write(arrays[f"file:{name}"].tobytes())
 
         on_root(comm, unpack)
         table = copy.deepcopy(extra["scene_table"])
-        for name, source in extra["files"].items():
-            unpacked = str(Path(folder) / name)
-            if name.startswith("mesh/") and Path(source).name == Path(table["geometry"].get("file", "")).name:
+        for name, source in files.items():
+            unpacked = str(Path(folder, *name.split("/")))
+            if name.startswith("mesh/") and Path(str(source)).name == Path(table["geometry"].get("file", "")).name:
                 table["geometry"]["file"] = unpacked
-            if name.startswith("data/"):  # data/<key>/<file>: a file of cell values (data/<file>: Φs0, before 0.3)
-                parts = name.split("/")
-                table["formulation"][parts[1] if len(parts) > 2 else "phi_s0"] = unpacked
+            if name.startswith("data/"):  # data/<key>/<file>: a file of cell values (Φs0, κ, …)
+                table["formulation"][name.split("/")[1]] = unpacked
             for entry in table.get("parameters", {}).values():
                 region = entry.get("region")
-                if isinstance(region, dict) and Path(str(region.get("image", ""))).name == Path(source).name:
+                if isinstance(region, dict) and Path(str(region.get("image", ""))).name == Path(str(source)).name:
                     region["image"] = unpacked
         yield scenes.parse(table, folder=Path(folder))
     except BaseException:
@@ -429,3 +449,21 @@ def embedded_scene(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> Iterato
     comm.barrier()  # every rank is done with the files
     if comm.rank == 0:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+_PLACES = {"mesh": 2, "regions": 2, "data": 3}  # where lungmech puts a scene's files, and the parts of their names
+
+
+def embedded_name(path: str | Path, name: object, arrays: dict) -> None:
+    """Refuse, in one line, a model file whose embedded file ``name`` is not one lungmech writes —
+    ``mesh/<file>``, ``regions/<file>`` or ``data/<key>/<file>``, with plain names: relative, no ``..``, no empty part, no backslash or NUL — or has no bytes."""
+    parts = name.split("/") if isinstance(name, str) else []
+    plain = all(part not in ("", ".", "..") and "\\" not in part and "\0" not in part for part in parts)
+    expected = _PLACES.get(parts[0]) if parts else None
+    if not (plain and len(parts) == expected and (expected == 2 or parts[1].isidentifier())):
+        raise ModelFileError(
+            f"'{path}' is refused: it names an embedded file {name!r}, which is not a name lungmech writes "
+            "(mesh/<file>, regions/<file>, data/<key>/<file>); a model file never writes outside its own folder"
+        )
+    if f"file:{name}" not in arrays:
+        raise ModelFileError(f"'{path}' is damaged: it lists the embedded file '{name}' but holds no bytes for it")

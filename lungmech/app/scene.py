@@ -218,8 +218,9 @@ def physics(scene: Scene) -> dict[str, Any]:
     """What a scene models, as plain values: its mesh's boundary names, law, formulation,
     constraints, loads, start time and [inverse]. Two scenes with the same physics may differ
     in title, outputs, stepping (but its start) and solver settings. Numbers are floats, and a
-    file of cell values is named by its SHA-256 (a mesh is checked by its own fingerprint)."""
-    table = scene.table
+    file (of cell values, or a region's label image) is named by its SHA-256, not its path (a
+    mesh is checked by its own fingerprint)."""
+    table = copy.deepcopy(scene.table)
     described = {
         key: table[key]
         for key in ("material", "formulation", "constraints", "loads", "inverse", "parameters")
@@ -229,6 +230,9 @@ def physics(scene: Scene) -> dict[str, Any]:
     described["stepping.start"] = scene.stepping.start
     if files := cell_data(scene.formulation):
         described["formulation"] = described["formulation"] | {key: _sha256(path) for key, path in files.items()}
+    for p in scene.parameters:
+        if isinstance(marker := getattr(p.region, "marker", None), ImageLabel):
+            described["parameters"][p.name]["region"]["image"] = _sha256(Path(marker.path))
     return json.loads(json.dumps(described, default=str), parse_int=float)
 
 
@@ -406,7 +410,8 @@ def _typed(value, kind: type, where: str):
 def _no_unknown_keys(table: dict[str, Any], allowed, where: str) -> None:
     for key in table:
         if key not in allowed:
-            raise SceneError(f"{where}.{key}: unknown key (expected one of: {', '.join(allowed)})")
+            expected = f"expected one of: {', '.join(allowed)}" if allowed else f"[{where}] takes no keys"
+            raise SceneError(f"{where}.{key}: unknown key ({expected})")
 
 
 def _check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=()) -> None:
@@ -568,6 +573,14 @@ def _value_at(table: dict[str, Any], target: str, where: str) -> float:
         value = _lookup(table.get(kind, {}), key)
         if isinstance(value, int | float) and not isinstance(value, bool):
             return value
+        if value is None:  # a misspelt key more often than a missing default
+            section = table.get(kind, {})
+            known = ", ".join(k for k, v in section.items() if isinstance(v, int | float | list)) or "none"
+            raise SceneError(f"{where}.target: the scene has no {target} ([{kind}] keys: {known})")
+    if kind == "loads" and attribute == "value":
+        named = [e.get("name") for e in table.get("loads", []) if isinstance(e, dict) and e.get("name")]
+        if name not in named:
+            raise SceneError(f"{where}.target: no load named '{name}' (named loads: {', '.join(named) or 'none'})")
     raise SceneError(f"{where}: give a default (the scene has no number at {target})")
 
 

@@ -21,7 +21,7 @@ from dolfinx import fem
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import is_pressure
 from lungmech.fem.materials import Material, numbers_of, with_values
-from lungmech.fem.parameters import LOAD_ATTRIBUTES, Parameter, Parameters
+from lungmech.fem.parameters import LOAD_ATTRIBUTES, HalfSpace, Parameter, Parameters
 
 LawAt = Callable[[Mapping[str, float]], Material]
 Assign = Callable[[Mapping[str, float]], None]
@@ -63,8 +63,13 @@ def material(
     region_constants = []
     for region, members in regions.items():
         moved = _affected(law_at, parameters, members, finite)
+        names = ", ".join(f"'{p.name}'" for p in members)
         if not moved:
-            continue
+            raise ParameterError(
+                f"parameters {names} change no constant of the law on their region: they act on nothing"
+            )
+        if isinstance(region, HalfSpace):
+            _holds_cells(region, geometry, parameters, names)
         chi = region.indicator(geometry, interfaces)
         inside = {path: fem.Constant(mesh, finite[path]) for path in moved}
         for path, c in inside.items():
@@ -79,6 +84,24 @@ def material(
 
     assign(values)
     return with_values(base, fields), assign
+
+
+def _holds_cells(region: HalfSpace, geometry, parameters: Parameters, names: str) -> None:
+    """Refuse a half-space that holds no cell at any position it can take (its own, or the ends
+    and default of the interface parameter that moves it): its parameters would act nowhere.
+    (A cell region without cells is refused by its indicator.)"""
+    if isinstance(region.position, str):
+        mover = parameters.named(region.position)
+        positions = (mover.range[0], mover.default, mover.range[1])
+    else:
+        positions = (region.position,)
+    if not any(region.cells_behind(geometry, s) for s in positions):
+        n = ", ".join(f"{c:g}" for c in region.normal)
+        at = " to ".join(dict.fromkeys(f"{s:g}" for s in (min(positions), max(positions))))
+        raise ParameterError(
+            f"parameters {names}: their half-space region (n·x < s, n = ({n}), s = {at} m) holds no cell of the "
+            "mesh, so they would act nowhere: check its normal and position against the mesh's coordinates"
+        )
 
 
 def outside_keys(parameters: Parameters, values: Mapping[str, float]) -> dict[str, float]:

@@ -109,6 +109,16 @@ class HalfSpace:
     def describe(self) -> dict:
         return {"normal": list(self.normal), "position": self.position, "width": self.width}
 
+    def cells_behind(self, geometry, position: float) -> int:
+        """Collective: the number of cells whose midpoint lies behind the plane at ``position``
+        (n·x < s, where χ > ½)."""
+        mesh = geometry.mesh
+        owned = mesh.topology.index_map(mesh.topology.dim).size_local
+        midpoints = mesh.geometry.x[mesh.geometry.dofmaps[0][:owned]].mean(axis=1)
+        n = np.zeros(3)
+        n[: len(self.normal)] = self.normal
+        return mesh.comm.allreduce(int(np.count_nonzero(midpoints @ n < position)))
+
     def indicator(self, geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
         x = ufl.SpatialCoordinate(geometry.mesh)
         n = ufl.as_vector(self.normal)
@@ -212,6 +222,7 @@ class Parameters(Sequence[Parameter]):
             repeated = sorted({n for n in names if names.count(n) > 1})
             raise ParameterError(f"parameter names must differ (repeated: {', '.join(repeated)})")
         self._by_name = {p.name: p for p in self._items}
+        moved = set()
         for p in self._items:
             position = getattr(p.region, "position", None)
             if isinstance(position, str):
@@ -221,6 +232,15 @@ class Parameters(Sequence[Parameter]):
                         f"parameter '{p.name}': its region's position names '{position}', which is not an "
                         "'interface' parameter of this model"
                     )
+                moved.add(position)
+        for p in self._items:
+            if p.kind == "interface" and p.name not in moved:
+                raise ParameterError(
+                    f"parameter '{p.name}' moves an interface that no region's position names: it would act on "
+                    f"nothing (give a region position = '{p.name}', or leave it out)"
+                )
+        for target in dict.fromkeys(p.target for p in self._items if p.kind != "interface"):
+            _one_owner([p for p in self._items if p.target == target])
 
     def __getitem__(self, index):
         return self._items[index]
@@ -291,6 +311,37 @@ class Parameters(Sequence[Parameter]):
 
     def describe(self) -> list[dict]:
         return [p.describe() for p in self._items]
+
+
+def _one_owner(sharing: list[Parameter]) -> None:
+    """Refuse parameters on one target that would not all act: two on it everywhere (the last
+    would win), two on one region, or values outside the regions that disagree.
+
+    By design a material target may have one global parameter and regional ones (a fibrotic
+    zone's stiffness beside the lung's): the global one is then the value outside the regions,
+    and a regional ``outside`` would be ignored, so it is refused. Without a global one, every
+    regional parameter's outside value (its ``outside``, else its default) must be the same."""
+    everywhere = [p for p in sharing if p.region is None]
+    regional = [p for p in sharing if p.region is not None]
+    target = sharing[0].target
+    if len(everywhere) > 1:  # (only material parameters have regions)
+        names = " and ".join(f"'{p.name}'" for p in everywhere)
+        raise ParameterError(f"parameters {names} all set {target}: only the last would act; keep one")
+    for i, p in enumerate(regional):
+        if same := [q.name for q in regional[:i] if q.region == p.region]:
+            raise ParameterError(f"parameters '{same[0]}' and '{p.name}' set {target} on the same region; keep one")
+    if everywhere:
+        if given := [p.name for p in regional if p.outside is not None]:
+            raise ParameterError(
+                f"parameter '{given[0]}': its value outside the region would be ignored: parameter "
+                f"'{everywhere[0].name}' sets {target} there (leave out 'outside')"
+            )
+    elif len({p.outside if p.outside is not None else p.default for p in regional}) > 1:
+        names = ", ".join(f"'{p.name}'" for p in regional)
+        raise ParameterError(
+            f"parameters {names} set {target} on regions, with different values outside them: give them "
+            "the same 'outside', or a parameter of their own for the value outside"
+        )
 
 
 def _unit(p: Parameter, value: float) -> float:

@@ -74,14 +74,7 @@ class Gravity(Named):
             object.__setattr__(self, "acceleration", checks.vector("acceleration", self.acceleration, (2, 3)))
         except ParameterError:
             raise ParameterError(f"gravity: acceleration needs 2 or 3 components (got {self.acceleration!r})") from None
-        balanced_on = (self.balanced_on,) if isinstance(self.balanced_on, str) else self.balanced_on
-        if (
-            isinstance(balanced_on, bytes)
-            or not isinstance(balanced_on, Sequence)
-            or not all(isinstance(b, str) and b for b in balanced_on)
-        ):
-            raise ParameterError(f"gravity: balanced_on must be a list of boundary names (got {self.balanced_on!r})")
-        object.__setattr__(self, "balanced_on", tuple(balanced_on))
+        object.__setattr__(self, "balanced_on", checks.names("gravity: balanced_on", self.balanced_on, empty=True))
         if not isinstance(self.ramp, Ramp) or not isinstance(self.name, str):
             raise ParameterError("gravity: ramp must be a Ramp and name a string")
 

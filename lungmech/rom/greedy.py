@@ -3,7 +3,8 @@
 Start from the full load path at the default parameters. Each round makes the POD basis of
 every snapshot so far, solves that reduced model at every candidate point of the box (cheap) and
 measures its error indicator η (:mod:`lungmech.rom.indicator`). If the largest η meets the
-tolerance, the basis is done. Otherwise the full model solves the load path at that candidate:
+tolerance — over the candidates and, for the last model, its own training points too — the
+basis is done. Otherwise the full model solves the load path at that candidate:
 its states become snapshots, and the reduced model's true error there (energy norm, as
 :func:`lungmech.rom.reductor.errors`) is measured on the way, so every round reports the
 indicator next to the error it estimates, and the largest ratio error / indicator of the last
@@ -156,8 +157,14 @@ def greedy(
             seconds["judging"] += time.perf_counter() - tic
             worst = int(np.argmax([eta for eta, _ in judged])) if judged else None
             if worst is None or judged[worst][0] * _safety(rounds, tolerance) <= tolerance or len(training) >= most:
-                eta = judged[worst][0] if worst is not None else 0.0
-                rounds.append(Round(basis.size, remaining[worst] if worst is not None else {}, eta, None))
+                # The last model is judged at its training points too: its basis is truncated
+                # and its sample approximate, so it is not exact there, and with no candidate
+                # left they are all the indicator has to say.
+                judged += [_judge(reduced, indicator, point) for point in training]
+                points = [*remaining, *training]
+                worst = int(np.argmax([eta for eta, _ in judged]))
+                eta = judged[worst][0]
+                rounds.append(Round(basis.size, points[worst], eta, None))
                 log.info(
                     f"greedy: {basis.size} vectors, largest indicator {eta:.2e} × safety {_safety(rounds, tolerance):.2f} "
                     f"(tolerance {tolerance:.0e})"

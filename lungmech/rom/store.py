@@ -1,5 +1,12 @@
 """Reduced models on disk: plain arrays and JSON metadata in one ``.npz`` (nothing pickled).
 
+A model file is data: it is read with ``allow_pickle=False``, and its SHA-256 digest covers every
+array (names, dtypes, shapes, bytes) and every metadata field, so that a file changed after
+lungmech wrote it — damaged, or edited — is refused on reading. The digest is a check against
+accidents and edits, not a signature: whoever edits a file can also recompute it, so a model
+file is trusted no further than its source, and what it holds is checked as data (its embedded
+file names, :func:`lungmech.app.reduce.embedded_scene`; its basis, on loading).
+
 Vectors are written in the canonical dof order of :mod:`lungmech.parallel.layout`, so a basis built on
 any number of ranks loads on any other; the mesh fingerprint is checked on loading. Rank 0 alone
 holds a whole vector: it gathers the rows to write them, and reads the file and sends every rank
@@ -22,7 +29,7 @@ from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis
 
-FORMAT = "lungmech-rom/2"  # 2: canonical order from input cells; the scene and its files inside
+FORMAT = "lungmech-rom/3"  # 2: canonical order, the scene and its files inside; 3: the digest covers the metadata
 
 
 def save(
@@ -60,8 +67,8 @@ def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arra
             "dofs": where.size,
             "source": basis.source,
             "extra": extra or {},
-            "content_sha256": _content(content),
         }
+        metadata["sha256"] = digest(metadata, content)
         np.savez(path, metadata=json.dumps(metadata), **content)
 
     on_root(where.comm, written)
@@ -70,15 +77,18 @@ def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arra
 def is_model(path: str | Path) -> bool:
     """Whether ``path`` is a lungmech reduced-model file (any mesh), unchanged since it was written."""
     try:
-        metadata, arrays = read(path)
+        read(path)
     except ModelFileError:
         return False
-    return metadata.get("content_sha256") == _content(arrays)
+    return True
 
 
-def _content(arrays: dict[str, np.ndarray]) -> str:
-    """SHA-256 of named arrays: names, dtypes, shapes and bytes, in name order."""
+def digest(metadata: dict, arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 of a model file's content: its metadata but the digest itself (as canonical JSON),
+    then its named arrays (names, dtypes, shapes and bytes, in name order)."""
     sha = hashlib.sha256()
+    fields = {key: value for key, value in metadata.items() if key != "sha256"}
+    sha.update(json.dumps(fields, sort_keys=True, separators=(",", ":")).encode())
     for name in sorted(arrays):
         array = np.ascontiguousarray(arrays[name])
         sha.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
@@ -97,9 +107,14 @@ class _Older(Exception):
     """A reduced-model file of another format version."""
 
 
+class _Changed(Exception):
+    """A reduced-model file whose content is not what lungmech wrote (its digest differs)."""
+
+
 def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndarray | None]]:
-    """The metadata and arrays of a reduced-model file, checked to be one (any mesh). With
-    ``arrays=False`` only the metadata is read (the arrays' names map to None)."""
+    """The metadata and arrays of a reduced-model file, checked to be one (any mesh) and unchanged
+    since lungmech wrote it (its digest). With ``arrays=False`` the arrays are read for the
+    digest only, and their names map to None."""
     wanted = arrays
     path = Path(path)
     if path.is_dir():
@@ -118,7 +133,11 @@ def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndar
                 raise ValueError(
                     f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
                 )
-            arrays = {name: data[name] if wanted else None for name in data.files if name != "metadata"}
+            arrays = {name: data[name] for name in data.files if name != "metadata"}
+        if metadata.get("sha256") != digest(metadata, arrays):
+            raise _Changed()
+        if not wanted:
+            arrays = dict.fromkeys(arrays)
         for key in ("vectors", "values"):
             if key not in arrays:
                 raise KeyError(f"no array '{key}'")
@@ -129,6 +148,11 @@ def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndar
         raise ModelFileError(
             f"'{path}' was written by another lungmech version (format {older}, this one reads {FORMAT}); "
             "rebuild it with 'lungmech rom build'"
+        ) from None
+    except _Changed:
+        raise ModelFileError(
+            f"'{path}' was changed after lungmech wrote it (its SHA-256 digest does not match its content): "
+            "rebuild it with 'lungmech rom build', or use an unchanged copy"
         ) from None
     except Exception as error:  # zipfile, zlib, json and numpy raise many kinds on a damaged file
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
