@@ -44,9 +44,15 @@ class Interrupted(KeyboardInterrupt):
     turned by petsc4py into a PETSc error; ``pending`` remembers it, and solvers call
     :meth:`raise_pending` after PETSc returns, so an interrupt is never mistaken for a failed
     Newton solve.
+
+    While ``deferring`` (:func:`lungmech.parallel.collective.deferred`: collective writes, the
+    swap of a finished result), a signal is only remembered in ``pending``; the ranks then
+    agree at the block's end and raise together, so none is left waiting in a collective call
+    and no file is left half-written.
     """
 
     pending: int | None = None
+    deferring: int = 0  # nested deferred blocks
 
     def __init__(self, signum: int):
         import signal

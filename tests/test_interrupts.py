@@ -143,3 +143,54 @@ def test_mpi_a_failure_ends_every_rank_with_one_line(tmp_path, args, message):
     assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "notes.txt", "quick.toml"]
     assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+PAUSE = "LUNGMECH_TEST_PAUSE_BEFORE_SWAP"
+
+
+def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[subprocess.CompletedProcess, float]:
+    """Run the quick scene into out/, paused between the solve and the swap; send ``sig`` there
+    (to mpiexec, which forwards it to every rank). The result, and the seconds it took to end."""
+    process = subprocess.Popen(
+        lungmech("run", "quick.toml", "-o", "out", "-q", ranks=ranks, cwd=workspace),
+        cwd=workspace,
+        env={**ENV, PAUSE: "1.5"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    said = []
+    for line in process.stdout:  # the hook says when it pauses
+        said.append(line)
+        if "test pause before the swap" in line:
+            break
+    else:
+        process.wait(timeout=60)
+        raise AssertionError(f"the run never paused before its swap: {''.join(said)} {process.stderr.read()}")
+    sent = time.perf_counter()
+    process.send_signal(sig)
+    try:
+        out, err = process.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise AssertionError("the interrupted run did not stop") from None
+    return subprocess.CompletedProcess(process.args, process.returncode, "".join(said) + out, err), (
+        time.perf_counter() - sent
+    )
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks):
+    """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
+    no staging folder left (serial and on two ranks; the launcher's own lines aside)."""
+    before = _contents(earlier / "out")
+    expected = f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
+    for attempt in range(10):
+        result, seconds = _interrupt_before_the_swap(earlier, sig, ranks)
+        ours = [line for line in result.stderr.splitlines() if line.startswith("lungmech")]
+        assert result.returncode == code and ours == [expected], (attempt, result.returncode, result.stderr)
+        assert "Traceback" not in result.stderr and "SEGV" not in result.stderr, result.stderr
+        assert seconds < 10, (attempt, seconds)
+        assert _contents(earlier / "out") == before
+        assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"], attempt

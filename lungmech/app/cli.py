@@ -106,7 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     with _interrupts():
         try:
             args = parser().parse_args(argv)
-            return _dispatch(args)
+            # Values are judged by lungmech's own finite checks, which name them: NumPy's
+            # overflow warnings on the way would only add lines before that one.
+            with _quiet_arithmetic():
+                return _dispatch(args)
         except LungmechError as error:
             return _fail(2, f"lungmech: error: {error}")
         except Interrupted as interrupt:
@@ -119,21 +122,43 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(
                 130, "lungmech: interrupted; nothing was written and earlier results are unchanged", interrupted=True
             )
+        except OSError as error:  # the machine's, not lungmech's: a file or folder it cannot use (a JIT cache, say)
+            if Interrupted.pending is not None or os.environ.get("LUNGMECH_DEBUG") or not error.strerror:
+                return _main_failure(error)
+            where = f"'{error.filename}'" if error.filename else "a file or folder"
+            return _fail(2, f"lungmech: error: cannot use {where}: {error.strerror}")
         except Exception as error:  # a bug: say so in one line, with the traceback on request
-            if Interrupted.pending is not None:  # a signal inside a PETSc callback, surfacing as its error
-                return _fail(
-                    128 + Interrupted.pending,
-                    f"lungmech: interrupted by {Interrupted(Interrupted.pending).name}; nothing was written and "
-                    "earlier results are unchanged",
-                    interrupted=True,
-                )
-            if os.environ.get("LUNGMECH_DEBUG"):
-                raise
-            return _fail(
-                3,
-                f"lungmech: internal error ({type(error).__name__}: {error}); please report it "
-                "(LUNGMECH_DEBUG=1 shows the traceback)",
-            )
+            return _main_failure(error)
+
+
+def _main_failure(error: Exception) -> int:
+    """Exit 3 for an internal error (its traceback with LUNGMECH_DEBUG=1), or 130/143 for a
+    signal that surfaced as one (inside a PETSc callback)."""
+    if Interrupted.pending is not None:
+        return _fail(
+            128 + Interrupted.pending,
+            f"lungmech: interrupted by {Interrupted(Interrupted.pending).name}; nothing was written and "
+            "earlier results are unchanged",
+            interrupted=True,
+        )
+    if os.environ.get("LUNGMECH_DEBUG"):
+        raise error
+    return _fail(
+        3,
+        f"lungmech: internal error ({type(error).__name__}: {error}); please report it "
+        "(LUNGMECH_DEBUG=1 shows the traceback)",
+    )
+
+
+@contextlib.contextmanager
+def _quiet_arithmetic() -> Iterator[None]:
+    import warnings
+
+    import numpy as np
+
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=RuntimeWarning, message=".*(overflow|invalid value|divide by zero)")
+        yield
 
 
 def _dispatch(args: argparse.Namespace) -> int:
@@ -166,8 +191,10 @@ def _fail(code: int, message: str, interrupted: bool = False) -> int:
 
 @contextlib.contextmanager
 def _interrupts() -> Iterator[None]:
-    """SIGINT and SIGTERM raise :class:`Interrupted` (so staging folders are removed); a second
-    one ends the process at once."""
+    """SIGINT and SIGTERM raise :class:`Interrupted` (so staging folders are removed), or, in a
+    deferred block (collective writes, :func:`lungmech.parallel.deferred`), are remembered until
+    its end; a second one ends the process at once. Libraries that reset the handlers when they
+    start (gmsh) are followed by :func:`lungmech.mesh.builders.gmsh_session`, which puts them back."""
 
     from petsc4py import PETSc  # noqa: F401  (PETSc installs its own handlers when it starts: ours come after)
 
@@ -175,6 +202,8 @@ def _interrupts() -> Iterator[None]:
         for again in (signal.SIGINT, signal.SIGTERM):
             signal.signal(again, lambda s, f: os._exit(128 + s))
         Interrupted.pending = signum
+        if Interrupted.deferring:
+            return
         raise Interrupted(signum)
 
     Interrupted.pending = None
@@ -307,11 +336,12 @@ def _rom_build(args) -> int:
 def _greedy_report(greedy: dict) -> str:
     """The greedy training in a few lines: each full solve's indicator next to the true error."""
     last = greedy["rounds"][-1]
-    verdict = "met" if greedy["met"] else "NOT met (the candidates or full solves ran out)"
+    verdict = "met" if greedy["met"] else "NOT met (no candidate point or full solve was left to improve it)"
+    largest = f"{last['indicator']:.2e}" if last["indicator"] is not None else "inf (a reduced solve failed)"
     lines = [
         f"lungmech: greedy training: tolerance {greedy['tolerance']:g} {verdict} with {greedy['full_solves']} full "
-        f"solves; largest indicator over the candidates {last['indicator']:.2e} × safety {greedy['safety']:.2f} "
-        "(relative energy-norm errors [1])"
+        f"solves; largest indicator over the candidates and the training points {largest} × safety "
+        f"{greedy['safety']:.2f}, at {last['where']} (relative energy-norm errors [1])"
     ]
     for r in greedy["rounds"][:-1]:
         shown = f"{r['indicator']:.2e}" if r["indicator"] is not None else "failed solve"
@@ -370,7 +400,7 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         from lungmech.app.reduce import reduced_order, trained_range
         from lungmech.rom import store
 
-        prepare, inputs = reduced_order(args.model), [args.model]
+        prepare, inputs = reduced_order(args.model, inside=args.scene is None), [args.model]
         note = trained_range(store.read_on_root(args.model, comm, arrays=False)[0]["extra"], scale)
     default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
     output = args.output if args.output is not None else RESULTS / default

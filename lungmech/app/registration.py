@@ -21,7 +21,7 @@ from lungmech.app.plot import drawn
 from lungmech.errors import ImageError, RegistrationError
 from lungmech.mesh import nodes
 from lungmech.parallel import on_root
-from lungmech.parallel.destination import output_folder
+from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.registration import image as images
 from lungmech.registration import metrics, pictures
 from lungmech.registration.image import Image
@@ -53,6 +53,7 @@ def register_image(
         check_target(geometry, image, "implausible" in accept)
         start = time.perf_counter()
         result = register(geometry.mesh, image, options)
+        hold_signals_until_swap()  # the outputs are collective writes
         space, where = nodes.displacement_space(geometry.mesh)
         reference_nodes = nodes.positions(space, where)  # canonical, on rank 0 (it writes mapping.npz)
         initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)

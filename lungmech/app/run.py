@@ -43,8 +43,8 @@ from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.solver import NewtonSolver, Solver, StepReport, solve
 from lungmech.lung.inverse import InverseReport, unloaded_reference
 from lungmech.mesh import write as write_geometry
-from lungmech.parallel import on_root
-from lungmech.parallel.destination import output_folder
+from lungmech.parallel import deferred, on_root
+from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.rom.indicator import relative
 
 Scale = float | Sequence[float]
@@ -296,7 +296,8 @@ def run(
             if row["volume"] > largest["volume"]:
                 largest.update(volume=row["volume"], state=model.state.x.array.copy(), time=model.time)
             if writer is not None:
-                writer.write(model.time)
+                with deferred(comm):  # a collective write: not cut on one rank only
+                    writer.write(model.time)
             shown = (
                 f"  {'P_L' if axis[0].startswith('transpulmonary') else 'p'} {show_pressure(axis[1](loads))}"
                 if axis
@@ -335,6 +336,8 @@ def run(
         )
         timings["solve"] = report.seconds
 
+        # Outputs are collective writes: a signal now waits, and stops every rank together.
+        hold_signals_until_swap()
         mesh = model.geometry.mesh
         summary = {
             "title": scene.title,

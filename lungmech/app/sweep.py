@@ -32,7 +32,7 @@ from lungmech.errors import ParameterError, SceneError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import Solution
 from lungmech.parallel import on_root
-from lungmech.parallel.destination import output_folder
+from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.rom.reduced import ReducedModel
 
 __all__ = ["read_points", "sweep"]
@@ -47,7 +47,7 @@ def read_points(path: str | Path, parameters: Parameters, base: dict[str, float]
     if not path.is_file():
         raise SceneError(f"sweep file not found: {path}" if not path.is_dir() else f"sweep file '{path}' is a folder")
     try:
-        with open(path, newline="", encoding="utf-8") as stream:
+        with open(path, newline="", encoding="utf-8-sig") as stream:
             reader = csv.reader(stream)  # (line number, cells) of the lines that hold something
             rows = [(reader.line_num, row) for row in reader if any(cell.strip() for cell in row)]
     except (UnicodeDecodeError, csv.Error) as error:
@@ -130,6 +130,7 @@ def sweep(
                 "error_indicator_largest": "1 (relative energy-norm error estimate)",
             },
         }
+        hold_signals_until_swap()  # the outputs are collective writes
         write_json(staging / "summary.json", summary, comm)
         on_root(comm, lambda: _write_table(reduced, grid, answers, staging / "sweep.csv"))
         drawn(

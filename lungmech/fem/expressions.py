@@ -4,7 +4,9 @@ A formula is a Python arithmetic expression of the reference coordinates ``x``, 
 and the time ``t`` (s), with numbers, ``+ - * / **``, parentheses, the constants ``pi`` and
 ``e``, and the functions ``sin cos tan exp ln sqrt abs tanh``. It is read with Python's ``ast``
 (nothing is executed) and becomes a UFL expression, evaluated exactly at the quadrature points:
-the time is a ``fem.Constant`` of the model, so stepping recompiles nothing.
+the time is a ``fem.Constant`` of the model, so stepping recompiles nothing. Its constant parts
+are computed when it is read and must be finite real numbers; :func:`evaluate` gives its values
+at points (NumPy), to say where a formula leaves the reals.
 """
 
 from __future__ import annotations
@@ -14,12 +16,16 @@ import math
 import operator
 from collections.abc import Callable
 
+import numpy as np
 import ufl
 from ufl.core.expr import Expr
 
 from lungmech.errors import ParameterError
 
-__all__ = ["check", "to_ufl"]
+__all__ = ["check", "evaluate", "to_ufl"]
+
+LONGEST = 2000  # characters: a formula is a line of a scene, not a program
+MOST_PARTS = 400  # numbers, names and operations: more would nest deeper than UFL and FFCx compile
 
 _FUNCTIONS: dict[str, Callable[[Expr], Expr]] = {
     "sin": ufl.sin,
@@ -30,6 +36,16 @@ _FUNCTIONS: dict[str, Callable[[Expr], Expr]] = {
     "sqrt": ufl.sqrt,
     "abs": abs,
     "tanh": ufl.tanh,
+}
+_NUMPY: dict[str, Callable] = {
+    "sin": np.sin,
+    "cos": np.cos,
+    "tan": np.tan,
+    "exp": np.exp,
+    "ln": np.log,
+    "sqrt": np.sqrt,
+    "abs": np.abs,
+    "tanh": np.tanh,
 }
 _CONSTANTS = {"pi": math.pi, "e": math.e}
 _VARIABLES = ("x", "y", "z", "t")
@@ -65,19 +81,55 @@ def to_ufl(text: str, where: str, position: Expr, time: Expr) -> Expr:
     return _build(text, where, names)
 
 
-def _build(text: str, where: str, names: dict):
+def evaluate(text: str, where: str, points: np.ndarray, time: float) -> np.ndarray:
+    """The formula's values at ``points`` (n × gdim, m) and ``time`` (s); nan or inf where it is
+    not defined (``ln`` of a negative number) or overflows, as IEEE arithmetic gives them."""
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    names = {name: points[:, i] for i, name in enumerate(_VARIABLES[: points.shape[1]])}
+    names["t"] = np.full(len(points), float(time))
+    with np.errstate(all="ignore"):
+        value = _build(text, where, names, _NUMPY)
+        return np.broadcast_to(np.asarray(value, dtype=float), (len(points),))
+
+
+def _finite(value, where: str, text: str):
+    """A constant part of a formula, if it is a finite real number; the rest as it is."""
+    if isinstance(value, complex):
+        raise ParameterError(f"{where}: {text!r}: a part of it is not a real number ({value:g})")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ParameterError(
+            f"{where}: {text!r}: a part of it is {value} (outside the floating-point range): give finite numbers"
+        )
+    return value
+
+
+def _build(text: str, where: str, names: dict, functions: dict[str, Callable] = _FUNCTIONS):
     if not isinstance(text, str):
         raise ParameterError(f"{where}: expected a number or a formula (got {text!r})")
+    if len(text) > LONGEST:
+        raise ParameterError(f"{where}: a formula of {len(text)} characters; at most {LONGEST} are read")
     try:
         tree = ast.parse(text.strip(), mode="eval")
-    except SyntaxError as e:
-        raise ParameterError(f"{where}: {text!r} is not a formula ({e.msg})") from None
+    except (SyntaxError, RecursionError, MemoryError) as e:
+        reason = e.msg if isinstance(e, SyntaxError) else "nested too deeply"
+        raise ParameterError(f"{where}: {text!r} is not a formula ({reason})") from None
+    if (parts := sum(1 for _ in ast.walk(tree))) > MOST_PARTS:
+        raise ParameterError(f"{where}: a formula of {parts} parts; at most {MOST_PARTS} are read")
+    try:
+        return _node(tree, text, where, names, functions)
+    except RecursionError:
+        raise ParameterError(f"{where}: {text[:40]!r}…: the formula is nested too deeply") from None
+
+
+def _node(tree: ast.AST, text: str, where: str, names: dict, functions: dict[str, Callable]):
+    """The value of a parsed formula: its constant parts computed, the rest built from ``names``
+    and ``functions`` (UFL, NumPy or symbols)."""
 
     def build(node: ast.AST):
         if isinstance(node, ast.Expression):
             return build(node.body)
         if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
-            return float(node.value)
+            return _finite(float(node.value), where, text)
         if isinstance(node, ast.Name):
             if node.id in names:
                 return names[node.id]
@@ -87,7 +139,7 @@ def _build(text: str, where: str, names: dict):
             raise ParameterError(f"{where}: unknown name {node.id!r} in {text!r} (known: {known})")
         if isinstance(node, ast.BinOp) and type(node.op) in _BINARY:
             try:
-                return _BINARY[type(node.op)](build(node.left), build(node.right))
+                return _finite(_BINARY[type(node.op)](build(node.left), build(node.right)), where, text)
             except (OverflowError, ZeroDivisionError) as e:  # of the formula's constant part
                 raise ParameterError(f"{where}: {text!r}: {e}") from None
         if isinstance(node, ast.UnaryOp) and type(node.op) in _UNARY:
@@ -101,8 +153,8 @@ def _build(text: str, where: str, names: dict):
         ):
             argument = build(node.args[0])
             if isinstance(argument, float):
-                return _numeric(node.func.id, argument, where, text)
-            return argument if isinstance(argument, _Symbol) else _FUNCTIONS[node.func.id](argument)
+                return _finite(_numeric(node.func.id, argument, where, text), where, text)
+            return argument if isinstance(argument, _Symbol) else functions[node.func.id](argument)
         raise ParameterError(
             f"{where}: {text!r} is not a formula of {', '.join(names)} (numbers, + - * / **, "
             f"{', '.join(_FUNCTIONS)}, pi, e)"

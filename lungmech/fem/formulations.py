@@ -131,7 +131,8 @@ class TaylorHood:
             raise ParameterError("the mixed formulation is Taylor–Hood: it needs degree >= 2")
         if not isinstance(material, VolumetricSplit):
             raise ParameterError(
-                f"law '{material.name}' has no volumetric split, so no mixed formulation; "
+                f"law '{getattr(material, 'label', '') or material.name}' has no volumetric split, so no mixed "
+                "formulation; "
                 "use neo_hookean, stable_neo_hookean or mooney_rivlin"
             )
 

@@ -190,14 +190,19 @@ def diagnose(
     t: float,
     start: tuple[np.ndarray, float],
     failed_min_jacobian: float,
+    tried: float | None = None,
 ) -> str:
     """What stopped the load path at ``t``, for a failure message ("" if nothing physical).
 
     ``model`` holds the last converged state at ``t``; ``start`` is the state and time the path
-    began from; ``failed_min_jacobian`` the smallest J of the failed iterate. ``solver`` gives the
-    compiled forms (``residual_form``, ``jacobian_form``). The model's state and time are
-    restored.
+    began from; ``failed_min_jacobian`` the smallest J of the failed iterate, at the time
+    ``tried``. ``solver`` gives the compiled forms (``residual_form``, ``jacobian_form``). The
+    model's state and time are restored. A load's formula that is not finite then is named first.
     """
+    for load in model.loads:
+        check = getattr(load, "undefined", None)  # loads with formulas say where they leave the reals
+        if check is not None and (undefined := check(model, (t,) if tried is None else (t, tried))):
+            return undefined
     if not model.bcs:
         return (
             "nothing holds the body (no imposed displacement), so it can move rigidly and its tangent is "

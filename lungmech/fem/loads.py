@@ -19,6 +19,7 @@ from typing import ClassVar, NamedTuple
 
 import numpy as np
 import ufl
+from dolfinx import mesh as dmesh
 from mpi4py import MPI
 from ufl.core.expr import Expr
 
@@ -79,15 +80,8 @@ class Named:
             value = checks.vector("value", self.value, (2, 3)) if vector else checks.real("value", self.value)
         object.__setattr__(self, "value", value)
         if hasattr(self, "boundary"):
-            names = (self.boundary,) if isinstance(self.boundary, str) else self.boundary
-            if (
-                isinstance(names, str | bytes)
-                or not isinstance(names, Sequence)
-                or not names
-                or not all(isinstance(n, str) and n for n in names)
-            ):
-                raise ParameterError(f"boundary must be a boundary name or a list of them (got {self.boundary!r})")
-            object.__setattr__(self, "boundary", self.boundary if isinstance(self.boundary, str) else tuple(names))
+            names = checks.names("boundary", self.boundary)
+            object.__setattr__(self, "boundary", self.boundary if isinstance(self.boundary, str) else names)
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -108,6 +102,41 @@ class Named:
         if isinstance(self.value, str):
             return value * component(self.value, None)
         return value * ufl.as_vector([component(item, i) for i, item in enumerate(self.value)])
+
+    def undefined(self, model, times: Sequence[float]) -> str:
+        """Collective: "" if the load's formulas are finite where it acts at ``times`` (s), else
+        which formula is not and where: nan or inf there makes the residual so, and Newton's
+        failure would look like an inverted element. Checked at the midpoints of its cells, or
+        of its boundary's facets (owned), where quadrature samples it."""
+        if not _has_formula(self.value):
+            return ""
+        mesh = model.geometry.mesh
+        dim = mesh.topology.dim - (1 if hasattr(self, "boundary") else 0)
+        if hasattr(self, "boundary"):
+            names = (self.boundary,) if isinstance(self.boundary, str) else self.boundary
+            entities = np.concatenate([model.geometry.facets(n) for n in names])
+            entities = entities[entities < mesh.topology.index_map(dim).size_local]
+        else:
+            entities = np.arange(mesh.topology.index_map(dim).size_local, dtype=np.int32)
+        points = dmesh.compute_midpoints(mesh, dim, entities.astype(np.int32))[:, : mesh.geometry.dim]
+        items = [(None, self.value)] if isinstance(self.value, str) else list(enumerate(self.value))
+        found = ""
+        for t in times:
+            for i, item in items:
+                if not isinstance(item, str) or found:
+                    continue
+                where = "value" + ("" if i is None else f"[{i}]")
+                values = expressions.evaluate(item, f"load '{self.label}': {where}", points, t)
+                bad = np.flatnonzero(~np.isfinite(values))
+                if bad.size:
+                    at = ", ".join(f"{c:.4g}" for c in points[bad[0]])
+                    found = (
+                        f"load '{self.label}': {where} = {item!r} is {values[bad[0]]} at x = ({at}) m, t = {t:.6g} s"
+                    )
+        found = [f for f in mesh.comm.allgather(found) if f]
+        if not found:
+            return ""
+        return f"{found[0]}: a load's formula must be finite wherever and whenever the load acts"
 
 
 def is_pressure(load) -> bool:

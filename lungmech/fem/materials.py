@@ -23,7 +23,7 @@ import dataclasses
 import math
 import numbers
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Protocol, Self, runtime_checkable
 
 import ufl
@@ -153,7 +153,7 @@ def with_values(law: Material, values: Mapping[str, Param]) -> Material:
         for path, v in values.items():
             index, _, rest = path.removeprefix("terms[").partition("].")
             parts[int(index)][rest] = v
-        return Sum(tuple(with_values(term, part) for term, part in zip(law.terms, parts)))
+        return dataclasses.replace(law, terms=tuple(with_values(term, part) for term, part in zip(law.terms, parts)))
     return dataclasses.replace(law, **values) if values else law
 
 
@@ -559,6 +559,7 @@ class Sum:
     """
 
     terms: tuple[Material, ...]
+    label: str = field(default="", compare=False)  # the named law it is, if any (e.g. "lung_skeleton")
     name: ClassVar[str] = "sum"
 
     def __post_init__(self):

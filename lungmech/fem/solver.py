@@ -879,9 +879,9 @@ def solve(
             if final:
                 drive(t)
                 solver.update_model()
-                cause = limits.diagnose(model, solver, drive, t, (began, stepping.start), smallest_J)
+                cause = limits.diagnose(model, solver, drive, t, (began, stepping.start), smallest_J, t + dt)
                 report.seconds = time.perf_counter() - started
-                raise SolverError(_failure_message(t, dt, step, cause))
+                raise SolverError(_failure_message(t, dt, step, cause, getattr(solver, "options", None)))
             dt = max(dt / 2, stepping.min_step)
     report.seconds = time.perf_counter() - started
     return report
@@ -974,12 +974,21 @@ def _log_step(step: StepReport) -> None:
     )
 
 
-def _failure_message(t: float, dt: float, step: StepReport, cause: str) -> str:
+def _failure_message(t: float, dt: float, step: StepReport, cause: str, options: NewtonOptions | None = None) -> str:
     where = f"the load path stopped at t = {t:.6g} s"
     if cause:
         return (
             f"{where}: {cause}. Newton could not take even the minimum step ({dt:.3g} s) beyond it "
             f"({step.reason}). The last converged state, at t = {t:.6g} s, is kept."
+        )
+    linear = {k: v for k, v in (options.petsc_options if options else {}).items() if k.startswith(("ksp_", "pc_"))}
+    if linear:  # the user's linear solver, not the body, is then the first suspect
+        shown = ", ".join(f"{k} = {v!r}" for k, v in linear.items())
+        return (
+            f"{where}: Newton did not converge even at the minimum step ({dt:.3g} s; {step.reason}) with the linear "
+            f"solver that solver.petsc_options set ({shown}): a linear solver that does not solve Newton's systems "
+            "accurately enough is the likely cause; leave these options out to use lungmech's own. The last "
+            "converged state is kept."
         )
     return (
         f"{where}: the minimum step ({dt:.3g} s) was reached and Newton still did not converge ({step.reason}). "

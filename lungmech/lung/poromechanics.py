@@ -74,7 +74,7 @@ def skeleton(alpha: float, gamma: float, c1: float, c2: float) -> Sum:
         checks.real(name, value, nonnegative=True)
     if c1 + c2 == 0:
         raise ParameterError("the skeleton needs shear stiffness: c1 + c2 must be > 0")
-    return Sum((ExponentialCiarletGeymonat(alpha, gamma), CiarletGeymonat(0.0, c1, c2)))
+    return Sum((ExponentialCiarletGeymonat(alpha, gamma), CiarletGeymonat(0.0, c1, c2)), label="lung_skeleton")
 
 
 CellValues = float | Callable[[np.ndarray], np.ndarray] | str | Path  # a number, a function of x, a file

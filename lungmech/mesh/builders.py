@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import signal
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -191,13 +192,29 @@ _Surface = Callable[[npt.NDArray[np.float64]], npt.NDArray[np.bool_]]
 
 
 @contextlib.contextmanager
+def _signal_handlers_kept() -> Iterator[None]:
+    """Put the Python handlers of SIGINT and SIGTERM back after the block (main thread only)."""
+    kept = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in kept.items():
+            if handler is not None:
+                with contextlib.suppress(ValueError):  # not the main thread: nothing was ours
+                    signal.signal(s, handler)
+
+
+@contextlib.contextmanager
 def gmsh_session(options: Mapping[str, float]) -> Iterator[Any]:
-    """A fresh gmsh model with quiet, reproducible options; leaves gmsh as it was found."""
+    """A fresh gmsh model with quiet, reproducible options; leaves gmsh as it was found, and the
+    process's SIGINT and SIGTERM handlers as they were (``gmsh.initialize`` resets them to the
+    default action, which would end a run without a word and leave its staging folder)."""
     import gmsh
 
     started = not gmsh.isInitialized()
     if started:
-        gmsh.initialize(interruptible=False)
+        with _signal_handlers_kept():
+            gmsh.initialize(interruptible=False)
     previous = None if started else gmsh.model.getCurrent()
     settings = {**_GMSH_OPTIONS, **options}
     saved = {key: gmsh.option.getNumber(key) for key in settings}
@@ -211,7 +228,8 @@ def gmsh_session(options: Mapping[str, float]) -> Iterator[Any]:
         for key, value in saved.items():
             gmsh.option.setNumber(key, value)
         if started:
-            gmsh.finalize()
+            with _signal_handlers_kept():
+                gmsh.finalize()
         elif previous:
             gmsh.model.setCurrent(previous)
 

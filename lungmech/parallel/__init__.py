@@ -2,6 +2,6 @@
 dof and node order (``layout``), distributed row-block linear algebra (``linalg``) and output
 destinations that never touch a user's files (``destination``)."""
 
-from lungmech.parallel.collective import arrive, on_root, raise_together, together
+from lungmech.parallel.collective import arrive, deferred, on_root, raise_together, together
 
-__all__ = ["arrive", "on_root", "raise_together", "together"]
+__all__ = ["arrive", "deferred", "on_root", "raise_together", "together"]

@@ -6,9 +6,10 @@ and, if it failed anywhere, raises the same error (class and message) on all of 
 :func:`on_root` does the same for work that only rank 0 does (writing a file, drawing a
 picture). :func:`arrive` is the last resort of the command line: it waits a bounded time for
 every rank to reach the same error, so that a failure that was not collective ends the run
-(``MPI_Abort``) instead of hanging it.
+(``MPI_Abort``) instead of hanging it. :func:`deferred` holds SIGINT and SIGTERM back during a
+block of collective work (writing outputs) and raises them on every rank together at its end.
 
-All three are collective: call them on every rank of the communicator.
+All are collective: call them on every rank of the communicator.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from mpi4py import MPI
 
 from lungmech import errors
 
-__all__ = ["arrive", "on_root", "raise_together", "together"]
+__all__ = ["arrive", "deferred", "on_root", "raise_together", "together"]
 
 T = TypeVar("T")
 
@@ -96,3 +97,27 @@ def _message(error: BaseException) -> str:
     if isinstance(error, OSError) and error.filename is not None:
         return f"'{error.filename}': {error.strerror or error}"
     return str(error) or type(error).__name__
+
+
+@contextlib.contextmanager
+def deferred(comm: MPI.Comm) -> Iterator[Callable[[], None]]:
+    """Collective: SIGINT and SIGTERM wait during the block (the command line's handler only
+    remembers them, :attr:`lungmech.errors.Interrupted.pending`), so a collective write or a
+    swap is never cut in the middle on one rank. The block gets ``agree()``, collective, which
+    raises :class:`~lungmech.errors.Interrupted` on every rank if a signal reached any of them;
+    it is called at the block's end too. Nested blocks defer to the outermost."""
+    errors.Interrupted.deferring += 1
+
+    def agree() -> None:
+        pending = errors.Interrupted.pending or 0
+        signum = comm.allreduce(pending, op=MPI.MAX) if comm.size > 1 else pending
+        if signum:
+            errors.Interrupted.pending = signum
+            raise errors.Interrupted(signum)
+
+    try:
+        yield agree
+    finally:
+        errors.Interrupted.deferring -= 1
+    if errors.Interrupted.deferring == 0:
+        agree()

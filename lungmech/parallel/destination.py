@@ -32,15 +32,16 @@ import secrets
 import shutil
 import signal
 import socket
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
 from mpi4py import MPI
 
-from lungmech.errors import OutputError
-from lungmech.parallel import on_root
+from lungmech.errors import Interrupted, OutputError
+from lungmech.parallel import deferred, on_root
 
-__all__ = ["MARKER", "check_folder", "digest", "output_file", "output_folder", "resolve"]
+__all__ = ["MARKER", "check_folder", "digest", "hold_signals_until_swap", "output_file", "output_folder", "resolve"]
 
 MARKER = ".lungmech.json"
 _STAGING, _OLD = "lungmech-staging", "lungmech-old"
@@ -298,6 +299,23 @@ def _signals_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+PAUSE = "LUNGMECH_TEST_PAUSE_BEFORE_SWAP"  # seconds: a test hook (signals sent between the solve and the swap)
+
+
+def _test_pause(comm: MPI.Comm) -> None:
+    """Wait ``$LUNGMECH_TEST_PAUSE_BEFORE_SWAP`` seconds, saying so on standard output (rank 0),
+    when the environment sets it: the moment where a test sends signals."""
+    seconds = float(os.environ.get(PAUSE, "0") or 0)
+    if seconds > 0:
+        if comm.rank == 0:
+            print(f"lungmech: test pause before the swap ({seconds:g} s)", flush=True)
+        time.sleep(seconds)
+
+
+def _signal_name() -> str:
+    return signal.Signals(Interrupted.pending).name if Interrupted.pending else "a signal"
+
+
 def _unwritable(error: OSError, staging: Path, target: Path) -> str:
     """The message of a failed write, naming the file as the user will know it."""
     name = error.filename
@@ -316,10 +334,17 @@ def _staged(
     ``publish`` moves the result into place (rank 0). An error or an interrupt removes the
     staging folder. ``base`` is where the staging folder's content goes (for messages)."""
     staging = comm.bcast(on_root(comm, prepare), root=0)
+    depth = Interrupted.deferring  # the block may hold signals until the swap (hold_signals_until_swap)
     try:
         yield staging.path / name if name else staging.path
-        comm.Barrier()  # every rank has finished writing
-        on_root(comm, lambda: publish(staging.path))
+        with deferred(comm) as agree:  # a signal now stops every rank before the swap, or none
+            _test_pause(comm)
+            comm.Barrier()  # every rank has finished writing
+            agree()
+            on_root(comm, lambda: publish(staging.path))
+            if Interrupted.pending is not None:  # during the swap itself: the results are whole and in place
+                log.warning("lungmech: %s arrived as the results were put in place; they are complete", _signal_name())
+                Interrupted.pending = None
     except OSError as error:  # a full or read-only disk, say: name the file it would have been
         if comm.rank == 0:
             staging.remove()
@@ -330,6 +355,16 @@ def _staged(
         if comm.rank == 0 or isinstance(error, KeyboardInterrupt):
             staging.remove()
         raise
+    finally:
+        Interrupted.deferring = depth
+
+
+def hold_signals_until_swap() -> None:
+    """From now until the enclosing output's swap (:func:`output_folder`, :func:`output_file`),
+    SIGINT and SIGTERM wait, and the ranks agree on them just before the swap: for a job whose
+    computing is done and whose outputs (collective writes) begin, so that no signal cuts one
+    rank alone between its last write and the swap."""
+    Interrupted.deferring += 1
 
 
 # --- the two context managers ----------------------------------------------------------------
