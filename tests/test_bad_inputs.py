@@ -406,6 +406,53 @@ SCENES = {
         + 'balanced_on = ["x1", "y0", "y0"]\n',
         "balanced_on names y0 more than once",
     ),
+    # formulas that leave the reals, and solver options that solve nothing
+    "formula beyond the floats": (
+        swap("[0.0, 0.0, -10.0]", '["1e308*10", 0.0, -10.0]'),
+        "loads[0]: value[0]: '1e308*10': a part of it is inf (outside the floating-point range)",
+    ),
+    "formula of an infinite number": (swap("[0.0, 0.0, -10.0]", '["1e309", 0.0, -10.0]'), "a part of it is inf"),
+    "formula of nothing times infinity": (swap("[0.0, 0.0, -10.0]", '["0*1e309", 0.0, -10.0]'), "a part of it is inf"),
+    "formula of a complex number": (
+        swap("[0.0, 0.0, -10.0]", '["(-8)**(1/3)", 0.0, -10.0]'),
+        "'(-8)**(1/3)': a part of it is not a real number",
+    ),
+    "formula of 100,000 terms": (
+        swap("[0.0, 0.0, -10.0]", '["' + "+".join(["1"] * 100_000) + '", 0.0, -10.0]'),
+        "a formula of 199999 characters; at most 2000 are read",
+    ),
+    "formula of too many parts": (
+        swap("[0.0, 0.0, -10.0]", '["' + "+".join(["x"] * 300) + '", 0.0, -10.0]'),
+        "parts; at most 400 are read",
+    ),
+    "formula infinite where it acts": (
+        swap("[0.0, 0.0, -10.0]", '[0.0, 0.0, "1/(x-x)"]'),
+        "load 'traction on x1': value[2] = '1/(x-x)' is inf at x = (2, ",
+    ),
+    "formula undefined where it acts": (
+        swap("[0.0, 0.0, -10.0]", '[0.0, 0.0, "ln(x-5)"]'),
+        "value[2] = 'ln(x-5)' is nan at x = (2, ",
+    ),
+    "formula overflowing where it acts": (
+        swap("[0.0, 0.0, -10.0]", '[0.0, 0.0, "exp(1000*x)"]'),
+        "value[2] = 'exp(1000*x)' is inf at x = (2, ",
+    ),
+    "a Jacobi sweep for the direct solver": (
+        TINY + '[solver]\nlinear_solver = "direct"\npetsc_options = { pc_type = "jacobi" }\n',
+        "with the linear solver that solver.petsc_options set (pc_type = 'jacobi')",
+    ),
+    "a misspelt parameter target": (
+        TINY + '[parameters.a]\ntarget = "material.EE"\nrange = [1.0, 2.0]\n',
+        "parameters.a.target: the scene has no material.EE ([material] keys: E, nu)",
+    ),
+    "a parameter on a load that is not there": (
+        TINY + '[parameters.a]\ntarget = "loads.pull.value"\nrange = [1.0, 2.0]\n',
+        "parameters.a.target: no load named 'pull' (named loads: none)",
+    ),
+    "the lung skeleton in the mixed formulation": (
+        swap("kappa = 1.0e4\nphi_s0 = 0.3\n", "degree = 2\n", swap('type = "poromechanics"', 'type = "mixed"', LUNG)),
+        "law 'lung_skeleton' has no volumetric split",
+    ),
     "not TOML": ("[geometry\nbuilder = 1", "not valid TOML"),
     "empty scene": ("", "missing section [geometry]"),
 }
@@ -971,6 +1018,11 @@ COMMANDS = {
         [],
         ["rom", "solve", "model.npz", "scene.toml", "-o", "out", "--scale", "1:2"],
         "one finite factor or one per load",
+    ),
+    "model with a scale beyond any load": (
+        [],
+        ["run", "scene.toml", "-o", "out", "--scale", "1e300"],
+        "the load path stopped at t = 0 s",
     ),
     "model with a scale of letters": (
         [],

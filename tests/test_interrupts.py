@@ -185,7 +185,9 @@ def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, s
     """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
     no staging folder left (serial and on two ranks; the launcher's own lines aside)."""
     before = _contents(earlier / "out")
-    expected = f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
+    expected = (
+        f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
+    )
     for attempt in range(10):
         result, seconds = _interrupt_before_the_swap(earlier, sig, ranks)
         ours = [line for line in result.stderr.splitlines() if line.startswith("lungmech")]

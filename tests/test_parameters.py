@@ -265,3 +265,13 @@ def test_new_parameters_keep_the_load_factor_and_its_reference_time():
     assert model.scalar_loads()["push"] == pytest.approx(0.5 * 0.8)
     model.set_parameters(E=10.0)
     assert model.scalar_loads()["push"] == pytest.approx(0.5 * 0.8)
+
+
+def test_a_sweep_file_may_start_with_a_byte_order_mark(tmp_path):
+    """As spreadsheet programs write CSV: the mark is not part of the first column's name."""
+    from lungmech.app.sweep import read_points
+
+    path = tmp_path / "points.csv"
+    path.write_bytes("\ufeffE [Pa],p [Pa]\n6,0.2\n".encode())
+    box = Parameters([STIFFNESS, Parameter("p", "loads.push.value", 0.5, (0.1, 1.0), unit="Pa")])
+    assert read_points(path, box, box.defaults) == [{"E": 6.0, "p": 0.2}]
