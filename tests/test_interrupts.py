@@ -66,13 +66,19 @@ def _interrupt(workspace: Path, sig: int, ranks: int = 1, after: float = 8.0) ->
     )
     time.sleep(after)
     assert process.poll() is None, "the slow run ended before it could be interrupted"
+    return _signalled(process, sig, timeout=120)
+
+
+def _signalled(process: subprocess.Popen, sig: int, timeout: float, said: str = "") -> subprocess.CompletedProcess:
+    """Send ``sig`` to ``process`` and wait for it to end (within ``timeout`` s, else fail);
+    ``said``: what it printed before."""
     process.send_signal(sig)
     try:
-        out, err = process.communicate(timeout=120)
+        out, err = process.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         process.kill()
         raise AssertionError("the interrupted run did not stop") from None
-    return subprocess.CompletedProcess(process.args, process.returncode, out, err)
+    return subprocess.CompletedProcess(process.args, process.returncode, said + out, err)
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
@@ -168,15 +174,8 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
         process.wait(timeout=60)
         raise AssertionError(f"the run never paused before its swap: {''.join(said)} {process.stderr.read()}")
     sent = time.perf_counter()
-    process.send_signal(sig)
-    try:
-        out, err = process.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        raise AssertionError("the interrupted run did not stop") from None
-    return subprocess.CompletedProcess(process.args, process.returncode, "".join(said) + out, err), (
-        time.perf_counter() - sent
-    )
+    result = _signalled(process, sig, timeout=30, said="".join(said))
+    return result, time.perf_counter() - sent
 
 
 @pytest.mark.parametrize("ranks", [1, 2])
