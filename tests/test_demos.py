@@ -102,14 +102,6 @@ def same_order(text: str, measured: float) -> bool:
     return measured > 0 and abs(math.log10(measured / float(text))) <= 1
 
 
-def within_a_fifth(text: str, measured: float) -> bool:
-    """Whether ``measured`` lies within 20 % of ``text``: for the iterations of a descent that
-    stops on a plateau, where the last bits of the libraries' arithmetic move the stop (the
-    lung's registration: 98 iterations with one day's NumPy and SciPy, 85 with the next's, the
-    same Dice and distances to every printed digit)."""
-    return abs(measured - float(text)) <= 0.2 * float(text)
-
-
 def check(readme: tuple[str, ...], demo: tuple[str, ...], agree=rounds_to) -> None:
     """Each README number against the demo's number in the same place."""
     assert len(readme) == len(demo)
@@ -198,7 +190,8 @@ def test_register_lung(tmp_path):
         rf"\({NUMBER} voxels\), hd95 {NUMBER} mm, min det F {NUMBER}",
         output,
     )
-    check(readme[:1], demo[:1], agree=within_a_fifth)
+    # Iteration counts are the path of a descent, not its answer: never compared (the same Dice
+    # and distances came after 98 iterations with one NumPy and SciPy, 85 with the next).
     check(readme[2:], demo[2:])
     # Shape modes of the cohort.
     (worst,) = quoted(rf"the worst Dice is {NUMBER}\.")
