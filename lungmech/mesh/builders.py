@@ -207,8 +207,9 @@ def _signal_handlers_kept() -> Iterator[None]:
 @contextlib.contextmanager
 def gmsh_session(options: Mapping[str, float]) -> Iterator[Any]:
     """A fresh gmsh model with quiet, reproducible options; leaves gmsh as it was found, and the
-    process's SIGINT and SIGTERM handlers as they were (``gmsh.initialize`` resets them to the
-    default action, which would end a run without a word and leave its staging folder)."""
+    process's SIGINT and SIGTERM handlers as they were (gmsh resets them to the default action —
+    ``gmsh.finalize`` does, with gmsh 4.15 — which would end a run without a word and leave its
+    staging folder; both ends are guarded)."""
     import gmsh
 
     started = not gmsh.isInitialized()
