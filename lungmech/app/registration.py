@@ -28,7 +28,55 @@ from lungmech.registration.image import Image
 from lungmech.registration.library import mapping_library
 from lungmech.registration.sobolev import Options, register
 
-__all__ = ["build_shape_modes", "read_images", "register_image"]
+__all__ = ["build_shape_modes", "choose_reference", "read_images", "register_image"]
+
+
+def choose_reference(
+    image: Image,
+    reference: str | Path | None = None,
+    side: str | None = None,
+    accept_other_side: bool = False,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+) -> tuple[Path, dict]:
+    """Collective: the reference mesh for the lung in ``image``, and what decided it.
+
+    The lung's side comes from the image (:func:`lungmech.registration.side.of_image`), or from
+    ``side`` where the image cannot tell (no orientation in its header, unclear or disagreeing
+    cues). Without ``reference``, the bundled phantom of that side is used. A given reference
+    is checked to be of that side too (by its own shape). Refused in one line, unless
+    ``accept_other_side``: a side the image cannot tell and ``side`` does not give; a ``side``
+    the image contradicts; a reference of the other side, whose medial face and hilum would
+    land on the lung's outer wall.
+    """
+    from lungmech import meshes
+    from lungmech.registration import side as sides
+
+    name = f"image '{image.source}'" if image.source is not None else "the image"
+    if side not in (None, "left", "right"):
+        raise RegistrationError(f"--side must be left or right (got {side!r})")
+    given = None if reference is None else geometries.from_file(meshes.locate(reference), comm, dimension=3)
+    check_voxels(image)
+    found = comm.bcast(on_root(comm, lambda: sides.of_image(image)))
+    if found.side is None and side is None:
+        raise RegistrationError(f"{name}: cannot tell which lung it holds: {found.reason}; give --side left or right")
+    if side is not None and found.side not in (None, side) and not accept_other_side:
+        raise RegistrationError(
+            f"{name} holds a {found.side} lung by its shape (convexity {found.convexity:+.3f}), not the {side} one "
+            "--side names: check the header's orientation, or --accept-other-side registers it as given"
+        )
+    lung = side or found.side
+    path = meshes.reference(f"lung_phantom_{lung}") if reference is None else meshes.locate(reference)
+    decided = {"image": found.describe(), "lung": lung, "reference": str(path)}
+    if given is not None:
+        held = sides.of_mesh(given.mesh)
+        decided["reference_side"] = held.side
+        if held.side not in (None, lung) and not accept_other_side:
+            raise RegistrationError(
+                f"the reference '{path}' is a {held.side} lung and {name} holds a {lung} one: its medial face and "
+                f"hilum would land on the lung's outer wall; use --reference lung_phantom_{lung} (the default), or "
+                "--accept-other-side"
+            )
+    return path, decided
 
 
 def register_image(
@@ -38,6 +86,7 @@ def register_image(
     options: Options = Options(),
     comm: MPI.Comm = MPI.COMM_WORLD,
     accept: Sequence[str] = (),
+    side: dict | None = None,
 ) -> dict:
     """Register the mesh file ``reference`` onto ``image``; write into the folder ``out``:
     ``registered.xdmf`` (the mapped mesh), ``mapping.npz`` (reference nodes and displacement in
@@ -45,7 +94,8 @@ def register_image(
 
     Refused with a :class:`RegistrationError` (nothing written): a target of a handful of
     voxels; unless ``accept`` names the doubt, a target whose size points at a wrong length unit
-    ("implausible") and a descent that did not converge ("unconverged").
+    ("implausible") and a descent that did not converge ("unconverged"). ``side``: how the
+    reference was chosen (:func:`choose_reference`), for the report.
     """
     inputs = [reference, *([image.source] if image.source is not None else [])]
     with output_folder(out, comm, inputs=inputs, command="lungmech register") as staging:
@@ -58,7 +108,7 @@ def register_image(
         reference_nodes = nodes.positions(space, where)  # canonical, on rank 0 (it writes mapping.npz)
         initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
         with nodes.deformed(result.displacement) as mesh:
-            report = {"reference": str(reference)} | metrics.report(mesh, image) | result.summary()
+            report = {"reference": str(reference), "side": side} | metrics.report(mesh, image) | result.summary()
             geometries.write(geometry, staging / "registered.xdmf")
             title = f"Dice {report['dice']:.3f}, mean distance {1e3 * report['mean_surface_distance']:.2f} mm"
             drawn(
@@ -126,13 +176,7 @@ def check_target(reference: geometries.Geometry, image: Image, accept: bool = Fa
     """Refuse a segmentation that cannot be a fair target: a handful of voxels, or a size so
     far from the reference mesh's that the image's length unit is likely wrong."""
     name = f"image '{image.source}'" if image.source is not None else "the image"
-    index = np.argwhere(image.mask)
-    across = index.max(axis=0) - index.min(axis=0) + 1
-    if across.min() < MIN_VOXELS_ACROSS:
-        raise RegistrationError(
-            f"{name}: the segmentation spans only {across.tolist()} voxels along its axes "
-            f"({len(index)} voxels in all), too few to register a mesh onto"
-        )
+    index = check_voxels(image)
     extent = float(np.linalg.norm(image.points(index.max(axis=0)) - image.points(index.min(axis=0))))
     ratio = extent / reference.size
     if not 1 / SIZE_FACTOR <= ratio <= SIZE_FACTOR and not accept:
@@ -143,15 +187,35 @@ def check_target(reference: geometries.Geometry, image: Image, accept: bool = Fa
         )
 
 
+def check_voxels(image: Image) -> np.ndarray:
+    """The indices of the segmented voxels, if they span enough voxels to register a mesh onto
+    (and to tell which lung they hold); else one error."""
+    name = f"image '{image.source}'" if image.source is not None else "the image"
+    index = np.argwhere(image.mask)
+    across = index.max(axis=0) - index.min(axis=0) + 1
+    if across.min() < MIN_VOXELS_ACROSS:
+        raise RegistrationError(
+            f"{name}: the segmentation spans only {across.tolist()} voxels along its axes "
+            f"({len(index)} voxels in all), too few to register a mesh onto"
+        )
+    return index
+
+
 def check_converged(report: dict, accept: bool = False) -> None:
     """Refuse a registration whose descent did not converge (unless accepted)."""
     if report["converged"] or accept:
         return
     reasons = ", ".join(s["reason"] for s in report["stages"])
+    held = any(s["reason"].startswith("held by the det F limit") for s in report["stages"])
+    remedy = (
+        "the mesh would have to squeeze cells further to fit: a lower --min-jacobian allows it (a closer fit, "
+        "a poorer mesh)"
+        if held
+        else "raise --max-iterations"
+    )
     raise RegistrationError(
         f"the registration did not converge (stages ended by: {reasons}; Dice {report['dice']:.4f}, mean surface "
-        f"distance {1e3 * report['mean_surface_distance']:.2f} mm); raise --max-iterations, or "
-        "--accept-unconverged keeps the result"
+        f"distance {1e3 * report['mean_surface_distance']:.2f} mm); {remedy}, or --accept-unconverged keeps the result"
     )
 
 

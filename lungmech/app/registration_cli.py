@@ -18,7 +18,18 @@ COMMANDS = ("register", "shape-modes", "shape", "phantom")
 def add_commands(commands: argparse._SubParsersAction) -> None:
     register = commands.add_parser("register", help="map a reference mesh onto a segmented 3-D image")
     register.add_argument("image", help="segmentation (.nii, .nii.gz, .mha, .nrrd or .npz)")
-    _reference(register)
+    _reference(register, default=None)
+    register.add_argument(
+        "--side",
+        choices=("right", "left"),
+        help="the lung's side, where the image cannot tell it (no orientation in its header, unclear shape); "
+        "by default it is read from the image, and the bundled phantom of that side is the reference",
+    )
+    register.add_argument(
+        "--accept-other-side",
+        action="store_true",
+        help="register with a reference (or --side) of the other side than the image's lung (refused by default)",
+    )
     register.add_argument(
         "-o",
         "--output",
@@ -62,13 +73,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         phantom.add_argument(f"--{name}", type=float, help=f"shape fraction '{name}' (see LungShape)")
 
 
-def _reference(command: argparse.ArgumentParser) -> None:
+def _reference(command: argparse.ArgumentParser, default: str | None = "lung_phantom_right") -> None:
+    shown = f"{default} (default)" if default else "lung_phantom_right"
     command.add_argument(
         "--reference",
-        default="lung_phantom_right",
+        default=default,
         type=_mesh,
         help="reference mesh (.msh or .xdmf), or a bundled one by name: "
-        "lung_phantom_right (default), lung_phantom_left",
+        f"{shown}, lung_phantom_left" + ("" if default else "; default: the phantom of the image's lung's side"),
     )
 
 
@@ -149,11 +161,12 @@ def _register(args, comm) -> int:
     options = _options(args)
     target = image.read(args.image, label=args.label, unit=args.unit)
     output = args.output if args.output is not None else f"results/{image.stem(Path(args.image))}-registration"
-    report = workflow.register_image(args.reference, target, output, options, comm, accept=_accepted(args))
+    reference, decided = workflow.choose_reference(target, args.reference, args.side, args.accept_other_side, comm)
+    report = workflow.register_image(reference, target, output, options, comm, _accepted(args), decided)
     if comm.rank == 0:
         converged = "yes" if report["converged"] else "no (kept: --accept-unconverged)"
         print(
-            f"lungmech: registered {args.reference} onto {args.image} in {report['iterations']} iterations "
+            f"lungmech: registered {reference} onto {args.image} ({decided['lung']} lung) in {report['iterations']} iterations "
             f"({report['total_seconds']:.1f} s), converged: {converged}; Dice {report['dice']:.4f}, mean surface "
             f"distance {1e3 * report['mean_surface_distance']:.2f} mm ({report['mean_surface_distance_voxels']:.2f} "
             f"voxels), hd95 {1e3 * report['hd95']:.2f} mm, min det F {report['min_det_F']:.3f}; "

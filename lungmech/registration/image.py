@@ -67,6 +67,7 @@ class Image:
     mask: npt.NDArray[np.bool_]
     affine: npt.NDArray[np.float64]
     source: Path | None = None  # the file it was read from, if any
+    oriented: bool = True  # whether the header places it in the patient frame (NIfTI: an sform or qform code)
 
     def __post_init__(self) -> None:
         mask = self.mask
@@ -148,7 +149,7 @@ class Image:
         mask = _binary(np.asarray(mask), None, "the new mask")
         if mask.shape != self.shape:
             raise ImageError(f"the new mask has shape {mask.shape}, the image has {self.shape}")
-        return Image(mask, self.affine)
+        return Image(mask, self.affine, oriented=self.oriented)
 
 
 def from_array(
@@ -203,15 +204,16 @@ def read(path: str | Path, *, label: int | None = None, unit: str | None = None)
         raise ImageError(f"image file '{path}' not found")
     what = f"image '{path}'"
     scale = None if unit is None else _UNITS[unit]
+    oriented = True
     if format_ == "nifti":
-        data, affine = _read_nifti(path, scale)
+        data, affine, oriented = _read_nifti(path, scale)
     elif format_ == "itk":
         data, affine = _read_itk(path, scale)
     else:
         data, affine = _read_npz(path)
     mask = _binary(data, label, what)
     try:
-        return Image(np.ascontiguousarray(mask), affine, path)
+        return Image(np.ascontiguousarray(mask), affine, path, oriented)
     except ImageError as e:
         raise ImageError(f"{what}: {e}") from None
 
@@ -320,7 +322,9 @@ def stem(path: Path) -> str | None:
     return None
 
 
-def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64], bool]:
+    """Voxels, affine (m) and whether the header orients them (an sform or qform code > 0;
+    without one nibabel's affine is a bare scaling, in no patient frame)."""
     nib = _nibabel(path)
     try:
         nifti = nib.load(path)
@@ -329,10 +333,11 @@ def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.
         data = np.asanyarray(nifti.dataobj)  # applies scl_slope/inter, if any
         affine = np.array(nifti.affine, dtype=np.float64)
         unit = nifti.header.get_xyzt_units()[0]
+        oriented = int(nifti.header["sform_code"]) > 0 or int(nifti.header["qform_code"]) > 0
     except Exception as e:  # nibabel raises many kinds (ImageFileError, OSError, EOFError, zlib.error...)
         raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
     data = _spatial(data, f"image '{path}'")
-    return data, _scaled(affine, _NIFTI_UNITS.get(unit, 1e-3) if scale is None else scale)
+    return data, _scaled(affine, _NIFTI_UNITS.get(unit, 1e-3) if scale is None else scale), oriented
 
 
 def _read_itk(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:

@@ -26,7 +26,9 @@ Steps are controlled by backtracking (Armijo), and every step is rejected that w
 det F fall below ``min_jacobian`` anywhere; when det F gets low, the interior nodes are re-placed
 by the elastic extension of the boundary displacement. The descent stops when an accepted step moves no
 node by more than ``step_tolerance`` voxels, or when Ψ stagnates (for a ±1 image the gradient
-never vanishes, so its norm is no criterion). It starts from a moments-based similarity fit, and
+never vanishes, so its norm is no criterion). Either counts as converged only if the det F
+limit cut none of the last ``window`` steps: a descent held by the constraint, or stopped by
+the step control (no acceptable step), is reported as not converged, with the reason. It starts from a moments-based similarity fit, and
 optionally goes coarse to fine through a sequence of image smoothings. Everything is collective.
 On any number of MPI ranks the registered surface is the same; node positions agree to a
 fraction of a voxel, as round-off differs and flat directions of Ψ let the descent amplify it.
@@ -210,6 +212,7 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
     pairs: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=options.memory)
     psis = [psi]
     reason, iterations = "max_iterations", 0
+    held = []  # per accepted iteration: whether the det F limit cut its step (a constrained descent)
     for iterations in range(1, options.max_iterations + 1):
         direction = -_two_loop(derivative, pairs, energy)
         slope = energy.dot(derivative, direction)
@@ -223,11 +226,13 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
             break
         step = 1.0 if pairs else options.first_step * voxel / largest
         step = min(step, options.max_step * voxel / largest)
+        limited = False
         while True:
             energy.set_state(x + step * direction)
             trial, jacobian = energy.value(), energy.min_jacobian()
             if jacobian >= options.min_jacobian and trial <= psi + 1e-4 * step * slope:
                 break
+            limited |= jacobian < options.min_jacobian
             step *= 0.5
             if step * largest < 1e-3 * options.step_tolerance * voxel:
                 trial = None
@@ -259,7 +264,10 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
             pairs.append((update, change))
         x, psi = x + update, trial
         psis.append(psi)
-        history.append({"psi": psi, "move": moved, "min_det_F": jacobian})
+        # Held: the limit cut the step, and the step taken ends near it (an overshooting trial
+        # far from the limit says nothing).
+        held.append(limited and jacobian < options.min_jacobian + 0.1 * (1 - options.min_jacobian))
+        history.append({"psi": psi, "move": moved, "min_det_F": jacobian, "held": held[-1]})
         log.debug("  %3d: Ψ = %.8e, largest move %.3g voxels, min det F %.3f", iterations, psi, moved / voxel, jacobian)
         if moved < options.step_tolerance * voxel:
             reason = "step"
@@ -267,6 +275,10 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
         if len(psis) > options.window and psis[-options.window - 1] - psi < options.stagnation * scale:
             reason = "stagnation"
             break
+    # A descent whose last steps the det F limit cut stopped on the constraint, not at a minimum:
+    # its small steps and flat Ψ say nothing of convergence.
+    if reason in ("step", "stagnation") and any(held[-options.window :]):
+        reason = f"held by the det F limit (min det F {energy.min_jacobian():.3f}, limit {options.min_jacobian:g})"
     return {
         "iterations": iterations,
         "reason": reason,
