@@ -23,7 +23,9 @@ how far they slide would depend on the path of the descent. A small shape-distor
 (isochoric neo-Hookean, zero for similarity maps) picks the least distorted mapping instead.
 
 Steps are controlled by backtracking (Armijo), and every step is rejected that would make
-det F fall below ``min_jacobian`` anywhere; when det F gets low, the interior nodes are re-placed
+det F fall below ``min_jacobian`` anywhere; the distortion energy carries a barrier on det F,
+zero above j_min + (1 − j_min)/6 and infinite at j_min, so that the minimum lies inside that
+limit rather than on it; when det F gets low, the interior nodes are re-placed
 by the elastic extension of the boundary displacement. The descent stops when an accepted step moves no
 node by more than ``step_tolerance`` voxels, or when Ψ stagnates (for a ±1 image the gradient
 never vanishes, so its norm is no criterion). Either counts as converged only if the det F
@@ -198,7 +200,7 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
         jacobian,
         sum(s["iterations"] for s in stages),
         time.perf_counter() - start,
-        all(s["converged"] for s in stages),
+        stages[-1]["converged"],  # the finest stage's: the coarser ones only lead it there
         stages,
         history,
     )
@@ -339,6 +341,11 @@ class ShapeEnergy:
         # slide along the surface depends on the path of the descent.
         self.weight = fem.Constant(mesh, 0.0)
         distortion = 0.5 * (J ** (-2.0 / 3.0) * ufl.tr(F.T * F) - 3.0)
+        # A barrier on det F, zero (with zero slope) above j_on and infinite at the limit: the
+        # minimum then lies inside the constraint, where the descent can converge, instead of
+        # on it, where where it stops depends on its path.
+        low, on = options.min_jacobian, options.min_jacobian + (1.0 - options.min_jacobian) / 6.0
+        distortion += ufl.conditional(ufl.lt(J, on), (on - J) ** 2 / ((J - low) * (on - low)), 0.0)
         exact = ufl.dx(domain=mesh)
         self.psi = fem.form(I * J * dx + self.weight * distortion * exact)
         self.derivative_form = fem.form(
