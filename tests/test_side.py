@@ -101,3 +101,19 @@ def test_a_realistic_lung_registers_closely_or_says_it_did_not_converge(name, sp
     else:
         assert code == 2 and "the registration did not converge (stages ended by: " in err, err
         assert not (tmp_path / "out").exists()
+
+
+def test_a_cohort_of_the_other_side_is_refused(tmp_path, lungs, capsys):
+    """shape-modes: images of left lungs onto the right phantom would map faces onto the wrong
+    ones; refused before any registration (the default reference is the images' side's)."""
+    paths = []
+    for j, spacing in enumerate((0.002, 0.0025)):
+        paths.append(tmp_path / f"left{j}.nii.gz")
+        image.write(LEFT.image(spacing), paths[-1])
+    argv = ["shape-modes", *map(str, paths), "-o", str(tmp_path / "modes"), "-q"]
+    assert main([*argv, "--reference", "lung_phantom_right"]) == 2
+    err = capsys.readouterr().err
+    assert "left0: it holds a left lung" in err and "holds a left lung and the reference" in err and "is a right one" in err, err
+    assert not (tmp_path / "modes").exists()
+    chosen, _ = choose_reference(image.read(paths[0]))
+    assert chosen == meshes.reference("lung_phantom_left")

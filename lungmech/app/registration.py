@@ -230,12 +230,23 @@ def build_shape_modes(
     """Register the mesh file ``reference`` onto every image and reduce the mappings to shape
     modes; write ``shape_modes.npz``, ``report.json`` (per-image metrics, singular values,
     compactness, leave-one-out error) and ``singular_values.png`` into the folder ``out``.
-    Every image is checked as in :func:`register_image` (``accept`` as there)."""
+    Every image is checked as in :func:`register_image` (``accept`` as there, and
+    "other side": an image whose lung is clearly of the other side than the reference's is
+    refused without it)."""
+    from lungmech.registration import side as sides
+
     inputs = [reference, *(image.source for image in sources.values() if image.source is not None)]
     with output_folder(out, comm, inputs=inputs, command="lungmech shape-modes") as staging:
         geometry = geometries.from_file(reference, comm, dimension=3)
-        for image in sources.values():
+        held = sides.of_mesh(geometry.mesh).side
+        for name, image in sources.items():
             check_target(geometry, image, "implausible" in accept)
+            found = comm.bcast(on_root(comm, lambda image=image: sides.of_image(image)))
+            if held and found.side not in (None, held) and "other side" not in accept:
+                raise RegistrationError(
+                    f"{name}: it holds a {found.side} lung and the reference '{reference}' is a {held} one: give "
+                    f"--reference lung_phantom_{found.side} for a cohort of {found.side} lungs, or --accept-other-side"
+                )
         start = time.perf_counter()
         library = mapping_library(geometry.mesh, sources, options)
         for member in library.reports:

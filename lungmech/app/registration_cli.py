@@ -41,7 +41,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
     modes = commands.add_parser("shape-modes", help="register a reference onto many images and build shape modes")
     modes.add_argument("images", nargs="*", help="image files or folders of images")
-    _reference(modes)
+    _reference(modes, default=None)
+    modes.add_argument(
+        "--accept-other-side",
+        action="store_true",
+        help="register images whose lung is of the other side than the reference's (refused by default)",
+    )
     modes.add_argument(
         "-o",
         "--output",
@@ -53,7 +58,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     modes.add_argument("--latent", type=int, default=2, help="latent shape parameters of the synthetic cohort (1-5)")
     modes.add_argument("--seed", type=int, default=0, help="random seed of the synthetic cohort")
     modes.add_argument("--spacing", type=float, default=2.5, help="voxel size of the synthetic images, mm")
-    modes.add_argument("--side", choices=("right", "left"), default="right", help="lung of the synthetic cohort")
+    modes.add_argument(
+        "--side",
+        choices=("right", "left"),
+        default="right",
+        help="lung of the synthetic cohort (right); the default reference is the phantom of the images' side",
+    )
     _image_options(modes)
     _descent_options(modes)
 
@@ -135,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _accepted(args) -> tuple[str, ...]:
-    return tuple(doubt for doubt in ("unconverged", "implausible") if getattr(args, f"accept_{doubt}"))
+    doubts = ("unconverged", "implausible", "other side")
+    return tuple(doubt for doubt in doubts if getattr(args, f"accept_{doubt.replace(' ', '_')}", False))
 
 
 def _options(args):
@@ -189,7 +200,12 @@ def _shape_modes(args, comm) -> int:
         sources = {f"patient_{j:03d}": im for j, im in enumerate(cohort.images(spacing=1e-3 * args.spacing))}
     else:
         sources = workflow.read_images(args.images, label=args.label, unit=args.unit)
-    report = workflow.build_shape_modes(args.reference, sources, args.output, options, comm, accept=_accepted(args))
+    reference = args.reference
+    if reference is None:  # the phantom of the cohort's side: the synthetic one's, or the first image's
+        first = next(iter(sources.values()))
+        side = args.side if args.synthetic is not None else None
+        reference, _ = workflow.choose_reference(first, None, side, "other side" in _accepted(args), comm)
+    report = workflow.build_shape_modes(reference, sources, args.output, options, comm, accept=_accepted(args))
     if comm.rank == 0:
         worst = report["worst"]
         compact = report["compactness"]

@@ -349,11 +349,11 @@ def _staged(
         if comm.rank == 0:
             staging.remove()
         raise OutputError(_unwritable(error, staging.path, base)) from None
-    except BaseException as error:
-        # Not collective: a failing or interrupted rank may be alone here. On an interrupt any
-        # rank removes the staging folder (rank 0 may be stuck in a collective call).
-        if comm.rank == 0 or isinstance(error, KeyboardInterrupt):
-            staging.remove()
+    except BaseException:
+        # Not collective: a failing or interrupted rank may be alone here, and the command line
+        # then ends the run, rank 0 with it, wherever rank 0 is (a collective call, say): so
+        # every rank removes the staging folder (they share it; removing it twice is harmless).
+        staging.remove()
         raise
     finally:
         Interrupted.deferring = depth
