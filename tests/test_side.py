@@ -113,7 +113,11 @@ def test_a_cohort_of_the_other_side_is_refused(tmp_path, lungs, capsys):
     argv = ["shape-modes", *map(str, paths), "-o", str(tmp_path / "modes"), "-q"]
     assert main([*argv, "--reference", "lung_phantom_right"]) == 2
     err = capsys.readouterr().err
-    assert "left0: it holds a left lung" in err and "holds a left lung and the reference" in err and "is a right one" in err, err
+    assert (
+        "left0: it holds a left lung" in err
+        and "holds a left lung and the reference" in err
+        and "is a right one" in err
+    ), err
     assert not (tmp_path / "modes").exists()
     chosen, _ = choose_reference(image.read(paths[0]))
     assert chosen == meshes.reference("lung_phantom_left")
