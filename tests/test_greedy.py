@@ -201,6 +201,21 @@ def test_a_tolerance_out_of_reach_is_reported_not_met(full):
     assert stopped.rounds[-1].indicator > 1e-6
 
 
+def test_when_the_candidates_run_out_the_training_points_are_judged(full):
+    """At a tolerance out of reach every candidate becomes a full solve. The last round's
+    indicator, which the build prints, is then the largest over the model's own training
+    points, recomputed here: not the 0 of an empty candidate list called 'met'."""
+    stopped = greedy(full, Parameters(BOX).sample(3, seed=1), 1e-12)
+    assert not stopped.met and len(stopped.training) == 4
+    reduced = ReducedModel(full.model, stopped.basis, full.stepping, start=None, training=stopped.training)
+    indicator = ResidualIndicator(full.model)
+    recomputed = [indicator(reduced, reduced.solve(point)) for point in stopped.training]
+    indicator.destroy()
+    assert max(recomputed) > 0
+    assert stopped.rounds[-1].indicator == pytest.approx(max(recomputed), rel=1e-6)
+    assert stopped.rounds[-1].point == stopped.training[int(np.argmax(recomputed))]
+
+
 @pytest.mark.parametrize(
     ("tolerance", "candidates", "said"),
     [
