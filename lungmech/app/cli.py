@@ -103,6 +103,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns the exit code (never raises for bad input, interrupts or failures)."""
+    _failures()  # collective, now, while every rank is here
     with _interrupts():
         try:
             args = parser().parse_args(argv)
@@ -174,11 +175,10 @@ def _dispatch(args: argparse.Namespace) -> int:
 def _fail(code: int, message: str, interrupted: bool = False) -> int:
     """Print ``message`` once and return ``code`` when every rank failed alike; otherwise
     (the failure reached this rank only) print it and end the whole MPI run now."""
-    from mpi4py import MPI
 
     from lungmech import parallel
 
-    comm = MPI.COMM_WORLD
+    comm = _failures()
     # Collective errors arrive together; a wait this long means the failure reached this rank alone.
     if parallel.arrive(comm, timeout=3.0 if interrupted else 60.0):
         if comm.rank == 0:
@@ -187,6 +187,21 @@ def _fail(code: int, message: str, interrupted: bool = False) -> int:
     print(f"{message} (rank {comm.rank}; ending the other ranks)", file=sys.stderr, flush=True)
     sys.stdout.flush()
     os._exit(code)  # mpiexec then ends the ranks that wait for this one
+
+
+_FAILURES = None
+
+
+def _failures():
+    """A communicator of its own for failures (a duplicate of the world's, made once): its
+    barrier can never be matched by the job's own collective calls, so a rank that fails alone
+    is told so instead of passing for a collective failure."""
+    global _FAILURES
+    if _FAILURES is None:
+        from mpi4py import MPI
+
+        _FAILURES = MPI.COMM_WORLD.Dup()
+    return _FAILURES
 
 
 @contextlib.contextmanager

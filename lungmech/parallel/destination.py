@@ -333,6 +333,7 @@ def _staged(
     (rank 0); the block writes into it (it gets the staging folder, or the file ``name`` in it);
     ``publish`` moves the result into place (rank 0). An error or an interrupt removes the
     staging folder. ``base`` is where the staging folder's content goes (for messages)."""
+    _all_here(comm)
     staging = comm.bcast(on_root(comm, prepare), root=0)
     depth = Interrupted.deferring  # the block may hold signals until the swap (hold_signals_until_swap)
     try:
@@ -357,6 +358,17 @@ def _staged(
         raise
     finally:
         Interrupted.deferring = depth
+
+
+def _all_here(comm: MPI.Comm) -> None:
+    """Collective: wait until every rank is here, in Python, where signals are handled, before
+    rank 0 makes a staging folder. A rank that failed alone before its outputs (on its own
+    scene, say) never comes; the command line then ends the run, and no staging folder is left."""
+    if comm.size == 1:
+        return
+    request = comm.Ibarrier()
+    while not request.Test():
+        time.sleep(0.005)
 
 
 def hold_signals_until_swap() -> None:
