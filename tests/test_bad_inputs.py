@@ -1186,3 +1186,24 @@ def test_zipfile_is_not_enough_to_be_a_model(workspace, capsys):
     refused(
         ["rom", "build", "scene.toml", "-o", "fake.npz"], "exists and was not written by lungmech", capsys, workspace
     )
+
+
+def test_a_jit_cache_that_is_a_file_is_named(tmp_path):
+    """DOLFINx's JIT cache set (dolfinx_jit_options.json) to a path that is a file: one line that
+    names it, exit 2, the file unchanged. (A subprocess: the JIT options are read once a process.)"""
+    import sys
+
+    (tmp_path / "scene.toml").write_text(TINY)
+    (tmp_path / "cachefile").write_text("mine\n")
+    (tmp_path / "dolfinx_jit_options.json").write_text('{"cache_dir": "cachefile"}')
+    before = _snapshot(tmp_path)
+    done = subprocess.run(
+        [str(Path(sys.executable).parent / "lungmech"), "run", "scene.toml", "-o", "out", "-q"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and "'cachefile'" in lines[0], done.stderr
+    assert lines[0].startswith("lungmech: error: ") and _snapshot(tmp_path) == before
