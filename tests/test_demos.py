@@ -8,9 +8,19 @@ must exit with 0. The numbers the README quotes from it are then read from the R
 compared with the ones the demo printed, so a README that no longer tells what the demo does
 fails here.
 
-A number quoted as "0.993" must be what the measured value rounds to, give or take half a unit
-of its last digit; a round-off-sized quantity (a relative error of 1e-12, say) is quoted for its
-order of magnitude. Times are not compared: they are the machine's, not the code's.
+Tolerances, and where they come from:
+
+* A number quoted as "0.993" must be what the measured value rounds to, give or take half a unit
+  of its last digit: the README rounds the demo's output. Every quoted number is the answer of
+  a converged computation whose own tolerance lies well below that digit. Newton stops at a
+  relative residual of 1e-10 ([solver] rtol). A registration stops when no node moves by more
+  than 0.02 voxel, with the det F limit cutting none of its last steps (a descent held by it
+  is an error, not a quote). The lock (requirements/lock.txt) fixes the libraries' arithmetic
+  too.
+* A round-off-sized quantity (a relative error of 1e-12, say) is quoted for its order of
+  magnitude only: a factor of 10.
+* Times and iteration counts are never compared: they are the machine's and the path's, not
+  the answer's.
 
 Which demos run under MPI, and why:
 
