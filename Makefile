@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo test test-latest lock lint test-serial test-mpi bench bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo test test-latest test-long lock lint test-serial test-mpi bench bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -38,7 +38,11 @@ lint: $(STAMP)
 
 # Two workers (pytest-xdist) on the two cores CI has; the slowest tests are listed at the end.
 test-serial: $(STAMP)
-	$(PY) -m pytest -m "not mpi" -n 2 --dist worksteal --durations=12 tests
+	$(PY) -m pytest -m "not mpi and not long" -n 2 --dist worksteal --durations=12 tests
+
+# The cases too long for the suite's budget (registrations of realistic lungs at 1 mm voxels).
+test-long: $(STAMP)
+	$(PY) -m pytest -m long -n 2 --durations=12 tests
 
 test-mpi: $(STAMP)
 	# A test failing on one rank only would leave the other waiting: bound the run.

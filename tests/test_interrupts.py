@@ -160,7 +160,7 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
     process = subprocess.Popen(
         lungmech("run", "quick.toml", "-o", "out", "-q", ranks=ranks, cwd=workspace),
         cwd=workspace,
-        env={**ENV, PAUSE: "1.5"},
+        env={**ENV, PAUSE: "0.5"},  # the signal is sent as soon as the pause is announced
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -182,19 +182,28 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks):
     """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
-    no staging folder left (serial and on two ranks; the launcher's own lines aside)."""
+    no staging folder left (serial and on two ranks; the launcher's own lines aside). The ten
+    runs go three at a time, each in a copy of the workspace."""
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
     before = _contents(earlier / "out")
     expected = (
         f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
     )
+    spaces = []
     for attempt in range(10):
-        result, seconds = _interrupt_before_the_swap(earlier, sig, ranks)
+        spaces.append(earlier.parent / f"{earlier.name}-{attempt}")
+        shutil.copytree(earlier, spaces[-1])
+    with ThreadPoolExecutor(3) as pool:
+        results = list(pool.map(lambda space: _interrupt_before_the_swap(space, sig, ranks), spaces))
+    for attempt, (space, (result, seconds)) in enumerate(zip(spaces, results)):
         ours = [line for line in result.stderr.splitlines() if line.startswith("lungmech")]
         assert result.returncode == code and ours == [expected], (attempt, result.returncode, result.stderr)
         assert "Traceback" not in result.stderr and "SEGV" not in result.stderr, result.stderr
         assert seconds < 10, (attempt, seconds)
-        assert _contents(earlier / "out") == before
-        assert sorted(p.name for p in earlier.iterdir()) == ["out", "quick.toml", "slow.toml"], attempt
+        assert _contents(space / "out") == before
+        assert sorted(p.name for p in space.iterdir()) == ["out", "quick.toml", "slow.toml"], attempt
 
 
 def test_sigterm_is_handled_after_gmsh_has_read_the_mesh(tmp_path):

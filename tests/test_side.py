@@ -85,7 +85,7 @@ def test_a_descent_held_by_the_det_f_limit_has_not_converged():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("spacing", [2, 1])
+@pytest.mark.parametrize("spacing", [2, pytest.param(1, marks=pytest.mark.long)])  # 1 mm: 35 and 105 s
 @pytest.mark.parametrize("name", ["right", "left"])
 def test_a_realistic_lung_registers_closely_or_says_it_did_not_converge(name, spacing, tmp_path, capsys):
     """Default options, the reference chosen from the image: Dice ≥ 0.98 and HD95 ≤ 2 voxels, or
