@@ -182,10 +182,10 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks):
     """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
-    no staging folder left (serial and on two ranks; the launcher's own lines aside). The ten
-    runs go three at a time, each in a copy of the workspace."""
+    no staging folder left (serial and on two ranks; the launcher's own lines aside). Each run
+    has a copy of the workspace; they go one after another (together they would only slow the
+    rest of the suite: each is CPU-bound)."""
     import shutil
-    from concurrent.futures import ThreadPoolExecutor
 
     before = _contents(earlier / "out")
     expected = (
@@ -195,8 +195,7 @@ def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, s
     for attempt in range(10):
         spaces.append(earlier.parent / f"{earlier.name}-{attempt}")
         shutil.copytree(earlier, spaces[-1])
-    with ThreadPoolExecutor(3) as pool:
-        results = list(pool.map(lambda space: _interrupt_before_the_swap(space, sig, ranks), spaces))
+    results = [_interrupt_before_the_swap(space, sig, ranks) for space in spaces]
     for attempt, (space, (result, seconds)) in enumerate(zip(spaces, results)):
         ours = [line for line in result.stderr.splitlines() if line.startswith("lungmech")]
         assert result.returncode == code and ours == [expected], (attempt, result.returncode, result.stderr)
