@@ -10,6 +10,12 @@ from pathlib import Path
 
 _MPI_ENVIRONMENT = ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")
 STARTED = time.perf_counter()
+# How the full model of an imaged lung is started in the reduced-model benchmarks: as its reduced
+# models are, until they solve the imaged problem at every μ (docs/architecture.md, "One problem").
+SAME_START = (
+    "The full model is started as the reduced models are: the imaged lung unloaded once at the default "
+    "parameters and its loaded state moved to μ (not the image at μ; `lungmech run --set` solves the image at μ)."
+)
 
 
 def cpu_and_memory() -> tuple[str, str]:

@@ -33,7 +33,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from machine import cpu_and_memory, say  # benchmarks/ is the script folder, first on sys.path
+from machine import SAME_START, cpu_and_memory, say  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -80,7 +80,7 @@ def main() -> None:
     unseen = box.sample(args.test, seed=12345)
 
     say("full model: building (unloaded reference at the default parameters)")
-    full = full_order_model(scene, comm)
+    full = full_order_model(scene, comm, start="defaults")  # started as its reduced models are
     dofs = full.model.space.dofmap.index_map.size_global * full.model.space.dofmap.index_map_bs
     references, full_seconds = [], []
     for j, mu in enumerate(unseen):
@@ -140,6 +140,8 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
         f"--sizes {' '.join(map(str, args.sizes))}` on {cpu}, {memory}, 1 rank. Full model: {dofs} dofs. "
         "Times are wall-clock times on the machine as it was (other jobs may have run beside): the errors "
         "are the result, the times an indication.",
+        "",
+        SAME_START,
         "",
         "Parameters: "
         + "; ".join(f"{name} = {spec['target']} in {spec['range']}" for name, spec in PARAMETERS.items()),

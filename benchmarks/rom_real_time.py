@@ -47,7 +47,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from machine import provenance, say, write_results
+from machine import SAME_START, provenance, say, write_results
 from resumable import cached, code_version, kept
 from rom_parameters import PARAMETERS
 
@@ -135,7 +135,7 @@ def case(size: str, args) -> list[dict]:
     scene = lung_scene(size)
     box = Parameters(scene.parameters)
     say(f"h = {size}: building the full model")
-    full = full_order_model(scene)
+    full = full_order_model(scene, start="defaults")  # started as its reduced models are
     model = full.model
     dofs = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
     mesh = model.geometry.mesh
@@ -248,6 +248,8 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
         "at μ alone (reduced Newton from the defaults' state) with its outputs. A run resumes a stopped one: "
         "the greedy and the full model's answers of the same code are kept between runs (benchmarks/resumable.py), "
         "with the times they took then.",
+        "",
+        SAME_START,
         *[
             f"Rows of h = {', '.join(dict.fromkeys(str(r['mesh h [mm]']) for r in rows if (r['command'], r['date']) == (c, d)))} "
             f"(kept from an earlier run): `{c}`, {d}."

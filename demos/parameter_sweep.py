@@ -6,10 +6,11 @@ gets two parameters:
 Pa; the breath doubles it). The demo solves the 3 × 3 grid of them through Python — one
 FullOrderModel, whose forms are compiled once; the sweep counts FFCx calls and finds none — and
 prints the tidal volume (end-inspiration minus end-expiration volume, litres) of each point. The
-imaged lung is unloaded once, at the default parameters (c1 = 200 Pa, −500 Pa), and each point is
-reached from there. With ``--cli`` it runs the same grid through ``lungmech run SCENE --set ...``
-in fresh processes sharing a new FFCx cache (each run unloads the imaged lung for its own values)
-and prints the compiled forms in the cache after each run: only the first run adds any.
+mesh is the lung imaged at end-expiration *at every point*: each solve finds the unloaded reference
+for its own stiffness and pressure (the scene's [inverse]; ``lungmech run --set`` solves the same
+problem). With ``--cli`` it runs the same grid through ``lungmech run SCENE --set ...`` in fresh
+processes sharing a new FFCx cache and prints the compiled forms in the cache after each run: only
+the first run adds any.
 Writes parameter_sweep.png (tidal volume against stiffness, one curve per pleural pressure).
 
     python demos/parameter_sweep.py [-o demos/output/parameter_sweep] [--cli]
@@ -28,9 +29,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
+from mpi4py import MPI
+
 import matplotlib.pyplot as plt
 import numpy as np
-from mpi4py import MPI
 
 from lungmech.app import scene as scenes
 from lungmech.app.run import full_order_model
@@ -167,7 +169,7 @@ def _picture(tidal: np.ndarray, path: Path) -> None:
     axes.set_ylim(0.0, 1.05 * tidal.max())
     axes.set_xlabel("skeleton stiffness c1 [Pa]")
     axes.set_ylabel("tidal volume [L]")
-    axes.set_title("Right lung phantom: tidal volume of one breath", fontsize=11)
+    axes.set_title("Right lung phantom, imaged at end-expiration: tidal volume of one breath", fontsize=10)
     axes.legend(title="pleural pressure, expiration → inspiration", fontsize=8, title_fontsize=8, loc="lower left")
     figure.tight_layout()
     figure.savefig(path, dpi=150)

@@ -97,6 +97,73 @@ def test_the_rules_can_fail():
     assert any("rom/_probe.py imports lungmech.registration" in line for line in found)
 
 
+def _physics_tests(path: Path, source: str | None = None) -> list[str]:
+    """Where an application module recognises physics itself instead of asking the model: an
+    ``isinstance``/``issubclass`` against a class it imported from the library below it (a load,
+    a formulation, a solver), or a test of a model's field names (``"p" in model.fields``,
+    ``model.fields["phi_s"]``)."""
+    tree = ast.parse(path.read_text() if source is None else source)
+    library = set()  # names imported from lungmech's parts below the application
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module == "lungmech":  # from lungmech import lung
+            library |= {a.asname or a.name for a in node.names if a.name in LAYERS and a.name != "app"}
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("lungmech."):
+            if _part(node.module) in LAYERS and _part(node.module) != "app":
+                library |= {alias.asname or alias.name for alias in node.names}
+        elif isinstance(node, ast.Import):
+            library |= {a.asname or a.name.split(".")[-1] for a in node.names if a.name.startswith("lungmech.")}
+    found = []
+
+    def classes(node) -> list[ast.AST]:
+        return list(node.elts) if isinstance(node, ast.Tuple) else [node]
+
+    def root(node) -> str | None:
+        while isinstance(node, ast.Attribute):
+            node = node.value
+        return node.id if isinstance(node, ast.Name) else None
+
+    for node in ast.walk(tree):
+        where = f"{path.name}:{getattr(node, 'lineno', 0)}"
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id in ("isinstance", "issubclass")
+        ):
+            if len(node.args) == 2 and any(root(c) in library | {"lungmech"} for c in classes(node.args[1])):
+                found.append(f"{where}: {ast.unparse(node)}")
+        is_fields = lambda n: isinstance(n, ast.Attribute) and n.attr == "fields"  # noqa: E731
+        if isinstance(node, ast.Compare) and any(isinstance(o, ast.In | ast.NotIn) for o in node.ops):
+            if any(is_fields(c) for c in node.comparators):
+                found.append(f"{where}: {ast.unparse(node)}")
+        if isinstance(node, ast.Subscript) and is_fields(node.value):
+            found.append(f"{where}: {ast.unparse(node)}")
+    return found
+
+
+def test_the_application_asks_the_model_about_physics():
+    """No type or field-name tests of physics in app/: the model says what it is (its outputs,
+    its formulation's fields and averages, lungmech.lung.pressure_axis)."""
+    found = [line for path in sorted((PACKAGE / "app").glob("*.py")) for line in _physics_tests(path)]
+    assert found == []
+
+
+def test_a_physics_test_in_the_application_is_caught():
+    """The checker is not vacuous: the old cases are caught."""
+    probe = PACKAGE / "app" / "_probe.py"
+    source = (
+        "from lungmech import lung\n"
+        "from lungmech.fem.loads import FollowerPressure\n"
+        "def f(model, load, scene):\n"
+        "    a = isinstance(scene.formulation, lung.Poromechanics)\n"
+        "    b = isinstance(load, (int, FollowerPressure))\n"
+        "    c = 'phi_s' in model.fields\n"
+        "    d = model.fields['p']\n"
+        "    e = isinstance(load, dict) and scene.output.fields\n"
+    )
+    found = _physics_tests(probe, source)
+    assert [line.split(":")[1] for line in found] == ["4", "5", "6", "7"]
+
+
 def test_base_modules_import_no_part():
     for name in ("errors", "checks"):
         assert not {i for i in _imports(PACKAGE / f"{name}.py") if _part(i) in LAYERS}

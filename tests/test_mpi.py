@@ -4,12 +4,14 @@ Run under ``mpiexec -n 2`` by ``make test`` (they also pass serially, trivially)
 """
 
 import json
+import tomllib
+
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 from fem import MESHES as MESHES_DIR
 from fem import inflated_sphere, mean_inner_radius
-from mpi4py import MPI
 
 from lungmech.app import scene as scenes
 from lungmech.app.run import run
@@ -819,3 +821,21 @@ def test_a_model_file_is_data_on_every_rank(tmp_path, capsys):
         assert (folder / "notes.txt").read_text() == "patient 7: do not lose\n"
         assert not (folder / "out").exists()
         comm.Barrier()
+
+
+def test_the_imaged_problem_at_every_mu_same_on_all_ranks_as_on_one():
+    """The imaged cube of test_one_path, solved at a μ off the defaults (each solve unloads it
+    there; the probe is a material point of the image): the same on two ranks as on one."""
+    from test_one_path import IMAGED, MU
+
+    from lungmech.app.run import full_order_model
+
+    def answer(comm) -> np.ndarray:
+        solution = full_order_model(scenes.parse(tomllib.loads(IMAGED)), comm).solve(MU)
+        start = solution.start.details
+        return np.concatenate(
+            [solution.outputs["volume"], solution.outputs["probes"].ravel(), [start["reference_volume"]]]
+        )
+
+    parallel, serial = answer(MPI.COMM_WORLD), answer(MPI.COMM_SELF)
+    assert np.allclose(parallel, serial, rtol=1e-8, atol=1e-12)

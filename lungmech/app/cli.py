@@ -256,7 +256,24 @@ def _common(command: argparse.ArgumentParser, default: str) -> None:
         metavar="NAME=VALUE",
         help="set a parameter of the scene's [parameters] (repeatable); checked against its range",
     )
+    command.add_argument(
+        "--at",
+        type=_seconds,
+        metavar="T",
+        help="a static answer: the equilibrium at time T (s) of the load path (the path stops there); "
+        "summary.json's outputs hold it",
+    )
     command.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"--at takes a time in s, a finite number (got {text!r})")
+    return value
 
 
 def _assignment(text: str) -> tuple[str, float]:
@@ -389,7 +406,7 @@ def _sweep(args) -> int:
     output = args.output if args.output is not None else RESULTS / f"{Path(args.model).stem}-sweep"
     if comm.rank == 0:
         print(f"lungmech: sweeping the reduced model {args.model} over the points of {args.sweep}", flush=True)
-    summary = sweep(args.model, args.sweep, output, comm, dict(args.set))
+    summary = sweep(args.model, args.sweep, output, comm, dict(args.set), None if args.at is None else [args.at])
     if comm.rank == 0:
         largest = summary["error_indicator_largest"]
         estimate = f"; largest estimated error {largest:.1e} (relative, energy norm)" if largest is not None else ""
@@ -403,9 +420,9 @@ def _sweep(args) -> int:
 
 def _solve(args, comm, scene, name: str, path: Path) -> int:
     from lungmech.app.console import end_of_run
-    from lungmech.app.run import check_scale, full_order, run
+    from lungmech.app.run import check_scale, full_order_model, run
 
-    prepare, inputs, note = full_order, [], None
+    model, inputs, note = full_order_model, [], None
     if args.set:
         scene = scene.with_values(dict(args.set))
     if len(args.scale) > 1:
@@ -415,7 +432,7 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         from lungmech.app.reduce import reduced_order, trained_range
         from lungmech.rom import store
 
-        prepare, inputs = reduced_order(args.model, inside=args.scene is None), [args.model]
+        model, inputs = reduced_order(args.model, inside=args.scene is None), [args.model]
         note = trained_range(store.read_on_root(args.model, comm, arrays=False)[0]["extra"], scale)
     default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
     output = args.output if args.output is not None else RESULTS / default
@@ -424,16 +441,30 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)
         if note:
             print(f"lungmech: note: {note}", flush=True)
-    summary = run(scene, output, comm, scale=scale, prepare=prepare, inputs=inputs)
+    summary = run(scene, output, comm, scale=scale, model=model, inputs=inputs, times=_at(args, scene))
     if comm.rank == 0:
         print(end_of_run(summary, Path(output).resolve()))
     return 0
 
 
+def _at(args, scene) -> list[float] | None:
+    """The static answer's time (--at T, s), checked against the scene's load path."""
+    if args.at is None:
+        return None
+    stepping = scene.stepping
+    if not stepping.start <= args.at <= stepping.end:
+        raise ParameterError(
+            f"--at {args.at:g} s lies outside the scene's load path [{stepping.start:g}, {stepping.end:g}] s "
+            "([stepping] start and end)"
+        )
+    return [args.at]
+
+
 def _info() -> int:
-    import dolfinx
     import petsc4py
     from mpi4py import MPI
+
+    import dolfinx
 
     import lungmech
     from lungmech.fem.materials import LAWS

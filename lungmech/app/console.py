@@ -106,7 +106,8 @@ def _terminal(stream: TextIO) -> bool:
 def end_of_run(summary: dict, folder: Path) -> str:
     """The closing line of a run: the work done and the volumes a physiologist reads."""
     largest = summary["largest_volume"]
-    start = "imaged (start)" if summary.get("inverse") else "start"
+    imaged = summary["start"]["kind"] == "imaged"
+    start = "imaged (start)" if imaged else "start"
 
     def show(value: float) -> str:
         return volume_text(value, bool(summary.get("plane")))
@@ -117,7 +118,7 @@ def end_of_run(summary: dict, folder: Path) -> str:
         f"({summary['solver']}); volume: {start} {show(summary['start_volume'])}, largest "
         f"{show(largest['volume'])} at t = {largest['time']:.3g} s, final {show(summary['deformed_volume'])}"
     )
-    if summary.get("inverse"):
+    if imaged:
         text += f"; unloaded reference {show(summary['reference_volume'])}"
     if summary.get("error_indicator") is not None:
         text += f"; estimated error {summary['error_indicator']:.1e} (relative, energy norm)"

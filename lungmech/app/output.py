@@ -15,11 +15,12 @@ import json
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+from mpi4py import MPI
+
 import meshio
 import numpy as np
 import ufl
 from dolfinx import fem, plot
-from mpi4py import MPI
 
 from lungmech.parallel import on_root, together
 
@@ -44,7 +45,9 @@ def cell_fields(model) -> dict[str, ufl.core.expr.Expr]:
 
 
 class FieldWriter:
-    """Time series of the displacement and the cell fields of ``model`` in ``folder``.
+    """Time series of the displacement, the formulation's ``point_fields`` (at the displacement's
+    nodes) and the cell fields of ``model`` in ``folder``, on the mesh's nodes at construction
+    (make it once the reference is in place: an inverse problem moves it).
 
     Collective: construct, :meth:`write` and :meth:`close` on every rank.
     """
@@ -57,11 +60,13 @@ class FieldWriter:
         self._u = model.displacement()
         self._u.name = "displacement"
         self._point = [self._u]
-        if "p" in model.fields:  # the mixed formulation's pressure, at the displacement's nodes
-            space = fem.functionspace(mesh, ("Lagrange", model.degree))
-            collapsed, dofs = model.space.sub(1).collapse()
-            self._p = (fem.Function(space, name="pressure"), fem.Function(collapsed), dofs)
-            self._point.append(self._p[0])
+        # The formulation's scalar fields at the displacement's nodes (the mixed pressure, say).
+        nodal = fem.functionspace(mesh, ("Lagrange", model.degree))
+        self._nodal = [
+            (fem.Function(nodal, name=name), fem.Expression(expr, nodal.element.interpolation_points))
+            for name, expr in getattr(model.formulation, "point_fields", lambda model: {})(model).items()
+        ]
+        self._point += [function for function, _ in self._nodal]
         dg0 = fem.functionspace(mesh, ("DG", 0))
         self._cells = [
             (fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
@@ -83,11 +88,7 @@ class FieldWriter:
 
     def write(self, t: float) -> None:
         self._u.x.array[:] = self._model.displacement().x.array
-        if len(self._point) > 1:
-            pressure, collapsed, dofs = self._p
-            collapsed.x.array[:] = self._model.state.x.array[dofs]
-            pressure.interpolate(collapsed)
-        for function, expression in self._cells:
+        for function, expression in (*self._nodal, *self._cells):
             function.interpolate(expression)
         if self._vtx is not None:
             for writer in self._vtx:

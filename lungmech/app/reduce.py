@@ -21,22 +21,24 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech import checks
 from lungmech.app import scene as scenes
-from lungmech.app.run import Prepared, Scale, build_model, check_scale
+from lungmech.app.run import IMAGED_AT_DEFAULTS, Scale, body_name, build_model, check_scale
 from lungmech.app.scene import ImageLabel, Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.parametric import FullOrderModel, approach
+from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.start import StartReport
 from lungmech.lung.inverse import unloaded_reference
 from lungmech.mesh import nodes
 from lungmech.mesh.files import companions
@@ -268,23 +270,11 @@ def _greedy_summary(trained: Greedy | None, tolerance: float | None, parameters:
     }
 
 
-def reduced_order(path: str | Path, inside: bool = False):
-    """The ``prepare`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``;
-    ``inside``: the run's scene is the one the file holds (:func:`embedded_scene`), else it is
-    checked to model the same physics."""
-    return partial(_prepare, Path(path), inside)
-
-
-def _prepare(path: Path, inside: bool, model, scene: Scene, folder: Path) -> Prepared:
-    values = dict(model.parameter_values)  # the scene's, with --set
-    reduced, placed = _reduced(path, model, scene, inside)
-    # The stored start is an equilibrium at the default parameters: move it to the asked ones.
-    model.set_parameters(model.parameters.defaults)
-    model.state.x.array[:] = reduced.start
-    model.state.x.scatter_forward()
-    reduced.restart()
-    approach(model, reduced.solver, values, model.parameters.defaults, scene.stepping.start, first_step=1.0)
-    return Prepared(reduced.solver, {"reference": "from the reduced model"} if placed else None, reduced.estimate)
+def reduced_order(path: str | Path, inside: bool = False) -> Callable[[Scene, MPI.Comm], ReducedModel]:
+    """The ``model`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``: a
+    function of the run's scene and communicator. ``inside``: the run's scene is the one the
+    file holds (:func:`embedded_scene`), else it is checked to model the same physics."""
+    return lambda scene, comm: _reduced(Path(path), build_model(scene, comm), scene, inside)
 
 
 def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
@@ -292,13 +282,14 @@ def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
     Collective."""
     with embedded_scene(path, comm) as scene:
         model = build_model(scene, comm)
-    return _reduced(Path(path), model, scene, inside=True)[0]
+    return _reduced(Path(path), model, scene, inside=True)
 
 
-def _reduced(path: Path, model, scene: Scene, inside: bool) -> tuple[ReducedModel, bool]:
-    """The reduced model of ``path`` on ``model`` (the scene's, just built), and whether it moved
-    the mesh to the unloaded reference stored with it. ``inside``: ``scene`` is the file's own;
-    otherwise it must model the physics of the file's scene."""
+def _reduced(path: Path, model, scene: Scene, inside: bool) -> ReducedModel:
+    """The reduced model of ``path`` on ``model`` (the scene's, just built on its mesh).
+    ``inside``: ``scene`` is the file's own; otherwise it must model the physics of the file's
+    scene. A model of a scene with [inverse] moves the mesh to the unloaded reference stored
+    with it (found at the default parameters), and says so in every answer's start."""
     comm = model.geometry.mesh.comm
     metadata, arrays = store.read_on_root(path, comm)  # arrays on rank 0 only
     extra = metadata["extra"]
@@ -308,8 +299,16 @@ def _reduced(path: Path, model, scene: Scene, inside: bool) -> tuple[ReducedMode
     where = layout(model.space)  # of the imaged mesh; its dof order survives moving the nodes
     if where.fingerprint != extra["imaged_fingerprint"]:
         raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
+    probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
+    described = None
     if "reference_nodes" in arrays:  # the unloaded reference found offline
+        imaged = model.geometry.volume()
         nodes.place_canonical(*nodes.displacement_space(model.geometry.mesh), arrays["reference_nodes"])
+        described = StartReport(
+            "equilibrium",
+            IMAGED_AT_DEFAULTS.format(body=body_name(model)),
+            details={"imaged_volume": imaged, "reference_volume": model.geometry.volume()},
+        )
     basis, _, arrays = store.load(path, model, content=(metadata, arrays))  # checked on the moved mesh
     owned = basis.vectors.shape[0]
     model.state.x.array[:owned] = where.scatter(arrays["start"])
@@ -319,10 +318,9 @@ def _reduced(path: Path, model, scene: Scene, inside: bool) -> tuple[ReducedMode
     training = metadata["extra"].get("training", [])
     sample = _sample(model, metadata["extra"].get("hyper"), arrays)
     enrichment = where.scatter(arrays["enrichment"]) if "enrichment" in arrays else None
-    reduced = ReducedModel(
-        model, basis, scene.stepping, scene.newton, start, scene.output.probes, training, sample, enrichment
+    return ReducedModel(
+        model, basis, scene.stepping, scene.newton, start, probes, training, sample, enrichment, described
     )
-    return reduced, "reference_nodes" in arrays
 
 
 def _sample(model, hyper: dict | None, arrays: dict) -> ecsw.Sample | None:

@@ -3,14 +3,21 @@
 A run writes into a staging folder that replaces its output folder only when everything has
 succeeded (see :mod:`lungmech.parallel.destination`). Files, with SI units throughout:
 
-* ``summary.json``: the run's numbers, a ``units`` table naming the unit of each, and its
+* ``summary.json``: the run's numbers — what the start was (``start``), the answer at the
+  output times (``outputs``) —, a ``units`` table naming the unit of each, and its
   ``provenance`` (lungmech version, the scene file and its SHA-256, MPI ranks, date);
-* ``history.csv``: one row per accepted step, columns ``name [unit]``;
+* ``history.csv``: one row per accepted state (the start, then every load step), columns
+  ``name [unit]``: the model's outputs (volume, strain energy, the loads as applied, the
+  formulation's averages, probes) and the step's work;
 * ``fields.pvd`` with ``.vtu`` files (or ADIOS2 ``.bp`` folders): fields at every step;
 * ``deformed.png``: the body at its largest volume, coloured by J;
 * ``pressure_volume.png`` when the scene has pressure loads: volume against the transpulmonary
   pressure of a lung (or against the first pressure load of another body);
 * ``reference.xdmf`` for a scene with [inverse]: the unloaded reference it found.
+
+The run talks to the model only through ``solve(mu, on_step=...)`` and ``fields(state, t)``
+(:class:`~lungmech.fem.parametric.ParametricModel`): full-order, reduced and hyper-reduced runs
+write the same files the same way.
 """
 
 from __future__ import annotations
@@ -19,14 +26,15 @@ import csv
 import datetime
 import hashlib
 import json
+import logging
 import platform
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 import lungmech
 from lungmech import lung
@@ -36,16 +44,16 @@ from lungmech.app.output import FieldWriter, write_json
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ParameterError
-from lungmech.fem.loads import FollowerPressure, is_pressure
 from lungmech.fem.model import Model
-from lungmech.fem.parametric import FullOrderModel
-from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
-from lungmech.fem.solver import NewtonSolver, Solver, StepReport, solve
-from lungmech.lung.inverse import InverseReport, unloaded_reference
+from lungmech.fem.parametric import FullOrderModel, ParametricModel, Solution, Step
+from lungmech.fem.quantities import Probe
+from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.start import Equilibrium, StartReport
 from lungmech.mesh import write as write_geometry
 from lungmech.parallel import deferred, on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
-from lungmech.rom.indicator import relative
+
+log = logging.getLogger("lungmech")
 
 Scale = float | Sequence[float]
 
@@ -75,6 +83,13 @@ SUMMARY_UNITS = {
     "inverse.seconds": "s",
     "inverse.imaged_volume": "m^3",
     "inverse.reference_volume": "m^3",
+    "start.volume": "m^3",
+    "start.imaged_volume": "m^3",
+    "start.from_image": "m^3 (the start's volume minus the image's)",
+    "start.reference_volume": "m^3",
+    "start.seconds": "s",
+    "start.newton_iterations": "1",
+    "outputs": "time s, volume m^3, strain_energy J, probes m, loads/<label> Pa, averages/<name> as in history.csv",
     "error_indicator": "1 (a reduced model's estimate of its relative energy-norm error)",
 }
 _COLUMN_UNITS = {
@@ -83,10 +98,6 @@ _COLUMN_UNITS = {
     "strain_energy": "J",
     "newton_iterations": "1",
     "step_seconds": "s",
-    "phi_s": "1",
-    "phi_f": "1",
-    "phi_s_current": "1",
-    "green_lagrange_mean": "1",
     "error_indicator": "1",
 }
 
@@ -109,58 +120,38 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
     return model
 
 
-def full_order_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> FullOrderModel:
-    """The scene's full-order model as a parametric model (``solve(mu)``). A scene with [inverse]
-    first finds the unloaded reference of its imaged mesh, once, at the default parameters; every
-    solve then starts from the imaged state. Collective."""
+def body_name(model: Model) -> str:
+    """ "lung" for a body whose P–V pressure is a lung's (see :mod:`lungmech.lung.pressure`), else "body"."""
+    axis = lung.pressure_axis(model.loads, model.formulation)
+    return "lung" if axis is not None and axis.lung else "body"
+
+
+IMAGED_AT_DEFAULTS = "the imaged {body} unloaded at the default parameters, moved to μ (not the image at μ)"
+
+
+def full_order_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, *, start: str = "imaged") -> FullOrderModel:
+    """The scene's full-order model (``solve(mu)``). A scene with [inverse] solves the problem of
+    an imaged body: its mesh is the loaded state at the start for every μ, and each solve finds
+    the unloaded reference at its μ (:class:`lungmech.lung.inverse.Imaged`); probe points are
+    then points of the image. ``start="defaults"`` instead finds the reference once, at the
+    default parameters, and moves its loaded state to each μ (:class:`~lungmech.fem.start.
+    Equilibrium`): what the reduced models of such a scene do for now, to compare them with a
+    full model started the same way. Collective."""
+    if start not in ("imaged", "defaults"):
+        raise ParameterError(f"start must be 'imaged' or 'defaults' (got {start!r})")
     model = build_model(scene, comm)
-    solver = NewtonSolver(model, scene.newton)
-    start = None
+    probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
+    first = None
     if scene.inverse is not None:
-        model.set_parameters(model.parameters.defaults)
-        unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver)
-        start = model.state.x.array.copy()
-        model.set_parameters(scene.values)
-    return FullOrderModel(model, scene.stepping, scene.newton, scene.output.probes, start, solver)
-
-
-def load_values(scene: Scene, t: float, scale: Scale = 1.0) -> dict[str, float]:
-    """The current values (Pa) of the scene's scalar (pressure) loads, by label; ``scale``
-    multiplies their change since the start, as in :meth:`Model.set_time`."""
-    values = {}
-    factors = np.broadcast_to(np.asarray(scale, dtype=float), (len(scene.loads),))
-    for load, factor in zip(scene.loads, factors):
-        if is_pressure(load):
-            base = load.ramp(scene.stepping.start)
-            values[load.label] = (base + factor * (load.ramp(t) - base)) * load.value
-    return values
-
-
-def pressure_axis(scene: Scene) -> tuple[str, Callable[[dict[str, float]], float], list[str]] | None:
-    """The pressure of the P–V curve: its name, its value from the load values by label, and
-    what it is made of. For a lung (the lung model, an alveolar pressure, or a follower pressure
-    on the pleura), the transpulmonary pressure p_alv − p_pl (p_pl: the follower pressure on the
-    pleura, or the first one); otherwise the first pressure load. None without pressure loads."""
-    scalars = [load for load in scene.loads if is_pressure(load)]
-    if not scalars:
-        return None
-    alveolar = [load.label for load in scalars if isinstance(load, lung.AlveolarPressure)]
-    followers = [load for load in scalars if isinstance(load, FollowerPressure)]
-    on_pleura = [
-        load
-        for load in followers
-        if "pleura" in ((load.boundary,) if isinstance(load.boundary, str) else load.boundary)
-    ]
-    pleural = [load.label for load in (on_pleura or followers)[:1]]
-    if alveolar or on_pleura or isinstance(scene.formulation, lung.Poromechanics):
-        parts = [f"p_pl: {' + '.join(pleural) or 'none (0)'}", f"p_alv: {' + '.join(alveolar) or 'atmospheric (0)'}"]
-        return (
-            "transpulmonary pressure p_alv − p_pl",
-            lambda v: sum(v[a] for a in alveolar) - sum(v[p] for p in pleural),
-            parts,
-        )
-    first = scalars[0].label
-    return first, lambda v: v[first], []
+        imaged = lung.Imaged(model, scene.inverse, body_name(model))
+        first = imaged
+        if start == "defaults":
+            solver = NewtonSolver(model, scene.newton)
+            placed = imaged.place(model, solver, model.parameters.defaults, scene.stepping.start)
+            details = {"imaged_volume": imaged.volume, "reference_volume": placed.details["reference_volume"]}
+            first = Equilibrium(model.state.x.array.copy(), IMAGED_AT_DEFAULTS.format(body=imaged.body), details)
+            return FullOrderModel(model, scene.stepping, scene.newton, probes, first, solver)
+    return FullOrderModel(model, scene.stepping, scene.newton, probes, first)
 
 
 def check_scale(scene: Scene, scale: Scale) -> Scale:
@@ -176,59 +167,20 @@ def check_scale(scene: Scene, scale: Scale) -> Scale:
     return scale
 
 
-@dataclass(frozen=True)
-class Prepared:
-    """What a run's ``prepare`` step gives: the solver; what it did to the reference (the inverse
-    problem's report, or None); and for a reduced model that estimates its error, the estimate
-    at the current state, (η̂(t), ‖V q‖_E) (:class:`lungmech.rom.indicator.EnrichedIndicator`)."""
-
-    solver: Solver
-    reference: dict | None = None
-    estimate: Callable[[], tuple[float, float]] | None = None
-
-
-def full_order(model: Model, scene: Scene, folder: Path) -> Prepared:
-    """The full-order solver, after unloading the imaged mesh when the scene asks for it."""
-    solver = NewtonSolver(model, scene.newton)
-    return Prepared(solver, _unload(model, scene, solver, folder) if scene.inverse is not None else None)
-
-
-def _unload(model: Model, scene: Scene, solver: NewtonSolver, folder: Path) -> dict:
-    """Replace the (imaged) mesh by its unloaded reference; write it; report how it went."""
-    imaged_volume = model.geometry.volume()
-    body = "lung" if _is_lung(scene) else "body"
-    progress = Progress("unloading the imaged lung" if body == "lung" else "finding the unloaded reference")
-    tolerance, most = scene.inverse.tolerance, scene.inverse.max_iterations
-
-    def show(report: InverseReport) -> None:
-        first, mismatch = report.mismatch[0], report.mismatch[-1]
-        done = np.log(first / max(mismatch, tolerance)) / np.log(first / tolerance) if first > tolerance else 1.0
-        progress.update(
-            done,
-            f"iteration {report.iterations}/{most}: mismatch {mismatch:.2e} of the {body}'s size "
-            f"(target {tolerance:.0e})",
+def start_text(start: StartReport, planar: bool) -> str:
+    """One line on what a solve started from: the start's description, its volume, and where the
+    start is an imaged body's, the image's volume and how far the start lies from it."""
+    details = start.details
+    text = f"start: {start.description}"
+    if "volume" in details:
+        text += f"; volume {volume_text(details['volume'], planar)}"
+    if "from_image" in details:
+        sign = "+" if details["from_image"] >= 0 else "−"
+        text += (
+            f" (the image {volume_text(details['imaged_volume'], planar)}; "
+            f"{sign}{volume_text(abs(details['from_image']), planar)} from it)"
         )
-
-    report = unloaded_reference(model, scene.stepping.start, scene.inverse, solver=solver, monitor=show)
-    progress.close(
-        f"unloaded reference found in {report.iterations} iterations, volume "
-        f"{volume_text(model.geometry.volume(), model.plane is not None)} (imaged {volume_text(imaged_volume, model.plane is not None)})"
-    )
-    write_geometry(model.geometry, folder / "reference.xdmf")
-    return {
-        "iterations": report.iterations,
-        "mismatch": report.mismatch,
-        "newton_iterations": report.newton_iterations,
-        "seconds": report.seconds,
-        "imaged_volume": imaged_volume,
-        "reference_volume": model.geometry.volume(),
-    } | ({"porosity_mismatch": report.porosity} if report.porosity else {})
-
-
-def _is_lung(scene: Scene) -> bool:
-    return isinstance(scene.formulation, lung.Poromechanics) or any(
-        isinstance(load, lung.AlveolarPressure) for load in scene.loads
-    )
+    return text
 
 
 def run(
@@ -237,18 +189,20 @@ def run(
     comm: MPI.Comm = MPI.COMM_WORLD,
     *,
     scale: Scale = 1.0,
-    prepare: Callable[[Model, Scene, Path], Prepared] = full_order,
+    model: Callable[[Scene, MPI.Comm], ParametricModel] = full_order_model,
     inputs: Sequence[str | Path] = (),
+    times: Sequence[float] | None = None,
 ) -> dict:
     """Solve ``scene`` and write its results into the folder ``out`` (see the module's doc).
 
-    A scene with [inverse] first moves its (imaged) mesh to the unloaded reference; stepping
-    then starts from the imaged state. ``scale`` multiplies the loads' change from the start
-    (one factor, or one per load): a deeper breath from the same end-expiration.
-    ``prepare(model, scene, folder)`` returns the :class:`Prepared` solver (default
-    :func:`full_order`; a reduced model's is in :mod:`lungmech.app.reduce`, whose error
-    estimate, if it has one, becomes the history's ``error_indicator`` column and the summary's). ``inputs`` are further files the run reads (beyond the scene's
-    own), which ``out`` must not hold.
+    ``model(scene, comm)`` gives the parametric model that answers it (default: the scene's
+    :func:`full_order_model`; a reduced one is :func:`lungmech.app.reduce.reduced_order`), solved
+    once at the scene's parameter values (``--set`` included) with ``solve(mu, on_step=...)``:
+    the history holds every accepted state, the summary the answer at the output times — or at
+    ``times`` (s): a static answer, the equilibrium at T. ``scale`` multiplies the loads' change
+    from the start (one factor, or one per load): a deeper breath from the same end-expiration.
+    ``inputs`` are further files the run reads (beyond the scene's own), which ``out`` must not
+    hold.
 
     ``out`` is checked before any work (see :func:`lungmech.parallel.destination.output_folder`) and
     replaced only when the run succeeds. Collective. Returns the summary.
@@ -258,129 +212,70 @@ def run(
     command = f"lungmech run {scene.source}" if scene.source else "lungmech.app.run.run"
     with output_folder(out, comm, inputs=[*scene.inputs, *inputs], command=command) as staging:
         tic = time.perf_counter()
-        model = build_model(scene, comm)
+        parametric = model(scene, comm)
+        fem_model = parametric.model
         timings["build"] = time.perf_counter() - tic
+        planar = fem_model.plane is not None
+        axis = lung.pressure_axis(fem_model.loads, fem_model.formulation)
+        fields = (staging, scene.output.format) if scene.output.fields else None
+        recorder = _Recorder(parametric, axis, fields, comm)
         tic = time.perf_counter()
-        prepared = prepare(model, scene, staging)
-        solver, inverse = prepared.solver, prepared.reference
-        timings["prepare"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        volume, energy = deformed_volume(model), strain_energy(model)
-        fractions = lung.averages(model) if "phi_s" in model.fields else {}
-        probe = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else None
-        writer = FieldWriter(model, staging, scene.output.format) if scene.output.fields else None
-        timings["compile"] = time.perf_counter() - tic
-
-        axis = pressure_axis(scene)
-        stepping = scene.stepping
-        progress = Progress("breathing" if axis and axis[0].startswith("transpulmonary") else "loading")
-        history = []
-        largest = {"volume": -np.inf, "state": None, "time": 0.0}  # pictured at the end
-        estimates = []  # (η̂(t), change(t)) of a reduced model that estimates its error
-
-        def record(step: StepReport | None) -> None:
-            solver.update_model()  # a hyper-reduced solver iterates on q: the fields written need x
-            row = {"time": model.time, "volume": volume(), "strain_energy": energy()}
-            loads = load_values(scene, model.time, scale)
-            row |= loads
-            row |= {name: mean() for name, mean in fractions.items()}
-            if step is not None:
-                row |= {"newton_iterations": step.iterations, "step_seconds": step.seconds}
-            if prepared.estimate is not None:
-                estimates.append(prepared.estimate())
-                row["error_indicator"] = relative(estimates)  # of the path so far
-            if probe is not None:
-                for i, value in enumerate(probe(model.displacement())):
-                    row |= {f"probe{i}_u{letter}": component for letter, component in zip("xyz", value)}
-            history.append(row)
-            if row["volume"] > largest["volume"]:
-                largest.update(volume=row["volume"], state=model.state.x.array.copy(), time=model.time)
-            if writer is not None:
-                with deferred(comm):  # a collective write: not cut on one rank only
-                    writer.write(model.time)
-            shown = (
-                f"  {'P_L' if axis[0].startswith('transpulmonary') else 'p'} {show_pressure(axis[1](loads))}"
-                if axis
-                else ""
-            )
-            newton = f"  {step.iterations} Newton" if step is not None else ""
-            progress.update(
-                (model.time - stepping.start) / (stepping.end - stepping.start),
-                f"step {len(history) - 1}  t = {model.time:.3g}/{stepping.end:g} s{shown}  "
-                f"volume {volume_text(row['volume'], model.plane is not None)}{newton}",
-            )
-
-        def cut(step: StepReport) -> None:
-            if not step.converged:
-                progress.note(
-                    f"t = {step.time:.4g} s: Newton did not converge ({step.reason}); step cut back to "
-                    f"dt = {step.step / 2:.3g} s (normal adaptivity)"
-                )
-
         try:
-            record(None)
-            report = solve(
-                model,
-                stepping,
-                solver=solver,
-                on_step=record,
-                monitor=cut,
-                drive=lambda t: model.set_time(t, load_factor=scale, about=stepping.start),
-                breakpoints=model.breakpoints,
+            solution = parametric.solve(
+                scene.values, scale=scale, times=times, on_step=recorder, progress=recorder.start_progress
             )
         finally:  # ADIOS2 must let go of its files before a failed staging folder is removed
-            if writer is not None:
-                writer.close()
-        progress.close(
-            f"{len(report.accepted)} steps ({report.failures} cut back), {report.newton_iterations} Newton iterations"
-        )
-        timings["solve"] = report.seconds
+            recorder.close_fields()
+        timings["solve"] = time.perf_counter() - tic
+        recorder.close()
 
         # Outputs are collective writes: a signal now waits, and stops every rank together.
         hold_signals_until_swap()
-        mesh = model.geometry.mesh
+        history, start = recorder.history, solution.start
+        if start.kind == "imaged":
+            write_geometry(fem_model.geometry, staging / "reference.xdmf")
+        mesh = fem_model.geometry.mesh
         summary = {
             "title": scene.title,
-            "parameters": model.parameter_values,
+            "parameters": solution.parameters,
             "provenance": provenance(scene, comm),
             "mpi_ranks": comm.size,
-            "dofs": model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs,
+            "dofs": fem_model.space.dofmap.index_map.size_global * fem_model.space.dofmap.index_map_bs,
             "cells": mesh.topology.index_map(mesh.topology.dim).size_global,
             "law": scene.material.name,
             "degree": scene.degree,
             "formulation": type(scene.formulation).__name__,
-            "steps": len(report.accepted),
-            "cut_steps": report.failures,
-            "newton_iterations": report.newton_iterations,
+            "steps": recorder.steps,
+            "cut_steps": recorder.cuts,
+            "newton_iterations": recorder.newton_iterations,
             "timings_seconds": timings,
+            "start": {"kind": start.kind, "description": start.description, **start.details},
             "start_volume": history[0]["volume"],
-            "reference_volume": model.geometry.volume(),
+            "reference_volume": fem_model.geometry.volume(),
             "deformed_volume": history[-1]["volume"],
-            "largest_volume": {"volume": largest["volume"], "time": largest["time"]},
+            "largest_volume": {"volume": recorder.largest["volume"], "time": recorder.largest["time"]},
             "strain_energy": history[-1]["strain_energy"],
-            "inverse": inverse,
+            "inverse": start.details if start.kind == "imaged" else None,
             "load_scale": np.asarray(scale, dtype=float).tolist(),
-            "solver": solver.description,
-            "error_indicator": relative(estimates) if prepared.estimate is not None else None,
-            "linear_solver": getattr(solver, "linear_solver", None),  # what "auto" chose, or was pushed to
+            "outputs": answer(solution),
+            "error_indicator": solution.indicator,
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
-                "displacement": probe(model.displacement()).tolist() if probe is not None else [],
+                "displacement": recorder.probes.tolist() if recorder.probes is not None else [],
             },
-            "plane": model.plane,
-            "units": per_thickness(SUMMARY_UNITS) if model.plane else SUMMARY_UNITS,
-        }
+            "plane": fem_model.plane,
+            "units": per_thickness(SUMMARY_UNITS) if planar else SUMMARY_UNITS,
+        } | parametric.describe()
         write_json(staging / "summary.json", summary, comm)
-        on_root(comm, lambda: _write_history(scene, history, staging))
-        with model.kept_state():
-            model.state.x.array[:] = largest["state"]
-            model.state.x.scatter_forward()
-            shown = volume_text(largest["volume"], model.plane is not None)
+        on_root(comm, lambda: _write_history(scene, history, solution.units, staging))
+        with fem_model.kept_state():
+            largest = recorder.largest
+            parametric.fields(largest["state"], largest["time"])
+            shown = volume_text(largest["volume"], planar)
             title = f"{scene.title}\nlargest volume {shown}, t = {largest['time']:.3g} s"
-            drawn(comm, staging / "deformed.png", lambda: deformed_body(model, staging / "deformed.png", title))
+            drawn(comm, staging / "deformed.png", lambda: deformed_body(fem_model, staging / "deformed.png", title))
         if axis is not None:
-            label, value, parts = axis
-            pressures, volumes = [value(row) for row in history], [row["volume"] for row in history]
+            pressures, volumes = recorder.pressures, [row["volume"] for row in history]
             drawn(
                 comm,
                 staging / "pressure_volume.png",
@@ -390,24 +285,126 @@ def run(
                         pressures,
                         volumes,
                         staging / "pressure_volume.png",
-                        label,
+                        axis.label,
                         title=scene.title,
-                        note=parts,
-                        planar=model.plane is not None,
+                        note=list(axis.parts),
+                        planar=planar,
                     ),
                 ),
             )
     return summary
 
 
-def _write_history(scene: Scene, history: list[dict], folder: Path) -> None:
-    """history.csv, its columns named with their units (rank 0)."""
+def answer(solution: Solution) -> dict[str, list]:
+    """A solution's outputs at its output times as plain lists by name (the summary's
+    ``outputs``; ``loads/<label>`` in Pa, ``averages/<name>`` in their units)."""
+    return {"time": solution.times.tolist()} | {name: np.asarray(v).tolist() for name, v in solution.outputs.items()}
+
+
+class _Recorder:
+    """What a run keeps of every state a solve shows (:class:`~lungmech.fem.parametric.Step`):
+    the history rows and the pressures of the P–V curve, the progress on the console, the fields
+    written (``fields``: the folder and format, or None), the largest volume."""
+
+    def __init__(self, model: ParametricModel, axis: lung.PressureAxis | None, fields, comm: MPI.Comm):
+        self.model, self.axis, self.fields, self.comm = model, axis, fields, comm
+        self.planar = model.model.plane is not None
+        self.body = "lung" if axis is not None and axis.lung else "body"
+        self.history: list[dict] = []
+        self.pressures: list[float] = []
+        self.probes: np.ndarray | None = None  # at the last state, (points, 3)
+        self.largest = {"volume": -np.inf, "state": None, "time": 0.0}
+        self.steps = self.cuts = self.newton_iterations = 0
+        self.progress: Progress | None = None
+        self.writer: FieldWriter | None = None
+
+    def start_progress(self, fraction: float, text: str) -> None:
+        """The start's own long work (an inverse problem's iterations)."""
+        if self.progress is None:
+            self.progress = Progress(
+                f"unloading the imaged {self.body}" if self.body == "lung" else "finding the unloaded reference"
+            )
+        self.progress.update(fraction, text)
+
+    def __call__(self, step: Step) -> None:
+        if step.phase == "approach":
+            return
+        if step.phase == "cut":
+            self.cuts += 1
+            self.progress.note(
+                f"t = {step.time:.4g} s: Newton did not converge ({step.report.reason}); step cut back to "
+                f"dt = {step.report.step / 2:.3g} s (normal adaptivity)"
+            )
+            return
+        if step.phase == "start":
+            said = start_text(step.start, self.planar)
+            if self.progress is not None:
+                self.progress.close(said)
+            elif self.comm.rank == 0 and log.isEnabledFor(logging.INFO):
+                print(f"lungmech: {said}", flush=True)
+            self.progress = Progress("breathing" if self.body == "lung" else "loading")
+        else:
+            self.steps += 1
+            self.newton_iterations += step.report.iterations
+        outputs = step.outputs()
+        row = self._row(step, outputs)
+        self.history.append(row)
+        if row["volume"] > self.largest["volume"]:
+            self.largest.update(volume=row["volume"], state=step.state(), time=step.time)
+        if self.fields is not None:
+            self._write(step)
+        stepping = self.model.stepping
+        shown = ""
+        if self.axis is not None:
+            self.pressures.append(self.axis(outputs["loads"]))
+            shown = f"  {'P_L' if self.axis.lung else 'p'} {show_pressure(self.pressures[-1])}"
+        newton = f"  {step.report.iterations} Newton" if step.report is not None else ""
+        self.progress.update(
+            (step.time - stepping.start) / (stepping.end - stepping.start),
+            f"step {len(self.history) - 1}  t = {step.time:.3g}/{stepping.end:g} s{shown}  "
+            f"volume {volume_text(row['volume'], self.planar)}{newton}",
+        )
+
+    def _row(self, step: Step, outputs: dict) -> dict:
+        """One history row: the model's outputs at this state, flat, and the step's work."""
+        row: dict = {"time": step.time, "volume": outputs["volume"], "strain_energy": outputs["strain_energy"]}
+        row |= outputs["loads"]
+        row |= outputs.get("averages", {})
+        if step.report is not None:
+            row |= {"newton_iterations": step.report.iterations, "step_seconds": step.report.seconds}
+        if (indicator := step.indicator()) is not None:
+            row["error_indicator"] = indicator
+        if "probes" in outputs:
+            self.probes = np.asarray(outputs["probes"])
+            for i, value in enumerate(self.probes):
+                row |= {f"probe{i}_u{letter}": component for letter, component in zip("xyz", value)}
+        return row
+
+    def _write(self, step: Step) -> None:
+        """This state's fields, on the mesh as it is now (after the start: the reference)."""
+        self.model.fields(step.state(), step.time)
+        if self.writer is None:
+            self.writer = FieldWriter(self.model.model, *self.fields)
+        with deferred(self.comm):  # a collective write: not cut on one rank only
+            self.writer.write(step.time)
+
+    def close_fields(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+    def close(self) -> None:
+        self.progress.close(f"{self.steps} steps ({self.cuts} cut back), {self.newton_iterations} Newton iterations")
+
+
+def _write_history(scene: Scene, history: list[dict], units: dict[str, str], folder: Path) -> None:
+    """history.csv, its columns named with their units (rank 0): ``units`` are the solution's
+    (``loads``, ``averages/<name>``)."""
     labels = {load.label for load in scene.loads}
     columns = list(dict.fromkeys(k for row in history for k in row))
-    units = {k: _column_unit(k, labels) for k in columns}
+    named = {k: _column_unit(k, labels, units) for k in columns}
     if scene.plane:
-        units = per_thickness(units)
-    header = [f"{k} [{units[k]}]" for k in columns]
+        named = per_thickness(named)
+    header = [f"{k} [{named[k]}]" for k in columns]
     with open(folder / "history.csv", "w", newline="") as stream:
         table = csv.writer(stream)
         table.writerow(header)
@@ -419,13 +416,15 @@ def per_thickness(units: dict[str, str]) -> dict[str, str]:
     return {key: {"m^3": "m^3/m", "J": "J/m"}.get(unit, unit) for key, unit in units.items()}
 
 
-def _column_unit(key: str, loads: set[str]) -> str:
+def _column_unit(key: str, loads: set[str], units: dict[str, str]) -> str:
     if key in _COLUMN_UNITS:
         return _COLUMN_UNITS[key]
-    if key in loads or key.startswith("mean_stress"):
-        return "Pa"
+    if key in loads:
+        return units["loads"]
+    if f"averages/{key}" in units:
+        return units[f"averages/{key}"]
     if key.startswith("probe"):
-        return "m"
+        return units["probes"]
     return "1"
 
 

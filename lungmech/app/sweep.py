@@ -23,8 +23,9 @@ import re
 import time
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech.app.output import write_json
 from lungmech.app.plot import drawn, sweep_volumes
@@ -97,11 +98,13 @@ def sweep(
     out: str | Path,
     comm: MPI.Comm = MPI.COMM_WORLD,
     values: dict[str, float] | None = None,
+    times: list[float] | None = None,
 ) -> dict:
     """Solve the reduced model in the file ``model`` at every point of the CSV file ``points``
     (parameters without a column at ``values``, else the scene's) and write the folder ``out``
     (see the module's doc; checked before any work, replaced only when the sweep succeeds).
-    Collective; returns the summary."""
+    ``times`` (s): the answers at those times only (a static answer), else at the model's output
+    times. Collective; returns the summary."""
     from lungmech.app.reduce import load
 
     command = f"lungmech rom solve {model} --sweep {points}"
@@ -112,12 +115,13 @@ def sweep(
         answers, seconds = [], []
         for point in grid:
             tic = time.perf_counter()
-            answers.append(reduced.solve(point))
+            answers.append(reduced.solve(point, times=times))
             seconds.append(time.perf_counter() - tic)
         indicators = [a.indicator for a in answers]
         summary = {
             "model": str(Path(model).resolve()),
-            "solver": reduced.solver.description,
+            **reduced.describe(),
+            "start": {"kind": answers[0].start.kind, "description": answers[0].start.description},
             "points": len(grid),
             "parameters": grid,
             "seconds_per_point": seconds,

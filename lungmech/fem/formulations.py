@@ -152,6 +152,10 @@ class TaylorHood:
         """p starts at 0 (the stress-free state)."""
         return {}
 
+    def point_fields(self, model) -> dict[str, Expr]:
+        """The pressure p (Pa) for outputs at the displacement's nodes (P_{k−1} ⊂ P_k: exact)."""
+        return {"pressure": model.fields["p"]}
+
 
 @dataclass(frozen=True)
 class PlaneStress:

@@ -217,6 +217,11 @@ class Model:
         for imposed in self._imposed:
             imposed.set_time(t)
 
+    @property
+    def scaling(self) -> tuple:
+        """The ``(load_factor, about)`` of the last :meth:`set_time`."""
+        return self._scaling
+
     def scalar_loads(self) -> dict[str, float]:
         """The current value of every scalar load (a pressure, Pa) by label, as :meth:`set_time` set it."""
         return {

@@ -8,17 +8,22 @@ model driven along its load path by Newton's method; :class:`lungmech.rom.reduce
 answers the same calls from a reduced basis. They can be swapped, compared and chained.
 
 The outputs are the same functionals of the state for every model (:class:`Outputs`): the
-deformed volume ∫ J dX (m³), the strain energy ∫ ψ dX (J), the displacement at probe points (m)
-and the value of every scalar load (Pa, for pressure–volume curves). They are recorded at the
-*output times*: the stepping's ``times``, every ramp breakpoint and the end, which every model
-hits exactly, so two models' answers are compared point by point.
+deformed volume ∫ J dX (m³), the strain energy ∫ ψ dX (J), the displacement at probe points (m),
+the value of every scalar load as applied (Pa, for pressure–volume curves) and the formulation's
+own averages (a lung's fractions and mean stresses), where the model has the full field. They
+are recorded at the *output times*: the stepping's ``times``, every ramp breakpoint and the end,
+which every model hits exactly, so two models' answers are compared point by point; or at the
+times asked for (``solve(mu, times=[T])``: the equilibrium at T, a static answer).
+
+Where the path starts is the problem's (:mod:`lungmech.fem.start`): every solution says which
+start it used (:attr:`Solution.start`).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -27,9 +32,27 @@ from lungmech.errors import ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.sensitivity import check_differentiable, output_derivatives
-from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve, steps_model_state
+from lungmech.fem.solver import (
+    NewtonOptions,
+    NewtonSolver,
+    Solver,
+    Stepping,
+    StepReport,
+    solve,
+    steps_model_state,
+)
+from lungmech.fem.start import Equilibrium, Rest, Start, StartReport, approach
 
-__all__ = ["FullOrderModel", "Outputs", "ParametricModel", "Solution", "approach", "output_times", "trajectory"]
+__all__ = [
+    "FullOrderModel",
+    "Outputs",
+    "ParametricModel",
+    "Solution",
+    "Step",
+    "approach",
+    "output_times",
+    "trajectory",
+]
 
 UNITS = {"time": "s", "volume": "m^3", "strain_energy": "J", "probes": "m", "loads": "Pa"}
 
@@ -42,9 +65,12 @@ class Solution:
     in m³, strain_energy in J, probes in m with shape (times, points, 3), loads in Pa by label).
     ``states`` has one row per output time: the owned entries of the full state vector, or the
     reduced coordinates q. ``sensitivities[name]`` (when asked) holds ∂output/∂μ with the
-    parameters on the last axis, in ``parameter_names`` order. ``indicator``: a reduced
+    parameters on the last axis, in ``parameter_names`` order, for every output but the
+    formulation's averages. ``indicator``: a reduced
     model's estimate of its relative energy-norm error along this path (None: the full model,
-    or a reduced model without an enrichment), see :mod:`lungmech.rom.indicator`.
+    or a reduced model without an enrichment), see :mod:`lungmech.rom.indicator`. ``start``:
+    what the start state at μ is (its ``details`` hold its volume, m³); ``scale``: the factor(s)
+    on the loads' change from the start.
     """
 
     parameters: dict[str, float]
@@ -57,92 +83,153 @@ class Solution:
     parameter_names: tuple[str, ...] = ()
     units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
     indicator: float | None = None
+    start: StartReport | None = None
+    scale: float | list[float] = 1.0
 
 
 class ParametricModel(Protocol):
-    """What every model of a problem provides, full order or reduced."""
+    """What every model of a problem provides, full order or reduced: ``solve(mu)`` with the
+    keywords below, its fem ``model`` (for fields and pictures), its ``parameters`` and
+    ``stepping``, and :meth:`fields`. The application talks to nothing else."""
 
     parameters: Parameters
+    stepping: Stepping
 
-    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution: ...
+    def solve(
+        self,
+        mu: Mapping[str, float] | None = None,
+        *,
+        sensitivities: bool = False,
+        on_step: Callable[[Step], None] | None = None,
+        scale: float | Sequence[float] = 1.0,
+        times: Sequence[float] | None = None,
+        progress: Callable[[float, str], None] | None = None,
+    ) -> Solution: ...
+
+    def fields(self, state: np.ndarray, time: float) -> None:
+        """The fem model's state the full field of ``state`` (a :class:`Step`'s or a
+        solution's row) at ``time``, for writing fields or pictures. Collective."""
 
 
-def approach(
-    model,
-    solver: Solver,
-    values: Mapping[str, float],
-    start: Mapping[str, float],
-    time: float,
-    on_step: Callable | None = None,
-    first_step: float = 0.25,
-) -> int:
-    """Move the model's state, an equilibrium at the parameters ``start`` and time ``time``, to
-    the equilibrium at ``values``: a continuation along the straight line between them in the unit
-    box (log parameters in log μ), with the load stepping's adaptive steps from ``first_step`` (a
-    fraction of the way; 1: straight there, continuing only when Newton fails). A start state under
-    load (a lung imaged at end-expiration) is an equilibrium for its own parameters only; other
-    parameters reach it this way rather than in one Newton solve. Returns the Newton iterations
-    (0 when the parameters are the start's). Collective."""
-    if all(values[name] == start[name] for name in values):
-        model.set_parameters(values)
-        return 0
-    box = model.parameters
-    a, b = box.to_unit(start), box.to_unit(values)
+@dataclass(frozen=True)
+class Step:
+    """One state of a solve, as ``solve(mu, on_step=...)`` shows it.
 
-    def drive(s: float) -> None:
-        model.set_parameters(values if s == 1.0 else box.from_unit(a + s * (b - a)))  # the end exactly
-        model.set_time(time)
+    ``phase``: "start" (the start state at μ; ``start`` says what it is), "approach" (an
+    accepted continuation step in μ towards it), "path" (an accepted step of the load path) or
+    "cut" (a load step Newton did not converge on, cut back: its ``report``; the state is the
+    last accepted one). ``time`` (s); ``report``: the Newton solve (None for the start). On
+    request: the model's ``outputs()`` (as :class:`Outputs` gives them), its ``state()`` (a copy:
+    the full owned entries, or reduced coordinates q; the model's ``fields(state, time)`` makes
+    it a full field) and ``indicator()`` (a reduced model's error estimate of the path so far,
+    relative, energy norm; None for a model without one)."""
 
-    report = solve(
-        model, Stepping(initial_step=first_step), solver=solver, drive=drive, on_step=on_step, monitor=lambda step: None
-    )
-    if model.parameter_values != values:  # the path ended short of s = 1 by rounding
-        model.set_parameters(values)
-    return report.newton_iterations
+    phase: str
+    time: float
+    report: StepReport | None
+    outputs: Callable[[], dict[str, object]]
+    state: Callable[[], np.ndarray]
+    indicator: Callable[[], float | None] = lambda: None
+    start: StartReport | None = None
 
 
 def trajectory(
     owner,
     values: dict[str, float],
+    start: Callable[[Callable | None], StartReport],
     state: Callable[[], np.ndarray],
     derivatives: Callable[[], dict] | None = None,
-    on_step: Callable | None = None,
-    first_step: float = 0.25,
+    on_step: Callable[[Step], None] | None = None,
+    scale: float | Sequence[float] = 1.0,
+    times: Sequence[float] | None = None,
+    observe: Callable[[], None] | None = None,
+    indicator: Callable[[], float | None] = lambda: None,
 ) -> Solution:
     """The load path of ``owner`` (a full or reduced model: its ``model``, ``solver``,
-    ``stepping``, ``outputs``, ``times``, ``parameters``) at ``values``, from the state the model
-    holds (an equilibrium at the default parameters at ``stepping.start``): :func:`approach`, then
-    the load stepping, recording ``outputs()``, ``state()`` and ``derivatives()`` at every output
-    time. ``on_step(step)`` is called after every accepted step of both (a snapshot); ``first_step``
-    is the approach's. Collective."""
+    ``stepping``, ``outputs``, ``times``, ``parameters``) at ``values``: ``start(on_approach)``
+    places the start state at μ (returning its :class:`StartReport`), then the load stepping
+    records ``outputs()``, ``state()`` and ``derivatives()`` at the output times — ``times``
+    (each in [start, end] of the stepping; the path then ends at the last) or the owner's.
+    ``scale`` multiplies the loads' change from the start (one factor or one per load).
+    ``observe()`` is called at every output time, after its outputs (a reduced model's error
+    estimate); ``on_step`` sees every state (:class:`Step`, with ``indicator``). Collective."""
     model, stepping = owner.model, owner.stepping
+    wanted = owner.times if times is None else _checked_times(times, stepping)
     if derivatives is not None:
         check_differentiable(model)  # before the solve, not after it
     tic = time.perf_counter()
-    iterations = approach(model, owner.solver, values, owner.parameters.defaults, stepping.start, on_step, first_step)
     rows, states, derived = [], [], []
 
-    def record(step) -> None:
+    def show(phase: str, report: StepReport | None, started: StartReport | None = None) -> None:
         if on_step is not None:
-            on_step(step)
-        if np.min(np.abs(owner.times - model.time)) <= 1e-9 * (stepping.end - stepping.start):
+            on_step(Step(phase, model.time, report, owner.outputs, state, indicator, started))
+
+    placed = start(None if on_step is None else lambda report: show("approach", report))
+    factor = np.asarray(scale, dtype=float)
+    if np.all(factor == 1.0):  # bit for bit the scene's loads
+        drive = model.set_time
+    else:
+        drive = lambda t: model.set_time(t, load_factor=scale, about=stepping.start)  # noqa: E731
+    drive(stepping.start)  # the start's own work may have left another time (or none) set
+    span = stepping.end - stepping.start
+
+    def record(report: StepReport | None) -> None:
+        if np.min(np.abs(wanted - model.time)) <= 1e-9 * span:
             rows.append(owner.outputs())
             states.append(state())
             if derivatives is not None:
                 derived.append(derivatives())
+            if observe is not None:
+                observe()
+        if report is not None:
+            show("path", report)
 
-    model.set_time(stepping.start)
-    report = solve(model, stepping, solver=owner.solver, on_step=record, monitor=lambda step: None)
+    record(None)
+    placed = placed.measured(rows[0]["volume"] if rows else owner.outputs()["volume"])
+    show("start", None, placed)
+    iterations = placed.newton_iterations
+    last = float(wanted[-1])
+    if last > stepping.start + 1e-9 * span:
+        path = replace(stepping, end=last, times=tuple(float(t) for t in wanted if stepping.start < t < last))
+
+        def cut(report: StepReport) -> None:
+            if not report.converged:
+                show("cut", report)
+
+        report = solve(
+            model, path, solver=owner.solver, on_step=record, monitor=cut, drive=drive, breakpoints=model.breakpoints
+        )
+        iterations += report.newton_iterations
     return Solution(
         parameters=values,
-        times=owner.times.copy(),
+        times=np.array(wanted, dtype=float),
         outputs=stack(rows),
         states=np.array(states),
-        newton_iterations=iterations + report.newton_iterations,
+        newton_iterations=iterations,
         seconds=time.perf_counter() - tic,
         sensitivities=stack(derived) if derivatives is not None else None,
         parameter_names=owner.parameters.names,
+        units=dict(owner.outputs.units),
+        start=placed,
+        scale=factor.tolist(),
     )
+
+
+def _checked_times(times: Sequence[float], stepping: Stepping) -> np.ndarray:
+    """The output times asked for, sorted, each a number in [start, end] of the load path."""
+    try:
+        asked = np.unique(np.asarray(times, dtype=float).reshape(-1))
+    except (TypeError, ValueError):
+        raise ParameterError(f"times must be numbers, in s (got {times!r})") from None
+    if not asked.size or not np.all(np.isfinite(asked)):
+        raise ParameterError(f"times must be finite numbers, in s, at least one (got {times!r})")
+    span = stepping.end - stepping.start
+    outside = asked[(asked < stepping.start - 1e-12 * span) | (asked > stepping.end + 1e-12 * span)]
+    if outside.size:
+        raise ParameterError(
+            f"time {outside[0]:g} s lies outside the model's load path [{stepping.start:g}, {stepping.end:g}] s"
+        )
+    return np.clip(asked, stepping.start, stepping.end)
 
 
 def output_times(model, stepping: Stepping) -> np.ndarray:
@@ -152,13 +239,19 @@ def output_times(model, stepping: Stepping) -> np.ndarray:
 
 
 class Outputs:
-    """The outputs of a model's current state, compiled once (collective)."""
+    """The outputs of a model's current state, compiled once (collective): volume, strain
+    energy, probes, the scalar loads as applied and the formulation's ``averages(model)`` (a
+    (function, unit) by name), if it has any."""
 
-    def __init__(self, model, probes: Sequence[Sequence[float]] = ()):
+    def __init__(self, model, probes: Sequence[Sequence[float]] | Probe = ()):
         self.model = model
-        self.probe_points = tuple(tuple(float(c) for c in point) for point in probes)
+        self._probe = (
+            probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
+        )
+        self.probe_points = () if self._probe is None else tuple(tuple(float(c) for c in p) for p in self._probe.points)
         self._volume, self._energy = deformed_volume(model), strain_energy(model)
-        self._probe = Probe(model.geometry.mesh, probes) if len(probes) else None
+        self._averages = getattr(model.formulation, "averages", lambda model: {})(model)
+        self.units = dict(UNITS) | {f"averages/{name}": unit for name, (_, unit) in self._averages.items()}
 
     @property
     def probe(self) -> Probe | None:
@@ -170,26 +263,32 @@ class Outputs:
         if self._probe is not None:
             values["probes"] = self._probe(self.model.displacement())
         values["loads"] = self.model.scalar_loads()
+        if self._averages:
+            values["averages"] = {name: mean() for name, (mean, _) in self._averages.items()}
         return values
 
 
 def stack(rows: list[dict[str, object]]) -> dict[str, np.ndarray]:
-    """Rows of outputs (one per time) as arrays with the time first; loads by label."""
-    stacked = {name: np.array([row[name] for row in rows]) for name in rows[0] if name != "loads"}
-    for label in rows[0]["loads"]:
-        stacked[f"loads/{label}"] = np.array([row["loads"][label] for row in rows])
+    """Rows of outputs (one per time) as arrays with the time first; loads and averages by name
+    ("loads/<label>", "averages/<name>")."""
+    grouped = ("loads", "averages")
+    stacked = {name: np.array([row[name] for row in rows]) for name in rows[0] if name not in grouped}
+    for group in grouped:
+        for name in rows[0].get(group, {}):
+            stacked[f"{group}/{name}"] = np.array([row[group][name] for row in rows])
     return stacked
 
 
 class FullOrderModel:
-    """The finite-element model driven along its load path: ``solve(mu)`` from the start state.
+    """The finite-element model driven along its load path: ``solve(mu)`` from its start.
 
-    ``model`` is a :class:`~lungmech.fem.model.Model` with parameters; each solve resets it to
-    ``start`` (default: the unloaded state; a lung imaged under load starts from the state the
-    inverse problem found), an equilibrium at the default parameters at ``stepping.start``,
-    moves it to the asked parameters (:func:`approach`) and steps it from ``stepping.start`` to
-    ``stepping.end``.
-    Collective. The model's compiled forms serve every μ: nothing is recompiled.
+    ``model`` is a :class:`~lungmech.fem.model.Model` with parameters. ``start`` says where every
+    solve begins (:mod:`lungmech.fem.start`): :class:`~lungmech.fem.start.Rest` (the default),
+    a state array or :class:`~lungmech.fem.start.Equilibrium` (an equilibrium at the default
+    parameters, moved to μ by continuation), or :class:`lungmech.lung.inverse.Imaged` (the mesh
+    is the loaded state at the start for every μ: the unloaded reference is found at μ). Then
+    the load stepping runs from ``stepping.start`` to ``stepping.end``. Collective. The model's
+    compiled forms serve every μ: nothing is recompiled.
     """
 
     def __init__(
@@ -197,8 +296,8 @@ class FullOrderModel:
         model,
         stepping: Stepping | None = None,
         newton: NewtonOptions | None = None,
-        probes: Sequence[Sequence[float]] = (),
-        start: np.ndarray | None = None,
+        probes: Sequence[Sequence[float]] | Probe = (),
+        start: Start | np.ndarray | None = None,
         solver: Solver | None = None,
     ):
         self.model = model
@@ -210,33 +309,61 @@ class FullOrderModel:
                 f"FullOrderModel steps the model's state; this solver ({self.solver.description}) iterates on "
                 "reduced coordinates: use ReducedModel(..., sample=...) for a hyper-reduced model"
             )
-        self.outputs = Outputs(model, probes)
-        self.start = start
+        self.outputs = Outputs(model, probes)  # probes located now: on an imaged mesh, in the image
+        self.start: Start = Rest() if start is None else Equilibrium(start) if isinstance(start, np.ndarray) else start
         self.times = output_times(model, self.stepping)
 
     def solve(
-        self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False, on_step: Callable | None = None
+        self,
+        mu: Mapping[str, float] | None = None,
+        *,
+        sensitivities: bool = False,
+        on_step: Callable[[Step], None] | None = None,
+        scale: float | Sequence[float] = 1.0,
+        times: Sequence[float] | None = None,
+        progress: Callable[[float, str], None] | None = None,
     ) -> Solution:
-        """The outputs (and states) at the output times for the parameters ``mu`` (the others at
-        their defaults). ``on_step(step)`` sees every accepted step (e.g. to keep snapshots)."""
+        """The outputs (and states) at the output times — or at ``times`` (s) — for the
+        parameters ``mu`` (the others at their defaults), the loads' change from the start scaled
+        by ``scale``. ``on_step`` sees every accepted state (:class:`Step`: e.g. snapshots, a
+        history); ``progress(fraction, text)`` the start's own work (an inverse problem's
+        iterations)."""
+        if sensitivities and self.start.kind == "imaged":
+            raise ParameterError(
+                "sensitivities of an imaged body would need the derivative of its unloaded reference with respect "
+                "to μ, which lungmech does not compute yet: leave sensitivities out, or start from an Equilibrium"
+            )
         owned = self.model.space.dofmap.index_map.size_local * self.model.space.dofmap.index_map_bs
-        self.reset()
+        values = self.parameters.values(mu)
+
+        def start(on_approach) -> StartReport:
+            return self.start.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
+
         return trajectory(
             self,
-            self.parameters.values(mu),
+            values,
+            start,
             state=lambda: self.model.state.x.array[:owned].copy(),
             derivatives=self.sensitivities if sensitivities else None,
             on_step=on_step,
+            scale=scale,
+            times=times,
         )
+
+    def fields(self, state: np.ndarray, time: float) -> None:
+        """The model's state ``state`` (owned entries) at ``time`` (collective)."""
+        model = self.model
+        model.set_time(time, *model.scaling)
+        model.state.x.array[: state.size] = state
+        model.state.x.scatter_forward()
+
+    def describe(self) -> dict[str, object]:
+        """What solves it, for summaries: the solver, and the linear solver "auto" chose."""
+        return {"solver": self.solver.description, "linear_solver": getattr(self.solver, "linear_solver", None)}
 
     def reset(self) -> None:
         """The model back at the start state, at the default parameters."""
-        model = self.model
-        model.set_parameters(self.parameters.defaults)
-        model.reset()
-        if self.start is not None:
-            model.state.x.array[:] = self.start
-            model.state.x.scatter_forward()
+        self.start.reset(self.model)
 
     def sensitivities(self) -> dict[str, object]:
         """∂outputs/∂μ at the current state: direct sensitivities (:mod:`lungmech.fem.sensitivity`)."""

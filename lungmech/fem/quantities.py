@@ -5,12 +5,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
+from mpi4py import MPI
+
 import basix.ufl
 import numpy as np
 import ufl
 from dolfinx import fem, la
 from dolfinx import geometry as dgeometry
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 
@@ -67,7 +68,12 @@ def strain_energy(model) -> Callable[[], float]:
 
 
 class Probe:
-    """Values of a Function at fixed reference points, the same on every rank."""
+    """Values of a Function at material points, the same on every rank.
+
+    The points are given in the mesh's configuration when the probe is made (for an imaged body:
+    the image) and each is kept as its cell and reference coordinates ξ, so it follows its
+    material point when the nodes move (the inverse problem's reference): the value is taken at
+    x(ξ) = Σ N_i(ξ) x_i of the current nodes."""
 
     def __init__(self, mesh, points: Sequence[Sequence[float]]):
         self.points = np.atleast_2d(np.asarray(points, dtype=float))
@@ -76,11 +82,10 @@ class Probe:
             raise ParameterError(
                 f"probe points need {gdim} coordinates each on a {gdim}-D mesh (got shape {self.points.shape})"
             )
-        if gdim == 2:  # DOLFINx locates points by 3 coordinates
-            self.points = np.column_stack([self.points, np.zeros(len(self.points))])
+        located = np.column_stack([self.points, np.zeros((len(self.points), 3 - gdim))])  # DOLFINx: 3 coordinates
         tree = dgeometry.bb_tree(mesh, mesh.topology.dim)
-        candidates = dgeometry.compute_collisions_points(tree, self.points)
-        colliding = dgeometry.compute_colliding_cells(mesh, candidates, self.points)
+        candidates = dgeometry.compute_collisions_points(tree, located)
+        colliding = dgeometry.compute_colliding_cells(mesh, candidates, located)
         found = np.array([len(colliding.links(i)) > 0 for i in range(len(self.points))])
         comm = mesh.comm
         # The lowest rank holding a point answers for it.
@@ -90,15 +95,36 @@ class Probe:
         if missing.size:
             point = ", ".join(f"{v:g}" for v in self.points[missing[0]])
             raise ParameterError(f"probe point ({point}) lies outside the mesh")
+        self._mesh = mesh
         self._mine = np.flatnonzero(owner == comm.rank)
         self._cells = np.array([colliding.links(i)[0] for i in self._mine], dtype=np.int32)
+        self._reference = np.array(
+            [
+                mesh.geometry.cmaps[0].pull_back(self.points[[i]], self._nodes(c))[0]
+                for i, c in zip(self._mine, self._cells)
+            ]
+        ).reshape(len(self._mine), mesh.topology.dim)
         self._comm = comm
+
+    def _nodes(self, cell: int) -> np.ndarray:
+        """The current positions of a cell's geometry nodes, (nodes, gdim)."""
+        geometry = self._mesh.geometry
+        return geometry.x[geometry.dofmaps[0][cell], : geometry.dim]
+
+    def positions(self) -> np.ndarray:
+        """Where this rank's material points are now, (points, 3)."""
+        now = np.zeros((len(self._mine), 3))
+        for row, (xi, cell) in enumerate(zip(self._reference, self._cells)):
+            now[row, : self._mesh.geometry.dim] = self._mesh.geometry.cmaps[0].push_forward(
+                xi[None, :], self._nodes(cell)
+            )[0]
+        return now
 
     def __call__(self, function: fem.Function) -> np.ndarray:
         """Values at the points, shape (number of points, value size)."""
         values = np.zeros((len(self.points), function.function_space.value_size))
         if self._mine.size:
-            values[self._mine] = function.eval(self.points[self._mine], self._cells).reshape(len(self._mine), -1)
+            values[self._mine] = function.eval(self.positions(), self._cells).reshape(len(self._mine), -1)
         total = np.empty_like(values)
         self._comm.Allreduce(values, total, op=MPI.SUM)
         return total

@@ -15,12 +15,17 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from time import perf_counter
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
+import ufl
+from dolfinx import fem
 
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.fem.quantities import integral
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
+from lungmech.fem.start import Progress, StartReport
 from lungmech.mesh import nodes as mesh_nodes
 
 
@@ -70,6 +75,7 @@ def unloaded_reference(
     newton: NewtonOptions | None = None,
     solver: NewtonSolver | None = None,
     monitor: Callable[[InverseReport], None] | None = None,
+    imaged=None,
 ) -> InverseReport:
     """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
 
@@ -81,7 +87,9 @@ def unloaded_reference(
     :class:`lungmech.lung.poromechanics.ImagedPorosity`). ``stepping``
     raises the loads of ``time`` from zero (a load factor from 0 to 1) for the first direct solve;
     imposed displacements keep their values at ``time``. ``monitor(report)`` is called after
-    every iteration (progress). Raises :class:`SolverError` when the iteration does not converge.
+    every iteration (progress). ``imaged``: the data matched besides the geometry, made once by
+    the caller (default: the formulation's ``imaged(model)``, made anew). Raises
+    :class:`SolverError` when the iteration does not converge.
     """
     tic = perf_counter()
     mesh = model.geometry.mesh
@@ -92,7 +100,8 @@ def unloaded_reference(
     displacement = node_displacements(model)
     solver = solver or NewtonSolver(model, newton)
     report = InverseReport()
-    imaged = getattr(model.formulation, "imaged", lambda model: None)(model)  # data beside the geometry
+    if imaged is None:  # data beside the geometry
+        imaged = getattr(model.formulation, "imaged", lambda model: None)(model)
 
     def dot(a: np.ndarray, b: np.ndarray) -> float:
         return comm.allreduce(float(a @ b), op=MPI.SUM)
@@ -158,3 +167,65 @@ def _direct(model, solver: NewtonSolver, time: float, stepping: Stepping) -> int
         ) from None
     model.set_time(time)
     return result.iterations + again.newton_iterations
+
+
+class Imaged:
+    """The start of an imaged body (a scene with [inverse]): its mesh is the loaded state at the
+    start time *for every μ*. :meth:`place` puts the nodes back at the imaged positions (and
+    imaged data's unknowns, Φs0 of an imaged porosity, at their first guess), sets μ and finds
+    the unloaded reference at μ (:func:`unloaded_reference`): the mesh then holds X(μ), the state
+    the equilibrium whose deformed nodes are the imaged ones. The answer at μ is a function of μ
+    alone: no solve depends on the one before. Built on the imaged mesh, before any move."""
+
+    kind = "imaged"
+
+    def __init__(self, model, options: InverseOptions = InverseOptions(), body: str = "body"):
+        mesh = model.geometry.mesh
+        self.nodes = mesh.geometry.x[:, : mesh.geometry.dim].copy()
+        self._volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)  # compiled once
+        self.volume = self._volume()  # m³ (m³/m in 2-D), of the image
+        self.options, self.body = options, body
+        self._data = getattr(model.formulation, "imaged", lambda model: None)(model)  # beside the geometry
+
+    def reset(self, model) -> None:
+        """The imaged mesh, unloaded (u = 0) at the default parameters."""
+        mesh_nodes.place(model.geometry.mesh, self.nodes)
+        if self._data is not None:
+            self._data.reset()
+        model.set_parameters(model.parameters.defaults)
+        model.reset()
+
+    def place(
+        self, model, solver: Solver, values, time: float, progress: Progress | None = None, on_step=None
+    ) -> StartReport:
+        """The unloaded reference at ``values`` and the imaged state on it (collective)."""
+        self.reset(model)
+        model.set_parameters(values)
+        tolerance, most = self.options.tolerance, self.options.max_iterations
+
+        def show(report: InverseReport) -> None:
+            first, mismatch = report.mismatch[0], report.mismatch[-1]
+            done = np.log(first / max(mismatch, tolerance)) / np.log(first / tolerance) if first > tolerance else 1.0
+            progress(
+                float(done),
+                f"iteration {report.iterations}/{most}: mismatch {mismatch:.2e} of the {self.body}'s size "
+                f"(target {tolerance:.0e})",
+            )
+
+        report = unloaded_reference(
+            model, time, self.options, solver=solver, monitor=show if progress else None, imaged=self._data
+        )
+        details = {
+            "iterations": report.iterations,
+            "mismatch": report.mismatch,
+            "newton_iterations": report.newton_iterations,
+            "seconds": report.seconds,
+            "imaged_volume": self.volume,
+            "reference_volume": self._volume(),
+        } | ({"porosity_mismatch": report.porosity} if report.porosity else {})
+        return StartReport(
+            "imaged",
+            f"the imaged {self.body} at μ (its unloaded reference found at μ in {report.iterations} iterations)",
+            report.newton_iterations,
+            details,
+        )

@@ -28,11 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
+from mpi4py import MPI
+
 import basix.ufl
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 from ufl.core.expr import Expr
 
 from lungmech import checks
@@ -256,6 +257,10 @@ class Poromechanics:
         """The lung's cellwise fields for outputs (see :func:`fields`)."""
         return fields(model)
 
+    def averages(self, model) -> dict[str, tuple[Callable[[], float], str]]:
+        """The lung's averages (see :func:`averages`) as outputs: (function, unit) by name."""
+        return {name: (mean, "Pa" if name.startswith("mean_stress") else "1") for name, mean in averages(model).items()}
+
 
 @dataclass(frozen=True)
 class _Range:
@@ -406,6 +411,11 @@ class ImagedPorosity:
         phi_s, ratio, imaged = self._fractions()
         return np.log((1.0 - imaged) / (ratio * phi_s))
 
+    def reset(self) -> None:
+        """Φs0 back at its first guess, 1 − φ̂f (collective: ghosts follow)."""
+        self.phi_s0.x.array[:] = 1.0 - self.target.x.array
+        self.phi_s0.x.scatter_forward()
+
     def apply(self, step: np.ndarray) -> None:
         """ln Φs0 += step in this rank's cells (collective: ghosts follow)."""
         self.phi_s0.x.array[: self.owned] *= np.exp(step)
@@ -443,7 +453,7 @@ def averages(model) -> dict[str, Callable[[], float]]:
     from lungmech.fem.quantities import integral
 
     comm = model.geometry.mesh.comm
-    volume = model.geometry.volume()
+    volume = integral(fem.Constant(model.geometry.mesh, 1.0) * model.dx, comm)  # of the reference, which may move
     J, phi_s = ufl.det(model.F), model.fields["phi_s"]
     per_reference = {
         "phi_s": phi_s,
@@ -455,6 +465,6 @@ def averages(model) -> dict[str, Callable[[], float]]:
     current_volume = integral(J * model.dx, comm)
     means = {name: integral(expr * model.dx, comm) for name, expr in per_reference.items()}
     weighted = {name: integral(expr * J * model.dx, comm) for name, expr in per_current.items()}
-    return {name: (lambda f=f: f() / volume) for name, f in means.items()} | {
+    return {name: (lambda f=f: f() / volume()) for name, f in means.items()} | {
         name: (lambda f=f: f() / current_volume()) for name, f in weighted.items()
     }

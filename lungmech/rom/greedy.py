@@ -35,9 +35,10 @@ import numpy as np
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.start import one_state
 from lungmech.parallel.linalg import norms
 from lungmech.rom import ecsw
-from lungmech.rom.basis import Basis, inner_product, reference_state
+from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.indicator import ResidualIndicator, enrichment
 from lungmech.rom.pod import pod, snapshot
@@ -112,7 +113,7 @@ def greedy(
             raise ParameterError(f"the ECSW tolerance must lie in (0, 1) (got {hyper!r})")
     model, seconds = full.model, {"snapshots": 0.0, "pod": 0.0, "judging": 0.0}
     seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
-    start = reference_state(model) if full.start is None else full.start
+    start = one_state(full.start, model)
     remaining = [full.parameters.values(point) for point in candidates]
     training, paths, rounds = [], [], []
     iterates = []  # with hyper: (state, time, parameters) of every Newton iterate of the full solves
@@ -124,7 +125,10 @@ def greedy(
         columns = []
         kept = lambda iteration: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
         with ecsw.iterates(full.solver, kept) if hyper is not None else contextlib.nullcontext():
-            solution = full.solve(point, on_step=lambda step: columns.append(snapshot(model, start)))
+            solution = full.solve(
+                point,
+                on_step=lambda step: step.phase in ("approach", "path") and columns.append(snapshot(model, start)),
+            )
         path = np.column_stack(columns)
         largest = float(np.max(norms(path, weight, model.geometry.mesh.comm)))
         paths.append(path / largest if largest > 0 else path)

@@ -24,13 +24,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
+from lungmech.fem.parametric import UNITS
 from lungmech.fem.quantities import Probe, assemble_owned
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import origin
@@ -167,7 +169,11 @@ def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.nda
 class ReducedOutputs:
     """The outputs of :class:`~lungmech.fem.parametric.Outputs` of a hyper-reduced solver's
     state (its q, the model's time), from reduced operators (collective; offline: O(k) full
-    assemblies). ``solver`` is a :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`."""
+    assemblies). ``solver`` is a :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`;
+    ``probes`` points or a :class:`~lungmech.fem.quantities.Probe` (material points) located
+    already."""
+
+    units = dict(UNITS)
 
     def __init__(self, solver, probes=()):
         model = self.model = solver.model
@@ -176,10 +182,10 @@ class ReducedOutputs:
         start, imposed, self._constraints = imposed_directions(model, solver.reference)
         directions = np.hstack([solver.basis.vectors, imposed[:owned]])
         self._volume = cubic(model, ufl.det(model.F) * model.dx, start, directions)
-        self.probe_points = tuple(tuple(float(c) for c in point) for point in probes)
+        probe = probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
+        self.probe_points = () if probe is None else tuple(tuple(float(c) for c in p) for p in probe.points)
         self._probes = None
-        if len(probes):
-            probe = Probe(model.geometry.mesh, probes)
+        if probe is not None:
 
             def displacement_at(x: np.ndarray) -> np.ndarray:
                 model.state.x.array[:] = x

@@ -26,9 +26,10 @@ from dataclasses import replace
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.fem.parametric import Outputs, Solution, output_times, trajectory
+from lungmech.fem.parametric import Outputs, Solution, Step, output_times, trajectory
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
+from lungmech.fem.start import StartReport, approach
 from lungmech.rom.basis import Basis, inner_product, reference_state
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
@@ -55,6 +56,9 @@ class ReducedModel:
             every answer then carries its error indicator
             (:class:`~lungmech.rom.indicator.EnrichedIndicator`; a hyper-reduced model's sample
             must be trained on them too).
+        described: what the start state is, for the answers' :class:`StartReport` (its
+            ``description`` and ``details``, e.g. the image's volume ``imaged_volume`` in m³
+            when the start is an imaged body unloaded at the default parameters).
     """
 
     def __init__(
@@ -68,8 +72,12 @@ class ReducedModel:
         training: Sequence[Mapping[str, float]] = (),
         sample: Sample | None = None,
         enrichment: np.ndarray | None = None,
+        described: StartReport | None = None,
     ):
         self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
+        self.described = described or StartReport(
+            "equilibrium", "the reduced model's start (an equilibrium at the default parameters), moved to μ"
+        )
         if enrichment is not None and (enrichment.ndim != 2 or enrichment.shape[0] != basis.vectors.shape[0]):
             raise ParameterError(
                 f"the enrichment must have the basis' {basis.vectors.shape[0]} owned rows (got shape {enrichment.shape})"
@@ -112,6 +120,7 @@ class ReducedModel:
             self.training,
             self.sample,
             self.enrichment,
+            self.described,
         )
 
     @functools.cached_property
@@ -124,26 +133,66 @@ class ReducedModel:
         """The number of reduced unknowns k."""
         return self.basis.size
 
-    def solve(self, mu: Mapping[str, float] | None = None, *, sensitivities: bool = False) -> Solution:
-        """Outputs and reduced coordinates q at the output times, for the parameters ``mu``;
-        with an enrichment, the answer's error indicator too."""
-        self.model.set_parameters(self.parameters.defaults)
-        self.restart()
-        estimates = []
+    def solve(
+        self,
+        mu: Mapping[str, float] | None = None,
+        *,
+        sensitivities: bool = False,
+        on_step: Callable[[Step], None] | None = None,
+        scale: float | Sequence[float] = 1.0,
+        times: Sequence[float] | None = None,
+        progress: Callable[[float, str], None] | None = None,
+    ) -> Solution:
+        """Outputs and reduced coordinates q at the output times — or at ``times`` (s) — for the
+        parameters ``mu``, the loads' change from the start scaled by ``scale``; with an
+        enrichment, the answer's error indicator too (of its output times; a
+        :class:`~lungmech.fem.parametric.Step`'s ``indicator()``: of the states so far). ``on_step`` sees
+        every accepted state (:class:`~lungmech.fem.parametric.Step`); ``progress`` is unused
+        (the start is a reduced continuation, not long work). As
+        :meth:`FullOrderModel.solve <lungmech.fem.parametric.FullOrderModel.solve>`."""
+        values = self.parameters.values(mu)
+        estimates = []  # (η̂, ‖V q‖_E) at the output times: the answer's indicator
+        path = []  # and at every state a Step's indicator() was asked for: the path's so far
 
-        def state() -> np.ndarray:
-            if self.estimate is not None:
-                estimates.append(self.estimate())
-            return self.solver.coordinates.copy()
+        def start(on_approach) -> StartReport:
+            defaults = self.parameters.defaults
+            self.model.set_parameters(defaults)
+            self.restart()
+            # reduced Newton straight at μ; continuation only where it fails
+            iterations = approach(self.model, self.solver, values, defaults, self.stepping.start, on_approach, 1.0)
+            return replace(self.described, newton_iterations=iterations)
+
+        estimate = self.estimate
+
+        def so_far() -> float | None:
+            if estimate is None:
+                return None
+            path.append(estimate())
+            return relative(path)
 
         solution = trajectory(
             self,
-            self.parameters.values(mu),
-            state=state,
+            values,
+            start,
+            state=lambda: self.solver.coordinates.copy(),
             derivatives=self._sensitivities if sensitivities else None,
-            first_step=1.0,  # reduced Newton straight at μ; continuation only where it fails
+            on_step=on_step,
+            scale=scale,
+            times=times,
+            observe=None if estimate is None else lambda: estimates.append(estimate()),
+            indicator=so_far,
         )
-        return replace(solution, indicator=relative(estimates) if self.estimate is not None else None)
+        return replace(solution, indicator=relative(estimates) if estimate is not None else None)
+
+    def describe(self) -> dict[str, object]:
+        """What solves it, for summaries: the reduced solver."""
+        return {"solver": self.solver.description, "linear_solver": None}
+
+    def fields(self, state: np.ndarray, time: float) -> None:
+        """The model's state the full field x₀ + V q of ``state`` (q) at ``time`` (O(mesh);
+        collective)."""
+        self.model.set_time(time, *self.model.scaling)
+        self.solver.reconstruct(state)
 
     @property
     def estimate(self) -> Callable[[], tuple[float, float]] | None:

@@ -18,8 +18,9 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 from lungmech.fem.parametric import FullOrderModel, Solution
+from lungmech.fem.start import one_state
 from lungmech.parallel.linalg import norms
-from lungmech.rom.basis import origin, reference_state
+from lungmech.rom.basis import origin
 from lungmech.rom.pod import pod, snapshots
 from lungmech.rom.reduced import ReducedModel
 
@@ -43,7 +44,7 @@ def reduce(
     if not training:
         raise ParameterError("reduce: give at least one training parameter point")
     model = full.model
-    start = reference_state(model) if full.start is None else full.start
+    start = one_state(full.start, model)
     tic = time.perf_counter()
     data = snapshots(model, full.stepping, solver=full.solver, start=start, parameters=training)
     seconds = {"snapshots": time.perf_counter() - tic}
