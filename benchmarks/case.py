@@ -29,10 +29,11 @@ from pathlib import Path
 
 _started = time.perf_counter()
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
 from lungmech.mesh import sphere

@@ -21,9 +21,10 @@ import argparse
 import time
 from pathlib import Path
 
+from mpi4py import MPI
+
 import matplotlib
 import numpy as np
-from mpi4py import MPI
 
 from lungmech.fem.constraints import clamp
 from lungmech.fem.loads import Traction

@@ -18,9 +18,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from mpi4py import MPI
+
 import numpy as np
 from machine import provenance, time_against_dofs, write_results  # noqa: E402
-from mpi4py import MPI
 
 from lungmech import rom
 from lungmech.fem.constraints import clamp

@@ -21,12 +21,13 @@ from __future__ import annotations
 import argparse
 import time
 
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import basix.ufl
 import ufl
 from dolfinx import default_scalar_type, fem
 from dolfinx.fem.petsc import NonlinearProblem
-from mpi4py import MPI
-from petsc4py import PETSc
 
 import lungmech.mesh  # the mesh only (its import also orders MPI before the bindings)
 

@@ -164,10 +164,11 @@ def release() -> None:
 
 def case(implementation: str, cells: int, vectors: int) -> None:
     importlib.import_module("lungmech")  # first: it loads the MPI library that DOLFINx links to
+    from mpi4py import MPI
+
     import dolfinx.mesh
     import numpy as np
     from dolfinx import fem
-    from mpi4py import MPI
 
     from lungmech.parallel.layout import layout
     from lungmech.rom import store

@@ -18,9 +18,10 @@ import statistics
 import time
 from pathlib import Path
 
+from mpi4py import MPI
+
 from case import FORMULATIONS, lame
 from handwritten import Problem
-from mpi4py import MPI
 
 import lungmech  # noqa: F401
 from lungmech.fem.constraints import symmetry

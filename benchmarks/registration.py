@@ -99,9 +99,10 @@ import platform  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
 
-import numpy as np  # noqa: E402
 from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx links to)
 from petsc4py import PETSc  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 import lungmech.registration.sobolev as sobolev  # noqa: E402
 from lungmech.mesh import (

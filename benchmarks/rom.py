@@ -115,11 +115,12 @@ import logging  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 
+from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx links to)
+from petsc4py import PETSc  # noqa: E402
+
 import numpy as np  # noqa: E402
 from dolfinx import fem, la  # noqa: E402
 from dolfinx.fem.petsc import assemble_matrix  # noqa: E402
-from mpi4py import MPI  # noqa: E402  (first: it loads the MPI library dolfinx links to)
-from petsc4py import PETSc  # noqa: E402
 
 from lungmech import rom  # noqa: E402
 from lungmech.app.run import build_model  # noqa: E402

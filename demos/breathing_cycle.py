@@ -21,9 +21,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
+from mpi4py import MPI
+
 import matplotlib.pyplot as plt
 import numpy as np
-from mpi4py import MPI
 
 from lungmech import meshes
 from lungmech.app.plot import deformed_body

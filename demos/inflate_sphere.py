@@ -13,10 +13,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
+from mpi4py import MPI
+
 import matplotlib.pyplot as plt
 import numpy as np
 import ufl
-from mpi4py import MPI
 
 from lungmech.fem.constraints import symmetry
 from lungmech.fem.loads import FollowerPressure

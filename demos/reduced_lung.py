@@ -20,9 +20,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
+from mpi4py import MPI
+
 import matplotlib.pyplot as plt
 import numpy as np
-from mpi4py import MPI
 
 from lungmech import rom
 from lungmech.app.run import build_model

@@ -23,8 +23,9 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech import mesh as geometry
 from lungmech import meshes

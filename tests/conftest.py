@@ -1,7 +1,8 @@
 import gc
 
-import pytest
 from mpi4py import MPI
+
+import pytest
 
 import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
 

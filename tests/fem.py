@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
-from mpi4py import MPI
 
 import lungmech.meshes
 from lungmech.fem.constraints import Displacement, clamp, symmetry

@@ -19,10 +19,11 @@ import subprocess
 import zipfile
 from pathlib import Path
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import TINY_SCENE
-from mpi4py import MPI
 
 from lungmech import mesh as geometry
 from lungmech import meshes

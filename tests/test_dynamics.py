@@ -6,11 +6,12 @@ independent per-mode reference: the scalar recurrence
 and the exact solution of z'' + λ z = f from :func:`modal_response`.
 """
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem, la
-from mpi4py import MPI
 from scipy.integrate import solve_ivp
 
 from lungmech.errors import ParameterError, SolverError

@@ -2,9 +2,10 @@
 round-off; the sample reproduces the training reduced forces to τ; the hyper-reduced solution
 approaches the Galerkin one as τ falls; the online solve assembles the sampled cells only."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 from scipy.optimize import nnls
 
 from lungmech import rom

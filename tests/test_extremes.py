@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import re
 
-import pytest
 from mpi4py import MPI
+
+import pytest
 
 from lungmech import meshes
 from lungmech.errors import SolverError

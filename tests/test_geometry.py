@@ -3,12 +3,13 @@
 import math
 from pathlib import Path
 
+from mpi4py import MPI
+
 import dolfinx
 import numpy as np
 import pytest
 import ufl
 from fem import MESHES
-from mpi4py import MPI
 
 import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
 from lungmech.errors import GeometryError

@@ -5,11 +5,12 @@ by the hilum alone, the lung hangs there (reaction = −weight); with the balanc
 the hilum carries nothing, in force and in moment.
 """
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from dolfinx import fem, la
 from fem import MESHES
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import clamp

@@ -4,10 +4,11 @@ to, and the trained model meets its tolerance at points it never saw."""
 import json
 from dataclasses import replace
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import BOX, PARAMETRIC_SCENE, pushed_block
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem import BodyForce, LinearElastic, Model, Stepping, Traction, clamp

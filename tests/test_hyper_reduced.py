@@ -4,12 +4,13 @@ writes the full state; its volume and probes are the full model's functionals of
 round-off, its strain energy within a few τ; imposed displacements that move with time are
 covered exactly."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem
 from dolfinx import mesh as dmesh
-from mpi4py import MPI
 
 from lungmech import rom
 from lungmech.errors import ParameterError

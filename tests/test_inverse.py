@@ -1,9 +1,10 @@
 """The inverse problem: imaged (loaded) geometry -> unloaded reference -> direct solve -> imaged again."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import MESHES
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.constraints import clamp

@@ -1,12 +1,13 @@
 """The canonical dof layout on one rank: what its order is, what its fingerprint notices, and
 that canonical arrays go to rank 0 and back. ``tests/test_mpi.py`` compares 1 and 2 ranks."""
 
+from mpi4py import MPI
+
 import dolfinx.mesh
 import numpy as np
 import pytest
 from basix.ufl import element, mixed_element
 from dolfinx import fem
-from mpi4py import MPI
 
 from lungmech.mesh import box
 from lungmech.parallel.layout import layout

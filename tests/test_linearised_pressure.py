@@ -3,10 +3,11 @@ equilibrium, not elsewhere; the same solution as the exact tangent; the mixed fo
 iteration counts on a nearly incompressible body where the exact tangent needs several times as
 many; only where a law has a bulk term to linearise."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from dolfinx.fem.petsc import assemble_matrix
-from mpi4py import MPI
 
 from lungmech.fem.constraints import clamp
 from lungmech.fem.linearised_pressure import LinearisedPressure

@@ -3,9 +3,10 @@ time, and a dead normal pressure — each against an equivalent load or a closed
 
 import re
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import clamp, symmetry

@@ -2,12 +2,13 @@
 
 import math
 
+from mpi4py import MPI
+
 import analytic as an
 import dolfinx.mesh
 import numpy as np
 import pytest
 from dolfinx import fem
-from mpi4py import MPI
 
 from lungmech import lung
 from lungmech.errors import ParameterError

@@ -3,11 +3,12 @@
 import math
 import re
 
+from mpi4py import MPI
+
 import analytic as A
 import numpy as np
 import pytest
 import ufl
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem import materials as M

@@ -1,8 +1,9 @@
 """Modal analysis: a slender clamped beam against Euler–Bernoulli, M-orthonormal modes."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import clamp

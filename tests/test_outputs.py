@@ -12,12 +12,13 @@ import sys
 import time
 from pathlib import Path
 
+from mpi4py import MPI
+
 import meshio
 import numpy as np
 import pytest
 import pyvista
 from fem import TINY_SCENE
-from mpi4py import MPI
 
 from lungmech.app import scene as scenes
 from lungmech.app.run import run

@@ -1,9 +1,10 @@
 """Named parameters: ranges, what they act on, regions and interfaces, and no recompilation."""
 
+from mpi4py import MPI
+
 import dolfinx.jit
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SceneError
 from lungmech.fem import FollowerPressure, Model, NeoHookean, NewtonSolver, Stepping, clamp, deformed_volume, solve

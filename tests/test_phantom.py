@@ -3,10 +3,11 @@
 import math
 from dataclasses import replace
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import MESHES
-from mpi4py import MPI
 from scipy.spatial.transform import Rotation
 
 import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)

@@ -6,9 +6,10 @@ in plane stress. The 2-D model must give the same lateral stretch, thickness str
 per unit thickness, for every law.
 """
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import Displacement, clamp, symmetry

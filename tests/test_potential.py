@@ -9,11 +9,12 @@ symmetric, so the asymmetry of the assembled tangent on the free dofs says what 
   θ = Θ(u) follows the state, and the low-rank term U Vᵀ of the tangent is far from symmetric.
 """
 
+from mpi4py import MPI
+
 import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 from fem import MESHES
-from mpi4py import MPI
 
 from lungmech.fem.constraints import clamp
 from lungmech.fem.loads import FollowerPressure

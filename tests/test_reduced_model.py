@@ -4,10 +4,11 @@ with everything they need."""
 import shutil
 import tomllib
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import BOX, pushed_block
-from mpi4py import MPI
 
 from lungmech.app import reduce as reduce_app
 from lungmech.app import scene as scenes

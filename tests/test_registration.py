@@ -1,11 +1,12 @@
 """Shape registration: the image function, the shape derivative, similarity fits and the
 registration itself, against analytic references."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 from lungmech import mesh as geometry
 from lungmech import meshes

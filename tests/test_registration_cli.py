@@ -2,9 +2,10 @@
 
 import json
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech import mesh as geometry
 from lungmech import meshes

@@ -1,9 +1,10 @@
 """Registration pictures: the geometry behind them (boundary triangles, plane sections) and the PNGs."""
 
+from mpi4py import MPI
+
 import matplotlib.image
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import RegistrationError
 from lungmech.mesh import sphere

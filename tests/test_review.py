@@ -3,9 +3,10 @@ the model's state kept through errors."""
 
 from __future__ import annotations
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import clamp

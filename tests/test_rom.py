@@ -1,10 +1,11 @@
 """Reduced-order models: bases, reduced Galerkin Newton, storage; each against an exact reference."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from mpi4py import MPI
 
 from lungmech import rom
 from lungmech.errors import ModelFileError, ParameterError

@@ -1,9 +1,10 @@
 """Shape modes from a library of mappings: similarity removal, mass-weighted POD, leave-one-out
 error, and new geometries from shape coefficients that a scene can run on."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech import mesh as geometry
 from lungmech import meshes

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import json
 
+from mpi4py import MPI
+
 import nibabel
 import numpy as np
 import pytest
 from lungs import LEFT, RIGHT
-from mpi4py import MPI
 
 from lungmech import meshes
 from lungmech.app.cli import main

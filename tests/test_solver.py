@@ -1,8 +1,9 @@
 """Newton: quadratic convergence (exact tangent), cut-back and restore, clear failures."""
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.constraints import clamp

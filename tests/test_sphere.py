@@ -1,10 +1,11 @@
 """Thick-walled sphere under internal pressure: incompressible neo-Hookean, Taylor–Hood P2–P1,
 against the closed form (VERIFICATION.md), with a follower pressure on curved quadratic cells."""
 
+from mpi4py import MPI
+
 import analytic as A
 import pytest
 from fem import inflated_sphere, mean_inner_radius
-from mpi4py import MPI
 
 from lungmech.fem.solver import Stepping
 

@@ -3,10 +3,11 @@ strains; and volumetric locking of P1 with its two cures, P2 and the mixed formu
 
 import itertools
 
+from mpi4py import MPI
+
 import analytic as A
 import pytest
 from fem import lateral_stretch, mean_cauchy, uniaxial
-from mpi4py import MPI
 
 from lungmech.fem.constraints import clamp
 from lungmech.fem.loads import Traction

@@ -4,10 +4,11 @@ indicator, a bad file refused in one line."""
 import csv
 import json
 
+from mpi4py import MPI
+
 import numpy as np
 import pytest
 from fem import PARAMETRIC_SCENE
-from mpi4py import MPI
 
 from lungmech.app import reduce as reduce_app
 from lungmech.app import scene as scenes

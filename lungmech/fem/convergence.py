@@ -31,9 +31,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
+
+import numpy as np
 
 __all__ = ["Fields", "absolute_product"]
 

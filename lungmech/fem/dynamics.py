@@ -32,10 +32,11 @@ import numbers
 import time
 from collections.abc import Callable, Sequence
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.solver import NewtonOptions, NewtonResult, NewtonSolver, SolveReport, StepReport, steps_model_state

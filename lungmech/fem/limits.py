@@ -21,12 +21,13 @@ from __future__ import annotations
 import weakref
 from collections.abc import Callable
 
+from petsc4py import PETSc
+
 import basix
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from petsc4py import PETSc
 
 from lungmech.fem.linear import factorised, use_lu
 

@@ -17,10 +17,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, NamedTuple
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
 from dolfinx import mesh as dmesh
-from mpi4py import MPI
 from ufl.core.expr import Expr
 
 from lungmech import checks

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from petsc4py import PETSc
 from slepc4py import SLEPc
 
 from lungmech.errors import ParameterError, SolverError

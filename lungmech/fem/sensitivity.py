@@ -45,12 +45,13 @@ import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
-from mpi4py import MPI
-from petsc4py import PETSc
 from ufl.algorithms import expand_derivatives
 from ufl.algorithms.map_integrands import map_integrands
 

@@ -18,12 +18,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem, assemble_matrix, assign
-from mpi4py import MPI
-from petsc4py import PETSc
 
 from lungmech import checks
 from lungmech.errors import Interrupted, ParameterError, SolverError

@@ -15,12 +15,13 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from mpi4py import MPI
+
 import dolfinx
 import dolfinx.io
 import dolfinx.mesh
 import numpy as np
 import numpy.typing as npt
-from mpi4py import MPI
 
 from lungmech.errors import GeometryError
 from lungmech.mesh.geometry import Geometry, from_meshdata

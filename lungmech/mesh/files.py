@@ -14,11 +14,12 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from mpi4py import MPI
+
 import dolfinx
 import dolfinx.io
 import dolfinx.mesh
 import numpy as np
-from mpi4py import MPI
 
 from lungmech.errors import GeometryError
 from lungmech.mesh.builders import gmsh_session

@@ -16,13 +16,14 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+from mpi4py import MPI
+
 import dolfinx
 import dolfinx.fem
 import dolfinx.mesh
 import numpy as np
 import numpy.typing as npt
 import ufl
-from mpi4py import MPI
 
 from lungmech.errors import GeometryError
 

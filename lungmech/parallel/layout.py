@@ -40,10 +40,11 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
+from mpi4py import MPI
+
 import numpy as np
 import numpy.typing as npt
 from dolfinx import fem, la
-from mpi4py import MPI
 
 __all__ = ["Layout", "field_dofs", "layout"]
 

@@ -13,8 +13,9 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech.errors import RegistrationError
 from lungmech.registration.image import Image

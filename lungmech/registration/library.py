@@ -17,9 +17,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from mpi4py import MPI
+
 import numpy as np
 from dolfinx import fem
-from mpi4py import MPI
 
 from lungmech.errors import ParameterError, RegistrationError
 from lungmech.mesh import nodes

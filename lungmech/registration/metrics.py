@@ -20,12 +20,13 @@ from __future__ import annotations
 import itertools
 import math
 
+from mpi4py import MPI
+
 import dolfinx
 import dolfinx.geometry
 import dolfinx.mesh
 import numpy as np
 import numpy.typing as npt
-from mpi4py import MPI
 from scipy.spatial import cKDTree
 
 from lungmech.errors import RegistrationError

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
-from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
 from lungmech.parallel.linalg import apply, gram_schmidt

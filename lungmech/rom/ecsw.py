@@ -64,13 +64,14 @@ import weakref
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
-from mpi4py import MPI
-from petsc4py import PETSc
 from ufl.algorithms import expand_derivatives
 
 from lungmech.errors import ParameterError

@@ -12,10 +12,11 @@ same load stepping (:func:`lungmech.fem.solver.solve`), outputs and state-depend
 
 from __future__ import annotations
 
+from petsc4py import PETSc
+
 import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
-from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields

@@ -14,13 +14,14 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import numpy as np
 import ufl
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
 from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
-from mpi4py import MPI
-from petsc4py import PETSc
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import EPS, Fields

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import itertools
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech.errors import ParameterError
 from lungmech.parallel.layout import field_dofs, layout

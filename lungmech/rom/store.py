@@ -20,8 +20,9 @@ import json
 import zipfile
 from pathlib import Path
 
-import numpy as np
 from mpi4py import MPI
+
+import numpy as np
 
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.parallel import on_root, together
