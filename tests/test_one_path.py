@@ -224,7 +224,8 @@ def test_a_reduced_model_of_an_imaged_scene_says_where_it_starts(imaged, tmp_pat
     assert main(["rom", "solve", str(model), "-o", str(out), *_sets({"stiffness": 110.0})]) == 0
     said = capsys.readouterr().out
     line = next(line for line in said.splitlines() if "start:" in line)
-    assert "unloaded at the default parameters, moved to μ (not the image at μ)" in line and "from it" in line
+    assert "unloaded at the default parameters, then moved to these parameters (not the image at them)" in line
+    assert "from it)" in line and " L (the image 1000 L; " in line
     start = json.loads((out / "summary.json").read_text())["start"]
     assert start["kind"] == "equilibrium" and start["imaged_volume"] == pytest.approx(1.0)
     assert abs(start["from_image"]) > 1e-4  # a softer lung, moved from the defaults' equilibrium

@@ -126,7 +126,9 @@ def body_name(model: Model) -> str:
     return "lung" if axis is not None and axis.lung else "body"
 
 
-IMAGED_AT_DEFAULTS = "the imaged {body} unloaded at the default parameters, moved to μ (not the image at μ)"
+IMAGED_AT_DEFAULTS = (
+    "the imaged {body} unloaded at the default parameters, then moved to these parameters (not the image at them)"
+)
 
 
 def full_order_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, *, start: str = "imaged") -> FullOrderModel:
@@ -175,11 +177,12 @@ def start_text(start: StartReport, planar: bool) -> str:
     if "volume" in details:
         text += f"; volume {volume_text(details['volume'], planar)}"
     if "from_image" in details:
-        sign = "+" if details["from_image"] >= 0 else "−"
-        text += (
-            f" (the image {volume_text(details['imaged_volume'], planar)}; "
-            f"{sign}{volume_text(abs(details['from_image']), planar)} from it)"
-        )
+        apart, imaged = details["from_image"], details["imaged_volume"]
+        if abs(apart) <= 1e-6 * abs(imaged):
+            text += ", the image's"
+        else:
+            sign = "+" if apart >= 0 else "−"
+            text += f" (the image {volume_text(imaged, planar)}; {sign}{volume_text(abs(apart), planar)} from it)"
     return text
 
 

@@ -225,7 +225,8 @@ class Imaged:
         } | ({"porosity_mismatch": report.porosity} if report.porosity else {})
         return StartReport(
             "imaged",
-            f"the imaged {self.body} at μ (its unloaded reference found at μ in {report.iterations} iterations)",
+            f"the imaged {self.body} (its unloaded reference found for these parameters in {report.iterations} "
+            "iterations)",
             report.newton_iterations,
             details,
         )
