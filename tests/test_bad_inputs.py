@@ -854,6 +854,26 @@ COMMANDS = {
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--tolerance", "0.01"],
         "--tolerance trains over the scene's [parameters] box, and this scene has none",
     ),
+    "rom build of a saddle point in the energy inner product": (
+        [
+            _write(
+                "mixed.toml",
+                TINY.replace("[[constraints]]", '[formulation]\ntype = "mixed"\ndegree = 2\n[[constraints]]', 1),
+            )
+        ],
+        ["rom", "build", "mixed.toml", "-o", "m2.npz", "--size", "3"],
+        "the energy inner product is not positive definite on this model's states",
+    ),
+    "rom build of an ECSW size without ECSW": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--ecsw-size", "3"],
+        "--ecsw-size and --ecsw-judge shape a hyper-reduction: give --hyper ecsw",
+    ),
+    "rom build judging without a greedy": (
+        [],
+        ["rom", "build", "scene.toml", "-o", "m2.npz", "--hyper", "ecsw", "--ecsw-judge", "1e-3"],
+        "--ecsw-judge is the τ a greedy training judges at: give --tolerance",
+    ),
     "rom build of size zero": (
         [],
         ["rom", "build", "scene.toml", "-o", "m2.npz", "--size", "0"],
@@ -937,6 +957,17 @@ COMMANDS = {
         [_edited_model(_nan_basis)],
         ["rom", "solve", "edited.npz", "scene.toml", "-o", "out"],
         "holds values that are not finite numbers",
+    ),
+    "model whose basis is not orthonormal, its digest redone": (
+        [_edited_model(lambda root, metadata, arrays: arrays.update(vectors=2.0 * arrays["vectors"]))],
+        ["rom", "solve", "edited.npz", "scene.toml", "-o", "out"],
+        "is damaged: its basis is not orthonormal in its energy inner product",
+    ),
+    "model of an older format": (
+        [_edited_model(lambda root, metadata, arrays: metadata.update(format="lungmech-rom/3"))],
+        ["rom", "solve", "edited.npz", "-o", "out"],
+        "was written by another lungmech version (format lungmech-rom/3, this one reads lungmech-rom/4); rebuild "
+        "it with 'lungmech rom build'",
     ),
     "model of an edited law": (
         [_edited_model(_relaw, digest=False)],

@@ -20,7 +20,7 @@ from lungmech.rom.ecsw import TANGENT, TANGENT_STATES, Training
 from lungmech.rom.greedy import greedy
 from lungmech.rom.indicator import ResidualIndicator
 from lungmech.rom.reduced import ReducedModel
-from lungmech.rom.reductor import errors, reduce
+from lungmech.rom.reductor import POD, TrainingSet, errors, reduce
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_the_indicator_is_the_error_itself_for_a_linear_model():
         ],
     )
     full = FullOrderModel(model, Stepping(end=1.0, times=(0.5,)))
-    poor = reduce(full, [{"E": 5.0}], size=1)  # the traction's response alone
+    poor = reduce(full, POD(1), TrainingSet([{"E": 5.0}]))  # the traction's response alone
     indicator = ResidualIndicator(model)
     mu = {"E": 17.0, "g": 0.7}
     answer = poor.solve(mu)
@@ -245,7 +245,7 @@ def test_rom_build_to_a_tolerance_from_the_command_line(tmp_path, capsys):
     assert main(["rom", "build", str(scene), "-o", str(model), "--tolerance", "1e-3", "--samples", "8", "-q"]) == 0
     said = capsys.readouterr().out
     assert "greedy training: tolerance 0.001 met with" in said and "true error" in said and " Pa, pull = " in said
-    recorded = store.read(model, arrays=False)[0]["extra"]["greedy"]
+    recorded = store.read(model, arrays=False)[0]["extra"]["reduced"]["built"]["greedy"]
     assert recorded["met"] and recorded["full_solves"] == len(recorded["rounds"]) >= 2
     assert all(r["error"] is not None for r in recorded["rounds"][:-1])
     out = tmp_path / "answer"

@@ -404,7 +404,7 @@ def test_parametric_full_and_reduced_models_same_on_all_ranks_as_on_one(tmp_path
     from lungmech.fem.parameters import Parameter, Parameters
     from lungmech.fem.parametric import FullOrderModel
     from lungmech.fem.ramp import Ramp
-    from lungmech.rom.reductor import reduce
+    from lungmech.rom.reductor import POD, TrainingSet, reduce
 
     box_ = [Parameter("E", "material.E", 10.0, (5.0, 20.0)), Parameter("p", "loads.push.value", 1.0, (0.2, 2.0))]
 
@@ -417,7 +417,7 @@ def test_parametric_full_and_reduced_models_same_on_all_ranks_as_on_one(tmp_path
             parameters=box_,
         )
         full = FullOrderModel(model, Stepping(times=(0.5,)), probes=[(1.0, 0.5, 0.5)])
-        rom = reduce(full, Parameters(box_).sample(4, seed=2), size=8)
+        rom = reduce(full, POD(8), TrainingSet(Parameters(box_).sample(4, seed=2)))
         mu = {"E": 7.0, "p": 1.5}
         f, r = full.solve(mu, sensitivities=True), rom.solve(mu, sensitivities=True)
         return np.concatenate(

@@ -15,7 +15,7 @@ from lungmech.app import scene as scenes
 from lungmech.errors import ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.mesh import box
-from lungmech.rom.reductor import errors, reduce
+from lungmech.rom.reductor import POD, TrainingSet, errors, reduce
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def full():
 
 @pytest.fixture(scope="module")
 def reduced(full):
-    return reduce(full, Parameters(BOX).sample(16, seed=1), size=20)
+    return reduce(full, POD(20), TrainingSet(Parameters(BOX).sample(16, seed=1)))
 
 
 def test_full_and_reduced_answer_the_same_calls(full, reduced):
@@ -50,7 +50,7 @@ def test_unseen_points_of_the_box(full, reduced):
 
 def test_a_basis_of_one_training_point_does_not_cover_the_box(full):
     """The error measure can fail: one point's load path does not span the box."""
-    poor = reduce(full, [{"E": 5.0, "nu": 0.2, "p": 0.2}], size=2)
+    poor = reduce(full, POD(2), TrainingSet([{"E": 5.0, "nu": 0.2, "p": 0.2}]))
     e = errors(poor, full.solve({"E": 20.0, "nu": 0.45, "p": 2.0}), poor.solve({"E": 20.0, "nu": 0.45, "p": 2.0}))
     assert e.energy > 1e-3
 

@@ -72,7 +72,12 @@ def parser() -> argparse.ArgumentParser:
         help="train greedily over the [parameters] box until the reduced model's error indicator (relative "
         "energy-norm error) is below this at every candidate point (--samples of them, default 32)",
     )
-    build.add_argument("--inner", default="mass", help="inner product of the basis: mass, energy or l2")
+    build.add_argument(
+        "--inner",
+        default="energy",
+        help="inner product of the basis: energy (the default: the tangent at rest, the norm of the tolerance, "
+        "the indicator and the errors), mass or l2",
+    )
     build.add_argument("--order", type=int, default=2, help="order of a polynomial basis")
     build.add_argument(
         "--hyper",
@@ -84,6 +89,19 @@ def parser() -> argparse.ArgumentParser:
         type=float,
         default=1e-4,
         help="ECSW: reproduce the training reduced forces to this relative tolerance (default 1e-4)",
+    )
+    build.add_argument(
+        "--ecsw-size",
+        type=int,
+        default=None,
+        help="ECSW: truncate the basis to this many vectors after sampling (the sample trained on the whole basis)",
+    )
+    build.add_argument(
+        "--ecsw-judge",
+        type=float,
+        default=None,
+        help="ECSW with --tolerance: the tolerance the greedy judges its rounds at (default --ecsw-tolerance); "
+        "the model is then re-sampled at --ecsw-tolerance",
     )
     build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
@@ -345,6 +363,8 @@ def _rom_build(args) -> int:
         hyper=args.hyper,
         hyper_tolerance=args.ecsw_tolerance,
         tolerance=args.tolerance,
+        hyper_size=args.ecsw_size,
+        judge=args.ecsw_judge,
     )
     if comm.rank == 0:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())

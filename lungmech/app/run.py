@@ -131,17 +131,20 @@ IMAGED_AT_DEFAULTS = (
 )
 
 
-def full_order_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, *, start: str = "imaged") -> FullOrderModel:
+def full_order_model(
+    scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, *, start: str = "imaged", model: Model | None = None
+) -> FullOrderModel:
     """The scene's full-order model (``solve(mu)``). A scene with [inverse] solves the problem of
     an imaged body: its mesh is the loaded state at the start for every μ, and each solve finds
     the unloaded reference at its μ (:class:`lungmech.lung.inverse.Imaged`); probe points are
     then points of the image. ``start="defaults"`` instead finds the reference once, at the
     default parameters, and moves its loaded state to each μ (:class:`~lungmech.fem.start.
     Equilibrium`): what the reduced models of such a scene do for now, to compare them with a
-    full model started the same way. Collective."""
+    full model started the same way. ``model``: the scene's :func:`build_model`, if built already
+    (on its mesh as built). Collective."""
     if start not in ("imaged", "defaults"):
         raise ParameterError(f"start must be 'imaged' or 'defaults' (got {start!r})")
-    model = build_model(scene, comm)
+    model = build_model(scene, comm) if model is None else model
     probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
     first = None
     if scene.inverse is not None:

@@ -111,6 +111,8 @@ class Rest:
     an equilibrium when the loads at the start vanish; moved to μ by :func:`approach`."""
 
     kind = "rest"
+    description = "the unloaded state"
+    details: dict = {}
 
     def reset(self, model) -> None:
         model.set_parameters(model.parameters.defaults)
@@ -125,7 +127,7 @@ class Rest:
     def place(self, model, solver, values, time, progress=None, on_step=None) -> StartReport:
         self.reset(model)
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
-        return StartReport("rest", "the unloaded state", iterations)
+        return StartReport("rest", self.description, iterations)
 
 
 class Equilibrium:

@@ -19,13 +19,20 @@ from petsc4py import PETSc
 
 import numpy as np
 
-__all__ = ["POD", "Weight", "apply", "gram", "gram_schmidt", "pod"]
+__all__ = ["POD", "NotPositive", "Weight", "apply", "gram", "gram_schmidt", "pod"]
 
 Weight = PETSc.Mat | Callable[[np.ndarray], np.ndarray] | None
 
 # Method of snapshots: σ² comes from an eigensolve of Sᵀ W S, whose round-off is ε σ₁², so σ below
 # about √ε σ₁ is noise. 1e-7 keeps a margin above √ε ≈ 1.5e-8.
 NOISE = 1e-7
+# A weight is positive definite on the vectors at hand if no vᵀ W v falls below −INDEFINITE of the
+# scale its round-off has (‖v‖ ‖W v‖, or the largest eigenvalue of Sᵀ W S).
+INDEFINITE = 1e-8
+
+
+class NotPositive(ArithmeticError):
+    """The weight W is not positive definite on the vectors given: vᵀ W v < 0 for some v."""
 
 
 def apply(W: Weight, vectors: np.ndarray, comm: MPI.Comm) -> np.ndarray:
@@ -67,13 +74,18 @@ def gram_schmidt(
 
     For each column v: v ← v − Q (W Q)ᵀ v, twice ("twice is enough", Kahan–Parlett), then
     v / ‖v‖_W. A column whose remainder is below ``tolerance`` × its own W-norm adds nothing new
-    and is dropped. Returns the vectors and the indices of the columns that were kept.
+    and is dropped. Returns the vectors and the indices of the columns that were kept. Raises
+    :class:`NotPositive` when vᵀ W v < 0 for a column (W is no inner product there).
     """
     kept = []
     result, weighted = np.zeros((vectors.shape[0], 0)), np.zeros((vectors.shape[0], 0))  # Q and W·Q
     for j in range(vectors.shape[1]):
         v = np.array(vectors[:, [j]], dtype=float)
-        norm0 = np.sqrt(max(gram(v, apply(W, v, comm), comm)[0, 0], 0.0))
+        wv = apply(W, v, comm)
+        square = gram(v, wv, comm)[0, 0]
+        if square < -INDEFINITE * np.sqrt(gram(v, v, comm)[0, 0] * gram(wv, wv, comm)[0, 0]):
+            raise NotPositive(f"vᵀ W v = {square:.3g} < 0 for column {j}")
+        norm0 = np.sqrt(max(square, 0.0))
         if not norm0 > 0:
             continue
         for _ in range(2):
@@ -103,12 +115,15 @@ def pod(data: np.ndarray, W: Weight, comm: MPI.Comm) -> POD:
 
     Method of snapshots: C = Sᵀ W S = Q Σ² Qᵀ, modes Φ = S Q Σ⁻¹ (re-orthonormalised against
     round-off by :func:`gram_schmidt`), coefficients Q Σ. Directions with σ ≤ 1e-7 σ₁ are noise
-    of C and are dropped. All-zero data give no modes.
+    of C and are dropped. All-zero data give no modes. Raises :class:`NotPositive` when W is not
+    positive definite on the snapshots' span.
     """
     correlation = gram(data, apply(W, data, comm), comm)
     eigenvalues, vectors = np.linalg.eigh(correlation)
     order = np.argsort(eigenvalues)[::-1]
     eigenvalues, vectors = eigenvalues[order], vectors[:, order]
+    if eigenvalues.size and eigenvalues[-1] < -INDEFINITE * max(eigenvalues[0], 0.0):
+        raise NotPositive(f"Sᵀ W S has the eigenvalue {eigenvalues[-1]:.3g} < 0")
     singular = np.sqrt(np.clip(eigenvalues, 0.0, None))
     keep = singular > NOISE * singular[0] if singular.size and singular[0] > 0 else np.zeros(len(singular), bool)
     modes, kept = gram_schmidt(data @ vectors[:, keep] / singular[keep], W, comm)

@@ -9,6 +9,8 @@ without recomputing anything.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 from petsc4py import PETSc
@@ -19,7 +21,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
-from lungmech.parallel.linalg import apply, gram_schmidt
+from lungmech.parallel.linalg import NotPositive, apply, gram_schmidt
 
 INNER_PRODUCTS = ("l2", "mass", "energy")
 
@@ -91,6 +93,51 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     return W
 
 
+def require_positive_definite(model, kind: str) -> None:
+    """Refuse, in one line naming the way out, an inner product ``kind`` that is not positive
+    definite on the model's constrained space: its Cholesky factorisation's inertia (MUMPS) has a
+    negative or zero pivot (the energy of a saddle point — the mixed formulation's pressure — or
+    of a body free to move rigidly). Collective; one factorisation of W."""
+    W = inner_product(model, kind)
+    if W is None:
+        return
+    ksp = PETSc.KSP().create(W.getComm())
+    try:
+        ksp.setOperators(W)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("cholesky")
+        pc.setFactorSolverType("mumps")
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        factor.setMumpsIcntl(13, 1)  # the inertia over all ranks, not the root's block only
+        factor.setMumpsIcntl(24, 1)  # null pivots detected (and counted)
+        ksp.setUp()
+        negative, zero, _ = factor.getInertia()
+    finally:
+        ksp.destroy()
+        W.destroy()
+    if negative or zero:
+        raise _not_positive(kind, f"{negative} negative and {zero} zero pivots")
+
+
+def _not_positive(kind: str, seen: str) -> ParameterError:
+    return ParameterError(
+        f"the {kind} inner product is not positive definite on this model's states ({seen}: a saddle point, as the "
+        "mixed formulation's pressure, or a body free to move rigidly): use the mass inner product (--inner mass)"
+    )
+
+
+@contextlib.contextmanager
+def positive(inner: str) -> Iterator[None]:
+    """Within the block, an inner product found not positive definite (:class:`~lungmech.
+    parallel.linalg.NotPositive`) is refused in one line that names the way out."""
+    try:
+        yield
+    except NotPositive as error:
+        raise _not_positive(inner, str(error)) from None
+
+
 def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
     """One basis spanning all of ``bases`` (in order), re-orthonormalised; repeats are dropped."""
     if not bases:
@@ -100,9 +147,12 @@ def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
         raise ParameterError("enrich: the bases belong to different meshes or spaces")
     comm = model.geometry.mesh.comm
     W = inner_product(model, inner)
-    vectors, kept = gram_schmidt(np.hstack([b.vectors for b in bases]), W, comm)
-    if W is not None:
-        W.destroy()
+    try:
+        with positive(inner):
+            vectors, kept = gram_schmidt(np.hstack([b.vectors for b in bases]), W, comm)
+    finally:
+        if W is not None:
+            W.destroy()
     values = np.concatenate([b.values for b in bases])[kept]
     kinds = "+".join(dict.fromkeys(b.kind for b in bases))
     source = {"parts": [{"kind": b.kind, "size": b.size, **b.source} for b in bases]}

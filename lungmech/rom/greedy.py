@@ -6,7 +6,7 @@ measures its error indicator η (:mod:`lungmech.rom.indicator`). If the largest 
 tolerance — over the candidates and, for the last model, its own training points too — the
 basis is done. Otherwise the full model solves the load path at that candidate:
 its states become snapshots, and the reduced model's true error there (energy norm, as
-:func:`lungmech.rom.reductor.errors`) is measured on the way, so every round reports the
+:func:`lungmech.rom.accuracy.errors`) is measured on the way, so every round reports the
 indicator next to the error it estimates, and the largest ratio error / indicator of the last
 three rounds near the tolerance (at least 1) scales the indicator before it is compared with
 the tolerance: an indicator that has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
@@ -38,12 +38,12 @@ from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.start import one_state
 from lungmech.parallel.linalg import norms
 from lungmech.rom import ecsw
+from lungmech.rom.accuracy import errors
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.indicator import ResidualIndicator, enrichment
 from lungmech.rom.pod import pod, snapshot
 from lungmech.rom.reduced import ReducedModel
-from lungmech.rom.reductor import errors
 
 __all__ = ["Greedy", "Round", "greedy"]
 

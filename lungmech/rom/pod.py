@@ -7,11 +7,12 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.fem.parametric import approach
-from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
+from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping
+from lungmech.fem.start import one_state
 from lungmech.parallel import linalg
 from lungmech.parallel.layout import layout
-from lungmech.rom.basis import Basis, inner_product, origin, reference_state, zero_imposed
+from lungmech.rom.basis import Basis, inner_product, origin, positive, reference_state, zero_imposed
 
 
 def snapshots(
@@ -24,44 +25,37 @@ def snapshots(
     parameters: Sequence[Mapping[str, float]] = ({},),
 ) -> np.ndarray:
     """Full-order states minus the start state, at every accepted step of one run per parameter
-    point and scale.
-
-    Each run starts from ``start`` (a state array, an equilibrium at the default parameters;
-    default: unloaded) at ``stepping.start``, moves to the point's parameters (a mapping of names
-    to values; the others at their defaults) by :func:`~lungmech.fem.parametric.approach`, whose
-    states are snapshots too, and follows the load path. A scale multiplies the loads' change since then (a number: all loads; a sequence:
-    one factor per load), so the training set spans parameters and load amplitudes as well as the
-    load history. Returns the owned rows, shape (owned dofs, snapshots); the model is left at the
-    start state, at its default parameters.
+    point and scale: :meth:`FullOrderModel.solve <lungmech.fem.parametric.FullOrderModel.solve>`
+    from ``start`` (a state array, an equilibrium at the default parameters; default: unloaded),
+    whose approach to the point's parameters gives snapshots too. A scale multiplies the loads'
+    change since the start (a number: all loads; a sequence: one factor per load), so the training
+    set spans parameters and load amplitudes as well as the load history. Returns the owned rows,
+    shape (owned dofs, snapshots); the model is left at the start state, at its default
+    parameters.
     """
     if not scales or not parameters:
         raise ParameterError("snapshots: give at least one load scale and one parameter point")
-    solver = solver or NewtonSolver(model, options)
     start = reference_state(model) if start is None else start.copy()
+    full = FullOrderModel(model, stepping, options, start=start, solver=solver)
+    return collected(full, [(point, scale) for point in parameters for scale in scales])
+
+
+def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], object]]) -> np.ndarray:
+    """The snapshots of ``full``'s solves at each (parameter point, load scale) of ``runs``:
+    every accepted state of the approach and the load path, minus the start state (owned rows).
+    The model is left at its start, at the default parameters. Collective."""
+    model = full.model
+    start = one_state(full.start, model)
     columns = []
-    defaults = model.parameters.defaults
 
     def keep(step) -> None:
-        columns.append(snapshot(model, start))
+        if step.phase in ("approach", "path"):
+            columns.append(snapshot(model, start))
 
-    for point in parameters:
-        for scale in scales:
-            model.set_parameters(defaults)
-            model.state.x.array[:] = start
-            model.state.x.scatter_forward()
-            approach(model, solver, model.parameters.values(point), defaults, stepping.start, on_step=keep)
-            solve(
-                model,
-                stepping,
-                solver=solver,
-                drive=lambda t, scale=scale: model.set_time(t, load_factor=scale, about=stepping.start),
-                breakpoints=model.breakpoints,  # drive() hides them
-                on_step=keep,
-                monitor=lambda step: None,
-            )
-    model.state.x.array[:] = start
-    model.set_parameters(model.parameters.defaults)
-    model.set_time(stepping.start)
+    for point, scale in runs:
+        full.solve(point, scale=scale, on_step=keep)
+    full.reset()
+    model.set_time(full.stepping.start)
     return np.column_stack(columns)
 
 
@@ -90,9 +84,12 @@ def pod(
         raise ParameterError("pod: snapshots must be (owned dofs of the model, number of snapshots)")
     data = zero_imposed(model, data.copy())
     W = inner_product(model, inner)
-    decomposition = linalg.pod(data, W, comm)
-    if W is not None:
-        W.destroy()
+    try:
+        with positive(inner):
+            decomposition = linalg.pod(data, W, comm)
+    finally:
+        if W is not None:
+            W.destroy()
     if not decomposition.values.size:
         raise ParameterError("pod: the snapshots are all zero (did the loads act?)")
     source = (source or {}) | {"snapshots": data.shape[1], "singular_values": decomposition.spectrum.tolist()}

@@ -12,7 +12,7 @@ import numpy as np
 from lungmech.errors import ParameterError
 from lungmech.parallel.layout import field_dofs, layout
 from lungmech.parallel.linalg import gram_schmidt
-from lungmech.rom.basis import Basis, inner_product, zero_imposed
+from lungmech.rom.basis import Basis, inner_product, positive, zero_imposed
 
 
 def polynomial_basis(model, order: int, inner: str = "mass") -> Basis:
@@ -40,9 +40,12 @@ def polynomial_basis(model, order: int, inner: str = "mass") -> Basis:
             columns.append(column)
     vectors = zero_imposed(model, np.column_stack(columns))
     W = inner_product(model, inner)
-    vectors, _ = gram_schmidt(vectors, W, comm)
-    if W is not None:
-        W.destroy()
+    try:
+        with positive(inner):
+            vectors, _ = gram_schmidt(vectors, W, comm)
+    finally:
+        if W is not None:
+            W.destroy()
     return Basis(
         vectors, np.zeros(vectors.shape[1]), "polynomial", inner, layout(model.space).fingerprint, {"order": order}
     )

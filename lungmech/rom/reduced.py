@@ -84,6 +84,7 @@ class ReducedModel:
             )
         self.enrichment = None if enrichment is None or not enrichment.shape[1] else enrichment
         self.parameters = model.parameters
+        self.probes = probes  # points, or a Probe of material points located already
         self.start = reference_state(model) if start is None else np.array(start, dtype=float)
         if sample is None:
             self.solver = ReducedSolver(model, basis, newton, start=self.start, enrichment=self.enrichment)
@@ -94,6 +95,7 @@ class ReducedModel:
         self.indicator = None if self.enrichment is None else EnrichedIndicator(model, basis.vectors, self.enrichment)
         self.times = output_times(model, stepping)
         self.training = [dict(point) for point in training]
+        self.built: dict = {}  # how the reductor made it (basis recipe, inner product, training, hyper-reduction)
         with model.kept_state():
             self.restart()
             self.start_volume = self.outputs()["volume"]  # m³, of the start state
@@ -110,22 +112,24 @@ class ReducedModel:
     def truncated(self, size: int) -> ReducedModel:
         """The same model on the first ``size`` basis vectors (a POD basis is nested: the smaller
         model is the one a smaller build would give). Shares the full model's forms."""
-        return ReducedModel(
+        smaller = ReducedModel(
             self.model,
             self.basis.truncate(size),
             self.stepping,
             self.solver.options,
             self.start,
-            self.outputs.probe_points,
+            self.probes,
             self.training,
             self.sample,
             self.enrichment,
             self.described,
         )
+        smaller.built = dict(self.built)
+        return smaller
 
     @functools.cached_property
     def energy_product(self):
-        """The energy inner product at rest (PETSc matrix), for the errors of :mod:`lungmech.rom.reductor`."""
+        """The energy inner product at rest (PETSc matrix), for the errors of :mod:`lungmech.rom.accuracy`."""
         return inner_product(self.model, "energy")
 
     @property

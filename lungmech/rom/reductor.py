@@ -1,101 +1,322 @@
-"""The reductor: from a full-order model and training parameters to a reduced model.
+"""The reductor: a full-order model and a recipe in, a :class:`~lungmech.rom.reduced.ReducedModel` out.
 
-:func:`reduce` solves the full model along its load path at every training point μ_j (a
-seeded space-filling sample of the parameter box, see
-:meth:`~lungmech.fem.parameters.Parameters.sample`), keeps every accepted step as a snapshot of
-x − x₀, and makes their POD basis in the chosen inner product; the reduced model projects the
-full model's forms on it. :func:`errors` measures a reduced model against the full one, point by
-point: the error in the energy norm of the state and the error of the outputs.
+In pyMOR's manner, one call makes every reduced model lungmech has::
+
+    reduced = reduce(full, POD(20), TrainingSet(points, scales), hyper=ECSW(1e-3, size=5))
+
+* the **basis** recipe: :class:`POD` of the full model's load paths at the training points and
+  load scales (every accepted state of the approach to μ and of the path, minus the start),
+  :class:`Modal` (the lowest modes of K y = λ M y at the start, with their modal derivatives on
+  request), :class:`Polynomial` (monomials of the coordinates), or :class:`Enriched` (several of
+  these, re-orthonormalised), truncated to its ``size``;
+* the **training**: parameter points (a Sobol' sample of the box, :meth:`~lungmech.fem.
+  parameters.Parameters.sample`) × load scales, or with ``tolerance`` a weak greedy over those
+  points as candidates (:mod:`lungmech.rom.greedy`) until the error indicator meets it;
+* an optional **hyper-reduction** :class:`ECSW`: a sample of cells trained on every Newton iterate
+  of the training solves for the basis and its enrichment, at τ (``tolerance``; a greedy judges
+  at ``judge`` and the last sample is re-sampled at τ from the same iterates), the basis then
+  truncated to ``size`` vectors (the sample stays the one of the whole basis).
+
+The inner product of the bases is the energy one by default (the tangent at rest on the
+constrained space, :func:`~lungmech.rom.basis.inner_product`), in which the tolerance, the
+indicator and the errors are measured; where it is not positive definite the build is refused
+in one line naming ``mass``. The reduced model starts where the full one starts at the default
+parameters (its start must be one state: :func:`~lungmech.fem.start.one_state`), says so in its
+answers, and carries what it was built from (:attr:`ReducedModel.built`). Collective.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from lungmech import checks
 from lungmech.errors import ParameterError
-from lungmech.fem.parametric import FullOrderModel, Solution
-from lungmech.fem.start import one_state
-from lungmech.parallel.linalg import norms
-from lungmech.rom.basis import origin
-from lungmech.rom.pod import pod, snapshots
+from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.start import StartReport, one_state
+from lungmech.rom import ecsw, indicator
+from lungmech.rom.accuracy import Errors, errors
+from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
+from lungmech.rom.greedy import Greedy, greedy
+from lungmech.rom.modes import modal_basis, with_modal_derivatives
+from lungmech.rom.pod import collected, pod
+from lungmech.rom.polynomial import polynomial_basis
 from lungmech.rom.reduced import ReducedModel
 
-__all__ = ["Errors", "errors", "reduce"]
+__all__ = ["ECSW", "Enriched", "Errors", "Modal", "POD", "Polynomial", "TrainingSet", "errors", "reduce"]
+
+
+def _size(size) -> int:
+    if isinstance(size, bool) or not (isinstance(size, int | np.integer) and size >= 1):
+        raise ParameterError(f"basis size must be a positive integer (got {size!r})")
+    return int(size)
+
+
+@dataclass(frozen=True)
+class POD:
+    """The POD of the training load paths, at most ``size`` vectors (fewer when the snapshots have
+    fewer directions above the noise)."""
+
+    size: int = 20
+    kind = "pod"
+
+    def __post_init__(self):
+        _size(self.size)
+
+
+@dataclass(frozen=True)
+class Modal:
+    """The ``size`` lowest modes of K y = λ M y at the start (``density`` in kg/m³ scales M only),
+    with their static modal derivatives when ``derivatives``."""
+
+    size: int = 20
+    density: float = 1.0
+    derivatives: bool = False
+
+    def __post_init__(self):
+        _size(self.size)
+        checks.real("density", self.density)
+
+    @property
+    def kind(self) -> str:
+        return "modal+derivatives" if self.derivatives else "modal"
+
+
+@dataclass(frozen=True)
+class Polynomial:
+    """Monomials of the coordinates up to ``order`` for every component, at most ``size``."""
+
+    order: int = 2
+    size: int = 20
+    kind = "polynomial"
+
+    def __post_init__(self):
+        _size(self.size)
+
+
+@dataclass(frozen=True)
+class Enriched:
+    """The bases of ``parts`` in order, re-orthonormalised, at most ``size`` vectors."""
+
+    parts: tuple = (POD(), Modal())
+    size: int = 20
+    kind = "enriched"
+
+    def __post_init__(self):
+        _size(self.size)
+        if not self.parts or not all(isinstance(part, POD | Modal | Polynomial) for part in self.parts):
+            raise ParameterError("an enriched basis is made of POD, Modal and Polynomial parts")
+
+
+Recipe = POD | Modal | Polynomial | Enriched
+
+
+@dataclass(frozen=True)
+class TrainingSet:
+    """Where the full model is solved: each parameter point (a mapping of names to values, the
+    others at their defaults) at each load scale (a factor on the loads' change from the start,
+    or one per load). With ``tolerance`` (a relative energy-norm error), the points are a
+    greedy's candidates instead, at the scene's loads."""
+
+    points: Sequence[Mapping[str, float]] = ({},)
+    scales: Sequence[float | Sequence[float]] = (1.0,)
+    tolerance: float | None = None
+
+    def __post_init__(self):
+        if not self.points:
+            raise ParameterError("give at least one training parameter point")
+        if not self.scales:
+            raise ParameterError("give at least one training load scale")
+        if self.tolerance is not None:
+            checks.real("tolerance", self.tolerance)
+            if not 0 < self.tolerance < 1:
+                raise ParameterError(
+                    f"the tolerance (a relative energy-norm error) must lie in (0, 1) (got {self.tolerance!r})"
+                )
+            if list(self.scales) != [1.0]:
+                raise ParameterError(
+                    "a greedy training trains at the scene's loads over its [parameters] box; put a load's "
+                    "amplitude in [parameters] instead of giving load scales"
+                )
+
+
+@dataclass(frozen=True)
+class ECSW:
+    """Hyper-reduction by energy-conserving sampling at τ = ``tolerance``; ``judge``: the τ a
+    greedy judges its rounds at (default τ); ``size``: the basis truncated to these many vectors
+    after the sample was trained on the whole."""
+
+    tolerance: float = 1e-4
+    judge: float | None = None
+    size: int | None = None
+
+    def __post_init__(self):
+        for name in ("tolerance", "judge"):
+            value = getattr(self, name)
+            if value is not None:
+                checks.real(f"ECSW {name}", value)
+                if not 0 < value < 1:
+                    raise ParameterError(f"the ECSW {name} must lie in (0, 1) (got {value!r})")
+        if self.size is not None:
+            _size(self.size)
+
+
+@dataclass
+class _Made:
+    """What a build made on the way, for the reduced model's record and the timings."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    modes: Basis | None = None
+    trained: Greedy | None = None
+    points: list = field(default_factory=list)
 
 
 def reduce(
     full: FullOrderModel,
-    training: Sequence[Mapping[str, float]],
-    size: int = 20,
+    basis: Recipe = POD(),
+    training: TrainingSet = TrainingSet(),
+    hyper: ECSW | None = None,
     inner: str = "energy",
     timings: dict[str, float] | None = None,
 ) -> ReducedModel:
-    """The reduced model of ``full`` on the POD basis of its load paths at the ``training`` points.
-
-    ``size`` caps the basis (POD keeps fewer when the snapshots have fewer directions above its
-    noise level). ``inner`` is the POD's inner product: "energy" (the second variation of the
-    stored energy at rest), "mass" or "l2". ``timings``, if given, receives the seconds spent on
-    snapshots and POD. Collective.
-    """
-    if not training:
-        raise ParameterError("reduce: give at least one training parameter point")
+    """The reduced model of ``full`` by the ``basis`` recipe, trained by ``training``, optionally
+    hyper-reduced (see the module's doc). ``inner``: the bases' inner product ("energy", "mass"
+    or "l2"). ``timings`` receives the seconds of each part. Collective."""
+    if inner not in INNER_PRODUCTS:
+        raise ParameterError(f"inner product must be one of {', '.join(INNER_PRODUCTS)} (got {inner!r})")
+    if training.tolerance is not None and not isinstance(basis, POD):
+        raise ParameterError(f"a greedy training (a tolerance) trains a POD basis (got a {basis.kind} basis)")
+    if training.tolerance is not None and not len(full.parameters):
+        raise ParameterError(
+            "a greedy training trains over the model's parameter box, and this model has none: add parameters "
+            "(e.g. a load amplitude), or give a basis size"
+        )
     model = full.model
-    start = one_state(full.start, model)
-    tic = time.perf_counter()
-    data = snapshots(model, full.stepping, solver=full.solver, start=start, parameters=training)
-    seconds = {"snapshots": time.perf_counter() - tic}
-    tic = time.perf_counter()
-    points = [model.parameters.values(point) for point in training]
-    basis = pod(model, data, inner=inner, size=size, source={"training": points})
-    seconds["pod"] = time.perf_counter() - tic
+    start = one_state(full.start, model)  # refused before any work where there is none
+    require_positive_definite(model, inner)
+    made = _Made(points=[full.parameters.values(p) for p in training.points])
+    runs = [(point, scale) for point in made.points for scale in training.scales]
+    judge = None if hyper is None else hyper.judge or hyper.tolerance
+    if training.tolerance is not None:
+        tic = time.perf_counter()
+        made.trained = greedy(
+            full, made.points, training.tolerance, size=basis.size, inner=inner, timings=made.timings, hyper=judge
+        )
+        made.timings["greedy"] = time.perf_counter() - tic
+        made.modes, made.points = made.trained.modes, made.trained.training
+        runs = [(point, 1.0) for point in made.points]
+        vectors = made.trained.basis
+    else:
+        vectors = _basis(full, basis, runs, inner, made)
+    enrichment = indicator.enrichment(vectors, made.modes if vectors.kind == "pod" else None)
+    sample = None if hyper is None else _sample(full, vectors, enrichment, runs, hyper, made)
+    if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
+        vectors = vectors.truncate(hyper.size)
+        enrichment = indicator.enrichment(vectors, made.modes)[:, : enrichment.shape[1]]
+    full.reset()
+    model.set_time(full.stepping.start)
     if timings is not None:
-        timings.update(seconds)
-    probes = full.outputs.probe_points
-    return ReducedModel(model, basis, full.stepping, full.solver.options, start, probes, points)
-
-
-@dataclass(frozen=True)
-class Errors:
-    """A reduced solution against the full one, worst over the output times.
-
-    ``energy``: max ‖x − x_r‖_E / max ‖x − x₀‖_E over the output times, E the energy inner product
-    at rest: the state's error relative to the largest change along the load path (a state back at
-    rest has no relative error of its own). ``volume``: |V − V_r| / V. ``volume_change``: |V − V_r| / |V − V₀|
-    (relative to the volume the load path moved). ``strain_energy``: relative error.
-    """
-
-    energy: float
-    volume: float
-    volume_change: float
-    strain_energy: float
-
-
-def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Errors:
-    """How far ``approximate`` (of ``reduced``) lies from ``full`` (of the full model, same μ)."""
-    if not np.allclose(full.times, approximate.times):
-        raise ParameterError("errors: the two solutions have different output times")
-    model = reduced.model
-    comm = model.geometry.mesh.comm
-    W = reduced.energy_product  # assembled once per reduced model
-    owned = reduced.basis.vectors.shape[0]
-    error, change = 0.0, 0.0
-    for index in range(len(full.times)):
-        x = full.states[index]
-        x_r = reduced.reconstruct(approximate, index)
-        x_0 = origin(model, reduced.start)[:owned]  # the start with this time's imposed values
-        difference = np.column_stack([x - x_r, x - x_0])
-        lengths = norms(difference, W, comm)
-        error, change = max(error, lengths[0]), max(change, lengths[1])
-    V, V_r = full.outputs["volume"], approximate.outputs["volume"]
-    V_0 = reduced.start_volume
-    E, E_r = full.outputs["strain_energy"], approximate.outputs["strain_energy"]
-    return Errors(
-        energy=float(error / change) if change > 0 else float(error),
-        volume=float(np.max(np.abs(V - V_r) / np.abs(V))),
-        volume_change=float(np.max(np.abs(V - V_r)) / max(np.max(np.abs(V - V_0)), 1e-300)),
-        strain_energy=float(np.max(np.abs(E - E_r)) / max(np.max(np.abs(E)), 1e-300)),
+        timings.update(made.timings)
+    described = StartReport(full.start.kind, full.start.description, details=dict(full.start.details))
+    reduced = ReducedModel(
+        model,
+        vectors,
+        full.stepping,
+        full.solver.options,
+        start,
+        full.outputs.probe or (),
+        made.points,
+        sample,
+        enrichment,
+        described,
     )
+    reduced.built = {
+        "basis": basis.kind,
+        "inner": inner,
+        "scales": [np.asarray(s, dtype=float).tolist() for s in training.scales],
+        "training": made.points,
+        "greedy": _greedy_record(made.trained, training.tolerance, full.parameters),
+        "hyper": None if hyper is None else {"method": "ecsw", "tolerance": hyper.tolerance, "judge": judge},
+        "timings": dict(made.timings),
+    }
+    return reduced
+
+
+def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: _Made) -> Basis:
+    """The basis of ``recipe`` (the POD part's modes kept in ``made.modes``)."""
+    model = full.model
+    parts = recipe.parts if isinstance(recipe, Enriched) else (recipe,)
+    bases = []
+    for part in parts:
+        tic = time.perf_counter()
+        if isinstance(part, POD):
+            data = collected(full, runs)
+            made.timings["snapshots"] = time.perf_counter() - tic
+            tic = time.perf_counter()
+            made.modes = pod(model, data, inner=inner, source={"training": made.points})
+            bases.append(made.modes.truncate(min(part.size, made.modes.size)))
+            made.timings["svd"] = time.perf_counter() - tic
+        else:
+            full.reset()  # modes and monomials at the start state, at the defaults
+            model.set_time(full.stepping.start)
+            if isinstance(part, Modal):
+                modes = modal_basis(model, part.size, density=part.density)
+                bases.append(with_modal_derivatives(model, modes) if part.derivatives else modes)
+                made.timings["eigensolve"] = time.perf_counter() - tic
+            else:
+                found = polynomial_basis(model, part.order, inner=inner)
+                bases.append(found.truncate(min(part.size, found.size)))
+                made.timings["basis"] = time.perf_counter() - tic
+    combined = enrich(model, *bases, inner=inner) if len(bases) > 1 else bases[0]
+    if isinstance(recipe, Modal) and recipe.derivatives:
+        return combined  # every mode and derivative pair: its size counts the modes
+    return combined.truncate(min(recipe.size, combined.size))
+
+
+def _sample(full: FullOrderModel, basis: Basis, enrichment: np.ndarray, runs: list, hyper: ECSW, made: _Made):
+    """The ECSW sample at τ of [V W]: the greedy's own when it judged at τ, else trained on the
+    greedy's iterates or on a second pass of the training solves."""
+    model = full.model
+    directions = replace(basis, vectors=np.hstack([basis.vectors, enrichment]))  # W's residual is sampled too
+    trained = made.trained
+    if trained is not None and trained.sample is not None and (hyper.judge or hyper.tolerance) == hyper.tolerance:
+        return trained.sample
+    tic = time.perf_counter()
+    if trained is not None:  # re-sampled at τ from the greedy's Newton iterates
+        training = ecsw.TrainingSet(model, directions.vectors)
+        try:
+            training.replay(trained.iterates)
+            made.timings["ecsw_replay"] = time.perf_counter() - tic
+            tic = time.perf_counter()
+            sample = training.sample(hyper.tolerance)
+            made.timings["nnls"] = time.perf_counter() - tic
+        finally:
+            training.destroy()
+        return sample
+    return ecsw.train(model, directions, full.solver, lambda: collected(full, runs), hyper.tolerance, made.timings)
+
+
+def _greedy_record(trained: Greedy | None, tolerance: float | None, parameters) -> dict | None:
+    """What a greedy training did, as plain values (an indicator of inf — the reduced solve
+    failed there — as None)."""
+    if trained is None:
+        return None
+    return {
+        "tolerance": tolerance,
+        "met": trained.met,
+        "safety": trained.safety,
+        "full_solves": len(trained.training),
+        "rounds": [
+            {
+                "size": r.size,
+                "point": r.point,
+                "where": parameters.text(r.point),
+                "indicator": r.indicator if np.isfinite(r.indicator) else None,
+                "error": r.error,
+            }
+            for r in trained.rounds
+        ],
+    }

@@ -5,7 +5,7 @@ array (names, dtypes, shapes, bytes) and every metadata field, so that a file ch
 lungmech wrote it — damaged, or edited — is refused on reading. The digest is a check against
 accidents and edits, not a signature: whoever edits a file can also recompute it, so a model
 file is trusted no further than its source, and what it holds is checked as data (its embedded
-file names, :func:`lungmech.app.reduce.embedded_scene`; its basis, on loading).
+file names, :func:`lungmech.app.model_file.embedded_scene`; its basis, on loading).
 
 Vectors are written in the canonical dof order of :mod:`lungmech.parallel.layout`, so a basis built on
 any number of ranks loads on any other; the mesh fingerprint is checked on loading. Rank 0 alone
@@ -25,12 +25,19 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech.errors import ModelFileError, ParameterError
+from lungmech.fem.start import StartReport
+from lungmech.mesh import nodes
 from lungmech.parallel import on_root, together
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
-from lungmech.rom.basis import Basis
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom.basis import Basis, inner_product
+from lungmech.rom.ecsw import Sample
+from lungmech.rom.reduced import ReducedModel
 
-FORMAT = "lungmech-rom/3"  # 2: canonical order, the scene and its files inside; 3: the digest covers the metadata
+# 2: canonical order, the scene and its files inside; 3: the digest covers the metadata; 4: the reduced
+# model's own record (its start, how it was built) and its arrays written by rom.store itself
+FORMAT = "lungmech-rom/4"
 
 
 def save(
@@ -210,3 +217,100 @@ def _check_basis(path: str | Path, vectors: np.ndarray, values: np.ndarray, dofs
         )
     if not (np.isfinite(vectors).all() and np.isfinite(values).all()):
         raise ModelFileError(f"'{path}' is damaged: its basis holds values that are not finite numbers")
+
+
+ORTHONORMAL = 1e-8  # |VᵀWV − I| a loaded basis may have: Gram–Schmidt twice leaves ~1e-14
+
+
+def write_reduced(
+    path: str | Path, reduced: ReducedModel, extra: dict | None = None, arrays: dict | None = None
+) -> None:
+    """Collective: the reduced model ``reduced`` as a model file at ``path`` (no checks: the caller
+    stages the file, :mod:`lungmech.parallel.destination`). It holds the basis, the start state,
+    the enrichment, an ECSW sample (partition-independent), the training points, what the start
+    is (:class:`~lungmech.fem.start.StartReport`) and how the reductor built it (``built``); the
+    caller's ``extra`` metadata and canonical ``arrays`` beside them. The mesh's current nodes are
+    kept as ``reference_nodes`` (a reference moved from the mesh as built, say)."""
+    model = reduced.model
+    where = layout(model.space)
+    owned = reduced.basis.vectors.shape[0]
+    enrichment = reduced.enrichment if reduced.enrichment is not None else np.zeros((owned, 0))
+    content = {"start": where.gather(reduced.start[:owned]), "enrichment": where.gather(enrichment)}
+    content["reference_nodes"] = nodes.positions(*nodes.displacement_space(model.geometry.mesh))
+    hyper = None
+    if reduced.sample is not None:
+        mesh = model.geometry.mesh
+        content |= {f"ecsw/{name}": data for name, data in reduced.sample.export(mesh).items()}
+        cells = mesh.topology.index_map(mesh.topology.dim).size_global
+        built = reduced.built.get("hyper") or {}
+        hyper = {"method": "ecsw", "tolerance": reduced.sample.tolerance, "samples": reduced.sample.count(mesh.comm)}
+        hyper |= {"cells": cells, "judge": built.get("judge")}
+    start = reduced.described
+    record = {
+        "start": {"kind": start.kind, "description": start.description, "details": start.details},
+        "training": reduced.training,
+        "hyper": hyper,
+        "built": reduced.built,
+    }
+    write(path, model, reduced.basis, extra=(extra or {}) | {"reduced": record}, arrays=content | (arrays or {}))
+
+
+def load_reduced(
+    path: str | Path,
+    model,
+    stepping,
+    newton=None,
+    probes=(),
+    content: tuple[dict, dict] | None = None,
+) -> ReducedModel:
+    """Collective: the reduced model of the file at ``path`` on ``model`` (built on the mesh the
+    file was made for, whose nodes it puts where the build had them), with the load path
+    ``stepping``, Newton ``newton`` options and ``probes`` (points, or a located
+    :class:`~lungmech.fem.quantities.Probe`). Refused in one line when the file is not one
+    (:func:`load`), or its basis is not orthonormal in its inner product (the projection's
+    premise). ``content``: what :func:`read_on_root` gave, when the caller has read the file."""
+    comm = model.geometry.mesh.comm
+    metadata, arrays = content if content is not None else read_on_root(path, comm)
+    record = metadata["extra"].get("reduced")
+    if not isinstance(record, dict) or "start" not in record:
+        raise ModelFileError(f"'{path}' is damaged: it holds no record of its reduced model; rebuild it")
+    nodes.place_canonical(*nodes.displacement_space(model.geometry.mesh), arrays["reference_nodes"])
+    basis, _, arrays = load(path, model, content=(metadata, arrays))  # checked on the mesh as placed
+    _check_orthonormal(path, model, basis)
+    where = layout(model.space)
+    owned = basis.vectors.shape[0]
+    model.reset()
+    model.state.x.array[:owned] = where.scatter(arrays["start"])
+    model.state.x.scatter_forward()
+    start = model.state.x.array.copy()
+    model.set_time(stepping.start)
+    sample = None
+    if record.get("hyper") is not None:
+        data = comm.bcast({name[len("ecsw/") :]: a for name, a in arrays.items() if name.startswith("ecsw/")})
+        if "internal_cells" not in data or not all(f"{n}_weights" in data for n in ("internal", "strain_energy")):
+            raise ModelFileError(f"'{path}' is damaged: its ECSW sample is incomplete; rebuild it")
+        sample = Sample.place(model.geometry.mesh, data, record["hyper"]["tolerance"])
+    enrichment = where.scatter(arrays["enrichment"])
+    described = StartReport(**record["start"])
+    reduced = ReducedModel(
+        model, basis, stepping, newton, start, probes, record.get("training", []), sample, enrichment, described
+    )
+    reduced.built = dict(record.get("built", {}))
+    return reduced
+
+
+def _check_orthonormal(path, model, basis: Basis) -> None:
+    """Refuse a basis that is not orthonormal in its inner product: |VᵀWV − I| > ORTHONORMAL."""
+    comm = model.geometry.mesh.comm
+    W = inner_product(model, basis.inner_product)
+    try:
+        G = gram(basis.vectors, apply(W, np.ascontiguousarray(basis.vectors), comm), comm)
+    finally:
+        if W is not None:
+            W.destroy()
+    off = float(np.abs(G - np.eye(basis.size)).max(initial=0.0))
+    if not off <= ORTHONORMAL:
+        raise ModelFileError(
+            f"'{path}' is damaged: its basis is not orthonormal in its {basis.inner_product} inner product "
+            f"(|VᵀWV − I| = {off:.1e}, at most {ORTHONORMAL:g}); rebuild it"
+        )

@@ -1,0 +1,97 @@
+"""The one reductor: every recipe gives a ReducedModel that answers solve(μ), orthonormal in its
+inner product, and survives the model file (rom.store.write_reduced / load_reduced) unchanged."""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+from fem import BOX, pushed_block
+
+from lungmech.errors import ParameterError
+from lungmech.fem.parameters import Parameters
+from lungmech.parallel.linalg import apply, gram
+from lungmech.rom import store
+from lungmech.rom.basis import inner_product
+from lungmech.rom.reductor import ECSW, POD, Enriched, Modal, Polynomial, TrainingSet, errors, reduce
+
+POINTS = Parameters(BOX).sample(4, seed=3)
+MU = {"E": 12.0, "nu": 0.35, "p": 0.8}
+
+
+@pytest.fixture(scope="module")
+def full():
+    return pushed_block()
+
+
+def orthonormality(reduced) -> float:
+    model, V = reduced.model, reduced.basis.vectors
+    W = inner_product(model, reduced.basis.inner_product)
+    G = gram(V, apply(W, V, model.geometry.mesh.comm), model.geometry.mesh.comm)
+    if W is not None:
+        W.destroy()
+    return float(np.abs(G - np.eye(V.shape[1])).max())
+
+
+@pytest.mark.parametrize(
+    ("recipe", "kind", "inner"),
+    [
+        (POD(6), "pod", "energy"),
+        (POD(6), "pod", "mass"),
+        (Modal(5), "modal", "mass"),  # a modal basis is M-orthonormal whatever is asked
+        (Polynomial(1, size=8), "polynomial", "energy"),
+        (Enriched((POD(4), Modal(3)), size=6), "enriched", "energy"),
+    ],
+)
+def test_every_recipe_gives_a_model_that_answers(full, recipe, kind, inner):
+    reduced = reduce(full, recipe, TrainingSet(POINTS), inner=inner)
+    assert reduced.basis.kind == kind and reduced.size <= getattr(recipe, "size", 99)
+    assert orthonormality(reduced) < 1e-10
+    answer = reduced.solve(MU)
+    assert answer.times.tolist() == full.times.tolist() and np.all(np.isfinite(answer.outputs["volume"]))
+    assert reduced.built["basis"] == kind and reduced.built["training"] == POINTS
+
+
+def test_pod_training_scales_and_points_make_the_error_small(full):
+    """More training, smaller error (the POD of the paths at the points × scales)."""
+    poor = reduce(full, POD(2), TrainingSet(POINTS[:1]))
+    rich = reduce(full, POD(10), TrainingSet(POINTS, scales=(0.5, 1.0)))
+    reference = full.solve(MU)
+    assert errors(rich, reference, rich.solve(MU)).energy < errors(poor, reference, poor.solve(MU)).energy / 10
+
+
+def test_a_hyper_reduced_model_truncated_after_sampling(full):
+    """ECSW(τ, size=k): the sample of the whole basis, the basis cut to its first k vectors."""
+    whole = reduce(full, POD(8), TrainingSet(POINTS), ECSW(1e-5))
+    cut = reduce(full, POD(8), TrainingSet(POINTS), ECSW(1e-5, size=4))
+    assert cut.size == 4 and whole.sample is not None and cut.sample is not None
+    np.testing.assert_allclose(cut.basis.vectors, whole.basis.vectors[:, :4], atol=1e-12)
+    for family, cells in whole.sample.cells.items():
+        np.testing.assert_array_equal(cut.sample.cells[family], cells)
+    reference = full.solve(MU)
+    assert errors(whole, reference, whole.solve(MU)).energy < 1e-2
+    assert cut.solve(MU).indicator is not None  # its enrichment: the POD directions after the 4
+
+
+def test_a_reduced_model_survives_its_file(full, tmp_path):
+    """write_reduced then load_reduced on the same mesh: the same answers, start and record."""
+    reduced = reduce(full, POD(6), TrainingSet(POINTS), ECSW(1e-4))
+    path = MPI.COMM_WORLD.bcast(tmp_path) / "m.npz"
+    store.write_reduced(path, reduced)
+    loaded = store.load_reduced(path, full.model, full.stepping)
+    a, b = reduced.solve(MU), loaded.solve(MU)
+    np.testing.assert_allclose(b.outputs["volume"], a.outputs["volume"], rtol=1e-12)
+    assert b.indicator == pytest.approx(a.indicator, rel=1e-10)
+    assert loaded.described == reduced.described and loaded.built["hyper"]["tolerance"] == 1e-4
+
+
+def test_bad_recipes_are_refused_in_one_line(full):
+    for make, said in (
+        (lambda: POD(0), "basis size must be a positive integer"),
+        (lambda: ECSW(2.0), "the ECSW tolerance must lie in (0, 1)"),
+        (lambda: TrainingSet([]), "give at least one training parameter point"),
+        (lambda: TrainingSet(POINTS, scales=(0.5,), tolerance=1e-3), "put a load's amplitude in [parameters]"),
+        (lambda: reduce(full, Modal(3), TrainingSet(POINTS, tolerance=1e-3)), "trains a POD basis"),
+        (lambda: reduce(full, POD(3), TrainingSet(POINTS), inner="h1"), "inner product must be one of"),
+    ):
+        with pytest.raises(ParameterError, match=said.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
+            make()
