@@ -205,3 +205,56 @@ def test_public_names_at_the_top():
     assert lungmech.Model is Model and lungmech.box is box
     with pytest.raises(AttributeError):
         lungmech.no_such_name  # noqa: B018
+
+
+# Rooms still too large, each to be split (issue "One online path", item 5): this list only shrinks.
+LARGE_MODULES = {"app/cli.py", "app/scene.py", "fem/materials.py", "rom/ecsw.py", "rom/hyper_reduced.py"}
+LARGE_CLASSES = {"rom/hyper_reduced.py:HyperReducedSolver"}
+MOST_LINES, MOST_PUBLIC_METHODS = 500, 20
+
+
+def _sizes(path: Path, source: str | None = None) -> tuple[int, dict[str, int]]:
+    """A module's lines, and each class's public methods (properties included)."""
+    text = path.read_text() if source is None else source
+    classes = {
+        node.name: sum(
+            1
+            for item in node.body
+            if isinstance(item, ast.FunctionDef | ast.AsyncFunctionDef) and not item.name.startswith("_")
+        )
+        for node in ast.walk(ast.parse(text))
+        if isinstance(node, ast.ClassDef)
+    }
+    return len(text.splitlines()), classes
+
+
+def _too_large(sources: dict[Path, str | None]) -> list[str]:
+    found = []
+    for path, source in sources.items():
+        name = path.relative_to(PACKAGE).as_posix()
+        lines, classes = _sizes(path, source)
+        if lines > MOST_LINES and name not in LARGE_MODULES:
+            found.append(f"{name}: {lines} lines (at most {MOST_LINES})")
+        for cls, methods in classes.items():
+            if methods > MOST_PUBLIC_METHODS and f"{name}:{cls}" not in LARGE_CLASSES:
+                found.append(f"{name}:{cls}: {methods} public methods (at most {MOST_PUBLIC_METHODS})")
+    return found
+
+
+def test_rooms_are_of_a_size_one_can_live_in():
+    """Library modules of at most 500 lines and classes of at most 20 public methods, but for
+    the ones listed, which are still to be split; a listed one that fits is taken off the list."""
+    assert _too_large(dict.fromkeys(_modules())) == []
+    fitting = [
+        name
+        for name in LARGE_MODULES
+        if _sizes(PACKAGE / name)[0] <= MOST_LINES and not any(entry.startswith(f"{name}:") for entry in LARGE_CLASSES)
+    ]
+    assert fitting == [], f"take these off LARGE_MODULES: {fitting}"
+
+
+def test_a_room_too_large_is_caught():
+    big = "\n".join(f"x{i} = {i}" for i in range(501))
+    many = "class Many:\n" + "".join(f"    def m{i}(self):\n        pass\n" for i in range(21))
+    found = _too_large({PACKAGE / "fem" / "_big.py": big, PACKAGE / "rom" / "_many.py": many})
+    assert found == ["fem/_big.py: 501 lines (at most 500)", "rom/_many.py:Many: 21 public methods (at most 20)"]

@@ -191,7 +191,7 @@ def test_petsc_options_of_the_user_only_are_checked():
 def test_auto_takes_the_iterative_solver_for_large_problems_where_one_fits(monkeypatch):
     """Above ITERATIVE_FROM_DOFS unknowns "auto" is iterative, unless no preconditioner fits
     the formulation (plane stress above P1): then it stays direct."""
-    import lungmech.fem.solver as solver_module
+    import lungmech.fem.newton as solver_module
     from lungmech.mesh import rectangle
 
     monkeypatch.setattr(solver_module, "ITERATIVE_FROM_DOFS", 10)
@@ -228,7 +228,7 @@ def test_mumps_estimates_its_memory_before_it_factorises():
 def test_auto_takes_the_iterative_solver_where_a_factorisation_would_not_fit(monkeypatch, caplog):
     """Below ITERATIVE_FROM_DOFS, "auto" compares MUMPS's estimate with the memory a rank may
     count on: direct on this machine, iterative on one with 1 MiB to spare (and says why)."""
-    import lungmech.fem.solver as solver_module
+    import lungmech.fem.newton as solver_module
 
     monkeypatch.setattr(solver_module, "MEMORY_CHECK_FROM_DOFS", 10)
     assert NewtonSolver(bent_block()).linear_solver == "direct"
