@@ -5,14 +5,13 @@
 cells, iterates on the reduced coordinates q and writes the model's full state only on request:
 no online operation touches the full mesh. Loads whose coefficients are global functionals of
 the state (balanced gravity) evaluate the integrals they declare through a
-:class:`_SampledIntegration`: exactly where they are affine in (q, imposed factors), over their
-own ECSW sample otherwise.
+:class:`~lungmech.rom.sampled_forms.SampledIntegration`: exactly where they are affine in (q,
+imposed factors), over their own ECSW sample otherwise.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -20,22 +19,19 @@ from petsc4py import PETSc
 import numpy as np
 import ufl
 from dolfinx import fem, la
-from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
-from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
-from lungmech.fem.quantities import vector_integral
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
-from lungmech.fem.state_dependent import FullIntegration, each_unit
 from lungmech.parallel.linalg import gram
 from lungmech.rom.basis import dual, origin, reference_state
-from lungmech.rom.ecsw import FUNCTIONALS, NO_CELLS, Sample, WeightedForms, flattened, over_cells, sampled_residual
+from lungmech.rom.ecsw import FUNCTIONALS, Sample, WeightedForms, over_cells, sampled_residual
 from lungmech.rom.galerkin import check_basis, newton
-from lungmech.rom.outputs import affine, imposed_directions
+from lungmech.rom.outputs import imposed_directions
 from lungmech.rom.reduced_mesh import ReducedMesh
+from lungmech.rom.sampled_forms import SampledForms, SampledIntegration
 
 __all__ = ["HyperReducedSolver"]
 
@@ -45,8 +41,9 @@ class HyperReducedSolver:
     (and their exterior facets) only, with their weights, on a :class:`ReducedMesh` of them, so
     that no online operation touches the full mesh. The solver's state is q; the model's state
     is written only when asked (:meth:`update_model`). Same interface as
-    :class:`~lungmech.rom.galerkin.ReducedSolver` otherwise; :attr:`assembled_cells` counts
-    what one assembly visits.
+    :class:`~lungmech.rom.galerkin.ReducedSolver` otherwise. Its forms over the sample are
+    :attr:`forms` (:class:`~lungmech.rom.sampled_forms.SampledForms`); what one assembly of its
+    residual visits, ``cells_visited(solver.residual_on_sample, comm)``.
 
     ``start`` is the full state the basis is relative to (default: the unloaded state).
     ``enrichment`` (owned rows): directions beyond the basis, whose sampled residual and tangent
@@ -83,7 +80,7 @@ class HyperReducedSolver:
         restricted = self._restricted = sampled_residual(forms, model.geometry.mesh, sample)
         self._weights = forms  # the forms reach the weights' Functions: keep them alive
         self.mesh = reduced = ReducedMesh(model, np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
-        self._residual = reduced.form(restricted)
+        self.residual_on_sample = self._residual = reduced.form(restricted)  # (cells_visited counts it)
         self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
         self._vector = fem.assemble_vector(self._residual)
         mesh = model.geometry.mesh
@@ -100,6 +97,7 @@ class HyperReducedSolver:
         self._rows, self._columns = (_positions(self._matrix.index_map(i), reduced.space) for i in (0, 1))
         self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
         self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
+        self.forms = SampledForms(model, reduced, forms.weights, sample, self.V, lambda: self._q)
         self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self._imposed = origin(model, self.reference)  # x₀; the imposed dofs are rewritten at each solve
@@ -122,9 +120,12 @@ class HyperReducedSolver:
         self._coupled = []
         if model.state_dependent:
             start_state, imposed, self._constraints = imposed_directions(model, self.reference)
-            self._affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
+            affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
             for index, term in enumerate(model.state_dependent):
-                self._coupled.append(term.bind(_SampledIntegration(self, index, term.integrals)))
+                integration = SampledIntegration(
+                    model, basis.vectors, self.forms, affine_basis, self._z, index, term.integrals
+                )
+                self._coupled.append(term.bind(integration))
         self.description = (
             f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
             + ", ".join(f"{n} {family.replace('_', ' ')}" for family, n in sample.count(self.comm).items())
@@ -317,95 +318,6 @@ class HyperReducedSolver:
             self._works.append(work)
         return reduced
 
-    def sampled_vector(self, family: str, expr, measure) -> Callable[[], np.ndarray]:
-        """Σ_e ξ_e ∫_e ``expr`` over the sample of ``family`` (any value shape), on the reduced
-        mesh at its state (collective)."""
-        flat = flattened(expr)
-        size = flat.ufl_shape[0]
-        space = fem.functionspace(self.mesh.mesh, ("DG", 0, (size,)))
-        form = ufl.inner(self._weights.weights[family] * flat, ufl.TestFunction(space)) * measure
-        compiled = self.mesh.form(over_cells(form, self.model.geometry.mesh, self.sample.cells.get(family, NO_CELLS)))
-        vector = fem.Function(space).x
-
-        def evaluate() -> np.ndarray:
-            vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled)
-            total = np.empty(size)
-            self.comm.Allreduce(vector.array.reshape(-1, size).sum(axis=0), total, op=MPI.SUM)
-            return total.reshape(expr.ufl_shape)
-
-        return evaluate
-
-    def _sampled_form(self, form: ufl.Form, families: dict[str, str]) -> fem.Form:
-        """``form`` compiled on the reduced mesh, each integral over the sample of
-        ``families[its type]``, with its weights."""
-        mesh = self.model.geometry.mesh
-        weighted: dict[str, list] = {}  # by family: one restricted tag set per integral type
-        for integral in form.integrals():
-            family = families[integral.integral_type()]
-            integrand = self._weights.weights[family] * integral.integrand()
-            weighted.setdefault(family, []).append(integral.reconstruct(integrand=integrand))
-        integrals = [
-            restricted
-            for family, parts in weighted.items()
-            for restricted in over_cells(ufl.Form(parts), mesh, self.sample.cells.get(family, NO_CELLS)).integrals()
-        ]
-        return self.mesh.form(ufl.Form(integrals))
-
-    def _packed(self, compiled: fem.Form) -> Callable[[], dict]:
-        """The coefficients of ``compiled``, packed once per state (only Constants vary in between)."""
-        packed = {"at": None, "coefficients": None}
-
-        def coefficients() -> dict:
-            if packed["at"] is not self._q:
-                packed["at"], packed["coefficients"] = self._q, fem.pack_coefficients(compiled)
-            return packed["coefficients"]
-
-        return coefficients
-
-    def sampled_column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
-        """Vᵀ b of a linear ``form`` (in the model's test function) over the samples: each
-        integral over the sample of ``families[its type]``, with its weights (collective)."""
-        compiled = self._sampled_form(form, families)
-        vector = fem.Function(self.mesh.space).x
-        coefficients = self._packed(compiled)
-
-        def evaluate() -> np.ndarray:
-            vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled, coeffs=coefficients())
-            return gram(self.V, vector.array[:, None], self.comm)[:, 0]
-
-        return evaluate
-
-    def sampled_columns(
-        self, form: ufl.Form, families: dict[str, str], constant: fem.Constant
-    ) -> Callable[[], np.ndarray]:
-        """Vᵀ [b(e_1) … b(e_n)] of a ``form`` linear in ``constant`` (n entries), b(e_j) its
-        column with ``constant`` = the j-th unit vector: one matrix assembly on the reduced mesh,
-        ``constant`` replaced by a trial function τ of n components per sampled cell, whose
-        columns summed per component (columns are (cell, component), unrolled) are the n columns
-        (collective)."""
-        n = constant.value.size
-        tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
-        replacement = _shaped([tau[j] for j in range(n)], constant.ufl_shape)
-        compiled = self._sampled_form(ufl.replace(form, {constant: replacement}), families)
-        # PETSc's matrix: DOLFINx's own takes square blocks only (here 3 or 1 rows, n columns)
-        matrix = create_petsc_matrix(compiled)
-        owned = self.V[: self.mesh.owned]  # its rows: the owned sub dofs, each summed over the ranks
-        coefficients = self._packed(compiled)
-
-        def evaluate() -> np.ndarray:
-            matrix.zeroEntries()
-            assemble_petsc_matrix(matrix, compiled, coeffs=coefficients())
-            matrix.assemble()
-            indptr, columns, values = matrix.getValuesCSR()
-            rows = len(indptr) - 1
-            at = np.repeat(np.arange(rows), np.diff(indptr)) * n + columns % n
-            summed = np.bincount(at, weights=values, minlength=rows * n).reshape(rows, n)
-            return gram(owned, summed, self.comm)
-
-        return evaluate
-
     def floor(self) -> float:
         """‖|V|ᵀ ε|K|s‖, s = |x| + h on the displacement: the round-off floor of the reduced
         residual (see :mod:`lungmech.fem.convergence`), at the last tangent's state."""
@@ -424,22 +336,6 @@ class HyperReducedSolver:
     def jacobian_form(self):
         """The full model's compiled tangent."""
         return fem.form(self.model.jacobian)
-
-    @property
-    def assembled_cells(self) -> dict[str, int]:
-        """How many distinct cells one assembly of the residual visits, over all ranks: with its
-        cell integrals ("cell"), and through its exterior-facet integrals ("exterior_facet");
-        compare :meth:`Sample.cells_per_type`."""
-        form = self._residual._cpp_object
-        counts = {}
-        for name, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
-            cells = [np.zeros(0, np.int32)]
-            if kind in form.integral_types:
-                for i in range(form.num_integrals(kind, 0)):
-                    entities = np.asarray(form.domains(kind, i)).reshape(-1)
-                    cells.append(entities if kind == fem.IntegralType.cell else entities[::2])
-            counts[name] = self.comm.allreduce(len(np.unique(np.concatenate(cells))), op=MPI.SUM)
-        return counts
 
     def destroy(self) -> None:
         """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
@@ -493,79 +389,8 @@ def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
     return magnitude
 
 
-def _shaped(entries: list, shape: tuple[int, ...]):
-    """The expressions ``entries`` (flattened order) as one of ``shape`` (a scalar for ())."""
-    return ufl.as_tensor(np.reshape(entries, shape).tolist()) if shape else entries[0]
-
-
 def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
     """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
     owned = basis.vectors.shape[0]
     x = model.state.x.array[:owned] - origin(model, reference)[:owned]
     return gram(dual(model, basis), x[:, None], model.geometry.mesh.comm)[:, 0]
-
-
-class _SampledIntegration:
-    """The integrals of state-dependent load ``index`` on a hyper-reduced solver
-    (:class:`~lungmech.fem.state_dependent.Integration`): the affine ones exactly in z = (q,
-    imposed factors), from k + 2 full evaluations offline; the others over their ECSW sample on
-    the reduced mesh; columns as Vᵀ b, over the sample of the integral they derive from (the
-    load's own work: the load families')."""
-
-    def __init__(self, solver: HyperReducedSolver, index: int, integrals: dict):
-        self.solver, self.index, self.integrals = solver, index, integrals
-
-    def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
-        solver = self.solver
-        if not self.integrals[name].affine:
-            return solver.sampled_vector(f"load{self.index}_{name}", expr, measure)
-        model = solver.model
-        f0, F1 = affine(model, vector_integral(expr, measure, model.geometry.mesh), *solver._affine_basis)
-        return lambda: (f0 + F1 @ solver._z()).reshape(expr.ufl_shape)
-
-    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
-        solver = self.solver
-        if name == "residual":
-            return solver.sampled_columns(form, {"cell": "cell_load", "exterior_facet": "boundary_load"}, constant)
-        if not self.integrals[name].affine:
-            family = f"load{self.index}_{name}"
-            return solver.sampled_columns(form, {"cell": family, "exterior_facet": family}, constant)
-        # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
-        full = FullIntegration(solver.model).column(name, form)
-        constant_columns = gram(solver.basis.vectors, each_unit(constant, full), solver.comm)
-        return lambda: constant_columns
-
-    def bilinear_columns(
-        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
-    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
-        if name != "residual" and self.integrals[name].affine:
-            # columns of an affine integral are computed once, and these vary with the constants
-            raise ParameterError(f"bilinear columns of the affine integral {name!r} are not available (sample it)")
-        # one assembly for both (on a few cells a call's overhead outweighs its work): the form
-        # summed over the two roles, each constant in turn replaced by its own entries of one
-        # constant of both, whose columns are then the two sets side by side
-        n = right.value.size
-        both = fem.Constant(self.solver.model.geometry.mesh, np.zeros(n + left.value.size))
-
-        def entries(constant: fem.Constant, offset: int):
-            return _shaped([both[offset + j] for j in range(constant.value.size)], constant.ufl_shape)
-
-        merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
-        columns = self.columns(name, merged, both)
-
-        def evaluate() -> tuple[np.ndarray, np.ndarray]:
-            found = columns()
-            return found[:, :n], found[:, n:]
-
-        return evaluate
-
-    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
-        solver = self.solver
-        if name == "residual":
-            return solver.sampled_column(form, {"cell": "cell_load", "exterior_facet": "boundary_load"})
-        if not self.integrals[name].affine:
-            family = f"load{self.index}_{name}"
-            return solver.sampled_column(form, {"cell": family, "exterior_facet": family})
-        # the derivative of an affine integral is a constant: once, on the whole mesh
-        constant = gram(solver.basis.vectors, FullIntegration(solver.model).column(name, form)()[:, None], solver.comm)
-        return lambda: constant[:, 0]

@@ -1,0 +1,220 @@
+"""Forms over an ECSW sample, on the reduced mesh of a hyper-reduced solver.
+
+:class:`SampledForms` compiles a form over the sampled cells of a family, each cell weighted by
+its ECSW weight, on the :class:`~lungmech.rom.reduced_mesh.ReducedMesh`, and gives its value as a
+vector (Σ_e ξ_e ∫_e f), a reduced column Vᵀ b, or the reduced columns of a form linear in a
+constant (one matrix assembly). :class:`SampledIntegration` evaluates the integrals a
+state-dependent load declares (balanced gravity) with them: exactly where they are affine in
+z = (q, imposed factors), over their own ECSW sample otherwise. :func:`cells_visited` counts what
+an assembly of a compiled form visits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from mpi4py import MPI
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
+from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
+
+from lungmech.errors import ParameterError
+from lungmech.fem.quantities import vector_integral
+from lungmech.fem.state_dependent import FullIntegration, each_unit
+from lungmech.parallel.linalg import gram
+from lungmech.rom.ecsw import NO_CELLS, Sample, flattened, over_cells
+from lungmech.rom.outputs import affine
+from lungmech.rom.reduced_mesh import ReducedMesh
+
+__all__ = ["SampledForms", "SampledIntegration", "cells_visited"]
+
+
+class SampledForms:
+    """Forms of ``model`` over the cells of ``sample`` with their weights (the Functions of
+    ``weights``, by family), compiled on the reduced mesh ``mesh``; ``V`` the basis on its sub
+    dofs; ``state()`` the object that changes with the reduced mesh's state (its q: coefficients
+    are packed once per state). Collective evaluations."""
+
+    def __init__(self, model, mesh: ReducedMesh, weights: dict, sample: Sample, V: np.ndarray, state: Callable):
+        self.model, self.mesh, self.weights, self.sample, self.V = model, mesh, weights, sample, V
+        self.comm = model.geometry.mesh.comm
+        self._state = state
+
+    def vector(self, family: str, expr, measure) -> Callable[[], np.ndarray]:
+        """Σ_e ξ_e ∫_e ``expr`` over the sample of ``family`` (any value shape), at the reduced
+        mesh's state."""
+        flat = flattened(expr)
+        size = flat.ufl_shape[0]
+        space = fem.functionspace(self.mesh.mesh, ("DG", 0, (size,)))
+        form = ufl.inner(self.weights[family] * flat, ufl.TestFunction(space)) * measure
+        compiled = self.mesh.form(over_cells(form, self.model.geometry.mesh, self.sample.cells.get(family, NO_CELLS)))
+        vector = fem.Function(space).x
+
+        def evaluate() -> np.ndarray:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled)
+            total = np.empty(size)
+            self.comm.Allreduce(vector.array.reshape(-1, size).sum(axis=0), total, op=MPI.SUM)
+            return total.reshape(expr.ufl_shape)
+
+        return evaluate
+
+    def column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
+        """Vᵀ b of a linear ``form`` (in the model's test function): each integral over the
+        sample of ``families[its type]``, with its weights."""
+        compiled = self._compiled(form, families)
+        vector = fem.Function(self.mesh.space).x
+        coefficients = self._packed(compiled)
+
+        def evaluate() -> np.ndarray:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled, coeffs=coefficients())
+            return gram(self.V, vector.array[:, None], self.comm)[:, 0]
+
+        return evaluate
+
+    def columns(self, form: ufl.Form, families: dict[str, str], constant: fem.Constant) -> Callable[[], np.ndarray]:
+        """Vᵀ [b(e_1) … b(e_n)] of a ``form`` linear in ``constant`` (n entries), b(e_j) its
+        column with ``constant`` = the j-th unit vector: one matrix assembly on the reduced mesh,
+        ``constant`` replaced by a trial function τ of n components per sampled cell, whose
+        columns summed per component (columns are (cell, component), unrolled) are the n columns."""
+        n = constant.value.size
+        tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
+        replacement = shaped([tau[j] for j in range(n)], constant.ufl_shape)
+        compiled = self._compiled(ufl.replace(form, {constant: replacement}), families)
+        # PETSc's matrix: DOLFINx's own takes square blocks only (here 3 or 1 rows, n columns)
+        matrix = create_petsc_matrix(compiled)
+        owned = self.V[: self.mesh.owned]  # its rows: the owned sub dofs, each summed over the ranks
+        coefficients = self._packed(compiled)
+
+        def evaluate() -> np.ndarray:
+            matrix.zeroEntries()
+            assemble_petsc_matrix(matrix, compiled, coeffs=coefficients())
+            matrix.assemble()
+            indptr, columns, values = matrix.getValuesCSR()
+            rows = len(indptr) - 1
+            at = np.repeat(np.arange(rows), np.diff(indptr)) * n + columns % n
+            summed = np.bincount(at, weights=values, minlength=rows * n).reshape(rows, n)
+            return gram(owned, summed, self.comm)
+
+        return evaluate
+
+    def _compiled(self, form: ufl.Form, families: dict[str, str]) -> fem.Form:
+        """``form`` compiled on the reduced mesh, each integral over the sample of
+        ``families[its type]``, with its weights."""
+        mesh = self.model.geometry.mesh
+        weighted: dict[str, list] = {}  # by family: one restricted tag set per integral type
+        for integral in form.integrals():
+            family = families[integral.integral_type()]
+            integrand = self.weights[family] * integral.integrand()
+            weighted.setdefault(family, []).append(integral.reconstruct(integrand=integrand))
+        integrals = [
+            restricted
+            for family, parts in weighted.items()
+            for restricted in over_cells(ufl.Form(parts), mesh, self.sample.cells.get(family, NO_CELLS)).integrals()
+        ]
+        return self.mesh.form(ufl.Form(integrals))
+
+    def _packed(self, compiled: fem.Form) -> Callable[[], dict]:
+        """The coefficients of ``compiled``, packed once per state (only Constants vary in between)."""
+        packed = {"at": None, "coefficients": None}
+
+        def coefficients() -> dict:
+            state = self._state()
+            if packed["at"] is not state:
+                packed["at"], packed["coefficients"] = state, fem.pack_coefficients(compiled)
+            return packed["coefficients"]
+
+        return coefficients
+
+
+def cells_visited(form: fem.Form, comm: MPI.Comm) -> dict[str, int]:
+    """How many distinct cells one assembly of ``form`` visits, over all ranks: with its cell
+    integrals ("cell"), and through its exterior-facet integrals ("exterior_facet"); compare
+    :meth:`Sample.cells_per_type <lungmech.rom.ecsw.Sample.cells_per_type>`."""
+    compiled = form._cpp_object
+    counts = {}
+    for name, kind in (("cell", fem.IntegralType.cell), ("exterior_facet", fem.IntegralType.exterior_facet)):
+        cells = [np.zeros(0, np.int32)]
+        if kind in compiled.integral_types:
+            for i in range(compiled.num_integrals(kind, 0)):
+                entities = np.asarray(compiled.domains(kind, i)).reshape(-1)
+                cells.append(entities if kind == fem.IntegralType.cell else entities[::2])
+        counts[name] = comm.allreduce(len(np.unique(np.concatenate(cells))), op=MPI.SUM)
+    return counts
+
+
+def shaped(entries: list, shape: tuple[int, ...]):
+    """The expressions ``entries`` (flattened order) as one of ``shape`` (a scalar for ())."""
+    return ufl.as_tensor(np.reshape(entries, shape).tolist()) if shape else entries[0]
+
+
+class SampledIntegration:
+    """The integrals of state-dependent load ``index`` (:class:`~lungmech.fem.state_dependent.
+    Integration`) on a hyper-reduced solver: the affine ones exactly in z = (q, imposed factors)
+    — ``affine_basis`` the (start, directions) of z, ``z()`` its current value — from k + 2 full
+    evaluations offline; the others over their ECSW sample by ``forms``; columns as Vᵀ b, over the
+    sample of the integral they derive from (the load's own work: the load families'). ``basis``:
+    the full basis (owned rows), for the affine integrals' constant columns."""
+
+    def __init__(
+        self, model, basis: np.ndarray, forms: SampledForms, affine_basis: tuple, z: Callable, index: int, integrals
+    ):
+        self.model, self.basis, self.forms, self.affine_basis, self.z = model, basis, forms, affine_basis, z
+        self.index, self.integrals = index, integrals
+        self.comm = model.geometry.mesh.comm
+
+    def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
+        if not self.integrals[name].affine:
+            return self.forms.vector(f"load{self.index}_{name}", expr, measure)
+        f0, F1 = affine(self.model, vector_integral(expr, measure, self.model.geometry.mesh), *self.affine_basis)
+        return lambda: (f0 + F1 @ self.z()).reshape(expr.ufl_shape)
+
+    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+        if name == "residual":
+            return self.forms.columns(form, {"cell": "cell_load", "exterior_facet": "boundary_load"}, constant)
+        if not self.integrals[name].affine:
+            family = f"load{self.index}_{name}"
+            return self.forms.columns(form, {"cell": family, "exterior_facet": family}, constant)
+        # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
+        full = FullIntegration(self.model).column(name, form)
+        constant_columns = gram(self.basis, each_unit(constant, full), self.comm)
+        return lambda: constant_columns
+
+    def bilinear_columns(
+        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        if name != "residual" and self.integrals[name].affine:
+            # columns of an affine integral are computed once, and these vary with the constants
+            raise ParameterError(f"bilinear columns of the affine integral {name!r} are not available (sample it)")
+        # one assembly for both (on a few cells a call's overhead outweighs its work): the form
+        # summed over the two roles, each constant in turn replaced by its own entries of one
+        # constant of both, whose columns are then the two sets side by side
+        n = right.value.size
+        both = fem.Constant(self.model.geometry.mesh, np.zeros(n + left.value.size))
+
+        def entries(constant: fem.Constant, offset: int):
+            return shaped([both[offset + j] for j in range(constant.value.size)], constant.ufl_shape)
+
+        merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
+        columns = self.columns(name, merged, both)
+
+        def evaluate() -> tuple[np.ndarray, np.ndarray]:
+            found = columns()
+            return found[:, :n], found[:, n:]
+
+        return evaluate
+
+    def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
+        if name == "residual":
+            return self.forms.column(form, {"cell": "cell_load", "exterior_facet": "boundary_load"})
+        if not self.integrals[name].affine:
+            family = f"load{self.index}_{name}"
+            return self.forms.column(form, {"cell": family, "exterior_facet": family})
+        # the derivative of an affine integral is a constant: once, on the whole mesh
+        full = FullIntegration(self.model).column(name, form)()[:, None]
+        constant = gram(self.basis, full, self.comm)
+        return lambda: constant[:, 0]
