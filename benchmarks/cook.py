@@ -35,6 +35,7 @@ from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.mesh import cook_membrane
 
 matplotlib.use("Agg")
+import machine
 import matplotlib.pyplot as plt  # noqa: E402
 from machine import provenance, write_results  # noqa: E402
 
@@ -47,7 +48,7 @@ FORMULATIONS = {
     "P2, exact tangent": dict(degree=2, exact_tangent=True),
     "mixed P2/P1": dict(degree=2, mixed=True),
 }
-RESULTS = Path(__file__).parent / "results"
+RESULTS = machine.RESULTS
 
 
 def case(name: str, cells: int) -> dict:

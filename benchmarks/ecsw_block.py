@@ -16,10 +16,10 @@ Writes results/ecsw_block.md, results/ecsw_block.csv and results/ecsw_block.png.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 
+import machine
 import numpy as np
 from machine import provenance, time_against_dofs, write_results  # noqa: E402
 
@@ -35,7 +35,7 @@ from lungmech.rom.hyper_reduced import HyperReducedSolver
 
 TRAINING, UNSEEN, TOLERANCE, SIZE = (0.2, 0.4, 0.6), 0.3, 1e-4, 6
 MESHES = (4, 8, 12)  # n: 3n × n × n boxes of 6 tetrahedra each
-RESULTS = Path(__file__).parent / "results"
+RESULTS = machine.RESULTS
 READING = (
     "Times are for the whole load path (several load steps and their Newton iterations), as the load "
     "stepping reports it. The ECSW solver iterates on q and assembles on a reduced mesh of the sampled "

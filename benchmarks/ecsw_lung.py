@@ -26,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import machine
 import numpy as np
 from machine import SAME_START, provenance, time_against_dofs, write_results
 
@@ -36,7 +37,7 @@ from lungmech.app.run import full_order_model
 from lungmech.rom.reductor import errors
 
 SCENE = Path(lungmech.__file__).parent / "scenes" / "lung_breathing.toml"
-RESULTS = Path(__file__).parent / "results"
+RESULTS = machine.RESULTS
 TOLERANCE, SIZE, SCALES = 1e-4, 12, (0.5, 1.5)
 TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs
 

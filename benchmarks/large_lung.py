@@ -24,7 +24,9 @@ import sys
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results"
+import machine  # benchmarks/ is the script folder, first on sys.path
+
+RESULTS = machine.RESULTS
 SURROUNDING = ("pleura", "diaphragm", "mediastinum")
 
 

@@ -48,11 +48,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
+import machine
 from machine import STARTED, cpu_and_memory, reset_peak, status_kb, tic, toc  # benchmarks/ is first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-RESULTS = HERE / "results" / "layout"
+RESULTS = machine.RESULTS / "layout"
 sys.path.insert(0, str(ROOT))
 
 IMPLEMENTATIONS = ("allgather", "distributed")

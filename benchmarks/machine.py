@@ -9,6 +9,10 @@ import time
 from pathlib import Path
 
 _MPI_ENVIRONMENT = ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")
+# Where every benchmark writes its tables, plots and raw data: benchmarks/results (the measured
+# results the docs quote), or the folder LUNGMECH_BENCHMARK_RESULTS names (the suite's --quick
+# runs, which must never overwrite them).
+RESULTS = Path(os.environ.get("LUNGMECH_BENCHMARK_RESULTS") or Path(__file__).resolve().parent / "results")
 STARTED = time.perf_counter()
 # How the full model of an imaged lung is started in the reduced-model benchmarks: as its reduced
 # models are, until they solve the imaged problem at every μ (docs/architecture.md, "One problem").
@@ -67,7 +71,7 @@ def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -
     in the order they first appear) in ``directory``."""
     import csv
 
-    directory.mkdir(exist_ok=True)
+    directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{stem}.md").write_text(markdown)
     with open(directory / f"{stem}.csv", "w", newline="") as stream:
         writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))

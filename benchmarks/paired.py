@@ -16,10 +16,10 @@ import argparse
 import datetime
 import statistics
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 
+import machine
 from case import FORMULATIONS, lame
 from handwritten import Problem
 
@@ -31,7 +31,7 @@ from lungmech.fem.model import Model
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping, solve
 from lungmech.mesh import sphere
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = machine.RESULTS
 
 
 def measure(formulation: str, h: float, pairs: int, steps: int, line_search: str, nu: float, pressure: float) -> dict:

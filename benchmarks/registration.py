@@ -24,6 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import machine
 from machine import (
     STARTED,
     cpu_and_memory,
@@ -37,7 +38,7 @@ from machine import (
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-RESULTS = HERE / "results"
+RESULTS = machine.RESULTS
 
 MESH_SIZES = (0.0176, 0.012, 0.008, 0.006)  # lung_phantom mesh_size [m]: 3,656 / 8,658 / 22,927 / 49,955 cells
 SPACINGS = (2.5, 1.5, 1.0)  # image spacing [mm]

@@ -18,9 +18,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-from machine import say
+from machine import RESULTS, say
 
-CACHE = Path(__file__).parent / "results" / "raw" / "cache"
+CACHE = RESULTS / "raw" / "cache"
 ROOT = Path(__file__).parent.parent
 T = TypeVar("T")
 

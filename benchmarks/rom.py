@@ -25,6 +25,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import machine
 from machine import (
     STARTED,
     cpu_and_memory,
@@ -36,7 +37,7 @@ from machine import (
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-RESULTS = HERE / "results"
+RESULTS = machine.RESULTS
 RAW = RESULTS / "raw"
 SIZES = (2, 5, 10, 20, 40, 80)
 

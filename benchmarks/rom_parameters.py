@@ -32,6 +32,7 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
+import machine
 import numpy as np
 from machine import SAME_START, cpu_and_memory, say  # benchmarks/ is the script folder, first on sys.path
 
@@ -47,7 +48,7 @@ from lungmech.app.run import full_order_model
 from lungmech.fem.parameters import Parameters
 from lungmech.rom.reductor import errors
 
-RESULTS = HERE / "results"
+RESULTS = machine.RESULTS
 
 PARAMETERS = {
     "stiffness": {"target": "material.c1", "range": [100.0, 400.0], "scale": "log"},

@@ -46,6 +46,7 @@ from functools import partial
 from importlib import resources
 from pathlib import Path
 
+import machine
 import numpy as np
 from machine import SAME_START, provenance, say, write_results
 from resumable import cached, code_version, kept
@@ -62,7 +63,7 @@ from lungmech.rom.greedy import greedy
 from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reductor import errors
 
-RESULTS = Path(__file__).parent / "results"
+RESULTS = machine.RESULTS
 # the code this run imported, as it started (see resumable.py): all of it, and the full model's
 VERSIONS = {"all": code_version(), "full": code_version(["rom"])}
 TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs

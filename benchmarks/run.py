@@ -1,13 +1,13 @@
 """The discretisation trade, measured: P1 vs P2 vs Taylor–Hood on the pressurised thick sphere.
 
     python benchmarks/run.py                  # the full sequence (see MESHES)
-    python benchmarks/run.py --quick          # coarse meshes only: a smoke run
+    python benchmarks/run.py --quick          # one coarse mesh per formulation, one timed solve: a smoke run
     python benchmarks/run.py --max-dofs 100000
 
 Every (formulation, mesh) is solved twice, each time in a fresh process (benchmarks/case.py):
 once with lungmech and once with the hand-written DOLFINx script (benchmarks/handwritten.py),
 on the same mesh with the same forms, quadrature, solver options and load steps. Writes
-benchmarks/results/discretisation.{md,csv} and prints the table. See benchmarks/README.md.
+benchmarks/results/discretisation.{md,csv,png} and prints the table. See benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -24,11 +24,12 @@ import sys
 import time
 from pathlib import Path
 
+import machine
 from machine import cpu_and_memory  # benchmarks/ is the script folder, first on sys.path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-RESULTS = HERE / "results"
+RESULTS = machine.RESULTS
 RAW = RESULTS / "raw"  # one JSON per case, as printed by case.py
 JIT = RESULTS / "jit-cache"  # XDG_CACHE_HOME of the cases: one per (formulation, implementation)
 PYTHON = sys.executable
@@ -39,7 +40,7 @@ MESHES = {
     "P2": (0.3, 0.2, 0.15, 0.1, 0.07),
     "mixed": (0.3, 0.2, 0.15, 0.1, 0.07),
 }
-QUICK = {"P1": (0.3, 0.15), "P2": (0.4,), "mixed": (0.4,)}
+QUICK = {"P1": (0.3,), "P2": (0.5,), "mixed": (0.5,)}  # one coarse mesh each, one timed solve: a smoke run
 # dofs ~ C / h^3 (fitted to the meshes above), to skip a case under --max-dofs without meshing it.
 DOFS_PER_H3 = {"P1": 10.0, "P2": 72.0, "mixed": 75.0}
 IMPLS = ("lungmech", "handwritten")
@@ -64,6 +65,7 @@ def _run_case(formulation: str, h: float, impl: str, args, ranks: int = 1) -> di
         PYTHON, str(HERE / "case.py"), "--impl", impl, "--formulation", formulation, "--h", str(h),
         "--pressure", str(args.pressure), "--nu", str(args.nu), "--steps", str(args.steps),
         "--line-search", args.line_search, "--max-dofs", str(args.max_dofs or 0),
+        *(["--solves", "1"] if args.quick else []),
     ]  # fmt: skip
     if ranks > 1:
         mpiexec = Path(PYTHON).parent / "mpiexec"
@@ -324,8 +326,41 @@ def main() -> None:
 
     cases_seconds = sum(float(r[k] or 0.0) for r in rows for k in ("case_wall_seconds", "hw_case_wall_seconds"))
     table = write(rows, header(args, time.perf_counter() - started, True, v, u_ref, reused, cases_seconds))
+    plot(rows, RESULTS / "discretisation.png")
     print()
     print(table)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Solve time against dofs, one line per formulation and code (lungmech solid, hand-written dashed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6.5, 4.2))
+    for formulation in dict.fromkeys(r["formulation"] for r in rows):
+        mine = sorted(
+            (r for r in rows if r["formulation"] == formulation and int(r["ranks"]) == 1), key=lambda r: r["dofs"]
+        )
+        dofs = [r["dofs"] for r in mine]
+        (line,) = axes.loglog(dofs, [r["solve_seconds"] for r in mine], "o-", label=f"{formulation}, lungmech")
+        if all(r["hw_solve_seconds"] not in ("", None) for r in mine):
+            axes.loglog(
+                dofs,
+                [r["hw_solve_seconds"] for r in mine],
+                "s--",
+                color=line.get_color(),
+                label=f"{formulation}, hand-written",
+            )
+    axes.set_xlabel("degrees of freedom [1]")
+    axes.set_ylabel("solve (load stepping) [s]")
+    axes.set_title("Thick sphere under pressure: solve time against size", fontsize=10)
+    axes.grid(alpha=0.3, which="both")
+    axes.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
 
 
 if __name__ == "__main__":

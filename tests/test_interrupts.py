@@ -178,8 +178,17 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
     return result, time.perf_counter() - sent
 
 
-@pytest.mark.parametrize("ranks", [1, 2])
-@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.parametrize(
+    "sig, code, ranks",
+    [
+        # each signal and each rank count in the default suite; the other two pairings (a minute
+        # each) with make test-long
+        (signal.SIGTERM, 143, 1),
+        (signal.SIGINT, 130, 2),
+        pytest.param(signal.SIGINT, 130, 1, marks=pytest.mark.long),
+        pytest.param(signal.SIGTERM, 143, 2, marks=pytest.mark.long),
+    ],
+)
 def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks):
     """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
     no staging folder left (serial and on two ranks; the launcher's own lines aside). Each run

@@ -1,0 +1,68 @@
+"""Benchmarks that cannot rot: each one's --quick case runs here, in a fresh process, writing its
+markdown, CSV and plot into a temporary folder (LUNGMECH_BENCHMARK_RESULTS) — never over the
+measured results in benchmarks/results, which the docs quote."""
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+HELPERS = {"case", "handwritten", "machine", "resumable"}  # run by the benchmarks, not benchmarks themselves
+# --quick cases: the command's arguments and the stem of the files it writes
+QUICK = {
+    "run": (["--quick"], "discretisation"),
+    "cook": (["--quick"], "cook_quick"),
+}
+# Benchmarks whose --quick case does not fit the suite's budget yet (≤ 60 s each, ≤ 3 min in all):
+# this list only shrinks.
+NOT_YET = {
+    "ecsw_block",
+    "ecsw_lung",
+    "large_lung",
+    "layout",
+    "paired",
+    "registration",
+    "rom",
+    "rom_parameters",
+    "rom_real_time",
+}
+
+
+def _scripts() -> list[str]:
+    return sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem not in HELPERS)
+
+
+def test_every_benchmark_has_a_quick_case_in_the_suite():
+    assert sorted(set(QUICK) | NOT_YET) == _scripts()
+    assert not set(QUICK) & NOT_YET
+    for name in QUICK:
+        tree = ast.parse((BENCHMARKS / f"{name}.py").read_text())
+        options = {
+            a.value for n in ast.walk(tree) if isinstance(n, ast.Call) for a in n.args if isinstance(a, ast.Constant)
+        }
+        assert "--quick" in options, name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(QUICK))
+def test_a_quick_benchmark_runs_and_writes_its_results_elsewhere(name, tmp_path):
+    arguments, stem = QUICK[name]
+    measured = {p: p.stat().st_mtime_ns for p in (BENCHMARKS / "results").rglob("*") if p.is_file()}
+    environment = os.environ | {"LUNGMECH_BENCHMARK_RESULTS": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / f"{name}.py"), *arguments],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    for suffix in (".md", ".csv"):
+        assert (tmp_path / f"{stem}{suffix}").stat().st_size > 0, suffix
+    assert list(tmp_path.glob("*.png")), "no plot"
+    after = {p: p.stat().st_mtime_ns for p in (BENCHMARKS / "results").rglob("*") if p.is_file()}
+    assert after == measured, "a --quick run changed benchmarks/results"
