@@ -1,0 +1,105 @@
+"""What the command line's commands share: the options of a solve (``-o``, ``--scale``, ``--set``,
+``--at``, ``-q``), their value types, logging on rank 0 and the scene a command names."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from importlib import resources
+from pathlib import Path
+
+DEFAULT_SCENE = "lung_breathing.toml"
+RESULTS = Path("results")  # default outputs go to results/<name of the scene, model or image>
+
+
+def common(command: argparse.ArgumentParser, default: str) -> None:
+    command.add_argument(
+        "-o",
+        "--output",
+        help=f"output folder (default {default}); replaced only when the run "
+        "succeeds, and only if it is empty or lungmech's own",
+    )
+    command.add_argument(
+        "--scale",
+        default=(1.0,),
+        type=scales,
+        metavar="S",
+        help="scale the loads' change from the start (one factor, or one per load joined by ':')",
+    )
+    command.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        type=assignment,
+        metavar="NAME=VALUE",
+        help="set a parameter of the scene's [parameters] (repeatable); checked against its range",
+    )
+    command.add_argument(
+        "--at",
+        type=seconds,
+        metavar="T",
+        help="a static answer: the equilibrium at time T (s) of the load path (the path stops there); "
+        "summary.json's outputs hold it",
+    )
+    command.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
+
+
+def seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"--at takes a time in s, a finite number (got {text!r})")
+    return value
+
+
+def assignment(text: str) -> tuple[str, float]:
+    name, equals, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not equals or not name.strip() or not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"--set takes NAME=NUMBER (got {text!r})")
+    return name.strip(), number
+
+
+def scales(text: str) -> list:
+    """'0.5,1' -> [0.5, 1.0]; '0.5:1,1.5:1' -> [(0.5, 1.0), (1.5, 1.0)]; finite numbers only."""
+    import math
+
+    try:
+        scales = [tuple(float(f) for f in item.split(":")) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a list of numbers: {text!r}") from None
+    if not all(math.isfinite(f) for scale in scales for f in scale):
+        raise argparse.ArgumentTypeError(f"load scales must be finite numbers: {text!r}")
+    return [s[0] if len(s) == 1 else s for s in scales]
+
+
+def logging_comm(args):
+    """Logging on rank 0 (warnings only with --quiet); returns the world communicator."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    logging.basicConfig(
+        level=logging.WARNING if args.quiet or comm.rank != 0 else logging.INFO,
+        format="%(message)s",
+        stream=sys.stdout,
+        force=True,
+    )
+    return comm
+
+
+def setup(args):
+    """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
+    from lungmech.app import scene as scenes
+
+    comm = logging_comm(args)
+    if args.scene is None:
+        with resources.as_file(resources.files("lungmech.scenes") / DEFAULT_SCENE) as path:
+            return comm, scenes.load(path), f"bundled default scene ({DEFAULT_SCENE})", Path(path)
+    return comm, scenes.load(args.scene), args.scene, Path(args.scene)
