@@ -135,10 +135,10 @@ def test_a_compressed_training_matrix_gives_a_sample_that_reproduces_the_whole(t
     """G held compressed as it grows (every 10 rows here; 1024 by default) has the norms ‖G x‖
     of the whole G: the sample from it reproduces the whole G's forces to τ, and a few rows
     stand for all of them (the training states' rows are far from independent)."""
-    from lungmech.rom import ecsw
+    from lungmech.rom import ecsw_training
 
     basis, whole = trained
-    monkeypatch.setattr(ecsw, "COMPRESS_ROWS", 10)
+    monkeypatch.setattr(ecsw_training, "COMPRESS_ROWS", 10)
     model = block()
     compressed = Training(model, basis.vectors)
     for x, t, scale in training_states(model):
