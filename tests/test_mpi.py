@@ -685,10 +685,10 @@ def test_a_compressed_ecsw_training_on_two_ranks(monkeypatch):
     reproduces the whole distributed G's forces to τ, as on one rank."""
     from test_ecsw import assert_reproduces, block, train, training_states
 
-    from lungmech.rom import ecsw
+    from lungmech.rom import ecsw, ecsw_training
 
     basis, whole = train(MPI.COMM_WORLD)
-    monkeypatch.setattr(ecsw, "COMPRESS_ROWS", 10)
+    monkeypatch.setattr(ecsw_training, "COMPRESS_ROWS", 10)
     model = block(MPI.COMM_WORLD)
     compressed = ecsw.Training(model, basis.vectors)
     for x, t, scale in training_states(model):
