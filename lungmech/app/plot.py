@@ -5,15 +5,22 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from lungmech.app.console import CMH2O  # noqa: E402
+from lungmech.app.console import CMH2O
 
 __all__ = ["deformed_body", "drawn", "pressure_volume", "sweep_volumes"]
+
+
+def _pyplot():
+    """matplotlib's pyplot, off-screen, imported when a picture is drawn (0.3–0.4 s of every
+    process's start-up otherwise, with or without a picture)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def drawn(comm, path: Path, draw) -> bool:
@@ -49,6 +56,7 @@ def pressure_volume(
     shown = np.asarray(volume, dtype=float) * (1.0 if planar else 1e3)
     unit = "m³/m" if planar else "L"
     rising = np.diff(shown) >= 0
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 4.4))
     branches = (
         (rising, dict(color="tab:blue", ls="-", marker="o", ms=4, lw=2.5), "inspiration (volume rising)"),
@@ -92,6 +100,7 @@ def sweep_volumes(
     vary instead, ``against`` = [(label with its unit, the points' values), …]: the first on
     the axis, the second (if any) as the points' colour."""
     scale, unit = (1.0, "m³/m") if planar else (1e3, "L")
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     if len(times) == 1 and against:
         final = np.asarray(volumes)[:, 0] * scale
