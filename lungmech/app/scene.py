@@ -9,27 +9,25 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import inspect
 import json
-import math
 import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lungmech import checks
 from lungmech import mesh as _geometry
 from lungmech.app.output import FORMATS as FIELD_FORMATS
-from lungmech.errors import LungmechError, ParameterError, SceneError
+from lungmech.app.scene_parameters import ImageLabel, parameters, substituted
+from lungmech.app.table_checks import call, check_signature, finite_numbers, no_unknown_keys, section, typed, with_tuple
+from lungmech.errors import ParameterError, SceneError
 from lungmech.fem.constraints import Displacement, clamp, symmetry
 from lungmech.fem.formulations import Formulation, PureDisplacement, TaylorHood
 from lungmech.fem.kinematics import PLANES
 from lungmech.fem.loads import BodyForce, FollowerPressure, Force, NormalPressure, Traction
 from lungmech.fem.materials import LAWS, Material, Sum
-from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
+from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
@@ -115,7 +113,7 @@ class Scene:
     def law(self) -> Callable[[dict[str, float]], Material]:
         """The law as a function of the material targets' values by key (``{"c1": 300.0}``): the
         scene's [material] rebuilt with those values, so its own checks and derived constants hold."""
-        return lambda keys: material(_substituted(self.table["material"], keys, "material"))
+        return lambda keys: material(substituted(self.table["material"], keys, "material"))
 
     def with_values(self, given: dict[str, float]) -> Scene:
         """This scene with parameter values set (``--set name=value``), each checked against its range."""
@@ -168,13 +166,13 @@ def load(path: str | Path) -> Scene:
 
 def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None = None) -> Scene:
     """Validate a scene given as a dictionary (the parsed TOML)."""
-    _no_unknown_keys(table, SECTIONS, "scene")
-    _finite_numbers(table)
+    no_unknown_keys(table, SECTIONS, "scene")
+    finite_numbers(table)
     for required in ("geometry", "material"):
         if required not in table:
             raise SceneError(f"scene: missing section [{required}]")
-    formulation = dict(_section(table, "formulation"))
-    degree = _typed(formulation.pop("degree", 1), int, "formulation.degree")
+    formulation = dict(section(table, "formulation"))
+    degree = typed(formulation.pop("degree", 1), int, "formulation.degree")
     kind = formulation.pop("type", "displacement")
     plane = formulation.pop("plane", None)
     if plane is not None and plane not in PLANES:
@@ -193,21 +191,21 @@ def parse(table: dict[str, Any], folder: Path = Path("."), source: Path | None =
             "imaged one, and its unloaded reference and solid fraction phi_s0 are found together); give "
             "phi_s0 instead for a reference geometry"
         )
-    output = _section(table, "output")
+    output = section(table, "output")
     return Scene(
-        geometry=_geometry_spec(_section(table, "geometry"), folder),
-        material=material(_section(table, "material")),
+        geometry=_geometry_spec(section(table, "geometry"), folder),
+        material=material(section(table, "material")),
         degree=degree,
         plane=plane,
-        formulation=_call(FORMULATIONS[kind], formulation, "formulation"),
+        formulation=call(FORMULATIONS[kind], formulation, "formulation"),
         constraints=tuple(_entries(table, "constraints", CONSTRAINTS)),
         loads=tuple(_entries(table, "loads", LOADS)),
-        stepping=_call(Stepping, _with_tuple(_section(table, "stepping"), "times"), "stepping"),
-        newton=_call(NewtonOptions, _section(table, "solver"), "solver"),
-        output=_call(Output, _with_tuple(output, "probes"), "output"),
-        inverse=_call(InverseOptions, _section(table, "inverse"), "inverse") if "inverse" in table else None,
-        parameters=_parameters(table, folder),
-        title=_typed(table.get("title", ""), str, "title"),
+        stepping=call(Stepping, with_tuple(section(table, "stepping"), "times"), "stepping"),
+        newton=call(NewtonOptions, section(table, "solver"), "solver"),
+        output=call(Output, with_tuple(output, "probes"), "output"),
+        inverse=call(InverseOptions, section(table, "inverse"), "inverse") if "inverse" in table else None,
+        parameters=parameters(table, folder),
+        title=typed(table.get("title", ""), str, "title"),
         folder=folder,
         source=source,
         table=copy.deepcopy(table),
@@ -283,9 +281,9 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
     table = dict(table)
     name = table.pop("law", None)
     if name in COMPOSITE_LAWS:
-        return _call(COMPOSITE_LAWS[name], table, f"{where} (law '{name}')")
+        return call(COMPOSITE_LAWS[name], table, f"{where} (law '{name}')")
     if name == "sum":
-        _no_unknown_keys(table, ("terms",), where)
+        no_unknown_keys(table, ("terms",), where)
         terms = table.get("terms")
         if not isinstance(terms, list) or not terms:
             raise SceneError(f"{where}.terms: a sum needs a non-empty list of laws")
@@ -297,12 +295,12 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
     if table.pop("incompressible", False):
         if not hasattr(cls, "incompressible"):
             raise SceneError(f"{where}.incompressible: law '{name}' has no incompressible variant")
-        return _call(cls.incompressible, table, where)
+        return call(cls.incompressible, table, where)
     if "E" in table or "nu" in table:
         if not hasattr(cls, "from_young"):
             raise SceneError(f"{where}: law '{name}' is not defined by E and nu")
-        return _call(cls.from_young, table, where)
-    return _call(cls, table, where)
+        return call(cls.from_young, table, where)
+    return call(cls, table, where)
 
 
 def build_geometry(spec: dict[str, Any], comm) -> _geometry.Geometry:
@@ -321,8 +319,8 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
     if ("file" in table) == ("builder" in table):
         raise SceneError("geometry: give exactly one of 'builder' (a generated mesh) or 'file' (a mesh file)")
     if "file" in table:
-        _no_unknown_keys(table, ("file", "boundaries"), "geometry")
-        _typed(table["file"], str, "geometry.file")
+        no_unknown_keys(table, ("file", "boundaries"), "geometry")
+        typed(table["file"], str, "geometry.file")
         names = table.get("boundaries", {})
         if not isinstance(names, dict) or not all(
             isinstance(v, int) and not isinstance(v, bool) for v in names.values()
@@ -341,7 +339,7 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
     if name not in BUILDERS:
         raise SceneError(f"geometry.builder: unknown builder {name!r} (available: {', '.join(BUILDERS)})")
     parameters = {k: v for k, v in table.items() if k != "builder"}
-    _check_signature(BUILDERS[name], parameters, "geometry", skip=("comm",))
+    check_signature(BUILDERS[name], parameters, "geometry", skip=("comm",))
     return {"builder": name, **{k: tuple(v) if isinstance(v, list) else v for k, v in parameters.items()}}
 
 
@@ -362,246 +360,8 @@ def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) ->
             ramp = entry["ramp"]
             if not isinstance(ramp, dict):
                 raise SceneError(f"{where}.ramp: expected a table {{times = [...], values = [...]}}")
-            entry["ramp"] = _call(Ramp, ramp, f"{where}.ramp")
+            entry["ramp"] = call(Ramp, ramp, f"{where}.ramp")
         if isinstance(entry.get("value"), list):
             entry["value"] = tuple(entry["value"])
-        built.append(_call(kinds[kind], entry, where))
+        built.append(call(kinds[kind], entry, where))
     return built
-
-
-# Keys where TOML's inf is meaningful (an open range); nan is never a value.
-_INFINITY_ALLOWED = ("formulation.pore_range", "stepping.max_step")
-
-
-def _finite_numbers(table: Any, where: str = "") -> None:
-    """Refuse nan anywhere in the scene, and inf except where it means 'no bound'."""
-    if isinstance(table, dict):
-        for key, value in table.items():
-            _finite_numbers(value, f"{where}.{key}" if where else str(key))
-    elif isinstance(table, list):
-        for i, value in enumerate(table):
-            _finite_numbers(value, f"{where}[{i}]")
-    elif isinstance(table, float) and not math.isfinite(table):
-        if math.isnan(table):
-            raise SceneError(f"{where}: nan is not a value; give a number")
-        if not (where.startswith(_INFINITY_ALLOWED) and table > 0):
-            raise SceneError(f"{where}: {table} is not allowed here; give a finite number")
-
-
-def _section(table: dict[str, Any], name: str) -> dict[str, Any]:
-    section = table.get(name, {})
-    if not isinstance(section, dict):
-        raise SceneError(f"{name}: expected a table [{name}]")
-    return section
-
-
-def _with_tuple(table: dict[str, Any], key: str) -> dict[str, Any]:
-    if key in table and isinstance(table[key], list):
-        return {**table, key: tuple(tuple(v) if isinstance(v, list) else v for v in table[key])}
-    return table
-
-
-def _typed(value, kind: type, where: str):
-    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-        raise SceneError(f"{where}: expected {kind.__name__} (got {value!r})")
-    return value
-
-
-def _no_unknown_keys(table: dict[str, Any], allowed, where: str) -> None:
-    for key in table:
-        if key not in allowed:
-            expected = f"expected one of: {', '.join(allowed)}" if allowed else f"[{where}] takes no keys"
-            raise SceneError(f"{where}.{key}: unknown key ({expected})")
-
-
-def _check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=()) -> None:
-    parameters = inspect.signature(func).parameters
-    allowed = [p for p in parameters if p not in skip and p != "self"]
-    _no_unknown_keys(kwargs, allowed, where)
-    missing = [
-        p
-        for p, spec in parameters.items()
-        if p not in skip and spec.default is inspect.Parameter.empty and p not in kwargs
-    ]
-    if missing:
-        raise SceneError(f"{where}: missing key(s) {', '.join(missing)}")
-
-
-def _call(func: Callable, kwargs: dict[str, Any], where: str):
-    """func(**kwargs), with unknown/missing keys and bad values reported against ``where``."""
-    _check_signature(func, kwargs, where)
-    try:
-        return func(**kwargs)
-    except LungmechError as error:
-        raise SceneError(f"{where}: {error}") from None
-    except (TypeError, ValueError) as error:
-        raise SceneError(f"{where}: bad value ({error})") from None
-
-
-# Units of the targets a parameter may name (the unit a user gives its values in).
-_UNITS = {
-    "E": "Pa",
-    "mu": "Pa",
-    "lmbda": "Pa",
-    "bulk": "Pa",
-    "c0": "Pa",
-    "c1": "Pa",
-    "c2": "Pa",
-    "alpha": "Pa",
-    "kappa": "Pa",
-    "pore_barrier": "Pa",
-    "nu": "1",
-    "gamma": "1",
-    "phi_s0": "1",
-    "imaged_porosity": "1",
-    "pore_exponent": "1",
-    "c2_share": "1",
-    "value": "Pa",
-    "amplitude": "1",
-    "pitch": "deg",
-    "roll": "deg",
-}
-_PARAMETER_KEYS = ("target", "default", "range", "scale", "region", "outside")
-
-
-def _parameters(table: dict[str, Any], folder: Path) -> tuple[Parameter, ...]:
-    """[parameters.NAME] tables: target, range, optional default (the scene's own value at the
-    target), scale ("linear" or "log"), region and outside."""
-    section = table.get("parameters", {})
-    if not isinstance(section, dict):
-        raise SceneError("parameters: expected tables [parameters.NAME]")
-    built = []
-    for name, entry in section.items():
-        where = f"parameters.{name}"
-        if not isinstance(entry, dict):
-            raise SceneError(f"{where}: expected a table with target and range")
-        _no_unknown_keys(entry, _PARAMETER_KEYS, where)
-        for required in ("target", "range"):
-            if required not in entry:
-                raise SceneError(f"{where}: missing key '{required}'")
-        target = _typed(entry["target"], str, f"{where}.target")
-        scale = entry.get("scale", "linear")
-        if scale not in ("linear", "log"):
-            raise SceneError(f"{where}.scale: must be 'linear' or 'log' (got {scale!r})")
-        default = entry["default"] if "default" in entry else _value_at(table, target, where)
-        kind, _, key = target.partition(".")
-        unit = "m" if kind == "interface" else _UNITS.get(key.rpartition(".")[2], "")
-        built.append(
-            _call(
-                Parameter,
-                {
-                    "name": name,
-                    "target": target,
-                    "default": default,
-                    "range": entry["range"],
-                    "log": scale == "log",
-                    "unit": unit,
-                    "region": _region(entry.get("region"), f"{where}.region", folder),
-                    "outside": entry.get("outside"),
-                },
-                where,
-            )
-        )
-    try:
-        Parameters(built)
-    except ParameterError as error:
-        raise SceneError(f"parameters: {error}") from None
-    return tuple(built)
-
-
-def _region(spec: Any, where: str, folder: Path):
-    """A parameter's region: {tag = N} (cell tag), {image = "labels.nii.gz", label = N} (the cells
-    whose midpoint lies in a voxel of that label) or {normal, position, width} (a half-space)."""
-    if spec is None:
-        return None
-    if not isinstance(spec, dict):
-        raise SceneError(
-            f"{where}: expected {{tag = N}}, {{image = FILE, label = N}} or {{normal = [..], position = .., width = ..}}"
-        )
-    if "tag" in spec:
-        _no_unknown_keys(spec, ("tag",), where)
-        return _call(Cells, {"tag": spec["tag"], "label": f"tag {spec['tag']}"}, where)
-    if "image" in spec:
-        _no_unknown_keys(spec, ("image", "label"), where)
-        path = folder / _typed(spec["image"], str, f"{where}.image")
-        label = _typed(spec.get("label"), int, f"{where}.label")
-        if not path.is_file():
-            raise SceneError(f"{where}.image: file '{path}' not found")
-        return Cells(marker=ImageLabel(str(path), label), label=f"label {label} of {path.name}")
-    _no_unknown_keys(spec, ("normal", "position", "width"), where)
-    return _call(HalfSpace, spec, where)
-
-
-@dataclass(frozen=True)
-class ImageLabel:
-    """The cells whose midpoint lies in a voxel of ``label`` in a label image (a segmentation of
-    lobes or zones): a :class:`~lungmech.fem.parameters.Cells` marker."""
-
-    path: str
-    label: int
-
-    def __call__(self, geometry) -> np.ndarray:
-        from lungmech.registration import image as images
-
-        try:
-            zone = images.read(self.path, label=self.label)
-        except LungmechError as error:
-            raise SceneError(f"region image: {error}") from None
-        mesh = geometry.mesh
-        cells = mesh.topology.index_map(mesh.topology.dim)
-        nodes = mesh.geometry.dofmaps[0][: cells.size_local + cells.num_ghosts]
-        voxels = np.rint(zone.index(mesh.geometry.x[nodes].mean(axis=1))).astype(int)
-        inside = np.all((voxels >= 0) & (voxels < zone.shape), axis=1)
-        marked = np.zeros(len(voxels), dtype=bool)
-        marked[inside] = zone.mask[tuple(voxels[inside].T)]
-        return marked
-
-
-def _value_at(table: dict[str, Any], target: str, where: str) -> float:
-    """The scene's own value at a parameter's target: its default when none is given."""
-    kind, _, key = target.partition(".")
-    name, _, attribute = key.rpartition(".")
-    if kind == "loads" and attribute in ("amplitude", "pitch", "roll"):
-        return 1.0 if attribute == "amplitude" else 0.0
-    if kind == "constraints" and attribute == "amplitude":
-        return 1.0
-    if kind == "loads" and attribute == "value":
-        for entry in table.get("loads", []):
-            if isinstance(entry, dict) and entry.get("name") == name:
-                return entry.get("value")
-    if kind in ("material", "formulation"):
-        value = _lookup(table.get(kind, {}), key)
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return value
-        if value is None:  # a misspelt key more often than a missing default
-            section = table.get(kind, {})
-            known = ", ".join(k for k, v in section.items() if isinstance(v, int | float | list)) or "none"
-            raise SceneError(f"{where}.target: the scene has no {target} ([{kind}] keys: {known})")
-    if kind == "loads" and attribute == "value":
-        named = [e.get("name") for e in table.get("loads", []) if isinstance(e, dict) and e.get("name")]
-        if name not in named:
-            raise SceneError(f"{where}.target: no load named '{name}' (named loads: {', '.join(named) or 'none'})")
-    raise SceneError(f"{where}: give a default (the scene has no number at {target})")
-
-
-def _lookup(table: Any, path: str) -> Any:
-    for part in path.replace("[", ".").replace("]", "").split("."):
-        if isinstance(table, dict):
-            table = table.get(part)
-        elif isinstance(table, list) and part.isdigit() and int(part) < len(table):
-            table = table[int(part)]
-        else:
-            return None
-    return table
-
-
-def _substituted(table: dict[str, Any], keys: dict[str, float], where: str) -> dict[str, Any]:
-    """A copy of ``table`` with the values at the dotted ``keys`` (``c1``, ``terms[1].c1``) replaced."""
-    table = copy.deepcopy(table)
-    for path, value in keys.items():
-        parts = path.replace("[", ".").replace("]", "").split(".")
-        node = table
-        for part in parts[:-1]:
-            node = node[int(part)] if isinstance(node, list) else node[part]
-        node[parts[-1]] = value
-    return table
