@@ -966,8 +966,8 @@ COMMANDS = {
     "model of an older format": (
         [_edited_model(lambda root, metadata, arrays: metadata.update(format="lungmech-rom/3"))],
         ["rom", "solve", "edited.npz", "-o", "out"],
-        "was written by another lungmech version (format lungmech-rom/3, this one reads lungmech-rom/4); rebuild "
-        "it with 'lungmech rom build'",
+        f"was written by another lungmech version (format lungmech-rom/3, this one reads {store.FORMAT}); "
+        "rebuild it with 'lungmech rom build'",
     ),
     "model of an edited law": (
         [_edited_model(_relaw, digest=False)],

@@ -16,6 +16,7 @@ HELPERS = {"case", "handwritten", "machine", "resumable"}  # run by the benchmar
 QUICK = {
     "run": (["--quick"], "discretisation"),
     "cook": (["--quick"], "cook_quick"),
+    "rom_process": (["--quick"], "rom_process_quick"),
 }
 # Benchmarks whose --quick case does not fit the suite's budget yet (≤ 60 s each, ≤ 3 min in all):
 # this list only shrinks.

@@ -194,7 +194,7 @@ def test_rom_solve_and_sweep_answer_the_same_rows(tmp_path, pressure_volume_data
     assert main(["rom", "build", str(scene), "-o", str(model), "--samples", "4", "--size", "6", "-q"]) == 0
     mu = {"stiffness": 900.0, "depth": 1.5}
     out = tmp_path / "solve"
-    assert main(["rom", "solve", str(model), "-o", str(out), "-q", *_sets(mu)]) == 0
+    assert main(["rom", "solve", str(model), "-o", str(out), "-q", "--fields", *_sets(mu)]) == 0  # and its P–V plot
     summary = json.loads((out / "summary.json").read_text())
     rows = _history(out)
     at_outputs = [r for r in rows if float(r["time [s]"]) in (0.5, 1.0)]

@@ -182,15 +182,17 @@ def _run(args) -> int:
         return rom_cli.sweep(args)
     if args.command == "rom" and args.scene is None:  # the scene inside the model file
         from lungmech.app.reduce import embedded_scene
+        from lungmech.rom import store
 
         comm = logging_comm(args)
-        with embedded_scene(args.model, comm) as scene:
-            return _solve(args, comm, scene, f"the scene inside {args.model}", Path(args.model))
+        content = store.read_on_root(args.model, comm)  # once: the digest reads every byte
+        with embedded_scene(args.model, comm, content=content) as scene:
+            return _solve(args, comm, scene, f"the scene inside {args.model}", Path(args.model), content)
     comm, scene, name, path = setup(args)
     return _solve(args, comm, scene, name, path)
 
 
-def _solve(args, comm, scene, name: str, path: Path) -> int:
+def _solve(args, comm, scene, name: str, path: Path, content=None) -> int:
     from lungmech.app.console import end_of_run
     from lungmech.app.run import check_scale, full_order_model, run
 
@@ -204,8 +206,9 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         from lungmech.app.reduce import reduced_order, trained_range
         from lungmech.rom import store
 
-        model, inputs = reduced_order(args.model, inside=args.scene is None), [args.model]
-        note = trained_range(store.read_on_root(args.model, comm, arrays=False)[0]["extra"], scale)
+        content = content if content is not None else store.read_on_root(args.model, comm)
+        model = reduced_order(args.model, inside=args.scene is None, fields=args.fields, content=content)
+        inputs, note = [args.model], trained_range(content[0]["extra"], scale)
     default = f"{Path(args.model).stem}-reduced" if args.command == "rom" else path.stem
     output = args.output if args.output is not None else RESULTS / default
     if comm.rank == 0:
@@ -213,7 +216,10 @@ def _solve(args, comm, scene, name: str, path: Path) -> int:
         print(f"lungmech: running {name}{how}" + (f": {scene.title}" if scene.title else ""), flush=True)
         if note:
             print(f"lungmech: note: {note}", flush=True)
-    summary = run(scene, output, comm, scale=scale, model=model, inputs=inputs, times=_at(args, scene))
+    full_fields = args.command != "rom" or args.fields
+    summary = run(
+        scene, output, comm, scale=scale, model=model, inputs=inputs, times=_at(args, scene), full_fields=full_fields
+    )
     if comm.rank == 0:
         print(end_of_run(summary, Path(output).resolve()))
     return 0

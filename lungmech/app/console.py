@@ -122,4 +122,7 @@ def end_of_run(summary: dict, folder: Path) -> str:
         text += f"; unloaded reference {show(summary['reference_volume'])}"
     if summary.get("error_indicator") is not None:
         text += f"; estimated error {summary['error_indicator']:.1e} (relative, energy norm)"
-    return text + f"; outputs in {folder}"
+    text += f"; outputs in {folder}"
+    if summary.get("full_fields") is False:
+        text += " (summary.json and history.csv: --fields adds the fields and the pictures)"
+    return text

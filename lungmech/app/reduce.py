@@ -181,27 +181,40 @@ def _build(
     }
 
 
-def reduced_order(path: str | Path, inside: bool = False) -> Callable[[Scene, MPI.Comm], ReducedModel]:
+def reduced_order(
+    path: str | Path, inside: bool = False, fields: bool = True, content: tuple[dict, dict] | None = None
+) -> Callable[[Scene, MPI.Comm], ReducedModel]:
     """The ``model`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``: a
     function of the run's scene and communicator. ``inside``: the run's scene is the one the
-    file holds (:func:`embedded_scene`), else it is checked to model the same physics."""
-    return lambda scene, comm: _reduced(Path(path), build_model(scene, comm), scene, inside)
+    file holds (:func:`embedded_scene`), else it is checked to model the same physics. Without
+    ``fields`` (no full field is asked for), a hyper-reduced model of its own scene is loaded on
+    its body alone, with no full mesh (:func:`lungmech.rom.store.load_body`). ``content``: what
+    :func:`lungmech.rom.store.read_on_root` gave, when the caller has read the file."""
+    return lambda scene, comm: _loaded(Path(path), scene, comm, inside, fields, content)
 
 
-def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD) -> ReducedModel:
-    """The reduced model stored at ``path``, self-contained: its scene and mesh come from the file.
-    Collective."""
-    with embedded_scene(path, comm) as scene:
-        model = build_model(scene, comm)
-    return _reduced(Path(path), model, scene, inside=True)
+def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False) -> ReducedModel:
+    """The reduced model stored at ``path``, self-contained: its scene and mesh come from the file;
+    a hyper-reduced one on its body alone unless ``fields`` (a full field) are wanted. Collective."""
+    content = store.read_on_root(path, comm)
+    with embedded_scene(path, comm, content=content) as scene:
+        return _loaded(Path(path), scene, comm, True, fields, content)
 
 
-def _reduced(path: Path, model, scene: Scene, inside: bool) -> ReducedModel:
+def _loaded(path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content) -> ReducedModel:
+    content = content if content is not None else store.read_on_root(path, comm)
+    if inside and not fields and content[0]["extra"].get("reduced", {}).get("body") is not None:
+        build = lambda geometry: build_model(scene, comm, geometry)  # noqa: E731
+        return store.load_body(path, build, scene.stepping, scene.newton, content, comm)
+    return _reduced(path, build_model(scene, comm), scene, inside, content)
+
+
+def _reduced(path: Path, model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:
     """The reduced model of ``path`` on ``model`` (the scene's, just built on its mesh).
     ``inside``: ``scene`` is the file's own; otherwise it must model the physics of the file's
     scene. Probe points are located on the mesh as built (for an imaged body: in the image)."""
     comm = model.geometry.mesh.comm
-    metadata, arrays = store.read_on_root(path, comm)  # arrays on rank 0 only
+    metadata, arrays = content  # arrays on rank 0 only
     if not inside:
         with embedded_scene(path, comm, content=(metadata, arrays)) as built:
             check_physics(path, physics(built), scene)

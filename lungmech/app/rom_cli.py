@@ -79,6 +79,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     solve.add_argument("scene", nargs="?", help="scene file (default: the scene stored in the model file)")
     common(solve, "results/<model name>-reduced")
     solve.add_argument(
+        "--fields",
+        action="store_true",
+        help="also the full fields (fields.pvd, where the scene's [output] asks) and deformed.png: the full "
+        "mesh is built (without it, a hyper-reduced model is solved on its sampled cells alone)",
+    )
+    solve.add_argument(
         "--sweep",
         metavar="CSV",
         help="solve at every parameter point of this CSV file (a header of parameter names, one row per "

@@ -50,6 +50,7 @@ from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, StartReport
 from lungmech.mesh import write as write_geometry
+from lungmech.mesh.geometry import Geometry
 from lungmech.parallel import deferred, on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 
@@ -91,6 +92,7 @@ SUMMARY_UNITS = {
     "start.newton_iterations": "1",
     "outputs": "time s, volume m^3, strain_energy J, probes m, loads/<label> Pa, averages/<name> as in history.csv",
     "error_indicator": "1 (a reduced model's estimate of its relative energy-norm error)",
+    "full_fields": "1 (whether fields and the pictures were written)",
 }
 _COLUMN_UNITS = {
     "time": "s",
@@ -102,9 +104,11 @@ _COLUMN_UNITS = {
 }
 
 
-def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
-    """The model a scene declares, and nothing else, at the scene's parameter values."""
-    geometry = build_geometry(scene.geometry, comm)
+def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, geometry: Geometry | None = None) -> Model:
+    """The model a scene declares, and nothing else, at the scene's parameter values; on
+    ``geometry`` when given (a hyper-reduced model's body: :func:`lungmech.rom.store.load_body`),
+    else on the scene's."""
+    geometry = build_geometry(scene.geometry, comm) if geometry is None else geometry
     material_parameters = any(p.kind == "material" for p in scene.parameters)
     model = Model(
         geometry,
@@ -198,6 +202,7 @@ def run(
     model: Callable[[Scene, MPI.Comm], ParametricModel] = full_order_model,
     inputs: Sequence[str | Path] = (),
     times: Sequence[float] | None = None,
+    full_fields: bool = True,
 ) -> dict:
     """Solve ``scene`` and write its results into the folder ``out`` (see the module's doc).
 
@@ -208,7 +213,9 @@ def run(
     ``times`` (s): a static answer, the equilibrium at T. ``scale`` multiplies the loads' change
     from the start (one factor, or one per load): a deeper breath from the same end-expiration.
     ``inputs`` are further files the run reads (beyond the scene's own), which ``out`` must not
-    hold.
+    hold. Without ``full_fields`` the run writes the model's numbers only (summary.json,
+    history.csv): no fields (whatever the scene's [output] says), no deformed.png (they need
+    the full field of a state) and no pressure_volume.png.
 
     ``out`` is checked before any work (see :func:`lungmech.parallel.destination.output_folder`) and
     replaced only when the run succeeds. Collective. Returns the summary.
@@ -223,7 +230,7 @@ def run(
         timings["build"] = time.perf_counter() - tic
         planar = fem_model.plane is not None
         axis = lung.pressure_axis(fem_model.loads, fem_model.formulation)
-        fields = (staging, scene.output.format) if scene.output.fields else None
+        fields = (staging, scene.output.format) if scene.output.fields and full_fields else None
         recorder = _Recorder(parametric, axis, fields, comm)
         tic = time.perf_counter()
         try:
@@ -265,6 +272,7 @@ def run(
             "load_scale": np.asarray(scale, dtype=float).tolist(),
             "outputs": answer(solution),
             "error_indicator": solution.indicator,
+            "full_fields": full_fields,
             "probes": {
                 "points": [list(p) for p in scene.output.probes],
                 "displacement": recorder.probes.tolist() if recorder.probes is not None else [],
@@ -274,13 +282,14 @@ def run(
         } | parametric.describe()
         write_json(staging / "summary.json", summary, comm)
         on_root(comm, lambda: _write_history(scene, history, solution.units, staging))
-        with fem_model.kept_state():
-            largest = recorder.largest
-            parametric.fields(largest["state"], largest["time"])
-            shown = volume_text(largest["volume"], planar)
-            title = f"{scene.title}\nlargest volume {shown}, t = {largest['time']:.3g} s"
-            drawn(comm, staging / "deformed.png", lambda: deformed_body(fem_model, staging / "deformed.png", title))
-        if axis is not None:
+        if full_fields:  # the body at its largest volume: a full field
+            with fem_model.kept_state():
+                largest = recorder.largest
+                parametric.fields(largest["state"], largest["time"])
+                shown = volume_text(largest["volume"], planar)
+                title = f"{scene.title}\nlargest volume {shown}, t = {largest['time']:.3g} s"
+                drawn(comm, staging / "deformed.png", lambda: deformed_body(fem_model, staging / "deformed.png", title))
+        if axis is not None and full_fields:  # (matplotlib's start-up alone is half a real-time solve)
             pressures, volumes = recorder.pressures, [row["volume"] for row in history]
             drawn(
                 comm,

@@ -23,6 +23,7 @@ another mesh of the same kind reuses the compiled forms.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -93,8 +94,12 @@ class Gravity(Named):
                 "gravity: balanced_on is for 3-D bodies; in 2-D the weight is carried where it is held"
             )
         pressure = _BalancingPressure(self, model, v, value)
-        full = pressure.bind(FullIntegration(model))
-        return StateDependentWork(pressure.form, full.update, full.linearise, pressure.integrals, pressure.bind)
+        # bound to the whole mesh when the full solver first asks (a hyper-reduced model binds
+        # its own integration, and never compiles these)
+        full = functools.cache(lambda: pressure.bind(FullIntegration(model)))
+        return StateDependentWork(
+            pressure.form, lambda: full().update(), lambda: full().linearise(), pressure.integrals, pressure.bind
+        )
 
 
 class _BalancingPressure:
@@ -156,7 +161,10 @@ class _BalancingPressure:
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
 
-        # Can these boundaries balance a weight along g at all? Checked once, on the reference.
+        # Can these boundaries balance a weight along g at all? Checked once, on the reference
+        # of a whole body (a hyper-reduced model's piece of one holds a few of its cells only).
+        if geometry.whole is not None:
+            return
         full = FullIntegration(model)
         mass, first_moment = np.split(full.vector("moments", *self._integral("moments"))(), [1])
         self.centre.value = first_moment / mass

@@ -40,6 +40,9 @@ class Geometry:
         boundaries: Boundary name -> facet tag value.
         cell_tags: Optional integer markers on cells.
         source: Where the mesh came from, for messages (e.g. "mesh file 'lung.msh'").
+        whole: For a piece of a body (the cells a hyper-reduced model keeps,
+            :mod:`lungmech.rom.body`): the whole body's measures, ``size`` and ``volume``, which
+            :attr:`size` and :meth:`volume` give instead of the piece's. None for a whole body.
     """
 
     mesh: dolfinx.mesh.Mesh
@@ -47,6 +50,7 @@ class Geometry:
     boundaries: Mapping[str, int]
     cell_tags: dolfinx.mesh.MeshTags | None = None
     source: str = ""
+    whole: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
         fdim = self.mesh.topology.dim - 1
@@ -76,7 +80,9 @@ class Geometry:
         return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)(tags)
 
     def volume(self) -> float:
-        """Volume of the (reference) mesh."""
+        """Volume of the (reference) mesh: of the whole body, for a piece of one."""
+        if self.whole is not None:
+            return float(self.whole["volume"])
         return _integrate(self.mesh, ufl.dx(domain=self.mesh))
 
     def area(self, name: str) -> float:
@@ -85,7 +91,9 @@ class Geometry:
 
     @property
     def size(self) -> float:
-        """Characteristic length: the diagonal of the mesh's bounding box."""
+        """Characteristic length: the diagonal of the mesh's (the whole body's) bounding box."""
+        if self.whole is not None:
+            return float(self.whole["size"])
         return diameter(self.mesh)
 
 

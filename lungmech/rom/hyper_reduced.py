@@ -32,6 +32,7 @@ from lungmech.rom.galerkin import check_basis, newton
 from lungmech.rom.outputs import imposed_directions
 from lungmech.rom.reduced_mesh import ReducedMesh
 from lungmech.rom.sampled_forms import SampledForms, SampledIntegration
+from lungmech.rom.whole import OnMesh, Whole
 
 __all__ = ["HyperReducedSolver"]
 
@@ -48,7 +49,9 @@ class HyperReducedSolver:
     ``start`` is the full state the basis is relative to (default: the unloaded state).
     ``enrichment`` (owned rows): directions beyond the basis, whose sampled residual and tangent
     :meth:`enriched_terms` gives (the online error indicator's; the sample must be trained on
-    them too)."""
+    them too). ``whole`` gives what only the whole body can (:mod:`lungmech.rom.whole`): by
+    default computed on ``model``'s mesh; a model of a body's sampled cells alone
+    (:mod:`lungmech.rom.body`) gets them stored, and is its own reduced mesh."""
 
     def __init__(
         self,
@@ -58,6 +61,7 @@ class HyperReducedSolver:
         options=None,
         start: np.ndarray | None = None,
         enrichment: np.ndarray | None = None,
+        whole: Whole | None = None,
     ):
         check_basis(model, basis)
         self.model, self.basis, self.sample = model, basis, sample
@@ -79,7 +83,10 @@ class HyperReducedSolver:
             weight.x.scatter_forward()
         restricted = self._restricted = sampled_residual(forms, model.geometry.mesh, sample)
         self._weights = forms  # the forms reach the weights' Functions: keep them alive
-        self.mesh = reduced = ReducedMesh(model, np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
+        self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
+        self.whole = whole if whole is not None else OnMesh(imposed_directions(model, self.reference))
+        cells = np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)])
+        self.mesh = reduced = ReducedMesh(model, cells, whole=model.geometry.whole is not None)
         self.residual_on_sample = self._residual = reduced.form(restricted)  # (cells_visited counts it)
         self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
         self._vector = fem.assemble_vector(self._residual)
@@ -99,15 +106,17 @@ class HyperReducedSolver:
         self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
         self.forms = SampledForms(model, reduced, forms.weights, sample, self.V, lambda: self._q)
         self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
-        self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
-        self._imposed = origin(model, self.reference)  # x₀; the imposed dofs are rewritten at each solve
-        self._origin = reduced.restrict(self._imposed)
+        # x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current loads
+        start_state, imposed, self._constraints = self.whole.imposed()
+        self._r, self._D = reduced.restrict(start_state), reduced.restrict(imposed)
+        self._origin = self._r + self._D @ model.imposed_amplitudes()[self._constraints]
         degree = quadrature_degree(model)
         self._gradient = at_quadrature_points(reduced.expression(model.F), reduced.mesh, degree)
         jacobians = at_quadrature_points(reduced.expression(ufl.det(model.F)), reduced.mesh, degree)
         # J > 0 is checked where the model is evaluated: on the sampled cells
         self.inversion = Inversion(model, smallest(jacobians, self.comm))
-        self._magnitude = _displacement_magnitude(model, reduced)
+        cell_size = self.whole.get("cell_size", lambda: (np.array(Fields(model).cell_size),))[0]
+        self._magnitude = _displacement_magnitude(model, reduced, float(cell_size))
         self.coordinates = np.zeros(basis.size)  # at the start state (set_state(project()) follows a moved model)
         self._q = self.coordinates.copy()  # where the reduced mesh's state is
         self._works: list[np.ndarray] = []  # Vᵀ ∂W/∂θ of each state-dependent load, at the last tangent
@@ -119,11 +128,10 @@ class HyperReducedSolver:
         # z = (q, imposed factors), exactly, and from the others' samples on the reduced mesh
         self._coupled = []
         if model.state_dependent:
-            start_state, imposed, self._constraints = imposed_directions(model, self.reference)
             affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
             for index, term in enumerate(model.state_dependent):
                 integration = SampledIntegration(
-                    model, basis.vectors, self.forms, affine_basis, self._z, index, term.integrals
+                    model, basis.vectors, self.forms, affine_basis, self._z, index, term.integrals, self.whole
                 )
                 self._coupled.append(term.bind(integration))
         self.description = (
@@ -247,11 +255,9 @@ class HyperReducedSolver:
         return total
 
     def _at_loads(self) -> None:
-        """x₀ on the reduced mesh with the imposed displacements of the current loads (DOLFINx
-        writes the imposed dofs only: O(boundary))."""
-        for bc in self.model.bcs:
-            bc.set(self._imposed)
-        self._origin = self.mesh.restrict(self._imposed)
+        """x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current
+        loads."""
+        self._origin = self._r + self._D @ self.model.imposed_amplitudes()[self._constraints]
 
     def _on_columns(self, x: np.ndarray) -> np.ndarray:
         """Rows of ``x`` (on the sub dofs) on the matrix's columns: 0 on its extra ghost columns,
@@ -379,9 +385,9 @@ def _positions(index_map, space) -> np.ndarray:
     return np.where(numbers[order][at] == wanted, order[at], -1)
 
 
-def _displacement_magnitude(model, reduced: ReducedMesh) -> np.ndarray:
-    """h on the sub dofs of the displacement, 0 on other fields: what F's rounding adds to |x|."""
-    h = Fields(model).cell_size
+def _displacement_magnitude(model, reduced: ReducedMesh, h: float) -> np.ndarray:
+    """``h`` (the whole mesh's smallest cell size) on the sub dofs of the displacement, 0 on
+    other fields: what F's rounding adds to |x|."""
     if not model.mixed:
         return np.full(len(reduced.parent_dofs), h)
     magnitude = np.zeros(len(reduced.parent_dofs))

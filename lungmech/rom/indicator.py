@@ -127,14 +127,22 @@ class EnrichedIndicator:
     indicator is max_t η̂(t) / max_t ‖V q(t)‖_E, relative as :class:`ResidualIndicator`'s; it
     sees the error only along W, so it estimates the error from below, as well as the training's
     next directions describe it. G_V = Vᵀ E V and G_W = Wᵀ E W are assembled once here
-    (O(mesh), with the model); each evaluation costs one sampled residual and tangent."""
+    (O(mesh), with the model; through ``whole``, :mod:`lungmech.rom.whole`, when given: kept,
+    or given back on a body of sampled cells); each evaluation costs one sampled residual and
+    tangent."""
 
-    def __init__(self, model, basis: np.ndarray, enrichment: np.ndarray):
-        comm = model.geometry.mesh.comm
-        energy = inner_product(model, "energy")
-        self._gram_basis = gram(basis, apply(energy, basis, comm), comm)
-        self._gram_enrichment = gram(enrichment, apply(energy, enrichment, comm), comm)
-        energy.destroy()
+    def __init__(self, model, basis: np.ndarray, enrichment: np.ndarray, whole=None):
+        def grams() -> tuple[np.ndarray, np.ndarray]:
+            comm = model.geometry.mesh.comm
+            energy = inner_product(model, "energy")
+            try:
+                return gram(basis, apply(energy, basis, comm), comm), gram(
+                    enrichment, apply(energy, enrichment, comm), comm
+                )
+            finally:
+                energy.destroy()
+
+        self._gram_basis, self._gram_enrichment = grams() if whole is None else whole.get("indicator", grams)
 
     @property
     def size(self) -> int:

@@ -169,9 +169,10 @@ def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.nda
 class ReducedOutputs:
     """The outputs of :class:`~lungmech.fem.parametric.Outputs` of a hyper-reduced solver's
     state (its q, the model's time), from reduced operators (collective; offline: O(k) full
-    assemblies). ``solver`` is a :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`;
-    ``probes`` points or a :class:`~lungmech.fem.quantities.Probe` (material points) located
-    already."""
+    assemblies, through the solver's :attr:`whole`, which keeps them, or gives them back on a
+    body of sampled cells: :mod:`lungmech.rom.whole`). ``solver`` is a
+    :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`; ``probes`` points or a
+    :class:`~lungmech.fem.quantities.Probe` (material points) located already."""
 
     units = dict(UNITS)
 
@@ -179,13 +180,22 @@ class ReducedOutputs:
         model = self.model = solver.model
         self.solver = solver
         owned = solver.basis.vectors.shape[0]
-        start, imposed, self._constraints = imposed_directions(model, solver.reference)
+        start, imposed, self._constraints = solver.whole.imposed()
         directions = np.hstack([solver.basis.vectors, imposed[:owned]])
-        self._volume = cubic(model, ufl.det(model.F) * model.dx, start, directions)
-        probe = probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
-        self.probe_points = () if probe is None else tuple(tuple(float(c) for c in p) for p in probe.points)
-        self._probes = None
-        if probe is not None:
+
+        def volume() -> tuple:
+            found = cubic(model, ufl.det(model.F) * model.dx, start, directions)
+            return np.array(found.c0), found.c1, found.c2, found.c3
+
+        c0, c1, c2, c3 = solver.whole.get("volume", volume)
+        self._volume = Cubic(float(c0), c1, c2, c3)
+
+        def located() -> tuple:
+            probe = (
+                probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
+            )
+            if probe is None:
+                return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, directions.shape[1]))
 
             def displacement_at(x: np.ndarray) -> np.ndarray:
                 model.state.x.array[:] = x
@@ -199,7 +209,11 @@ class ReducedOutputs:
                     x = np.zeros_like(start)
                     x[:owned] = column
                     each.append(displacement_at(x))
-            self._probes = (at_start, np.stack(each, axis=-1))  # p(r), and p(Z_i) on the last axis
+            return np.asarray(probe.points, dtype=float), at_start, np.stack(each, axis=-1)
+
+        points, at_start, each = solver.whole.get("probes", located)
+        self.probe_points = tuple(tuple(float(c) for c in p) for p in points)
+        self._probes = (at_start, each) if len(points) else None  # p(r), and p(Z_i) on the last axis
 
     def derivatives(self, dq: np.ndarray, derivatives) -> dict[str, object]:
         """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives

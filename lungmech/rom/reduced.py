@@ -36,6 +36,7 @@ from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.indicator import EnrichedIndicator, relative
 from lungmech.rom.outputs import ReducedOutputs
+from lungmech.rom.whole import Whole
 
 __all__ = ["ReducedModel"]
 
@@ -59,6 +60,9 @@ class ReducedModel:
         described: what the start state is, for the answers' :class:`StartReport` (its
             ``description`` and ``details``, e.g. the image's volume ``imaged_volume`` in m³
             when the start is an imaged body unloaded at the default parameters).
+        whole: what a hyper-reduced model needs of the whole body (:mod:`lungmech.rom.whole`):
+            computed on ``model``'s mesh by default; given back from a model file for a model of
+            the sampled cells alone (:func:`lungmech.rom.store.load_body`).
     """
 
     def __init__(
@@ -73,6 +77,7 @@ class ReducedModel:
         sample: Sample | None = None,
         enrichment: np.ndarray | None = None,
         described: StartReport | None = None,
+        whole: Whole | None = None,
     ):
         self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
         self.described = described or StartReport(
@@ -90,12 +95,16 @@ class ReducedModel:
             self.solver = ReducedSolver(model, basis, newton, start=self.start, enrichment=self.enrichment)
             self.outputs = Outputs(model, probes)
         else:
-            self.solver = HyperReducedSolver(model, basis, sample, newton, self.start, self.enrichment)
+            self.solver = HyperReducedSolver(model, basis, sample, newton, self.start, self.enrichment, whole)
             self.outputs = ReducedOutputs(self.solver, probes)
-        self.indicator = None if self.enrichment is None else EnrichedIndicator(model, basis.vectors, self.enrichment)
+        self.indicator = None
+        if self.enrichment is not None:
+            kept = self.solver.whole if sample is not None else None
+            self.indicator = EnrichedIndicator(model, basis.vectors, self.enrichment, kept)
         self.times = output_times(model, stepping)
         self.training = [dict(point) for point in training]
         self.built: dict = {}  # how the reductor made it (basis recipe, inner product, training, hyper-reduction)
+        self.full_size: dict[str, int] | None = None  # a model on a body alone: the full model's dofs and cells
         with model.kept_state():
             self.restart()
             self.start_volume = self.outputs()["volume"]  # m³, of the start state
@@ -189,8 +198,9 @@ class ReducedModel:
         return replace(solution, indicator=relative(estimates) if estimate is not None else None)
 
     def describe(self) -> dict[str, object]:
-        """What solves it, for summaries: the reduced solver."""
-        return {"solver": self.solver.description, "linear_solver": None}
+        """What solves it, for summaries: the reduced solver (and for a model on a body of
+        sampled cells, the full model's ``dofs`` and ``cells``)."""
+        return {"solver": self.solver.description, "linear_solver": None} | (self.full_size or {})
 
     def fields(self, state: np.ndarray, time: float) -> None:
         """The model's state the full field x₀ + V q of ``state`` (q) at ``time`` (O(mesh);

@@ -25,13 +25,20 @@ __all__ = ["ReducedMesh"]
 
 class ReducedMesh:
     """The owned ``cells`` (local indices) of ``model``'s mesh as a submesh, with the model's
-    space and a state on it (collective)."""
+    space and a state on it (collective). ``whole``: the model's mesh is the reduced mesh (its
+    cells are all sampled: :mod:`lungmech.rom.body`), its space and state the model's own."""
 
-    def __init__(self, model, cells: np.ndarray):
+    def __init__(self, model, cells: np.ndarray, whole: bool = False):
         parent = model.geometry.mesh
         tdim = parent.topology.dim
         self.model = model
         self.cells = np.unique(np.asarray(cells, dtype=np.int32))
+        index_map, bs = model.space.dofmap.index_map, model.space.dofmap.index_map_bs
+        if whole:  # the model's own mesh (a body of sampled cells only, rom.body): nothing to move
+            self.mesh, self.entity_map, self.space, self.state = parent, None, model.space, model.state
+            self.owned = index_map.size_local * bs
+            self.parent_dofs = np.arange((index_map.size_local + index_map.num_ghosts) * bs)
+            return
         self.mesh, self.entity_map, _, _ = dmesh.create_submesh(parent, tdim, self.cells)
         self.space = fem.functionspace(self.mesh, model.space.ufl_element())
         self.state = fem.Function(self.space, name="reduced_mesh_state")
@@ -67,12 +74,14 @@ class ReducedMesh:
 
     def expression(self, expr: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
         """``expr`` of the model's state, as one of the state on the submesh (evaluated there)."""
-        return ufl.replace(expr, {self.model.state: self.state})
+        return expr if self.entity_map is None else ufl.replace(expr, {self.model.state: self.state})
 
     def form(self, form: ufl.Form) -> fem.Form:
         """``form`` (in the model's state, test and trial functions; integrals over the sampled
         cells) compiled with them on the submesh. Arguments of other spaces (already on the
         submesh) stay."""
+        if self.entity_map is None:
+            return fem.form(form)
         expanded = expand_derivatives(form)
         mapping = {self.model.state: self.state}
         for argument in expanded.arguments():

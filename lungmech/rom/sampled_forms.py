@@ -158,19 +158,39 @@ class SampledIntegration:
     — ``affine_basis`` the (start, directions) of z, ``z()`` its current value — from k + 2 full
     evaluations offline; the others over their ECSW sample by ``forms``; columns as Vᵀ b, over the
     sample of the integral they derive from (the load's own work: the load families'). ``basis``:
-    the full basis (owned rows), for the affine integrals' constant columns."""
+    the full basis (owned rows), for the affine integrals' constant columns. What the affine
+    integrals need of the whole body, ``whole`` computes or gives back (:mod:`lungmech.rom.whole`),
+    each under its own name: the load's index, the integral's, the call's kind and number."""
 
     def __init__(
-        self, model, basis: np.ndarray, forms: SampledForms, affine_basis: tuple, z: Callable, index: int, integrals
+        self,
+        model,
+        basis: np.ndarray,
+        forms: SampledForms,
+        affine_basis: tuple,
+        z: Callable,
+        index: int,
+        integrals,
+        whole,
     ):
         self.model, self.basis, self.forms, self.affine_basis, self.z = model, basis, forms, affine_basis, z
-        self.index, self.integrals = index, integrals
+        self.index, self.integrals, self.whole = index, integrals, whole
         self.comm = model.geometry.mesh.comm
+        self._calls: dict[str, int] = {}
+
+    def _whole(self, kind: str, name: str, compute: Callable[[], tuple]) -> tuple:
+        """``compute()`` through :attr:`whole`, named by this load, ``name``, ``kind`` and the call's number."""
+        key = f"load{self.index}/{name}/{kind}"
+        number = self._calls[key] = self._calls.get(key, -1) + 1
+        return self.whole.get(f"{key}{number}", compute)
 
     def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
         if not self.integrals[name].affine:
             return self.forms.vector(f"load{self.index}_{name}", expr, measure)
-        f0, F1 = affine(self.model, vector_integral(expr, measure, self.model.geometry.mesh), *self.affine_basis)
+        mesh = self.model.geometry.mesh
+        f0, F1 = self._whole(
+            "vector", name, lambda: affine(self.model, vector_integral(expr, measure, mesh), *self.affine_basis)
+        )
         return lambda: (f0 + F1 @ self.z()).reshape(expr.ufl_shape)
 
     def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
@@ -179,9 +199,13 @@ class SampledIntegration:
         if not self.integrals[name].affine:
             family = f"load{self.index}_{name}"
             return self.forms.columns(form, {"cell": family, "exterior_facet": family}, constant)
+
         # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
-        full = FullIntegration(self.model).column(name, form)
-        constant_columns = gram(self.basis, each_unit(constant, full), self.comm)
+        def compute() -> tuple:
+            full = FullIntegration(self.model).column(name, form)
+            return (gram(self.basis, each_unit(constant, full), self.comm),)
+
+        (constant_columns,) = self._whole("columns", name, compute)
         return lambda: constant_columns
 
     def bilinear_columns(
@@ -214,7 +238,11 @@ class SampledIntegration:
         if not self.integrals[name].affine:
             family = f"load{self.index}_{name}"
             return self.forms.column(form, {"cell": family, "exterior_facet": family})
+
         # the derivative of an affine integral is a constant: once, on the whole mesh
-        full = FullIntegration(self.model).column(name, form)()[:, None]
-        constant = gram(self.basis, full, self.comm)
-        return lambda: constant[:, 0]
+        def compute() -> tuple:
+            full = FullIntegration(self.model).column(name, form)()[:, None]
+            return (gram(self.basis, full, self.comm)[:, 0],)
+
+        (constant,) = self._whole("column", name, compute)
+        return lambda: constant

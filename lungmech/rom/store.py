@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 from mpi4py import MPI
@@ -27,17 +28,22 @@ import numpy as np
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.start import StartReport
 from lungmech.mesh import nodes
+from lungmech.mesh.geometry import Geometry
 from lungmech.parallel import on_root, together
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
+from lungmech.rom import body
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.reduced import ReducedModel
+from lungmech.rom.whole import OnMesh, Stored
 
 # 2: canonical order, the scene and its files inside; 3: the digest covers the metadata; 4: the reduced
-# model's own record (its start, how it was built) and its arrays written by rom.store itself
-FORMAT = "lungmech-rom/4"
+# model's own record (its start, how it was built) and its arrays written by rom.store itself; 5: a
+# hyper-reduced model's body (its sampled cells) and what it needs of the whole body
+FORMAT = "lungmech-rom/5"
+_DIGESTED = ("lungmech-rom/3", "lungmech-rom/4")  # older formats whose digest covers the metadata
 
 
 def save(
@@ -83,9 +89,10 @@ def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arra
 
 
 def is_model(path: str | Path) -> bool:
-    """Whether ``path`` is a lungmech reduced-model file (any mesh), unchanged since it was written."""
+    """Whether ``path`` is a lungmech reduced-model file (any mesh, this format or an older one
+    with a digest), unchanged since it was written."""
     try:
-        read(path)
+        read(path, any_version=True)
     except ModelFileError:
         return False
     return True
@@ -119,10 +126,11 @@ class _Changed(Exception):
     """A reduced-model file whose content is not what lungmech wrote (its digest differs)."""
 
 
-def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndarray | None]]:
+def read(path: str | Path, arrays: bool = True, any_version: bool = False) -> tuple[dict, dict[str, np.ndarray | None]]:
     """The metadata and arrays of a reduced-model file, checked to be one (any mesh) and unchanged
     since lungmech wrote it (its digest). With ``arrays=False`` the arrays are read for the
-    digest only, and their names map to None."""
+    digest only, and their names map to None. ``any_version``: a file of an older format (3 on,
+    whose digest covers its metadata) is one too (to be replaced, not read)."""
     wanted = arrays
     path = Path(path)
     if path.is_dir():
@@ -135,9 +143,9 @@ def read(path: str | Path, arrays: bool = True) -> tuple[dict, dict[str, np.ndar
         with np.load(path, allow_pickle=False) as data:
             metadata = json.loads(str(data["metadata"]))
             if isinstance(metadata, dict) and str(metadata.get("format", "")).startswith("lungmech-rom/"):
-                if metadata["format"] != FORMAT:
+                if metadata["format"] != FORMAT and not (any_version and metadata["format"] in _DIGESTED):
                     raise _Older(metadata["format"])
-            if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
+            if not isinstance(metadata, dict) or metadata.get("format") not in (FORMAT, *_DIGESTED):
                 raise ValueError(
                     f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
                 )
@@ -230,7 +238,10 @@ def write_reduced(
     the enrichment, an ECSW sample (partition-independent), the training points, what the start
     is (:class:`~lungmech.fem.start.StartReport`) and how the reductor built it (``built``); the
     caller's ``extra`` metadata and canonical ``arrays`` beside them. The mesh's current nodes are
-    kept as ``reference_nodes`` (a reference moved from the mesh as built, say)."""
+    kept as ``reference_nodes`` (a reference moved from the mesh as built, say). A hyper-reduced
+    model also keeps its body, the sampled cells with its rows there (:mod:`lungmech.rom.body`),
+    and what it needs of the whole body (:mod:`lungmech.rom.whole`): :func:`load_body` loads it
+    with no full mesh."""
     model = reduced.model
     where = layout(model.space)
     owned = reduced.basis.vectors.shape[0]
@@ -245,12 +256,14 @@ def write_reduced(
         built = reduced.built.get("hyper") or {}
         hyper = {"method": "ecsw", "tolerance": reduced.sample.tolerance, "samples": reduced.sample.count(mesh.comm)}
         hyper |= {"cells": cells, "judge": built.get("judge")}
+        content |= _body(reduced)
     start = reduced.described
     record = {
         "start": {"kind": start.kind, "description": start.description, "details": start.details},
         "training": reduced.training,
         "hyper": hyper,
         "built": reduced.built,
+        "body": None if reduced.sample is None else _whole_body(model),
     }
     write(path, model, reduced.basis, extra=(extra or {}) | {"reduced": record}, arrays=content | (arrays or {}))
 
@@ -297,6 +310,104 @@ def load_reduced(
     )
     reduced.built = dict(record.get("built", {}))
     return reduced
+
+
+def _body(reduced: ReducedModel) -> dict[str, np.ndarray]:
+    """A hyper-reduced model's body and whole-body operators, as arrays (rank 0's; collective)."""
+    whole, owned = reduced.solver.whole, reduced.basis.vectors.shape[0]
+    if not isinstance(whole, OnMesh):
+        raise ParameterError("a hyper-reduced model is saved from the full model it was built on")
+    reference, imposed, _ = whole.imposed()
+    columns = {"basis": reduced.basis.vectors, "start": reduced.start[:owned], "reference": reference[:owned]}
+    columns |= {"imposed": imposed[:owned]}
+    if reduced.enrichment is not None:
+        columns["enrichment"] = reduced.enrichment
+    cells = body.export(reduced.model, body.cells_of(reduced.sample), columns)
+    return (cells or {}) | {f"whole/{name}": array for name, array in whole.arrays().items()}
+
+
+def _whole_body(model) -> dict:
+    """What a body's geometry needs of the whole one: its boundaries' names and measures, and its size."""
+    geometry, mesh = model.geometry, model.geometry.mesh
+    tdim = mesh.topology.dim
+    return {
+        "boundaries": dict(geometry.boundaries),
+        "whole": {"size": geometry.size, "volume": geometry.volume()},
+        "cells": mesh.topology.index_map(tdim).size_global,
+        "dofs": layout(model.space).size,
+    }
+
+
+def load_body(
+    path: str | Path,
+    build: Callable[[Geometry], object],
+    stepping,
+    newton=None,
+    content: tuple[dict, dict] | None = None,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+) -> ReducedModel:
+    """Collective: the hyper-reduced model of the file at ``path`` on its body alone: its sampled
+    cells as a mesh of their own, the model on it made by ``build(geometry)`` (the scene's, on that
+    geometry), its values there and its whole-body operators from the file, with no full mesh
+    (O(sample) work). Its outputs are the model's at the build's probes; it gives no full fields.
+    Refused in one line when the file is not one, or holds no body (not hyper-reduced).
+    ``content``: what :func:`read_on_root` gave, when the caller has read the file."""
+    metadata, arrays = content if content is not None else read_on_root(path, comm)
+    record = metadata["extra"].get("reduced")
+    if not isinstance(record, dict) or "start" not in record:
+        raise ModelFileError(f"'{path}' is damaged: it holds no record of its reduced model; rebuild it")
+    if record.get("body") is None:
+        raise ModelFileError(
+            f"'{path}' is not hyper-reduced: it is solved on its full mesh, not on a body of sampled cells"
+        )
+    kept = record["body"]
+    geometry = body.geometry(arrays, comm, kept["boundaries"], kept["whole"], f"the sampled cells of '{path}'")
+    model = build(geometry)
+    body.place_functions(model, arrays)
+    space = model.space
+    local = {name: body.place(space, arrays, name) for name in ("basis", "start", "reference", "imposed")}
+    owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    basis = Basis(
+        np.ascontiguousarray(local["basis"][:owned]),
+        comm.bcast(arrays["values"]),
+        metadata["kind"],
+        metadata["inner_product"],
+        layout(space).fingerprint,
+        metadata["source"],
+    )
+    has_enrichment = comm.bcast(arrays.get("body/enrichment") is not None)
+    enrichment = body.place(space, arrays, "enrichment")[:owned] if has_enrichment else None
+    data = comm.bcast(_sample_on_body(arrays) if comm.rank == 0 else None)
+    sample = Sample.place(geometry.mesh, data, record["hyper"]["tolerance"])
+    operators = comm.bcast({n[len("whole/") :]: a for n, a in arrays.items() if n.startswith("whole/")})
+    whole = Stored(operators, local["reference"][:, 0], local["imposed"], str(path))
+    model.reset()
+    model.state.x.array[:] = local["start"][:, 0]
+    model.state.x.scatter_forward()
+    model.set_time(stepping.start)
+    reduced = ReducedModel(
+        model,
+        basis,
+        stepping,
+        newton,
+        model.state.x.array.copy(),
+        (),
+        record.get("training", []),
+        sample,
+        enrichment,
+        StartReport(**record["start"]),
+        whole,
+    )
+    reduced.built = dict(record.get("built", {}))
+    reduced.full_size = {"dofs": kept["dofs"], "cells": kept["cells"]}
+    return reduced
+
+
+def _sample_on_body(arrays: dict) -> dict[str, np.ndarray]:
+    """The ECSW sample's cells as positions in the body (whose cells are the sampled ones, sorted)."""
+    cells = arrays["body/cells"]
+    data = {name[len("ecsw/") :]: a for name, a in arrays.items() if name.startswith("ecsw/")}
+    return {name: np.searchsorted(cells, a) if name.endswith("_cells") else a for name, a in data.items()}
 
 
 def _check_orthonormal(path, model, basis: Basis) -> None:
