@@ -227,7 +227,7 @@ class HyperReducedSolver:
         forms = self.derivative_forms
         self._at(self.coordinates)
         jacobian = self.reduced_jacobian()  # and K on the reduced mesh, at q
-        imposed = self._on_columns(self.mesh.restrict(derivatives.imposed))
+        imposed = self._on_columns(self._imposed_derivatives(derivatives))
         rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
         b = self._vector.array
         self._assembled.forget_residual()
@@ -248,11 +248,16 @@ class HyperReducedSolver:
         g[:] = 0.0
         fem.assemble_vector(g, forms.energy_gradient)
         total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
-        total = total + gram(g[:, None], self.mesh.restrict(derivatives.imposed), self.comm)[0]
+        total = total + gram(g[:, None], self._imposed_derivatives(derivatives), self.comm)[0]
         for i in range(len(derivatives.names) if forms.energy is not None else 0):
             forms.set_weights(derivatives, i)
             total[i] += self.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
         return total
+
+    def _imposed_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
+        """dx₀/dμ = D da/dμ on the reduced mesh (its dofs, parameters): from the imposed
+        displacements' directions, which a body of sampled cells holds whole."""
+        return self._D @ derivatives.amplitudes[self._constraints]
 
     def _at_loads(self) -> None:
         """x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current
