@@ -16,6 +16,7 @@ reduced run writes the same outputs as a full one, through the same ``solve(μ)`
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -204,7 +205,7 @@ def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False
 def _loaded(path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content) -> ReducedModel:
     content = content if content is not None else store.read_on_root(path, comm)
     if inside and not fields and content[0]["extra"].get("reduced", {}).get("body") is not None:
-        build = lambda geometry: build_model(scene, comm, geometry)  # noqa: E731
+        build = functools.partial(build_model, scene, comm)  # of the body's geometry
         return store.load_body(path, build, scene.stepping, scene.newton, content, comm)
     return _reduced(path, build_model(scene, comm), scene, inside, content)
 

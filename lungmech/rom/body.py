@@ -18,7 +18,7 @@ alike: values are copied position by position, and a facet's tag goes with its l
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 from mpi4py import MPI
 
@@ -143,38 +143,40 @@ def geometry(
     mesh.topology.create_connectivity(tdim - 1, tdim)  # (boundary conditions locate dofs by facet)
     facets = mesh.topology.connectivity(tdim, tdim - 1)
     local_facets = np.array([facets.links(c) for c in cells], dtype=np.int32).reshape(len(cells), tdim + 1)
-    tagged = _rows_of(mesh, arrays, PREFIX + "facet_tagged").astype(bool)
-    values = _rows_of(mesh, arrays, PREFIX + "facet_tags")
+    names = ["facet_tagged", "facet_tags"] + (
+        ["cell_tagged", "cell_tags"] if comm.bcast(on_root and PREFIX + "cell_tags" in arrays) else []
+    )
+    rows = _rows(mesh, arrays, names)
+    tagged = rows["facet_tagged"].astype(bool)
     indices, first = np.unique(local_facets[tagged], return_index=True)
-    facet_tags = dmesh.meshtags(mesh, tdim - 1, indices.astype(np.int32), values[tagged][first].astype(np.int32))
+    values = rows["facet_tags"][tagged][first].astype(np.int32)
+    facet_tags = dmesh.meshtags(mesh, tdim - 1, indices.astype(np.int32), values)
     cell_tags = None
-    if comm.bcast(on_root and PREFIX + "cell_tags" in arrays):
-        marked = _rows_of(mesh, arrays, PREFIX + "cell_tagged").astype(bool)
-        marks = _rows_of(mesh, arrays, PREFIX + "cell_tags")
-        cell_tags = dmesh.meshtags(mesh, tdim, cells[marked], marks[marked].astype(np.int32))
+    if "cell_tags" in rows:
+        marked = rows["cell_tagged"].astype(bool)
+        cell_tags = dmesh.meshtags(mesh, tdim, cells[marked], rows["cell_tags"][marked].astype(np.int32))
     return Geometry(mesh, facet_tags, boundaries, cell_tags, source=source, whole=dict(whole))
 
 
-def _rows_of(mesh, arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarray:
-    """Rank 0's canonical cell-wise array ``name``, each rank given the rows of its owned cells."""
-    comm = mesh.comm
-    tdim = mesh.topology.dim
+def _rows(mesh, arrays: Mapping[str, np.ndarray | None], names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Rank 0's cell-wise arrays ``body/<name>`` (rows in body order), each rank given the rows
+    of its owned cells (collective; one gather and one scatter for all ``names``)."""
+    comm, tdim = mesh.comm, mesh.topology.dim
     mine = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: mesh.topology.index_map(tdim).size_local]
     asked = comm.gather(mine, root=0)
-    sent = [arrays[name][rows] for rows in asked] if comm.rank == 0 else None
+    sent = [{n: arrays[PREFIX + n][rows] for n in names} for rows in asked] if comm.rank == 0 else None
     return comm.scatter(sent, root=0)
 
 
 def place(space, arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarray:
-    """The columns ``body/<name>`` as owned rows of ``space`` on the body's mesh (collective)."""
-    mesh = space.mesh
-    values = _rows_of(mesh, arrays, PREFIX + name)
-    cells = np.arange(len(values), dtype=np.int32)
-    dofs = _unrolled(space, cells)
+    """The columns ``body/<name>`` on ``space`` of the body's mesh, as local rows (owned, then
+    ghost: a ghost dof of an owned cell gets its value from that cell; collective)."""
+    values = _rows(space.mesh, arrays, [name])[name]
+    dofs = _unrolled(space, np.arange(len(values), dtype=np.int32))
     local = space.dofmap.index_map.size_local + space.dofmap.index_map.num_ghosts
     result = np.zeros((local * space.dofmap.index_map_bs, values.shape[2]))
     result[dofs] = values
-    return result[: space.dofmap.index_map.size_local * space.dofmap.index_map_bs]
+    return result
 
 
 def place_functions(model, arrays: Mapping[str, np.ndarray | None]) -> None:
@@ -188,10 +190,10 @@ def place_functions(model, arrays: Mapping[str, np.ndarray | None]) -> None:
         raise ModelFileError(
             f"the body's model has {len(functions)} material fields, the full model had {len(stored)}: rebuild it"
         )
+    rows = _rows(model.geometry.mesh, arrays, [f"function{i}" for i in range(len(functions))])
     for i, function in enumerate(functions):
-        values = _rows_of(model.geometry.mesh, arrays, f"{PREFIX}function{i}")
-        cells = np.arange(len(values), dtype=np.int32)
-        function.x.array[_unrolled(function.function_space, cells)] = values
+        values = rows[f"function{i}"]
+        function.x.array[_unrolled(function.function_space, np.arange(len(values), dtype=np.int32))] = values
         function.x.scatter_forward()
 
 
