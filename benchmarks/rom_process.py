@@ -122,6 +122,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     dofs = [r["dofs"] for r in rows]
@@ -132,6 +133,8 @@ def plot(rows: list[dict], path: Path) -> None:
     ):
         ax.loglog(dofs, [r[key] for r in rows], "o-", label=label)
     ax.axhline(1.0, color="grey", linestyle=":", label="1 s")
+    ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("degrees of freedom of the full model [-]")
     ax.set_ylabel("wall time of the process [s]")
     ax.set_title("One solve as a process, start-up included (warm JIT cache)")

@@ -20,6 +20,7 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
 from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
+from ufl.algorithms import expand_derivatives
 
 from lungmech.errors import ParameterError
 from lungmech.fem.quantities import vector_integral
@@ -223,6 +224,7 @@ class SampledIntegration:
         def entries(constant: fem.Constant, offset: int):
             return shaped([both[offset + j] for j in range(constant.value.size)], constant.ufl_shape)
 
+        form = expand_derivatives(form)  # once: ufl.replace expands a derivative at every call
         merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
         columns = self.columns(name, merged, both)
 
