@@ -1,6 +1,7 @@
 """ECSW hyper-reduction against the Galerkin ROM and the full model, at three mesh sizes.
 
     python benchmarks/ecsw_block.py            # meshes 12×4×4, 24×8×8, 36×12×12 (about 4 minutes)
+    python benchmarks/ecsw_block.py --quick    # meshes 6×2×2, 9×3×3 (seconds): results/ecsw_block_quick.*
 
 A clamped neo-Hookean block (3 × 1 × 1 m, E = 10 Pa, ν = 0.3) under a shear traction on x = 3,
 its weight and a follower pressure on its top, P1. Training: the load paths at load factors
@@ -15,6 +16,7 @@ Writes results/ecsw_block.md, results/ecsw_block.csv and results/ecsw_block.png.
 
 from __future__ import annotations
 
+import argparse
 import time
 
 from mpi4py import MPI
@@ -35,6 +37,7 @@ from lungmech.rom.hyper_reduced import HyperReducedSolver
 
 TRAINING, UNSEEN, TOLERANCE, SIZE = (0.2, 0.4, 0.6), 0.3, 1e-4, 6
 MESHES = (4, 8, 12)  # n: 3n × n × n boxes of 6 tetrahedra each
+QUICK_MESHES = (2, 3)
 RESULTS = machine.RESULTS
 READING = (
     "Times are for the whole load path (several load steps and their Newton iterations), as the load "
@@ -132,11 +135,11 @@ def sampled(row: dict, prefix: str) -> str:
     return " / ".join(str(int(row.get(f"{prefix}{family}", 0))) for family in FAMILIES)
 
 
-def markdown(rows: list[dict]) -> str:
+def markdown(rows: list[dict], command: str) -> str:
     lines = [
         "# ECSW against the Galerkin ROM and the full model (neo-Hookean block)",
         "",
-        f"{provenance('python benchmarks/ecsw_block.py')} POD of {SIZE} vectors, ECSW at τ = {TOLERANCE:g}; online: "
+        f"{provenance(command)} POD of {SIZE} vectors, ECSW at τ = {TOLERANCE:g}; online: "
         f"the unseen load factor {UNSEEN} along the same steps, best of three warm runs.",
         "",
         "| dofs | cells | full [ms] | Galerkin [ms] | ECSW: sampled cells (internal / weight / boundary) | [ms] | "
@@ -158,14 +161,22 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="two coarse meshes (the suite's case)")
+    quick = parser.parse_args().quick
+    stem, command = (
+        ("ecsw_block_quick", "python benchmarks/ecsw_block.py --quick")
+        if quick
+        else ("ecsw_block", "python benchmarks/ecsw_block.py")
+    )
     rows = []
-    for n in MESHES:
+    for n in QUICK_MESHES if quick else MESHES:
         rows.append(case(n))
         r = rows[-1]
         print(
             f"{r['dofs']} dofs: full {r['full_ms']:.0f} ms, Galerkin {r['galerkin_ms']:.0f} ms, ECSW {r['ecsw_ms']:.1f} ms"
         )
-    write_results(RESULTS, "ecsw_block", rows, markdown(rows))
+    write_results(RESULTS, stem, rows, markdown(rows, command))
     time_against_dofs(
         rows,
         [
@@ -176,9 +187,9 @@ def main() -> None:
         ],
         "online time for the load path [ms]",
         "Neo-Hookean block, unseen load: online time",
-        RESULTS / "ecsw_block.png",
+        RESULTS / f"{stem}.png",
     )
-    print((RESULTS / "ecsw_block.md").read_text())
+    print((RESULTS / f"{stem}.md").read_text())
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
     python benchmarks/large_lung.py                       # h = 8, 5, 3.2 mm on 2 ranks (about 20 min)
     python benchmarks/large_lung.py --sizes 8 --ranks 1   # one small case
+    python benchmarks/large_lung.py --quick               # h = 14 mm on 1 rank (seconds): large_lung_quick.*
 
 The right lung phantom (`lung_phantom`, mesh size h), P1 displacement and cellwise Φs, the hilum
 clamped, from its reference: a pleural pressure of −50 Pa (0.5 cmH2O, a breathing step) on the
@@ -157,7 +158,11 @@ def main() -> None:
     parser.add_argument("--solvers", default="direct,iterative")
     parser.add_argument("--case", nargs=2, metavar=("H", "SOLVER"), help=argparse.SUPPRESS)
     parser.add_argument("--timeout", type=float, default=3600, help="seconds per case")
+    parser.add_argument("--quick", action="store_true", help="h = 14 mm on 1 rank (the suite's case)")
     args = parser.parse_args()
+    stem = "large_lung_quick" if args.quick else "large_lung"
+    if args.quick:
+        args.sizes, args.ranks, args.timeout = "14", 1, 120
     if args.case:
         row = case(float(args.case[0]), args.case[1])
         from mpi4py import MPI
@@ -166,7 +171,7 @@ def main() -> None:
             print("ROW " + json.dumps(row), flush=True)
         return
     mpiexec = Path(sys.executable).parent / "mpiexec"
-    raw = RESULTS / "raw" / "large_lung.jsonl"
+    raw = RESULTS / "raw" / f"{stem}.jsonl"
     raw.parent.mkdir(parents=True, exist_ok=True)
     for size in (float(h) for h in args.sizes.split(",")):
         for solver in args.solvers.split(","):
@@ -193,9 +198,9 @@ def main() -> None:
     from machine import write_results
 
     command = "python benchmarks/large_lung.py " + " ".join(sys.argv[1:])
-    write_results(RESULTS, "large_lung", rows, markdown(rows, command.strip()))
-    plot(rows, RESULTS / "large_lung.png")
-    print((RESULTS / "large_lung.md").read_text())
+    write_results(RESULTS, stem, rows, markdown(rows, command.strip()))
+    plot(rows, RESULTS / f"{stem}.png")
+    print((RESULTS / f"{stem}.md").read_text())
 
 
 if __name__ == "__main__":

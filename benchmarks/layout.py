@@ -4,6 +4,7 @@ the allgather implementation it replaced.
     python benchmarks/layout.py                     # box meshes of 89k, 239k and 527k dofs, 1 and 2 ranks (~5 min)
     python benchmarks/layout.py --cells 55          # the 527k-dof mesh only
     python benchmarks/layout.py --ranks 1 2 4       # other rank counts
+    python benchmarks/layout.py --quick             # boxes of 8 and 12 cells a side (seconds): layout_quick.*
 
 Each case (implementation, mesh, ranks) runs in a process of its own, under ``mpiexec -n RANKS``,
 which this script starts. A case builds a unit box of CELLS³ × 6 tetrahedra and its P1 vector
@@ -87,6 +88,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--ranks", type=int, nargs="+", default=[1, 2], help="MPI rank counts (default 1 2)")
     p.add_argument("--vectors", type=int, default=5, help="columns of the basis written (default 5)")
+    p.add_argument("--quick", action="store_true", help="boxes of 8 and 12 cells a side (the suite's case)")
     p.add_argument("--case", choices=IMPLEMENTATIONS, help=argparse.SUPPRESS)  # one case, under mpiexec
     return p.parse_args(argv)
 
@@ -356,6 +358,9 @@ def main() -> None:
     if args.case is not None:
         case(args.case, args.cells[0], args.vectors)
         return
+    if args.quick:
+        args.cells = [8, 12]
+    stem = "layout_quick" if args.quick else "layout"
     start_load = os.getloadavg()[0]
     rows = []
     for cells in args.cells:
@@ -372,14 +377,14 @@ def main() -> None:
                 )
                 rows += found
     RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / "layout.csv", "w", newline="") as stream:
+    with open(RESULTS / f"{stem}.csv", "w", newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(COLUMNS.values())
         for r in rows:
             writer.writerow([r[key] for key in COLUMNS])
     text = markdown(rows, args, (start_load, os.getloadavg()[0]))
-    (RESULTS / "layout.md").write_text(text)
-    plot(rows, RESULTS / "layout.png")
+    (RESULTS / f"{stem}.md").write_text(text)
+    plot(rows, RESULTS / f"{stem}.png")
     print(text)
 
 

@@ -2,12 +2,13 @@
 
     python benchmarks/paired.py                       # P1 h=0.1, P2 h=0.2, mixed h=0.2, 5 pairs each
     python benchmarks/paired.py --cases P2:0.15 --pairs 3
+    python benchmarks/paired.py --quick               # P1 h=0.25, 2 pairs of 2 steps: overhead_paired_quick.*
 
 run.py times each code in a process of its own (so that peak memory is per case); on a shared VM
 the speed of a process drifts by ~10 % or more, which is as large as the overhead being measured.
 Here both codes are set up on the same mesh in one process and their solves alternate (lungmech,
 hand-written, lungmech, ...), each from the undeformed state, so drift hits both alike. Writes
-benchmarks/results/overhead_paired.md and prints it.
+benchmarks/results/overhead_paired.{md,csv,png} (the plot: each case's pair ratios) and prints the table.
 """
 
 from __future__ import annotations
@@ -79,9 +80,13 @@ def main() -> None:
     parser.add_argument("--line-search", default="cp")
     parser.add_argument("--nu", type=float, default=0.4999)
     parser.add_argument("--pressure", type=float, default=0.2)
+    parser.add_argument("--quick", action="store_true", help="P1 h=0.25, 2 pairs of 2 load steps (the suite's case)")
     args = parser.parse_args()
+    if args.quick:
+        args.cases, args.pairs, args.steps = "P1:0.25", 2, 2
+    stem = "overhead_paired_quick" if args.quick else "overhead_paired"
     started = time.perf_counter()
-    rows = []
+    rows, table = [], []
     for case in args.cases.split(","):
         formulation, h = case.split(":")
         r = measure(formulation, float(h), args.pairs, args.steps, args.line_search, args.nu, args.pressure)
@@ -93,6 +98,11 @@ def main() -> None:
             f"{min(ratios):.3f}–{max(ratios):.3f} |"
         )
         print(rows[-1], flush=True)
+        table.append(
+            {"formulation": formulation, "h": float(h), "dofs": r["dofs"], "lungmech_min_s": min(r["lm"])}
+            | {"handwritten_min_s": min(r["hw"]), "median_pair_ratio": statistics.median(ratios)}
+            | {"pair_ratios": " ".join(f"{x:.4f}" for x in ratios)}
+        )
     text = "\n".join(
         [
             "# lungmech overhead, paired in one process",
@@ -109,10 +119,32 @@ def main() -> None:
         ]
     )
     if MPI.COMM_WORLD.rank == 0:
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "overhead_paired.md").write_text(text + "\n")
+        machine.write_results(RESULTS, stem, table, text + "\n")
+        plot(table, RESULTS / f"{stem}.png")
         print()
         print(text)
+
+
+def plot(table: list[dict], path) -> None:
+    """Each case's pair ratios (lungmech / hand-written), and 1 (no overhead)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for i, row in enumerate(table):
+        ratios = [float(x) for x in row["pair_ratios"].split()]
+        ax.plot([i] * len(ratios), ratios, "o", alpha=0.6)
+        ax.plot([i - 0.2, i + 0.2], [row["median_pair_ratio"]] * 2, "k-")
+    ax.axhline(1.0, color="grey", linestyle=":")
+    ax.set_xticks(range(len(table)), [f"{r['formulation']}, h = {r['h']:g} m\n{r['dofs']} dofs" for r in table])
+    ax.set_ylabel("lungmech / hand-written solve time [1]")
+    ax.set_title("lungmech's overhead, paired solves in one process")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
