@@ -7,6 +7,9 @@ reach for first are importable from here, e.g. ``from lungmech import Model, Neo
 they load on first use, so ``import lungmech`` stays light.
 """
 
+# Before NumPy loads OpenBLAS: under mpiexec, N ranks of N threads each stall one another.
+from lungmech import _threads  # noqa: F401, I001  (one BLAS thread per rank, unless the user set one)
+
 try:  # The PyPI wheel must order MPI before the compiled bindings; Debian's build has no such module.
     import dolfinx_solver  # noqa: F401
 except ImportError:

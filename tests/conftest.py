@@ -1,10 +1,15 @@
 import gc
+import os
 
 from mpi4py import MPI
 
 import pytest
 
-import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
+if os.environ.get("PYTEST_XDIST_WORKER"):  # workers share the cores: one BLAS thread each (lungmech._threads)
+    for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
+
+import lungmech  # noqa: E402, F401  (orders MPI before the DOLFINx bindings; under mpiexec, one BLAS thread a rank)
 
 
 @pytest.fixture(autouse=True)

@@ -41,7 +41,7 @@ def built(tmp_path_factory):
         (folder / "scene.toml").write_text(SCENE)
     comm.barrier()
     scene = scenes.load(folder / "scene.toml")
-    reduce_app.build(scene, folder / "m.npz", size=6, samples=4, hyper="ecsw", hyper_tolerance=1e-5, comm=comm)
+    reduce_app.build(scene, folder / "m.npz", size=5, samples=3, hyper="ecsw", hyper_tolerance=1e-5, comm=comm)
     return folder
 
 

@@ -17,7 +17,6 @@ from xml.sax.saxutils import quoteattr
 
 from mpi4py import MPI
 
-import meshio
 import numpy as np
 import ufl
 from dolfinx import fem, plot
@@ -105,6 +104,8 @@ class FieldWriter:
         cell_data = {f.name: [f.x.array[self._cell_dofs]] for f, _ in self._cells}
         name = f"fields_{step:06d}"
         piece = f"{name}.vtu" if comm.size == 1 else f"{name}_p{comm.rank}.vtu"
+        import meshio  # here: a run that writes no fields (a real-time rom solve) need not load it
+
         mesh = meshio.Mesh(points, [cells], point_data=point_data, cell_data=cell_data)
         with together(comm):  # a rank that cannot write its piece stops them all
             meshio.write(self._folder / piece, mesh, file_format="vtu", binary=True, compression="zlib")

@@ -1,0 +1,37 @@
+"""One BLAS thread per MPI rank, unless the user said otherwise.
+
+OpenBLAS (NumPy's, SciPy's) starts a thread per core in every process. Under ``mpiexec -n N``
+on N cores that is N² threads, and the dense linear algebra of a rank (an ECSW training's
+eigendecompositions, its NNLS) then waits for the other ranks' busy threads: a 189-dof block's
+hyper-reduced build took 37.5 s on 2 ranks of a 2-core machine, 5.4 s with one thread per rank
+(4.4 s on one rank). So, when the process is one rank of several (the launcher's PMI_SIZE,
+OMPI_COMM_WORLD_SIZE or MPI_LOCALNRANKS say so) and before NumPy loads OpenBLAS, the thread
+counts the user left unset are set to 1; a value the user set is kept. Importing this module
+does it (``lungmech/__init__.py`` imports it first).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+_RANKS = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE")
+_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def ranks_launched() -> int:
+    """The number of MPI ranks the launcher started (1 outside ``mpiexec``)."""
+    found = [os.environ.get(name, "") for name in _RANKS]
+    return max([int(value) for value in found if value.isdigit()] + [1])
+
+
+def one_blas_thread_per_rank() -> None:
+    """Set the unset BLAS/OpenMP thread counts to 1 in a rank of several, if NumPy is not
+    loaded yet (it reads them when it loads; after, nothing changes)."""
+    if "numpy" in sys.modules or ranks_launched() <= 1:
+        return
+    for name in _THREADS:
+        os.environ.setdefault(name, "1")
+
+
+one_blas_thread_per_rank()
