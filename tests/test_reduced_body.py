@@ -100,3 +100,44 @@ def test_what_the_file_does_not_hold_is_refused_in_one_line(built, tmp_path):
     reduce_app.build(scene, galerkin, size=3, samples=2)
     with pytest.raises(ModelFileError, match="is not hyper-reduced: it is solved on its full mesh"):
         store.load_body(galerkin, None, scene.stepping)
+
+
+PLATE = """title = "pulled plate"
+[geometry]
+builder = "rectangle"
+cells = [8, 3]
+lengths = [2.0, 1.0]
+[material]
+law = "neo_hookean"
+E = 1.0e3
+nu = 0.3
+[formulation]
+plane = "strain"
+degree = 2
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "traction"
+boundary = "x1"
+value = [0.0, -10.0]
+name = "pull"
+[parameters.pull]
+target = "loads.pull.amplitude"
+range = [0.5, 5.0]
+[output]
+fields = false
+probes = [[2.0, 0.5]]
+"""
+
+
+def test_a_plane_body_of_quadratic_elements_answers_as_its_full_mesh(tmp_path):
+    """Triangles in plane strain, P2 (dofs on edges too): the body's answer is the full mesh's."""
+    (tmp_path / "plate.toml").write_text(PLATE)
+    scene = scenes.load(tmp_path / "plate.toml")
+    reduce_app.build(scene, tmp_path / "p.npz", size=4, samples=3, hyper="ecsw", hyper_tolerance=1e-5)
+    on_body, on_mesh = (reduce_app.load(tmp_path / "p.npz", fields=fields) for fields in (False, True))
+    assert on_body.model.geometry.mesh.geometry.dim == 2 and on_body.describe()["dofs"] == 2 * 17 * 7
+    a, b = on_body.solve({"pull": 3.0}), on_mesh.solve({"pull": 3.0})
+    for name, value in _outputs(b).items():
+        assert _outputs(a)[name] == pytest.approx(value, rel=1e-10, abs=1e-14), name
