@@ -12,7 +12,7 @@ from lungmech.fem.parameters import Parameters
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom import store
 from lungmech.rom.basis import inner_product
-from lungmech.rom.reductor import ECSW, POD, Enriched, Modal, Polynomial, TrainingSet, errors, reduce
+from lungmech.rom.reductor import ECSW, POD, Enriched, Modal, Polynomial, Reductor, TrainingSet, errors, reduce
 
 POINTS = Parameters(BOX).sample(4, seed=3)
 MU = {"E": 12.0, "nu": 0.35, "p": 0.8}
@@ -72,6 +72,56 @@ def test_a_hyper_reduced_model_truncated_after_sampling(full):
     assert cut.solve(MU).indicator is not None  # its enrichment: the POD directions after the 4
 
 
+class Counted:
+    """``full`` with its solves counted (a reductor's models must not solve it again)."""
+
+    def __init__(self, full):
+        self.full, self.solves = full, 0
+
+    def __getattr__(self, name):
+        return getattr(self.full, name)
+
+    def solve(self, *args, **kwargs):
+        self.solves += 1
+        return self.full.solve(*args, **kwargs)
+
+
+@pytest.mark.parametrize("greedy", [False, True], ids=["training set", "greedy"])
+def test_one_reductor_gives_models_at_every_tau_and_size_from_one_training(full, greedy):
+    """Several τ, a truncation and the Galerkin model from one Reductor: no full solve after its
+    training (a greedy's iterates are replayed; a training set's solves watched once more), and
+    each model is the one :func:`reduce` builds alone at its τ. A greedy judging at 1e-5 and
+    sampled at 1e-3 too: a coarser sample, still accurate."""
+    counted = Counted(full)
+    training = TrainingSet(POINTS, tolerance=1e-3) if greedy else TrainingSet(POINTS)
+    with Reductor(counted, POD(8), training, judge=1e-5 if greedy else None) as reductor:
+        trained = counted.solves
+        galerkin = reductor.reduce()
+        fine, coarse = reductor.reduce(ECSW(1e-5)), reductor.reduce(ECSW(1e-3))
+        cut = reductor.reduce(ECSW(1e-5, size=2))
+        replayed = counted.solves - trained
+    assert trained >= len(reductor.points) and replayed == (0 if greedy else len(POINTS))
+    assert galerkin.sample is None and galerkin.built["hyper"] is None
+    if greedy:
+        assert fine.sample is reductor.trained.sample and fine.built["timings"]["nnls"] == 0.0
+    assert cut.size == 2 and cut.sample is fine.sample
+    assert sum(map(len, coarse.sample.cells.values())) < sum(map(len, fine.sample.cells.values()))
+    assert coarse.built["hyper"] == {"method": "ecsw", "tolerance": 1e-3, "judge": 1e-5 if greedy else 1e-3}
+    alone = reduce(full, POD(8), training, ECSW(1e-3, judge=1e-5 if greedy else None))
+    for family, cells in alone.sample.cells.items():
+        np.testing.assert_array_equal(coarse.sample.cells[family], cells)
+    if greedy:  # a greedy kept from before is a basis the reductor takes as it is
+        with Reductor(counted, reductor.trained) as again:
+            kept = again.reduce(ECSW(1e-3))
+        assert counted.solves - trained == 0 and again.judge == 1e-5
+        assert kept.built == coarse.built | {"timings": kept.built["timings"]}
+        for family, cells in coarse.sample.cells.items():
+            np.testing.assert_array_equal(kept.sample.cells[family], cells)
+    reference = full.solve(MU)
+    for reduced, most in ((galerkin, 1e-2), (fine, 1e-2), (coarse, 5e-2)):
+        assert errors(reduced, reference, reduced.solve(MU)).energy < most
+
+
 def test_a_reduced_model_survives_its_file(full, tmp_path):
     """write_reduced then load_reduced on the same mesh: the same answers, start and record."""
     reduced = reduce(full, POD(6), TrainingSet(POINTS), ECSW(1e-4))
@@ -92,6 +142,7 @@ def test_bad_recipes_are_refused_in_one_line(full):
         (lambda: TrainingSet(POINTS, scales=(0.5,), tolerance=1e-3), "put a load's amplitude in [parameters]"),
         (lambda: reduce(full, Modal(3), TrainingSet(POINTS, tolerance=1e-3)), "trains a POD basis"),
         (lambda: reduce(full, POD(3), TrainingSet(POINTS), inner="h1"), "inner product must be one of"),
+        (lambda: Reductor(full, POD(3), TrainingSet(POINTS), judge=0.0), "the ECSW tolerance must lie in (0, 1)"),
     ):
         with pytest.raises(ParameterError, match=said.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
             make()

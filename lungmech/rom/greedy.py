@@ -70,7 +70,8 @@ class Greedy:
     last round (``basis`` leads them; the next ones are an enrichment) and, trained with
     ``hyper``, the ECSW sample of the basis and its enrichment and the Newton iterates of the
     full solves, ``(state, time, parameters)`` each (to sample again at another τ:
-    :meth:`lungmech.rom.ecsw.Training.replay`)."""
+    :meth:`lungmech.rom.ecsw.Training.replay`; a :class:`~lungmech.rom.reductor.Reductor` of
+    it does)."""
 
     basis: Basis
     training: list[dict[str, float]]
@@ -80,6 +81,7 @@ class Greedy:
     sample: Sample | None = None
     safety: float = 1.0  # the factor on the indicator when it stopped (see _safety)
     iterates: tuple = ()
+    tolerance: float | None = None  # what it trained to
 
 
 def greedy(
@@ -191,7 +193,7 @@ def greedy(
         timings.update(seconds)
     safety = _safety(rounds, tolerance)
     met = rounds[-1].indicator * safety <= tolerance
-    return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates))
+    return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates), tolerance)
 
 
 SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes

@@ -17,6 +17,11 @@ In pyMOR's manner, one call makes every reduced model lungmech has::
   at ``judge`` and the last sample is re-sampled at τ from the same iterates), the basis then
   truncated to ``size`` vectors (the sample stays the one of the whole basis).
 
+:func:`reduce` is one :class:`Reductor`'s one model. The :class:`Reductor` keeps the offline
+work — the training, the basis and the ECSW training of its Newton iterates — so that models at
+several τ and basis sizes, and the Galerkin one, come from one training without solving the
+full model again.
+
 The inner product of the bases is the energy one by default (the tangent at rest on the
 constrained space, :func:`~lungmech.rom.basis.inner_product`), in which the tolerance, the
 indicator and the errors are measured; where it is not positive definite the build is refused
@@ -29,7 +34,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,7 +51,7 @@ from lungmech.rom.pod import collected, pod
 from lungmech.rom.polynomial import polynomial_basis
 from lungmech.rom.reduced import ReducedModel
 
-__all__ = ["ECSW", "Enriched", "Errors", "Modal", "POD", "Polynomial", "TrainingSet", "errors", "reduce"]
+__all__ = ["ECSW", "Enriched", "Errors", "Modal", "POD", "Polynomial", "Reductor", "TrainingSet", "errors", "reduce"]
 
 
 def _size(size) -> int:
@@ -164,14 +169,163 @@ class ECSW:
             _size(self.size)
 
 
-@dataclass
-class _Made:
-    """What a build made on the way, for the reduced model's record and the timings."""
+class Reductor:
+    """The offline work of a reduction, done once and kept; each :meth:`reduce` makes a reduced
+    model of it (pyMOR's ``reductor.reduce``)::
 
-    timings: dict[str, float] = field(default_factory=dict)
-    modes: Basis | None = None
-    trained: Greedy | None = None
-    points: list = field(default_factory=list)
+        with Reductor(full, POD(), TrainingSet(candidates, tolerance=1e-3), judge=1e-4) as reductor:
+            galerkin = reductor.reduce()
+            fast = {tau: reductor.reduce(ECSW(tau, size=5)) for tau in (1e-3, 1e-4, 1e-5)}
+
+    On construction: the training solves (or the greedy over the candidates, judging its
+    rounds' hyper-reduced models at τ = ``judge`` when given) and the basis by the ``basis``
+    recipe, in the ``inner`` product ("energy", "mass" or "l2") — or, ``basis`` a trained
+    :class:`~lungmech.rom.greedy.Greedy` (one kept from an earlier run, say), its basis,
+    training points, inner product and judging τ, the other arguments unused. On the first hyper-reduced
+    model: the ECSW training on the basis and its enrichment, from the greedy's Newton
+    iterates or from a second pass of the training solves; every τ is then an NNLS on it
+    alone, and every truncation is free — the full model is not solved again. ``timings``
+    holds the seconds of each part so far. Collective; the kept ECSW training is freed on
+    leaving the block (or by :meth:`destroy`).
+    """
+
+    def __init__(
+        self,
+        full: FullOrderModel,
+        basis: Recipe | Greedy = POD(),
+        training: TrainingSet = TrainingSet(),
+        inner: str = "energy",
+        judge: float | None = None,
+    ):
+        if isinstance(basis, Greedy):  # trained already: its own training, inner product and τ
+            training = TrainingSet(basis.training, tolerance=basis.tolerance)
+            inner, judge = basis.basis.inner_product, basis.sample.tolerance if basis.sample is not None else None
+        if inner not in INNER_PRODUCTS:
+            raise ParameterError(f"inner product must be one of {', '.join(INNER_PRODUCTS)} (got {inner!r})")
+        if training.tolerance is not None and not isinstance(basis, POD | Greedy):
+            raise ParameterError(f"a greedy training (a tolerance) trains a POD basis (got a {basis.kind} basis)")
+        if training.tolerance is not None and not len(full.parameters):
+            raise ParameterError(
+                "a greedy training trains over the model's parameter box, and this model has none: add parameters "
+                "(e.g. a load amplitude), or give a basis size"
+            )
+        if judge is not None:
+            ECSW(judge)  # its checks
+        self.full, self.training, self.inner, self.judge = full, training, inner, judge
+        self.kind = "pod" if isinstance(basis, Greedy) else basis.kind
+        model = full.model
+        self.start = one_state(full.start, model)  # refused before any work where there is none
+        require_positive_definite(model, inner)
+        self.timings: dict[str, float] = {}
+        self.modes: Basis | None = None  # every POD direction: the basis leads them, the enrichment follows
+        self.trained: Greedy | None = basis if isinstance(basis, Greedy) else None
+        self.points = [full.parameters.values(p) for p in training.points]
+        self._runs = [(point, scale) for point in self.points for scale in training.scales]
+        if self.trained is None and training.tolerance is not None:
+            tic = time.perf_counter()
+            self.trained = greedy(
+                full, self.points, training.tolerance, size=basis.size, inner=inner, timings=self.timings, hyper=judge
+            )
+            self.timings["greedy"] = time.perf_counter() - tic
+        elif self.trained is None:
+            self.basis = _basis(full, basis, self._runs, inner, self)
+        if self.trained is not None:
+            self.modes, self.points = self.trained.modes, self.trained.training
+            self._runs = [(point, 1.0) for point in self.points]
+            self.basis = self.trained.basis
+        self.enrichment = indicator.enrichment(self.basis, self.modes if self.basis.kind == "pod" else None)
+        self._ecsw: ecsw.Training | None = None  # of [V W], made on the first hyper-reduced model
+        self._samples: dict[float, tuple[ecsw.Sample, float]] = {}  # τ: (its sample, the NNLS's seconds)
+        self._rest()
+
+    def __enter__(self) -> Reductor:
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.destroy()
+
+    def destroy(self) -> None:
+        """Free the kept ECSW training (collective)."""
+        if self._ecsw is not None:
+            self._ecsw.destroy()
+            self._ecsw = None
+
+    def reduce(self, hyper: ECSW | None = None) -> ReducedModel:
+        """The reduced model on the basis (Galerkin: its forms on the full mesh), or with
+        ``hyper`` hyper-reduced at its τ and truncated to its ``size`` (the sample stays the one
+        of the whole basis and its enrichment). Collective."""
+        vectors, enrichment = self.basis, self.enrichment
+        sample, seconds = self.sample(hyper.tolerance) if hyper is not None else (None, None)
+        if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
+            vectors = vectors.truncate(hyper.size)
+            enrichment = indicator.enrichment(vectors, self.modes)[:, : enrichment.shape[1]]
+        full = self.full
+        self._rest()
+        described = StartReport(full.start.kind, full.start.description, details=dict(full.start.details))
+        reduced = ReducedModel(
+            full.model,
+            vectors,
+            full.stepping,
+            full.solver.options,
+            self.start,
+            full.outputs.probe or (),
+            self.points,
+            sample,
+            enrichment,
+            described,
+        )
+        judge = self.judge or (hyper.tolerance if hyper is not None else None)
+        reduced.built = {
+            "basis": self.kind,
+            "inner": self.inner,
+            "scales": [np.asarray(s, dtype=float).tolist() for s in self.training.scales],
+            "training": self.points,
+            "greedy": _greedy_record(self.trained, self.training.tolerance, full.parameters),
+            "hyper": None if hyper is None else {"method": "ecsw", "tolerance": hyper.tolerance, "judge": judge},
+            "timings": self.timings | ({} if seconds is None else {"nnls": seconds}),
+        }
+        return reduced
+
+    def sample(self, tolerance: float) -> tuple[ecsw.Sample, float]:
+        """The ECSW sample of [V W] at τ = ``tolerance`` and the seconds its NNLS took (0 when
+        it is the greedy's own, judged at that τ); each τ is made once. Collective."""
+        ECSW(tolerance)  # its checks
+        if tolerance not in self._samples:
+            trained = self.trained
+            if trained is not None and trained.sample is not None and self.judge == tolerance:
+                self._samples[tolerance] = (trained.sample, 0.0)
+            else:
+                training = self._ecsw_training()
+                tic = time.perf_counter()
+                self._samples[tolerance] = (training.sample(tolerance), time.perf_counter() - tic)
+                self._rest()
+        return self._samples[tolerance]
+
+    def _ecsw_training(self) -> ecsw.Training:
+        """G of ECSW on [V W], from the greedy's Newton iterates or a second pass of the
+        training solves watched (made once)."""
+        if self._ecsw is None:
+            full, tic = self.full, time.perf_counter()
+            training = ecsw.Training(full.model, np.hstack([self.basis.vectors, self.enrichment]))
+            try:
+                if self.trained is not None:
+                    training.replay(self.trained.iterates)
+                    self.timings["ecsw_replay"] = time.perf_counter() - tic
+                else:
+                    with training.watching(full.solver):
+                        collected(full, self._runs)
+                    self.timings["ecsw_training"] = time.perf_counter() - tic
+            except BaseException:
+                training.destroy()
+                raise
+            self.timings |= {f"ecsw_{part}": seconds for part, seconds in training.seconds.items()}
+            self._ecsw = training
+        return self._ecsw
+
+    def _rest(self) -> None:
+        """The full model back at its start: the defaults, the start time."""
+        self.full.reset()
+        self.full.model.set_time(self.full.stepping.start)
 
 
 def reduce(
@@ -183,69 +337,18 @@ def reduce(
     timings: dict[str, float] | None = None,
 ) -> ReducedModel:
     """The reduced model of ``full`` by the ``basis`` recipe, trained by ``training``, optionally
-    hyper-reduced (see the module's doc). ``inner``: the bases' inner product ("energy", "mass"
-    or "l2"). ``timings`` receives the seconds of each part. Collective."""
-    if inner not in INNER_PRODUCTS:
-        raise ParameterError(f"inner product must be one of {', '.join(INNER_PRODUCTS)} (got {inner!r})")
-    if training.tolerance is not None and not isinstance(basis, POD):
-        raise ParameterError(f"a greedy training (a tolerance) trains a POD basis (got a {basis.kind} basis)")
-    if training.tolerance is not None and not len(full.parameters):
-        raise ParameterError(
-            "a greedy training trains over the model's parameter box, and this model has none: add parameters "
-            "(e.g. a load amplitude), or give a basis size"
-        )
-    model = full.model
-    start = one_state(full.start, model)  # refused before any work where there is none
-    require_positive_definite(model, inner)
-    made = _Made(points=[full.parameters.values(p) for p in training.points])
-    runs = [(point, scale) for point in made.points for scale in training.scales]
+    hyper-reduced (see the module's doc): one :class:`Reductor`'s one model, a greedy judging at
+    ``hyper.judge`` (default: its τ). ``inner``: the bases' inner product ("energy", "mass" or
+    "l2"). ``timings`` receives the seconds of each part. Collective."""
     judge = None if hyper is None else hyper.judge or hyper.tolerance
-    if training.tolerance is not None:
-        tic = time.perf_counter()
-        made.trained = greedy(
-            full, made.points, training.tolerance, size=basis.size, inner=inner, timings=made.timings, hyper=judge
-        )
-        made.timings["greedy"] = time.perf_counter() - tic
-        made.modes, made.points = made.trained.modes, made.trained.training
-        runs = [(point, 1.0) for point in made.points]
-        vectors = made.trained.basis
-    else:
-        vectors = _basis(full, basis, runs, inner, made)
-    enrichment = indicator.enrichment(vectors, made.modes if vectors.kind == "pod" else None)
-    sample = None if hyper is None else _sample(full, vectors, enrichment, runs, hyper, made)
-    if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
-        vectors = vectors.truncate(hyper.size)
-        enrichment = indicator.enrichment(vectors, made.modes)[:, : enrichment.shape[1]]
-    full.reset()
-    model.set_time(full.stepping.start)
+    with Reductor(full, basis, training, inner, judge) as reductor:
+        reduced = reductor.reduce(hyper)
     if timings is not None:
-        timings.update(made.timings)
-    described = StartReport(full.start.kind, full.start.description, details=dict(full.start.details))
-    reduced = ReducedModel(
-        model,
-        vectors,
-        full.stepping,
-        full.solver.options,
-        start,
-        full.outputs.probe or (),
-        made.points,
-        sample,
-        enrichment,
-        described,
-    )
-    reduced.built = {
-        "basis": basis.kind,
-        "inner": inner,
-        "scales": [np.asarray(s, dtype=float).tolist() for s in training.scales],
-        "training": made.points,
-        "greedy": _greedy_record(made.trained, training.tolerance, full.parameters),
-        "hyper": None if hyper is None else {"method": "ecsw", "tolerance": hyper.tolerance, "judge": judge},
-        "timings": dict(made.timings),
-    }
+        timings.update(reduced.built["timings"])
     return reduced
 
 
-def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: _Made) -> Basis:
+def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: Reductor) -> Basis:
     """The basis of ``recipe`` (the POD part's modes kept in ``made.modes``)."""
     model = full.model
     parts = recipe.parts if isinstance(recipe, Enriched) else (recipe,)
@@ -274,29 +377,6 @@ def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: _
     if isinstance(recipe, Modal) and recipe.derivatives:
         return combined  # every mode and derivative pair: its size counts the modes
     return combined.truncate(min(recipe.size, combined.size))
-
-
-def _sample(full: FullOrderModel, basis: Basis, enrichment: np.ndarray, runs: list, hyper: ECSW, made: _Made):
-    """The ECSW sample at τ of [V W]: the greedy's own when it judged at τ, else trained on the
-    greedy's iterates or on a second pass of the training solves."""
-    model = full.model
-    directions = replace(basis, vectors=np.hstack([basis.vectors, enrichment]))  # W's residual is sampled too
-    trained = made.trained
-    if trained is not None and trained.sample is not None and (hyper.judge or hyper.tolerance) == hyper.tolerance:
-        return trained.sample
-    tic = time.perf_counter()
-    if trained is not None:  # re-sampled at τ from the greedy's Newton iterates
-        training = ecsw.TrainingSet(model, directions.vectors)
-        try:
-            training.replay(trained.iterates)
-            made.timings["ecsw_replay"] = time.perf_counter() - tic
-            tic = time.perf_counter()
-            sample = training.sample(hyper.tolerance)
-            made.timings["nnls"] = time.perf_counter() - tic
-        finally:
-            training.destroy()
-        return sample
-    return ecsw.train(model, directions, full.solver, lambda: collected(full, runs), hyper.tolerance, made.timings)
 
 
 def _greedy_record(trained: Greedy | None, tolerance: float | None, parameters) -> dict | None:
