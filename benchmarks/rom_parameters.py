@@ -2,6 +2,7 @@
 
     python benchmarks/rom_parameters.py              # 16 training points, 10 unseen points
     python benchmarks/rom_parameters.py --train 8 --test 10 --sizes 10 20 30
+    python benchmarks/rom_parameters.py --quick      # h = 30 mm, 2 training and 2 unseen points
 
 The scene is the bundled breathing lung (lungmech/scenes/lung_breathing.toml: poromechanics,
 balanced gravity, unloaded reference found once at the default parameters) with three parameters:
@@ -17,7 +18,8 @@ The basis is built once at the largest size; smaller ones are its leading vector
 nested). For each basis size: the worst and mean errors over the unseen points — the state in the energy
 norm relative to its largest change along the path, the volume relative to the volume change
 and to the volume, the strain energy — and the full and reduced solve times (same process, one
-rank). Writes benchmarks/results/rom_parameters.{md,csv} and rom_parameters.png.
+rank). Writes benchmarks/results/rom_parameters.{md,csv} and rom_parameters.png (--quick:
+rom_parameters_quick.*).
 """
 
 from __future__ import annotations
@@ -57,15 +59,19 @@ PARAMETERS = {
 }
 
 
-def lung_scene() -> scenes.Scene:
-    """The bundled breathing lung with named loads and the three parameters, without field output."""
+def lung_scene(size: str = "default", times: list[float] | None = None) -> scenes.Scene:
+    """The bundled breathing lung with named loads and the three parameters, without field
+    output; at mesh size h = ``size`` mm ("default": the bundled mesh) and output ``times`` (s;
+    default the scene's)."""
     with resources.as_file(resources.files("lungmech.scenes") / "lung_breathing.toml") as path:
-        table = tomllib.loads(Path(path).read_text())
-    table = copy.deepcopy(table)
-    table["loads"][0]["name"] = "pleural"
-    table["loads"][1]["name"] = "gravity"
+        table = copy.deepcopy(tomllib.loads(Path(path).read_text()))
+    table["loads"][0]["name"], table["loads"][1]["name"] = "pleural", "gravity"
     table["parameters"] = PARAMETERS
     table["output"] = {"fields": False, "probes": table["output"]["probes"]}
+    if times is not None:
+        table["stepping"]["times"] = times
+    if size != "default":
+        table["geometry"]["mesh_size"] = float(size) / 1e3
     return scenes.parse(table)
 
 
@@ -74,9 +80,15 @@ def main() -> None:
     parser.add_argument("--train", type=int, default=16, help="training points (Sobol', seed 0)")
     parser.add_argument("--test", type=int, default=10, help="unseen points (Sobol', seed 12345)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 20, 40], help="basis sizes")
+    parser.add_argument("--mesh-size", default="default", help="mesh size h in mm, or 'default' (the bundled mesh)")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: h = 30 mm, 2 training and 2 unseen points, sizes 2 4"
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.train, args.test, args.sizes, args.mesh_size = 2, 2, [2, 4], "30"
     comm = MPI.COMM_WORLD
-    scene = lung_scene()
+    scene = lung_scene(args.mesh_size)
     box = Parameters(scene.parameters)
     unseen = box.sample(args.test, seed=12345)
 
@@ -124,12 +136,12 @@ def main() -> None:
             rows.append(row)
             say(f"size {reduced.size}: " + ", ".join(f"{k} {v:.3g}" for k, v in row.items()))
     if comm.rank == 0:
-        write(rows, dofs, args, unseen)
+        write(rows, dofs, args, unseen, "rom_parameters_quick" if args.quick else "rom_parameters")
 
 
-def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
+def write(rows: list[dict], dofs: int, args, unseen: list[dict], stem: str) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / "rom_parameters.csv", "w", newline="") as stream:
+    with open(RESULTS / f"{stem}.csv", "w", newline="") as stream:
         table = csv.DictWriter(stream, fieldnames=list(rows[0]))
         table.writeheader()
         table.writerows(rows)
@@ -138,7 +150,9 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
         "# Reduced breathing lung over a 3-parameter box",
         "",
         f"Command: `python benchmarks/rom_parameters.py --train {args.train} --test {args.test} "
-        f"--sizes {' '.join(map(str, args.sizes))}` on {cpu}, {memory}, 1 rank. Full model: {dofs} dofs. "
+        f"--sizes {' '.join(map(str, args.sizes))}"
+        + (f" --mesh-size {args.mesh_size}" if args.mesh_size != "default" else "")
+        + f"` on {cpu}, {memory}, 1 rank. Full model: {dofs} dofs. "
         "Times are wall-clock times on the machine as it was (other jobs may have run beside): the errors "
         "are the result, the times an indication.",
         "",
@@ -153,7 +167,7 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
     for row in rows:
         lines.append("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in row.values()) + " |")
     lines += ["", "Unseen points: " + "; ".join(", ".join(f"{k} {v:.4g}" for k, v in mu.items()) for mu in unseen)]
-    (RESULTS / "rom_parameters.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -175,7 +189,7 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict]) -> None:
     axes.set_title("Reduced lung over stiffness × breath × posture")
     axes.legend()
     figure.tight_layout()
-    figure.savefig(RESULTS / "rom_parameters.png", dpi=150)
+    figure.savefig(RESULTS / f"{stem}.png", dpi=150)
 
 
 if __name__ == "__main__":

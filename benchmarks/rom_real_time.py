@@ -2,6 +2,7 @@
 
     python benchmarks/rom_real_time.py                          # h = bundled, 6, 5.5 mm (3 h)
     python benchmarks/rom_real_time.py --sizes default --unseen 6 --candidates 8   # minutes
+    python benchmarks/rom_real_time.py --quick                  # h = 30 mm, 2 points: under a minute
 
 The bundled breathing lung (``lungmech/scenes/lung_breathing.toml``: poromechanics, balanced
 gravity, unloaded reference found once at the defaults) with 20 output times over the breath and
@@ -11,22 +12,25 @@ Pa, log), the breath's depth (pleural amplitude 0.6–1.4) and the posture (grav
 
 * offline: the greedy training to ``--tolerance`` (:mod:`lungmech.rom.greedy`; POD in the energy
   norm; ``--candidates`` Sobol' points, seed 0), judging the hyper-reduced model at
-  ``--judge-tau`` τ (its sample comes with the basis: that is the model's offline build); then,
-  for the τ sweep of this table, the Newton iterates the greedy kept replayed once
-  (:meth:`lungmech.rom.ecsw.Training.replay`, on the basis and its enrichment W of the next 8
-  POD directions) and an ECSW sample for every τ of ``--taus``;
+  ``--judge-tau`` τ (its sample comes with the basis: that is the model's offline build); then
+  one :class:`lungmech.rom.reductor.Reductor` of it makes every model of this table: the
+  Newton iterates the greedy kept replayed once (on the basis and its enrichment W of the next
+  POD directions) and an ECSW sample for every τ of ``--taus`` (an NNLS each; the judged τ's
+  is the greedy's own);
 * the full model at ``--unseen`` Sobol' points of another seed (each its own default solve from
   the scene's start: approach to μ, then the breath);
 * for every τ and basis size k (the greedy basis and its leading halves): the hyper-reduced
   model at the same points: warm time per point (median; one warm-up solve first) and per
-  static point (the end-expiration state at μ alone, with its outputs), the worst
+  static point (``solve(μ, times=[0])``: the end-expiration state at μ alone, with its
+  outputs), the worst
   and mean errors against the full model (state in the energy norm relative to the breath's
   change, volume, volume change, probes), its own error indicator against the true error, the
   sampled cells and facets; and the Galerkin model (no hyper-reduction) of the greedy basis
   as the baseline (at the first ``--galerkin-points`` points, if given: it touches the whole
   mesh, minutes a point on the finest).
 
-Writes results/rom_real_time.{md,csv} and the Pareto plot rom_real_time.png (error against
+Writes results/rom_real_time.{md,csv} (--quick: rom_real_time_quick.*) and the Pareto plot
+rom_real_time.png (error against
 online time per point, per mesh size, the full and Galerkin models marked). One rank. The rows
 of mesh sizes not measured by this run are kept from the CSV, each with its own command and
 date (the sizes of a run are measured one after another: a run per size is as good).
@@ -35,55 +39,33 @@ date (the sizes of a run are measured one after another: a run per size is as go
 from __future__ import annotations
 
 import argparse
-import copy
 import hashlib
 import itertools
 import logging
 import statistics
 import time
-import tomllib
 from functools import partial
-from importlib import resources
 from pathlib import Path
 
 import machine
 import numpy as np
 from machine import SAME_START, provenance, say, write_results
 from resumable import cached, code_version, kept
-from rom_parameters import PARAMETERS
+from rom_parameters import lung_scene
 
 import lungmech  # noqa: F401  (before dolfinx: it loads the MPI library dolfinx's bindings need)
-from lungmech.app import scene as scenes
 from lungmech.app.run import full_order_model
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.parametric import approach
-from lungmech.fem.start import one_state
-from lungmech.rom import ecsw
 from lungmech.rom.greedy import greedy
 from lungmech.rom.reduced import ReducedModel
-from lungmech.rom.reductor import errors
+from lungmech.rom.reductor import ECSW, Reductor, errors
 
 RESULTS = machine.RESULTS
 # the code this run imported, as it started (see resumable.py): all of it, and the full model's
 VERSIONS = {"all": code_version(), "full": code_version(["rom"])}
 TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs
-ENRICHMENT = 8
 # the bundled mesh (6.5k dofs) to 104k dofs: the issue's ≥ 100k, over ≥ 10× in mesh size
 SIZES = "default,6,5.5"
-
-
-def lung_scene(size: str) -> scenes.Scene:
-    """The bundled breathing lung with 20 output times, the three parameters and mesh size h
-    mm ("default": the bundled mesh), without field output."""
-    with resources.as_file(resources.files("lungmech.scenes") / "lung_breathing.toml") as path:
-        table = copy.deepcopy(tomllib.loads(Path(path).read_text()))
-    table["loads"][0]["name"], table["loads"][1]["name"] = "pleural", "gravity"
-    table["parameters"] = PARAMETERS
-    table["output"] = {"fields": False, "probes": table["output"]["probes"]}
-    table["stepping"]["times"] = TIMES
-    if size != "default":
-        table["geometry"]["mesh_size"] = float(size) / 1e3
-    return scenes.parse(table)
 
 
 def timed(reduced: ReducedModel, points: list[dict]) -> tuple[list, list[float]]:
@@ -98,18 +80,13 @@ def timed(reduced: ReducedModel, points: list[dict]) -> tuple[list, list[float]]
 
 
 def static_seconds(reduced: ReducedModel, points: list[dict]) -> list[float]:
-    """The seconds of each static answer: the lung at end-expiration (the scene's start) moved to
-    the point's parameters by reduced Newton, and its outputs (the breath not followed)."""
-    model, defaults = reduced.model, reduced.parameters.defaults
-    seconds = []
+    """The seconds of each static answer ``solve(μ, times=[start])``: the lung at end-expiration
+    (the scene's start) moved to the point's parameters, and its outputs (the breath not
+    followed)."""
+    start, seconds = reduced.stepping.start, []
     for point in [points[0], *points]:  # the first: a warm-up
-        model.set_parameters(defaults)
-        reduced.restart()
         tic = time.perf_counter()
-        approach(
-            model, reduced.solver, reduced.parameters.values(point), defaults, reduced.stepping.start, first_step=1.0
-        )
-        reduced.outputs()
+        reduced.solve(point, times=[start])
         seconds.append(time.perf_counter() - tic)
     return seconds[1:]
 
@@ -134,7 +111,7 @@ def judged(reduced: ReducedModel, references: list, answers: list) -> dict:
 
 
 def case(size: str, args) -> list[dict]:
-    scene = lung_scene(size)
+    scene = lung_scene(size, TIMES)
     box = Parameters(scene.parameters)
     say(f"h = {size}: building the full model")
     full = full_order_model(scene, start="defaults")  # started as its reduced models are
@@ -159,19 +136,6 @@ def case(size: str, args) -> list[dict]:
     (trained, offline), greedy_code = kept(key, VERSIONS["all"], trained_greedy, any_version=args.reuse_greedy)
     k = trained.basis.size
     say(f"  greedy: {k} vectors from {len(trained.training)} full paths, met {trained.met} ({offline['greedy']:.0f} s)")
-    W = trained.modes.vectors[:, k : k + ENRICHMENT]
-    tic = time.perf_counter()
-    training = ecsw.Training(model, np.hstack([trained.basis.vectors, W]))
-    training.replay(trained.iterates)
-    offline["replay"] = time.perf_counter() - tic
-    offline |= {f"replay_{part}": seconds for part, seconds in training.seconds.items()}  # of it
-    samples = {}
-    for tau in args.taus:
-        tic = time.perf_counter()
-        samples[tau] = training.sample(tau)
-        offline[f"nnls_{tau:g}"] = time.perf_counter() - tic
-    training.destroy()
-
     unseen = box.sample(args.unseen, seed=12345)
     references, full_seconds = [], []
     for j, mu in enumerate(unseen):
@@ -182,59 +146,60 @@ def case(size: str, args) -> list[dict]:
     base = {"mesh h [mm]": size, "dofs": dofs, "cells": cells, "full_s_median": full_median}
     base |= {"command": command_line(args), "date": time.strftime("%Y-%m-%d")}
     base |= {"code": VERSIONS["all"], "greedy_code": greedy_code}  # lungmech's committed tree (resumable.py)
-    base |= {f"offline_{name}_s": seconds for name, seconds in offline.items()}
     rows = []
-
-    newton = full.solver.options
-    start = one_state(full.start, model)  # the defaults' equilibrium the bases are relative to
-    galerkin = ReducedModel(model, trained.basis, full.stepping, newton, start, scene.output.probes)
-    # the baseline touches the whole mesh (minutes a point at 5 mm): kept between runs too, and
-    # at the first --galerkin-points points only, when asked
-    some = unseen[: args.galerkin_points or None]
-    answers, seconds = cached(
-        f"{name}-galerkin-{setup}-{greedy_code}-{_digest(some)}", VERSIONS["all"], partial(timed, galerkin, some)
-    )
-    rows.append(
-        base
-        | {"model": "Galerkin", "k": k, "tau": None, "online_ms_median": 1e3 * statistics.median(seconds)}
-        | {"speed_up": full_median / statistics.median(seconds), "points": len(some)}
-        | judged(galerkin, references[: len(some)], answers)
-    )
-    say(f"  Galerkin k = {k}: {rows[-1]['online_ms_median']:.0f} ms, error {rows[-1]['error_energy_max']:.1e}")
-    for tau, sample in samples.items():
-        counted = sample.cells_per_type(mesh.comm)
-        for size_k in sorted({k, max(1, k // 2)}, reverse=True):
-            basis = trained.basis.truncate(size_k)
-            enrichment = trained.modes.vectors[:, size_k : size_k + ENRICHMENT]
-            reduced = ReducedModel(
-                model,
-                basis,
-                full.stepping,
-                newton,
-                start,
-                scene.output.probes,
-                sample=sample,
-                enrichment=enrichment,
-            )
-            answers, seconds = timed(reduced, unseen)
-            online = statistics.median(seconds)
-            rows.append(
-                base
-                | {"model": "ECSW", "k": size_k, "tau": tau, "online_ms_median": 1e3 * online, "points": len(unseen)}
-                | {"static_ms_median": 1e3 * statistics.median(static_seconds(reduced, unseen))}
-                | {
-                    "speed_up": full_median / online,
-                    "online_newton_median": statistics.median(a.newton_iterations for a in answers),
-                }
-                | {"sampled_cells": counted["cell"], "sampled_facet_cells": counted["exterior_facet"]}
-                | {"sampled_percent": 100.0 * (counted["cell"] + counted["exterior_facet"]) / cells}
-                | judged(reduced, references, answers)
-            )
-            r = rows[-1]
-            say(
-                f"  ECSW τ = {tau:g}, k = {size_k}: {r['online_ms_median']:.1f} ms ({r['speed_up']:.0f}×), "
-                f"error {r['error_energy_max']:.1e}, volume {r['error_volume_max']:.1e}"
-            )
+    with Reductor(full, trained) as reductor:
+        galerkin = reductor.reduce()
+        # the baseline touches the whole mesh (minutes a point at 5 mm): kept between runs too, and
+        # at the first --galerkin-points points only, when asked
+        some = unseen[: args.galerkin_points or None]
+        answers, seconds = cached(
+            f"{name}-galerkin-{setup}-{greedy_code}-{_digest(some)}", VERSIONS["all"], partial(timed, galerkin, some)
+        )
+        rows.append(
+            base
+            | {"model": "Galerkin", "k": k, "tau": None, "online_ms_median": 1e3 * statistics.median(seconds)}
+            | {"speed_up": full_median / statistics.median(seconds), "points": len(some)}
+            | judged(galerkin, references[: len(some)], answers)
+        )
+        say(f"  Galerkin k = {k}: {rows[-1]['online_ms_median']:.0f} ms, error {rows[-1]['error_energy_max']:.1e}")
+        for tau in args.taus:
+            for size_k in sorted({k, max(1, k // 2)}, reverse=True):
+                reduced = reductor.reduce(ECSW(tau, size=size_k))
+                counted = reduced.sample.cells_per_type(mesh.comm)
+                answers, seconds = timed(reduced, unseen)
+                online = statistics.median(seconds)
+                rows.append(
+                    base
+                    | {
+                        "model": "ECSW",
+                        "k": size_k,
+                        "tau": tau,
+                        "online_ms_median": 1e3 * online,
+                        "points": len(unseen),
+                    }
+                    | {"static_ms_median": 1e3 * statistics.median(static_seconds(reduced, unseen))}
+                    | {
+                        "speed_up": full_median / online,
+                        "online_newton_median": statistics.median(a.newton_iterations for a in answers),
+                    }
+                    | {"sampled_cells": counted["cell"], "sampled_facet_cells": counted["exterior_facet"]}
+                    | {"sampled_percent": 100.0 * (counted["cell"] + counted["exterior_facet"]) / cells}
+                    | {f"offline_nnls_{tau:g}_s": reduced.built["timings"]["nnls"]}
+                    | judged(reduced, references, answers)
+                )
+                r = rows[-1]
+                say(
+                    f"  ECSW τ = {tau:g}, k = {size_k}: {r['online_ms_median']:.1f} ms ({r['speed_up']:.0f}×), "
+                    f"error {r['error_energy_max']:.1e}, volume {r['error_volume_max']:.1e}"
+                )
+        # its replay of the greedy's iterates, and of that the tangents and the compressions
+        offline |= {
+            "replay" + part.removeprefix("ecsw_replay").replace("ecsw", ""): value
+            for part, value in reductor.timings.items()
+        }
+    offline.setdefault("replay", 0.0)  # every τ the greedy's own: nothing replayed
+    for row in rows:
+        row |= {f"offline_{part}_s": value for part, value in offline.items()}
     return rows
 
 
@@ -442,10 +407,10 @@ def _digest(value) -> str:
     return hashlib.sha1(repr(value).encode()).hexdigest()[:8]
 
 
-def _kept(measured: list[dict]) -> list[dict]:
+def _kept(measured: list[dict], stem: str) -> list[dict]:
     """The rows of the results CSV as it is now (another run's may have landed meanwhile) of the
     mesh sizes ``measured`` has not."""
-    path, sizes = RESULTS / "rom_real_time.csv", {str(r["mesh h [mm]"]) for r in measured}
+    path, sizes = RESULTS / f"{stem}.csv", {str(r["mesh h [mm]"]) for r in measured}
     earlier = _read(path) if path.exists() else []
     return [r for r in earlier if str(r["mesh h [mm]"]) not in sizes and "command" in r]
 
@@ -468,6 +433,8 @@ def _read(path: Path) -> list[dict]:
 
 def command_line(args) -> str:
     """This run's command line (the options that differ from the defaults)."""
+    if args.quick:
+        return "python benchmarks/rom_real_time.py --quick"
     return (
         "python benchmarks/rom_real_time.py"
         + (f" --sizes {args.sizes}" if args.sizes != SIZES else "")
@@ -495,23 +462,32 @@ def main() -> None:
     parser.add_argument(
         "--galerkin-points", type=int, default=0, help="the Galerkin baseline at the first N unseen points (0: all)"
     )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: h = 30 mm, 2 candidates, 2 unseen points, τ = 1e-3 (results rom_real_time_quick.*)",
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.sizes, args.candidates, args.unseen, args.taus, args.tolerance = "30", 2, 2, [1e-3], 1e-2
+        args.galerkin_points = 1
+    stem = "rom_real_time_quick" if args.quick else "rom_real_time"
     if args.galerkin_points < 0:
         parser.error(f"--galerkin-points: a number of points, 0 for all (got {args.galerkin_points})")
     if args.replot:
-        rows = _read(RESULTS / "rom_real_time.csv")
-        write_results(RESULTS, "rom_real_time", rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
-        pareto(rows, RESULTS / "rom_real_time.png")
+        rows = _read(RESULTS / f"{stem}.csv")
+        write_results(RESULTS, stem, rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
+        pareto(rows, RESULTS / f"{stem}.png")
         return
     # the clock time of each greedy round, to see where an offline build goes
     logging.basicConfig(level=logging.INFO, format="    %(asctime)s %(message)s", datefmt="%H:%M:%S")
     measured = []
     for size in [size.strip() for size in args.sizes.split(",")]:
         measured += case(size, args)
-        rows = sorted(_kept(measured) + measured, key=lambda r: r["dofs"])
-        write_results(RESULTS, "rom_real_time", rows, markdown(rows, command_line(args), args))  # after each size
-        pareto(rows, RESULTS / "rom_real_time.png")
-    print((RESULTS / "rom_real_time.md").read_text())
+        rows = sorted(_kept(measured, stem) + measured, key=lambda r: r["dofs"])
+        write_results(RESULTS, stem, rows, markdown(rows, command_line(args), args))  # after each size
+        pareto(rows, RESULTS / f"{stem}.png")
+    print((RESULTS / f"{stem}.md").read_text())
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ from fem import PARAMETRIC_SCENE
 from lungmech.app import reduce as reduce_app
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
-from lungmech.errors import ModelFileError
+from lungmech.errors import ModelFileError, ParameterError
 from lungmech.rom import body, store
+from lungmech.rom.accuracy import errors
 from lungmech.rom.whole import Stored
 
 # the pulled block, a softer slab in it (a regional stiffness: a material field), a probe
@@ -67,6 +68,8 @@ def test_the_body_answers_as_the_model_on_its_full_mesh(built):
     assert a.indicator == pytest.approx(b.indicator, rel=1e-8) and a.indicator > 0
     assert np.allclose(a.states, b.states, rtol=1e-9, atol=1e-12)
     assert on_body.model.geometry.volume() == pytest.approx(on_mesh.model.geometry.volume(), rel=1e-14)
+    with pytest.raises(ParameterError, match="lives on its sampled cells alone and has no full state to compare"):
+        errors(on_body, b, a)  # its states' full fields: on the full mesh only
 
 
 def test_rom_solve_writes_numbers_in_real_time_and_fields_when_asked(built):

@@ -40,6 +40,11 @@ def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Erro
     """How far ``approximate`` (of ``reduced``) lies from ``full`` (of the full model, same μ)."""
     if not np.allclose(full.times, approximate.times):
         raise ParameterError("errors: the two solutions have different output times")
+    if reduced.full_size is not None:
+        raise ParameterError(
+            "errors: this reduced model lives on its sampled cells alone and has no full state to compare; "
+            "load it with its fields (lungmech.app.reduce.load(path, fields=True))"
+        )
     model = reduced.model
     comm = model.geometry.mesh.comm
     W = reduced.energy_product  # assembled once per reduced model
