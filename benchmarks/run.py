@@ -60,7 +60,9 @@ def run_case(formulation: str, h: float, impl: str, args, ranks: int = 1) -> dic
 
 
 def _run_case(formulation: str, h: float, impl: str, args, ranks: int = 1) -> dict:
-    env = os.environ | {"XDG_CACHE_HOME": str(JIT / f"{formulation}-{impl}")}
+    # a smoke run compiles into the caller's JIT cache (warm after its first run); a measured
+    # one into its own, emptied first, to time the cold compilation too
+    env = os.environ if args.quick else os.environ | {"XDG_CACHE_HOME": str(JIT / f"{formulation}-{impl}")}
     command = [
         PYTHON, str(HERE / "case.py"), "--impl", impl, "--formulation", formulation, "--h", str(h),
         "--pressure", str(args.pressure), "--nu", str(args.nu), "--steps", str(args.steps),
@@ -237,7 +239,9 @@ def parse_args() -> argparse.Namespace:
 
 def header(args, total: float, done: bool, v: dict, u_ref: float, reused: int, cases_seconds: float = 0.0) -> list[str]:
     nu, P = args.nu, args.pressure
-    if args.reuse:
+    if args.quick:
+        cache = "- JIT cache: the caller's own (--quick: a smoke run, warm after its first run)."
+    elif args.reuse:
         cache = "- JIT cache: as recorded per case (--reuse: some cases come from an earlier run); the JIT+setup column says cold or warm."
     elif args.keep_cache:
         cache = "- JIT cache: kept from earlier runs (--keep-cache); the JIT+setup column says cold or warm per case."
@@ -290,7 +294,7 @@ def main() -> None:
     args = parse_args()
     started = time.perf_counter()
     RAW.mkdir(parents=True, exist_ok=True)
-    if not args.keep_cache and not args.reuse and JIT.exists():
+    if not args.keep_cache and not args.reuse and not args.quick and JIT.exists():
         shutil.rmtree(JIT)
     meshes = QUICK if args.quick else MESHES
     formulations = [f.strip() for f in args.formulations.split(",") if f.strip()]
