@@ -19,7 +19,7 @@ from petsc4py import PETSc
 
 import numpy as np
 
-__all__ = ["POD", "NotPositive", "Weight", "apply", "gram", "gram_schmidt", "pod"]
+__all__ = ["POD", "LocalCSR", "NotPositive", "Weight", "apply", "gram", "gram_schmidt", "pod"]
 
 Weight = PETSc.Mat | Callable[[np.ndarray], np.ndarray] | None
 
@@ -129,3 +129,30 @@ def pod(data: np.ndarray, W: Weight, comm: MPI.Comm) -> POD:
     modes, kept = gram_schmidt(data @ vectors[:, keep] / singular[keep], W, comm)
     values = singular[keep][kept]
     return POD(modes, values, vectors[:, keep][:, kept] * values, singular)
+
+
+class LocalCSR:
+    """A rank's rows of a DOLFINx ``MatrixCSR`` (ghost rows too, block size 1), as y = A x over
+    its local and ghost columns, sharing the matrix's values (an assembly into the matrix is
+    seen). NumPy alone: ``MatrixCSR.to_scipy`` imports ``scipy.sparse``, a fifth of a second of
+    a short process's start-up (``lungmech rom solve``)."""
+
+    def __init__(self, matrix):
+        self.indptr, self.indices, self.data = matrix.indptr, matrix.indices, matrix.data
+        self._nonempty = np.flatnonzero(np.diff(self.indptr))
+        self._starts = self.indptr[:-1][self._nonempty]
+
+    def __abs__(self) -> LocalCSR:
+        """|A| entrywise (a copy of the values now: not updated by later assemblies)."""
+        copy = LocalCSR.__new__(LocalCSR)
+        copy.indptr, copy.indices, copy.data = self.indptr, self.indices, np.abs(self.data)
+        copy._nonempty, copy._starts = self._nonempty, self._starts
+        return copy
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        """A x for a vector or the columns of a matrix x (its rows: the columns of A)."""
+        products = self.data.reshape(-1, *([1] * (x.ndim - 1))) * x[self.indices]
+        y = np.zeros((len(self.indptr) - 1, *x.shape[1:]), dtype=np.result_type(self.data, x))
+        if len(self._starts):
+            y[self._nonempty] = np.add.reduceat(products, self._starts, axis=0)
+        return y

@@ -25,7 +25,7 @@ from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
-from lungmech.parallel.linalg import gram
+from lungmech.parallel.linalg import LocalCSR, gram
 from lungmech.rom.basis import dual, origin, reference_state
 from lungmech.rom.ecsw import FUNCTIONALS, Sample, WeightedForms, over_cells, sampled_residual
 from lungmech.rom.galerkin import check_basis, newton
@@ -105,7 +105,7 @@ class HyperReducedSolver:
         self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
         self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
         self.forms = SampledForms(model, reduced, forms.weights, sample, self.V, lambda: self._q)
-        self._tangent = self._matrix.to_scipy(ghosted=True)  # shares the matrix's values
+        self._tangent = LocalCSR(self._matrix)  # shares the matrix's values
         # x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current loads
         start_state, imposed, self._constraints = self.whole.imposed()
         self._r, self._D = reduced.restrict(start_state), reduced.restrict(imposed)

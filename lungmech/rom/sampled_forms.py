@@ -82,10 +82,40 @@ class SampledForms:
         column with ``constant`` = the j-th unit vector: one matrix assembly on the reduced mesh,
         ``constant`` replaced by a trial function τ of n components per sampled cell, whose
         columns summed per component (columns are (cell, component), unrolled) are the n columns."""
-        n = constant.value.size
+        tau = self._trial(constant.value.size)
+        return self._columns(ufl.replace(form, {constant: shaped(list(tau), constant.ufl_shape)}), families)
+
+    def bilinear_columns(
+        self, form: ufl.Form, families: dict[str, str], left: fem.Constant, right: fem.Constant
+    ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        """(its columns over ``right``'s entries, its columns over ``left``'s) of a ``form``
+        linear in each of the two constants, the other at its value, by one assembly (on a few
+        cells a call's overhead outweighs its work): the form summed over the two roles, each
+        constant in turn replaced by its own entries of one trial function τ."""
+        n = right.value.size
+        tau = list(self._trial(n + left.value.size))
+        form = expand_derivatives(form)  # once: ufl.replace expands a derivative at every call
+        merged = ufl.replace(form, {right: shaped(tau[:n], right.ufl_shape)}) + ufl.replace(
+            form, {left: shaped(tau[n:], left.ufl_shape)}
+        )
+        columns = self._columns(merged, families)
+
+        def evaluate() -> tuple[np.ndarray, np.ndarray]:
+            found = columns()
+            return found[:, :n], found[:, n:]
+
+        return evaluate
+
+    def _trial(self, n: int):
+        """The entries of a trial function of n components per cell of the reduced mesh."""
         tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
-        replacement = shaped([tau[j] for j in range(n)], constant.ufl_shape)
-        compiled = self._compiled(ufl.replace(form, {constant: replacement}), families)
+        return (tau[j] for j in range(n))
+
+    def _columns(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
+        """Vᵀ of the columns of a bilinear ``form`` in a DG0 trial function of n components,
+        summed per component (see :meth:`columns`)."""
+        compiled = self._compiled(form, families)
+        n = form.arguments()[1].ufl_shape[0]
         # PETSc's matrix: DOLFINx's own takes square blocks only (here 3 or 1 rows, n columns)
         matrix = create_petsc_matrix(compiled)
         owned = self.V[: self.mesh.owned]  # its rows: the owned sub dofs, each summed over the ranks
@@ -194,12 +224,17 @@ class SampledIntegration:
         )
         return lambda: (f0 + F1 @ self.z()).reshape(expr.ufl_shape)
 
-    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+    def _families(self, name: str) -> dict[str, str]:
+        """The sample of each integral type a column of integral ``name`` is taken over: the
+        load families' for the load's own work, the integral's own otherwise."""
         if name == "residual":
-            return self.forms.columns(form, {"cell": "cell_load", "exterior_facet": "boundary_load"}, constant)
-        if not self.integrals[name].affine:
-            family = f"load{self.index}_{name}"
-            return self.forms.columns(form, {"cell": family, "exterior_facet": family}, constant)
+            return {"cell": "cell_load", "exterior_facet": "boundary_load"}
+        family = f"load{self.index}_{name}"
+        return {"cell": family, "exterior_facet": family}
+
+    def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
+        if name == "residual" or not self.integrals[name].affine:
+            return self.forms.columns(form, self._families(name), constant)
 
         # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
         def compute() -> tuple:
@@ -215,31 +250,11 @@ class SampledIntegration:
         if name != "residual" and self.integrals[name].affine:
             # columns of an affine integral are computed once, and these vary with the constants
             raise ParameterError(f"bilinear columns of the affine integral {name!r} are not available (sample it)")
-        # one assembly for both (on a few cells a call's overhead outweighs its work): the form
-        # summed over the two roles, each constant in turn replaced by its own entries of one
-        # constant of both, whose columns are then the two sets side by side
-        n = right.value.size
-        both = fem.Constant(self.model.geometry.mesh, np.zeros(n + left.value.size))
-
-        def entries(constant: fem.Constant, offset: int):
-            return shaped([both[offset + j] for j in range(constant.value.size)], constant.ufl_shape)
-
-        form = expand_derivatives(form)  # once: ufl.replace expands a derivative at every call
-        merged = ufl.replace(form, {right: entries(right, 0)}) + ufl.replace(form, {left: entries(left, n)})
-        columns = self.columns(name, merged, both)
-
-        def evaluate() -> tuple[np.ndarray, np.ndarray]:
-            found = columns()
-            return found[:, :n], found[:, n:]
-
-        return evaluate
+        return self.forms.bilinear_columns(form, self._families(name), left, right)
 
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
-        if name == "residual":
-            return self.forms.column(form, {"cell": "cell_load", "exterior_facet": "boundary_load"})
-        if not self.integrals[name].affine:
-            family = f"load{self.index}_{name}"
-            return self.forms.column(form, {"cell": family, "exterior_facet": family})
+        if name == "residual" or not self.integrals[name].affine:
+            return self.forms.column(form, self._families(name))
 
         # the derivative of an affine integral is a constant: once, on the whole mesh
         def compute() -> tuple:

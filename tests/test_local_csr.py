@@ -1,0 +1,43 @@
+"""LocalCSR: a DOLFINx matrix's rank-local rows times vectors, without scipy.sparse, against it."""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+import scipy.sparse
+import ufl
+from dolfinx import fem, la
+
+from lungmech.mesh import box
+from lungmech.parallel.linalg import LocalCSR
+
+
+def test_a_local_matrix_product_is_scipys_and_follows_the_matrix():
+    """Products with a vector and with columns, |A|, and the values of a later assembly."""
+    _check()
+
+
+@pytest.mark.mpi
+def test_a_local_matrix_product_on_two_ranks_holds_ghost_rows_and_columns():
+    _check()
+
+
+def _check():
+    mesh = box(MPI.COMM_WORLD, cells=(3, 2, 2)).mesh
+    space = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u, v = ufl.TrialFunction(space), ufl.TestFunction(space)
+    weight = fem.Constant(mesh, 1.0)
+    form = fem.form(weight * ufl.inner(u, v) * ufl.dx + ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx)
+    matrix = fem.create_matrix(form, block_mode=la.BlockMode.expanded)
+    fem.assemble_matrix(matrix, form)
+    local, reference = LocalCSR(matrix), matrix.to_scipy(ghosted=True)
+    rng = np.random.default_rng(MPI.COMM_WORLD.rank)
+    columns = rng.standard_normal((reference.shape[1], 4))
+    np.testing.assert_allclose(local @ columns, reference @ columns, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(local @ columns[:, 0], reference @ columns[:, 0], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(abs(local) @ columns, abs(reference) @ columns, rtol=1e-13, atol=1e-15)
+    weight.value = -3.0
+    matrix.set_value(0.0)
+    fem.assemble_matrix(matrix, form)  # in place: the product sees the new values
+    np.testing.assert_allclose(local @ columns, scipy.sparse.csr_matrix(reference) @ columns, rtol=1e-13, atol=1e-15)
+    assert np.abs(local @ columns - LocalCSR(matrix) @ columns).max() == 0.0
