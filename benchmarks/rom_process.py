@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -68,13 +69,23 @@ def lung_scene(size: str) -> str:
     return text.replace("[geometry]\n", f"[geometry]\nmesh_size = {float(size) / 1e3}\n", 1)
 
 
-def wall(command: list[str], repeats: int, warm_up: bool = True) -> float:
+def python_as_users_have_it(folder: Path) -> dict[str, str]:
+    """The environment of the timed processes: Python's bytecode cached, as a default Python
+    caches it (here in ``folder``, not beside the sources), where the caller's environment
+    turned that off (PYTHONDONTWRITEBYTECODE: every process would compile lungmech's modules
+    anew, a quarter of a second)."""
+    environment = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    environment.setdefault("PYTHONPYCACHEPREFIX", str(folder / "pycache"))
+    return environment
+
+
+def wall(command: list[str], repeats: int, warm_up: bool, environment: dict[str, str]) -> float:
     """The median wall time (s) of ``repeats`` runs of ``command``, after one warm-up run unless
     ``warm_up`` is False (its forms were compiled by a command before)."""
     seconds = []
     for _ in range(repeats + warm_up):
         tic = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True)
+        done = subprocess.run(command, capture_output=True, text=True, env=environment)
         seconds.append(time.perf_counter() - tic)
         if done.returncode != 0:
             raise SystemExit(f"{' '.join(command)} failed: {done.stderr.strip() or done.stdout.strip()}")
@@ -84,24 +95,28 @@ def wall(command: list[str], repeats: int, warm_up: bool = True) -> float:
 def case(name: str, scene_text: str, folder: Path, repeats: int, points: list[float] | None, warm_up: bool) -> dict:
     """Build the hyper-reduced model of a scene, then time its solves (after a warm-up run each
     if ``warm_up``) and the full run."""
+    environment = python_as_users_have_it(folder)
     scene, model = folder / f"{name}.toml", folder / f"{name}.npz"
     scene.write_text(scene_text)
     build = [*LUNGMECH, "rom", "build", str(scene), "-o", str(model), "--hyper", "ecsw"]
     build += ["--ecsw-tolerance", "1e-3", "--size", "8", "-q"] + (["--samples", "4"] if points else [])
     tic = time.perf_counter()
-    done = subprocess.run(build, capture_output=True, text=True)
+    done = subprocess.run(build, capture_output=True, text=True, env=environment)
     if done.returncode != 0:
         raise SystemExit(f"building {name} failed: {done.stderr.strip() or done.stdout.strip()}")
     offline = time.perf_counter() - tic
     out = folder / f"{name}-out"
-    one = wall([*LUNGMECH, "rom", "solve", str(model), "-o", str(out), "-q"], repeats, warm_up)
-    fields = wall([*LUNGMECH, "rom", "solve", str(model), "-o", str(out), "--fields", "-q"], repeats, warm_up)
+    one = wall([*LUNGMECH, "rom", "solve", str(model), "-o", str(out), "-q"], repeats, warm_up, environment)
+    fields = wall(
+        [*LUNGMECH, "rom", "solve", str(model), "-o", str(out), "--fields", "-q"], repeats, warm_up, environment
+    )
     csv = folder / f"{name}-points.csv"
     csv.write_text("stiffness\n" + "".join(f"{p}\n" for p in points) if points else "\n")
     sweep = [*LUNGMECH, "rom", "solve", str(model), "-o", str(folder / f"{name}-sweep")]
-    swept = wall([*sweep, "--sweep", str(csv)], repeats, warm_up=False) if points else None  # rom solve's forms
+    swept = wall([*sweep, "--sweep", str(csv)], repeats, False, environment) if points else None  # rom solve's forms
     tic = time.perf_counter()
-    done = subprocess.run([*LUNGMECH, "run", str(scene), "-o", str(folder / f"{name}-full"), "-q"], capture_output=True)
+    full_run = [*LUNGMECH, "run", str(scene), "-o", str(folder / f"{name}-full"), "-q"]
+    done = subprocess.run(full_run, capture_output=True, env=environment)
     full = time.perf_counter() - tic
     summary = json.loads((out / "summary.json").read_text())
     return {
@@ -185,6 +200,7 @@ def main() -> None:
             else f"{args.repeats} runs after a warm-up; "
         )
         + "the full run once. "
+        "Python's bytecode cached, as a default Python caches it. "
         "`rom solve` loads the model on its sampled cells alone and writes summary.json and history.csv; "
         "`--fields` builds the full mesh for the fields and the pictures."
     )

@@ -72,6 +72,30 @@ def test_a_hyper_reduced_model_truncated_after_sampling(full):
     assert cut.solve(MU).indicator is not None  # its enrichment: the POD directions after the 4
 
 
+def test_the_projection_error_is_the_best_the_basis_can_do(full):
+    """errors().projection against an independent least-squares fit in the energy norm (dense E,
+    its Cholesky factor): min over c of ‖L(d − V c)‖₂ at every output time; a Galerkin answer
+    is no better than it, and a mass-orthonormal basis projects in the energy norm all the same."""
+    from lungmech.rom.basis import origin
+
+    for inner in ("energy", "mass"):
+        reduced = reduce(full, POD(2), TrainingSet(POINTS), inner=inner)
+        reference = full.solve(MU)
+        found = errors(reduced, reference, reduced.solve(MU))
+        W = inner_product(full.model, "energy")
+        L = np.linalg.cholesky(W.convert("dense").getDenseArray())
+        W.destroy()
+        V = reduced.basis.vectors
+        best, change = 0.0, 0.0
+        for index in range(len(reference.times)):
+            full.model.set_time(float(reference.times[index]))
+            d = reference.states[index] - origin(full.model, reduced.start)[: V.shape[0]]
+            c = np.linalg.lstsq(L.T @ V, L.T @ d, rcond=None)[0]
+            best, change = max(best, np.linalg.norm(L.T @ (d - V @ c))), max(change, np.linalg.norm(L.T @ d))
+        assert found.projection == pytest.approx(best / change, rel=1e-6)
+        assert 0 < found.projection <= found.energy * (1 + 1e-6)
+
+
 class Counted:
     """``full`` with its solves counted (a reductor's models must not solve it again)."""
 
