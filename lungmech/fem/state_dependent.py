@@ -39,6 +39,9 @@ class Integral:
     affine: bool = False
 
 
+Bilinear = Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr], ufl.Form]  # form(l, r), linear in each
+
+
 class Integration(Protocol):
     """How a state-dependent load evaluates what its coefficients need (collective calls)."""
 
@@ -59,11 +62,13 @@ class Integration(Protocol):
         ...
 
     def bilinear_columns(
-        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+        self, name: str, form: Bilinear, left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
-        """Both partial derivatives of a ``form`` linear in each of two constants, as columns:
-        (its columns over ``right``'s entries with ``left`` at its value, its columns over
-        ``left``'s entries with ``right`` at its value), each as :meth:`columns`'."""
+        """Both partial derivatives of the form ``form(l, r)``, linear in each of two vectors,
+        as columns: (its columns over ``right``'s entries with l = ``left``, its columns over
+        ``left``'s entries with r = ``right``), each as :meth:`columns`'. A function of the two
+        vectors, so that an integration may put anything in their place (a derivative's form
+        cannot have its constants replaced without being expanded first)."""
         ...
 
 
@@ -87,10 +92,11 @@ class FullIntegration:
         return lambda: each_unit(constant, column)
 
     def bilinear_columns(
-        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+        self, name: str, form: Bilinear, left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
         # two sets of unit evaluations: one merged form would cost every evaluation both terms
-        over_right, over_left = self.columns(name, form, right), self.columns(name, form, left)
+        both = form(left, right)
+        over_right, over_left = self.columns(name, both, right), self.columns(name, both, left)
         return lambda: (over_right(), over_left())
 
 

@@ -156,7 +156,11 @@ class _BalancingPressure:
         # (its columns over r with l = λ, and over l with r = c: the integration's bilinear
         # columns); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
         self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
-        self.contraction_u = ufl.derivative(ufl.dot(self.left, response * self.right) * surface, model.state, w)
+
+        def contraction_u(left: Expr, right: Expr) -> ufl.Form:
+            return ufl.derivative(ufl.dot(left, response * right) * surface, model.state, w)
+
+        self.contraction_u = contraction_u
         self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]

@@ -20,11 +20,10 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
 from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
-from ufl.algorithms import expand_derivatives
 
 from lungmech.errors import ParameterError
 from lungmech.fem.quantities import vector_integral
-from lungmech.fem.state_dependent import FullIntegration, each_unit
+from lungmech.fem.state_dependent import Bilinear, FullIntegration, each_unit
 from lungmech.parallel.linalg import gram
 from lungmech.rom.ecsw import NO_CELLS, Sample, flattened, over_cells
 from lungmech.rom.outputs import affine
@@ -86,18 +85,17 @@ class SampledForms:
         return self._columns(ufl.replace(form, {constant: shaped(list(tau), constant.ufl_shape)}), families)
 
     def bilinear_columns(
-        self, form: ufl.Form, families: dict[str, str], left: fem.Constant, right: fem.Constant
+        self, form: Bilinear, families: dict[str, str], left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
-        """(its columns over ``right``'s entries, its columns over ``left``'s) of a ``form``
-        linear in each of the two constants, the other at its value, by one assembly (on a few
-        cells a call's overhead outweighs its work): the form summed over the two roles, each
-        constant in turn replaced by its own entries of one trial function τ."""
+        """(its columns over ``right``'s entries with l = ``left``, its columns over ``left``'s
+        with r = ``right``) of the form ``form(l, r)`` linear in each of two vectors, by one
+        assembly (on a few cells a call's overhead outweighs its work): form(left, τ₁) +
+        form(τ₂, right), τ = (τ₁, τ₂) one trial function. Nothing is replaced in a form, so a
+        derivative stays unexpanded until FFCx (its signature, what a warm JIT cache checks, is
+        then the small form's)."""
         n = right.value.size
         tau = list(self._trial(n + left.value.size))
-        form = expand_derivatives(form)  # once: ufl.replace expands a derivative at every call
-        merged = ufl.replace(form, {right: shaped(tau[:n], right.ufl_shape)}) + ufl.replace(
-            form, {left: shaped(tau[n:], left.ufl_shape)}
-        )
+        merged = form(left, shaped(tau[:n], right.ufl_shape)) + form(shaped(tau[n:], left.ufl_shape), right)
         columns = self._columns(merged, families)
 
         def evaluate() -> tuple[np.ndarray, np.ndarray]:
@@ -245,7 +243,7 @@ class SampledIntegration:
         return lambda: constant_columns
 
     def bilinear_columns(
-        self, name: str, form: ufl.Form, left: fem.Constant, right: fem.Constant
+        self, name: str, form: Bilinear, left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
         if name != "residual" and self.integrals[name].affine:
             # columns of an affine integral are computed once, and these vary with the constants
