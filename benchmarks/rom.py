@@ -247,21 +247,23 @@ def pareto(rows: list[dict], found: list[Case], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter, NullFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     fig, axes = plt.subplots(1, len(found), figsize=(4.2 * len(found), 4.0), squeeze=False)
     for ax, case in zip(axes[0], found):
         mine = [r for r in rows if r["case"] == case.name]
-        for kind, marker in zip(KINDS, "osD^"):
+        for kind, marker, colour in zip(KINDS, "osD^", ("C0", "C1", "C2", "C3")):  # a kind's look in every panel
             ok = [r for r in mine if r["basis"] == kind and r["status"] == "ok"]
             if ok:
-                ax.loglog([r["online_s"] for r in ok], [r["interp_energy"] for r in ok], f"{marker}-", label=kind)
+                times, found = [r["online_s"] for r in ok], [r["interp_energy"] for r in ok]
+                ax.loglog(times, found, f"{marker}-", color=colour, label=kind)
                 for r in ok:
                     ax.annotate(str(r["size"]), (r["online_s"], r["interp_energy"]), fontsize=6, xytext=(3, 2),
                                 textcoords="offset points")  # fmt: skip
         ax.axvline(mine[0]["full_s"], color="grey", ls=":", label="full model")
         ax.set_title(f"{case.name} ({mine[0]['dofs']} dofs)", fontsize=9)
         ax.set_xlabel("online time of a solve [s]")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(alpha=0.3, which="both")
