@@ -112,6 +112,13 @@ def same_order(text: str, measured: float) -> bool:
     return measured > 0 and abs(math.log10(measured / float(text))) <= 1
 
 
+def within_two_percent(text: str, measured: float) -> bool:
+    """Whether ``measured`` is within 2 % of ``text``: for the answers of a long descent, whose
+    last digit follows the CPU's BLAS kernels (the cohort's leave-one-out errors: 0.62 and 0.60
+    mm on an AMD EPYC, 0.63 and 0.61 on an Intel Xeon, same versions)."""
+    return abs(measured - float(text)) <= 0.02 * abs(float(text))
+
+
 def check(readme: tuple[str, ...], demo: tuple[str, ...], agree=rounds_to) -> None:
     """Each README number against the demo's number in the same place."""
     assert len(readme) == len(demo)
@@ -214,7 +221,8 @@ def test_register_lung(tmp_path):
     )
     ratios, errors = ratios.split(", "), errors.split(" → ")
     demo_ratios, demo_errors = demo_ratios.split()[: len(ratios)], demo_errors.split(" → ")
-    check((worst, compactness, *ratios, *errors), (demo_worst, demo_compactness, *demo_ratios, *demo_errors))
+    check((worst, compactness, *ratios), (demo_worst, demo_compactness, *demo_ratios))
+    check(tuple(errors), tuple(demo_errors), agree=within_two_percent)
 
 
 # --- parameter_sweep -----------------------------------------------------------------------------
