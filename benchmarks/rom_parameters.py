@@ -2,7 +2,7 @@
 
     python benchmarks/rom_parameters.py              # 16 training points, 10 unseen points
     python benchmarks/rom_parameters.py --train 8 --test 10 --sizes 10 20 30
-    python benchmarks/rom_parameters.py --quick      # h = 30 mm, 2 training points and 1 unseen
+    python benchmarks/rom_parameters.py --quick      # h = 40 mm, 2 training points and 1 unseen
 
 The scene is the bundled breathing lung (lungmech/scenes/lung_breathing.toml: poromechanics,
 balanced gravity, unloaded reference found once at the default parameters) with three parameters:
@@ -82,11 +82,11 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 20, 40], help="basis sizes")
     parser.add_argument("--mesh-size", default="default", help="mesh size h in mm, or 'default' (the bundled mesh)")
     parser.add_argument(
-        "--quick", action="store_true", help="smoke run: h = 30 mm, 2 training points and 1 unseen, sizes 2 4"
+        "--quick", action="store_true", help="smoke run: h = 40 mm, 2 training points and 1 unseen, sizes 2 4"
     )
     args = parser.parse_args()
     if args.quick:
-        args.train, args.test, args.sizes, args.mesh_size = 2, 1, [2, 4], "30"
+        args.train, args.test, args.sizes, args.mesh_size = 2, 1, [2, 4], "40"
     comm = MPI.COMM_WORLD
     scene = lung_scene(args.mesh_size)
     box = Parameters(scene.parameters)

@@ -167,7 +167,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the pulled block at two mesh sizes")
     parser.add_argument("--sizes", default="default,7,6", help="lung mesh sizes in mm ('default': the bundled mesh)")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--points", type=int, default=10, help="points of the quick case's sweep")
+    parser.add_argument("--points", type=int, default=4, help="points of the quick case's sweep")
     args = parser.parse_args()
     stem = "rom_process_quick" if args.quick else "rom_process"
     command = "python benchmarks/rom_process.py" + (" --quick" if args.quick else f" --sizes {args.sizes}")
@@ -176,7 +176,7 @@ def main() -> None:
         folder = Path(work)
         if args.quick:
             points = [500.0 + 1500.0 * i / max(args.points - 1, 1) for i in range(args.points)]
-            for n in (3, 6):
+            for n in (2, 4):
                 text = BLOCK.format(n=2 * n, m=n)
                 rows.append(case(f"block{n}", text, folder, QUICK_REPEATS, points, warm_up=False))
                 say(rows[-1])
