@@ -300,7 +300,7 @@ def test_outside_a_solve_it_evaluates_at_the_current_loads(models):
     solver.deformation_gradient()
     assert np.abs(solver.mesh.state.x.array - start).max() == 0.0
     model.set_time(1.0)
-    solver.functional("strain_energy", np.zeros(hyper.basis.size))
+    solver.functionals(np.zeros(hyper.basis.size))
     assert np.abs(solver.mesh.state.x.array - solver.mesh.restrict(origin(model, reference_state(model)))).max() == 0.0
 
 

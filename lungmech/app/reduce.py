@@ -163,12 +163,7 @@ def _build(
         "files": embedded_names(scene),
     }
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
-    hyper_summary = None
-    if reduced.sample is not None:
-        mesh = full.model.geometry.mesh
-        cells = mesh.topology.index_map(mesh.topology.dim).size_global
-        hyper_summary = {"method": "ecsw", "tolerance": hyper.tolerance, "samples": reduced.sample.count(comm)}
-        hyper_summary["cells"] = cells
+    hyper_summary = store.hyper_record(reduced)
     hold_signals_until_swap()  # the model file is a collective write
     store.write_reduced(path, reduced, extra, arrays)
     return {

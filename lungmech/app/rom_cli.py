@@ -119,9 +119,7 @@ def build(args) -> int:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
         hyper = summary["hyper"]
         sampled = (
-            f", hyper-reduced by ECSW at τ = {hyper['tolerance']:g} on "
-            + ", ".join(f"{n} {name.replace('_', ' ')}" for name, n in hyper["samples"].items())
-            + f" sampled cells of {hyper['cells']}"
+            f", hyper-reduced by ECSW at τ = {hyper['tolerance']:g} on {hyper['described']} of the mesh's {hyper['cells']}"
             if hyper
             else ""
         )

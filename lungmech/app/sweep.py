@@ -9,8 +9,9 @@ is solved by the reduced model from its start (:meth:`ReducedModel.solve`: its o
 reduced operators, no full field), and the folder gets:
 
 - ``sweep.csv``: one row per point and output time: the point, the time, the volume, the
-  strain energy, the probes' displacements, the scalar loads and the answer's error indicator,
-  every column named with its unit;
+  strain energy, the probes' displacements, the scalar loads, the formulation's averages (a
+  lung's fractions and mean stresses) and the answer's error indicator, every column named with
+  its unit;
 - ``summary.json``: the model, the points, the solve time of each (s), the largest indicator;
 - ``sweep.png``: the volume of every point against time.
 """
@@ -177,6 +178,8 @@ def _write_table(reduced: ReducedModel, points: list[dict], answers: list[Soluti
     header += [f"probe{i}_u{c} [m]" for i in range(probes) for c in "xyz"]
     loads = [name for name in first if name.startswith("loads/")]
     header += [f"{name.removeprefix('loads/')} [Pa]" for name in loads]
+    averages = [name for name in first if name.startswith("averages/")]
+    header += [f"{name.removeprefix('averages/')} [{answers[0].units[name]}]" for name in averages]
     header += ["error_indicator [1]"]
     with open(path, "w", newline="") as stream:
         table = csv.writer(stream)
@@ -186,6 +189,6 @@ def _write_table(reduced: ReducedModel, points: list[dict], answers: list[Soluti
                 row = [index, *(point[p.name] for p in parameters), time_]
                 row += [answer.outputs[name][t] for name in outputs]
                 row += list(np.asarray(answer.outputs["probes"][t]).reshape(-1)) if probes else []
-                row += [answer.outputs[name][t] for name in loads]
+                row += [answer.outputs[name][t] for name in (*loads, *averages)]
                 row += ["" if answer.indicator is None else answer.indicator]
                 table.writerow(row)

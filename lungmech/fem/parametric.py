@@ -29,6 +29,7 @@ from typing import Protocol
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.averages import means
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.sensitivity import check_differentiable, output_derivatives
@@ -240,8 +241,8 @@ def output_times(model, stepping: Stepping) -> np.ndarray:
 
 class Outputs:
     """The outputs of a model's current state, compiled once (collective): volume, strain
-    energy, probes, the scalar loads as applied and the formulation's ``averages(model)`` (a
-    (function, unit) by name), if it has any."""
+    energy, probes, the scalar loads as applied and the formulation's averages
+    (:mod:`lungmech.fem.averages`), if it has any."""
 
     def __init__(self, model, probes: Sequence[Sequence[float]] | Probe = ()):
         self.model = model
@@ -250,7 +251,7 @@ class Outputs:
         )
         self.probe_points = () if self._probe is None else tuple(tuple(float(c) for c in p) for p in self._probe.points)
         self._volume, self._energy = deformed_volume(model), strain_energy(model)
-        self._averages = getattr(model.formulation, "averages", lambda model: {})(model)
+        self._averages = means(model)
         self.units = dict(UNITS) | {f"averages/{name}": unit for name, (_, unit) in self._averages.items()}
 
     @property

@@ -38,6 +38,7 @@ from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem.averages import Average
 from lungmech.fem.loads import Named
 from lungmech.fem.materials import CiarletGeymonat, ExponentialCiarletGeymonat, Material, Sum
 from lungmech.fem.ramp import Ramp
@@ -257,9 +258,9 @@ class Poromechanics:
         """The lung's cellwise fields for outputs (see :func:`fields`)."""
         return fields(model)
 
-    def averages(self, model) -> dict[str, tuple[Callable[[], float], str]]:
-        """The lung's averages (see :func:`averages`) as outputs: (function, unit) by name."""
-        return {name: (mean, "Pa" if name.startswith("mean_stress") else "1") for name, mean in averages(model).items()}
+    def averages(self, model) -> dict[str, Average]:
+        """The lung's averages (see :func:`averages`), reported as outputs."""
+        return averages(model)
 
 
 @dataclass(frozen=True)
@@ -442,18 +443,12 @@ def fields(model) -> dict[str, Expr]:
     return scalars | {f"mean_stress_{name}": ufl.tr(sigma) / 3 for name, sigma in stresses(model).items()}
 
 
-def averages(model) -> dict[str, Callable[[], float]]:
-    """Averages of the lung's fractions, strain and stresses, compiled once.
-
-    Per reference volume: Φs (solid), Φf = J − Φs (air), φs = Φs/J (current solid fraction),
-    the mean Green–Lagrange strain tr(E)/3. Per current volume: the mean normal stress tr(σ)/3
-    of the skeleton, bulk and total stresses.
-    """
+def averages(model) -> dict[str, Average]:
+    """The lung's averages: per reference volume, Φs (solid), Φf = J − Φs (air), φs = Φs/J
+    (current solid fraction) and the mean Green–Lagrange strain tr(E)/3; per current volume,
+    the mean normal stress tr(σ)/3 (Pa) of the skeleton, bulk and total stresses."""
     from lungmech.fem.kinematics import green_lagrange
-    from lungmech.fem.quantities import integral
 
-    comm = model.geometry.mesh.comm
-    volume = integral(fem.Constant(model.geometry.mesh, 1.0) * model.dx, comm)  # of the reference, which may move
     J, phi_s = ufl.det(model.F), model.fields["phi_s"]
     per_reference = {
         "phi_s": phi_s,
@@ -462,9 +457,6 @@ def averages(model) -> dict[str, Callable[[], float]]:
         "green_lagrange_mean": ufl.tr(green_lagrange(model.F)) / 3,
     }
     per_current = {f"mean_stress_{name}": ufl.tr(sigma) / 3 for name, sigma in stresses(model).items()}
-    current_volume = integral(J * model.dx, comm)
-    means = {name: integral(expr * model.dx, comm) for name, expr in per_reference.items()}
-    weighted = {name: integral(expr * J * model.dx, comm) for name, expr in per_current.items()}
-    return {name: (lambda f=f: f() / volume()) for name, f in means.items()} | {
-        name: (lambda f=f: f() / current_volume()) for name, f in weighted.items()
+    return {name: Average(f, "1") for name, f in per_reference.items()} | {
+        name: Average(f, "Pa", per="current") for name, f in per_current.items()
     }

@@ -68,8 +68,10 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 
 from lungmech.errors import ParameterError
+from lungmech.fem.averages import averages
 
 __all__ = [
+    "AVERAGE",
     "COMPRESSION",
     "COMPRESS_ROWS",
     "FAMILIES",
@@ -82,6 +84,7 @@ __all__ = [
     "Training",
     "WeightedForms",
     "flattened",
+    "is_functional",
     "over_cells",
     "sampled_residual",
     "sparse_nnls",
@@ -93,8 +96,15 @@ __all__ = [
 # forces (of the energy density), the loads on cells (weight) and on the boundary (pressures).
 FAMILIES = {"internal": "cell", "cell_load": "cell", "boundary_load": "exterior_facet"}
 # Scalar functionals (cell integrals) sampled the same way, for outputs: their cells' values are
-# the columns, each training state one row scaled by the functional's value there.
+# the columns, each training state one row scaled by the functional's value there. Every model
+# has the strain energy; a formulation's averages add their numerators, named AVERAGE + name.
 FUNCTIONALS = ("strain_energy",)
+AVERAGE = "average_"
+
+
+def is_functional(name: str) -> bool:
+    """Whether the sampled ``name`` is an output's functional (not part of the residual)."""
+    return name in FUNCTIONALS or name.startswith(AVERAGE)
 
 
 class WeightedForms:
@@ -104,7 +114,9 @@ class WeightedForms:
     the model's). :meth:`contribution` is the derivative with respect to one family's weights,
     a rectangular form whose assembled column e is the residual of cell e's integrals of that
     family (an exterior facet's: of its one cell). ``functionals`` are the scalar outputs
-    sampled alike (:data:`FUNCTIONALS`: the strain energy ∫ ψ dX), with weights of their own."""
+    sampled alike, with weights of their own: the strain energy ∫ ψ dX and the numerators
+    ∫ f w dX of the formulation's averages (:mod:`lungmech.fem.averages`), named
+    :data:`AVERAGE` + the average's name."""
 
     def __init__(self, model):
         parts = {
@@ -126,7 +138,10 @@ class WeightedForms:
             for name, integral in term.integrals.items()
             if not integral.affine
         }
-        names = (*FAMILIES, *FUNCTIONALS, *self.integrals)
+        densities = {"strain_energy": model.energy_density} | {
+            AVERAGE + name: average.weighted(model) for name, average in averages(model).items()
+        }
+        names = (*FAMILIES, *densities, *self.integrals)
         self.weights = {name: fem.Function(space, name=f"{name}_weight") for name in names}
         for weight in self.weights.values():
             weight.x.array[:] = 1.0
@@ -136,7 +151,7 @@ class WeightedForms:
             for family in self.families
         }
         self.residual = ufl.Form([i for family in self.families for i in self.parts[family]])
-        self.functionals = {"strain_energy": self.weights["strain_energy"] * model.energy_density * model.dx}
+        self.functionals = {name: self.weights[name] * density * model.dx for name, density in densities.items()}
 
     def contribution(self, name: str) -> ufl.Form:
         """∂R_ξ/∂ξ_family: column e is the residual of cell e's ``family`` integrals; for a
@@ -183,6 +198,19 @@ class Sample:
     def count(self, comm: MPI.Comm) -> dict[str, int]:
         """How many cells each family samples, over all ranks."""
         return {family: comm.allreduce(len(cells), op=MPI.SUM) for family, cells in self.cells.items()}
+
+    def described(self, comm: MPI.Comm) -> str:
+        """The sampled cells in words: per family of the residual (and state-dependent load's
+        integral), then the outputs' functionals' together (collective)."""
+        counts = self.count(comm)
+        outputs = [name for name in counts if is_functional(name)]
+        solved = ", ".join(f"{n} {name.replace('_', ' ')}" for name, n in counts.items() if name not in outputs)
+        mine = np.unique(np.concatenate([self.cells[name] for name in outputs] + [NO_CELLS]))
+        averaged = sum(name.startswith(AVERAGE) for name in outputs)
+        what = ["strain energy"] * ("strain_energy" in outputs) + [f"{averaged} averages"] * bool(averaged)
+        return (
+            f"{solved} sampled cells; its outputs ({', '.join(what)}) on {comm.allreduce(len(mine), op=MPI.SUM)} cells"
+        )
 
     def cells_per_type(self, comm: MPI.Comm) -> dict[str, int]:
         """How many distinct cells the residual's sample holds per integral type, over all ranks

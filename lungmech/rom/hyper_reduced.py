@@ -27,7 +27,7 @@ from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivati
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
 from lungmech.parallel.linalg import LocalCSR, gram
 from lungmech.rom.basis import dual, origin, reference_state
-from lungmech.rom.ecsw import FUNCTIONALS, Sample, WeightedForms, over_cells, sampled_residual
+from lungmech.rom.ecsw import Sample, WeightedForms, over_cells, sampled_residual
 from lungmech.rom.galerkin import check_basis, newton
 from lungmech.rom.outputs import imposed_directions
 from lungmech.rom.reduced_mesh import ReducedMesh
@@ -68,7 +68,7 @@ class HyperReducedSolver:
         self.options = options or NewtonOptions()
         self.comm = model.geometry.mesh.comm
         forms = WeightedForms(model)
-        if missing := [name for name in forms.sampled if name not in sample.cells and name not in FUNCTIONALS]:
+        if missing := [name for name in forms.sampled if name not in sample.cells and name not in forms.functionals]:
             raise ParameterError(
                 f"the ECSW sample has no cells for {', '.join(missing)}: it was trained on another model (train it again)"
             )
@@ -90,13 +90,11 @@ class HyperReducedSolver:
         self.residual_on_sample = self._residual = reduced.form(restricted)  # (cells_visited counts it)
         self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
         self._vector = fem.assemble_vector(self._residual)
-        mesh = model.geometry.mesh
-        self._sampled = {
-            name: over_cells(forms.functionals[name], mesh, sample.cells[name])
-            for name in forms.functionals
-            if name in sample.cells
-        }
-        self._functionals = {name: reduced.form(functional) for name, functional in self._sampled.items()}
+        sampled = {name: form for name, form in forms.functionals.items() if name in sample.cells}
+        energy = "strain_energy"  # its form on the sample: the sensitivities differentiate it
+        self._energy = (
+            over_cells(sampled[energy], model.geometry.mesh, sample.cells[energy]) if energy in sampled else None
+        )
         self._matrix = fem.create_matrix(self._jacobian, block_mode=la.BlockMode.expanded)
         self.V = reduced.restrict_columns(np.ascontiguousarray(basis.vectors))  # sub dofs, ghosts too
         # Each rank reduces its own cells' contributions, ghost rows included, and one Allreduce
@@ -105,6 +103,7 @@ class HyperReducedSolver:
         self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
         self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
         self.forms = SampledForms(model, reduced, forms.weights, sample, self.V, lambda: self._q)
+        self._functionals = self.forms.scalars(sampled)
         self._tangent = LocalCSR(self._matrix)  # shares the matrix's values
         # x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current loads
         start_state, imposed, self._constraints = self.whole.imposed()
@@ -136,8 +135,7 @@ class HyperReducedSolver:
                 self._coupled.append(term.bind(integration))
         self.description = (
             f"hyper-reduced (ECSW, τ = {sample.tolerance:g}): {basis.kind} basis of {basis.size} vectors, "
-            + ", ".join(f"{n} {family.replace('_', ' ')}" for family, n in sample.count(self.comm).items())
-            + " sampled cells"
+            + sample.described(self.comm)
         )
         self.iterations_total = 0
 
@@ -203,23 +201,21 @@ class HyperReducedSolver:
             raise PETSc.Error(NOT_CONVERGED) from None
         self.coordinates += step
 
-    def functional(self, name: str, q: np.ndarray) -> float:
-        """The sampled functional ``name`` (:data:`FUNCTIONALS`), Σ_e ξ_e f_e(x₀ + V q) over its
-        sample, at the loads of the last solve (collective)."""
-        if name not in self._functionals:
-            raise ParameterError(f"this ECSW sample has no cells for the functional {name!r} (train it)")
+    def functionals(self, q: np.ndarray) -> dict[str, float]:
+        """The sampled functionals (:attr:`WeightedForms.functionals
+        <lungmech.rom.ecsw.WeightedForms>`: the strain energy, the numerators of the
+        formulation's averages), each Σ_e ξ_e f_e(x₀ + V q) over its sample, at the loads of the
+        moment, by name: those the sample has cells for (collective)."""
         self._at(q)
-        return self.comm.allreduce(fem.assemble_scalar(self._functionals[name]), op=MPI.SUM)
+        return self._functionals()
 
     @functools.cached_property
     def derivative_forms(self) -> DerivativeForms:
         """∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the
         reduced mesh (compiled on first use; collective)."""
-        if "strain_energy" not in self._sampled:
+        if self._energy is None:
             raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
-        return DerivativeForms(
-            self.model, self._restricted, self._sampled["strain_energy"], self.mesh.form, derivative_forms(self.model)
-        )
+        return DerivativeForms(self.model, self._restricted, self._energy, self.mesh.form, derivative_forms(self.model))
 
     def state_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
         """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:

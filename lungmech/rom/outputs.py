@@ -15,7 +15,10 @@ imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` foll
   C₃[i] = Zᵀ(∇²f(r + Z_i) − ∇²f(r))Z: k + 2 assemblies offline (:func:`cubic`), checked at a
   random z;
 * **the strain energy** ∫ ψ dX is not polynomial: it is sampled as an ECSW functional
-  (:data:`lungmech.rom.ecsw.FUNCTIONALS`) and summed on the reduced mesh;
+  (:attr:`lungmech.rom.ecsw.WeightedForms.functionals`) and summed on the reduced mesh;
+* **the formulation's averages** (:mod:`lungmech.fem.averages`) are ratios: their numerators
+  ∫ f w dX are sampled functionals alike, their denominators exact, the reference volume (a
+  number of the whole body) or the current volume (the cubic above);
 * **the loads** are the model's scalar load values (no field).
 """
 
@@ -32,10 +35,12 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem.averages import averages
 from lungmech.fem.parametric import UNITS
 from lungmech.fem.quantities import Probe, assemble_owned
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import origin
+from lungmech.rom.ecsw import AVERAGE
 
 __all__ = ["Cubic", "ReducedOutputs", "affine", "cubic", "imposed_directions"]
 
@@ -174,11 +179,13 @@ class ReducedOutputs:
     :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`; ``probes`` points or a
     :class:`~lungmech.fem.quantities.Probe` (material points) located already."""
 
-    units = dict(UNITS)
-
     def __init__(self, solver, probes=()):
         model = self.model = solver.model
         self.solver = solver
+        # the averages whose numerators the sample has cells for (not a file of an older build)
+        self._averages = {name: a for name, a in averages(model).items() if AVERAGE + name in solver.sample.cells}
+        self._reference_volume = model.geometry.volume()  # the whole body's, on a body of sampled cells
+        self.units = dict(UNITS) | {f"averages/{name}": a.unit for name, a in self._averages.items()}
         owned = solver.basis.vectors.shape[0]
         start, imposed, self._constraints = solver.whole.imposed()
         directions = np.hstack([solver.basis.vectors, imposed[:owned]])
@@ -237,11 +244,14 @@ class ReducedOutputs:
 
     def __call__(self) -> dict[str, object]:
         z = self.coordinates()
-        values: dict[str, object] = {
-            "volume": self._volume(z),
-            "strain_energy": self.solver.functional("strain_energy", self.solver.state),
-        }
+        volume, sampled = self._volume(z), self.solver.functionals(self.solver.state)
+        values: dict[str, object] = {"volume": volume, "strain_energy": sampled["strain_energy"]}
         if self._probes is not None:
             values["probes"] = self._probes[0] + self._probes[1] @ z
         values["loads"] = self.model.scalar_loads()
+        if self._averages:
+            per = {"reference": self._reference_volume, "current": volume}
+            values["averages"] = {
+                name: sampled[AVERAGE + name] / per[average.per] for name, average in self._averages.items()
+            }
         return values

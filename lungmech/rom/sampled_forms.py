@@ -62,6 +62,33 @@ class SampledForms:
 
         return evaluate
 
+    def scalars(self, forms: dict[str, ufl.Form]) -> Callable[[], dict[str, float]]:
+        """The cell integrals ``forms`` (each weighted by its own family's weights, 0 off its
+        sample) by name, at the reduced mesh's state: the entries of one form over the union of
+        their samples, Σ_n forms_n v_n with v a test function of len(forms) components, so that
+        one assembly gives them all."""
+        names = list(forms)
+        if not names:
+            return lambda: {}
+        test = ufl.TestFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (len(names),))))
+        integrals = [
+            integral.reconstruct(integrand=integral.integrand() * test[n])
+            for n, name in enumerate(names)
+            for integral in forms[name].integrals()
+        ]
+        cells = np.concatenate([self.sample.cells.get(name, NO_CELLS) for name in names])
+        compiled = self.mesh.form(over_cells(ufl.Form(integrals), self.model.geometry.mesh, cells))
+        vector = fem.Function(test.ufl_function_space()).x
+
+        def evaluate() -> dict[str, float]:
+            vector.array[:] = 0.0
+            fem.assemble_vector(vector.array, compiled)
+            totals = np.empty(len(names))
+            self.comm.Allreduce(vector.array.reshape(-1, len(names)).sum(axis=0), totals, op=MPI.SUM)
+            return dict(zip(names, totals.tolist()))
+
+        return evaluate
+
     def column(self, form: ufl.Form, families: dict[str, str]) -> Callable[[], np.ndarray]:
         """Vᵀ b of a linear ``form`` (in the model's test function): each integral over the
         sample of ``families[its type]``, with its weights."""

@@ -230,6 +230,23 @@ def _check_basis(path: str | Path, vectors: np.ndarray, values: np.ndarray, dofs
 ORTHONORMAL = 1e-8  # |VᵀWV − I| a loaded basis may have: Gram–Schmidt twice leaves ~1e-14
 
 
+def hyper_record(reduced) -> dict | None:
+    """How a reduced model is hyper-reduced, for its record and its build's summary (None if it
+    is not): the method, τ, the sampled cells per name and in words, the mesh's cells, the judge."""
+    if reduced.sample is None:
+        return None
+    comm = reduced.model.geometry.mesh.comm
+    mesh = reduced.model.geometry.mesh
+    return {
+        "method": "ecsw",
+        "tolerance": reduced.sample.tolerance,
+        "samples": reduced.sample.count(comm),
+        "described": reduced.sample.described(comm),
+        "cells": mesh.topology.index_map(mesh.topology.dim).size_global,
+        "judge": (reduced.built.get("hyper") or {}).get("judge"),
+    }
+
+
 def write_reduced(
     path: str | Path, reduced: ReducedModel, extra: dict | None = None, arrays: dict | None = None
 ) -> None:
@@ -248,15 +265,11 @@ def write_reduced(
     enrichment = reduced.enrichment if reduced.enrichment is not None else np.zeros((owned, 0))
     content = {"start": where.gather(reduced.start[:owned]), "enrichment": where.gather(enrichment)}
     content["reference_nodes"] = nodes.positions(*nodes.displacement_space(model.geometry.mesh))
-    hyper = None
     if reduced.sample is not None:
         mesh = model.geometry.mesh
         content |= {f"ecsw/{name}": data for name, data in reduced.sample.export(mesh).items()}
-        cells = mesh.topology.index_map(mesh.topology.dim).size_global
-        built = reduced.built.get("hyper") or {}
-        hyper = {"method": "ecsw", "tolerance": reduced.sample.tolerance, "samples": reduced.sample.count(mesh.comm)}
-        hyper |= {"cells": cells, "judge": built.get("judge")}
         content |= _body(reduced)
+    hyper = hyper_record(reduced)
     start = reduced.described
     record = {
         "start": {"kind": start.kind, "description": start.description, "details": start.details},
