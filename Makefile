@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo test test-latest test-long lock lint test-serial test-mpi bench bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -50,6 +50,11 @@ test-mpi: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
+
+# Every benchmark's --quick case (about 4 minutes), as the suite runs them: results in a
+# temporary folder, benchmarks/results untouched.
+bench-quick: $(STAMP)
+	$(PY) -m pytest -n 2 -p no:cacheprovider tests/test_benchmarks.py
 
 # The real-time lung: hyper-reduced over a 3-parameter box at three mesh sizes, to 104k dofs (3 h).
 bench-rom: $(STAMP)
