@@ -4,8 +4,9 @@
     python benchmarks/rom_parameters.py --train 8 --test 10 --sizes 10 20 30
     python benchmarks/rom_parameters.py --quick      # h = 40 mm, 2 training points and 1 unseen
 
-The scene is the bundled breathing lung (lungmech/scenes/lung_breathing.toml: poromechanics,
-balanced gravity, unloaded reference found once at the default parameters) with three parameters:
+The scene is the bundled breathing lung over three parameters
+(lungmech/scenes/lung_breathing_parameters.toml: poromechanics, balanced gravity, unloaded
+reference found once at the default parameters):
 
 * ``stiffness``: the skeleton's c1 (material.c1), 100–400 Pa, log scale;
 * ``breath``: a factor on the pleural pressure (loads.pleural.amplitude), 0.6–1.4;
@@ -49,24 +50,17 @@ from lungmech.app import scene as scenes
 from lungmech.app.run import full_order_model
 from lungmech.fem.parameters import Parameters
 from lungmech.rom.reductor import errors
+from lungmech.scenes import bundled
 
 RESULTS = machine.RESULTS
 
-PARAMETERS = {
-    "stiffness": {"target": "material.c1", "range": [100.0, 400.0], "scale": "log"},
-    "breath": {"target": "loads.pleural.amplitude", "range": [0.6, 1.4]},
-    "posture": {"target": "loads.gravity.pitch", "range": [-90.0, 0.0]},
-}
-
 
 def lung_scene(size: str = "default", times: list[float] | None = None) -> scenes.Scene:
-    """The bundled breathing lung with named loads and the three parameters, without field
-    output; at mesh size h = ``size`` mm ("default": the bundled mesh) and output ``times`` (s;
-    default the scene's)."""
-    with resources.as_file(resources.files("lungmech.scenes") / "lung_breathing.toml") as path:
+    """The bundled breathing lung over its three parameters (``lung_breathing_parameters``),
+    without field output; at mesh size h = ``size`` mm ("default": the bundled mesh) and output
+    ``times`` (s; default the scene's)."""
+    with resources.as_file(bundled("lung_breathing_parameters")) as path:
         table = copy.deepcopy(tomllib.loads(Path(path).read_text()))
-    table["loads"][0]["name"], table["loads"][1]["name"] = "pleural", "gravity"
-    table["parameters"] = PARAMETERS
     table["output"] = {"fields": False, "probes": table["output"]["probes"]}
     if times is not None:
         table["stepping"]["times"] = times
@@ -136,10 +130,10 @@ def main() -> None:
             rows.append(row)
             say(f"size {reduced.size}: " + ", ".join(f"{k} {v:.3g}" for k, v in row.items()))
     if comm.rank == 0:
-        write(rows, dofs, args, unseen, "rom_parameters_quick" if args.quick else "rom_parameters")
+        write(rows, dofs, args, box, unseen, "rom_parameters_quick" if args.quick else "rom_parameters")
 
 
-def write(rows: list[dict], dofs: int, args, unseen: list[dict], stem: str) -> None:
+def write(rows: list[dict], dofs: int, args, box: Parameters, unseen: list[dict], stem: str) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     with open(RESULTS / f"{stem}.csv", "w", newline="") as stream:
         table = csv.DictWriter(stream, fieldnames=list(rows[0]))
@@ -158,8 +152,7 @@ def write(rows: list[dict], dofs: int, args, unseen: list[dict], stem: str) -> N
         "",
         SAME_START,
         "",
-        "Parameters: "
-        + "; ".join(f"{name} = {spec['target']} in {spec['range']}" for name, spec in PARAMETERS.items()),
+        "Parameters: " + "; ".join(f"{p.name} = {p.target} in [{p.range[0]:g}, {p.range[1]:g}]" for p in box),
         "",
         "| " + " | ".join(rows[0]) + " |",
         "|" + "---|" * len(rows[0]),

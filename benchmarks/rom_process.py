@@ -12,7 +12,7 @@ process with a warm JIT cache (one warm-up run first), and timed on the wall clo
   sampled cells alone, with no full mesh (:func:`lungmech.rom.store.load_body`);
 * ``rom solve model.npz --fields``: also the full fields and the pictures (the full mesh built);
 * ``rom solve model.npz --sweep points.csv``: ``--points`` parameter points (the quick case's
-  block has parameters; the bundled lung has none, and its sweep solves its one point).
+  block has a parameter; the bundled lung has none, so it has no sweep: "—").
 
 The full model's ``lungmech run`` of the same scene is timed once, as the scale. Writes
 results/rom_process{,_quick}.{md,csv,png}. One rank.

@@ -254,6 +254,42 @@ def test_every_bundled_scene_parses():
             scenes.load(path)
 
 
+def test_the_parameter_scene_is_the_breathing_scene_over_three_parameters():
+    """lung_breathing_parameters is lung_breathing with its loads named and a [parameters]
+    table, nothing else (the two files cannot drift apart)."""
+    import tomllib
+
+    from lungmech.scenes import bundled, names
+
+    assert {"lung_breathing", "lung_breathing_parameters"} <= set(names())
+    breathing, over = (
+        tomllib.loads(bundled(n).read_text()) for n in ("lung_breathing", "lung_breathing_parameters.toml")
+    )
+    assert sorted(over.pop("parameters")) == ["breath", "posture", "stiffness"]
+    assert [load.pop("name") for load in over["loads"]] == ["pleural", "gravity"]
+    assert over.pop("title").startswith(breathing.pop("title").split(" (")[0])
+    assert over == breathing
+    assert bundled("no_such_scene") is None
+
+
+def test_a_bundled_scene_is_named_without_a_path(tmp_path, monkeypatch, capsys):
+    """A command names a bundled scene by its name; a file of that name in the folder is the
+    user's and comes first; a name that is neither is refused in one line listing the bundled."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "lung_breathing_parameters", "--at", "0", "-o", "bundled", "-q"]) == 0
+    summary = json.loads((tmp_path / "bundled" / "summary.json").read_text())
+    assert "stiffness" in summary["parameters"]
+    (tmp_path / "lung_breathing_parameters").write_text(TINY)
+    assert main(["run", "lung_breathing_parameters", "-o", "mine", "-q"]) == 0
+    assert "stiffness" not in json.loads((tmp_path / "mine" / "summary.json").read_text()).get("parameters", {})
+    capsys.readouterr()
+    assert main(["run", "lung_breathing_parameter", "-o", "none"]) != 0
+    said = capsys.readouterr()
+    line = (said.out + said.err).strip()
+    assert line.count("\n") == 0 and "'lung_breathing_parameter' not found" in line
+    assert "lung_breathing_parameters" in line and not (tmp_path / "none").exists()
+
+
 def test_scene_error_names_nested_key():
     with pytest.raises(SceneError, match=r"material.terms\[1\].law"):
         scenes.material({"law": "sum", "terms": [{"law": "ciarlet_geymonat", "c0": 1.0}, {"law": "x"}]})

@@ -97,9 +97,18 @@ def logging_comm(args):
 def setup(args):
     """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
     from lungmech.app import scene as scenes
+    from lungmech.errors import SceneError
+    from lungmech.scenes import bundled, names
 
     comm = logging_comm(args)
     if args.scene is None:
         with resources.as_file(resources.files("lungmech.scenes") / DEFAULT_SCENE) as path:
             return comm, scenes.load(path), f"bundled default scene ({DEFAULT_SCENE})", Path(path)
+    if not Path(args.scene).exists() and (found := bundled(args.scene)) is not None:
+        with resources.as_file(found) as path:
+            return comm, scenes.load(path), f"bundled scene {path.name}", Path(path)
+    if not Path(args.scene).exists():
+        raise SceneError(
+            f"scene file '{args.scene}' not found (bundled scenes, named without a path: {', '.join(names())})"
+        )
     return comm, scenes.load(args.scene), args.scene, Path(args.scene)

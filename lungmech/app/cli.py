@@ -36,7 +36,9 @@ def parser() -> argparse.ArgumentParser:
     top = _Parser(prog="lungmech", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = top.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="solve a scene (the bundled default scene when none is given)")
-    run.add_argument("scene", nargs="?", help="scene file (.toml)")
+    run.add_argument(
+        "scene", nargs="?", help="scene file (.toml), or a bundled scene by name (e.g. lung_breathing_parameters)"
+    )
     common(run, "results/<scene name>")
     rom_cli.add_commands(commands)
     registration.add_commands(commands)

@@ -15,7 +15,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     rom = commands.add_parser("rom", help="reduced-order models: build one from a scene, solve with one")
     actions = rom.add_subparsers(dest="action", required=True)
     build = actions.add_parser("build", help="build a reduced model from full-order runs of a scene")
-    build.add_argument("scene", nargs="?", help="scene file (.toml; default: the bundled scene)")
+    build.add_argument(
+        "scene", nargs="?", help="scene file (.toml), or a bundled scene by name (default: lung_breathing)"
+    )
     build.add_argument("-o", "--output", required=True, help="reduced model file (.npz)")
     build.add_argument("--basis", default="pod", help="pod, modal, modal+derivatives, polynomial or pod+modal")
     build.add_argument(

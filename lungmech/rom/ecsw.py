@@ -208,9 +208,8 @@ class Sample:
         mine = np.unique(np.concatenate([self.cells[name] for name in outputs] + [NO_CELLS]))
         averaged = sum(name.startswith(AVERAGE) for name in outputs)
         what = ["strain energy"] * ("strain_energy" in outputs) + [f"{averaged} averages"] * bool(averaged)
-        return (
-            f"{solved} sampled cells; its outputs ({', '.join(what)}) on {comm.allreduce(len(mine), op=MPI.SUM)} cells"
-        )
+        cells = comm.allreduce(len(mine), op=MPI.SUM)
+        return f"{solved} sampled cells" + (f"; its outputs ({', '.join(what)}) on {cells} cells" if what else "")
 
     def cells_per_type(self, comm: MPI.Comm) -> dict[str, int]:
         """How many distinct cells the residual's sample holds per integral type, over all ranks
