@@ -319,7 +319,7 @@ def test_hyper_reduced_model_from_the_command_line(tmp_path, capsys):
     args = ["--scales", "0.5,1.5", "--size", "8", "--hyper", "ecsw", "--ecsw-tolerance", "1e-5", "-q"]
     assert main(["rom", "build", str(scene), "-o", str(model), *args]) == 0
     built = capsys.readouterr().out
-    assert "hyper-reduced by ECSW at τ = 1e-05 on" in built and "sampled cells of 768" in built
+    assert "hyper-reduced by ECSW at τ = 1e-05 on" in built and "of the mesh's 768" in built
     assert main(["rom", "solve", str(model), "-o", str(tmp_path / "reduced"), "--scale", "1.2", "-q", "--fields"]) == 0
     assert main(["run", str(scene), "-o", str(tmp_path / "full"), "--scale", "1.2", "-q"]) == 0
     reduced, full = (json.loads((tmp_path / name / "summary.json").read_text()) for name in ("reduced", "full"))

@@ -112,11 +112,16 @@ def same_order(text: str, measured: float) -> bool:
     return measured > 0 and abs(math.log10(measured / float(text))) <= 1
 
 
-def within_two_percent(text: str, measured: float) -> bool:
-    """Whether ``measured`` is within 2 % of ``text``: for the answers of a long descent, whose
-    last digit follows the CPU's BLAS kernels (the cohort's leave-one-out errors: 0.62 and 0.60
-    mm on an AMD EPYC, 0.63 and 0.61 on an Intel Xeon, same versions)."""
-    return abs(measured - float(text)) <= 0.02 * abs(float(text))
+def within(fraction: float):
+    """Whether a measured number is within ``fraction`` of the quoted one: for the answers of a
+    long descent, whose last digits follow the CPU's floating point (its BLAS kernels): the
+    cohort's leave-one-out errors (0.62 and 0.60 mm on an AMD EPYC, 0.63 and 0.61 on one Intel
+    Xeon, 0.61 and 0.59 on another, same versions) and its shape modes."""
+
+    def agree(text: str, measured: float) -> bool:
+        return abs(measured - float(text)) <= fraction * abs(float(text))
+
+    return agree
 
 
 def check(readme: tuple[str, ...], demo: tuple[str, ...], agree=rounds_to) -> None:
@@ -221,8 +226,12 @@ def test_register_lung(tmp_path):
     )
     ratios, errors = ratios.split(", "), errors.split(" → ")
     demo_ratios, demo_errors = demo_ratios.split()[: len(ratios)], demo_errors.split(" → ")
-    check((worst, compactness, *ratios), (demo_worst, demo_compactness, *demo_ratios))
-    check(tuple(errors), tuple(demo_errors), agree=within_two_percent)
+    check((worst,), (demo_worst,))
+    # the variance the two latent parameters explain, and σ₂/σ₁, to 2 %; the modes beyond them
+    # are the registrations' noise (a third of a voxel), which moves with the CPU: to 10 %
+    check((compactness, *ratios[:2]), (demo_compactness, *demo_ratios[:2]), agree=within(0.02))
+    check(tuple(ratios[2:]), tuple(demo_ratios[2:]), agree=within(0.10))
+    check(tuple(errors), tuple(demo_errors), agree=within(0.02))
 
 
 # --- parameter_sweep -----------------------------------------------------------------------------
