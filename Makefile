@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo docs test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -21,6 +21,12 @@ demo: $(STAMP)
 	$(VENV)/bin/lungmech run -o results/default
 
 test: lint test-serial test-mpi
+
+# The documentation site (Sphinx, MyST pages, the API reference from the docstrings) into
+# docs/_build/html; a warning is an error.
+docs: $(STAMP)
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "docs: open docs/_build/html/index.html"
 
 # The newest versions pyproject.toml allows, in their own venv; run it before `make lock`.
 # LUNGMECH_UNLOCKED tells the suite's version check that these are not the locked versions.

@@ -1,4 +1,4 @@
-"""Every demo runs, and prints the numbers the README quotes from it.
+"""Every demo runs, and prints the numbers the documentation (README and docs/) quotes from it.
 
 In the manner of DOLFINx's python/demo/test.py: each demo in demos/ runs as a user runs it, as a
 subprocess, serially and, where it exercises the distributed model and solver, under
@@ -54,7 +54,9 @@ from lungmech.parallel.destination import MARKER
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMOS = ROOT / "demos"
-README = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())  # one line: quotes wrap anywhere
+PAGES = [ROOT / "README.md", *sorted(p for p in (ROOT / "docs").rglob("*.md") if "_build" not in p.parts)]
+# the README and the documentation's pages as one line: quotes wrap anywhere
+README = " ".join(" ".join(page.read_text(encoding="utf-8") for page in PAGES).split())
 BIN = Path(sys.executable).parent
 MPIEXEC = str(BIN / "mpiexec") if (BIN / "mpiexec").exists() else "mpiexec"
 # The demo imports this lungmech (the tree under test), whether or not it is installed.

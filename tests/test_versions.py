@@ -49,9 +49,13 @@ def installed(name: str) -> str | None:
 
 
 def test_the_lock_pins_every_dependency():
-    """Every package pyproject.toml names (with the test and wheel extras) has its locked version."""
+    """Every package pyproject.toml names (with the test, docs and wheel extras) has its locked version."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    named = [*project["dependencies"], *project["optional-dependencies"]["test"]]
+    named = [
+        *project["dependencies"],
+        *project["optional-dependencies"]["test"],
+        *project["optional-dependencies"]["docs"],
+    ]
     named += project["optional-dependencies"]["wheel"]
     names = {canonical(re.match(r"[A-Za-z0-9_.-]+", spec).group()) for spec in named}
     assert not names - set(locked()), f"not in {LOCK.name}: {sorted(names - set(locked()))} (run 'make lock')"

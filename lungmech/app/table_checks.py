@@ -72,7 +72,7 @@ def check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=())
 
 
 def call(func: Callable, kwargs: dict[str, Any], where: str):
-    """func(**kwargs), with unknown/missing keys and bad values reported against ``where``."""
+    """``func(**kwargs)``, with unknown/missing keys and bad values reported against ``where``."""
     check_signature(func, kwargs, where)
     try:
         return func(**kwargs)

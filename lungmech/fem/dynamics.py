@@ -174,10 +174,10 @@ class ImplicitEuler:
     """One implicit Euler step as the minimiser of the incremental potential (module docstring).
 
     Holds the previous displacement u_n (``previous``) and velocity v_n (``velocity``), both
-    ``fem.Function``s of the model's space, and the forms ``residual`` and ``jacobian`` a
+    ``fem.Function`` objects of the model's space, and the forms ``residual`` and ``jacobian`` a
     Newton solver is built with. The start is the model's current state and time, at rest
     unless ``velocity`` is set before the first step. Density, step and damping live in
-    ``fem.Constant``s, so schemes that differ only in those share their compiled kernels.
+    ``fem.Constant`` objects, so schemes that differ only in those share their compiled kernels.
 
     Args:
         model: a displacement-only :class:`lungmech.fem.model.Model` (the mixed formulations have

@@ -51,7 +51,7 @@ RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 def at_quadrature_points(expression, mesh, degree: int, cells: np.ndarray | None = None) -> Callable[[], np.ndarray]:
     """A function returning ``expression`` at the degree-``degree`` quadrature points of the
-    owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points, *value shape)."""
+    owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points) + the value shape."""
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], max(degree, 1))
     compiled = fem.Expression(expression, points)
     if cells is None:

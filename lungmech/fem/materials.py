@@ -83,7 +83,7 @@ def with_values(law: Material, values: Mapping[str, Param]) -> Material:
 
 
 def with_constants(law: Material, mesh) -> Material:
-    """A copy of ``law`` whose finite parameters are ``fem.Constant``s on ``mesh``.
+    """A copy of ``law`` whose finite parameters are ``fem.Constant`` objects on ``mesh``.
 
     Forms built from it compile once; changing a parameter is then ``law.mu.value = ...``.
     Infinite parameters (incompressible limits) stay floats: they change the form's structure.

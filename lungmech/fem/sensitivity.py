@@ -1,7 +1,7 @@
 """Exact derivatives of a model's outputs with respect to its parameters μ (direct or reduced).
 
 At a converged state x(μ) the residual vanishes, R(x(μ), c(μ)) = 0 on the free dofs, with c the
-values the parameters set (the model's ``fem.Constant``s and parameter ``Function``s: law and
+values the parameters set (the model's ``fem.Constant`` and parameter ``Function`` objects: law and
 formulation constants, region fields' inside values, interface positions, load values) and the
 imposed (Dirichlet) values x_D(μ) on the others. Differentiating,
 

@@ -184,7 +184,7 @@ class Poromechanics:
 
     def bind(self, mesh) -> Poromechanics:
         """This formulation on ``mesh``: fields as cellwise (DG0) functions, numbers of κ and η as
-        ``fem.Constant``s (parameters change them without recompiling; η = 0 leaves the barrier
+        ``fem.Constant`` objects (parameters change them without recompiling; η = 0 leaves the barrier
         out of the forms); Φs0 is always a field."""
         if isinstance(self.kappa, fem.Constant | fem.Function):
             return self

@@ -130,8 +130,8 @@ def _not_positive(kind: str, seen: str) -> ParameterError:
 
 @contextlib.contextmanager
 def positive(inner: str) -> Iterator[None]:
-    """Within the block, an inner product found not positive definite (:class:`~lungmech.
-    parallel.linalg.NotPositive`) is refused in one line that names the way out."""
+    """Within the block, an inner product found not positive definite
+    (:class:`~lungmech.parallel.linalg.NotPositive`) is refused in one line that names the way out."""
     try:
         yield
     except NotPositive as error:

@@ -202,9 +202,8 @@ class HyperReducedSolver:
         self.coordinates += step
 
     def functionals(self, q: np.ndarray) -> dict[str, float]:
-        """The sampled functionals (:attr:`WeightedForms.functionals
-        <lungmech.rom.ecsw.WeightedForms>`: the strain energy, the numerators of the
-        formulation's averages), each Σ_e ξ_e f_e(x₀ + V q) over its sample, at the loads of the
+        """The sampled functionals (:attr:`lungmech.rom.ecsw.WeightedForms.functionals`: the
+        strain energy, the numerators of the formulation's averages), each Σ_e ξ_e f_e(x₀ + V q) over its sample, at the loads of the
         moment, by name: those the sample has cells for (collective)."""
         self._at(q)
         return self._functionals()

@@ -209,8 +209,8 @@ def shaped(entries: list, shape: tuple[int, ...]):
 
 
 class SampledIntegration:
-    """The integrals of state-dependent load ``index`` (:class:`~lungmech.fem.state_dependent.
-    Integration`) on a hyper-reduced solver: the affine ones exactly in z = (q, imposed factors)
+    """The integrals of state-dependent load ``index``
+    (:class:`~lungmech.fem.state_dependent.Integration`) on a hyper-reduced solver: the affine ones exactly in z = (q, imposed factors)
     — ``affine_basis`` the (start, directions) of z, ``z()`` its current value — from k + 2 full
     evaluations offline; the others over their ECSW sample by ``forms``; columns as Vᵀ b, over the
     sample of the integral they derive from (the load's own work: the load families'). ``basis``:

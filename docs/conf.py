@@ -1,0 +1,83 @@
+"""Sphinx configuration of lungmech's documentation (``make docs``).
+
+Pages are MyST Markdown; the API reference is generated from the docstrings by sphinx-autoapi,
+which reads the sources without importing them (no MPI or DOLFINx needed to build it). Warnings
+are errors (``make docs`` runs ``sphinx-build -W``).
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+project = "lungmech"
+author = "the lungmech developers"
+release = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+copyright = "2026, the lungmech developers"
+
+extensions = ["myst_parser", "autoapi.extension", "sphinx.ext.mathjax", "sphinx.ext.napoleon", "sphinx.ext.viewcode"]
+source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+
+myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
+myst_heading_anchors = 3
+
+autoapi_type = "python"
+autoapi_dirs = [str(ROOT / "lungmech")]
+autoapi_root = "api"
+autoapi_add_toctree_entry = False
+autoapi_options = ["members", "show-inheritance", "show-module-summary"]
+autoapi_keep_files = False
+autoapi_python_class_content = "both"  # the class's docstring and its __init__'s
+# lungmech's modules import one another in cycles autoapi's static resolver cannot follow; the
+# names still resolve through the modules that define them
+suppress_warnings = ["autoapi.python_import_resolution"]
+
+
+def measured_results() -> None:
+    """A page for every committed benchmark result (``benchmarks/results/<name>.md``, its quick
+    case's left out) and one for the benchmarks' own README, each including the file as it is:
+    the reports link them, and they are never copied by hand."""
+    folder = ROOT / "docs" / "reports" / "results"
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.md"):
+        old.unlink()
+    sources = [ROOT / "benchmarks" / "README.md"] + sorted(
+        p for p in (ROOT / "benchmarks" / "results").glob("*.md") if not p.stem.endswith("_quick")
+    )
+    for source in sources:
+        name = "benchmarks" if source.name == "README.md" else source.stem
+        relative = Path("../" * 3) / source.relative_to(ROOT)
+        (folder / f"{name}.md").write_text(f"```{{include}} {relative.as_posix()}\n:heading-offset: 0\n```\n")
+
+
+measured_results()
+
+html_theme = "sphinx_book_theme"
+html_title = f"lungmech {release}"
+html_theme_options = {"show_toc_level": 2, "use_download_button": False}
+
+
+def bars_are_not_substitutions(app, what, name, obj, options, lines: list[str]) -> None:
+    """lungmech's docstrings write |x| for an absolute value or a cardinality, which
+    reStructuredText would read as a substitution: escape every | outside math and literals."""
+    math_indent = None  # the indentation of the ``.. math::`` directive being read
+    for index, line in enumerate(lines):
+        stripped = line.lstrip()
+        indent = len(line) - len(stripped)
+        if math_indent is not None and stripped and indent <= math_indent:
+            math_indent = None
+        if stripped.startswith(".. math::"):
+            math_indent = indent
+            continue
+        if math_indent is not None or "|" not in line:
+            continue
+        parts = re.split(r"(``.*?``|:math:`[^`]*`)", line)
+        lines[index] = "".join(p if p.startswith(("``", ":math:")) else p.replace("|", r"\|") for p in parts)
+
+
+def setup(app) -> None:
+    app.connect("autodoc-process-docstring", bars_are_not_substitutions)
