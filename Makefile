@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo docs docs-check test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -27,6 +27,11 @@ test: lint test-serial test-mpi
 docs: $(STAMP)
 	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
 	@echo "docs: open docs/_build/html/index.html"
+
+# Every page of the built site in headless Chromium (the system's: apt-get install chromium):
+# console errors, resources and images that do not load, broken internal links; screenshots.
+docs-check: docs
+	$(PY) docs/check_site.py docs/_build/html
 
 # The newest versions pyproject.toml allows, in their own venv; run it before `make lock`.
 # LUNGMECH_UNLOCKED tells the suite's version check that these are not the locked versions.

@@ -18,7 +18,16 @@ author = "the lungmech developers"
 release = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
 copyright = "2026, the lungmech developers"
 
-extensions = ["myst_parser", "autoapi.extension", "sphinx.ext.mathjax", "sphinx.ext.napoleon", "sphinx.ext.viewcode"]
+# sphinx-mathjax-offline copies MathJax 3 into the site: pages render their formulas without a
+# network (the browser check runs offline), as a downloaded copy of the site must
+extensions = [
+    "myst_parser",
+    "autoapi.extension",
+    "sphinx.ext.mathjax",
+    "sphinx-mathjax-offline",
+    "sphinx.ext.napoleon",
+    "sphinx.ext.viewcode",
+]
 source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
 
@@ -29,7 +38,7 @@ autoapi_type = "python"
 autoapi_dirs = [str(ROOT / "lungmech")]
 autoapi_root = "api"
 autoapi_add_toctree_entry = False
-autoapi_options = ["members", "show-inheritance", "show-module-summary"]
+autoapi_options = ["members", "show-inheritance"]  # no summary tables: the book theme pushes their text out of view
 autoapi_keep_files = False
 autoapi_python_class_content = "both"  # the class's docstring and its __init__'s
 # lungmech's modules import one another in cycles autoapi's static resolver cannot follow; the
@@ -59,6 +68,7 @@ measured_results()
 html_theme = "sphinx_book_theme"
 html_title = f"lungmech {release}"
 html_theme_options = {"show_toc_level": 2, "use_download_button": False}
+html_context = {"default_mode": "light"}  # the theme logs an error for a page without a mode
 
 
 def bars_are_not_substitutions(app, what, name, obj, options, lines: list[str]) -> None:
