@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -50,6 +50,11 @@ lint: $(STAMP)
 # Two workers (pytest-xdist) on the two cores CI has; the slowest tests are listed at the end.
 test-serial: $(STAMP)
 	$(PY) -m pytest -m "not mpi and not long" -n 2 --dist worksteal --durations=12 tests
+
+# The edit–test loop: the tests that take under a second each (not slow, not MPI), on two
+# workers; with a warm JIT cache about two minutes. make test runs them all.
+test-quick: $(STAMP)
+	$(PY) -m pytest -m "not mpi and not long and not slow" -n 2 --dist worksteal -q -p no:cacheprovider tests
 
 # The cases too long for the suite's budget (registrations of realistic lungs at 1 mm voxels).
 test-long: $(STAMP)

@@ -272,6 +272,7 @@ def test_the_parameter_scene_is_the_breathing_scene_over_three_parameters():
     assert bundled("no_such_scene") is None
 
 
+@pytest.mark.slow
 def test_a_bundled_scene_is_named_without_a_path(tmp_path, monkeypatch, capsys):
     """A command names a bundled scene by its name; a file of that name in the folder is the
     user's and comes first; a name that is neither is refused in one line listing the bundled."""
@@ -330,6 +331,7 @@ def test_hyper_reduced_model_from_the_command_line(tmp_path, capsys):
     assert sorted(os.listdir(tmp_path / "reduced")) == sorted(os.listdir(tmp_path / "full"))
 
 
+@pytest.mark.slow
 def test_reduced_model_from_the_command_line(tmp_path, capsys):
     """rom build → rom solve at an unseen load scale = the full run at that scale; same outputs."""
     scene = write(tmp_path, TINY.replace("cells = [2, 1, 1]", "cells = [4, 2, 2]"))

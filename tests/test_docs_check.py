@@ -31,6 +31,7 @@ def checker():
     return module
 
 
+@pytest.mark.slow
 def test_the_browser_check_reports_each_fault_on_its_page(tmp_path):
     site = tmp_path / "html"
     site.mkdir()

@@ -172,6 +172,7 @@ def test_modal_response_errors():
 # --- implicit Euler, full order --------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_implicit_euler_is_first_order_against_the_exact_modal_response():
     """Suddenly loaded beam: its first modal coordinate against the exact z = f/λ (1 − cos ωt)."""
     density = 1.5
@@ -199,6 +200,7 @@ def test_implicit_euler_is_first_order_against_the_exact_modal_response():
     assert errors[-1] < 0.05
 
 
+@pytest.mark.slow
 def test_rayleigh_damping_matches_the_modal_recurrence_and_dissipates():
     """Free vibration from an initial velocity: each mode follows the damped recurrence, and the
     energy decays at every step, faster with damping."""

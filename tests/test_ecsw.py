@@ -131,6 +131,7 @@ def assert_reproduces(training: Training, sample: Sample) -> None:
         assert np.linalg.norm(error - force) <= sample.tolerance * np.linalg.norm(gross)
 
 
+@pytest.mark.slow
 def test_a_compressed_training_matrix_gives_a_sample_that_reproduces_the_whole(trained, monkeypatch):
     """G held compressed as it grows (every 10 rows here; 1024 by default) has the norms ‖G x‖
     of the whole G: the sample from it reproduces the whole G's forces to τ, and a few rows
@@ -216,6 +217,7 @@ def test_a_sample_exports_by_input_cell_and_places_back(trained):
         Sample.place(small, data, 1e-4)
 
 
+@pytest.mark.slow
 def test_training_on_newton_iterates(trained):
     """A second pass over the training paths adds every Newton iterate (off equilibrium) as
     well as the converged states; the sample still meets τ on all of them, and the hyper-reduced
@@ -234,6 +236,7 @@ def test_training_on_newton_iterates(trained):
     assert np.linalg.norm(hyper - galerkin) <= 5e-4 * np.linalg.norm(galerkin)
 
 
+@pytest.mark.slow
 def test_a_sample_trained_on_tangents_too_holds_beyond_its_training_loads(trained):
     """Forces alone leave the reduced stiffness free. At τ = 1e-3 a force-only sample (25
     internal cells) reproduces the training forces, but at twice the largest training load its
@@ -292,6 +295,7 @@ def test_the_internal_forces_and_the_loads_add_up_to_the_residual():
     assert np.abs(loads).max() > 0.1 * np.abs(internal).max()
 
 
+@pytest.mark.slow
 def test_a_body_loaded_by_its_weight_alone_trains_on_equilibria():
     """Only cell integrals: at an equilibrium the internal forces and the weight cancel cell by
     cell in sum. Sampled apart, each has a force to reproduce, and the converged states alone

@@ -37,6 +37,7 @@ def _hilum_reaction(lung, gravity):
     return model, report, reaction(model, "hilum")()
 
 
+@pytest.mark.slow
 def test_without_balance_the_hilum_carries_the_weight(lung):
     weight = DENSITY * lung.volume() * G
     _, _, held = _hilum_reaction(lung, Gravity(DENSITY, G))

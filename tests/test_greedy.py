@@ -152,6 +152,7 @@ def test_the_online_indicator_reuses_the_last_newton_assembly(online, monkeypatc
     np.testing.assert_allclose(fresh_tangent, tangent, rtol=1e-4, atol=1e-6 * np.abs(tangent).max())
 
 
+@pytest.mark.slow
 def test_a_hyper_reduced_greedy_judges_and_meets_its_tolerance_as_itself(full):
     """With hyper = τ each round judges the hyper-reduced model by its own online indicator (an
     ECSW sample per round from the full solves' Newton iterates): the model it returns, basis,

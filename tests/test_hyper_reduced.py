@@ -203,6 +203,7 @@ def test_imposed_displacements_are_affine_in_their_factors():
         assert np.abs(origin(model, reference) - (r + D @ model.imposed_amplitudes()[kept])).max() == 0.0
 
 
+@pytest.mark.slow
 def test_hyper_reduced_sensitivities_are_those_of_its_own_answer():
     assert_sensitivities_of_own_answer(MPI.COMM_SELF)
 
@@ -365,6 +366,7 @@ def assert_balanced_gravity_reduces(comm) -> ReducedModel:
     return hyper
 
 
+@pytest.mark.slow
 def test_balanced_gravity_reduces():
     """And what it cannot do is said before any work: a sample without the pressure's response
     (trained on another model), and sensitivities (not differentiated for these loads yet)."""

@@ -32,6 +32,7 @@ def end_expiration_lung(comm=MPI.COMM_WORLD) -> Model:
     )
 
 
+@pytest.mark.slow
 def test_inverse_then_direct_recovers_the_imaged_nodes():
     model = end_expiration_lung()
     mesh = model.geometry.mesh
@@ -49,6 +50,7 @@ def test_inverse_then_direct_recovers_the_imaged_nodes():
     assert mesh.comm.allreduce(local, op=MPI.MAX) <= 1e-6
 
 
+@pytest.mark.slow
 def test_inverse_errors():
     model = end_expiration_lung(MPI.COMM_SELF)
     with pytest.raises(ParameterError, match="tolerance"):

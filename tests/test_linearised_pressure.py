@@ -118,6 +118,7 @@ def test_convergence_is_superlinear():
         assert np.log(b) / np.log(a) > 1.5, f"not superlinear: relative residuals {r}"
 
 
+@pytest.mark.slow
 def test_plane_stress_and_mooney_rivlin_take_it_too():
     law = MooneyRivlin.from_young(240.565, NU)
     for plane in ("strain", "stress"):

@@ -26,6 +26,7 @@ def _block(load, law=None) -> Model:
     return Model(geometry, law or NeoHookean.from_young(50.0, 0.3), degree=2, constraints=[clamp("x0")], loads=[load])
 
 
+@pytest.mark.slow
 def test_a_total_force_is_its_traction_over_the_area_and_the_support_carries_it():
     """1.5 N on the 1 m × 0.5 m end face = 3 Pa of traction; the clamp's reaction is −1.5 N."""
     force = Force("x1", (0.3, -1.5, 0.0))
@@ -54,6 +55,7 @@ def test_a_total_force_in_2d_is_per_metre_of_thickness():
     assert np.allclose(models[0].state.x.array, models[1].state.x.array, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_traction_formula_of_time_follows_the_time():
     """ "t" with a constant ramp is the default ramp 0 → 1 times 1: the same state at every step."""
     formula = _block(Traction("x1", (0.0, "-2 * t", 0.0), ramp=Ramp.constant()))

@@ -186,6 +186,7 @@ PRESSED = (
 )
 
 
+@pytest.mark.slow
 def test_rom_solve_and_sweep_answer_the_same_rows(tmp_path, pressure_volume_data):
     """A reduced model's rom solve and --sweep at one μ give the same numbers at the output
     times; both carry the pressure as applied (amplitude 1.5)."""

@@ -250,6 +250,7 @@ def test_fields_open_in_pyvista_and_meshio_and_units_everywhere(tmp_path):
     assert (out / "pressure_volume.png").stat().st_size > 10_000 and (out / "deformed.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_mixed_and_quadratic_fields_are_written(tmp_path):
     table = {
         **TINY,

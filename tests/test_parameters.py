@@ -83,6 +83,7 @@ def test_a_plain_law_is_parametrised_by_its_own_constants():
     assert float(model.material.mu.value) == 2.0
 
 
+@pytest.mark.slow
 def test_a_region_covering_the_body_is_the_global_value():
     """A half-space that holds the whole block acts as the global parameter; one that holds none
     is refused, since its parameter would act nowhere."""

@@ -72,6 +72,7 @@ def test_plane_stress_is_the_3d_plate_with_its_faces_free(law):
     assert np.allclose(thickness, thickness[0]) and abs(thickness[0] - 1) > 1e-3
 
 
+@pytest.mark.slow
 def test_plane_stress_differs_from_plane_strain():
     law = LAWS["neo-Hookean"]
     strain = _uniaxial(rectangle(MPI.COMM_WORLD, cells=(2, 2)), law, plane="strain")

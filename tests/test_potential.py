@@ -12,6 +12,7 @@ symmetric, so the asymmetry of the assembled tangent on the free dofs says what 
 from mpi4py import MPI
 
 import numpy as np
+import pytest
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 from fem import MESHES
@@ -84,6 +85,7 @@ def test_a_follower_pressure_on_a_free_rim_is_not():
     assert asymmetry(model) > 1e-3
 
 
+@pytest.mark.slow
 def test_balanced_gravity_is_not_conservative():
     """With θ frozen the tangent is symmetric; the rank-12 term U Vᵀ from θ = Θ(u) is not."""
     model = _lung(gravity=True)

@@ -65,6 +65,7 @@ def assert_averages_reduce(comm) -> None:
     )
 
 
+@pytest.mark.slow
 def test_a_hyper_reduced_lung_has_the_averages_of_its_state():
     assert_averages_reduce(MPI.COMM_WORLD)
 
@@ -74,6 +75,7 @@ def test_a_hyper_reduced_lung_has_the_averages_of_its_state_on_two_ranks():
     assert_averages_reduce(MPI.COMM_WORLD)
 
 
+@pytest.mark.slow
 def test_rom_solve_of_a_hyper_reduced_lung_reports_what_run_reports(tmp_path):
     """Through the commands: `rom solve` of a hyper-reduced lung writes every column `run`
     writes (the averages with their units), near the full answer at the defaults (the same

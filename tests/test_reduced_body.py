@@ -134,6 +134,7 @@ probes = [[2.0, 0.5]]
 """
 
 
+@pytest.mark.slow
 def test_a_plane_body_of_quadratic_elements_answers_as_its_full_mesh(tmp_path):
     """Triangles in plane strain, P2 (dofs on edges too): the body's answer is the full mesh's."""
     (tmp_path / "plate.toml").write_text(PLATE)

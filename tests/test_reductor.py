@@ -59,6 +59,7 @@ def test_pod_training_scales_and_points_make_the_error_small(full):
     assert errors(rich, reference, rich.solve(MU)).energy < errors(poor, reference, poor.solve(MU)).energy / 10
 
 
+@pytest.mark.slow
 def test_a_hyper_reduced_model_truncated_after_sampling(full):
     """ECSW(τ, size=k): the sample of the whole basis, the basis cut to its first k vectors."""
     whole = reduce(full, POD(8), TrainingSet(POINTS), ECSW(1e-5))
@@ -110,6 +111,7 @@ class Counted:
         return self.full.solve(*args, **kwargs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("greedy", [False, True], ids=["training set", "greedy"])
 def test_one_reductor_gives_models_at_every_tau_and_size_from_one_training(full, greedy):
     """Several τ, a truncation and the Galerkin model from one Reductor: no full solve after its
@@ -146,6 +148,7 @@ def test_one_reductor_gives_models_at_every_tau_and_size_from_one_training(full,
         assert errors(reduced, reference, reduced.solve(MU)).energy < most
 
 
+@pytest.mark.slow
 def test_a_reduced_model_survives_its_file(full, tmp_path):
     """write_reduced then load_reduced on the same mesh: the same answers, start and record."""
     reduced = reduce(full, POD(6), TrainingSet(POINTS), ECSW(1e-4))

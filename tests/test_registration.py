@@ -204,6 +204,7 @@ def test_moments_fit_recovers_a_rotated_scaled_shifted_ellipsoid():
 # --- registration ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_registering_a_sphere_to_an_ellipsoid_meets_the_targets(sphere_mesh):
     h = 0.002
     transform = align.Similarity(1.0, _rotation([0, 0, 1], 10), np.array([0.01, -0.005, 0.02]))
@@ -247,6 +248,7 @@ PHANTOMS = {  # reference mesh, target shape, voxel size, pose
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", PHANTOMS)
 def test_registering_the_reference_lung_to_phantoms_meets_the_targets(case):
     side, shape, spacing = PHANTOMS[case]
@@ -260,6 +262,7 @@ def test_registering_the_reference_lung_to_phantoms_meets_the_targets(case):
     assert result.min_jacobian > 0.2
 
 
+@pytest.mark.slow
 def test_a_cohort_of_k_latent_parameters_gives_k_dominant_shape_modes():
     k = 2
     cohort = phantom.cohort(8, k, seed=1, size_spread=0.05, shift=0.01)

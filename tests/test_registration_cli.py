@@ -16,6 +16,7 @@ from lungmech.registration import image
 REFERENCE = str(meshes.reference("lung_phantom_right"))
 
 
+@pytest.mark.slow
 def test_phantom_register_and_outputs(tmp_path, capsys):
     target = tmp_path / "patient.nii.gz"
     assert main(["phantom", "-o", str(target), "--height", "0.22", "--dome", "0.22", "--spacing", "2.5"]) == 0
@@ -34,6 +35,7 @@ def test_phantom_register_and_outputs(tmp_path, capsys):
         assert mapping["reference"].shape == mapping["displacement"].shape
 
 
+@pytest.mark.slow
 def test_shape_modes_of_a_synthetic_cohort_and_a_new_shape(tmp_path):
     out = tmp_path / "modes"
     args = ["shape-modes", "--synthetic", "4", "--latent", "1", "--spacing", "2.5", "--reference", REFERENCE]
@@ -99,6 +101,7 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
     assert geometry.from_file(new, comm).volume() > 0
 
 
+@pytest.mark.slow
 def test_an_unconverged_registration_is_kept_only_when_asked(tmp_path, capsys):
     target = tmp_path / "patient.nii.gz"
     assert main(["phantom", "-o", str(target), "--spacing", "4"]) == 0

@@ -114,6 +114,7 @@ def test_shape_modes_round_trip_and_refuse_another_mesh(reference, tmp_path):
         ShapeModes.load(tmp_path / "none.npz")
 
 
+@pytest.mark.slow
 def test_a_shape_from_coefficients_is_a_geometry_a_scene_runs_on(reference, tmp_path):
     from lungmech.app import scene as scenes
     from lungmech.app.run import run

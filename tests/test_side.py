@@ -73,6 +73,7 @@ def test_the_reference_is_the_lungs_own_side(lungs):
     assert chosen == meshes.reference("lung_phantom_right") and decided["reference_side"] == "right"
 
 
+@pytest.mark.slow
 def test_a_descent_held_by_the_det_f_limit_has_not_converged():
     """A limit the descent must press against (det F ≥ 0.9 for a lung 20 % smaller than the
     reference) stops it on the constraint: reported as not converged, with the reason."""

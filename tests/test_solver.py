@@ -49,6 +49,7 @@ def test_newton_converges_quadratically():
         assert b < 10 * a**2, f"not quadratic: relative residuals {r}"
 
 
+@pytest.mark.slow
 def test_adaptive_stepping_cuts_back_and_recovers():
     """A full step of a large load fails (an element inverts); cutting back gets there."""
     model = bent_block(1.0)
@@ -61,6 +62,7 @@ def test_adaptive_stepping_cuts_back_and_recovers():
     assert np.allclose(model.state.x.array, cautious.state.x.array, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_automatic_first_step_does_not_start_with_a_failure():
     """The load that fails in one step (above) starts with a step the tangent judged safe."""
     model = bent_block(1.0)
@@ -76,6 +78,7 @@ def test_the_automatic_first_step_takes_a_gentle_load_in_one_go():
     assert [s.step for s in report.steps] == [1.0]
 
 
+@pytest.mark.slow
 def test_the_predictor_does_not_extrapolate_across_a_load_reversal():
     """Loading then unloading at equal steps. The first step back starts from the turning point,
     at most one Newton iteration dearer than the last step out (which had a good predictor).
@@ -101,6 +104,7 @@ def test_failure_is_reported_and_last_state_kept():
     assert model.time == pytest.approx(converged[-1] if converged else 0.0)
 
 
+@pytest.mark.slow
 def test_iterative_solver_matches_direct():
     direct, iterative = bent_block(), bent_block()
     solve(direct)
@@ -110,6 +114,7 @@ def test_iterative_solver_matches_direct():
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("law", ["nearly incompressible", "incompressible"])
 def test_the_iterative_solver_splits_the_mixed_formulation(law):
     """Taylor–Hood (u, p): Schur split, AMG on u, the pressure mass matrix weighted by
@@ -156,6 +161,7 @@ def test_the_iterative_solver_refuses_plane_stress_above_p1():
         NewtonSolver(model, NewtonOptions(linear_solver="iterative"))
 
 
+@pytest.mark.slow
 def test_the_iterative_solver_condenses_the_lung_s_solid_fraction():
     """The lung cube (u, Φs) with the Schur split: the same state as the direct solver, and each
     linear solve only as exact as Newton needs (few Krylov iterations)."""
@@ -188,6 +194,7 @@ def test_petsc_options_of_the_user_only_are_checked():
     NewtonSolver(model, NewtonOptions(petsc_options={"snes_type": "ksponly", "ksp_view": False}))
 
 
+@pytest.mark.slow
 def test_auto_takes_the_iterative_solver_for_large_problems_where_one_fits(monkeypatch):
     """Above ITERATIVE_FROM_DOFS unknowns "auto" is iterative, unless no preconditioner fits
     the formulation (plane stress above P1): then it stays direct."""
@@ -225,6 +232,7 @@ def test_mumps_estimates_its_memory_before_it_factorises():
         assert measured <= estimate <= 3 * measured, (estimates, used)
 
 
+@pytest.mark.slow
 def test_auto_takes_the_iterative_solver_where_a_factorisation_would_not_fit(monkeypatch, caplog):
     """Below ITERATIVE_FROM_DOFS, "auto" compares MUMPS's estimate with the memory a rank may
     count on: direct on this machine, iterative on one with 1 MiB to spare (and says why)."""
@@ -240,6 +248,7 @@ def test_auto_takes_the_iterative_solver_where_a_factorisation_would_not_fit(mon
     assert NewtonSolver(bent_block()).linear_solver == "direct"
 
 
+@pytest.mark.slow
 def test_auto_leaves_a_factorisation_that_runs_out_of_memory(caplog):
     """MUMPS capped at 1 MB (ICNTL(23)) fails in its first factorisation: "auto" says so once,
     goes on with the iterative solver and reaches the direct solver's answer; "direct" fails."""

@@ -20,6 +20,7 @@ def test_reference_value():
     assert A.thick_sphere_inner_stretch(P, 1.0, 2.0, 1.0) == pytest.approx(1.1, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_thick_sphere_converges_to_closed_form():
     exact = A.thick_sphere_inner_stretch(P, 1.0, 2.0, 1.0) - 1.0
     errors = [abs(inner_displacement(h) - exact) / exact for h in (0.5, 0.3)]

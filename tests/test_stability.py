@@ -49,6 +49,7 @@ def tip_deflection(degree: int, mixed: bool, cells=(20, 2, 2)) -> float:
     return integral(model.u[2] * geometry.ds("x1"), geometry.mesh.comm)() / H**2
 
 
+@pytest.mark.slow
 def test_locking_and_its_cures():
     """P1 locks (far too stiff); P2 and Taylor–Hood P2–P1 recover beam theory."""
     inertia = H**4 / 12

@@ -39,6 +39,7 @@ def _points(folder, text):
     return path
 
 
+@pytest.mark.slow
 def test_a_sweep_answers_as_the_model_and_the_full_runs(built, capsys):
     """Each row is the reduced model's own answer at its point (to round-off), and the full run
     at that point within the tolerance the model was trained to; the indicator is on every row."""
