@@ -42,10 +42,13 @@ test-latest:
 lock:
 	bash .ci/lock .venv-latest
 
-# ruff's linter and formatter, configured in pyproject.toml.
+# ruff's linter and formatter, and mypy on the packages it finds clean (configured in
+# pyproject.toml; the list grows until it is all of lungmech).
+TYPED = lungmech/parallel lungmech/mesh
 lint: $(STAMP)
-	$(VENV)/bin/ruff check lungmech tests demos benchmarks
-	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks
+	$(VENV)/bin/ruff check lungmech tests demos benchmarks docs
+	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks docs
+	$(VENV)/bin/mypy $(TYPED)
 
 # Two workers (pytest-xdist) on the two cores CI has; the slowest tests are listed at the end.
 test-serial: $(STAMP)

@@ -58,7 +58,7 @@ _WHERE = {name: module for module, names in _PUBLIC.items() for name in names}
 __all__ = ["GeometryError", "LungmechError", "ParameterError", "SceneError", "SolverError", "__version__", *_WHERE]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> object:
     if name in _WHERE:
         return getattr(importlib.import_module(_WHERE[name]), name)
     raise AttributeError(f"module 'lungmech' has no attribute {name!r}")

@@ -12,6 +12,7 @@ import importlib.machinery
 import sys
 import types
 import warnings
+from collections.abc import Sequence
 
 MOVED = {
     "lungmech.cli": "lungmech.app.cli",
@@ -48,22 +49,24 @@ MOVED = {
 
 
 class _Forward(importlib.abc.Loader):
-    def create_module(self, spec):
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> types.ModuleType:
         return types.ModuleType(spec.name)
 
-    def exec_module(self, module):
+    def exec_module(self, module: types.ModuleType) -> None:
         target = MOVED[module.__name__]
         warnings.warn(
             f"{module.__name__} moved to {target}; the old path goes in lungmech 0.3", DeprecationWarning, stacklevel=2
         )
         new = importlib.import_module(target)
-        module.__getattr__ = lambda name: getattr(new, name)
-        module.__dir__ = lambda: dir(new)
+        module.__getattr__ = lambda name: getattr(new, name)  # type: ignore[method-assign]  # the alias forwards
+        module.__dir__ = lambda: dir(new)  # type: ignore[method-assign]  # the alias lists the new module's names
         module.__doc__ = f"Deprecated alias of {target}."
 
 
 class _Finder(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
+    def find_spec(
+        self, name: str, path: Sequence[str] | None = None, target: types.ModuleType | None = None
+    ) -> importlib.machinery.ModuleSpec | None:
         return importlib.machinery.ModuleSpec(name, _Forward()) if name in MOVED else None
 
 

@@ -157,7 +157,8 @@ def _mapped_square(
         raise GeometryError(f"{builder} needs two positive integer cell counts, got cells={cells}")
     if cell_type not in ("triangle", "quadrilateral"):
         raise GeometryError(f"unknown cell_type {cell_type!r}; use 'triangle' or 'quadrilateral'")
-    mesh = dolfinx.mesh.create_unit_square(comm, *(int(n) for n in cells), dolfinx.mesh.CellType[cell_type])
+    nx, ny = (int(n) for n in cells)
+    mesh = dolfinx.mesh.create_unit_square(comm, nx, ny, dolfinx.mesh.CellType[cell_type])
     found, edges = [], {}
     for axis, letter in enumerate("xy"):
         for side in (0, 1):

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import ufl
 from dolfinx import fem, la
+from dolfinx import mesh as dmesh
 
 from lungmech.parallel.layout import Layout, layout
 
@@ -52,7 +53,7 @@ def node_dofs(space: fem.FunctionSpace) -> npt.NDArray[np.int64]:
     return dof_of_node
 
 
-def displacement_space(mesh) -> tuple[fem.FunctionSpace, Layout]:
+def displacement_space(mesh: dmesh.Mesh) -> tuple[fem.FunctionSpace, Layout]:
     """Collective: the vector Lagrange space on the geometry nodes and its canonical layout."""
     space = fem.functionspace(mesh, ("Lagrange", mesh.geometry.cmaps[0].degree, (mesh.geometry.dim,)))
     return space, layout(space)
@@ -100,7 +101,7 @@ def masses(space: fem.FunctionSpace, where: Layout) -> np.ndarray | None:
     return nodes / nodes.sum()
 
 
-def sampler(mesh) -> Callable[[fem.Function], np.ndarray]:
+def sampler(mesh: dmesh.Mesh) -> Callable[[fem.Function], np.ndarray]:
     """A function that returns a vector field's values at the geometry nodes (owned and ghost,
     the mesh's local node order), shape (nodes, gdim); the nodal space is made once."""
     space, _ = displacement_space(mesh)
@@ -114,12 +115,12 @@ def sampler(mesh) -> Callable[[fem.Function], np.ndarray]:
     return sample
 
 
-def move(mesh, by: np.ndarray) -> None:
+def move(mesh: dmesh.Mesh, by: np.ndarray) -> None:
     """Move every node (owned and ghost, local node order) by ``by``, shape (nodes, gdim)."""
     mesh.geometry.x[:, : mesh.geometry.dim] += by
 
 
-def place(mesh, x: np.ndarray) -> None:
+def place(mesh: dmesh.Mesh, x: np.ndarray) -> None:
     """Put every node (owned and ghost, local node order) at ``x``, shape (nodes, gdim)."""
     mesh.geometry.x[:, : mesh.geometry.dim] = x
 

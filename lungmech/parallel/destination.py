@@ -66,7 +66,7 @@ def digest(path: str | os.PathLike) -> str:
 # --- checks (local, on one rank) -------------------------------------------------------------
 
 
-def check_location(target: Path, inputs: Iterable[Path], what: str = "output folder") -> None:
+def check_location(target: Path, inputs: Iterable[str | os.PathLike], what: str = "output folder") -> None:
     """Refuse a target that is, or holds, the current folder or one of ``inputs``."""
     target = resolve(target)
     here = Path.cwd().resolve()
@@ -171,7 +171,7 @@ def _manifest(folder: Path) -> tuple[dict[str, tuple[int, str]], set[str]] | Non
         return None
 
 
-def _write_marker(folder: Path, state: str, **extra) -> None:
+def _write_marker(folder: Path, state: str, **extra: object) -> None:
     marker = {"written_by": "lungmech", "state": state, "host": socket.gethostname(), "pid": os.getpid(), **extra}
     (folder / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
 

@@ -38,6 +38,7 @@ rank (the one that reads or writes a file): that rank alone holds the whole arra
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from mpi4py import MPI
@@ -45,6 +46,7 @@ from mpi4py import MPI
 import numpy as np
 import numpy.typing as npt
 from dolfinx import fem, la
+from dolfinx import mesh as dmesh
 
 __all__ = ["Layout", "field_dofs", "layout"]
 
@@ -103,6 +105,7 @@ class Layout:
             rows = np.empty((len(self.index), *shape[1:]))
             self.comm.Recv(rows, source=root, tag=_VALUES)
             return rows
+        assert canonical is not None  # given on the root, the one rank here
         for rank in range(self.comm.size):
             if rank != root:
                 index = self._receive_index(rank)
@@ -152,7 +155,7 @@ def field_dofs(space: fem.FunctionSpace) -> list[tuple[fem.FunctionSpace, np.nda
     return [(collapsed, np.asarray(parent).ravel()) for collapsed, parent in fields]
 
 
-def _input_cells(mesh) -> npt.NDArray[np.int64]:
+def _input_cells(mesh: dmesh.Mesh) -> npt.NDArray[np.int64]:
     """The input index of every local cell, owned and ghost (the same on any partition)."""
     cells = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)
     cell_map = mesh.topology.index_map(mesh.topology.dim)
@@ -188,7 +191,7 @@ def _positions(comm: MPI.Comm, keys: np.ndarray, home: np.ndarray) -> tuple[npt.
     received, senders = _alltoallv(comm, keys[order, None], np.bincount(home, minlength=comm.size))
     here = len(received)
     position = np.empty(here, dtype=np.int64)
-    position[np.argsort(received[:, 0])] = (comm.exscan(here) or 0) + np.arange(here)
+    position[np.argsort(received[:, 0])] = (comm.exscan(here) or 0) + np.arange(here)  # type: ignore[attr-defined]  # mpi4py's lower-case exscan, missing from its stubs
     answers, _ = _alltoallv(comm, position[:, None], senders)  # back to the senders, in their order
     result = np.empty(len(keys), dtype=np.int64)
     result[order] = answers[:, 0]
@@ -226,7 +229,7 @@ def _fingerprint(space: fem.FunctionSpace, index: np.ndarray, cells: np.ndarray,
     diameter = _diameter(mesh)
     grid = _RESOLUTION * diameter
 
-    def columns(block: slice):
+    def columns(block: slice) -> Iterator[np.ndarray]:
         """The hashed numbers of a block of owned cells, one column at a time."""
         yield cells[block]
         dofs = space.dofmap.list[block]
@@ -261,7 +264,7 @@ def _mix(h: npt.NDArray[np.uint64]) -> npt.NDArray[np.uint64]:
     return h
 
 
-def _diameter(mesh) -> float:
+def _diameter(mesh: dmesh.Mesh) -> float:
     """Collective: the diagonal of the mesh's bounding box."""
     x = mesh.geometry.x
     local = np.concatenate([x.min(axis=0), -x.max(axis=0)]) if len(x) else np.full(6, np.inf)

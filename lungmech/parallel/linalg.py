@@ -18,6 +18,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
+from dolfinx import la
 
 __all__ = ["POD", "LocalCSR", "NotPositive", "Weight", "apply", "gram", "gram_schmidt", "pod"]
 
@@ -42,7 +43,8 @@ def apply(W: Weight, vectors: np.ndarray, comm: MPI.Comm) -> np.ndarray:
     if callable(W) and not isinstance(W, PETSc.Mat):
         return W(vectors)
     rows, k = vectors.shape
-    dense = PETSc.Mat().createDense(((rows, None), (None, k)), array=np.ascontiguousarray(vectors), comm=comm)
+    # petsc4py's stubs want sizes of ints and a sequence; PETSc takes None (decide) and a NumPy array
+    dense = PETSc.Mat().createDense(((rows, None), (None, k)), array=np.ascontiguousarray(vectors), comm=comm)  # type: ignore[arg-type]
     product = W.matMult(dense)
     result = product.getDenseArray().copy()
     product.destroy()
@@ -137,7 +139,7 @@ class LocalCSR:
     seen). NumPy alone: ``MatrixCSR.to_scipy`` imports ``scipy.sparse``, a fifth of a second of
     a short process's start-up (``lungmech rom solve``)."""
 
-    def __init__(self, matrix):
+    def __init__(self, matrix: la.MatrixCSR):
         self.indptr, self.indices, self.data = matrix.indptr, matrix.indices, matrix.data
         self._nonempty = np.flatnonzero(np.diff(self.indptr))
         self._starts = self.indptr[:-1][self._nonempty]
