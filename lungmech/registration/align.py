@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from mpi4py import MPI
 
 import numpy as np
+from dolfinx import mesh as dmesh
 
 from lungmech.errors import RegistrationError
 from lungmech.registration.image import Image
@@ -52,7 +53,7 @@ class Moments:
     covariance: np.ndarray
 
 
-def mesh_moments(mesh) -> Moments:
+def mesh_moments(mesh: dmesh.Mesh) -> Moments:
     """Moments of a tetrahedral mesh in its current configuration (collective; vertices only,
     so exact for straight-sided cells)."""
     owned = mesh.topology.index_map(mesh.topology.dim).size_local
@@ -69,7 +70,7 @@ def mesh_moments(mesh) -> Moments:
     return _moments(sums[0], sums[1:4], sums[4:].reshape(3, 3))
 
 
-def cell_volumes(mesh) -> np.ndarray:
+def cell_volumes(mesh: dmesh.Mesh) -> np.ndarray:
     """Signed volumes of this rank's owned cells (their vertices; the sign is the orientation)."""
     owned = mesh.topology.index_map(mesh.topology.dim).size_local
     x = mesh.geometry.x[mesh.geometry.dofmaps[0][:owned, :4]]  # the vertices come first in every cell
@@ -93,7 +94,7 @@ def _moments(volume: float, first: np.ndarray, second: np.ndarray) -> Moments:
     return Moments(volume, centroid, second / volume - np.outer(centroid, centroid))
 
 
-def moments_fit(mesh, image: Image, rotation: bool = True) -> Similarity:
+def moments_fit(mesh: dmesh.Mesh, image: Image, rotation: bool = True) -> Similarity:
     """The similarity that maps the mesh's moments onto the segmentation's."""
     source, target = mesh_moments(mesh), image_moments(image)
     scale = (target.volume / source.volume) ** (1.0 / 3.0)

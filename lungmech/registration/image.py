@@ -236,6 +236,7 @@ def write(image: Image, path: str | Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         if format_ == "nifti":
+            assert nib is not None  # imported above for this format
             affine = _scaled(image.affine, 1e3)
             nifti = nib.Nifti1Image(data, affine)
             nifti.set_sform(affine, code=1)
@@ -244,6 +245,7 @@ def write(image: Image, path: str | Path) -> None:
             nifti.header["descrip"] = signature
             nib.save(nifti, path)
         elif format_ == "itk":
+            assert sitk is not None  # imported above for this format
             origin, spacing, direction = _itk_geometry(image.affine, path)
             # ITK arrays are indexed [k, j, i].
             itk = sitk.GetImageFromArray(np.ascontiguousarray(data.transpose(2, 1, 0)))
@@ -292,7 +294,8 @@ def _stored_signature(path: Path) -> str:
     if format_ == "nifti":
         import nibabel as nib
 
-        return nib.load(path).header["descrip"].item().decode(errors="replace").strip()
+        header = nib.load(path).header  # a NIfTI header, indexable by field (the stubs say FileBasedHeader)
+        return header["descrip"].item().decode(errors="replace").strip()  # type: ignore[index]
     if format_ == "itk":
         import SimpleITK as sitk
 

@@ -21,6 +21,7 @@ from mpi4py import MPI
 
 import numpy as np
 from dolfinx import fem
+from dolfinx import mesh as dmesh
 
 from lungmech.errors import ParameterError, RegistrationError
 from lungmech.mesh import nodes
@@ -69,7 +70,7 @@ class Library:
         return leave_one_out(self.shape_changes(), self.weights)
 
 
-def mapping_library(mesh, images: Mapping[str, Image], options: Options = Options()) -> Library:
+def mapping_library(mesh: dmesh.Mesh, images: Mapping[str, Image], options: Options = Options()) -> Library:
     """Register ``mesh`` (left unchanged) onto every image (collective)."""
     if len(images) < 2:
         raise RegistrationError(f"a mapping library needs at least 2 images, got {len(images)}")
@@ -216,7 +217,7 @@ class ShapeModes:
 
 def shape_modes(
     reference: np.ndarray,
-    displacements: Sequence[np.ndarray],
+    displacements: Sequence[np.ndarray] | np.ndarray,
     weights: np.ndarray,
     fingerprint: str,
     names: Sequence[str] | None = None,
@@ -243,7 +244,7 @@ def _pod(centred: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return modes, decomposition.values, decomposition.coefficients
 
 
-def leave_one_out(displacements: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:
+def leave_one_out(displacements: Sequence[np.ndarray] | np.ndarray, weights: np.ndarray) -> np.ndarray:
     """RMS generalisation error (metres) against the number of modes 0, 1, ..., N − 2.
 
     Each member is left out in turn, modes are built from the others, and the member's distance

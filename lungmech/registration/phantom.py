@@ -91,7 +91,7 @@ def _rigid(rotation: npt.ArrayLike | None, offset: npt.ArrayLike) -> tuple[np.nd
     R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
     t = np.asarray(offset, dtype=np.float64)
     if t.shape != (3,) or not np.isfinite(t).all():
-        raise ParameterError(f"offset must be a finite 3-D vector in metres, got {offset}")
+        raise ParameterError(f"offset must be a finite 3-D vector in metres, got {t.tolist()}")
     if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
         raise ParameterError(f"rotation must be a 3x3 rotation matrix (orthogonal, det +1), got\n{R}")
     return R, t
@@ -104,7 +104,8 @@ def _fraction(name: str) -> Callable[[LungShape, float], LungShape]:
     """Move a shape fraction by t, kept inside its valid range (a margin of 5 % of the range)."""
     lo, hi = LungShape.RANGES[name]
     lo, hi = lo + 0.05 * (hi - lo), hi - 0.05 * (hi - lo)
-    return lambda shape, t: replace(shape, **{name: float(np.clip(getattr(shape, name) + t, lo, hi))})
+    # replace's stub cannot see that ``name`` is one of the shape's fields (RANGES' keys are)
+    return lambda shape, t: replace(shape, **{name: float(np.clip(getattr(shape, name) + t, lo, hi))})  # type: ignore[arg-type]
 
 
 def _stretch(height: float, width: float, depth: float) -> Callable[[LungShape, float], LungShape]:

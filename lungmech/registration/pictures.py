@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import dolfinx
 import matplotlib
@@ -21,6 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import numpy.typing as npt  # noqa: E402
+from matplotlib.artist import Artist  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
@@ -101,8 +103,15 @@ def registration_slices(
     on_root(mesh.comm, lambda: _slices(triangles, image, path, title, reference, reference_label))
 
 
-def _slices(triangles, image: Image, path, title: str, reference, reference_label: str) -> None:
-    surfaces = [(triangles, _MESH_COLOUR, "-", "mesh")]
+def _slices(
+    triangles: np.ndarray,
+    image: Image,
+    path: str | Path,
+    title: str,
+    reference: npt.ArrayLike | None,
+    reference_label: str,
+) -> None:
+    surfaces: list[tuple[np.ndarray, str, Literal["-", "--"], str]] = [(triangles, _MESH_COLOUR, "-", "mesh")]
     if reference is not None:
         reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3, 3)
         surfaces.append((reference, _REFERENCE_COLOUR, "--", reference_label))
@@ -142,7 +151,7 @@ def _slices(triangles, image: Image, path, title: str, reference, reference_labe
         ax.set_title(f"{_AXES[normal_axis]} = {level}")
         ax.set_xlabel(_axis_label(image, p))
         ax.set_ylabel(_axis_label(image, q))
-    handles = [Patch(facecolor=_MASK_GREY, label="segmentation")]
+    handles: list[Artist] = [Patch(facecolor=_MASK_GREY, label="segmentation")]
     handles += [Line2D([], [], color=c, linestyle=style, label=name) for _, c, style, name in surfaces]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False)
     if title:
@@ -246,9 +255,9 @@ def _chains(links: npt.NDArray[np.intp], n: int) -> list[list[int]]:
     for start in sorted(range(n), key=lambda u: len(neighbours[u]) % 2 == 0):  # odd degree first
         while True:
             chain, u = [start], start
-            while (link := next((k for k in neighbours[u] if not used[k]), None)) is not None:
-                used[link] = True
-                u = int(links[link, 0] + links[link, 1] - u)
+            while (found := next((k for k in neighbours[u] if not used[k]), None)) is not None:
+                used[found] = True
+                u = int(links[found, 0] + links[found, 1] - u)
                 chain.append(u)
             if len(chain) == 1:
                 break

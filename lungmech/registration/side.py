@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from dolfinx import mesh as dmesh
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from lungmech.registration.image import Image
@@ -109,7 +110,7 @@ def of_image(image: Image) -> Side:
     return side
 
 
-def of_mesh(mesh) -> Side:
+def of_mesh(mesh: dmesh.Mesh) -> Side:
     """Collective: the side of the body a mesh fills, by the convexity of its nodes (the
     extreme x of each bin is on its boundary), binned by its cells' typical size."""
     local = mesh.geometry.x[: mesh.geometry.index_map().size_local]

@@ -161,7 +161,7 @@ class Registration:
         }
 
 
-def register(mesh, image: Image, options: Options = Options()) -> Registration:
+def register(mesh: dmesh.Mesh, image: Image, options: Options = Options()) -> Registration:
     """Map ``mesh`` (the reference Ω) onto the segmentation in ``image`` (collective)."""
     start = time.perf_counter()
     if mesh.topology.cell_type.name != "tetrahedron" or mesh.geometry.dim != 3 or mesh.geometry.cmaps[0].degree != 1:
@@ -174,7 +174,8 @@ def register(mesh, image: Image, options: Options = Options()) -> Registration:
     voxel = float(image.spacing.min())
     length = options.smoothing_length or 0.25 * diameter(mesh)
     energy = ShapeEnergy(u, 1.0 / length**2, options)
-    stages, history = [], []
+    stages: list[dict] = []
+    history: list[dict] = []
     try:
         for smoothing in options.stages:
             build = image_field.signed_distance if options.image_function == "distance" else image_field.binary
@@ -230,6 +231,7 @@ def _descend(energy: ShapeEnergy, options: Options, voxel: float, scale: float, 
         step = 1.0 if pairs else options.first_step * voxel / largest
         step = min(step, options.max_step * voxel / largest)
         limited = False
+        trial: float | None
         while True:
             energy.set_state(x + step * direction)
             trial, jacobian = energy.value(), energy.min_jacobian()
@@ -319,7 +321,7 @@ class ShapeEnergy:
         cell = mesh.basix_cell()
         degree = options.quadrature_degree
         self.cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
-        points, _ = basix.make_quadrature(cell, degree)
+        points = np.asarray(basix.make_quadrature(cell, degree)[0])
         # I and ∇I at the quadrature points of the deformed configuration.
         self.image = fem.Function(fem.functionspace(mesh, basix.ufl.quadrature_element(cell, (), degree=degree)))
         self.image_gradient = fem.Function(
@@ -354,7 +356,7 @@ class ShapeEnergy:
             + self.weight * ufl.derivative(distortion, u, v) * exact
         )
 
-        def eps(w):  # the symmetric gradient on the current configuration
+        def eps(w: ufl.Argument) -> ufl.core.expr.Expr:  # the symmetric gradient on the current configuration
             return ufl.sym(ufl.grad(w) * ufl.inv(F))
 
         self.inner = fem.form((2.0 * ufl.inner(eps(g), eps(v)) + alpha * ufl.inner(g, v)) * J * exact)
@@ -381,10 +383,12 @@ class ShapeEnergy:
     def use(self, image_function: image_field.ImageFunction, distortion: float = 0.0) -> None:
         """Minimise ∫_ω I dx + distortion · ∫_Ω ψ_iso(F) dX from now on."""
         self.field = image_function
-        self.weight.value = distortion
+        self.weight.value = distortion  # type: ignore[assignment]  # a Constant's value takes a number
 
     def _sample(self, with_gradient: bool) -> None:
         x = self.positions.eval(self.u.function_space.mesh, self.cells).reshape(-1, 3)
+        if self.field is None:
+            raise RegistrationError("the shape energy has no image function: call use() first")
         value, gradient = self.field(x)
         self.image.x.array[self.dofs.ravel()] = value
         if with_gradient:
@@ -401,7 +405,7 @@ class ShapeEnergy:
         with self.rhs.localForm() as local:
             local.set(0.0)
         fem_petsc.apply_lifting(self.rhs, [self.elastic], bcs=[self.boundary])
-        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
         fem_petsc.set_bc(self.rhs, self.boundary)
         self.extension.solve(self.rhs, self.relaxed.x.petsc_vec)
         self.set_state(self.relaxed.x.array[: self.owned])
@@ -443,20 +447,20 @@ class ShapeEnergy:
         """The owned entries of DΨ(u)[φ_i]; also assembles the Sobolev inner product at u."""
         self._sample(with_gradient=True)
         self.matrix.zeroEntries()
-        fem_petsc.assemble_matrix(self.matrix, self.inner)
+        fem_petsc.assemble_matrix(self.matrix, self.inner)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
         self.matrix.assemble()
         self.ksp.setOperators(self.matrix)
         with self.rhs.localForm() as local:
             local.set(0.0)
-        fem_petsc.assemble_vector(self.rhs, self.derivative_form)
-        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.assemble_vector(self.rhs, self.derivative_form)  # type: ignore[arg-type]  # the into-a-vector overload, as above
+        self.rhs.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
         return self.rhs.array.copy()
 
     def riesz(self, dual: np.ndarray) -> np.ndarray:
         """g with (g, v)_H = ⟨dual, v⟩ for all v, for the inner product of the last derivative()."""
         self.rhs.array[:] = dual
         self.ksp.solve(self.rhs, self.gradient)
-        if self.ksp.getConvergedReason() < 0:
+        if self.ksp.getConvergedReason() < 0:  # type: ignore[operator]  # an int at run time; the stubs say a class
             raise RegistrationError(f"the Sobolev-gradient solve failed (PETSc reason {self.ksp.getConvergedReason()})")
         return self.gradient.array.copy()
 
@@ -476,8 +480,8 @@ def _direct_solver(matrix: PETSc.Mat, settings: dict, prefix: str) -> PETSc.KSP:
     ksp.setOptionsPrefix(prefix)
     opts = PETSc.Options()
     for key, value in settings.items():
-        opts[prefix + key] = value
+        opts.setValue(prefix + key, value)
     ksp.setFromOptions()
     for key in settings:
-        del opts[prefix + key]
+        opts.delValue(prefix + key)
     return ksp
