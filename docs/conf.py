@@ -69,6 +69,8 @@ html_theme = "sphinx_book_theme"
 html_title = f"lungmech {release}"
 html_theme_options = {"show_toc_level": 2, "use_download_button": False}
 html_context = {"default_mode": "light"}  # the theme logs an error for a page without a mode
+html_static_path = ["_static"]
+html_css_files = ["wide.css"]
 
 
 def bars_are_not_substitutions(app, what, name, obj, options, lines: list[str]) -> None:
