@@ -104,11 +104,11 @@ def setup(args):
     if args.scene is None:
         with resources.as_file(resources.files("lungmech.scenes") / DEFAULT_SCENE) as path:
             return comm, scenes.load(path), f"bundled default scene ({DEFAULT_SCENE})", Path(path)
-    if not Path(args.scene).exists() and (found := bundled(args.scene)) is not None:
+    if not Path(args.scene).exists():  # a file of that name is the user's; else a bundled scene
+        found = bundled(args.scene)
+        if found is None:
+            listed = ", ".join(names())
+            raise SceneError(f"scene file '{args.scene}' not found (bundled scenes, named without a path: {listed})")
         with resources.as_file(found) as path:
             return comm, scenes.load(path), f"bundled scene {path.name}", Path(path)
-    if not Path(args.scene).exists():
-        raise SceneError(
-            f"scene file '{args.scene}' not found (bundled scenes, named without a path: {', '.join(names())})"
-        )
     return comm, scenes.load(args.scene), args.scene, Path(args.scene)
