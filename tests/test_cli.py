@@ -147,7 +147,7 @@ def test_only_declared_physics_is_built():
     model, domains = _built(TINY)
     x1 = model.geometry.tag("x1")
     # A pure-displacement box: one unknown field, the volume and the loaded face, nothing else.
-    assert list(model.fields) == ["u"] and not model.mixed and not model.state_dependent
+    assert list(model.fields) == ["u"] and not model.multi_field and not model.state_dependent
     assert domains == {("cell", "everywhere"), ("exterior_facet", x1)}
     assert len(model.loads) == 1 and model.constraints[0].boundary == "x0"
 

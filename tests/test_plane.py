@@ -42,7 +42,7 @@ def _uniaxial(geometry, law, plane=None, held_z=False) -> Model:
 
 def _lateral_stretch(model) -> float:
     """1 + u_y/y at the node (1, 1): the body is homogeneous."""
-    space = model.displacement_space if not model.mixed else model.displacement_space.collapse()[0]
+    space = model.displacement_space if not model.multi_field else model.displacement_space.collapse()[0]
     x = space.tabulate_dof_coordinates()
     corner = np.flatnonzero(np.all(np.isclose(x[:, :2], 1.0), axis=1))
     u = model.displacement().x.array.reshape(-1, model.geometry.mesh.geometry.dim)

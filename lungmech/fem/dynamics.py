@@ -368,9 +368,9 @@ def integrate(
 
 
 def _require_displacement_only(model) -> None:
-    if model.mixed:
+    if model.multi_field:
         raise ParameterError(
-            "dynamics needs the displacement formulation: the extra fields of a mixed model have "
+            "dynamics needs the displacement formulation: the extra fields of a multi-field model have "
             "no inertia, and implicit Euler for the constrained system is not implemented"
         )
 

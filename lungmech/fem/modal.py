@@ -60,7 +60,7 @@ def modal_analysis(
     operator would be singular, so it needs a shift below zero; they are flagged in
     :attr:`Modes.rigid`.
     """
-    if model.mixed:
+    if model.multi_field:
         raise ParameterError("modal analysis needs the displacement formulation (no extra fields)")
     if not (isinstance(count, int) and count >= 1):
         raise ParameterError(f"modal analysis: count must be a positive integer (got {count!r})")

@@ -120,7 +120,7 @@ class Model:
         self.energy_density = self.formulation.energy_density(self.material, self.F, self.fields)
 
         v = ufl.TestFunction(self.space)
-        v_u = ufl.split(v)[0] if self.mixed else v
+        v_u = ufl.split(v)[0] if self.multi_field else v
         self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.magnitude))) for load in self.loads]
         self.time_constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
         self.potential = self.energy_density * self.dx
@@ -253,8 +253,12 @@ class Model:
         return self._state_dependent
 
     @property
-    def mixed(self) -> bool:
-        """Whether the state holds fields besides the displacement."""
+    def multi_field(self) -> bool:
+        """Whether the state holds fields besides the displacement: a mixed function space.
+
+        Taylor–Hood's pressure or the lung's porosity. Not the constructor's ``mixed``, which
+        chooses the Taylor–Hood formulation.
+        """
         return bool(self.formulation.fields)
 
     @property
@@ -275,14 +279,14 @@ class Model:
 
     def displacement(self) -> fem.Function:
         """The displacement as a Function of its own (collapsed) space: a copy."""
-        if not self.mixed:
+        if not self.multi_field:
             return self.state.copy()
         return self.state.sub(0).collapse()
 
     def field_dofs(self) -> dict[str, np.ndarray]:
         """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""
         owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
-        if not self.mixed:
+        if not self.multi_field:
             return {"u": np.arange(owned)}
         names = ("u", *self.formulation.fields)
         parts = [np.asarray(self.space.sub(i).collapse()[1]).ravel() for i in range(len(names))]

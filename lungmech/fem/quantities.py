@@ -143,7 +143,7 @@ def reaction(model, boundary: str) -> Callable[[], Reaction]:
     held region (the hilum) carries.
     """
     space = model.displacement_space
-    collapsed, parent = space.collapse() if model.mixed else (space, np.arange(len(model.state.x.array)))
+    collapsed, parent = space.collapse() if model.multi_field else (space, np.arange(len(model.state.x.array)))
     parent = np.asarray(parent).ravel()  # DOLFINx 0.11 gives the map as a list of one array
     bs = collapsed.dofmap.index_map_bs
     fdim = model.geometry.mesh.topology.dim - 1

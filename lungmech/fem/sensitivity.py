@@ -387,7 +387,7 @@ def output_derivatives(
         for i in range(n):
             direction.x.array[:owned] = dx[:, i]
             direction.x.scatter_forward()
-            columns.append(probe(direction.sub(0).collapse() if model.mixed else direction))
+            columns.append(probe(direction.sub(0).collapse() if model.multi_field else direction))
         result["probes"] = np.stack(columns, axis=-1) if columns else np.zeros((len(probe.points), 3, 0))
     result["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
     return result

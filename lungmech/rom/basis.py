@@ -76,7 +76,7 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
         return None
     a, b = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
     if kind == "mass":
-        pairs = zip(ufl.split(a), ufl.split(b)) if model.mixed else [(a, b)]
+        pairs = zip(ufl.split(a), ufl.split(b)) if model.multi_field else [(a, b)]
         form = sum(ufl.inner(x, y) for x, y in pairs) * ufl.dx(domain=model.geometry.mesh)  # exact quadrature
     else:
         stored = model.energy_density * model.dx

@@ -388,7 +388,7 @@ def _positions(index_map, space) -> np.ndarray:
 def _displacement_magnitude(model, reduced: ReducedMesh, h: float) -> np.ndarray:
     """``h`` (the whole mesh's smallest cell size) on the sub dofs of the displacement, 0 on
     other fields: what F's rounding adds to |x|."""
-    if not model.mixed:
+    if not model.multi_field:
         return np.full(len(reduced.parent_dofs), h)
     magnitude = np.zeros(len(reduced.parent_dofs))
     magnitude[reduced.space.sub(0).collapse()[1]] = h

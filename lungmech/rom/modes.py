@@ -30,7 +30,7 @@ def modal_derivatives(model, basis: Basis) -> np.ndarray:
     ∂K/∂q_j φ_i is the third variation of the energy in the directions φ_i, φ_j (exact, from UFL);
     it vanishes for a linear law. Returns the owned rows, one column per pair.
     """
-    if model.mixed:
+    if model.multi_field:
         raise ParameterError("modal derivatives need the displacement formulation (no extra fields)")
     if model.state_dependent:
         raise ParameterError("modal derivatives: state-dependent loads are not supported")
