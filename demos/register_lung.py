@@ -92,8 +92,8 @@ def main(out: Path) -> None:
             title="Shape modes of 10 synthetic patients (2 latent parameters)",
         )
     new = modes.geometry(geometry.from_file(REFERENCE, comm), [1.0, -1.0])
-    geometry.write(new, out / "new_lung.xdmf")
-    say(comm, f"new lung (+1σ mode 1, −1σ mode 2): volume {1e3 * new.volume():.3f} L -> new_lung.xdmf")
+    geometry.write(new, out / "new_lung.vtu")
+    say(comm, f"new lung (+1σ mode 1, −1σ mode 2): volume {1e3 * new.volume():.3f} L -> new_lung.vtu")
 
     if comm.rank == 0:
         shutil.copy(out / "registration" / "registration.png", out / "registration.png")

@@ -18,3 +18,11 @@ def _collective_teardown():
     yield
     gc.collect()
     MPI.COMM_WORLD.Barrier()
+
+
+@pytest.fixture
+def shared_tmp_path(tmp_path):
+    """One temporary folder for all ranks: rank 0's (pytest makes one per process)."""
+    from pathlib import Path
+
+    return Path(MPI.COMM_WORLD.bcast(str(tmp_path), root=0))

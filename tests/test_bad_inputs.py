@@ -727,7 +727,7 @@ COMMANDS = {
     "mesh of another format": (
         [_write("lung.stl", "solid x\nendsolid x\n"), _write("scene.toml", _mesh_scene("lung.stl"))],
         ["run", "scene.toml", "-o", "out"],
-        "suffix '.stl' is not .msh or .xdmf",
+        "suffix '.stl' is not .msh, .vtu or .xdmf",
     ),
     "mesh file is a folder": (
         [lambda r: (r / "dir.msh").mkdir(), _write("scene.toml", _mesh_scene("dir.msh"))],
@@ -891,6 +891,11 @@ COMMANDS = {
         ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "user.xdmf"],
         "exists and was not written by lungmech",
     ),
+    "shape over a user .vtu": (
+        [_write("user.vtu", "theirs")],
+        ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "user.vtu"],
+        "exists and was not written by lungmech",
+    ),
     "shape next to a user h5": (
         [_write("new.h5", "theirs")],
         ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "new.xdmf"],
@@ -899,7 +904,7 @@ COMMANDS = {
     "shape as another format": (
         [],
         ["shape", "modes/shape_modes.npz", "--reference", REFERENCE, "-c", "0.5", "-o", "x.vtk"],
-        "is written as an .xdmf mesh",
+        "is written as a .vtu or .xdmf mesh",
     ),
     "shape of too many coefficients": (
         [],

@@ -224,6 +224,14 @@ def test_a_lung_imaged_with_its_porosity_is_unloaded_then_breathes(tmp_path):
     assert inverse["iterations"] <= 15
     assert summary["start_volume"] == pytest.approx(1.0, rel=1e-9)  # the imaged cube
     assert inverse["reference_volume"] < 0.95
+    # The reference it found is a mesh file every tool opens, and a scene's [geometry] file.
+    import meshio
+
+    from lungmech.mesh import from_file
+
+    reference = tmp_path / "out" / "reference.vtu"
+    assert {"x0", "x1"} <= set(meshio.read(reference).field_data)
+    assert from_file(reference).volume() == pytest.approx(inverse["reference_volume"], rel=1e-9)
 
 
 def test_loads_as_formulas_force_and_dead_pressure_from_a_scene(tmp_path):

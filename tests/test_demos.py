@@ -203,7 +203,7 @@ def test_reduced_lung(tmp_path):
 def test_register_lung(tmp_path):
     output = run("register_lung", tmp_path)
     files = {p.name for p in (tmp_path / "out").iterdir()}
-    assert {"registration.png", "shape_modes.png", "shape_mode_sections.png", "new_lung.xdmf"} <= files
+    assert {"registration.png", "shape_modes.png", "shape_mode_sections.png", "new_lung.vtu"} <= files
     # Registration onto the synthetic patient (the time is the machine's: not compared).
     readme = quoted(
         rf"Registration: {NUMBER} iterations in {NUMBER} s, Dice {NUMBER}, mean surface distance {NUMBER} mm "

@@ -143,7 +143,7 @@ def test_lung_phantom_anatomy(lungs):
 def test_missing_and_unsupported_files():
     with pytest.raises(GeometryError, match=r"mesh file 'missing\.msh' not found"):
         from_file("missing.msh")
-    with pytest.raises(GeometryError, match=r"lung\.stl': suffix '\.stl' is not \.msh or \.xdmf"):
+    with pytest.raises(GeometryError, match=r"lung\.stl': suffix '\.stl' is not \.msh, \.vtu or \.xdmf"):
         from_file("lung.stl")
 
 

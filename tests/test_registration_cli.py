@@ -28,7 +28,7 @@ def test_phantom_register_and_outputs(tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["dice"] >= 0.97 and report["mean_surface_distance_voxels"] <= 1.0 and report["min_det_F"] > 0.2
     assert (out / "registration.png").stat().st_size > 10_000
-    mapped = geometry.from_file(out / "registered.xdmf", MPI.COMM_WORLD)
+    mapped = geometry.from_file(out / "registered.vtu", MPI.COMM_WORLD)
     assert set(mapped.boundaries) >= {"pleura", "diaphragm", "mediastinum", "hilum"}
     assert mapped.volume() == pytest.approx(report["volume_mesh"], rel=1e-9)
     with np.load(out / "mapping.npz") as mapping:
@@ -44,9 +44,12 @@ def test_shape_modes_of_a_synthetic_cohort_and_a_new_shape(tmp_path):
     assert report["images"] == 4 and len(report["leave_one_out_rms"]) == 3
     assert report["compactness"][-1] == pytest.approx(1.0)
     assert (out / "singular_values.png").is_file()
-    new = tmp_path / "new.xdmf"
-    assert main(["shape", str(out / "shape_modes.npz"), "--reference", REFERENCE, "-c", "1.5", "-o", str(new)]) == 0
-    assert geometry.from_file(new, MPI.COMM_WORLD).volume() > 0
+    new = tmp_path / "new.vtu"
+    shape = ["shape", str(out / "shape_modes.npz"), "--reference", REFERENCE, "-o", str(new), "-c"]
+    assert main([*shape, "1.5"]) == 0
+    larger = geometry.from_file(new, MPI.COMM_WORLD).volume()
+    assert main([*shape, "-1.5"]) == 0  # its own earlier output is replaced
+    assert 0 < geometry.from_file(new, MPI.COMM_WORLD).volume() != larger
 
 
 @pytest.mark.parametrize(
@@ -77,7 +80,7 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
     """Every rank takes part (collective volumes, one writer per file) and nothing hangs."""
     comm = MPI.COMM_WORLD
     folder = comm.bcast(tmp_path, root=0)  # one folder for all ranks
-    reference = folder / "ball.xdmf"
+    reference = folder / "ball.vtu"
     geometry.write(geometry.ellipsoid(comm, (0.03, 0.03, 0.03), mesh_size=0.01), reference)
     if comm.rank == 0:
         for j, axes in enumerate([(0.03, 0.035, 0.04), (0.032, 0.03, 0.036), (0.035, 0.033, 0.03)]):
@@ -94,7 +97,7 @@ def test_shape_modes_and_shape_commands_under_mpi(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["images"] == 3 and report["worst"]["dice"] >= 0.97
     assert (out / "singular_values.png").stat().st_size > 10_000
-    new = folder / "new.xdmf"
+    new = folder / "new.vtu"
     assert (
         main(["shape", str(out / "shape_modes.npz"), "--reference", str(reference), "-c", "1,-1", "-o", str(new)]) == 0
     )

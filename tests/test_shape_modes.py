@@ -128,10 +128,10 @@ def test_a_shape_from_coefficients_is_a_geometry_a_scene_runs_on(reference, tmp_
     expected = X + modes.displacement([2.0, -1.0])
     placed = nodes.positions(space, where)  # on rank 0
     assert placed is None or np.allclose(placed, expected, atol=1e-12)
-    geometry.write(new, tmp_path / "new_lung.xdmf")
+    geometry.write(new, tmp_path / "new_lung.vtu")
     scene = tmp_path / "scene.toml"
     scene.write_text(
-        '[geometry]\nfile = "new_lung.xdmf"\n[material]\nlaw = "neo_hookean"\nE = 1.0e3\nnu = 0.3\n'
+        '[geometry]\nfile = "new_lung.vtu"\n[material]\nlaw = "neo_hookean"\nE = 1.0e3\nnu = 0.3\n'
         '[[constraints]]\ntype = "clamp"\nboundary = "hilum"\n'
         '[[loads]]\ntype = "follower_pressure"\nboundary = "pleura"\nvalue = -20.0\n'
         "[stepping]\nend = 1.0\ninitial_step = 1.0\n[output]\nfields = false\n"

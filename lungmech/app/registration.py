@@ -90,7 +90,7 @@ def register_image(
     side: dict | None = None,
 ) -> dict:
     """Register the mesh file ``reference`` onto ``image``; write into the folder ``out``:
-    ``registered.xdmf`` (the mapped mesh), ``mapping.npz`` (reference nodes and displacement in
+    ``registered.vtu`` (the mapped mesh, :mod:`lungmech.mesh.vtu`), ``mapping.npz`` (reference nodes and displacement in
     canonical order), ``report.json`` (metrics and the descent) and ``registration.png``.
 
     Refused with a :class:`RegistrationError` (nothing written): a target of a handful of
@@ -110,7 +110,7 @@ def register_image(
         initial = result.similarity(metrics.boundary_triangles(geometry.mesh).reshape(-1, 3)).reshape(-1, 3, 3)
         with nodes.deformed(result.displacement) as mesh:
             report = {"reference": str(reference), "side": side} | metrics.report(mesh, image) | result.summary()
-            geometries.write(geometry, staging / "registered.xdmf")
+            geometries.write(geometry, staging / "registered.vtu")
             title = f"Dice {report['dice']:.3f}, mean distance {1e3 * report['mean_surface_distance']:.2f} mm"
             drawn(
                 comm,

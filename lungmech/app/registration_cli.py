@@ -71,7 +71,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     shape.add_argument("modes", help="shape modes (.npz) from 'lungmech shape-modes'")
     _reference(shape)
     shape.add_argument("-c", "--coefficients", required=True, help="comma-separated, in standard deviations")
-    shape.add_argument("-o", "--output", required=True, help="mesh file to write (.xdmf); use it as [geometry] file")
+    shape.add_argument("-o", "--output", required=True, help="mesh file to write: .vtu (meshio, pyvista, ParaView) or .xdmf (DOLFINx); use it as [geometry] file")
 
     phantom = commands.add_parser("phantom", help="write a synthetic lung segmentation")
     phantom.add_argument("-o", "--output", required=True, help="image file (.nii.gz, .nii, .npz, .mha, .nrrd)")
@@ -89,7 +89,7 @@ def _reference(command: argparse.ArgumentParser, default: str | None = "lung_pha
         "--reference",
         default=default,
         type=_mesh,
-        help="reference mesh (.msh or .xdmf), or a bundled one by name: "
+        help="reference mesh (.msh, .vtu or .xdmf), or a bundled one by name: "
         f"{shown}, lung_phantom_left" + ("" if default else "; default: the phantom of the image's lung's side"),
     )
 
@@ -229,8 +229,8 @@ def _shape(args, comm) -> int:
         coefficients = [float(c) for c in args.coefficients.split(",")]
     except ValueError:
         raise ParameterError(f"--coefficients: not a list of numbers: {args.coefficients!r}") from None
-    if Path(args.output).suffix != ".xdmf":
-        raise ParameterError(f"-o {args.output}: a shape is written as an .xdmf mesh (e.g. -o new_lung.xdmf)")
+    if Path(args.output).suffix not in (".vtu", ".xdmf"):
+        raise ParameterError(f"-o {args.output}: a shape is written as a .vtu or .xdmf mesh (e.g. -o new_lung.vtu)")
     inputs = [args.modes, args.reference, *geometry.companions(args.reference)]
     with output_file(
         args.output,

@@ -13,7 +13,8 @@ succeeded (see :mod:`lungmech.parallel.destination`). Files, with SI units throu
 * ``deformed.png``: the body at its largest volume, coloured by J;
 * ``pressure_volume.png`` when the scene has pressure loads: volume against the transpulmonary
   pressure of a lung (or against the first pressure load of another body);
-* ``reference.xdmf`` for a scene with [inverse]: the unloaded reference it found.
+* ``reference.vtu`` for a scene with [inverse]: the unloaded reference it found (a mesh file
+  meshio, pyvista and ParaView open, and a [geometry] file for the next scene).
 
 The run talks to the model only through ``solve(mu, on_step=...)`` and ``fields(state, t)``
 (:class:`~lungmech.fem.parametric.ParametricModel`): full-order, reduced and hyper-reduced runs
@@ -246,7 +247,7 @@ def run(
         hold_signals_until_swap()
         history, start = recorder.history, solution.start
         if start.kind == "imaged":
-            write_geometry(fem_model.geometry, staging / "reference.xdmf")
+            write_geometry(fem_model.geometry, staging / "reference.vtu")
         mesh = fem_model.geometry.mesh
         summary = {
             "title": scene.title,

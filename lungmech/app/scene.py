@@ -331,7 +331,7 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
         path = Path(table["file"])
         path = path if path.is_absolute() else folder / path
         if path.is_dir():
-            raise SceneError(f"geometry.file: '{path}' is a folder; name a mesh file (.msh or .xdmf)")
+            raise SceneError(f"geometry.file: '{path}' is a folder; name a mesh file (.msh, .vtu or .xdmf)")
         if not path.is_file():
             raise SceneError(f"geometry.file: mesh file '{path}' not found")
         return {**table, "file": str(path)}

@@ -1,7 +1,7 @@
 """Meshes with named boundaries: the :class:`Geometry`, its builders, mesh files, and its nodes.
 
 ``geometry`` (the class and its measures) · ``builders`` (box, rectangle, Cook's membrane, quarter annulus, sphere, ellipsoid, lung phantom) ·
-``files`` (.msh and .xdmf in and out) · ``nodes`` (the one owner of node moves) · ``lung_shape``.
+``files`` (.msh in; .vtu and .xdmf in and out), ``vtu`` (the mesh file every tool opens) · ``nodes`` (the one owner of node moves) · ``lung_shape``.
 """
 
 from lungmech.mesh.builders import box, cook_membrane, ellipsoid, lung_phantom, quarter_annulus, rectangle, sphere

@@ -1,5 +1,8 @@
-"""Mesh files: gmsh ``.msh`` and DOLFINx ``.xdmf`` (with its ``.h5`` data and a ``.tags.json``
-sidecar of boundary names), read into and written from a :class:`~lungmech.mesh.geometry.Geometry`.
+"""Mesh files, read into and written from a :class:`~lungmech.mesh.geometry.Geometry`: gmsh's
+``.msh`` (read), VTK's ``.vtu`` with the tags inside (:mod:`lungmech.mesh.vtu`; what lungmech
+writes, and what meshio, pyvista and ParaView open), and DOLFINx's ``.xdmf`` (with its ``.h5``
+data and a ``.tags.json`` sidecar of boundary names; parallel HDF5, for a mesh too large for
+one rank).
 
 Collective: under MPI, call on all ranks.
 """
@@ -22,6 +25,7 @@ import dolfinx.mesh
 import numpy as np
 
 from lungmech.errors import GeometryError
+from lungmech.mesh import vtu
 from lungmech.mesh.builders import gmsh_session
 from lungmech.mesh.geometry import Geometry, from_meshdata
 from lungmech.parallel import on_root
@@ -35,21 +39,24 @@ def from_file(
     boundaries: Mapping[str, int] | None = None,
     dimension: int | None = None,
 ) -> Geometry:
-    """Read a geometry from a gmsh ``.msh`` or a DOLFINx ``.xdmf`` file.
+    """Read a geometry from a gmsh ``.msh``, a ``.vtu`` or a DOLFINx ``.xdmf`` file.
 
     A 3-D body (tetrahedra or hexahedra) or a plane one (triangles or quadrilaterals in the
     x–y plane: a 2-D gmsh mesh has z = 0 everywhere, and is read with two coordinates);
     ``dimension`` asks for one of them. Boundary names come from ``boundaries`` if given, else
     from the gmsh physical names of the facets' dimension (surfaces in 3-D, curves in 2-D;
-    ``.msh``) or the sidecar ``<stem>.tags.json`` written by :func:`write` (``.xdmf``); tag values
+    ``.msh``), the field data (``.vtu``) or the sidecar ``<stem>.tags.json`` written by
+    :func:`write` (``.xdmf``); tag values
     without a name are named by their number, e.g. ``"3"``.
     """
     path = Path(path)
-    if path.suffix not in (".msh", ".xdmf"):
-        raise GeometryError(f"cannot read mesh file '{path}': suffix {path.suffix!r} is not .msh or .xdmf")
+    if path.suffix not in READERS:
+        raise GeometryError(f"cannot read mesh file '{path}': suffix {path.suffix!r} is not .msh, .vtu or .xdmf")
     if not path.is_file():
         raise GeometryError(f"mesh file '{path}' not found")
-    geometry = _read_msh(path, comm) if path.suffix == ".msh" else _read_xdmf(path, comm)
+    geometry = READERS[path.suffix](path, comm)
+    if path.suffix == ".vtu":
+        _check_solid(geometry.mesh, path)
     found = geometry.mesh.topology.dim
     if dimension is not None and found != dimension:
         raise GeometryError(
@@ -95,9 +102,12 @@ def companions(path: str | Path) -> list[Path]:
 
 
 def is_lungmech_mesh(path: str | Path) -> bool:
-    """Whether ``path`` is an .xdmf mesh that lungmech wrote, with its .h5, both unchanged (its
-    boundary-names file says so and holds their SHA-256)."""
+    """Whether ``path`` is a mesh file that lungmech wrote, unchanged since: a ``.vtu`` whose
+    digest matches, or an ``.xdmf`` with its ``.h5`` (its boundary-names file says so and holds
+    their SHA-256)."""
     path = Path(path)
+    if path.suffix == ".vtu":
+        return vtu.written_by_lungmech(path)
     try:
         names = json.loads(_sidecar(path).read_text())
         written = names["sha256"]
@@ -202,6 +212,9 @@ def _read_xdmf(path: Path, comm: MPI.Comm) -> Geometry:
     return Geometry(mesh, facet_tags, boundaries, cell_tags)
 
 
+READERS: dict[str, Callable[[Path, MPI.Comm], Geometry]] = {".msh": _read_msh, ".vtu": vtu.read, ".xdmf": _read_xdmf}
+
+
 def _data_files(path: Path) -> set[Path]:
     """The HDF5 files an XDMF file refers to (``file.h5:/dataset``), relative to it."""
     names = {
@@ -227,12 +240,16 @@ def _named(obj: Any, name: str) -> Iterator[None]:
 
 
 def write(geometry: Geometry, path: str | Path) -> None:
-    """Write ``geometry`` to ``path`` (``.xdmf``, with ``.h5`` data and a ``.tags.json`` sidecar)."""
+    """Collective: write ``geometry`` to ``path``: a ``.vtu`` (:mod:`lungmech.mesh.vtu`), or an
+    ``.xdmf`` with ``.h5`` data and a ``.tags.json`` sidecar."""
     path = Path(path)
-    if path.suffix != ".xdmf":
-        raise GeometryError(f"cannot write '{path}': geometries are written as .xdmf")
+    if path.suffix not in (".vtu", ".xdmf"):
+        raise GeometryError(f"cannot write '{path}': geometries are written as .vtu (or .xdmf)")
     mesh, comm = geometry.mesh, geometry.mesh.comm
     on_root(comm, lambda: path.parent.mkdir(parents=True, exist_ok=True))
+    if path.suffix == ".vtu":
+        vtu.write(geometry, path)
+        return
     with dolfinx.io.XDMFFile(comm, str(path), "w") as file:
         with _named(mesh, "mesh"):
             file.write_mesh(mesh)
