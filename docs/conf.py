@@ -21,15 +21,28 @@ copyright = "2026, the lungmech developers"
 # sphinx-mathjax-offline copies MathJax 3 into the site: pages render their formulas without a
 # network (the browser check runs offline), as a downloaded copy of the site must
 extensions = [
-    "myst_parser",
+    "myst_nb",  # MyST Markdown, and the demos as executed notebooks
     "autoapi.extension",
     "sphinx.ext.mathjax",
     "sphinx-mathjax-offline",
     "sphinx.ext.napoleon",
     "sphinx.ext.viewcode",
 ]
-source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
-exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "conf.py", "check_site.py"]
+
+# The demos (demos/*.py, jupytext's percent format) are pages: copied to docs/demos/ and
+# executed by myst-nb through jupyter-cache. tests/test_demos.py executes them into the same
+# cache (docs/_build/.jupyter_cache), so a CI run executes each demo once, and a page's
+# numbers ({glue:text}) are the ones the tests checked. The cache keys a notebook by its code
+# cells: editing a demo's prose does not run it again.
+nb_custom_formats = {".py": ["jupytext.reads", {"fmt": "py:percent"}]}
+nb_execution_mode = "cache"
+nb_execution_cache_path = str(ROOT / "docs" / "_build" / ".jupyter_cache")
+nb_execution_in_temp = True
+nb_execution_timeout = 1800
+nb_execution_raise_on_error = True
+nb_execution_show_tb = True
+nb_merge_streams = True
 
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
@@ -64,6 +77,23 @@ def measured_results() -> None:
 
 
 measured_results()
+
+
+def demo_pages() -> None:
+    """Copy every demo into docs/demos/ (a page is a file of the source folder), only where it
+    changed, so Sphinx rebuilds only the pages whose demo did."""
+    folder = ROOT / "docs" / "demos"
+    demos = {p.name: p for p in (ROOT / "demos").glob("*.py")}
+    for old in folder.glob("*.py"):
+        if old.name not in demos:
+            old.unlink()
+    for name, demo in demos.items():
+        copy = folder / name
+        if not copy.is_file() or copy.read_bytes() != demo.read_bytes():
+            copy.write_bytes(demo.read_bytes())
+
+
+demo_pages()
 
 html_theme = "sphinx_book_theme"
 html_title = f"lungmech {release}"
