@@ -16,13 +16,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import ufl
 from dolfinx import fem
 from ufl.core.expr import Expr
 
 from lungmech.fem.quantities import deformed_volume, integral
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["Average", "averages", "means"]
 
@@ -40,18 +43,18 @@ class Average:
         if self.per not in ("reference", "current"):
             raise ValueError(f"an average is per 'reference' or 'current' volume, not {self.per!r}")
 
-    def weighted(self, model) -> Expr:
+    def weighted(self, model: Model) -> Expr:
         """The numerator's integrand over the reference body: f, or f J per current volume."""
         return self.integrand * ufl.det(model.F) if self.per == "current" else self.integrand
 
 
-def averages(model) -> dict[str, Average]:
+def averages(model: Model) -> dict[str, Average]:
     """The averages ``model``'s formulation names, by name ({} if it names none)."""
     named = getattr(model.formulation, "averages", None)
     return {} if named is None else dict(named(model))
 
 
-def means(model) -> dict[str, tuple[Callable[[], float], str]]:
+def means(model: Model) -> dict[str, tuple[Callable[[], float], str]]:
     """Each of the formulation's averages as (its value on the model's state, its unit) by name.
 
     Compiled once (collective); the reference volume is integrated at each call, since an
@@ -62,9 +65,13 @@ def means(model) -> dict[str, tuple[Callable[[], float], str]]:
         return {}
     reference = integral(fem.Constant(model.geometry.mesh, 1.0) * model.dx, comm)
     current = deformed_volume(model)
-    result = {}
+    result: dict[str, tuple[Callable[[], float], str]] = {}
     for name, average in named.items():
         numerator = integral(average.weighted(model) * model.dx, comm)
         volume = current if average.per == "current" else reference
-        result[name] = ((lambda n=numerator, v=volume: n() / v()), average.unit)
+        result[name] = (_ratio(numerator, volume), average.unit)
     return result
+
+
+def _ratio(numerator: Callable[[], float], denominator: Callable[[], float]) -> Callable[[], float]:
+    return lambda: numerator() / denominator()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem
@@ -22,6 +23,12 @@ from lungmech.errors import ParameterError
 from lungmech.fem.loads import is_pressure
 from lungmech.fem.materials import Material, numbers_of, with_values
 from lungmech.fem.parameters import LOAD_ATTRIBUTES, HalfSpace, Parameter, Parameters
+
+if TYPE_CHECKING:
+    from lungmech.fem.constraints import Displacement
+    from lungmech.fem.formulations import Formulation
+    from lungmech.fem.loads import Load
+    from lungmech.mesh.geometry import Geometry
 
 LawAt = Callable[[Mapping[str, float]], Material]
 Assign = Callable[[Mapping[str, float]], None]
@@ -50,7 +57,7 @@ def _path(parameter: Parameter, paths: list[str]) -> str:
 
 
 def material(
-    law_at: LawAt, parameters: Parameters, geometry, interfaces: Mapping[str, fem.Constant]
+    law_at: LawAt, parameters: Parameters, geometry: Geometry, interfaces: Mapping[str, fem.Constant]
 ) -> tuple[Material, Assign]:
     """The law the forms use, and ``assign(values)`` that sets its constants for new values."""
     mesh = geometry.mesh
@@ -86,10 +93,11 @@ def material(
     return with_values(base, fields), assign
 
 
-def _holds_cells(region: HalfSpace, geometry, parameters: Parameters, names: str) -> None:
+def _holds_cells(region: HalfSpace, geometry: Geometry, parameters: Parameters, names: str) -> None:
     """Refuse a half-space that holds no cell at any position it can take (its own, or the ends
     and default of the interface parameter that moves it): its parameters would act nowhere.
     (A cell region without cells is refused by its indicator.)"""
+    positions: tuple[float, ...]
     if isinstance(region.position, str):
         mover = parameters.named(region.position)
         positions = (mover.range[0], mover.default, mover.range[1])
@@ -138,10 +146,12 @@ def _set(constants: Mapping[str, fem.Constant], law: Material, parameters: Param
             raise ParameterError(
                 f"parameters {names} change the form of the law (its constant {path}), not only its values"
             )
-        constant.value = numbers[path]
+        constant.value = np.asarray(numbers[path])
 
 
-def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, float]], tuple[tuple, np.ndarray]]:
+def loads(
+    base: Sequence[Load], parameters: Parameters
+) -> Callable[[Mapping[str, float]], tuple[tuple[Load, ...], np.ndarray]]:
     """``at(values) -> (loads, amplitudes)``: the model's loads with the values and postures the
     ``loads.<name>.<attribute>`` parameters set, and a factor per load (its amplitude)."""
     named = {load.name: i for i, load in enumerate(base) if load.name}
@@ -161,7 +171,7 @@ def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, floa
         if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
             raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
 
-    def at(values: Mapping[str, float]) -> tuple[tuple, np.ndarray]:
+    def at(values: Mapping[str, float]) -> tuple[tuple[Load, ...], np.ndarray]:
         current, amplitudes = list(base), np.ones(len(base))
         for p in acting:
             name, _, attribute = p.key.rpartition(".")
@@ -173,6 +183,7 @@ def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, floa
         for i, load in enumerate(base):
             angles = {a: values[p.name] for p in acting for a in ("pitch", "roll") if p.key == f"{load.name}.{a}"}
             if angles:
+                assert hasattr(load, "acceleration")  # checked above: only gravity has a posture
                 turned = posture(angles.get("pitch", 0.0), angles.get("roll", 0.0)) @ np.asarray(load.acceleration)
                 current[i] = dataclasses.replace(current[i], acceleration=tuple(turned))
         return tuple(current), amplitudes
@@ -180,7 +191,7 @@ def loads(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, floa
     return at
 
 
-def constraints(base: Sequence, parameters: Parameters) -> Callable[[Mapping[str, float]], np.ndarray]:
+def constraints(base: Sequence[Displacement], parameters: Parameters) -> Callable[[Mapping[str, float]], np.ndarray]:
     """``amplitudes(values)``: a factor per imposed displacement, set by ``constraints.<name>.amplitude``."""
     named = {c.name: i for i, c in enumerate(base) if c.name}
     acting = [p for p in parameters if p.kind == "constraints"]
@@ -212,7 +223,7 @@ def posture(pitch: float, roll: float) -> np.ndarray:
     return about_y @ about_x
 
 
-def formulation(unbound, bound, parameters: Parameters) -> Assign:
+def formulation(unbound: Formulation, bound: Formulation, parameters: Parameters) -> Assign:
     """How formulation parameters set the bound formulation's constants (checked by rebuilding the
     formulation at the new values, so its own checks apply)."""
     acting = {p.name: p.key for p in parameters if p.kind == "formulation"}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem
@@ -12,6 +13,9 @@ from dolfinx import fem
 from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.ramp import Ramp
+
+if TYPE_CHECKING:
+    from lungmech.mesh.geometry import Geometry
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -31,7 +35,7 @@ class Displacement:
     ramp: Ramp = field(default_factory=Ramp)
     name: str = ""
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not isinstance(self.name, str):
             raise ParameterError(f"name must be a string (got {self.name!r})")
         if not isinstance(self.boundary, str) or not self.boundary:
@@ -77,8 +81,9 @@ class ImposedValue:
         self.target.x.array[self.where] = self.amplitude * self.ramp(t) * self.base
 
 
-def build(constraint: Displacement, space: fem.FunctionSpace, geometry) -> ImposedValue:
+def build(constraint: Displacement, space: fem.FunctionSpace, geometry: Geometry) -> ImposedValue:
     """The DirichletBC of ``constraint`` on the displacement (sub)space ``space``."""
+    assert not isinstance(constraint.component, str)  # __post_init__ made an axis name its index
     gdim = geometry.mesh.geometry.dim
     if constraint.component is not None and constraint.component >= gdim:
         raise ParameterError(

@@ -30,11 +30,18 @@ says which field failed which test.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import dolfinx.mesh
+    from dolfinx import fem
+
+    from lungmech.fem.model import Model
 
 __all__ = ["Fields", "absolute_product"]
 
@@ -56,7 +63,7 @@ class Fields:
     """The fields of a model's state vector (free owned rows each), its constrained rows, and the
     free rows coupled to them (where moving an imposed displacement shows in the residual)."""
 
-    def __init__(self, model):
+    def __init__(self, model: Model) -> None:
         comm = model.geometry.mesh.comm
         constrained = model.constrained_dofs()
         units = {"u": "N" if model.plane is None else "N/m", **getattr(model.formulation, "residual_units", {})}
@@ -88,7 +95,7 @@ class Fields:
         s = x.duplicate()
         values = np.abs(x.getArray(readonly=True))
         values[self.displacement] += self.cell_size
-        s.setArray(values)
+        s.setArray(values)  # type: ignore[arg-type]  # petsc4py's stub wants a Sequence; an ndarray works
         return s
 
     def rounding(self, K: PETSc.Mat, x: PETSc.Vec) -> PETSc.Vec:
@@ -111,7 +118,7 @@ def absolute_product(K: PETSc.Mat, s: PETSc.Vec) -> PETSc.Vec:
     """|K| s, the matrix with the absolute values of K's entries applied to s (collective)."""
     A = K.duplicate(copy=True)
     rows, columns, values = A.getValuesCSR()
-    A.setValuesCSR(rows, columns, np.abs(values))
+    A.setValuesCSR(rows, columns, np.abs(values))  # type: ignore[arg-type]  # petsc4py's stub wants Sequences; ndarrays work
     A.assemble()
     result = s.duplicate()
     A.mult(s, result)
@@ -119,7 +126,7 @@ def absolute_product(K: PETSc.Mat, s: PETSc.Vec) -> PETSc.Vec:
     return result
 
 
-def _cell_size(mesh) -> float:
+def _cell_size(mesh: dolfinx.mesh.Mesh) -> float:
     """The shortest first edge of this rank's cells: a length on the scale of the cells (the
     minimum over ranks does not depend on the partition)."""
     cells = mesh.topology.index_map(mesh.topology.dim).size_local
@@ -129,7 +136,7 @@ def _cell_size(mesh) -> float:
     return float(np.linalg.norm(x[:, 1] - x[:, 0], axis=1).min())
 
 
-def _coupled(space, constrained: np.ndarray) -> np.ndarray:
+def _coupled(space: fem.FunctionSpace, constrained: np.ndarray) -> np.ndarray:
     """Owned rows that share a cell with a constrained dof (collective)."""
     from dolfinx import fem, la
 
@@ -156,7 +163,7 @@ class Test:
     translation imposed on a body, say).
     """
 
-    def __init__(self, fields: Fields, rtol: float, atol: float):
+    def __init__(self, fields: Fields, rtol: float, atol: float) -> None:
         self.fields, self.rtol, self.atol = fields, rtol, atol
         self.start_path()
 

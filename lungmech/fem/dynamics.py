@@ -31,6 +31,7 @@ import math
 import numbers
 import time
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, TypeGuard
 
 from mpi4py import MPI
 
@@ -39,7 +40,18 @@ import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem.solver import NewtonOptions, NewtonResult, NewtonSolver, SolveReport, StepReport, steps_model_state
+from lungmech.fem.solver import (
+    NewtonOptions,
+    NewtonResult,
+    NewtonSolver,
+    Solver,
+    SolveReport,
+    StepReport,
+    steps_model_state,
+)
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = [
     "ImplicitEuler",
@@ -151,7 +163,7 @@ def modal_response(
 # --- implicit Euler --------------------------------------------------------------------------------
 
 
-def rest_stiffness(model) -> ufl.Form:
+def rest_stiffness(model: Model) -> ufl.Form:
     """K₀: the second variation of the stored energy ∫ψ dX at rest (u = 0), a bilinear form.
 
     This is the stiffness of Rayleigh damping C = a M + b K₀. It is the Hessian of the stored
@@ -187,7 +199,7 @@ class ImplicitEuler:
         rayleigh: (a, b), damping C = a ρM + b K₀; a term that is 0 is left out of the forms.
     """
 
-    def __init__(self, model, density: float, step: float, rayleigh: tuple[float, float] = (0.0, 0.0)):
+    def __init__(self, model: Model, density: float, step: float, rayleigh: tuple[float, float] = (0.0, 0.0)) -> None:
         _require_displacement_only(model)
         _positive("density", density)
         _positive("step", step)
@@ -228,7 +240,7 @@ class ImplicitEuler:
         self.jacobian = ufl.derivative(residual, model.state, ufl.TrialFunction(model.space))
         self._kinetic = fem.form(0.5 * rho * ufl.inner(self.velocity, self.velocity) * dx)
 
-    def advance(self, solver) -> NewtonResult:
+    def advance(self, solver: Solver) -> NewtonResult:
         """One step from t to t + h with ``solver`` (built on ``residual`` and ``jacobian``).
 
         Loads and imposed displacements take their values at t + h; Newton starts from the
@@ -271,7 +283,7 @@ class ImplicitEuler:
         self.velocity.x.scatter_forward()
 
 
-SolverFactory = Callable[[ImplicitEuler], object]
+SolverFactory = Callable[[ImplicitEuler], Solver]
 
 
 def full_solver(options: NewtonOptions | None = None) -> SolverFactory:
@@ -289,7 +301,7 @@ def full_solver(options: NewtonOptions | None = None) -> SolverFactory:
 
 def march(
     scheme: ImplicitEuler,
-    solver,
+    solver: Solver,
     steps: int,
     on_step: Callable[[ImplicitEuler, StepReport], None] | None = None,
 ) -> SolveReport:
@@ -331,7 +343,7 @@ def march(
 
 
 def integrate(
-    model,
+    model: Model,
     density: float,
     step: float,
     steps: int,
@@ -367,7 +379,7 @@ def integrate(
 # --- checks ----------------------------------------------------------------------------------------
 
 
-def _require_displacement_only(model) -> None:
+def _require_displacement_only(model: Model) -> None:
     if model.multi_field:
         raise ParameterError(
             "dynamics needs the displacement formulation: the extra fields of a multi-field model have "
@@ -375,7 +387,7 @@ def _require_displacement_only(model) -> None:
         )
 
 
-def _real(value: object) -> bool:
+def _real(value: object) -> TypeGuard[float]:  # a real number, as float stands for one in type hints
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 

@@ -15,6 +15,7 @@ import ast
 import math
 import operator
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 import ufl
@@ -34,10 +35,10 @@ _FUNCTIONS: dict[str, Callable[[Expr], Expr]] = {
     "exp": ufl.exp,
     "ln": ufl.ln,
     "sqrt": ufl.sqrt,
-    "abs": abs,
+    "abs": abs,  # type: ignore[dict-item]  # UFL sets Expr.__abs__ at import: its class declares none
     "tanh": ufl.tanh,
 }
-_NUMPY: dict[str, Callable] = {
+_NUMPY: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "sin": np.sin,
     "cos": np.cos,
     "tan": np.tan,
@@ -56,13 +57,13 @@ _BINARY = {
     ast.Div: operator.truediv,
     ast.Pow: operator.pow,
 }
-_UNARY = {ast.USub: operator.neg, ast.UAdd: operator.pos}
+_UNARY: dict[type[ast.unaryop], Callable[[Any], Any]] = {ast.USub: operator.neg, ast.UAdd: operator.pos}
 
 
 class _Symbol:
     """A variable for :func:`check`: every operation on it gives a symbol (nothing is computed)."""
 
-    def _any(self, *_):
+    def _any(self, *_: object) -> _Symbol:
         return self
 
     __add__ = __radd__ = __sub__ = __rsub__ = __mul__ = __rmul__ = _any
@@ -92,7 +93,10 @@ def evaluate(text: str, where: str, points: np.ndarray, time: float) -> np.ndarr
         return np.broadcast_to(np.asarray(value, dtype=float), (len(points),))
 
 
-def _finite(value, where: str, text: str):
+_Value = TypeVar("_Value")
+
+
+def _finite(value: _Value, where: str, text: str) -> _Value:
     """A constant part of a formula, if it is a finite real number; the rest as it is."""
     if isinstance(value, complex):
         raise ParameterError(f"{where}: {text!r}: a part of it is not a real number ({value:g})")
@@ -103,7 +107,9 @@ def _finite(value, where: str, text: str):
     return value
 
 
-def _build(text: str, where: str, names: dict, functions: dict[str, Callable] = _FUNCTIONS):
+def _build(
+    text: str, where: str, names: dict[str, Any], functions: dict[str, Callable[[Any], Any]] = _FUNCTIONS
+) -> Any:
     if not isinstance(text, str):
         raise ParameterError(f"{where}: expected a number or a formula (got {text!r})")
     if len(text) > LONGEST:
@@ -121,11 +127,13 @@ def _build(text: str, where: str, names: dict, functions: dict[str, Callable] = 
         raise ParameterError(f"{where}: {text[:40]!r}…: the formula is nested too deeply") from None
 
 
-def _node(tree: ast.AST, text: str, where: str, names: dict, functions: dict[str, Callable]):
+def _node(
+    tree: ast.AST, text: str, where: str, names: dict[str, Any], functions: dict[str, Callable[[Any], Any]]
+) -> Any:
     """The value of a parsed formula: its constant parts computed, the rest built from ``names``
     and ``functions`` (UFL, NumPy or symbols)."""
 
-    def build(node: ast.AST):
+    def build(node: ast.AST) -> Any:
         if isinstance(node, ast.Expression):
             return build(node.body)
         if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
@@ -166,6 +174,7 @@ def _node(tree: ast.AST, text: str, where: str, names: dict, functions: dict[str
 def _numeric(function: str, value: float, where: str, text: str) -> float:
     """A function of a number, computed now (a formula's constant part)."""
     try:
-        return float({"ln": math.log, "abs": abs}.get(function, getattr(math, function, None))(value))
+        special: dict[str, Callable[[float], float]] = {"ln": math.log, "abs": abs}
+        return float((special.get(function) or getattr(math, function))(value))
     except (ValueError, OverflowError) as e:
         raise ParameterError(f"{where}: {text!r}: {function}({value:g}) is not defined ({e})") from None

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from collections.abc import Mapping
+from dataclasses import Field, dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast
 
 import basix.ufl
 import ufl
@@ -24,6 +25,12 @@ from ufl.core.expr import Expr
 
 from lungmech.errors import ParameterError
 from lungmech.fem.materials import Material, VolumetricSplit
+
+if TYPE_CHECKING:
+    import dolfinx.fem
+    import dolfinx.mesh
+
+    from lungmech.fem.model import Model
 
 
 class Formulation(Protocol):
@@ -34,8 +41,10 @@ class Formulation(Protocol):
     """
 
     fields: ClassVar[tuple[str, ...]]  # the unknowns after u, in order
+    # a dataclass: a parameter on one of its constants is checked by rebuilding it (dataclasses.replace)
+    __dataclass_fields__: ClassVar[dict[str, Field[Any]]]
 
-    def bind(self, mesh) -> Formulation:
+    def bind(self, mesh: dolfinx.mesh.Mesh) -> Formulation:
         """The formulation with its data (e.g. fields given per cell) placed on ``mesh``."""
         ...
 
@@ -44,7 +53,7 @@ class Formulation(Protocol):
         be used in this formulation."""
         ...
 
-    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+    def elements(self, cell: basix.CellType, degree: int, quadrature_degree: int) -> list:
         """The finite elements of the extra fields, in the order of ``fields``."""
         ...
 
@@ -52,7 +61,7 @@ class Formulation(Protocol):
         """The energy per unit reference volume (Pa) from the law, F and the extra fields."""
         ...
 
-    def initial_values(self) -> dict[str, float]:
+    def initial_values(self) -> Mapping[str, float | dolfinx.fem.Function]:
         """Starting values of the extra fields at rest (fields not named start at 0)."""
         ...
 
@@ -77,7 +86,7 @@ class PureDisplacement:
 
     fields: ClassVar[tuple[str, ...]] = ()
 
-    def bind(self, mesh) -> PureDisplacement:
+    def bind(self, mesh: dolfinx.mesh.Mesh) -> PureDisplacement:
         """Itself: there are no data to place."""
         return self
 
@@ -86,7 +95,7 @@ class PureDisplacement:
         if incompressible(material):
             raise ParameterError(f"the incompressible law '{material.name}' needs the mixed formulation")
 
-    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+    def elements(self, cell: basix.CellType, degree: int, quadrature_degree: int) -> list:
         """No extra fields."""
         return []
 
@@ -120,7 +129,7 @@ class TaylorHood:
     fields: ClassVar[tuple[str, ...]] = ("p",)
     residual_units: ClassVar[dict[str, str]] = {"p": "m^3"}  # ∫ (g(J) + p/bulk) q dX
 
-    def bind(self, mesh) -> TaylorHood:
+    def bind(self, mesh: dolfinx.mesh.Mesh) -> TaylorHood:
         """Itself: there are no data to place."""
         return self
 
@@ -136,13 +145,14 @@ class TaylorHood:
                 "use neo_hookean, stable_neo_hookean or mooney_rivlin"
             )
 
-    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+    def elements(self, cell: basix.CellType, degree: int, quadrature_degree: int) -> list:
         """p in continuous Lagrange P_{k−1}."""
         return [basix.ufl.element("Lagrange", cell, degree - 1)]
 
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
         """ψ_iso(F) − p g(J) − p²/(2 bulk) (Pa); without the last term for bulk = inf."""
         p = fields["p"]
+        material = cast(VolumetricSplit, material)  # check() refused a law without the split
         density = material.psi_iso(F) - p * material.volumetric(ufl.det(F))
         if not incompressible(material):
             density -= p**2 / (2 * material.bulk)
@@ -152,7 +162,7 @@ class TaylorHood:
         """p starts at 0 (the stress-free state)."""
         return {}
 
-    def point_fields(self, model) -> dict[str, Expr]:
+    def point_fields(self, model: Model) -> dict[str, Expr]:
         """The pressure p (Pa) for outputs at the displacement's nodes (P_{k−1} ⊂ P_k: exact)."""
         return {"pressure": model.fields["p"]}
 
@@ -173,7 +183,7 @@ class PlaneStress:
     fields: ClassVar[tuple[str, ...]] = ("thickness_stretch",)
     residual_units: ClassVar[dict[str, str]] = {"thickness_stretch": "N/m"}  # ∫ ∂ψ/∂λ₃ μ dA, per unit thickness
 
-    def bind(self, mesh) -> PlaneStress:
+    def bind(self, mesh: dolfinx.mesh.Mesh) -> PlaneStress:
         """Itself: there are no data to place."""
         return self
 
@@ -184,7 +194,7 @@ class PlaneStress:
                 "an incompressible law (bulk = inf) cannot be used in plane stress here; give it a finite bulk modulus"
             )
 
-    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+    def elements(self, cell: basix.CellType, degree: int, quadrature_degree: int) -> list:
         """λ₃ in discontinuous Lagrange DG_{k−1}."""
         return [basix.ufl.element("DG", cell, degree - 1)]
 

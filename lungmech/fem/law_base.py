@@ -11,12 +11,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from typing import Protocol, Self, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, Self, runtime_checkable
 
 import ufl
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 Param = float | ufl.core.expr.Expr  # a number, or a UFL expression such as a fem.Constant
 
@@ -29,6 +32,9 @@ class Material(Protocol):
     ``"neo_hookean"``) and its parameters as dataclass fields.
     """
 
+    name: ClassVar[str]
+    __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]  # a dataclass: its parameters are its fields
+
     def psi(self, F: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
         """The strain energy density ψ(F) in Pa (J per m³ of reference volume)."""
         ...
@@ -39,7 +45,7 @@ class Material(Protocol):
 
 
 @runtime_checkable
-class VolumetricSplit(Protocol):
+class VolumetricSplit(Material, Protocol):
     """A law written ψ(F) = ψ_iso(F) + bulk/2 · g(J)² with g(1) = 0.
 
     The mixed formulation replaces the last term by −p g(J) − p²/(2 bulk): eliminating p gives
@@ -52,7 +58,8 @@ class VolumetricSplit(Protocol):
         The modulus (Pa) in front of g(J)²/2; ``inf`` for an incompressible material.
     """
 
-    bulk: Param
+    @property
+    def bulk(self) -> Param: ...
 
     def psi_iso(self, F: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
         """ψ without the bulk term (Pa)."""
@@ -98,8 +105,8 @@ def lame_from_young(E: float, nu: float) -> tuple[float, float]:
 
 def check_real(name: str, value: object) -> None:
     """A finite real number; only a bulk modulus may be +inf (the incompressible limit)."""
-    checks.real(f"parameter '{name}'", value, infinite=name in ("bulk", "lmbda"))
-    if math.isinf(value) and value < 0:
+    number = checks.real(f"parameter '{name}'", value, infinite=name in ("bulk", "lmbda"))
+    if math.isinf(number) and number < 0:
         raise ParameterError(f"parameter '{name}' must be a finite number or +inf (got {value})")
 
 
@@ -108,7 +115,7 @@ def require(law: object, condition: bool, message: str) -> None:
         raise ParameterError(f"{type(law).__name__}: {message}")
 
 
-def plain_numbers(law: object) -> dict[str, float] | None:
+def plain_numbers(law: DataclassInstance) -> dict[str, float] | None:
     """The law's parameters when all are plain numbers (validation is skipped for UFL values)."""
     values = {f.name: getattr(law, f.name) for f in dataclasses.fields(law)}
     for name, v in values.items():
@@ -132,7 +139,14 @@ def nonpolynomial_degree(gradient_degree: int) -> int:
 class LameLaw:
     """Laws parametrised by the Lamé constants (mu, lmbda): validation and (E, ν) constructor."""
 
-    def __post_init__(self):
+    mu: Param
+    lmbda: Param
+
+    if TYPE_CHECKING:  # each law is a dataclass of (mu, lmbda), with their __init__
+
+        def __init__(self, mu: Param, lmbda: Param) -> None: ...
+
+    def __post_init__(self: DataclassInstance) -> None:
         check_lame(self)
 
     @classmethod
@@ -145,7 +159,7 @@ class LameLaw:
 class SplitLaw:
     """ψ = ψ_iso + bulk/2 g(J)² for laws that define psi_iso, volumetric and bulk."""
 
-    def psi(self, F):
+    def psi(self: VolumetricSplit, F: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
         """ψ_iso(F) + bulk/2 g(J)² (Pa). Refused for bulk = inf: only the mixed formulation can
         impose J = 1."""
         if isinstance(self.bulk, numbers.Real) and math.isinf(self.bulk):
@@ -170,7 +184,7 @@ class LameSplitLaw(LameLaw, SplitLaw):
         return cls(mu, math.inf)
 
 
-def check_lame(law) -> None:
+def check_lame(law: DataclassInstance) -> None:
     if (p := plain_numbers(law)) is None:
         return
     mu, lmbda = p["mu"], p["lmbda"]

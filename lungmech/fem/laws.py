@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import ufl
+from ufl.core.expr import Expr
 
 from lungmech.errors import ParameterError
 from lungmech.fem.kinematics import green_lagrange, invariants, small_strain
@@ -55,7 +56,7 @@ class LinearElastic(LameLaw):
     name: ClassVar[str] = "linear"
     small_strain: ClassVar[bool] = True  # its stress ∂ψ/∂F is σ itself: no finite-strain push-forward
 
-    def psi(self, F):
+    def psi(self, F: Expr) -> Expr:
         """μ ε:ε + λ/2 (tr ε)² (Pa)."""
         eps = small_strain(F)
         return self.mu * ufl.inner(eps, eps) + self.lmbda / 2 * ufl.tr(eps) ** 2
@@ -91,7 +92,7 @@ class SaintVenantKirchhoff(LameLaw):
     lmbda: Param
     name: ClassVar[str] = "saint_venant_kirchhoff"
 
-    def psi(self, F):
+    def psi(self, F: Expr) -> Expr:
         """μ E:E + λ/2 (tr E)² (Pa)."""
         E = green_lagrange(F)
         return self.mu * ufl.inner(E, E) + self.lmbda / 2 * ufl.tr(E) ** 2
@@ -133,12 +134,12 @@ class NeoHookean(LameSplitLaw):
         """The modulus of the volumetric split, λ (Pa)."""
         return self.lmbda
 
-    def psi_iso(self, F):
+    def psi_iso(self, F: Expr) -> Expr:
         """μ/2 (I1 − 3) − μ ln J (Pa)."""
         I1, _, J = invariants(F)
         return self.mu / 2 * (I1 - 3) - self.mu * ufl.ln(J)
 
-    def volumetric(self, J):
+    def volumetric(self, J: Expr) -> Expr:
         """g(J) = ln J."""
         return ufl.ln(J)
 
@@ -178,13 +179,13 @@ class StableNeoHookean(LameSplitLaw):
         """The modulus of the volumetric split, λ' = λ + 5μ/6 (Pa)."""
         return self.lmbda + 5 * self.mu / 6
 
-    def psi_iso(self, F):
+    def psi_iso(self, F: Expr) -> Expr:
         """μ'/2 (I1 − 3) − μ'/2 ln(I1 + 1) with μ' = 4μ/3 (Pa)."""
         I1, _, _ = invariants(F)
         mu_s = 4 * self.mu / 3
         return mu_s / 2 * (I1 - 3) - mu_s / 2 * ufl.ln(I1 + 1)
 
-    def volumetric(self, J):
+    def volumetric(self, J: Expr) -> Expr:
         """g(J) = J − a, a = 1 + 3μ'/(4λ')."""
         return J - (1 + 3 * (4 * self.mu / 3) / (4 * self.bulk))
 
@@ -220,7 +221,7 @@ class MooneyRivlin(SplitLaw):
     bulk: Param
     name: ClassVar[str] = "mooney_rivlin"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (p := plain_numbers(self)) is not None:
             require(self, p["c1"] >= 0 and p["c2"] >= 0 and p["c1"] + p["c2"] > 0, "need c1, c2 >= 0, c1 + c2 > 0")
             require(self, p["bulk"] > 0, f"bulk must be > 0 (got {p['bulk']})")
@@ -240,12 +241,12 @@ class MooneyRivlin(SplitLaw):
         formulation."""
         return cls(c1, c2, math.inf)
 
-    def psi_iso(self, F):
+    def psi_iso(self, F: Expr) -> Expr:
         """c1 (I1 − 3 − 2 ln J) + c2 (I2 − 3 − 4 ln J) (Pa)."""
         I1, I2, J = invariants(F)
         return self.c1 * (I1 - 3 - 2 * ufl.ln(J)) + self.c2 * (I2 - 3 - 4 * ufl.ln(J))
 
-    def volumetric(self, J):
+    def volumetric(self, J: Expr) -> Expr:
         """g(J) = ln J."""
         return ufl.ln(J)
 
@@ -282,7 +283,7 @@ class CiarletGeymonat:
     c2: Param = 0.0
     name: ClassVar[str] = "ciarlet_geymonat"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (p := plain_numbers(self)) is not None:
             require(self, min(p.values()) >= 0 and max(p.values()) > 0, "need c0, c1, c2 >= 0, not all zero")
 
@@ -299,7 +300,7 @@ class CiarletGeymonat:
             )
         return cls(lmbda / 4 - c2, mu / 2 - c2, c2)
 
-    def psi(self, F):
+    def psi(self, F: Expr) -> Expr:
         """c0 (J² − 1 − 2 ln J) + c1 (I1 − 3 − 2 ln J) + c2 (I2 − 3 − 4 ln J) (Pa)."""
         I1, I2, J = invariants(F)
         lnJ = ufl.ln(J)
@@ -336,11 +337,11 @@ class ExponentialCiarletGeymonat:
     gamma: Param
     name: ClassVar[str] = "exponential_ciarlet_geymonat"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (p := plain_numbers(self)) is not None:
             require(self, p["alpha"] > 0 and p["gamma"] > 0, "need alpha > 0 and gamma > 0")
 
-    def psi(self, F):
+    def psi(self, F: Expr) -> Expr:
         """α (exp(γ (J² − 1 − 2 ln J)) − 1) (Pa)."""
         J = ufl.det(F)
         return self.alpha * (ufl.exp(self.gamma * (J**2 - 1 - 2 * ufl.ln(J))) - 1)
@@ -371,11 +372,11 @@ class Sum:
     label: str = field(default="", compare=False)  # the named law it is, if any (e.g. "lung_skeleton")
     name: ClassVar[str] = "sum"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not self.terms:
             raise ParameterError("Sum: needs at least one law")
 
-    def psi(self, F):
+    def psi(self, F: Expr) -> Expr:
         """Σᵢ ψᵢ(F) (Pa)."""
         return sum((t.psi(F) for t in self.terms[1:]), self.terms[0].psi(F))
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from petsc4py import PETSc
 
@@ -30,6 +31,14 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.fem.linear import factorised, use_lu
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    import dolfinx.mesh
+
+    from lungmech.fem.model import Model
+    from lungmech.fem.solver_interface import Solver
 
 __all__ = [
     "RUNAWAY",
@@ -49,10 +58,13 @@ STABILITY_LOST = 0.1  # |λ_min| below this fraction of its value at rest
 RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
-def at_quadrature_points(expression, mesh, degree: int, cells: np.ndarray | None = None) -> Callable[[], np.ndarray]:
+def at_quadrature_points(
+    expression: ufl.core.expr.Expr, mesh: dolfinx.mesh.Mesh, degree: int, cells: np.ndarray | None = None
+) -> Callable[[], np.ndarray]:
     """A function returning ``expression`` at the degree-``degree`` quadrature points of the
     owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points) + the value shape."""
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], max(degree, 1))
+    points = np.asarray(points)  # an array already: basix's hint says any array-like
     compiled = fem.Expression(expression, points)
     if cells is None:
         cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
@@ -60,12 +72,12 @@ def at_quadrature_points(expression, mesh, degree: int, cells: np.ndarray | None
     return lambda: compiled.eval(mesh, cells).reshape(shape)
 
 
-def quadrature_degree(model) -> int:
+def quadrature_degree(model: Model) -> int:
     """The quadrature degree of the model's cell integrals (2 if it leaves it to UFL)."""
     return model.dx.metadata().get("quadrature_degree", 2)
 
 
-def smallest(values: Callable[[], np.ndarray], comm) -> Callable[[], float]:
+def smallest(values: Callable[[], np.ndarray], comm: MPI.Comm) -> Callable[[], float]:
     """A function returning the smallest of ``values()`` over all ranks (nan if any is nan or
     infinite; collective)."""
 
@@ -80,14 +92,14 @@ def smallest(values: Callable[[], np.ndarray], comm) -> Callable[[], float]:
     return evaluate
 
 
-def min_jacobian(model, cells: np.ndarray | None = None) -> Callable[[], float]:
+def min_jacobian(model: Model, cells: np.ndarray | None = None) -> Callable[[], float]:
     """A function returning the smallest J = det F at the quadrature points of the owned cells
     (or of ``cells``) (nan if undefined; collective)."""
     mesh = model.geometry.mesh
     return smallest(at_quadrature_points(ufl.det(model.F), mesh, quadrature_degree(model), cells), mesh.comm)
 
 
-def displacement_gradient(model) -> Callable[[], np.ndarray]:
+def displacement_gradient(model: Model) -> Callable[[], np.ndarray]:
     """A function returning F = I + ∇u at this rank's quadrature points, (cells, points, d, d);
     compiled once per model."""
     if model not in _gradients:
@@ -105,7 +117,7 @@ class Inversion:
     ``smallest`` returns the smallest J where the state is checked (default: every owned cell's
     quadrature points, :func:`min_jacobian`); a hyper-reduced model checks its sample."""
 
-    def __init__(self, model, smallest: Callable[[], float] | None = None):
+    def __init__(self, model: Model, smallest: Callable[[], float] | None = None) -> None:
         self._smallest = None
         if not getattr(model.material, "small_strain", False):
             self._smallest = smallest or min_jacobian(model)
@@ -120,7 +132,7 @@ class Inversion:
         return f"an inverted state (smallest J = det F = {smallest:.3g}), not an equilibrium of a real body"
 
 
-def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
+def smallest_eigenvalue(model: Model, jacobian: fem.Form) -> float:
     """The real part of the eigenvalue of the tangent nearest 0, on the free dofs (collective)."""
     from slepc4py import SLEPc
 
@@ -151,7 +163,7 @@ def smallest_eigenvalue(model, jacobian: fem.Form) -> float:
 
 
 def compliance(
-    model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[float], None], t: float, delta: float
+    model: Model, residual: fem.Form, jacobian: fem.Form, drive: Callable[[float], None], t: float, delta: float
 ) -> float:
     """|K⁻¹ ∂R/∂t| on the displacement at the model's state and time t (collective): how far the
     body moves per unit of load time. ∂R/∂t is a difference quotient over ``delta``."""
@@ -162,7 +174,7 @@ def compliance(
     def residual_at(time: float) -> PETSc.Vec:
         drive(time)
         vector = assemble_vector(residual)
-        vector.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        vector.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
         vector.getArray()[constrained] = 0.0
         return vector
 
@@ -185,8 +197,8 @@ def compliance(
 
 
 def diagnose(
-    model,
-    solver,
+    model: Model,
+    solver: Solver,
     drive: Callable[[float], None],
     t: float,
     start: tuple[np.ndarray, float],
@@ -223,7 +235,9 @@ def diagnose(
     return ""
 
 
-def _stability(model, solver, drive: Callable[[float], None], t: float, start: tuple[np.ndarray, float]) -> str:
+def _stability(
+    model: Model, solver: Solver, drive: Callable[[float], None], t: float, start: tuple[np.ndarray, float]
+) -> str:
     """A loss of stability at the model's (last converged) state, or ""."""
     state, begin = start
     delta = 1e-6 * max(abs(t - begin), 1.0)

@@ -40,7 +40,7 @@ def factorisation_memory(A: PETSc.Mat, options: dict | None = None) -> float | N
     database = PETSc.Options()
     chosen = {**(options or {}), "mat_mumps_icntl_23": 1}
     for key, value in chosen.items():
-        database[prefix + key] = value
+        database.setValue(prefix + key, value)
     ksp = factorised(A)
     try:
         ksp.setOptionsPrefix(prefix)

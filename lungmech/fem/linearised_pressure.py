@@ -30,6 +30,8 @@ Newton iterations on every mesh (benchmarks/cook.py); compressible laws see no c
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
 import basix.ufl
 import numpy as np
 import ufl
@@ -37,6 +39,9 @@ from dolfinx import fem
 
 from lungmech.fem.formulations import PlaneStress, PureDisplacement, incompressible
 from lungmech.fem.materials import VolumetricSplit
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["LinearisedPressure"]
 
@@ -47,8 +52,9 @@ class LinearisedPressure:
     ``tangent`` is the Newton tangent (a UFL form); :meth:`at_equilibrium` sets s from the
     current state, :meth:`advance` moves it along a step Newton took."""
 
-    def __init__(self, model):
-        material, state, dx = model.material, model.state, model.dx
+    def __init__(self, model: Model) -> None:
+        material = cast(VolumetricSplit, model.material)  # made for a law with a split only (:meth:`of`)
+        state, dx = model.state, model.dx
         mesh = model.geometry.mesh
         element = basix.ufl.quadrature_element(
             mesh.basix_cell(), value_shape=(), degree=dx.metadata()["quadrature_degree"]
@@ -66,7 +72,7 @@ class LinearisedPressure:
         self._state = state
 
     @staticmethod
-    def of(model) -> LinearisedPressure | None:
+    def of(model: Model) -> LinearisedPressure | None:
         """For a displacement model (3-D, plane strain or plane stress) whose law has a finite
         volumetric split; None otherwise (the mixed and the lung's formulations have their own
         fields, a law without a split has no bulk stress)."""

@@ -14,8 +14,8 @@ the formulation's fields, its dx), so a load may act on any field, not only on u
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import ClassVar, NamedTuple
+from dataclasses import Field, dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple, Protocol, cast
 
 from mpi4py import MPI
 
@@ -29,6 +29,47 @@ from lungmech.errors import ParameterError
 from lungmech.fem import expressions
 from lungmech.fem.kinematics import current_area_normal
 from lungmech.fem.ramp import Ramp
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
+
+LoadValue = float | str | Sequence[float | str]  # a number or a vector, each part maybe a formula
+
+
+class Load(Protocol):
+    """What a model uses of a load (:class:`lungmech.fem.model.Model`): its value (a number or a
+    vector, any part of it a formula), what the model's Constant holds at ramp 1 (``magnitude``),
+    its ramp, its name (parameters target it by name) and its label for outputs and messages.
+
+    A load is a dataclass (a parameter on its value or posture replaces that field), and defines
+    ``potential(model, value)``, ``virtual_work(model, v, value)`` or both (see the module): the
+    model asks which with ``hasattr``. The loads here and the lung's
+    (:class:`lungmech.lung.poromechanics.AlveolarPressure`, :class:`lungmech.lung.gravity.Gravity`)
+    are :class:`Named` ones.
+    """
+
+    __dataclass_fields__: ClassVar[dict[str, Field[Any]]]
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def value(self) -> LoadValue: ...
+
+    @property
+    def ramp(self) -> Ramp: ...
+
+    @property
+    def label(self) -> str: ...
+
+    @property
+    def magnitude(self) -> np.ndarray: ...
+
+
+class _Described(Load, Protocol):
+    """A :class:`Named` load: a :class:`Load` that says what it is (``kind``)."""
+
+    kind: ClassVar[str]
 
 
 class StateDependentWork(NamedTuple):
@@ -62,12 +103,12 @@ class Named:
     kind: ClassVar[str]
 
     @property
-    def label(self) -> str:
+    def label(self: _Described) -> str:
         where = getattr(self, "boundary", None)
         where = (where,) if isinstance(where, str) else where
         return self.name or (f"{self.kind} on {'+'.join(where)}" if where else self.kind)
 
-    def _check(self, vector: bool, formulas: bool = False) -> None:
+    def _check(self: _Described, vector: bool, formulas: bool = False) -> None:
         """Validate name, ramp and value (a number, or a vector of 2 or 3 numbers: the model
         checks it against the mesh's dimension; with ``formulas``, any of them may be a formula
         of x, y, z, t), and the boundary."""
@@ -75,6 +116,7 @@ class Named:
             raise ParameterError(f"name must be a string (got {self.name!r})")
         if not isinstance(self.ramp, Ramp):
             raise ParameterError(f"ramp must be a Ramp (got {self.ramp!r})")
+        value: LoadValue
         if formulas and _has_formula(self.value):
             value = _formulas(self.value, vector)
         else:
@@ -85,26 +127,27 @@ class Named:
             object.__setattr__(self, "boundary", self.boundary if isinstance(self.boundary, str) else names)
 
     @property
-    def magnitude(self) -> np.ndarray:
+    def magnitude(self: _Described) -> np.ndarray:
         """What the model's Constant holds at ramp 1: the value, or 1 for a formula."""
         return np.ones(()) if _has_formula(self.value) else np.asarray(self.value, dtype=float)
 
-    def current(self, model, value: Expr) -> Expr:
+    def current(self: _Described, model: Model, value: Expr) -> Expr:
         """The load at the model's time as UFL: ``value`` (the model's Constant, ramp(t) ×
         magnitude), times the formulas of the reference position and t where there are any."""
         if not _has_formula(self.value):
             return value
         position, time = ufl.SpatialCoordinate(model.geometry.mesh), model.time_constant
 
-        def component(item, i: int | None) -> Expr | float:
+        def component(item: float | str, i: int | None) -> Expr | float:
             where = f"load '{self.label}': value" + ("" if i is None else f"[{i}]")
             return expressions.to_ufl(item, where, position, time) if isinstance(item, str) else item
 
         if isinstance(self.value, str):
             return value * component(self.value, None)
-        return value * ufl.as_vector([component(item, i) for i, item in enumerate(self.value)])
+        vector = cast(Sequence[float | str], self.value)  # not a number: it has a formula
+        return value * ufl.as_vector([component(item, i) for i, item in enumerate(vector)])
 
-    def undefined(self, model, times: Sequence[float]) -> str:
+    def undefined(self: _Described, model: Model, times: Sequence[float]) -> str:
         """Collective: "" if the load's formulas are finite where it acts at ``times`` (s), else
         which formula is not and where: nan or inf there makes the residual so, and Newton's
         failure would look like an inverted element. Checked at the midpoints of its cells, or
@@ -120,7 +163,8 @@ class Named:
         else:
             entities = np.arange(mesh.topology.index_map(dim).size_local, dtype=np.int32)
         points = dmesh.compute_midpoints(mesh, dim, entities.astype(np.int32))[:, : mesh.geometry.dim]
-        items = [(None, self.value)] if isinstance(self.value, str) else list(enumerate(self.value))
+        vector = cast(Sequence[float | str], self.value)  # not a number: it has a formula
+        items = [(None, self.value)] if isinstance(self.value, str) else list(enumerate(vector))
         found = ""
         for t in times:
             for i, item in items:
@@ -134,22 +178,22 @@ class Named:
                     found = (
                         f"load '{self.label}': {where} = {item!r} is {values[bad[0]]} at x = ({at}) m, t = {t:.6g} s"
                     )
-        found = [f for f in mesh.comm.allgather(found) if f]
-        if not found:
+        reports = [f for f in mesh.comm.allgather(found) if f]
+        if not reports:
             return ""
-        return f"{found[0]}: a load's formula must be finite wherever and whenever the load acts"
+        return f"{reports[0]}: a load's formula must be finite wherever and whenever the load acts"
 
 
-def is_pressure(load) -> bool:
+def is_pressure(load: Load) -> bool:
     """Whether a load's value is one number (a pressure, Pa): not a vector, not a formula."""
     return np.ndim(load.value) == 0 and not isinstance(load.value, str)
 
 
-def _has_formula(value) -> bool:
+def _has_formula(value: object) -> bool:
     return isinstance(value, str) or (isinstance(value, tuple | list) and any(isinstance(v, str) for v in value))
 
 
-def _formulas(value, vector: bool) -> str | tuple:
+def _formulas(value: object, vector: bool) -> str | tuple[float | str, ...]:
     """A value with formulas, checked: each one parses (the names against the mesh come later)."""
     if not vector:
         if not isinstance(value, str):
@@ -175,10 +219,10 @@ class BodyForce(Named):
     name: str = ""
     kind: ClassVar[str] = "body force"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=True, formulas=True)
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         return -ufl.dot(self.current(model, value), model.u) * ufl.dx(domain=model.geometry.mesh)
 
 
@@ -193,10 +237,10 @@ class Traction(Named):
     name: str = ""
     kind: ClassVar[str] = "traction"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=True, formulas=True)
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         return -ufl.dot(self.current(model, value), model.u) * model.geometry.ds(self.boundary)
 
 
@@ -211,10 +255,10 @@ class Force(Named):
     name: str = ""
     kind: ClassVar[str] = "force"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=True)
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         from dolfinx import fem
 
         ds = model.geometry.ds(self.boundary)
@@ -236,10 +280,10 @@ class NormalPressure(Named):
     name: str = ""
     kind: ClassVar[str] = "normal pressure"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=False, formulas=True)
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         N = ufl.FacetNormal(model.geometry.mesh)
         return self.current(model, value) * ufl.dot(N, model.u) * model.geometry.ds(self.boundary)
 
@@ -259,12 +303,9 @@ class FollowerPressure(Named):
     name: str = ""
     kind: ClassVar[str] = "follower pressure"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=False, formulas=True)
 
-    def virtual_work(self, model, v: Expr, value: Expr) -> ufl.Form:
+    def virtual_work(self, model: Model, v: Expr, value: Expr) -> ufl.Form:
         n_da = current_area_normal(model.F, ufl.FacetNormal(model.geometry.mesh))
         return -self.current(model, value) * ufl.dot(n_da, v) * model.geometry.ds(self.boundary)
-
-
-Load = BodyForce | Traction | Force | NormalPressure | FollowerPressure

@@ -23,6 +23,7 @@ import dataclasses
 import math
 import numbers
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import ufl
 
@@ -37,6 +38,9 @@ from lungmech.fem.laws import (
     StableNeoHookean,
     Sum,
 )
+
+if TYPE_CHECKING:
+    import dolfinx.mesh
 
 __all__ = [
     "LAWS",
@@ -74,7 +78,7 @@ def numbers_of(law: Material) -> dict[str, float]:
 def with_values(law: Material, values: Mapping[str, Param]) -> Material:
     """A copy of ``law`` with the parameters at the paths of :func:`numbers_of` replaced."""
     if isinstance(law, Sum):
-        parts = [{} for _ in law.terms]
+        parts: list[dict[str, Param]] = [{} for _ in law.terms]
         for path, v in values.items():
             index, _, rest = path.removeprefix("terms[").partition("].")
             parts[int(index)][rest] = v
@@ -82,7 +86,7 @@ def with_values(law: Material, values: Mapping[str, Param]) -> Material:
     return dataclasses.replace(law, **values) if values else law
 
 
-def with_constants(law: Material, mesh) -> Material:
+def with_constants(law: Material, mesh: dolfinx.mesh.Mesh) -> Material:
     """A copy of ``law`` whose finite parameters are ``fem.Constant`` objects on ``mesh``.
 
     Forms built from it compile once; changing a parameter is then ``law.mu.value = ...``.
@@ -103,7 +107,7 @@ def first_piola(law: Material, F: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
     return ufl.diff(law.psi(F), F)
 
 
-def shear_modulus(law: Material, mesh) -> ufl.core.expr.Expr:
+def shear_modulus(law: Material, mesh: dolfinx.mesh.Mesh) -> ufl.core.expr.Expr:
     """The initial shear modulus μ₀ = ∂²ψ/∂γ² at γ = 0 of a simple shear F = I + γ e₁⊗e₂ (Pa; a
     UFL expression, a field where the law's parameters are). J = 1 in simple shear, so a split
     law's bulk term adds nothing and ψ_iso is used (it is defined also for bulk = inf).

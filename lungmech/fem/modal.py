@@ -11,6 +11,7 @@ two planes) come out as separate M-orthonormal vectors.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, cast
 
 from petsc4py import PETSc
 
@@ -22,6 +23,9 @@ from slepc4py import SLEPc
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.linear import use_lu
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 
 @dataclass
@@ -43,7 +47,7 @@ class Modes:
         return np.abs(self.eigenvalues) <= 1e-8 * self.scale
 
 
-def mass_matrix(model, density: float) -> PETSc.Mat:
+def mass_matrix(model: Model, density: float) -> PETSc.Mat:
     """M = ∫ ρ u·v dX, with 0 on the diagonal of constrained rows."""
     u, v = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
     M = assemble_matrix(fem.form(density * ufl.inner(u, v) * ufl.dx), bcs=model.bcs, diag=0.0)
@@ -52,7 +56,7 @@ def mass_matrix(model, density: float) -> PETSc.Mat:
 
 
 def modal_analysis(
-    model, count: int, density: float = 1.0, shift: float | None = None, tolerance: float = 1e-10
+    model: Model, count: int, density: float = 1.0, shift: float | None = None, tolerance: float = 1e-10
 ) -> Modes:
     """The ``count`` modes nearest ``shift`` (default 0, or a small negative shift for a free body).
 
@@ -106,6 +110,6 @@ def modal_analysis(
 
 def _largest_diagonal(A: PETSc.Mat) -> float:
     diagonal = A.getDiagonal()
-    value = diagonal.norm(PETSc.NormType.NORM_INFINITY)
+    value = diagonal.norm(PETSc.NormType.NORM_INFINITY)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
     diagonal.destroy()
-    return value
+    return cast(float, value)  # one norm, not NORM_1_AND_2's pair

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import basix.ufl
 import numpy as np
@@ -26,6 +27,11 @@ from lungmech.fem.kinematics import PLANES, deformation_gradient
 from lungmech.fem.loads import Load, StateDependentWork, is_pressure
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
+
+if TYPE_CHECKING:
+    import dolfinx.mesh
+
+    from lungmech.mesh.geometry import Geometry
 
 
 class Model:
@@ -52,7 +58,7 @@ class Model:
 
     def __init__(
         self,
-        geometry,
+        geometry: Geometry,
         material: Material | binding.LawAt,
         *,
         degree: int = 1,
@@ -63,12 +69,14 @@ class Model:
         quadrature_degree: int | None = None,
         parameters: Sequence[Parameter] = (),
         plane: str | None = None,
-    ):
+    ) -> None:
         mesh = geometry.mesh
         self.plane = _plane(mesh, plane)
         self.geometry = geometry
         self.parameters = Parameters(parameters)
-        self._interfaces = {p.name: fem.Constant(mesh, p.default) for p in self.parameters if p.kind == "interface"}
+        self._interfaces: dict[str, fem.Constant] = {
+            p.name: fem.Constant(mesh, p.default) for p in self.parameters if p.kind == "interface"
+        }
         law_at = binding.law_function(material, self.parameters)
         material = law_at(binding.outside_keys(self.parameters, self.parameters.defaults))
         self.material, assign_material = binding.material(law_at, self.parameters, geometry, self._interfaces)
@@ -84,9 +92,9 @@ class Model:
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
         for load in self.loads:
-            if np.ndim(load.value) == 1 and len(load.value) != mesh.geometry.dim:
+            if np.ndim(load.value) == 1 and np.size(load.value) != mesh.geometry.dim:
                 raise ParameterError(
-                    f"load '{getattr(load, 'label', type(load).__name__)}': its value has {len(load.value)} "
+                    f"load '{getattr(load, 'label', type(load).__name__)}': its value has {np.size(load.value)} "
                     f"components, the mesh is {mesh.geometry.dim}-D"
                 )
         if not isinstance(degree, int) or isinstance(degree, bool) or degree < 1:
@@ -110,7 +118,7 @@ class Model:
         else:
             self.space = fem.functionspace(mesh, element_u)
             self.displacement_space = self.space
-        self.state = fem.Function(self.space, name="state")
+        self.state: fem.Function = fem.Function(self.space, name="state")
         self.reset()
         unknowns = ufl.split(self.state) if extra else (self.state,)
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
@@ -122,7 +130,7 @@ class Model:
         v = ufl.TestFunction(self.space)
         v_u = ufl.split(v)[0] if self.multi_field else v
         self._load_values = [fem.Constant(mesh, np.zeros(np.shape(load.magnitude))) for load in self.loads]
-        self.time_constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
+        self.time_constant: fem.Constant = fem.Constant(mesh, 0.0)  # t in loads given as formulas (s)
         self.potential = self.energy_density * self.dx
         virtual_work, self._state_dependent = [], []
         load_potentials = []
@@ -175,7 +183,7 @@ class Model:
         for imposed, amplitude in zip(self._imposed, self._constraint_amplitudes(current)):
             imposed.amplitude = amplitude
         for name, constant in self._interfaces.items():
-            constant.value = current[name]
+            constant.value = np.asarray(current[name])
         self.parameter_values = current
         self.set_time(self.time, *self._scaling)
 
@@ -186,11 +194,12 @@ class Model:
         for index, name in enumerate(self.formulation.fields, start=1):
             if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
                 subspace, dofs = self.space.sub(index).collapse()
-                start = fem.Function(subspace)
-                if isinstance(initial[name], fem.Function):
-                    start.interpolate(initial[name])
+                start: fem.Function = fem.Function(subspace)
+                value = initial[name]
+                if isinstance(value, fem.Function):
+                    start.interpolate(value)
                 else:
-                    start.x.array[:] = initial[name]
+                    start.x.array[:] = value
                 self.state.x.array[dofs] = start.x.array
 
     def set_time(self, t: float, load_factor: float | Sequence[float] = 1.0, about: float | None = None) -> None:
@@ -203,7 +212,7 @@ class Model:
         """
         self.time, self._scaling = t, (load_factor, about)
         self.loading += 1
-        self.time_constant.value = t
+        self.time_constant.value = np.asarray(t)
         factors = np.broadcast_to(np.asarray(load_factor, dtype=float), (len(self.loads),))
         for load, value, factor, amplitude in zip(self.loads, self._load_values, factors, self._amplitudes):
             base = 0.0 if about is None else load.ramp(about)
@@ -307,7 +316,7 @@ class Model:
         return self.material.quadrature_degree(gradient_degree)
 
 
-def _plane(mesh, plane: str | None) -> str | None:
+def _plane(mesh: dolfinx.mesh.Mesh, plane: str | None) -> str | None:
     """The plane hypothesis of a 2-D mesh (required), None for a 3-D one (where it is refused)."""
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     if tdim == 2:

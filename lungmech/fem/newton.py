@@ -9,10 +9,12 @@ import functools
 import itertools
 import logging
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, cast
 
 from petsc4py import PETSc
 
 import numpy as np
+import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem, assemble_matrix, assign
 
@@ -30,6 +32,9 @@ from lungmech.fem.solver_options import (
 )
 from lungmech.fem.state_dependent import StateDependent
 
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
+
 __all__ = ["ITERATIVE_FROM_DOFS", "NOT_CONVERGED", "NewtonSolver"]
 
 log = logging.getLogger("lungmech")
@@ -41,6 +46,11 @@ _REASONS = {
     if name.isupper() or name.startswith(("CONVERGED", "DIVERGED", "ITERATING"))
 }
 _prefixes = itertools.count()
+# What SNES.getFunction() and getJacobian() return (petsc4py's stubs say the callback alone): the
+# residual vector (the operator and the preconditioner's matrix), and the callback with its arguments
+_Callback = tuple[Callable[..., None], tuple[Any, ...], dict[str, Any]]
+_Function = tuple[PETSc.Vec, _Callback]
+_Jacobian = tuple[PETSc.Mat, PETSc.Mat, _Callback]
 
 
 # Above this many unknowns "auto" takes the iterative solver: on the P1 lung (benchmarks/
@@ -66,7 +76,13 @@ class NewtonSolver(StepsModelState):
     solution); :attr:`jacobian_form` stays the exact tangent.
     """
 
-    def __init__(self, model, options: NewtonOptions | None = None, residual=None, jacobian=None):
+    def __init__(
+        self,
+        model: Model,
+        options: NewtonOptions | None = None,
+        residual: ufl.Form | None = None,
+        jacobian: ufl.Form | None = None,
+    ) -> None:
         self.model = model
         self.options = options or NewtonOptions()
         self._layout = available_layout(model) if self.options.linear_solver != "direct" else None
@@ -87,8 +103,8 @@ class NewtonSolver(StepsModelState):
         chosen = self.options.linear_solver
         self.linear_solver = chosen if chosen != "auto" else self._automatic_choice()  # what this solver uses now
         layout = self._layout if self.linear_solver == "iterative" else None
-        options = self.options.petsc(layout[0] if layout else None)
-        configure(self, self.problem.solver, prefix, options, [k for k in self.options.petsc_options if k in options])
+        petsc = self.options.petsc(layout[0] if layout else None)
+        configure(self, self.problem.solver, prefix, petsc, [k for k in self.options.petsc_options if k in petsc])
         if layout is not None:
             layout[1](self.problem.solver.getKSP(), self.problem.A)
         self._residuals: list[float] = []
@@ -105,17 +121,17 @@ class NewtonSolver(StepsModelState):
         test = self.test
         mode = self._mode = {"inexact": layout is not None and "ksp_rtol" not in self.options.petsc_options}
 
-        def converged(snes, it, norms):
-            reason = test(snes.getFunction()[0], it, K, snes.getSolution())
+        def converged(snes: PETSc.SNES, it: int, norms: tuple[float, float, float]) -> int:
+            reason = test(cast(_Function, snes.getFunction())[0], it, K, snes.getSolution())
             if mode["inexact"] and reason == 0:  # the next linear solve only as exact as Newton needs
                 snes.getKSP().setTolerances(rtol=test.forcing())
             return reason
 
-        snes.setConvergenceTest(converged)
+        snes.setConvergenceTest(converged)  # type: ignore[arg-type]  # a converged reason is an int at run time; the stubs say a class
         if self._pressure is not None:
             snes.setUpdate(_pressure_update(self._pressure))
         self.state_dependent = StateDependent(model)
-        self._exact_step = None
+        self._exact_step: Callable[[PETSc.Vec, PETSc.Vec], bool] | None = None
         if self.state_dependent:
             self._couple_state_dependent()
 
@@ -161,7 +177,7 @@ class NewtonSolver(StepsModelState):
             self.test.load(self._residual())
         except PETSc.Error as error:  # e.g. a callback of a state-dependent load that failed
             Interrupted.raise_pending()  # or a Ctrl-C inside it
-            return NewtonResult(False, 0, (), f"PETSc error {error.ierr}: {petsc_message(error)}")
+            return NewtonResult(False, 0, (), f"PETSc error {error.ierr}: {petsc_message(error)}")  # type: ignore[attr-defined]  # petsc4py's stub of Error has no ierr
         if self._pressure is not None:
             self._pressure.at_equilibrium()
         if start is not None:
@@ -183,28 +199,28 @@ class NewtonSolver(StepsModelState):
         (see :mod:`lungmech.fem.state_dependent`); a Krylov solver applies K + U Vᵀ itself."""
         snes, coupled, K = self.problem.solver, self.state_dependent, self.problem.A
         state = self.model.state
-        vector, (assemble_residual, args, kargs) = snes.getFunction()
+        vector, (assemble_residual, args, kargs) = cast(_Function, snes.getFunction())
 
         def take(x: PETSc.Vec) -> None:
-            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
             state.x.array[: coupled.owned] = x.array_r
             state.x.scatter_forward()
             coupled.update()
 
-        def residual(snes, x, b):
+        def residual(snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
             take(x)
             assemble_residual(snes, x, b, *args, **kargs)
 
         coupled.update()
         U, V = coupled.low_rank()
-        factors = [PETSc.Mat().createDense(((coupled.owned, None), (None, U.shape[1])), comm=K.comm) for _ in "UV"]
+        factors = [PETSc.Mat().createDense(((coupled.owned, None), (None, U.shape[1])), comm=K.comm) for _ in "UV"]  # type: ignore[arg-type]  # None (PETSC_DECIDE) in a size is not in petsc4py's stub
         for factor in factors:
             factor.setUp()
         operator = PETSc.Mat().createLRC(K, factors[0], None, factors[1])
-        _, _, (assemble_jacobian, jargs, jkargs) = snes.getJacobian()
+        _, _, (assemble_jacobian, jargs, jkargs) = cast(_Jacobian, snes.getJacobian())
         low_rank = {}
 
-        def jacobian(snes, x, J, P):
+        def jacobian(snes: PETSc.SNES, x: PETSc.Vec, J: PETSc.Mat, P: PETSc.Mat) -> None:
             take(x)
             assemble_jacobian(snes, x, K, None, *jargs, **jkargs)
             low_rank["U"], low_rank["V"] = coupled.low_rank()
@@ -231,7 +247,7 @@ class NewtonSolver(StepsModelState):
 
         snes.setFunction(residual, vector)
         snes.setJacobian(jacobian, operator, K)
-        snes.setLineSearchPreCheck(exact_step)
+        snes.setLineSearchPreCheck(exact_step)  # type: ignore[arg-type]  # petsc4py reads the bool (changed); its stub says None
         self._exact_step = exact_step
 
     def linear_step(self) -> None:
@@ -249,19 +265,19 @@ class NewtonSolver(StepsModelState):
         ksp.setOperators(operator, K)
         step = x.duplicate()
         ksp.solve(b, step)
-        if ksp.getConvergedReason() < 0 and self._out_of_memory():
+        if ksp.getConvergedReason() < 0 and self._out_of_memory():  # type: ignore[operator]  # an int at run time; the stubs say a class
             self._switch_to_iterative()
             ksp.setOperators(operator, K)
             ksp.solve(b, step)
-        if ksp.getConvergedReason() < 0:  # a singular tangent, say: the callers carry on without
+        if ksp.getConvergedReason() < 0:  # type: ignore[operator]  # a singular tangent, say: the callers carry on without (an int at run time; the stubs say a class)
             step.destroy()
             raise PETSc.Error(NOT_CONVERGED)
         if self._exact_step is not None:
             self._exact_step(x, step)
         x.axpy(-1.0, step)
         step.destroy()
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        assign(x, self.model.state)
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
+        assign(x, self.model.state)  # type: ignore[arg-type]  # DOLFINx's vector-to-function overload (singledispatch) is not in its hints
 
     def start_path(self) -> None:
         """A new load path begins: the fields' load scales start again (see :mod:`lungmech.fem.convergence`)."""
@@ -276,17 +292,15 @@ class NewtonSolver(StepsModelState):
             reason = snes.getConvergedReason()
         except PETSc.Error as error:  # e.g. a factorisation breakdown on a NaN Jacobian
             Interrupted.raise_pending()  # or a Ctrl-C that arrived inside a PETSc callback
-            said = petsc_message(error)
-            if error.ierr in SETTINGS_ERRORS:  # the same at every step: not a numerical failure
+            said, code = petsc_message(error), error.ierr  # type: ignore[attr-defined]  # petsc4py's stub of Error has no ierr
+            if code in SETTINGS_ERRORS:  # the same at every step: not a numerical failure
                 raise SolverError(f"PETSc refused the solver settings (solver.petsc_options?): {said}") from None
-            return NewtonResult(
-                False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {error.ierr}: {said}"
-            )
+            return NewtonResult(False, snes.getIterationNumber(), tuple(self._residuals), f"PETSc error {code}: {said}")
         Interrupted.raise_pending()
         if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE and self._out_of_memory():
             self._switch_to_iterative()
             return self._newton()
-        converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))
+        converged = reason > 0 and np.all(np.isfinite(self.model.state.x.array))  # type: ignore[operator]  # an int at run time; the stubs say a class
         name = _REASONS.get(reason, str(reason))
         if not converged:
             name = f"{name}: {self.test.describe()}"
@@ -306,6 +320,7 @@ class NewtonSolver(StepsModelState):
 
     def _switch_to_iterative(self) -> None:
         """From now on, the iterative solver (the state is the last one Newton started from)."""
+        assert self._layout is not None  # _out_of_memory() said so
         options, configure = self._layout
         database = PETSc.Options()
         for key in ("pc_factor_mat_solver_type", "mat_mumps_icntl_14"):
@@ -321,16 +336,16 @@ class NewtonSolver(StepsModelState):
         log.warning("lungmech: the direct factorisation ran out of memory; switching to the iterative linear solver")
 
     @property
-    def residual_form(self):
+    def residual_form(self) -> fem.Form:
         """The compiled residual form."""
-        return self.problem.F
+        return cast(fem.Form, self.problem.F)  # one form: not a block problem
 
     @functools.cached_property
-    def jacobian_form(self):
+    def jacobian_form(self) -> fem.Form:
         """The compiled exact Jacobian form (sensitivities, stability), which Newton's own tangent
         may differ from away from an equilibrium (:mod:`lungmech.fem.linearised_pressure`)."""
         if self._pressure is None:
-            return self.problem.J
+            return cast(fem.Form, self.problem.J)  # one form: not a block problem
         return fem.form(self._exact_tangent)  # compiled when first asked for (collective)
 
     def destroy(self) -> None:
@@ -341,7 +356,7 @@ def _pressure_update(pressure: LinearisedPressure) -> Callable[[PETSc.SNES, int]
     """SNES's hook at the start of every Newton iteration: the bulk stress moves along the step
     just taken (from the iterate recorded at the previous call; at iteration 0, the solve's
     start, s is already set, see :meth:`NewtonSolver.solve`)."""
-    previous = {}
+    previous: dict[str, np.ndarray] = {}
 
     def update(snes: PETSc.SNES, iteration: int) -> None:
         x = snes.getSolution().getArray(readonly=True)
@@ -359,5 +374,5 @@ class _Problem(NonlinearProblem):
     collective, so that could hang. petsc4py instead puts distributed objects on PETSc's garbage
     list, which NewtonSolver empties collectively (``PETSc.garbage_cleanup``)."""
 
-    def __del__(self):
+    def __del__(self) -> None:
         pass

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -9,10 +11,13 @@ import numpy as np
 
 from lungmech.parallel.linalg import gram_schmidt
 
+if TYPE_CHECKING:
+    from dolfinx import fem
+
 __all__ = ["rigid_body_modes"]
 
 
-def rigid_body_modes(space) -> PETSc.NullSpace:
+def rigid_body_modes(space: fem.FunctionSpace) -> PETSc.NullSpace:
     """The rigid-body modes of a vector space, orthonormalised: AMG's near-nullspace. Six in
     3-D (three translations, three rotations ω × x), three in a plane (two translations, the
     rotation about z: (−y, x))."""

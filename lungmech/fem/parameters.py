@@ -28,12 +28,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 import ufl
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+
+if TYPE_CHECKING:
+    from lungmech.mesh.geometry import Geometry
 
 __all__ = ["Cells", "HalfSpace", "Parameter", "Parameters", "Region"]
 
@@ -51,7 +55,7 @@ class Cells:
     marker: Callable | None = field(default=None, compare=False)
     label: str = ""
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (self.tag is None) == (self.marker is None):
             raise ParameterError("a cell region needs exactly one of a cell tag or a marker")
         if self.tag is not None:
@@ -60,7 +64,7 @@ class Cells:
     def describe(self) -> dict:
         return {"cells": self.tag if self.tag is not None else self.label}
 
-    def indicator(self, geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
+    def indicator(self, geometry: Geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
         """χ as a DG0 field: 1 on the region's cells, 0 elsewhere."""
         from dolfinx import fem
 
@@ -97,7 +101,7 @@ class HalfSpace:
     position: float | str
     width: float
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         n = checks.vector("region normal", self.normal)
         if not np.linalg.norm(n) > 0:
             raise ParameterError("region normal must not be zero")
@@ -109,7 +113,7 @@ class HalfSpace:
     def describe(self) -> dict:
         return {"normal": list(self.normal), "position": self.position, "width": self.width}
 
-    def cells_behind(self, geometry, position: float) -> int:
+    def cells_behind(self, geometry: Geometry, position: float) -> int:
         """Collective: the number of cells whose midpoint lies behind the plane at ``position``
         (n·x < s, where χ > ½)."""
         mesh = geometry.mesh
@@ -119,7 +123,7 @@ class HalfSpace:
         n[: len(self.normal)] = self.normal
         return mesh.comm.allreduce(int(np.count_nonzero(midpoints @ n < position)))
 
-    def indicator(self, geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
+    def indicator(self, geometry: Geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
         x = ufl.SpatialCoordinate(geometry.mesh)
         n = ufl.as_vector(self.normal)
         s = constants[self.position] if isinstance(self.position, str) else self.position
@@ -145,7 +149,7 @@ class Parameter:
     region: Region | None = None
     outside: float | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name.isidentifier():
             raise ParameterError(f"parameter name must be a word of letters, digits and _ (got {self.name!r})")
         if not isinstance(self.target, str) or self.target.split(".")[0] not in KINDS:
@@ -212,7 +216,7 @@ class Parameter:
 class Parameters(Sequence[Parameter]):
     """The parameters of a model, in order: the box they span, checks and space-filling samples."""
 
-    def __init__(self, parameters: Sequence[Parameter] = ()):
+    def __init__(self, parameters: Sequence[Parameter] = ()) -> None:
         self._items = tuple(parameters)
         for p in self._items:
             if not isinstance(p, Parameter):
@@ -242,7 +246,13 @@ class Parameters(Sequence[Parameter]):
         for target in dict.fromkeys(p.target for p in self._items if p.kind != "interface"):
             _one_owner([p for p in self._items if p.target == target])
 
-    def __getitem__(self, index):
+    @overload
+    def __getitem__(self, index: int) -> Parameter: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> tuple[Parameter, ...]: ...
+
+    def __getitem__(self, index: int | slice) -> Parameter | tuple[Parameter, ...]:
         return self._items[index]
 
     def __len__(self) -> int:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from lungmech.fem.solver import (
     steps_model_state,
 )
 from lungmech.fem.start import Equilibrium, Rest, Start, StartReport, approach
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = [
     "FullOrderModel",
@@ -134,8 +137,41 @@ class Step:
     start: StartReport | None = None
 
 
+class Recorder(Protocol):
+    """What a model records at the output times (:class:`Outputs`, or a reduced model's): its
+    outputs now, and their units by name."""
+
+    @property
+    def units(self) -> dict[str, str]: ...
+
+    def __call__(self) -> dict[str, object]: ...
+
+
+class Driven(Protocol):
+    """What :func:`trajectory` drives along the load path: a full or reduced model, with its fem
+    ``model``, ``solver``, ``stepping``, ``outputs``, output ``times`` and ``parameters``."""
+
+    @property
+    def model(self) -> Model: ...
+
+    @property
+    def solver(self) -> Solver: ...
+
+    @property
+    def stepping(self) -> Stepping: ...
+
+    @property
+    def outputs(self) -> Recorder: ...
+
+    @property
+    def times(self) -> np.ndarray: ...
+
+    @property
+    def parameters(self) -> Parameters: ...
+
+
 def trajectory(
-    owner,
+    owner: Driven,
     values: dict[str, float],
     start: Callable[[Callable | None], StartReport],
     state: Callable[[], np.ndarray],
@@ -168,7 +204,7 @@ def trajectory(
     placed = start(None if on_step is None else lambda report: show("approach", report))
     factor = np.asarray(scale, dtype=float)
     if np.all(factor == 1.0):  # bit for bit the scene's loads
-        drive = model.set_time
+        drive: Callable[[float], None] = model.set_time
     else:
         drive = lambda t: model.set_time(t, load_factor=scale, about=stepping.start)  # noqa: E731
     drive(stepping.start)  # the start's own work may have left another time (or none) set
@@ -186,7 +222,7 @@ def trajectory(
             show("path", report)
 
     record(None)
-    placed = placed.measured(rows[0]["volume"] if rows else owner.outputs()["volume"])
+    placed = placed.measured(cast(float, rows[0]["volume"] if rows else owner.outputs()["volume"]))  # m³
     show("start", None, placed)
     iterations = placed.newton_iterations
     last = float(wanted[-1])
@@ -233,7 +269,7 @@ def _checked_times(times: Sequence[float], stepping: Stepping) -> np.ndarray:
     return np.clip(asked, stepping.start, stepping.end)
 
 
-def output_times(model, stepping: Stepping) -> np.ndarray:
+def output_times(model: Model, stepping: Stepping) -> np.ndarray:
     """The times a load path reports: the stepping's ``times``, the ramp breakpoints and the end."""
     inside = [t for t in (*stepping.times, *model.breakpoints) if stepping.start < t < stepping.end]
     return np.array(sorted({*inside, stepping.end}))
@@ -244,7 +280,7 @@ class Outputs:
     energy, probes, the scalar loads as applied and the formulation's averages
     (:mod:`lungmech.fem.averages`), if it has any."""
 
-    def __init__(self, model, probes: Sequence[Sequence[float]] | Probe = ()):
+    def __init__(self, model: Model, probes: Sequence[Sequence[float]] | Probe = ()) -> None:
         self.model = model
         self._probe = (
             probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
@@ -275,8 +311,8 @@ def stack(rows: list[dict[str, object]]) -> dict[str, np.ndarray]:
     grouped = ("loads", "averages")
     stacked = {name: np.array([row[name] for row in rows]) for name in rows[0] if name not in grouped}
     for group in grouped:
-        for name in rows[0].get(group, {}):
-            stacked[f"{group}/{name}"] = np.array([row[group][name] for row in rows])
+        for name in cast(dict[str, float], rows[0].get(group, {})):  # values by name
+            stacked[f"{group}/{name}"] = np.array([cast(dict[str, float], row[group])[name] for row in rows])
     return stacked
 
 
@@ -294,13 +330,13 @@ class FullOrderModel:
 
     def __init__(
         self,
-        model,
+        model: Model,
         stepping: Stepping | None = None,
         newton: NewtonOptions | None = None,
         probes: Sequence[Sequence[float]] | Probe = (),
         start: Start | np.ndarray | None = None,
         solver: Solver | None = None,
-    ):
+    ) -> None:
         self.model = model
         self.parameters = model.parameters
         self.stepping = stepping or Stepping()
@@ -337,7 +373,7 @@ class FullOrderModel:
         owned = self.model.space.dofmap.index_map.size_local * self.model.space.dofmap.index_map_bs
         values = self.parameters.values(mu)
 
-        def start(on_approach) -> StartReport:
+        def start(on_approach: Callable[[StepReport], None] | None) -> StartReport:
             return self.start.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
 
         return trajectory(

@@ -6,6 +6,7 @@ Schur complement)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING, cast
 
 from petsc4py import PETSc
 
@@ -16,8 +17,11 @@ from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.formulations import incompressible
-from lungmech.fem.materials import shear_modulus
+from lungmech.fem.materials import VolumetricSplit, shear_modulus
 from lungmech.fem.nullspace import rigid_body_modes
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["AMG", "available_layout", "iterative_layout"]
 
@@ -34,7 +38,7 @@ def _prefixed(prefix: str, options: dict) -> dict:
     return {prefix + key: value for key, value in options.items()}
 
 
-def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
+def iterative_layout(model: Model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
     """The Krylov preconditioner of ``model``'s tangent: PETSc options, and a function of the KSP
     and the tangent matrix that gives them what the options need (the index sets of the fields,
     the rigid-body near-nullspace).
@@ -82,7 +86,7 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
         pc.setFieldSplitIS(*[(name, sets[name]) for name in order])
         modes = rigid_body_modes(model.space.sub(0).collapse()[0])  # in the u block's row order
 
-        def give_modes(ksp, b, x) -> None:
+        def give_modes(ksp: PETSc.KSP, b: PETSc.Vec, x: PETSc.Vec) -> None:
             """Before each solve: AMG on the Schur complement gets the rigid-body modes (its matrix
             is made when the field split is set up, and kept for the next tangents)."""
             pc = ksp.getPC()  # not captured: PETSc holds this function, and would hold the PC
@@ -97,7 +101,7 @@ def iterative_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None
     return options, set_splits
 
 
-def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
+def _taylor_hood_layout(model: Model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]]:
     """The (u, p) field split of :func:`iterative_layout`: options, and what the KSP needs."""
     options = {
         "pc_type": "fieldsplit",
@@ -115,7 +119,7 @@ def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], N
         p, q = ufl.TrialFunction(pressures), ufl.TestFunction(pressures)
         compliance = 1 / shear_modulus(model.material, model.geometry.mesh)
         if not incompressible(model.material):
-            compliance += 1 / model.material.bulk
+            compliance += 1 / cast(VolumetricSplit, model.material).bulk  # Taylor–Hood took a split law only
         mass = fem.form(-compliance * p * q * model.dx)
         sets = _field_index_sets(model)
         sets["u"].compose("nearnullspace", rigid_body_modes(model.space.sub(0).collapse()[0]))
@@ -123,9 +127,9 @@ def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], N
         S_p.assemble()
         pc = ksp.getPC()
         pc.setFieldSplitIS(("u", sets["u"]), ("p", sets["p"]))
-        pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, S_p)
+        pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, S_p)  # type: ignore[arg-type]  # petsc4py's stubs type the enums as int
 
-        def reassemble(ksp, b, x) -> None:
+        def reassemble(ksp: PETSc.KSP, b: PETSc.Vec, x: PETSc.Vec) -> None:
             """Before each solve: S_p at the current parameters (μ₀ and κ may have changed)."""
             S_p.zeroEntries()
             assemble_matrix(S_p, mass)
@@ -136,7 +140,7 @@ def _taylor_hood_layout(model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], N
     return options, set_splits
 
 
-def available_layout(model):
+def available_layout(model: Model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.Mat], None]] | None:
     """:func:`iterative_layout`, or None where no preconditioner fits the formulation."""
     try:
         return iterative_layout(model)
@@ -144,7 +148,7 @@ def available_layout(model):
         return None
 
 
-def _field_index_sets(model) -> dict[str, PETSc.IS]:
+def _field_index_sets(model: Model) -> dict[str, PETSc.IS]:
     """Global rows of each field, owned by this rank, in the order of the field's own collapsed
     space (so the u block's rows follow its rigid-body modes)."""
     space = model.space

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import cast
 
 from petsc4py import PETSc
 
@@ -18,7 +19,7 @@ class Path:
     """The converged states of one smooth stretch of a load path (from its start or its last
     ramp breakpoint), kept to predict the next step's state (the last three at most)."""
 
-    def __init__(self, t: float, state: np.ndarray):
+    def __init__(self, t: float, state: np.ndarray) -> None:
         self.times, self.states = [t], [state.copy()]
 
     @property
@@ -38,10 +39,11 @@ class Path:
         leaves the isochoric manifold to second order, at a bulk modulus' cost), while from the
         prediction Newton corrects back onto the path. None: no prediction (a singular tangent)."""
         if len(self.times) > 1:
-            return sum(
+            extrapolated = sum(
                 x_i * math.prod((t - t_j) / (t_i - t_j) for j, t_j in enumerate(self.times) if j != i)
                 for i, (t_i, x_i) in enumerate(zip(self.times, self.states))
-            ), 0
+            )
+            return cast(np.ndarray, extrapolated), 0  # a sum of two or three arrays
         if rate is not None:
             return self.last + (t - self.times[0]) * rate, 0
         try:

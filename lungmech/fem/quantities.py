@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from mpi4py import MPI
 
@@ -14,6 +14,11 @@ from dolfinx import fem, la
 from dolfinx import geometry as dgeometry
 
 from lungmech.errors import ParameterError
+
+if TYPE_CHECKING:
+    import dolfinx.mesh
+
+    from lungmech.fem.model import Model
 
 
 def integral(form: ufl.Form, comm: MPI.Comm) -> Callable[[], float]:
@@ -26,12 +31,14 @@ def assemble_owned(form: fem.Form, vector: la.Vector, owned: int) -> np.ndarray:
     """The owned entries of the linear ``form`` assembled into ``vector`` (a work vector of the
     form's space, overwritten); contributions of ghost cells go to their owners. Collective."""
     vector.array[:] = 0.0
-    fem.assemble_vector(vector.array, form)
+    fem.assemble_vector(vector.array, form)  # type: ignore[arg-type]  # DOLFINx's into-an-array overload (singledispatch) is not in its hints
     vector.scatter_reverse(la.InsertMode.add)
     return vector.array[:owned].copy()
 
 
-def vector_integral(expr: ufl.core.expr.Expr, measure: ufl.Measure, mesh) -> Callable[[], np.ndarray]:
+def vector_integral(
+    expr: ufl.core.expr.Expr, measure: ufl.Measure, mesh: dolfinx.mesh.Mesh
+) -> Callable[[], np.ndarray]:
     """A function returning the global integral of a vector or tensor expression, all components at once.
 
     One compiled form instead of one per component: the expression is tested against a
@@ -57,12 +64,12 @@ def vector_integral(expr: ufl.core.expr.Expr, measure: ufl.Measure, mesh) -> Cal
     return evaluate
 
 
-def deformed_volume(model) -> Callable[[], float]:
+def deformed_volume(model: Model) -> Callable[[], float]:
     """∫ J dX: the current volume of the body."""
     return integral(ufl.det(model.F) * model.dx, model.geometry.mesh.comm)
 
 
-def strain_energy(model) -> Callable[[], float]:
+def strain_energy(model: Model) -> Callable[[], float]:
     """∫ ψ dX (the energy density of the model's formulation)."""
     return integral(model.energy_density * model.dx, model.geometry.mesh.comm)
 
@@ -75,7 +82,7 @@ class Probe:
     material point when the nodes move (the inverse problem's reference): the value is taken at
     x(ξ) = Σ N_i(ξ) x_i of the current nodes."""
 
-    def __init__(self, mesh, points: Sequence[Sequence[float]]):
+    def __init__(self, mesh: dolfinx.mesh.Mesh, points: Sequence[Sequence[float]]) -> None:
         self.points = np.atleast_2d(np.asarray(points, dtype=float))
         gdim = mesh.geometry.dim
         if self.points.ndim != 2 or self.points.shape[1] != gdim:
@@ -97,7 +104,7 @@ class Probe:
             raise ParameterError(f"probe point ({point}) lies outside the mesh")
         self._mesh = mesh
         self._mine = np.flatnonzero(owner == comm.rank)
-        self._cells = np.array([colliding.links(i)[0] for i in self._mine], dtype=np.int32)
+        self._cells = np.array([colliding.links(int(i))[0] for i in self._mine], dtype=np.int32)
         self._reference = np.array(
             [
                 mesh.geometry.cmaps[0].pull_back(self.points[[i]], self._nodes(c))[0]
@@ -135,7 +142,7 @@ class Reaction(NamedTuple):
     moment: np.ndarray  # about the origin, with the nodes at their current positions
 
 
-def reaction(model, boundary: str) -> Callable[[], Reaction]:
+def reaction(model: Model, boundary: str) -> Callable[[], Reaction]:
     """The force and moment the supports exert on ``boundary``, from the residual at its nodes.
 
     At equilibrium the residual vanishes except at imposed dofs, where it is the support's
@@ -143,8 +150,8 @@ def reaction(model, boundary: str) -> Callable[[], Reaction]:
     held region (the hilum) carries.
     """
     space = model.displacement_space
-    collapsed, parent = space.collapse() if model.multi_field else (space, np.arange(len(model.state.x.array)))
-    parent = np.asarray(parent).ravel()  # DOLFINx 0.11 gives the map as a list of one array
+    collapsed, parent_map = space.collapse() if model.multi_field else (space, np.arange(len(model.state.x.array)))
+    parent = np.asarray(parent_map).ravel()  # DOLFINx 0.11 gives the map as a list of one array
     bs = collapsed.dofmap.index_map_bs
     fdim = model.geometry.mesh.topology.dim - 1
     blocks = fem.locate_dofs_topological(collapsed, fdim, model.geometry.facets(boundary))

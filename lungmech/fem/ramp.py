@@ -22,7 +22,7 @@ class Ramp:
     times: Sequence[float] = (0.0, 1.0)
     values: Sequence[float] = (0.0, 1.0)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("times", "values"):
             given = getattr(self, name)
             if isinstance(given, str) or not isinstance(given, Sequence):

@@ -42,8 +42,9 @@ from __future__ import annotations
 import contextlib
 import math
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, cast
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -59,6 +60,13 @@ from lungmech.errors import ParameterError
 from lungmech.fem.linear import factorised
 from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram
+
+if TYPE_CHECKING:
+    from ufl.core.expr import Expr
+
+    from lungmech.fem.model import Model
+    from lungmech.fem.parameters import Parameter
+    from lungmech.fem.solver_interface import Solver
 
 __all__ = [
     "STEP",
@@ -108,7 +116,14 @@ class DerivativeForms:
     constants and functions are the ones the parameters set; it has no ``volume_gradient``.
     """
 
-    def __init__(self, model, residual=None, energy=None, compile=fem.form, like: DerivativeForms | None = None):
+    def __init__(
+        self,
+        model: Model,
+        residual: ufl.Form | None = None,
+        energy: ufl.Form | None = None,
+        compile: Callable[[ufl.Form], fem.Form] = fem.form,
+        like: DerivativeForms | None = None,
+    ) -> None:
         residual = expand_derivatives(model.residual if residual is None else residual)
         energy = model.energy_density * model.dx if energy is None else energy
         if like is None:
@@ -133,7 +148,7 @@ class DerivativeForms:
         variables = {c: ufl.variable(c) for c in self.constants}
         wrapped = ufl.replace(form, variables)
 
-        def differentiate(integrand):
+        def differentiate(integrand: Expr) -> Expr:
             return sum(
                 (ufl.inner(ufl.diff(integrand, variables[c]), w) for c, w in zip(self.constants, self.weights)),
                 ufl.zero(),
@@ -156,14 +171,14 @@ class DerivativeForms:
 _compiled: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def derivative_forms(model) -> DerivativeForms:
+def derivative_forms(model: Model) -> DerivativeForms:
     """The model's derivative forms, compiled on first use (collective) and kept with the model."""
     if model not in _compiled:
         _compiled[model] = DerivativeForms(model)
     return _compiled[model]
 
 
-def check_differentiable(model) -> None:
+def check_differentiable(model: Model) -> None:
     """Refuse, in one line, a model whose sensitivities are not available (state-dependent loads)."""
     if model.state_dependent:
         raise ParameterError(
@@ -172,7 +187,7 @@ def check_differentiable(model) -> None:
         )
 
 
-def _stencil(parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
+def _stencil(parameter: Parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
     """Points and weights of a second-order first derivative that stay inside the range: central
     (c(μ+h) − c(μ−h))/2h, or one-sided (±(−3c(μ) + 4c(μ±h) − c(μ±2h))/2h) at an end of the range.
     h = STEP × (high − low); for a log-scale parameter, STEP × μ ln(high/low) (its range in its own
@@ -186,7 +201,7 @@ def _stencil(parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @contextlib.contextmanager
-def _restored(model, forms: DerivativeForms) -> Iterator[None]:
+def _restored(model: Model, forms: DerivativeForms) -> Iterator[None]:
     """Whatever the block does to the parameters, constants, imposed values and state, they are
     restored afterwards (also on an error)."""
     values, state = dict(model.parameter_values), model.state.x.array.copy()
@@ -207,7 +222,7 @@ def _restored(model, forms: DerivativeForms) -> Iterator[None]:
         model.state.x.scatter_forward()
 
 
-def value_derivatives(model) -> ValueDerivatives:
+def value_derivatives(model: Model) -> ValueDerivatives:
     """∂c/∂μ of every value the parameters set, dx_D/dμ and ∂(scalar load)/∂μ, at the current μ
     and time: differences of the model's own assignment (:meth:`Model.set_parameters` at a few μ
     around the current one, reading the constants, functions, imposed values and loads; no
@@ -254,11 +269,11 @@ def value_derivatives(model) -> ValueDerivatives:
     return ValueDerivatives(parameters.names, constants, functions, imposed, loads, amplitudes)
 
 
-def _owned(model) -> int:
+def _owned(model: Model) -> int:
     return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
 
 
-def residual_derivatives(model, derivatives: ValueDerivatives | None = None) -> np.ndarray:
+def residual_derivatives(model: Model, derivatives: ValueDerivatives | None = None) -> np.ndarray:
     """∂R/∂μ_i = Σ_k ∂R/∂c_k ∂c_k/∂μ_i at the current state (fixed x, imposed rows included):
     owned rows, one column per parameter. One assembly of the compiled form per parameter.
     Collective."""
@@ -275,15 +290,15 @@ def residual_derivatives(model, derivatives: ValueDerivatives | None = None) -> 
     return columns
 
 
-def _jacobian(jacobian_form) -> PETSc.Mat:
+def _jacobian(jacobian_form: fem.Form) -> PETSc.Mat:
     """K assembled without imposed values (their rows and columns kept): destroy it after."""
     K = create_matrix(jacobian_form)
-    assemble_matrix(K, jacobian_form)
+    assemble_matrix(K, jacobian_form)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
     K.assemble()
     return K
 
 
-def state_derivatives(model, jacobian_form, derivatives: ValueDerivatives | None = None) -> np.ndarray:
+def state_derivatives(model: Model, jacobian_form: fem.Form, derivatives: ValueDerivatives | None = None) -> np.ndarray:
     """Direct sensitivities dx/dμ at the current (converged) state: owned rows, one column per parameter.
 
     dx = dx_D + y with y = 0 on the imposed dofs and K_ff y_f = −(∂R/∂μ + K dx_D)_f: K is
@@ -312,7 +327,7 @@ def state_derivatives(model, jacobian_form, derivatives: ValueDerivatives | None
         for i in range(n):
             b.array[:] = rhs[:, i]
             ksp.solve(b, x)
-            if ksp.getConvergedReason() < 0:
+            if ksp.getConvergedReason() < 0:  # type: ignore[operator]  # an int at run time; the stubs say a class
                 raise ParameterError(
                     f"sensitivities: the linear solve with the Jacobian failed (reason {ksp.getConvergedReason()})"
                 )
@@ -324,7 +339,7 @@ def state_derivatives(model, jacobian_form, derivatives: ValueDerivatives | None
 
 
 def reduced_state_derivatives(
-    model, V: np.ndarray, jacobian_form, derivatives: ValueDerivatives | None = None
+    model: Model, V: np.ndarray, jacobian_form: fem.Form, derivatives: ValueDerivatives | None = None
 ) -> np.ndarray:
     """Reduced sensitivities dq/dμ = −(Vᵀ K V)⁻¹ Vᵀ (∂R/∂μ + K dx₀/dμ) of x = x₀ + V q at the
     current (converged) reduced state, shape (k, parameters). ``V``: the basis's owned rows
@@ -344,9 +359,9 @@ def reduced_state_derivatives(
 
 
 def output_derivatives(
-    model,
-    outputs,
-    solver,
+    model: Model,
+    outputs: object,
+    solver: Solver | None,
     state_derivative: np.ndarray | None = None,
     derivatives: ValueDerivatives | None = None,
 ) -> dict[str, object]:
@@ -366,19 +381,19 @@ def output_derivatives(
     dx = (
         state_derivative
         if state_derivative is not None
-        else state_derivatives(model, solver.jacobian_form, derivatives)
+        else state_derivatives(model, cast("Solver", solver).jacobian_form, derivatives)  # given for this
     )
     dx = np.asarray(dx, dtype=float).reshape(owned, n)
     vector = fem.Function(model.space).x
 
-    def gradient(form) -> np.ndarray:
+    def gradient(form: fem.Form) -> np.ndarray:
         return assemble_owned(form, vector, owned)[:, None]
 
-    volume = gram(gradient(forms.volume_gradient), dx, comm)[0]
+    volume = gram(gradient(cast(fem.Form, forms.volume_gradient)), dx, comm)[0]  # the full model's forms have it
     energy = gram(gradient(forms.energy_gradient), dx, comm)[0]
     for i in range(n if forms.energy is not None else 0):
         forms.set_weights(derivatives, i)
-        energy[i] += comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
+        energy[i] += comm.allreduce(fem.assemble_scalar(cast(fem.Form, forms.energy)), op=MPI.SUM)  # there is one
     result: dict[str, object] = {"volume": volume, "strain_energy": energy}
     probe = getattr(outputs, "probe", None)
     if probe is not None:

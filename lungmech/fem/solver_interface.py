@@ -10,6 +10,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from lungmech.fem import limits
+from lungmech.fem.solver_options import NewtonOptions
 
 __all__ = ["NewtonResult", "Solver", "StepsModelState", "steps_model_state"]
 
@@ -30,6 +31,7 @@ class Solver(Protocol):
 
     model: Any
     description: str  # for summaries, e.g. "full order"
+    options: NewtonOptions  # tolerances and iteration limits (a reduced model is trained with its full solver's)
 
     def solve(self, start: np.ndarray | None = None) -> NewtonResult:
         """One Newton solve at the model's current loads, from its :attr:`state` or ``start``

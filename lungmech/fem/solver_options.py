@@ -46,7 +46,7 @@ class NewtonOptions:
     line_search: str = "cp"
     petsc_options: dict = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.linear_solver not in ("auto", "direct", "iterative"):
             raise ParameterError(f"linear_solver must be 'auto', 'direct' or 'iterative' (got {self.linear_solver!r})")
         if self.line_search not in ("bt", "l2", "cp", "basic", "none"):
@@ -110,14 +110,14 @@ SETTINGS_ERRORS = (56, 62, 63, 86)
 def petsc_message(error: PETSc.Error) -> str:
     """The last line of PETSc's error report (what went wrong, without its call stack)."""
     lines = [line.strip(" [0123456789]") for line in str(error).splitlines() if line.strip()]
-    return lines[-1] if lines else f"error {error.ierr}"
+    return lines[-1] if lines else f"error {error.ierr}"  # type: ignore[attr-defined]  # petsc4py's stub of Error has no ierr
 
 
 # Options of objects made at set-up (factorisation, multigrid levels, sub-solvers): read later.
 _READ_LATER = ("mat_", "mg_", "fieldsplit_", "sub_", "redundant_", "pc_factor_mat_solver")
 
 
-def configure(owner, snes: PETSc.SNES, prefix: str, options: dict, given: Sequence[str]) -> None:
+def configure(owner: object, snes: PETSc.SNES, prefix: str, options: dict, given: Sequence[str]) -> None:
     """Set ``options`` on ``snes`` (and its KSP and PC) for ``owner``'s lifetime. A value PETSc
     refuses, or an option of the user's (``given``) it does not use, is a :class:`SolverError`
     naming it (options of the objects made at set-up, such as mat_* or mg_levels_*, are checked
@@ -136,9 +136,14 @@ def configure(owner, snes: PETSc.SNES, prefix: str, options: dict, given: Sequen
         )
 
 
-def persistent_options(owner, prefix: str, options: dict) -> None:
+def persistent_options(owner: object, prefix: str, options: dict) -> None:
     """Set PETSc options that stay until ``owner`` is garbage-collected."""
     database = PETSc.Options()
     for key, value in options.items():
-        database[prefix + key] = value
-    weakref.finalize(owner, lambda: [database.delValue(prefix + key) for key in options])
+        database.setValue(prefix + key, value)
+
+    def remove() -> None:
+        for key in options:
+            database.delValue(prefix + key)
+
+    weakref.finalize(owner, remove)

@@ -17,12 +17,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.fem.solver import Solver, Stepping, solve
+from lungmech.fem.solver import Solver, Stepping, StepReport, solve
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["Equilibrium", "Rest", "Start", "StartReport", "approach", "one_state"]
 
@@ -54,17 +57,17 @@ class Start(Protocol):
 
     kind: str
 
-    def reset(self, model) -> None:
+    def reset(self, model: Model) -> None:
         """The model at the start state at the default parameters (nothing solved)."""
 
     def place(
         self,
-        model,
+        model: Model,
         solver: Solver,
         values: Mapping[str, float],
         time: float,
         progress: Progress | None = None,
-        on_step: Callable | None = None,
+        on_step: Callable[[StepReport], None] | None = None,
     ) -> StartReport:
         """The model's state an equilibrium at ``values`` at ``time``; what was done.
         ``progress(fraction, text)`` follows long work; ``on_step(report)`` sees every accepted
@@ -72,12 +75,12 @@ class Start(Protocol):
 
 
 def approach(
-    model,
+    model: Model,
     solver: Solver,
     values: Mapping[str, float],
     start: Mapping[str, float],
     time: float,
-    on_step: Callable | None = None,
+    on_step: Callable[[StepReport], None] | None = None,
     first_step: float = 0.25,
 ) -> int:
     """Move the model's state, an equilibrium at the parameters ``start`` and time ``time``, to
@@ -114,17 +117,25 @@ class Rest:
     description = "the unloaded state"
     details: dict = {}
 
-    def reset(self, model) -> None:
+    def reset(self, model: Model) -> None:
         model.set_parameters(model.parameters.defaults)
         model.reset()
 
-    def state(self, model) -> np.ndarray:
+    def state(self, model: Model) -> np.ndarray:
         """The start state at the default parameters (a full local array)."""
         with model.kept_state():
             model.reset()
             return model.state.x.array.copy()
 
-    def place(self, model, solver, values, time, progress=None, on_step=None) -> StartReport:
+    def place(
+        self,
+        model: Model,
+        solver: Solver,
+        values: Mapping[str, float],
+        time: float,
+        progress: Progress | None = None,
+        on_step: Callable[[StepReport], None] | None = None,
+    ) -> StartReport:
         self.reset(model)
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("rest", self.description, iterations)
@@ -143,27 +154,35 @@ class Equilibrium:
         state: np.ndarray,
         description: str = "an equilibrium at the default parameters, moved to μ",
         details: Mapping[str, object] | None = None,
-    ):
+    ) -> None:
         self._state = np.array(state, dtype=float)
         self.description = description
         self.details = dict(details or {})
 
-    def reset(self, model) -> None:
+    def reset(self, model: Model) -> None:
         model.set_parameters(model.parameters.defaults)
         model.state.x.array[:] = self._state
         model.state.x.scatter_forward()
 
-    def state(self, model) -> np.ndarray:
+    def state(self, model: Model) -> np.ndarray:
         """The start state at the default parameters (a copy)."""
         return self._state.copy()
 
-    def place(self, model, solver, values, time, progress=None, on_step=None) -> StartReport:
+    def place(
+        self,
+        model: Model,
+        solver: Solver,
+        values: Mapping[str, float],
+        time: float,
+        progress: Progress | None = None,
+        on_step: Callable[[StepReport], None] | None = None,
+    ) -> StartReport:
         self.reset(model)
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("equilibrium", self.description, iterations, dict(self.details))
 
 
-def one_state(start: Start, model) -> np.ndarray:
+def one_state(start: Start, model: Model) -> np.ndarray:
     """The one start state a reduced basis is relative to: ``start``'s at the default parameters
     (a full local array). A start found anew at every μ (an imaged body's) has none: refused."""
     if not isinstance(start, Rest | Equilibrium):

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import ufl
@@ -26,6 +26,9 @@ from dolfinx import fem
 
 from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.parallel.linalg import gram
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 
 @dataclass(frozen=True)
@@ -75,7 +78,7 @@ class Integration(Protocol):
 class FullIntegration:
     """Integrals over the whole mesh, columns as the owned dofs of the model's space."""
 
-    def __init__(self, model):
+    def __init__(self, model: Model) -> None:
         self.mesh, space = model.geometry.mesh, model.space
         self._vector = fem.Function(space).x
         self._owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
@@ -118,7 +121,7 @@ def each_unit(constant: fem.Constant, evaluate: Callable[[], np.ndarray]) -> np.
 class StateDependent:
     """The state-dependent loads of one model: θ ← Θ(u), and the low-rank part of the tangent."""
 
-    def __init__(self, model):
+    def __init__(self, model: Model) -> None:
         self.terms = model.state_dependent
         space = model.space
         self.owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
@@ -141,7 +144,9 @@ class StateDependent:
         U[self._constrained] = 0.0
         return U, V
 
-    def woodbury(self, y: np.ndarray, U: np.ndarray, V: np.ndarray, solve) -> np.ndarray:
+    def woodbury(
+        self, y: np.ndarray, U: np.ndarray, V: np.ndarray, solve: Callable[[np.ndarray], np.ndarray]
+    ) -> np.ndarray:
         """(K + U Vᵀ)⁻¹ r from y = K⁻¹ r, with ``solve(b)`` = K⁻¹ b (owned rows; collective)."""
         Z = np.column_stack([solve(U[:, j]) for j in range(U.shape[1])])
         small = np.eye(U.shape[1]) + gram(V, Z, self.comm)

@@ -12,6 +12,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -25,6 +26,9 @@ from lungmech.fem.newton import NewtonSolver
 from lungmech.fem.prediction import Path
 from lungmech.fem.solver_interface import Solver
 from lungmech.fem.solver_options import NewtonOptions
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["FIRST_STRAIN_INCREMENT", "SolveReport", "StepReport", "Stepping", "first_step", "solve"]
 
@@ -51,7 +55,7 @@ class Stepping:
     easy_iterations: int = 5
     times: tuple[float, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("end", "start", "min_step", "growth"):
             checks.real(name, getattr(self, name))
         if self.initial_step is not None:
@@ -114,7 +118,7 @@ class SolveReport:
 
 
 def solve(
-    model,
+    model: Model,
     stepping: Stepping | None = None,
     options: NewtonOptions | None = None,
     on_step: Callable[[StepReport], None] | None = None,
@@ -208,7 +212,7 @@ FIRST_STRAIN_INCREMENT = 0.1  # the largest |ΔF| the tangent may predict for an
 
 
 def first_step(
-    model, solver: Solver, drive: Callable[[float], None], t: float, interval: float, min_step: float
+    model: Model, solver: Solver, drive: Callable[[float], None], t: float, interval: float, min_step: float
 ) -> tuple[float, np.ndarray | None]:
     """The first step from t, and the tangent's rate of change of the state there.
 

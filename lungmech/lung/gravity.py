@@ -26,7 +26,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import ufl
@@ -38,6 +38,9 @@ from lungmech.errors import ParameterError
 from lungmech.fem.loads import Named, StateDependentWork
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.state_dependent import FullIntegration, Integral, Integration
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 
 def _quadratic_basis(y: Expr) -> list[Expr]:
@@ -69,7 +72,7 @@ class Gravity(Named):
     name: str = ""
     kind: ClassVar[str] = "gravity"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         checks.real("gravity: density", self.density, positive=True)
         try:
             object.__setattr__(self, "acceleration", checks.vector("acceleration", self.acceleration, (2, 3)))
@@ -83,10 +86,10 @@ class Gravity(Named):
     def value(self) -> Sequence[float]:
         return self.acceleration
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         return -self.density * ufl.dot(value, model.u) * model.dx
 
-    def virtual_work(self, model, v: Expr, value: Expr) -> StateDependentWork | None:
+    def virtual_work(self, model: Model, v: Expr, value: fem.Constant) -> StateDependentWork | None:
         if not self.balanced_on:
             return None
         if model.geometry.mesh.geometry.dim != 3:
@@ -118,7 +121,7 @@ class _BalancingPressure:
     all nine rows.
     """
 
-    def __init__(self, gravity: Gravity, model, v: Expr, value: Expr):
+    def __init__(self, gravity: Gravity, model: Model, v: Expr, value: fem.Constant) -> None:
         geometry = model.geometry
         mesh = geometry.mesh
         self.value = value
@@ -191,7 +194,7 @@ class _BalancingPressure:
 class _Balance:
     """Θ and dΘ/du of one balancing pressure, its integrals evaluated by one integration."""
 
-    def __init__(self, pressure: _BalancingPressure, integration: Integration):
+    def __init__(self, pressure: _BalancingPressure, integration: Integration) -> None:
         self.pressure = p = pressure
         self._moments = integration.vector("moments", *p._integral("moments"))
         self._response = integration.vector("response", *p._integral("response"))
@@ -219,7 +222,7 @@ class _Balance:
         integration's unknowns."""
         p = self.pressure
         work = self._work_derivative()  # the 12 directions θ = (x_G, c) at once
-        centre = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
+        centre_u = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
         # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
@@ -230,7 +233,7 @@ class _Balance:
         along = Q[:, :9] @ np.einsum("i,ikd->kd", lam, response_centre) + Q[:, 9:] @ np.einsum(
             "k,ikd->id", c, response_centre
         )
-        centre = np.column_stack(centre)
+        centre = np.column_stack(centre_u)
         coefficients = -(left @ Q[:, :9].T + right @ Q[:, 9:].T + centre @ along.T)
         return work, np.hstack([centre, coefficients])
 

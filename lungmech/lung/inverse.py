@@ -11,9 +11,10 @@ mesh nodes move, nothing is recompiled — started from the previous iteration's
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from time import perf_counter
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 
@@ -24,9 +25,13 @@ from dolfinx import fem
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.quantities import integral
-from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, solve
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, StepReport, solve
 from lungmech.fem.start import Progress, StartReport
 from lungmech.mesh import nodes as mesh_nodes
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
+    from lungmech.lung.poromechanics import ImagedPorosity
 
 
 @dataclass
@@ -44,7 +49,7 @@ class InverseReport:
         return len(self.mismatch)
 
 
-def node_displacements(model) -> Callable[[], np.ndarray]:
+def node_displacements(model: Model) -> Callable[[], np.ndarray]:
     """A function that returns u at the mesh's geometry nodes (owned and ghost), shape (nodes, 3)."""
     sample = mesh_nodes.sampler(model.geometry.mesh)
     return lambda: sample(model.displacement())
@@ -57,7 +62,7 @@ class InverseOptions:
     tolerance: float = 1e-9
     max_iterations: int = 50
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         checks.real("tolerance", self.tolerance)
         if not 0 < self.tolerance < 1:
             raise ParameterError(f"tolerance must lie in (0, 1) (got {self.tolerance})")
@@ -68,14 +73,14 @@ class InverseOptions:
 
 
 def unloaded_reference(
-    model,
+    model: Model,
     time: float = 0.0,
     options: InverseOptions = InverseOptions(),
     stepping: Stepping | None = None,
     newton: NewtonOptions | None = None,
-    solver: NewtonSolver | None = None,
+    solver: Solver | None = None,
     monitor: Callable[[InverseReport], None] | None = None,
-    imaged=None,
+    imaged: ImagedPorosity | None = None,
 ) -> InverseReport:
     """Move ``model``'s mesh from the imaged (loaded at ``time``) geometry to the unloaded reference.
 
@@ -149,7 +154,7 @@ def unloaded_reference(
     return report
 
 
-def _direct(model, solver: NewtonSolver, time: float, stepping: Stepping) -> int:
+def _direct(model: Model, solver: Solver, time: float, stepping: Stepping) -> int:
     """The direct problem on the corrected reference: Newton from the last state, or, when the
     correction was too large for that (a soft material), the loads raised again from zero."""
     result = solver.solve()
@@ -179,7 +184,7 @@ class Imaged:
 
     kind = "imaged"
 
-    def __init__(self, model, options: InverseOptions = InverseOptions(), body: str = "body"):
+    def __init__(self, model: Model, options: InverseOptions = InverseOptions(), body: str = "body") -> None:
         mesh = model.geometry.mesh
         self.nodes = mesh.geometry.x[:, : mesh.geometry.dim].copy()
         self._volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)  # compiled once
@@ -187,7 +192,7 @@ class Imaged:
         self.options, self.body = options, body
         self._data = getattr(model.formulation, "imaged", lambda model: None)(model)  # beside the geometry
 
-    def reset(self, model) -> None:
+    def reset(self, model: Model) -> None:
         """The imaged mesh, unloaded (u = 0) at the default parameters."""
         mesh_nodes.place(model.geometry.mesh, self.nodes)
         if self._data is not None:
@@ -196,7 +201,13 @@ class Imaged:
         model.reset()
 
     def place(
-        self, model, solver: Solver, values, time: float, progress: Progress | None = None, on_step=None
+        self,
+        model: Model,
+        solver: Solver,
+        values: Mapping[str, float],
+        time: float,
+        progress: Progress | None = None,
+        on_step: Callable[[StepReport], None] | None = None,
     ) -> StartReport:
         """The unloaded reference at ``values`` and the imaged state on it (collective)."""
         self.reset(model)
@@ -204,6 +215,7 @@ class Imaged:
         tolerance, most = self.options.tolerance, self.options.max_iterations
 
         def show(report: InverseReport) -> None:
+            assert progress is not None  # the monitor only with a progress
             first, mismatch = report.mismatch[0], report.mismatch[-1]
             done = np.log(first / max(mismatch, tolerance)) / np.log(first / tolerance) if first > tolerance else 1.0
             progress(

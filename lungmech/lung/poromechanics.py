@@ -26,7 +26,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar, cast
 
 from mpi4py import MPI
 
@@ -42,6 +42,11 @@ from lungmech.fem.averages import Average
 from lungmech.fem.loads import Named
 from lungmech.fem.materials import CiarletGeymonat, ExponentialCiarletGeymonat, Material, Sum
 from lungmech.fem.ramp import Ramp
+
+if TYPE_CHECKING:
+    import dolfinx.mesh
+
+    from lungmech.fem.model import Model
 
 
 def skeleton(alpha: float, gamma: float, c1: float, c2: float) -> Sum:
@@ -152,7 +157,7 @@ class Poromechanics:
     residual_units: ClassVar[dict[str, str]] = {"phi_s": "J"}  # ∫ (∂W/∂Φs + p_f) δΦs dX, Pa·m³
     cellwise: ClassVar[tuple[str, ...]] = ("kappa", "phi_s0", "pore_barrier", "imaged_porosity")
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (self.phi_s0 is None) == (self.imaged_porosity is None):
             raise ParameterError(
                 "poromechanics needs exactly one of phi_s0 (the reference solid fraction) or imaged_porosity "
@@ -182,7 +187,7 @@ class Poromechanics:
                 f"pore_exponent must be > 1 (got {self.pore_exponent}): the barrier is C¹ at its bounds"
             )
 
-    def bind(self, mesh) -> Poromechanics:
+    def bind(self, mesh: dolfinx.mesh.Mesh) -> Poromechanics:
         """This formulation on ``mesh``: fields as cellwise (DG0) functions, numbers of κ and η as
         ``fem.Constant`` objects (parameters change them without recompiling; η = 0 leaves the barrier
         out of the forms); Φs0 is always a field."""
@@ -194,26 +199,27 @@ class Poromechanics:
             if value is None or isinstance(value, fem.Function):
                 continue
             if isinstance(value, numbers.Real) and name in ("kappa", "pore_barrier"):
-                value = fem.Constant(mesh, float(value)) if name == "kappa" or value > 0 else 0.0
+                value = fem.Constant(mesh, float(value)) if name == "kappa" or cast(float, value) > 0 else 0.0
             else:
                 value = cell_values(value, mesh, name)
             object.__setattr__(bound, name, value)
         if bound.imaged_porosity is not None:  # the first guess of the inverse problem: Φs0 ≈ Φs = J φs
-            phi_s0 = fem.Function(bound.imaged_porosity.function_space, name="phi_s0")
-            phi_s0.x.array[:] = 1.0 - bound.imaged_porosity.x.array
+            imaged = cast(fem.Function, bound.imaged_porosity)  # a cellwise field now
+            phi_s0 = fem.Function(imaged.function_space, name="phi_s0")
+            phi_s0.x.array[:] = 1.0 - imaged.x.array
             object.__setattr__(bound, "phi_s0", phi_s0)
         return bound
 
     def check(self, material: Material, degree: int) -> None:
         """Every law and degree is accepted (an incompressible law fails in ``psi``)."""
 
-    def elements(self, cell: str, degree: int, quadrature_degree: int) -> list:
+    def elements(self, cell: basix.CellType, degree: int, quadrature_degree: int) -> list:
         """Φs in DG0: its equation has no derivative of Φs, so it holds cell by cell."""
         return [basix.ufl.element("DG", cell, 0)]
 
     def scale(self, energy: str) -> Expr | float:
         """s_energy: Φs0 where ``scaling`` scales that energy ("skeleton", "bulk", "pore"), else 1."""
-        return self.phi_s0 if energy in SCALINGS[self.scaling] else 1.0
+        return cast(Expr, self.phi_s0) if energy in SCALINGS[self.scaling] else 1.0  # bound: a cellwise field
 
     def skeleton_energy(self, material: Material, F: Expr) -> Expr:
         """s_skel ψ(F) (Pa)."""
@@ -222,21 +228,22 @@ class Poromechanics:
     def bulk_energy(self, phi_s: Expr) -> Expr:
         """s_bulk W_bulk = s_bulk κ(Φs/Φs0 − 1 − ln(Φs/Φs0)) (Pa), zero with zero slope at Φs = Φs0."""
         ratio = phi_s / self.phi_s0
-        return self.scale("bulk") * self.kappa * (ratio - 1 - ufl.ln(ratio))
+        return self.scale("bulk") * cast(Expr, self.kappa) * (ratio - 1 - ufl.ln(ratio))  # bound: UFL
 
     def bulk_stress(self, phi_s: Expr) -> Expr:
         """∂(s_bulk W_bulk)/∂Φs = s_bulk κ(1/Φs0 − 1/Φs): at equilibrium the mean stress the solid
         bulk adds (≈ −p_f)."""
-        return self.scale("bulk") * self.kappa * (1 / self.phi_s0 - 1 / phi_s)
+        kappa, phi_s0 = cast(Expr, self.kappa), cast(Expr, self.phi_s0)  # bound: UFL
+        return self.scale("bulk") * kappa * (1 / phi_s0 - 1 / phi_s)
 
     def pore_energy(self, phi_f: Expr) -> Expr:
         """s_bulk W_pore(Φf) (Pa): η(lower/r − 1)^m below ``lower``, η(r/upper − 1)^m above
         ``upper``, r = Φf/(1 − Φs0); a bound at 0 or inf leaves its branch out."""
-        r = phi_f / (1 - self.phi_s0)
+        r = phi_f / (1 - cast(Expr, self.phi_s0))  # bound: a cellwise field
         (lower, upper), m = self.pore_range, self.pore_exponent
         collapse = ufl.conditional(ufl.lt(r, lower), (lower / r - 1) ** m, 0) if lower > 0 else 0
         overdistension = ufl.conditional(ufl.gt(r, upper), (r / upper - 1) ** m, 0) if math.isfinite(upper) else 0
-        return self.scale("pore") * self.pore_barrier * (collapse + overdistension)
+        return self.scale("pore") * cast(Expr, self.pore_barrier) * (collapse + overdistension)  # bound, not 0
 
     def energy_density(self, material: Material, F: Expr, fields: dict[str, Expr]) -> Expr:
         """s_skel ψ(F) + s_bulk W_bulk(Φs) (+ s_bulk W_pore(J − Φs) when η is not 0), in Pa."""
@@ -248,17 +255,17 @@ class Poromechanics:
 
     def initial_values(self) -> dict[str, float | fem.Function]:
         """Φs starts at Φs0 (the unloaded state)."""
-        return {"phi_s": self.phi_s0}
+        return {"phi_s": cast(fem.Function, self.phi_s0)}  # bound: a cellwise field
 
-    def imaged(self, model) -> ImagedPorosity | None:
+    def imaged(self, model: Model) -> ImagedPorosity | None:
         """What an inverse problem matches besides the geometry: the imaged porosity (or None)."""
         return None if self.imaged_porosity is None else ImagedPorosity(model)
 
-    def output_fields(self, model) -> dict[str, Expr]:
+    def output_fields(self, model: Model) -> dict[str, Expr]:
         """The lung's cellwise fields for outputs (see :func:`fields`)."""
         return fields(model)
 
-    def averages(self, model) -> dict[str, Average]:
+    def averages(self, model: Model) -> dict[str, Average]:
         """The lung's averages (see :func:`averages`), reported as outputs."""
         return averages(model)
 
@@ -290,7 +297,7 @@ _CELLWISE = {
 }
 
 
-def cell_values(value: CellValues, mesh, name: str) -> fem.Function:
+def cell_values(value: CellValues, mesh: dolfinx.mesh.Mesh, name: str) -> fem.Function:
     """The cellwise (DG0) field ``name`` (one of :attr:`Poromechanics.cellwise`) from a number, a
     function of the points or a file of cell values, checked to lie in its range everywhere."""
     space = fem.functionspace(mesh, ("DG", 0))
@@ -300,7 +307,7 @@ def cell_values(value: CellValues, mesh, name: str) -> fem.Function:
     elif callable(value):
         field_.interpolate(lambda x: np.broadcast_to(value(x), x.shape[1]))
     else:
-        field_.x.array[:] = _cell_values(Path(value), mesh, name)
+        field_.x.array[:] = _cell_values(Path(cast(str | Path, value)), mesh, name)  # not a number, nor a function
     local = field_.x.array[: space.dofmap.index_map.size_local]
     allowed = _CELLWISE[name]
     if not mesh.comm.allreduce(bool(np.isfinite(local).all()), op=MPI.LAND):
@@ -312,12 +319,12 @@ def cell_values(value: CellValues, mesh, name: str) -> fem.Function:
     return field_
 
 
-def reference_fraction(value: CellValues, mesh) -> fem.Function:
+def reference_fraction(value: CellValues, mesh: dolfinx.mesh.Mesh) -> fem.Function:
     """Φs0 as a DG0 field, checked to lie in (0, 1) everywhere."""
     return cell_values(value, mesh, "phi_s0")
 
 
-def _cell_values(path: Path, mesh, name: str) -> np.ndarray:
+def _cell_values(path: Path, mesh: dolfinx.mesh.Mesh, name: str) -> np.ndarray:
     """One value per cell from a file in the mesh's input cell order, for this rank's cells."""
     if not path.is_file():
         raise ParameterError(f"{name} file '{path}' not found")
@@ -364,10 +371,10 @@ class AlveolarPressure(Named):
     name: str = ""
     kind: ClassVar[str] = "alveolar pressure"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self._check(vector=False)
 
-    def potential(self, model, value: Expr) -> ufl.Form:
+    def potential(self, model: Model, value: Expr) -> ufl.Form:
         """−∫ p_f (J − Φs) dX (J): the work of the air pressure on the air volume."""
         return -value * (ufl.det(model.F) - model.fields["phi_s"]) * model.dx
 
@@ -384,9 +391,10 @@ class ImagedPorosity:
     inverse problem relaxes both corrections together.
     """
 
-    def __init__(self, model):
-        formulation = model.formulation
-        self.phi_s0, self.target = formulation.phi_s0, formulation.imaged_porosity
+    def __init__(self, model: Model) -> None:
+        formulation = cast(Poromechanics, model.formulation)  # the lung's, bound: its fields are Functions
+        self.phi_s0 = cast(fem.Function, formulation.phi_s0)
+        self.target = cast(fem.Function, formulation.imaged_porosity)
         space = self.phi_s0.function_space  # DG0: entries are cells
         self.owned = space.dofmap.index_map.size_local
         self.comm = model.geometry.mesh.comm
@@ -423,27 +431,28 @@ class ImagedPorosity:
         self.phi_s0.x.scatter_forward()
 
 
-def stresses(model) -> dict[str, Expr]:
+def stresses(model: Model) -> dict[str, Expr]:
     """The Cauchy stress split: skeleton (from W_skel), bulk (∂W_bulk/∂Φs I) and their sum, the total.
 
     At equilibrium the bulk part equals (∂W_pore/∂Φf − p_f) I, so the total is the stress the
     lung carries: σ_skel − p_f I without the porosity barrier.
     """
-    formulation, F = model.formulation, model.F
+    formulation, F = cast(Poromechanics, model.formulation), model.F  # the lung's
     J = ufl.det(F)
     skeleton = ufl.diff(formulation.skeleton_energy(model.material, F), F) * F.T / J
     bulk = formulation.bulk_stress(model.fields["phi_s"]) * ufl.Identity(3)
     return {"skeleton": skeleton, "bulk": bulk, "total": skeleton + bulk}
 
 
-def fields(model) -> dict[str, Expr]:
+def fields(model: Model) -> dict[str, Expr]:
     """Cellwise scalars of the lung: Φs0, Φs, φf = 1 − Φs/J (current porosity) and the mean stresses."""
     phi_s, J = model.fields["phi_s"], ufl.det(model.F)
-    scalars = {"phi_s0": model.formulation.phi_s0, "phi_s": phi_s, "porosity": 1 - phi_s / J}
+    phi_s0 = cast(Poromechanics, model.formulation).phi_s0  # the lung's
+    scalars = {"phi_s0": phi_s0, "phi_s": phi_s, "porosity": 1 - phi_s / J}
     return scalars | {f"mean_stress_{name}": ufl.tr(sigma) / 3 for name, sigma in stresses(model).items()}
 
 
-def averages(model) -> dict[str, Average]:
+def averages(model: Model) -> dict[str, Average]:
     """The lung's averages: per reference volume, Φs (solid), Φf = J − Φs (air), φs = Φs/J
     (current solid fraction) and the mean Green–Lagrange strain tr(E)/3; per current volume,
     the mean normal stress tr(σ)/3 (Pa) of the skeleton, bulk and total stresses."""

@@ -11,9 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from lungmech.fem.loads import FollowerPressure, is_pressure
+from lungmech.fem.loads import FollowerPressure, Load, is_pressure
 from lungmech.lung.poromechanics import AlveolarPressure, Poromechanics
+
+if TYPE_CHECKING:
+    from lungmech.fem.formulations import Formulation
 
 __all__ = ["PressureAxis", "pressure_axis"]
 
@@ -33,7 +37,7 @@ class PressureAxis:
         return float(sum(weight * loads[label] for label, weight in self.weights.items()))
 
 
-def pressure_axis(loads: Sequence, formulation) -> PressureAxis | None:
+def pressure_axis(loads: Sequence[Load], formulation: Formulation) -> PressureAxis | None:
     """The P–V curve's pressure of a body with these ``loads`` and ``formulation`` (see the
     module's doc), or None without pressure loads."""
     scalars = [load for load in loads if is_pressure(load)]
