@@ -44,7 +44,7 @@ lock:
 
 # ruff's linter and formatter, and mypy on the packages it finds clean (configured in
 # pyproject.toml; the list grows until it is all of lungmech).
-TYPED = lungmech/parallel lungmech/mesh lungmech/registration
+TYPED = lungmech/parallel lungmech/mesh lungmech/registration lungmech/fem lungmech/lung lungmech/rom
 lint: $(STAMP)
 	$(VENV)/bin/ruff check lungmech tests demos benchmarks docs
 	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks docs

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+from typing import Literal, overload
 
 from petsc4py import PETSc
 
@@ -21,6 +22,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
 from lungmech.parallel.linalg import NotPositive, apply, gram_schmidt
 
 INNER_PRODUCTS = ("l2", "mass", "energy")
@@ -61,7 +63,13 @@ class Basis:
         return replace(self, vectors=self.vectors[:, :size].copy(), values=self.values[:size].copy())
 
 
-def inner_product(model, kind: str) -> PETSc.Mat | None:
+@overload
+def inner_product(model: Model, kind: Literal["mass", "energy"]) -> PETSc.Mat: ...
+@overload
+def inner_product(model: Model, kind: str) -> PETSc.Mat | None: ...
+
+
+def inner_product(model: Model, kind: str) -> PETSc.Mat | None:
     """The Gram operator W of ``kind`` on the state space (None for l2, i.e. W = I).
 
     mass: ∫ Σ_fields a·b dX; energy: the second variation of the stored energy ∫ψ at the
@@ -93,7 +101,7 @@ def inner_product(model, kind: str) -> PETSc.Mat | None:
     return W
 
 
-def require_positive_definite(model, kind: str) -> None:
+def require_positive_definite(model: Model, kind: str) -> None:
     """Refuse, in one line naming the way out, an inner product ``kind`` that is not positive
     definite on the model's constrained space: its Cholesky factorisation's inertia (MUMPS) has a
     negative or zero pivot (the energy of a saddle point — the mixed formulation's pressure — or
@@ -138,7 +146,7 @@ def positive(inner: str) -> Iterator[None]:
         raise _not_positive(inner, str(error)) from None
 
 
-def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
+def enrich(model: Model, *bases: Basis, inner: str | None = None) -> Basis:
     """One basis spanning all of ``bases`` (in order), re-orthonormalised; repeats are dropped."""
     if not bases:
         raise ParameterError("enrich: give at least one basis")
@@ -159,7 +167,7 @@ def enrich(model, *bases: Basis, inner: str | None = None) -> Basis:
     return Basis(vectors, values, "enriched" if len(bases) > 1 else kinds, inner, bases[0].fingerprint, source)
 
 
-def dual(model, basis: Basis) -> np.ndarray:
+def dual(model: Model, basis: Basis) -> np.ndarray:
     """W V, owned rows: the coordinates of a state are q = (W V)ᵀ (x − x₀), V being W-orthonormal
     (collective; one assembly of W)."""
     W = inner_product(model, basis.inner_product)
@@ -169,7 +177,7 @@ def dual(model, basis: Basis) -> np.ndarray:
     return result
 
 
-def zero_imposed(model, vectors: np.ndarray) -> np.ndarray:
+def zero_imposed(model: Model, vectors: np.ndarray) -> np.ndarray:
     """The vectors with every imposed (Dirichlet) dof set to 0: the homogeneous directions."""
     owned = vectors.shape[0]
     for bc in model.bcs:
@@ -178,14 +186,14 @@ def zero_imposed(model, vectors: np.ndarray) -> np.ndarray:
     return vectors
 
 
-def reference_state(model) -> np.ndarray:
+def reference_state(model: Model) -> np.ndarray:
     """The model's unloaded state (u = 0, other fields at their initial values), as an array."""
     with model.kept_state():
         model.reset()
         return model.state.x.array.copy()
 
 
-def origin(model, reference: np.ndarray) -> np.ndarray:
+def origin(model: Model, reference: np.ndarray) -> np.ndarray:
     """The affine offset of the reduced state at the model's time: the unloaded state with the
     imposed displacements set, so that origin + V q meets them for every q."""
     x = reference.copy()

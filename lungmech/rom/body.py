@@ -29,14 +29,16 @@ from dolfinx import fem
 from ufl.algorithms import extract_coefficients
 
 from lungmech.errors import ModelFileError, ParameterError
+from lungmech.fem.model import Model
 from lungmech.mesh.geometry import Geometry
+from lungmech.rom.ecsw import Sample
 
 __all__ = ["cells_of", "export", "geometry", "material_functions", "place", "place_functions"]
 
 PREFIX = "body/"
 
 
-def export(model, cells: np.ndarray, columns: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+def export(model: Model, cells: np.ndarray, columns: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     """The owned ``cells`` (local indices) of ``model``'s mesh as arrays, on rank 0 (None on the
     others), in the order of their input indices: ``body/nodes`` (cells, nodes, gdim) at the
     mesh's current nodes, ``body/order`` the relative input order of each cell's nodes, the cell
@@ -86,7 +88,7 @@ def export(model, cells: np.ndarray, columns: Mapping[str, np.ndarray]) -> dict[
     return {PREFIX + name: array[order] for name, array in joined.items()}
 
 
-def _cell_values(space, cells: np.ndarray, vectors: np.ndarray, ghosts: bool = False) -> np.ndarray:
+def _cell_values(space: fem.FunctionSpace, cells: np.ndarray, vectors: np.ndarray, ghosts: bool = False) -> np.ndarray:
     """(cells, cell dofs unrolled, columns): the values of ``vectors`` (owned rows, or every
     local row with ``ghosts``) at each cell's dofs, in the dofmap's order."""
     vectors = np.asarray(vectors, dtype=float)
@@ -102,14 +104,14 @@ def _cell_values(space, cells: np.ndarray, vectors: np.ndarray, ghosts: bool = F
     return vectors[_unrolled(space, cells)]
 
 
-def _unrolled(space, cells: np.ndarray) -> np.ndarray:
+def _unrolled(space: fem.FunctionSpace, cells: np.ndarray) -> np.ndarray:
     """(cells, cell dofs × block size): the local dofs of each cell, unrolled."""
     bs = space.dofmap.index_map_bs
     blocks = space.dofmap.list[cells]
     return (bs * blocks[:, :, None] + np.arange(bs)).reshape(len(cells), -1)
 
 
-def material_functions(model) -> list[fem.Function]:
+def material_functions(model: Model) -> list[fem.Function]:
     """The Functions the model's forms hold besides its state (material fields: a region's
     stiffness, an imaged porosity), in the order of their creation: what a body copies."""
     held = [model.residual, model.energy_density]
@@ -129,14 +131,14 @@ def geometry(
     on rank 0, None on the others; collective), its boundaries named by ``boundaries``, the
     measures of the whole body ``whole``. Each cell's input index is its position in the body."""
     on_root = comm.rank == 0
-    count, per_cell, gdim = comm.bcast(arrays[PREFIX + "nodes"].shape if on_root else None)
+    count, per_cell, gdim = comm.bcast(_held(arrays, "nodes").shape if on_root else None)
     element = basix.ufl.element("Lagrange", {3: "triangle", 4: "tetrahedron"}[per_cell], 1, shape=(gdim,))
     connectivity, x = np.zeros((0, per_cell), np.int64), np.zeros((0, gdim))
     if on_root:  # node k of cell i is input node per_cell i + (its rank among the cell's input numbers)
-        connectivity = (per_cell * np.arange(count)[:, None] + arrays[PREFIX + "order"]).astype(np.int64)
+        connectivity = (per_cell * np.arange(count)[:, None] + _held(arrays, "order")).astype(np.int64)
         x = np.empty((count * per_cell, gdim))
-        x[connectivity.reshape(-1)] = arrays[PREFIX + "nodes"].reshape(-1, gdim)
-    mesh = dmesh.create_mesh(comm, connectivity, element, x)
+        x[connectivity.reshape(-1)] = _held(arrays, "nodes").reshape(-1, gdim)
+    mesh = dmesh.create_mesh(comm, connectivity, element, x)  # type: ignore[arg-type]  # the hint omits UFL elements
     tdim = mesh.topology.dim
     cells = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
     mesh.topology.create_connectivity(tdim, tdim - 1)
@@ -158,17 +160,24 @@ def geometry(
     return Geometry(mesh, facet_tags, boundaries, cell_tags, source=source, whole=dict(whole))
 
 
-def _rows(mesh, arrays: Mapping[str, np.ndarray | None], names: Sequence[str]) -> dict[str, np.ndarray]:
+def _rows(mesh: dmesh.Mesh, arrays: Mapping[str, np.ndarray | None], names: Sequence[str]) -> dict[str, np.ndarray]:
     """Rank 0's cell-wise arrays ``body/<name>`` (rows in body order), each rank given the rows
     of its owned cells (collective; one gather and one scatter for all ``names``)."""
     comm, tdim = mesh.comm, mesh.topology.dim
     mine = np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: mesh.topology.index_map(tdim).size_local]
     asked = comm.gather(mine, root=0)
-    sent = [{n: arrays[PREFIX + n][rows] for n in names} for rows in asked] if comm.rank == 0 else None
+    sent = [{n: _held(arrays, n)[rows] for n in names} for rows in asked] if comm.rank == 0 else None
     return comm.scatter(sent, root=0)
 
 
-def place(space, arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarray:
+def _held(arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarray:
+    """The array ``body/<name>`` on rank 0, which holds the file's arrays (the others hold None)."""
+    array = arrays[PREFIX + name]
+    assert array is not None, f"{PREFIX + name} is read on rank 0"
+    return array
+
+
+def place(space: fem.FunctionSpace, arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarray:
     """The columns ``body/<name>`` on ``space`` of the body's mesh, as local rows (owned, then
     ghost: a ghost dof of an owned cell gets its value from that cell; collective)."""
     values = _rows(space.mesh, arrays, [name])[name]
@@ -179,7 +188,7 @@ def place(space, arrays: Mapping[str, np.ndarray | None], name: str) -> np.ndarr
     return result
 
 
-def place_functions(model, arrays: Mapping[str, np.ndarray | None]) -> None:
+def place_functions(model: Model, arrays: Mapping[str, np.ndarray | None]) -> None:
     """Set the body model's :func:`material_functions` to the full model's values (collective).
     A body whose model holds other fields than the full one had is an error."""
     functions = material_functions(model)
@@ -197,6 +206,6 @@ def place_functions(model, arrays: Mapping[str, np.ndarray | None]) -> None:
         function.x.scatter_forward()
 
 
-def cells_of(sample) -> np.ndarray:
+def cells_of(sample: Sample) -> np.ndarray:
     """Every owned cell ``sample`` (:class:`~lungmech.rom.ecsw.Sample`) samples, local indices."""
     return np.unique(np.concatenate([np.zeros(0, np.int32), *sample.cells.values()])).astype(np.int32)

@@ -69,6 +69,7 @@ from dolfinx import mesh as dmesh
 
 from lungmech.errors import ParameterError
 from lungmech.fem.averages import averages
+from lungmech.fem.model import Model
 
 __all__ = [
     "AVERAGE",
@@ -118,7 +119,7 @@ class WeightedForms:
     ∫ f w dX of the formulation's averages (:mod:`lungmech.fem.averages`), named
     :data:`AVERAGE` + the average's name."""
 
-    def __init__(self, model):
+    def __init__(self, model: Model) -> None:
         parts = {
             "internal": _integrals(model.internal_residual, "cell"),
             "cell_load": _integrals(model.load_residual, "cell"),
@@ -179,7 +180,7 @@ def _integrals(form: ufl.Form, kind: str) -> list:
     return [integral for integral in form.integrals() if integral.integral_type() == kind]
 
 
-def flattened(expr) -> ufl.core.expr.Expr:
+def flattened(expr: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
     """A vector of the entries of a scalar, vector or tensor expression."""
     shape = expr.ufl_shape
     if len(shape) == 1:
@@ -221,7 +222,7 @@ class Sample:
             counts[kind] = comm.allreduce(mine, op=MPI.SUM)
         return counts
 
-    def export(self, mesh) -> dict[str, np.ndarray]:
+    def export(self, mesh: dmesh.Mesh) -> dict[str, np.ndarray]:
         """The sample in a partition-independent form, the same on every rank (collective): per
         family, the input (mesh-file) indices of the sampled cells, sorted, and their weights;
         arrays named ``<family>_cells`` and ``<family>_weights``."""
@@ -236,7 +237,7 @@ class Sample:
         return data
 
     @staticmethod
-    def place(mesh, data: dict[str, np.ndarray], tolerance: float) -> Sample:
+    def place(mesh: dmesh.Mesh, data: dict[str, np.ndarray], tolerance: float) -> Sample:
         """The sample :meth:`export` gave, on this mesh and partition: each rank keeps its owned
         cells. Collective; a cell index the mesh does not have is an error."""
         owned = mesh.topology.index_map(mesh.topology.dim).size_local
@@ -318,7 +319,7 @@ def sparse_nnls(G: np.ndarray, tolerance: float, comm: MPI.Comm) -> tuple[np.nda
     return cells[order], weights[mine][order]
 
 
-def sampled_residual(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
+def sampled_residual(forms: WeightedForms, mesh: dmesh.Mesh, sample: Sample) -> ufl.Form:
     """The weighted residual with each family's integrals over its sampled cells only (boundary
     loads: over the sampled cells' facets, their boundary tags kept). The cells of the two cell
     families share one tag set: bit 1 internal, bit 2 cell load."""
@@ -349,7 +350,7 @@ def sampled_residual(forms: WeightedForms, mesh, sample: Sample) -> ufl.Form:
 NO_CELLS = np.zeros(0, np.int32)
 
 
-def over_cells(form: ufl.Form, mesh, cells: np.ndarray) -> ufl.Form:
+def over_cells(form: ufl.Form, mesh: dmesh.Mesh, cells: np.ndarray) -> ufl.Form:
     """``form``'s cell integrals over ``cells`` only, its exterior-facet integrals over their
     facets (their boundary tags kept)."""
     cells = np.unique(cells).astype(np.int32)
@@ -368,7 +369,7 @@ def over_cells(form: ufl.Form, mesh, cells: np.ndarray) -> ufl.Form:
     return ufl.Form(integrals)
 
 
-def _facets_of(mesh, tags, cells: np.ndarray):
+def _facets_of(mesh: dmesh.Mesh, tags: dmesh.MeshTags, cells: np.ndarray) -> dmesh.MeshTags:
     """The boundary facet tags ``tags`` kept on the facets of ``cells`` only."""
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim, tdim - 1)

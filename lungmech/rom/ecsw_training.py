@@ -24,7 +24,10 @@ from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from ufl.algorithms import expand_derivatives
 
 from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
+from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.state_dependent import StateDependent
+from lungmech.rom.basis import Basis
 from lungmech.rom.ecsw import (
     Sample,
     WeightedForms,
@@ -78,12 +81,12 @@ class Training:
     tangents at a state (see the module's doc).
     """
 
-    def __init__(self, model, V: np.ndarray):
+    def __init__(self, model: Model, V: np.ndarray) -> None:
         self.model, self.V = model, np.ascontiguousarray(V)
         self.forms = WeightedForms(model)
         self.comm = model.geometry.mesh.comm
         self._state_dependent = StateDependent(model)
-        self._integrals = {}
+        self._integrals: dict[str, tuple[fem.Form, la.Vector, int]] = {}
         for name in self.forms.integrals:
             form, space = self.forms.cell_values(name)
             self._integrals[name] = (fem.form(form), fem.Function(space).x, space.dofmap.index_map_bs)
@@ -92,7 +95,7 @@ class Training:
         self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         # ∂/∂x of each family's columns along a direction V_j: column e is K_e V_j
         self._direction = fem.Function(model.space)
-        self._tangents = {}
+        self._tangents: dict[str, tuple[fem.Form, PETSc.Mat]] = {}
         for family in self.forms.families:
             form = ufl.derivative(self.forms.contribution(family), model.state, self._direction)
             if not expand_derivatives(form).empty():  # a load independent of the state has none
@@ -105,7 +108,7 @@ class Training:
         self._since = dict.fromkeys(names, 0)  # its rows since it was compressed
         rows, k = self.V.shape  # V as a distributed dense matrix, wrapping self.V's memory
         self.seconds = {"tangents": 0.0, "compression": 0.0}  # of the training so far: where its time goes
-        self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)
+        self._basis = PETSc.Mat().createDense(((rows, None), (None, k)), array=self.V, comm=self.comm)  # type: ignore[arg-type]  # petsc4py's stub lacks None (PETSC_DECIDE) sizes, ndarrays
 
     def add(self) -> bool:
         """Add the model's current state (True), or skip it when its reduced force is 0 (False)."""
@@ -113,7 +116,7 @@ class Training:
         local = {}
         for name, (form, vector, size) in self._integrals.items():  # each cell's entries of the integral
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, form)
+            fem.assemble_vector(vector.array, form)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
             vector.scatter_reverse(la.InsertMode.add)  # a facet's contribution to its cell's owner
             local[name] = vector.array[: self.cells * size].reshape(self.cells, size).T.copy()
         for name in self.forms.functionals:  # a DG0 vector: entry e is cell e's integral
@@ -161,7 +164,7 @@ class Training:
     def _reduced_columns(self, form: fem.Form, C: PETSc.Mat) -> np.ndarray:
         """Vᵀ C of the assembled ``form`` (columns: the owned cells)."""
         C.zeroEntries()
-        assemble_matrix(C, form)
+        assemble_matrix(C, form)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
         C.assemble()
         product = C.transposeMatMult(self._basis)  # (cells × k): row e is (Vᵀ C_e)ᵀ
         try:
@@ -233,7 +236,7 @@ class Training:
                 self.add_state(state, t, parameters=parameters, tangents=index in tangents)
 
     @contextlib.contextmanager
-    def watching(self, solver) -> Iterator[Training]:
+    def watching(self, solver: NewtonSolver) -> Iterator[Training]:
         """Within the block, :meth:`add` every Newton iterate of ``solver`` (a full
         :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
         not only the converged ones, so that the sample also reproduces the reduced forces away
@@ -290,7 +293,12 @@ class Training:
 
 
 def train(
-    model, basis, solver, runs: Callable[[], object], tolerance: float, timings: dict[str, float] | None = None
+    model: Model,
+    basis: Basis,
+    solver: NewtonSolver,
+    runs: Callable[[], object],
+    tolerance: float,
+    timings: dict[str, float] | None = None,
 ) -> Sample:
     """The ECSW sample of ``model`` on ``basis`` at ``tolerance``, trained on every Newton
     iterate (converged states included) ``solver`` takes while ``runs()`` drives it along the
@@ -314,14 +322,14 @@ def train(
 
 
 @contextlib.contextmanager
-def iterates(solver, seen: Callable[[int], None]) -> Iterator[None]:
+def iterates(solver: NewtonSolver, seen: Callable[[int], None]) -> Iterator[None]:
     """Within the block, ``seen(iteration)`` after every Newton iterate of ``solver`` (a full
     :class:`~lungmech.fem.solver.NewtonSolver`; 0: a solve's start), with the model's state set
     to that iterate."""
     active = [True]
     model = solver.model
 
-    def monitor(snes, iteration, norm) -> None:
+    def monitor(snes: PETSc.SNES, iteration: int, norm: float) -> None:
         if active[0]:
             x = snes.getSolution()
             model.state.x.array[: x.getLocalSize()] = x.getArray(readonly=True)

@@ -12,15 +12,21 @@ same load stepping (:func:`lungmech.fem.solver.solve`), outputs and state-depend
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Protocol
+
 from petsc4py import PETSc
 
 import numpy as np
+import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import Fields
+from lungmech.fem.dynamics import ImplicitEuler
 from lungmech.fem.limits import Inversion, displacement_gradient
+from lungmech.fem.model import Model
 from lungmech.fem.quantities import assemble_owned
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult, StepsModelState
 from lungmech.fem.state_dependent import StateDependent
@@ -41,14 +47,14 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
 
     def __init__(
         self,
-        model,
+        model: Model,
         basis: Basis,
         options: NewtonOptions | None = None,
-        residual=None,
-        jacobian=None,
+        residual: ufl.Form | None = None,
+        jacobian: ufl.Form | None = None,
         start: np.ndarray | None = None,
         enrichment: np.ndarray | None = None,
-    ):
+    ) -> None:
         check_basis(model, basis)
         self.model, self.basis = model, basis
         self.options = options or NewtonOptions()
@@ -116,7 +122,7 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         """K at the model's current state (the solver's matrix, overwritten)."""
         A = self._matrix
         A.zeroEntries()
-        assemble_matrix(A, self._jacobian)
+        assemble_matrix(A, self._jacobian)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
         A.assemble()
         return A
 
@@ -125,6 +131,7 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         residual and tangent in the directions the basis leaves out (collective)."""
         q = self.project()
         residual, W = self._residual_at(q), self.W
+        assert W is not None, "enriched terms need an enrichment"
         return q, gram(W, residual[:, None], self.comm)[:, 0], gram(W, apply(self._tangent(), W, self.comm), self.comm)
 
     def reduced_jacobian(self) -> np.ndarray:
@@ -156,12 +163,12 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         return floor
 
     @property
-    def residual_form(self):
+    def residual_form(self) -> fem.Form:
         """The compiled residual form of the full model."""
         return self._residual
 
     @property
-    def jacobian_form(self):
+    def jacobian_form(self) -> fem.Form:
         """The compiled Jacobian form of the full model."""
         return self._jacobian
 
@@ -169,7 +176,7 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         self._matrix.destroy()
 
 
-def reduced_solver(basis: Basis, options: NewtonOptions | None = None):
+def reduced_solver(basis: Basis, options: NewtonOptions | None = None) -> Callable[[ImplicitEuler], ReducedSolver]:
     """A factory of reduced Galerkin solvers on ``basis`` for the forms of a time-stepping scheme
     (:class:`lungmech.fem.dynamics.ImplicitEuler`): ``solver_factory`` of ``integrate``."""
     return lambda scheme: ReducedSolver(
@@ -177,7 +184,7 @@ def reduced_solver(basis: Basis, options: NewtonOptions | None = None):
     )
 
 
-def check_basis(model, basis: Basis) -> None:
+def check_basis(model: Model, basis: Basis) -> None:
     """A basis of another mesh or space is an error (collective)."""
     fingerprint = layout(model.space).fingerprint
     if basis.fingerprint != fingerprint:
@@ -187,7 +194,19 @@ def check_basis(model, basis: Basis) -> None:
         )
 
 
-def newton(problem, q: np.ndarray, options: NewtonOptions) -> tuple[np.ndarray, bool, int, list[float], str]:
+class ReducedProblem(Protocol):
+    """What :func:`newton` evaluates: a reduced residual r(q), then its tangent and round-off floor at that q."""
+
+    def reduced_residual(self, q: np.ndarray) -> np.ndarray: ...
+
+    def reduced_jacobian(self) -> np.ndarray: ...
+
+    def floor(self) -> float: ...
+
+
+def newton(
+    problem: ReducedProblem, q: np.ndarray, options: NewtonOptions
+) -> tuple[np.ndarray, bool, int, list[float], str]:
     """Newton's method on a reduced residual r(q) = 0 from ``q``, with a backtracking line search
     on ‖r‖: (q, converged, iterations, residual norms, reason). ``problem`` evaluates
     ``reduced_residual(q)``, then ``reduced_jacobian()`` and ``floor()`` (the round-off floor of r) at that q.

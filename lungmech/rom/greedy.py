@@ -29,12 +29,15 @@ import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.model import Model
+from lungmech.fem.parametric import FullOrderModel, Solution, Step
+from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import one_state
 from lungmech.parallel.linalg import norms
 from lungmech.rom import ecsw
@@ -117,26 +120,34 @@ def greedy(
     seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
     start = one_state(full.start, model)
     remaining = [full.parameters.values(point) for point in candidates]
-    training, paths, rounds = [], [], []
+    training, paths = [], []
+    rounds: list[Round] = []
     iterates = []  # with hyper: (state, time, parameters) of every Newton iterate of the full solves
     indicator = ResidualIndicator(model)
     weight = inner_product(model, inner)
 
-    def add(point: dict[str, float], reduced: ReducedModel | None = None, approximate=None) -> float | None:
+    def add(
+        point: dict[str, float], reduced: ReducedModel | None = None, approximate: Solution | None = None
+    ) -> float | None:
         tic = time.perf_counter()
         columns = []
         kept = lambda iteration: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
-        with ecsw.iterates(full.solver, kept) if hyper is not None else contextlib.nullcontext():
-            solution = full.solve(
-                point,
-                on_step=lambda step: step.phase in ("approach", "path") and columns.append(snapshot(model, start)),
-            )
+
+        def keep(step: Step) -> None:
+            if step.phase in ("approach", "path"):
+                columns.append(snapshot(model, start))
+
+        with ecsw.iterates(cast(NewtonSolver, full.solver), kept) if hyper is not None else contextlib.nullcontext():
+            solution = full.solve(point, on_step=keep)
         path = np.column_stack(columns)
         largest = float(np.max(norms(path, weight, model.geometry.mesh.comm)))
         paths.append(path / largest if largest > 0 else path)
         training.append(point)
         seconds["snapshots"] += time.perf_counter() - tic
-        return errors(reduced, solution, approximate).energy if approximate is not None else None
+        if approximate is None:
+            return None
+        assert reduced is not None  # (an approximate answer comes with its reduced model)
+        return errors(reduced, solution, approximate).energy
 
     try:
         add(full.parameters.defaults)
@@ -212,7 +223,9 @@ def _safety(rounds: Sequence[Round], tolerance: float) -> float:
     return max([1.0, *ratios[-SAFETY_ROUNDS:]])
 
 
-def _judge(reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str, float]):
+def _judge(
+    reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str, float]
+) -> tuple[float, Solution | None]:
     """(η, the reduced answer) at ``point``: the answer's own online indicator, or else the
     residual one; (inf, None) when the reduced solve fails there."""
     try:
@@ -224,7 +237,7 @@ def _judge(reduced: ReducedModel, indicator: ResidualIndicator, point: dict[str,
     return indicator(reduced, approximate), approximate
 
 
-def _sampled(model, basis: Basis, W: np.ndarray, iterates: list, tolerance: float, seconds: dict) -> Sample:
+def _sampled(model: Model, basis: Basis, W: np.ndarray, iterates: list, tolerance: float, seconds: dict) -> Sample:
     """The ECSW sample of [V W] at ``tolerance``, trained on the stored ``iterates``."""
     tic = time.perf_counter()
     training = ecsw.Training(model, np.hstack([basis.vectors, W]))

@@ -12,21 +12,23 @@ imposed factors), over their own ECSW sample otherwise.
 from __future__ import annotations
 
 import functools
+from typing import Protocol
 
 from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
 import ufl
-from dolfinx import fem, la
+from dolfinx import common, fem, la
 
 from lungmech.errors import ParameterError
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
+from lungmech.fem.model import Model
 from lungmech.fem.sensitivity import DerivativeForms, ValueDerivatives, derivative_forms
 from lungmech.fem.solver import NOT_CONVERGED, NewtonOptions, NewtonResult
 from lungmech.parallel.linalg import LocalCSR, gram
-from lungmech.rom.basis import dual, origin, reference_state
+from lungmech.rom.basis import Basis, dual, origin, reference_state
 from lungmech.rom.ecsw import Sample, WeightedForms, over_cells, sampled_residual
 from lungmech.rom.galerkin import check_basis, newton
 from lungmech.rom.outputs import imposed_directions
@@ -55,14 +57,14 @@ class HyperReducedSolver:
 
     def __init__(
         self,
-        model,
-        basis,
+        model: Model,
+        basis: Basis,
         sample: Sample,
-        options=None,
+        options: NewtonOptions | None = None,
         start: np.ndarray | None = None,
         enrichment: np.ndarray | None = None,
         whole: Whole | None = None,
-    ):
+    ) -> None:
         check_basis(model, basis)
         self.model, self.basis, self.sample = model, basis, sample
         self.options = options or NewtonOptions()
@@ -125,10 +127,11 @@ class HyperReducedSolver:
         self._assembled = _Assembled()
         # state-dependent loads (balanced gravity): their coefficients from affine integrals in
         # z = (q, imposed factors), exactly, and from the others' samples on the reduced mesh
-        self._coupled = []
+        self._coupled: list[_Coupled] = []
         if model.state_dependent:
             affine_basis = start_state, np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
             for index, term in enumerate(model.state_dependent):
+                assert term.bind is not None  # (refused above otherwise)
                 integration = SampledIntegration(
                     model, basis.vectors, self.forms, affine_basis, self._z, index, term.integrals, self.whole
                 )
@@ -227,9 +230,10 @@ class HyperReducedSolver:
         b = self._vector.array
         self._assembled.forget_residual()
         for i in range(len(derivatives.names) if forms.residual is not None else 0):
+            assert forms.residual is not None  # (the loop runs only then)
             forms.set_weights(derivatives, i)
             b[:] = 0.0
-            fem.assemble_vector(b, forms.residual)
+            fem.assemble_vector(b, forms.residual)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
             rhs[:, i] += gram(self.V, b[:, None], self.comm)[:, 0]
         return -np.linalg.solve(jacobian, rhs)
 
@@ -241,10 +245,11 @@ class HyperReducedSolver:
         g = self._vector.array
         self._assembled.forget_residual()
         g[:] = 0.0
-        fem.assemble_vector(g, forms.energy_gradient)
+        fem.assemble_vector(g, forms.energy_gradient)  # type: ignore[arg-type]  # the into-an-array overload, as above
         total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
         total = total + gram(g[:, None], self._imposed_derivatives(derivatives), self.comm)[0]
         for i in range(len(derivatives.names) if forms.energy is not None else 0):
+            assert forms.energy is not None  # (the loop runs only then)
             forms.set_weights(derivatives, i)
             total[i] += self.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
         return total
@@ -291,7 +296,7 @@ class HyperReducedSolver:
             term.update()
         b = self._vector.array
         b[:] = 0.0
-        fem.assemble_vector(b, self._residual)
+        fem.assemble_vector(b, self._residual)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
         self._assembled.residual(self.model.loading, self._q)
         return gram(self.V, b[:, None], self.comm)[:, 0]
 
@@ -305,8 +310,9 @@ class HyperReducedSolver:
             self._at(self.coordinates)
             self.reduced_residual(self.coordinates)
             self._matrix.set_value(0.0)
-            fem.assemble_matrix(self._matrix, self._jacobian)
+            fem.assemble_matrix(self._matrix, self._jacobian)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
             self._assembled.tangent(self.model.loading)
+        assert self.W is not None, "enriched terms need an enrichment"
         r = gram(self.W, self._vector.array[:, None], self.comm)[:, 0]
         return self.coordinates.copy(), r, gram(self.W[self._rows], self._tangent @ self._on_columns(self.W), self.comm)
 
@@ -314,7 +320,7 @@ class HyperReducedSolver:
         """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state, plus the state-dependent loads' low-rank
         term −(Vᵀ ∂W/∂θ)(Vᵀ dΘ/du)ᵀ (:mod:`lungmech.fem.state_dependent`)."""
         self._matrix.set_value(0.0)
-        fem.assemble_matrix(self._matrix, self._jacobian)
+        fem.assemble_matrix(self._matrix, self._jacobian)  # type: ignore[arg-type]  # the into-a-matrix overload, as above
         self._assembled.tangent(self.model.loading)
         reduced = gram(self._row_basis, self._tangent @ self._column_basis, self.comm)
         self._works = []
@@ -334,12 +340,12 @@ class HyperReducedSolver:
         return floor + sum(float(np.linalg.norm(np.abs(w) @ t.rounding())) for w, t in zip(self._works, self._coupled))
 
     @functools.cached_property
-    def residual_form(self):
+    def residual_form(self) -> fem.Form:
         """The full model's compiled residual (for a diagnosis of a failed load path)."""
         return fem.form(self.model.residual)
 
     @functools.cached_property
-    def jacobian_form(self):
+    def jacobian_form(self) -> fem.Form:
         """The full model's compiled tangent."""
         return fem.form(self.model.jacobian)
 
@@ -347,11 +353,24 @@ class HyperReducedSolver:
         """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
 
 
+class _Coupled(Protocol):
+    """A state-dependent load bound to the solver's integration (``StateDependentWork.bind``)."""
+
+    def update(self) -> None: ...
+
+    def linearise(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def rounding(self) -> np.ndarray: ...
+
+
 class _Assembled:
     """What the solver's residual vector and tangent matrix hold: both at one loading of the
     model (:attr:`lungmech.fem.model.Model.loading`), the residual at ``at``."""
 
-    def __init__(self):
+    loading: int | None
+    at: np.ndarray | None
+
+    def __init__(self) -> None:
         self.loading, self.at, self.has_tangent = None, None, False
 
     def residual(self, loading: int, q: np.ndarray) -> None:
@@ -373,7 +392,7 @@ class _Assembled:
         self.at = None
 
 
-def _positions(index_map, space) -> np.ndarray:
+def _positions(index_map: common.IndexMap, space: fem.FunctionSpace) -> np.ndarray:
     """For each local index of a matrix's (expanded) row or column ``index_map``, the local sub
     dof of ``space`` with the same global number (unrolled), or -1."""
     dofs, bs = space.dofmap.index_map, space.dofmap.index_map_bs
@@ -385,7 +404,7 @@ def _positions(index_map, space) -> np.ndarray:
     return np.where(numbers[order][at] == wanted, order[at], -1)
 
 
-def _displacement_magnitude(model, reduced: ReducedMesh, h: float) -> np.ndarray:
+def _displacement_magnitude(model: Model, reduced: ReducedMesh, h: float) -> np.ndarray:
     """``h`` (the whole mesh's smallest cell size) on the sub dofs of the displacement, 0 on
     other fields: what F's rounding adds to |x|."""
     if not model.multi_field:
@@ -395,7 +414,7 @@ def _displacement_magnitude(model, reduced: ReducedMesh, h: float) -> np.ndarray
     return magnitude
 
 
-def _projection(model, basis, reference: np.ndarray) -> np.ndarray:
+def _projection(model: Model, basis: Basis, reference: np.ndarray) -> np.ndarray:
     """q of the model's current state: (W V)ᵀ (x − x₀) (collective)."""
     owned = basis.vectors.shape[0]
     x = model.state.x.array[:owned] - origin(model, reference)[:owned]

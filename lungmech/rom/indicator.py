@@ -27,22 +27,33 @@ back-substitution: O(mesh), the offline check of the greedy training
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
+from petsc4py import PETSc
+
 import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.fem.linear import factorised
+from lungmech.fem.model import Model
 from lungmech.fem.parametric import Solution
 from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram, norms
-from lungmech.rom.basis import inner_product, origin
+from lungmech.rom.basis import Basis, inner_product, origin
+from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.hyper_reduced import HyperReducedSolver
+from lungmech.rom.whole import Whole
+
+if TYPE_CHECKING:  # (it imports this module)
+    from lungmech.rom.reduced import ReducedModel
 
 __all__ = ["ENRICHMENT", "EnrichedIndicator", "ResidualIndicator", "enrichment"]
 
 ENRICHMENT = 8  # at most: the online indicator's directions beyond the basis
 
 
-def enrichment(basis, modes) -> np.ndarray:
+def enrichment(basis: Basis, modes: Basis | None) -> np.ndarray:
     """The POD directions of ``modes`` next after ``basis`` (its leading vectors; at most
     :data:`ENRICHMENT`, owned rows), where the online indicator looks: none when ``modes`` is
     None or holds no more."""
@@ -57,7 +68,7 @@ class ResidualIndicator:
     K_μ has 1 on the diagonal of imposed dofs, where the residual is set to 0: a reduced state
     meets its imposed displacements exactly."""
 
-    def __init__(self, model):
+    def __init__(self, model: Model) -> None:
         self.model = model
         self.comm = model.geometry.mesh.comm
         self._energy = inner_product(model, "energy")
@@ -65,7 +76,7 @@ class ResidualIndicator:
         self._tangent = create_matrix(self._jacobian)
         self._solver = factorised(self._tangent)
         self._work = fem.Function(model.space).x  # ghosted: assembly adds into ghost rows
-        self._correction, self._vector = self._tangent.createVecs()
+        self._correction, self._vector = cast(tuple[PETSc.Vec, PETSc.Vec], self._tangent.createVecs())  # (right, left)
         self._constrained = model.constrained_dofs()
 
     def factorise(self, start: np.ndarray) -> None:
@@ -78,7 +89,7 @@ class ResidualIndicator:
             for term in model.state_dependent:
                 term.update()
             K.zeroEntries()
-            assemble_matrix(K, self._jacobian, bcs=model.bcs, diag=1.0)
+            assemble_matrix(K, self._jacobian, bcs=model.bcs, diag=1.0)  # type: ignore[arg-type, misc]  # the into-a-matrix overload (singledispatch) is not in the hints
             K.assemble()
         self._solver.setOperators(K)
 
@@ -94,7 +105,7 @@ class ResidualIndicator:
         self._solver.solve(b, self._correction)
         return self._norm(self._correction.array)
 
-    def __call__(self, reduced, solution: Solution) -> float:
+    def __call__(self, reduced: ReducedModel, solution: Solution) -> float:
         """η of ``solution``, an answer of the reduced model ``reduced`` on this model:
         max_t η(t) / max_t ‖x_r(t) − x₀(t)‖_E. Leaves the model at the last output's state."""
         owned = reduced.basis.vectors.shape[0]
@@ -131,7 +142,7 @@ class EnrichedIndicator:
     or given back on a body of sampled cells); each evaluation costs one sampled residual and
     tangent."""
 
-    def __init__(self, model, basis: np.ndarray, enrichment: np.ndarray, whole=None):
+    def __init__(self, model: Model, basis: np.ndarray, enrichment: np.ndarray, whole: Whole | None = None) -> None:
         def grams() -> tuple[np.ndarray, np.ndarray]:
             comm = model.geometry.mesh.comm
             energy = inner_product(model, "energy")
@@ -149,7 +160,7 @@ class EnrichedIndicator:
         """The number of enrichment directions."""
         return self._gram_enrichment.shape[0]
 
-    def at(self, solver) -> tuple[float, float]:
+    def at(self, solver: ReducedSolver | HyperReducedSolver) -> tuple[float, float]:
         """(η̂(t), ‖V q‖_E) at the reduced ``solver``'s current state (collective)."""
         q, residual, tangent = solver.enriched_terms()
         try:

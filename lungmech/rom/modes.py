@@ -10,11 +10,12 @@ from dolfinx.fem.petsc import assemble_matrix
 from lungmech.errors import ParameterError
 from lungmech.fem.linear import factorised
 from lungmech.fem.modal import modal_analysis
+from lungmech.fem.model import Model
 from lungmech.parallel.layout import layout
 from lungmech.rom.basis import Basis, enrich, zero_imposed
 
 
-def modal_basis(model, size: int, density: float = 1.0, shift: float | None = None) -> Basis:
+def modal_basis(model: Model, size: int, density: float = 1.0, shift: float | None = None) -> Basis:
     """The ``size`` lowest modes of K y = λ M y at the current state, orthonormal in the mass
     inner product (ρ = 1 units, so the vectors do not depend on the density); values are λ."""
     modes = modal_analysis(model, size, density=density, shift=shift)
@@ -24,7 +25,7 @@ def modal_basis(model, size: int, density: float = 1.0, shift: float | None = No
     return Basis(vectors, modes.eigenvalues.copy(), "modal", "mass", layout(model.space).fingerprint, source)
 
 
-def modal_derivatives(model, basis: Basis) -> np.ndarray:
+def modal_derivatives(model: Model, basis: Basis) -> np.ndarray:
     """Static modal derivatives θ_ij = −K⁻¹ (∂K/∂q_j) φ_i, i ≤ j, at the current state.
 
     ∂K/∂q_j φ_i is the third variation of the energy in the directions φ_i, φ_j (exact, from UFL);
@@ -59,7 +60,7 @@ def modal_derivatives(model, basis: Basis) -> np.ndarray:
     return np.column_stack(columns)
 
 
-def with_modal_derivatives(model, basis: Basis) -> Basis:
+def with_modal_derivatives(model: Model, basis: Basis) -> Basis:
     """The modal basis enriched by its modal derivatives, re-orthonormalised (modes first)."""
     derivatives = modal_derivatives(model, basis)
     extra = Basis(derivatives, np.zeros(derivatives.shape[1]), "derivatives", basis.inner_product, basis.fingerprint)

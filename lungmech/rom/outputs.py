@@ -24,8 +24,9 @@ imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` foll
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 
@@ -36,11 +37,17 @@ from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
 from lungmech.fem.averages import averages
+from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS
 from lungmech.fem.quantities import Probe, assemble_owned
+from lungmech.fem.sensitivity import ValueDerivatives
 from lungmech.parallel.linalg import apply, gram
 from lungmech.rom.basis import origin
 from lungmech.rom.ecsw import AVERAGE
+from lungmech.rom.whole import Arrays
+
+if TYPE_CHECKING:  # (it imports this module)
+    from lungmech.rom.hyper_reduced import HyperReducedSolver
 
 __all__ = ["Cubic", "ReducedOutputs", "affine", "cubic", "imposed_directions"]
 
@@ -62,7 +69,7 @@ class Cubic:
         return self.c1 + self.c2 @ z + 0.5 * np.einsum("ijk,j,k->i", self.c3, z, z)
 
 
-def cubic(model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray, check: float = 1e-9) -> Cubic:
+def cubic(model: Model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray, check: float = 1e-9) -> Cubic:
     """The functional f(start + Z z) (a 0-form of ``model.state``, a polynomial of degree ≤ 3 in
     it) as a :class:`Cubic` in z, from its derivatives: ``start`` a full local state array,
     ``directions`` Z the owned rows of the directions (columns). Collective; the model's state is
@@ -113,7 +120,7 @@ def cubic(model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray
 
 
 def affine(
-    model, evaluate: Callable[[], np.ndarray], start: np.ndarray, directions: np.ndarray, check: float = 1e-9
+    model: Model, evaluate: Callable[[], np.ndarray], start: np.ndarray, directions: np.ndarray, check: float = 1e-9
 ) -> tuple[np.ndarray, np.ndarray]:
     """(f₀, F₁) with f(start + Z z) = f₀ + F₁ z for a vector functional ``evaluate()`` of the
     model's state that is affine in it (e.g. ∫ρ₀ x dX): k + 2 evaluations, the last a check at
@@ -137,14 +144,14 @@ def affine(
     return f0, F1
 
 
-def _test_point(directions: np.ndarray, comm) -> np.ndarray:
+def _test_point(directions: np.ndarray, comm: MPI.Comm) -> np.ndarray:
     """A random z of moderate size, the same on every rank: each direction moves the body ~10 %."""
     largest = np.empty(directions.shape[1])
     comm.Allreduce(np.abs(directions).max(axis=0, initial=0.0), largest, op=MPI.MAX)
     return np.random.default_rng(0).uniform(-0.1, 0.1, directions.shape[1]) / np.where(largest > 0, largest, 1.0)
 
 
-def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def imposed_directions(model: Model, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """r, D and the constraints they cover, with origin(model, reference) = r + D a for a the
     factors of those constraints (:meth:`~lungmech.fem.model.Model.imposed_amplitudes`): r the
     reference with every imposed dof at 0, D (full local arrays, columns) what each constraint
@@ -153,7 +160,7 @@ def imposed_directions(model, reference: np.ndarray) -> tuple[np.ndarray, np.nda
     imposed = model.imposed
     saved = [i.target.x.array.copy() for i in imposed]
 
-    def at(factors) -> np.ndarray:
+    def at(factors: np.ndarray) -> np.ndarray:
         for i, factor in zip(imposed, factors):
             i.target.x.array[i.where] = factor * i.base
         return origin(model, reference)
@@ -179,7 +186,7 @@ class ReducedOutputs:
     :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`; ``probes`` points or a
     :class:`~lungmech.fem.quantities.Probe` (material points) located already."""
 
-    def __init__(self, solver, probes=()):
+    def __init__(self, solver: HyperReducedSolver, probes: Sequence[Sequence[float]] | Probe = ()) -> None:
         model = self.model = solver.model
         self.solver = solver
         # the averages whose numerators the sample has cells for (not a file of an older build)
@@ -190,14 +197,14 @@ class ReducedOutputs:
         start, imposed, self._constraints = solver.whole.imposed()
         directions = np.hstack([solver.basis.vectors, imposed[:owned]])
 
-        def volume() -> tuple:
+        def volume() -> Arrays:
             found = cubic(model, ufl.det(model.F) * model.dx, start, directions)
             return np.array(found.c0), found.c1, found.c2, found.c3
 
         c0, c1, c2, c3 = solver.whole.get("volume", volume)
         self._volume = Cubic(float(c0), c1, c2, c3)
 
-        def located() -> tuple:
+        def located() -> Arrays:
             probe = (
                 probes if isinstance(probes, Probe) else (Probe(model.geometry.mesh, probes) if len(probes) else None)
             )
@@ -222,7 +229,7 @@ class ReducedOutputs:
         self.probe_points = tuple(tuple(float(c) for c in p) for p in points)
         self._probes = (at_start, each) if len(points) else None  # p(r), and p(Z_i) on the last axis
 
-    def derivatives(self, dq: np.ndarray, derivatives) -> dict[str, object]:
+    def derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> dict[str, object]:
         """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives
         (:class:`~lungmech.fem.sensitivity.ValueDerivatives`), in the structure of
         :func:`~lungmech.fem.sensitivity.output_derivatives`: with dz/dμ = (dq/dμ, da/dμ), the

@@ -7,7 +7,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.fem.parametric import FullOrderModel
+from lungmech.fem.model import Model
+from lungmech.fem.parametric import FullOrderModel, Step
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping
 from lungmech.fem.start import one_state
 from lungmech.parallel import linalg
@@ -16,7 +17,7 @@ from lungmech.rom.basis import Basis, inner_product, origin, positive, reference
 
 
 def snapshots(
-    model,
+    model: Model,
     stepping: Stepping,
     scales: Sequence[float | Sequence[float]] = (1.0,),
     options: NewtonOptions | None = None,
@@ -40,7 +41,7 @@ def snapshots(
     return collected(full, [(point, scale) for point in parameters for scale in scales])
 
 
-def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], object]]) -> np.ndarray:
+def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]]) -> np.ndarray:
     """The snapshots of ``full``'s solves at each (parameter point, load scale) of ``runs``:
     every accepted state of the approach and the load path, minus the start state (owned rows).
     The model is left at its start, at the default parameters. Collective."""
@@ -48,7 +49,7 @@ def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], ob
     start = one_state(full.start, model)
     columns = []
 
-    def keep(step) -> None:
+    def keep(step: Step) -> None:
         if step.phase in ("approach", "path"):
             columns.append(snapshot(model, start))
 
@@ -59,14 +60,14 @@ def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], ob
     return np.column_stack(columns)
 
 
-def snapshot(model, start: np.ndarray) -> np.ndarray:
+def snapshot(model: Model, start: np.ndarray) -> np.ndarray:
     """The model's state minus ``start`` (with the imposed displacements of the current time):
     one column of snapshots, owned rows."""
     return (model.state.x.array - origin(model, start))[: _owned(model)].copy()
 
 
 def pod(
-    model,
+    model: Model,
     data: np.ndarray,
     inner: str = "mass",
     size: int | None = None,
@@ -99,5 +100,5 @@ def pod(
     return basis
 
 
-def _owned(model) -> int:
+def _owned(model: Model) -> int:
     return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs

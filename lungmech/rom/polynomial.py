@@ -10,12 +10,13 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
 from lungmech.parallel.layout import field_dofs, layout
 from lungmech.parallel.linalg import gram_schmidt
 from lungmech.rom.basis import Basis, inner_product, positive, zero_imposed
 
 
-def polynomial_basis(model, order: int, inner: str = "mass") -> Basis:
+def polynomial_basis(model: Model, order: int, inner: str = "mass") -> Basis:
     """Monomials x^a y^b z^c, a + b + c ≤ ``order``, in centred and scaled coordinates, for each
     component of each field. Directions that the imposed displacements remove are dropped."""
     if not (isinstance(order, int) and 1 <= order <= 6):

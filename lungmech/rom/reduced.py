@@ -23,10 +23,14 @@ import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 
+from petsc4py import PETSc
+
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
 from lungmech.fem.parametric import Outputs, Solution, Step, output_times, trajectory
+from lungmech.fem.quantities import Probe
 from lungmech.fem.sensitivity import output_derivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.fem.start import StartReport, approach
@@ -67,18 +71,18 @@ class ReducedModel:
 
     def __init__(
         self,
-        model,
+        model: Model,
         basis: Basis,
         stepping: Stepping,
         newton: NewtonOptions | None = None,
         start: np.ndarray | None = None,
-        probes: Sequence[Sequence[float]] = (),
+        probes: Sequence[Sequence[float]] | Probe = (),
         training: Sequence[Mapping[str, float]] = (),
         sample: Sample | None = None,
         enrichment: np.ndarray | None = None,
         described: StartReport | None = None,
         whole: Whole | None = None,
-    ):
+    ) -> None:
         self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
         self.described = described or StartReport(
             "equilibrium", "the reduced model's start (an equilibrium at the default parameters), moved to μ"
@@ -91,15 +95,17 @@ class ReducedModel:
         self.parameters = model.parameters
         self.probes = probes  # points, or a Probe of material points located already
         self.start = reference_state(model) if start is None else np.array(start, dtype=float)
+        self.solver: ReducedSolver | HyperReducedSolver
+        self.outputs: Outputs | ReducedOutputs
         if sample is None:
             self.solver = ReducedSolver(model, basis, newton, start=self.start, enrichment=self.enrichment)
             self.outputs = Outputs(model, probes)
         else:
             self.solver = HyperReducedSolver(model, basis, sample, newton, self.start, self.enrichment, whole)
             self.outputs = ReducedOutputs(self.solver, probes)
-        self.indicator = None
+        self.indicator: EnrichedIndicator | None = None
         if self.enrichment is not None:
-            kept = self.solver.whole if sample is not None else None
+            kept = self.solver.whole if isinstance(self.solver, HyperReducedSolver) else None
             self.indicator = EnrichedIndicator(model, basis.vectors, self.enrichment, kept)
         self.times = output_times(model, stepping)
         self.training = [dict(point) for point in training]
@@ -137,7 +143,7 @@ class ReducedModel:
         return smaller
 
     @functools.cached_property
-    def energy_product(self):
+    def energy_product(self) -> PETSc.Mat:
         """The energy inner product at rest (PETSc matrix), for the errors of :mod:`lungmech.rom.accuracy`."""
         return inner_product(self.model, "energy")
 
@@ -167,7 +173,7 @@ class ReducedModel:
         estimates = []  # (η̂, ‖V q‖_E) at the output times: the answer's indicator
         path = []  # and at every state a Step's indicator() was asked for: the path's so far
 
-        def start(on_approach) -> StartReport:
+        def start(on_approach: Callable | None) -> StartReport:
             defaults = self.parameters.defaults
             self.model.set_parameters(defaults)
             self.restart()
@@ -200,7 +206,8 @@ class ReducedModel:
     def describe(self) -> dict[str, object]:
         """What solves it, for summaries: the reduced solver (and for a model on a body of
         sampled cells, the full model's ``dofs`` and ``cells``)."""
-        return {"solver": self.solver.description, "linear_solver": None} | (self.full_size or {})
+        solver: dict[str, object] = {"solver": self.solver.description, "linear_solver": None}
+        return solver | (self.full_size or {})
 
     def fields(self, state: np.ndarray, time: float) -> None:
         """The model's state the full field x₀ + V q of ``state`` (q) at ``time`` (O(mesh);
@@ -231,6 +238,7 @@ class ReducedModel:
         model, V = self.model, self.basis.vectors
         derivatives = value_derivatives(model)
         if self.sample is not None:
+            assert isinstance(self.solver, HyperReducedSolver) and isinstance(self.outputs, ReducedOutputs)
             return self.outputs.derivatives(self.solver.state_derivatives(derivatives), derivatives)
         dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
         dx = V @ dq + derivatives.imposed[: V.shape[0]]

@@ -20,6 +20,8 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 from ufl.algorithms import expand_derivatives
 
+from lungmech.fem.model import Model
+
 __all__ = ["ReducedMesh"]
 
 
@@ -28,7 +30,7 @@ class ReducedMesh:
     space and a state on it (collective). ``whole``: the model's mesh is the reduced mesh (its
     cells are all sampled: :mod:`lungmech.rom.body`), its space and state the model's own."""
 
-    def __init__(self, model, cells: np.ndarray, whole: bool = False):
+    def __init__(self, model: Model, cells: np.ndarray, whole: bool = False) -> None:
         parent = model.geometry.mesh
         tdim = parent.topology.dim
         self.model = model
@@ -48,6 +50,7 @@ class ReducedMesh:
 
     def _parent_dofs(self, bs: int) -> np.ndarray:
         """For every local sub dof (owned, then ghost; unrolled), the full space's local dof."""
+        assert self.entity_map is not None  # a submesh (not the model's whole mesh) has its entity map
         sub_cells = np.arange(self.mesh.topology.index_map(self.mesh.topology.dim).size_local, dtype=np.int32)
         parents = self.entity_map.sub_topology_to_topology(sub_cells, inverse=False)
         sub_map, full_map = self.space.dofmap, self.model.space.dofmap
@@ -83,7 +86,7 @@ class ReducedMesh:
         if self.entity_map is None:
             return fem.form(form)
         expanded = expand_derivatives(form)
-        mapping = {self.model.state: self.state}
+        mapping: dict[ufl.core.expr.Expr, ufl.core.expr.Expr] = {self.model.state: self.state}
         for argument in expanded.arguments():
             if argument.ufl_function_space() == self.model.space:
                 mapping[argument] = ufl.Argument(self.space, argument.number(), argument.part())

@@ -35,13 +35,16 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
-from lungmech.fem.start import StartReport, one_state
+from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
 from lungmech.rom import ecsw, indicator
 from lungmech.rom.accuracy import Errors, errors
 from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
@@ -54,7 +57,7 @@ from lungmech.rom.reduced import ReducedModel
 __all__ = ["ECSW", "Enriched", "Errors", "Modal", "POD", "Polynomial", "Reductor", "TrainingSet", "errors", "reduce"]
 
 
-def _size(size) -> int:
+def _size(size: object) -> int:
     if isinstance(size, bool) or not (isinstance(size, int | np.integer) and size >= 1):
         raise ParameterError(f"basis size must be a positive integer (got {size!r})")
     return int(size)
@@ -68,7 +71,7 @@ class POD:
     size: int = 20
     kind = "pod"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _size(self.size)
 
 
@@ -81,7 +84,7 @@ class Modal:
     density: float = 1.0
     derivatives: bool = False
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _size(self.size)
         checks.real("density", self.density)
 
@@ -98,7 +101,7 @@ class Polynomial:
     size: int = 20
     kind = "polynomial"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _size(self.size)
 
 
@@ -110,7 +113,7 @@ class Enriched:
     size: int = 20
     kind = "enriched"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _size(self.size)
         if not self.parts or not all(isinstance(part, POD | Modal | Polynomial) for part in self.parts):
             raise ParameterError("an enriched basis is made of POD, Modal and Polynomial parts")
@@ -130,7 +133,7 @@ class TrainingSet:
     scales: Sequence[float | Sequence[float]] = (1.0,)
     tolerance: float | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not self.points:
             raise ParameterError("give at least one training parameter point")
         if not self.scales:
@@ -158,7 +161,7 @@ class ECSW:
     judge: float | None = None
     size: int | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("tolerance", "judge"):
             value = getattr(self, name)
             if value is not None:
@@ -196,7 +199,7 @@ class Reductor:
         training: TrainingSet = TrainingSet(),
         inner: str = "energy",
         judge: float | None = None,
-    ):
+    ) -> None:
         if isinstance(basis, Greedy):  # trained already: its own training, inner product and τ
             training = TrainingSet(basis.training, tolerance=basis.tolerance)
             inner, judge = basis.basis.inner_product, basis.sample.tolerance if basis.sample is not None else None
@@ -222,12 +225,14 @@ class Reductor:
         self.points = [full.parameters.values(p) for p in training.points]
         self._runs = [(point, scale) for point in self.points for scale in training.scales]
         if self.trained is None and training.tolerance is not None:
+            assert isinstance(basis, POD)  # (a greedy trains a POD basis: refused above otherwise)
             tic = time.perf_counter()
             self.trained = greedy(
                 full, self.points, training.tolerance, size=basis.size, inner=inner, timings=self.timings, hyper=judge
             )
             self.timings["greedy"] = time.perf_counter() - tic
         elif self.trained is None:
+            assert not isinstance(basis, Greedy)  # (a Greedy is trained already)
             self.basis = _basis(full, basis, self._runs, inner, self)
         if self.trained is not None:
             self.modes, self.points = self.trained.modes, self.trained.training
@@ -241,7 +246,7 @@ class Reductor:
     def __enter__(self) -> Reductor:
         return self
 
-    def __exit__(self, *exception) -> None:
+    def __exit__(self, *exception: object) -> None:
         self.destroy()
 
     def destroy(self) -> None:
@@ -259,9 +264,10 @@ class Reductor:
         if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
             vectors = vectors.truncate(hyper.size)
             enrichment = indicator.enrichment(vectors, self.modes)[:, : enrichment.shape[1]]
-        full = self.full
+        full, start = self.full, self.full.start
+        assert isinstance(start, Rest | Equilibrium)  # (one_state refused the others on construction)
         self._rest()
-        described = StartReport(full.start.kind, full.start.description, details=dict(full.start.details))
+        described = StartReport(start.kind, start.description, details=dict(start.details))
         reduced = ReducedModel(
             full.model,
             vectors,
@@ -312,7 +318,7 @@ class Reductor:
                     training.replay(self.trained.iterates)
                     self.timings["ecsw_replay"] = time.perf_counter() - tic
                 else:
-                    with training.watching(full.solver):
+                    with training.watching(cast(NewtonSolver, full.solver)):  # (ECSW watches a full Newton solver)
                         collected(full, self._runs)
                     self.timings["ecsw_training"] = time.perf_counter() - tic
             except BaseException:
@@ -379,7 +385,7 @@ def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: R
     return combined.truncate(min(recipe.size, combined.size))
 
 
-def _greedy_record(trained: Greedy | None, tolerance: float | None, parameters) -> dict | None:
+def _greedy_record(trained: Greedy | None, tolerance: float | None, parameters: Parameters) -> dict | None:
     """What a greedy training did, as plain values (an indicator of inf — the reduced solve
     failed there — as None)."""
     if trained is None:

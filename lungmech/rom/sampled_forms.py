@@ -11,7 +11,8 @@ an assembly of a compiled form visits.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from mpi4py import MPI
 
@@ -22,12 +23,14 @@ from dolfinx.fem.petsc import assemble_matrix as assemble_petsc_matrix
 from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
 from lungmech.fem.quantities import vector_integral
-from lungmech.fem.state_dependent import Bilinear, FullIntegration, each_unit
+from lungmech.fem.state_dependent import Bilinear, FullIntegration, Integral, each_unit
 from lungmech.parallel.linalg import gram
 from lungmech.rom.ecsw import NO_CELLS, Sample, flattened, over_cells
 from lungmech.rom.outputs import affine
 from lungmech.rom.reduced_mesh import ReducedMesh
+from lungmech.rom.whole import Arrays, Whole
 
 __all__ = ["SampledForms", "SampledIntegration", "cells_visited"]
 
@@ -38,12 +41,20 @@ class SampledForms:
     dofs; ``state()`` the object that changes with the reduced mesh's state (its q: coefficients
     are packed once per state). Collective evaluations."""
 
-    def __init__(self, model, mesh: ReducedMesh, weights: dict, sample: Sample, V: np.ndarray, state: Callable):
+    def __init__(
+        self,
+        model: Model,
+        mesh: ReducedMesh,
+        weights: dict[str, fem.Function],
+        sample: Sample,
+        V: np.ndarray,
+        state: Callable[[], object],
+    ) -> None:
         self.model, self.mesh, self.weights, self.sample, self.V = model, mesh, weights, sample, V
         self.comm = model.geometry.mesh.comm
         self._state = state
 
-    def vector(self, family: str, expr, measure) -> Callable[[], np.ndarray]:
+    def vector(self, family: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
         """Σ_e ξ_e ∫_e ``expr`` over the sample of ``family`` (any value shape), at the reduced
         mesh's state."""
         flat = flattened(expr)
@@ -55,7 +66,7 @@ class SampledForms:
 
         def evaluate() -> np.ndarray:
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled)
+            fem.assemble_vector(vector.array, compiled)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
             total = np.empty(size)
             self.comm.Allreduce(vector.array.reshape(-1, size).sum(axis=0), total, op=MPI.SUM)
             return total.reshape(expr.ufl_shape)
@@ -82,7 +93,7 @@ class SampledForms:
 
         def evaluate() -> dict[str, float]:
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled)
+            fem.assemble_vector(vector.array, compiled)  # type: ignore[arg-type]  # the into-an-array overload, as above
             totals = np.empty(len(names))
             self.comm.Allreduce(vector.array.reshape(-1, len(names)).sum(axis=0), totals, op=MPI.SUM)
             return dict(zip(names, totals.tolist()))
@@ -98,7 +109,7 @@ class SampledForms:
 
         def evaluate() -> np.ndarray:
             vector.array[:] = 0.0
-            fem.assemble_vector(vector.array, compiled, coeffs=coefficients())
+            fem.assemble_vector(vector.array, compiled, coeffs=coefficients())  # type: ignore[arg-type]  # the into-an-array overload, as above
             return gram(self.V, vector.array[:, None], self.comm)[:, 0]
 
         return evaluate
@@ -131,7 +142,7 @@ class SampledForms:
 
         return evaluate
 
-    def _trial(self, n: int):
+    def _trial(self, n: int) -> Iterator[ufl.core.expr.Expr]:
         """The entries of a trial function of n components per cell of the reduced mesh."""
         tau = ufl.TrialFunction(fem.functionspace(self.mesh.mesh, ("DG", 0, (n,))))
         return (tau[j] for j in range(n))
@@ -148,12 +159,12 @@ class SampledForms:
 
         def evaluate() -> np.ndarray:
             matrix.zeroEntries()
-            assemble_petsc_matrix(matrix, compiled, coeffs=coefficients())
+            assemble_petsc_matrix(matrix, compiled, coeffs=coefficients())  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
             matrix.assemble()
             indptr, columns, values = matrix.getValuesCSR()
             rows = len(indptr) - 1
             at = np.repeat(np.arange(rows), np.diff(indptr)) * n + columns % n
-            summed = np.bincount(at, weights=values, minlength=rows * n).reshape(rows, n)
+            summed = np.bincount(at, weights=values, minlength=rows * n).reshape(rows, n)  # type: ignore[arg-type]  # petsc4py's stub allows complex scalars; this build's are real
             return gram(owned, summed, self.comm)
 
         return evaluate
@@ -174,11 +185,11 @@ class SampledForms:
         ]
         return self.mesh.form(ufl.Form(integrals))
 
-    def _packed(self, compiled: fem.Form) -> Callable[[], dict]:
+    def _packed(self, compiled: fem.Form) -> Callable[[], dict[tuple[fem.IntegralType, int], np.ndarray]]:
         """The coefficients of ``compiled``, packed once per state (only Constants vary in between)."""
-        packed = {"at": None, "coefficients": None}
+        packed: dict[str, Any] = {"at": None, "coefficients": None}
 
-        def coefficients() -> dict:
+        def coefficients() -> dict[tuple[fem.IntegralType, int], np.ndarray]:
             state = self._state()
             if packed["at"] is not state:
                 packed["at"], packed["coefficients"] = state, fem.pack_coefficients(compiled)
@@ -203,7 +214,7 @@ def cells_visited(form: fem.Form, comm: MPI.Comm) -> dict[str, int]:
     return counts
 
 
-def shaped(entries: list, shape: tuple[int, ...]):
+def shaped(entries: list, shape: tuple[int, ...]) -> ufl.core.expr.Expr:
     """The expressions ``entries`` (flattened order) as one of ``shape`` (a scalar for ())."""
     return ufl.as_tensor(np.reshape(entries, shape).tolist()) if shape else entries[0]
 
@@ -220,27 +231,27 @@ class SampledIntegration:
 
     def __init__(
         self,
-        model,
+        model: Model,
         basis: np.ndarray,
         forms: SampledForms,
-        affine_basis: tuple,
-        z: Callable,
+        affine_basis: tuple[np.ndarray, np.ndarray],
+        z: Callable[[], np.ndarray],
         index: int,
-        integrals,
-        whole,
-    ):
+        integrals: dict[str, Integral],
+        whole: Whole,
+    ) -> None:
         self.model, self.basis, self.forms, self.affine_basis, self.z = model, basis, forms, affine_basis, z
         self.index, self.integrals, self.whole = index, integrals, whole
         self.comm = model.geometry.mesh.comm
         self._calls: dict[str, int] = {}
 
-    def _whole(self, kind: str, name: str, compute: Callable[[], tuple]) -> tuple:
+    def _whole(self, kind: str, name: str, compute: Callable[[], Arrays]) -> Arrays:
         """``compute()`` through :attr:`whole`, named by this load, ``name``, ``kind`` and the call's number."""
         key = f"load{self.index}/{name}/{kind}"
         number = self._calls[key] = self._calls.get(key, -1) + 1
         return self.whole.get(f"{key}{number}", compute)
 
-    def vector(self, name: str, expr, measure) -> Callable[[], np.ndarray]:
+    def vector(self, name: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
         if not self.integrals[name].affine:
             return self.forms.vector(f"load{self.index}_{name}", expr, measure)
         mesh = self.model.geometry.mesh
@@ -262,7 +273,7 @@ class SampledIntegration:
             return self.forms.columns(form, self._families(name), constant)
 
         # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
-        def compute() -> tuple:
+        def compute() -> Arrays:
             full = FullIntegration(self.model).column(name, form)
             return (gram(self.basis, each_unit(constant, full), self.comm),)
 
@@ -282,7 +293,7 @@ class SampledIntegration:
             return self.forms.column(form, self._families(name))
 
         # the derivative of an affine integral is a constant: once, on the whole mesh
-        def compute() -> tuple:
+        def compute() -> Arrays:
             full = FullIntegration(self.model).column(name, form)()[:, None]
             return (gram(self.basis, full, self.comm)[:, 0],)
 

@@ -18,7 +18,8 @@ from __future__ import annotations
 import hashlib
 import json
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from os import PathLike
 from pathlib import Path
 
 from mpi4py import MPI
@@ -26,6 +27,9 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech.errors import ModelFileError, ParameterError
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import Probe
+from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.fem.start import StartReport
 from lungmech.mesh import nodes
 from lungmech.mesh.geometry import Geometry
@@ -36,6 +40,7 @@ from lungmech.parallel.linalg import apply, gram
 from lungmech.rom import body
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
+from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.whole import OnMesh, Stored
 
@@ -47,7 +52,12 @@ _DIGESTED = ("lungmech-rom/3", "lungmech-rom/4")  # older formats whose digest c
 
 
 def save(
-    path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None, inputs=()
+    path: str | Path,
+    model: Model,
+    basis: Basis,
+    extra: dict | None = None,
+    arrays: dict | None = None,
+    inputs: Sequence[str | PathLike] = (),
 ) -> Path:
     """Write ``basis`` (and any ``extra`` metadata / named canonical ``arrays``) to ``path``.
 
@@ -60,7 +70,7 @@ def save(
     return path
 
 
-def write(path: str | Path, model, basis: Basis, extra: dict | None = None, arrays: dict | None = None) -> None:
+def write(path: str | Path, model: Model, basis: Basis, extra: dict | None = None, arrays: dict | None = None) -> None:
     """Collective: write the model file at ``path`` as it is (no checks; :func:`save` checks).
 
     ``arrays`` are canonical arrays, read on rank 0 only (the other ranks may pass None values).
@@ -149,13 +159,12 @@ def read(path: str | Path, arrays: bool = True, any_version: bool = False) -> tu
                 raise ValueError(
                     f"format {metadata.get('format') if isinstance(metadata, dict) else None!r}, expected {FORMAT!r}"
                 )
-            arrays = {name: data[name] for name in data.files if name != "metadata"}
-        if metadata.get("sha256") != digest(metadata, arrays):
+            content = {name: data[name] for name in data.files if name != "metadata"}
+        if metadata.get("sha256") != digest(metadata, content):
             raise _Changed()
-        if not wanted:
-            arrays = dict.fromkeys(arrays)
+        found: dict[str, np.ndarray | None] = dict(content) if wanted else dict.fromkeys(content)
         for key in ("vectors", "values"):
-            if key not in arrays:
+            if key not in found:
                 raise KeyError(f"no array '{key}'")
         for key in ("kind", "inner_product", "fingerprint", "dofs", "extra"):
             if key not in metadata:
@@ -173,7 +182,7 @@ def read(path: str | Path, arrays: bool = True, any_version: bool = False) -> tu
     except Exception as error:  # zipfile, zlib, json and numpy raise many kinds on a damaged file
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise ModelFileError(f"'{path}' is not a lungmech reduced model, or is damaged ({reason})") from None
-    return metadata, arrays
+    return metadata, found
 
 
 def read_on_root(path: str | Path, comm: MPI.Comm, arrays: bool = True) -> tuple[dict, dict[str, np.ndarray | None]]:
@@ -185,7 +194,7 @@ def read_on_root(path: str | Path, comm: MPI.Comm, arrays: bool = True) -> tuple
 
 
 def load(
-    path: str | Path, model, content: tuple[dict, dict] | None = None
+    path: str | Path, model: Model, content: tuple[dict, dict] | None = None
 ) -> tuple[Basis, dict, dict[str, np.ndarray | None]]:
     """Collective: read a reduced model for ``model``: (basis, extra metadata, other arrays).
 
@@ -206,6 +215,7 @@ def load(
     vectors, values = arrays.pop("vectors"), arrays.pop("values")
     with together(where.comm):  # only rank 0 holds the arrays to check
         if vectors is not None:
+            assert values is not None  # (rank 0 holds both)
             _check_basis(path, vectors, values, where.size)
     basis = Basis(
         where.scatter(vectors),
@@ -230,7 +240,7 @@ def _check_basis(path: str | Path, vectors: np.ndarray, values: np.ndarray, dofs
 ORTHONORMAL = 1e-8  # |VᵀWV − I| a loaded basis may have: Gram–Schmidt twice leaves ~1e-14
 
 
-def hyper_record(reduced) -> dict | None:
+def hyper_record(reduced: ReducedModel) -> dict | None:
     """How a reduced model is hyper-reduced, for its record and its build's summary (None if it
     is not): the method, τ, the sampled cells per name and in words, the mesh's cells, the judge."""
     if reduced.sample is None:
@@ -283,10 +293,10 @@ def write_reduced(
 
 def load_reduced(
     path: str | Path,
-    model,
-    stepping,
-    newton=None,
-    probes=(),
+    model: Model,
+    stepping: Stepping,
+    newton: NewtonOptions | None = None,
+    probes: Sequence[Sequence[float]] | Probe = (),
     content: tuple[dict, dict] | None = None,
 ) -> ReducedModel:
     """Collective: the reduced model of the file at ``path`` on ``model`` (built on the mesh the
@@ -327,6 +337,7 @@ def load_reduced(
 
 def _body(reduced: ReducedModel) -> dict[str, np.ndarray]:
     """A hyper-reduced model's body and whole-body operators, as arrays (rank 0's; collective)."""
+    assert reduced.sample is not None and isinstance(reduced.solver, HyperReducedSolver)  # (a hyper-reduced model)
     whole, owned = reduced.solver.whole, reduced.basis.vectors.shape[0]
     if not isinstance(whole, OnMesh):
         raise ParameterError("a hyper-reduced model is saved from the full model it was built on")
@@ -339,7 +350,7 @@ def _body(reduced: ReducedModel) -> dict[str, np.ndarray]:
     return (cells or {}) | {f"whole/{name}": array for name, array in whole.arrays().items()}
 
 
-def _whole_body(model) -> dict:
+def _whole_body(model: Model) -> dict:
     """What a body's geometry needs of the whole one: its boundaries' names and measures, and its size."""
     geometry, mesh = model.geometry, model.geometry.mesh
     tdim = mesh.topology.dim
@@ -353,9 +364,9 @@ def _whole_body(model) -> dict:
 
 def load_body(
     path: str | Path,
-    build: Callable[[Geometry], object],
-    stepping,
-    newton=None,
+    build: Callable[[Geometry], Model],
+    stepping: Stepping,
+    newton: NewtonOptions | None = None,
     content: tuple[dict, dict] | None = None,
     comm: MPI.Comm = MPI.COMM_WORLD,
 ) -> ReducedModel:
@@ -423,7 +434,7 @@ def _sample_on_body(arrays: dict) -> dict[str, np.ndarray]:
     return {name: np.searchsorted(cells, a) if name.endswith("_cells") else a for name, a in data.items()}
 
 
-def _check_orthonormal(path, model, basis: Basis) -> None:
+def _check_orthonormal(path: str | Path, model: Model, basis: Basis) -> None:
     """Refuse a basis that is not orthonormal in its inner product: |VᵀWV − I| > ORTHONORMAL."""
     comm = model.geometry.mesh.comm
     W = inner_product(model, basis.inner_product)

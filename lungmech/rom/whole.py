@@ -47,7 +47,7 @@ class Whole(Protocol):
 class OnMesh:
     """Computed on the full ``model``; ``imposed`` its :func:`~lungmech.rom.outputs.imposed_directions`."""
 
-    def __init__(self, imposed: tuple[np.ndarray, np.ndarray, np.ndarray]):
+    def __init__(self, imposed: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
         self._imposed = imposed
         self._kept: dict[str, Arrays] = {}
 
@@ -70,7 +70,9 @@ class Stored:
     """Given back from :meth:`OnMesh.arrays` (every rank holds them), with the body's r and D
     (local arrays of its model's space); ``source`` names the file in messages."""
 
-    def __init__(self, arrays: Mapping[str, np.ndarray], start: np.ndarray, directions: np.ndarray, source: str):
+    def __init__(
+        self, arrays: Mapping[str, np.ndarray], start: np.ndarray, directions: np.ndarray, source: str
+    ) -> None:
         self._imposed = (start, directions, np.asarray(arrays["constraints"], dtype=int))
         self._arrays, self._source = arrays, source
 
