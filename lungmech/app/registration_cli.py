@@ -71,7 +71,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     shape.add_argument("modes", help="shape modes (.npz) from 'lungmech shape-modes'")
     _reference(shape)
     shape.add_argument("-c", "--coefficients", required=True, help="comma-separated, in standard deviations")
-    shape.add_argument("-o", "--output", required=True, help="mesh file to write: .vtu (meshio, pyvista, ParaView) or .xdmf (DOLFINx); use it as [geometry] file")
+    shape.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        help="mesh file to write: .vtu (meshio, pyvista, ParaView) or .xdmf (DOLFINx); use it as [geometry] file",
+    )
 
     phantom = commands.add_parser("phantom", help="write a synthetic lung segmentation")
     phantom.add_argument("-o", "--output", required=True, help="image file (.nii.gz, .nii, .npz, .mha, .nrrd)")
