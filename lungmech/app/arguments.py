@@ -9,6 +9,12 @@ import math
 import sys
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.app.scene import Scene
 
 DEFAULT_SCENE = "lung_breathing.toml"
 RESULTS = Path("results")  # default outputs go to results/<name of the scene, model or image>
@@ -80,7 +86,7 @@ def scales(text: str) -> list:
     return [s[0] if len(s) == 1 else s for s in scales]
 
 
-def logging_comm(args):
+def logging_comm(args: argparse.Namespace) -> MPI.Comm:
     """Logging on rank 0 (warnings only with --quiet); returns the world communicator."""
     from mpi4py import MPI
 
@@ -94,7 +100,7 @@ def logging_comm(args):
     return comm
 
 
-def setup(args):
+def setup(args: argparse.Namespace) -> tuple[MPI.Comm, Scene, str, Path]:
     """Logging on rank 0, and the scene named by ``args.scene`` (or the bundled one)."""
     from lungmech.app import scene as scenes
     from lungmech.errors import SceneError

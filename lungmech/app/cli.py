@@ -14,13 +14,21 @@ import contextlib
 import os
 import signal
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING, NoReturn
 
 from lungmech.app import registration_cli as registration
 from lungmech.app import rom_cli
 from lungmech.app.arguments import RESULTS, common, logging_comm, setup
 from lungmech.errors import Interrupted, LungmechError, ParameterError
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.app.scene import Scene
+    from lungmech.fem.parametric import ParametricModel
 
 
 class UsageError(LungmechError):
@@ -28,7 +36,7 @@ class UsageError(LungmechError):
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, not the usage block
+    def error(self, message: str) -> NoReturn:  # one line, not the usage block
         raise UsageError(f"{message} (see '{self.prog} --help')")
 
 
@@ -134,10 +142,10 @@ def _fail(code: int, message: str, interrupted: bool = False) -> int:
     os._exit(code)  # mpiexec then ends the ranks that wait for this one
 
 
-_FAILURES = None
+_FAILURES: MPI.Comm | None = None
 
 
-def _failures():
+def _failures() -> MPI.Comm:
     """A communicator of its own for failures (a duplicate of the world's, made once): its
     barrier can never be matched by the job's own collective calls, so a rank that fails alone
     is told so instead of passing for a collective failure."""
@@ -158,7 +166,7 @@ def _interrupts() -> Iterator[None]:
 
     from petsc4py import PETSc  # noqa: F401  (PETSc installs its own handlers when it starts: ours come after)
 
-    def handler(signum, frame):
+    def handler(signum: int, frame: FrameType | None) -> None:
         for again in (signal.SIGINT, signal.SIGTERM):
             signal.signal(again, lambda s, f: os._exit(128 + s))
         Interrupted.pending = signum
@@ -179,7 +187,7 @@ def _interrupts() -> Iterator[None]:
             signal.signal(s, old)
 
 
-def _run(args) -> int:
+def _run(args: argparse.Namespace) -> int:
     if args.command == "rom" and args.sweep is not None:
         return rom_cli.sweep(args)
     if args.command == "rom" and args.scene is None:  # the scene inside the model file
@@ -194,11 +202,19 @@ def _run(args) -> int:
     return _solve(args, comm, scene, name, path)
 
 
-def _solve(args, comm, scene, name: str, path: Path, content=None) -> int:
+def _solve(
+    args: argparse.Namespace,
+    comm: MPI.Comm,
+    scene: Scene,
+    name: str,
+    path: Path,
+    content: tuple[dict, dict] | None = None,
+) -> int:
     from lungmech.app.console import end_of_run
     from lungmech.app.run import check_scale, full_order_model, run
 
-    model, inputs, note = full_order_model, [], None
+    model: Callable[[Scene, MPI.Comm], ParametricModel] = full_order_model
+    inputs, note = [], None
     if args.set:
         scene = scene.with_values(dict(args.set))
     if len(args.scale) > 1:
@@ -227,7 +243,7 @@ def _solve(args, comm, scene, name: str, path: Path, content=None) -> int:
     return 0
 
 
-def _at(args, scene) -> list[float] | None:
+def _at(args: argparse.Namespace, scene: Scene) -> list[float] | None:
     """The static answer's time (--at T, s), checked against the scene's load path."""
     if args.at is None:
         return None

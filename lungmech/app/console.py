@@ -50,7 +50,7 @@ class Progress:
     logger shows INFO messages (``-q`` silences it).
     """
 
-    def __init__(self, phase: str, comm: MPI.Comm = MPI.COMM_WORLD, stream: TextIO | None = None):
+    def __init__(self, phase: str, comm: MPI.Comm = MPI.COMM_WORLD, stream: TextIO | None = None) -> None:
         self.phase = phase
         self.stream = stream or sys.stdout
         self.enabled = comm.rank == 0 and log.isEnabledFor(logging.INFO)

@@ -17,6 +17,7 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 
 from mpi4py import MPI
 
@@ -47,8 +48,8 @@ def embedded_names(scene: Scene) -> dict[str, str]:
         marker = getattr(parameter.region, "marker", None)
         if isinstance(marker, ImageLabel):
             data = [Path(marker.path).with_name(name) for name in image_companions(marker.path)]
-            for part in [marker.path, *(d for d in data if d.exists())]:
-                names[f"regions/{Path(part).name}"] = str(part)
+            for file in [marker.path, *(str(d) for d in data if d.exists())]:
+                names[f"regions/{Path(file).name}"] = str(file)
     return names
 
 
@@ -92,7 +93,7 @@ def embedded_scene(
                 # O_EXCL | O_NOFOLLOW: a new file, not one a link points to (none can be there).
                 flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
                 with os.fdopen(os.open(target, flags, 0o600), "wb") as stream:
-                    stream.write(arrays[f"file:{name}"].tobytes())
+                    stream.write(cast(np.ndarray, arrays[f"file:{name}"]).tobytes())  # rank 0 holds the bytes
 
         on_root(comm, unpack)
         table = copy.deepcopy(extra["scene_table"])

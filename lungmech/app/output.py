@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
 
 from mpi4py import MPI
@@ -23,12 +24,15 @@ from dolfinx import fem, plot
 
 from lungmech.parallel import on_root, together
 
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
+
 __all__ = ["FORMATS", "FieldWriter", "cell_fields", "write_json"]
 
 FORMATS = ("vtk", "vtx")
 
 
-def cell_fields(model) -> dict[str, ufl.core.expr.Expr]:
+def cell_fields(model: Model) -> dict[str, ufl.core.expr.Expr]:
     """Cellwise scalar fields worth looking at: J, von Mises and mean Cauchy stress, plus those the
     formulation names (``formulation.output_fields(model)``, e.g. the lung's fractions)."""
     sigma = model.cauchy()
@@ -51,7 +55,7 @@ class FieldWriter:
     Collective: construct, :meth:`write` and :meth:`close` on every rank.
     """
 
-    def __init__(self, model, folder: Path, format: str = "vtk"):
+    def __init__(self, model: Model, folder: Path, format: str = "vtk") -> None:
         if format not in FORMATS:
             raise ValueError(f"field format must be one of {', '.join(FORMATS)} (got {format!r})")
         mesh = model.geometry.mesh
@@ -150,7 +154,7 @@ def _grid(space: fem.FunctionSpace) -> tuple[tuple[str, np.ndarray], np.ndarray]
     (owned and ghost)."""
     mesh = space.mesh
     owned = mesh.topology.index_map(mesh.topology.dim).size_local
-    topology, types, points = plot.vtk_mesh(space, np.arange(owned, dtype=np.int32))
+    topology, types, points = plot.vtk_mesh(space, np.arange(owned, dtype=np.int32))  # type: ignore[arg-type]  # the FunctionSpace overload (singledispatch) is not in the hints
     vtk_type = int(types[0]) if len(types) else 10
     per_cell = int(topology[0]) if len(topology) else 4
     connectivity = topology.reshape(-1, per_cell + 1)[:, 1:]
@@ -186,7 +190,7 @@ def write_json(path: Path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
     on_root(comm, lambda: Path(path).write_text(json.dumps(data, indent=2, default=_plain) + "\n"))
 
 
-def _plain(value):
+def _plain(value: object) -> object:
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):

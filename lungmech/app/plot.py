@@ -2,17 +2,24 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lungmech.app.console import CMH2O
 
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.fem.model import Model
+
 __all__ = ["deformed_body", "drawn", "pressure_volume", "sweep_volumes"]
 
 
-def _pyplot():
+def _pyplot() -> ModuleType:
     """matplotlib's pyplot, off-screen, imported when a picture is drawn (0.3–0.4 s of every
     process's start-up otherwise, with or without a picture)."""
     import matplotlib
@@ -23,7 +30,7 @@ def _pyplot():
     return plt
 
 
-def drawn(comm, path: Path, draw) -> bool:
+def drawn(comm: MPI.Comm, path: Path, draw: Callable[[], object]) -> bool:
     """Collective: ``draw()`` a picture (itself collective). A picture that cannot be drawn (no
     off-screen rendering on this machine, say) is a warning on the console, not a failed run:
     the results are in the other files. Returns whether it was drawn."""
@@ -86,8 +93,8 @@ def pressure_volume(
 
 
 def sweep_volumes(
-    times: Sequence[float],
-    volumes: Sequence[Sequence[float]],
+    times: Sequence[float] | np.ndarray,
+    volumes: Sequence[Sequence[float] | np.ndarray],
     labels: Sequence[str],
     path: Path,
     title: str = "",
@@ -130,7 +137,7 @@ def sweep_volumes(
     plt.close(fig)
 
 
-def deformed_body(model, path: Path, title: str = "") -> None:
+def deformed_body(model: Model, path: Path, title: str = "") -> None:
     """A PNG of the deformed body coloured by J = det F (the local volume ratio), with an
     orientation triad; the camera is set by the reference configuration, so every state of a
     body is seen alike. Collective under MPI; rank 0 draws, and an error
@@ -143,7 +150,7 @@ def deformed_body(model, path: Path, title: str = "") -> None:
     mesh = model.geometry.mesh
     u = model.displacement()
     cells_owned = mesh.topology.index_map(mesh.topology.dim).size_local
-    topology, types, x = plot.vtk_mesh(u.function_space, np.arange(cells_owned, dtype=np.int32))
+    topology, types, x = plot.vtk_mesh(u.function_space, np.arange(cells_owned, dtype=np.int32))  # type: ignore[arg-type]  # the FunctionSpace overload (singledispatch) is not in the hints
     dg0 = fem.functionspace(mesh, ("DG", 0))
     J = fem.Function(dg0)
     J.interpolate(fem.Expression(ufl.det(model.F), dg0.element.interpolation_points))
@@ -163,23 +170,23 @@ def _colour_format(low: float, high: float) -> str:
     return f"%.{min(digits, 10)}g"
 
 
-def _draw(pieces, path: Path, title: str, planar: bool = False) -> None:
+def _draw(pieces: Sequence[Sequence[np.ndarray]], path: Path, title: str, planar: bool = False) -> None:
     import pyvista
     import vtk
 
     vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server" noise: rendering is off-screen
-    bodies, lower, upper = [], [], []
+    bodies, lowers, uppers = [], [], []
     for topology, types, x, displacement, J_cells in pieces:
         grid = pyvista.UnstructuredGrid(topology, types, x + displacement)
         grid.cell_data["J"] = J_cells
         bodies.append(grid)
         if len(x):
-            lower.append(x.min(axis=0))
-            upper.append(x.max(axis=0))
+            lowers.append(x.min(axis=0))
+            uppers.append(x.max(axis=0))
     body = pyvista.merge(bodies) if len(bodies) > 1 else bodies[0]
     low, high = (float(f(body.cell_data["J"])) for f in (np.min, np.max)) if body.n_cells else (1.0, 1.0)
 
-    plotter = pyvista.Plotter(off_screen=True, window_size=(1000, 760))
+    plotter = pyvista.Plotter(off_screen=True, window_size=[1000, 760])
     plotter.add_mesh(
         body,
         scalars="J",
@@ -200,11 +207,11 @@ def _draw(pieces, path: Path, title: str, planar: bool = False) -> None:
     )
     if title:
         plotter.add_text(title, font_size=10)
-    plotter.add_axes(line_width=3, labels_off=False)
+    plotter.add_axes(line_width=3, labels_off=False)  # type: ignore[call-arg]  # pyvista wraps Renderer.add_axes (functools.wraps): its hint keeps the unbound self
     # A fixed camera: medial-anterior view (the hilum side of a lung), or a plane body seen from
     # +z with y up, framed by the reference with room for the body to grow and for the colour
     # bar on the right.
-    lower, upper = np.min(lower, axis=0), np.max(upper, axis=0)  # of the reference configuration
+    lower, upper = np.min(lowers, axis=0), np.max(uppers, axis=0)  # of the reference configuration
     centre, size = (lower + upper) / 2, float(np.linalg.norm(upper - lower))
     view, up = (
         (np.array([0.0, 0.0, 1.0]), (0.0, 1.0, 0.0)) if planar else (np.array([-1.0, -0.7, 0.35]), (0.0, 0.0, 1.0))

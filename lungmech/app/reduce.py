@@ -20,6 +20,7 @@ import functools
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 
@@ -36,6 +37,9 @@ from lungmech.parallel.destination import hold_signals_until_swap, output_file
 from lungmech.parallel.layout import layout
 from lungmech.rom import reductor, store
 from lungmech.rom.reduced import ReducedModel
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
 
 __all__ = ["build", "check_physics", "embedded_name", "embedded_scene", "load", "reduced_order", "trained_range"]
 
@@ -197,7 +201,9 @@ def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False
         return _loaded(Path(path), scene, comm, True, fields, content)
 
 
-def _loaded(path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content) -> ReducedModel:
+def _loaded(
+    path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content: tuple[dict, dict] | None
+) -> ReducedModel:
     content = content if content is not None else store.read_on_root(path, comm)
     if inside and not fields and content[0]["extra"].get("reduced", {}).get("body") is not None:
         build = functools.partial(build_model, scene, comm)  # of the body's geometry
@@ -205,7 +211,7 @@ def _loaded(path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool
     return _reduced(path, build_model(scene, comm), scene, inside, content)
 
 
-def _reduced(path: Path, model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:
+def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:
     """The reduced model of ``path`` on ``model`` (the scene's, just built on its mesh).
     ``inside``: ``scene`` is the file's own; otherwise it must model the physics of the file's
     scene. Probe points are located on the mesh as built (for an imaged body: in the image)."""
@@ -231,7 +237,7 @@ def check_physics(path: Path, built: dict, scene: Scene) -> None:
         )
 
 
-def trained_range(extra: dict, scale) -> str | None:
+def trained_range(extra: dict, scale: Scale) -> str | None:
     """A note when ``scale`` lies outside the training scales of the model: it extrapolates."""
     if not extra.get("scales"):
         return None

@@ -8,9 +8,11 @@ modes, their spectrum and leave-one-out error. Outputs replace a folder only on 
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import cast
 
 from mpi4py import MPI
 
@@ -26,7 +28,7 @@ from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.registration import image as images
 from lungmech.registration import metrics, pictures
 from lungmech.registration.image import Image
-from lungmech.registration.library import mapping_library
+from lungmech.registration.library import Library, mapping_library
 from lungmech.registration.sobolev import Options, register
 
 __all__ = ["build_shape_modes", "choose_reference", "read_images", "register_image"]
@@ -132,8 +134,8 @@ def register_image(
             comm,
             lambda: np.savez(
                 staging / "mapping.npz",
-                reference=reference_nodes,
-                displacement=displacement,
+                reference=cast(np.ndarray, reference_nodes),  # on rank 0, where both are gathered
+                displacement=cast(np.ndarray, displacement),
                 fingerprint=where.fingerprint,
             ),
         )
@@ -242,7 +244,7 @@ def build_shape_modes(
         held = sides.of_mesh(geometry.mesh).side
         for name, image in sources.items():
             check_target(geometry, image, "implausible" in accept)
-            found = comm.bcast(on_root(comm, lambda image=image: sides.of_image(image)))
+            found = comm.bcast(on_root(comm, functools.partial(sides.of_image, image)))
             if held and found.side not in (None, held) and "other side" not in accept:
                 raise RegistrationError(
                     f"{name}: it holds a {found.side} lung and the reference '{reference}' is a {held} one: give "
@@ -258,7 +260,9 @@ def build_shape_modes(
         return _shape_modes(library, reference, len(sources), start, staging, comm)
 
 
-def _shape_modes(library, reference, count: int, start: float, staging: Path, comm: MPI.Comm) -> dict:
+def _shape_modes(
+    library: Library, reference: str | Path, count: int, start: float, staging: Path, comm: MPI.Comm
+) -> dict:
     modes = library.modes()
     loo = library.leave_one_out() if count >= 3 else None
     report = {

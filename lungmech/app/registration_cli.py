@@ -6,11 +6,17 @@ import argparse
 import dataclasses
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lungmech.app.console import litres
 from lungmech.errors import ParameterError
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import output_file
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.registration.sobolev import Options
 
 COMMANDS = ("register", "shape-modes", "shape", "phantom")
 
@@ -149,12 +155,12 @@ def run(args: argparse.Namespace) -> int:
     )
 
 
-def _accepted(args) -> tuple[str, ...]:
+def _accepted(args: argparse.Namespace) -> tuple[str, ...]:
     doubts = ("unconverged", "implausible", "other side")
     return tuple(doubt for doubt in doubts if getattr(args, f"accept_{doubt.replace(' ', '_')}", False))
 
 
-def _options(args):
+def _options(args: argparse.Namespace) -> Options:
     from lungmech.registration.sobolev import Options
 
     settings = {
@@ -170,7 +176,7 @@ def _options(args):
     return Options(**settings)
 
 
-def _register(args, comm) -> int:
+def _register(args: argparse.Namespace, comm: MPI.Comm) -> int:
     from lungmech.app import registration as workflow
     from lungmech.registration import image
 
@@ -191,7 +197,7 @@ def _register(args, comm) -> int:
     return 0
 
 
-def _shape_modes(args, comm) -> int:
+def _shape_modes(args: argparse.Namespace, comm: MPI.Comm) -> int:
     from lungmech.app import registration as workflow
     from lungmech.registration import phantom
 
@@ -226,7 +232,7 @@ def _shape_modes(args, comm) -> int:
     return 0
 
 
-def _shape(args, comm) -> int:
+def _shape(args: argparse.Namespace, comm: MPI.Comm) -> int:
     from lungmech import mesh as geometry
     from lungmech.registration.library import ShapeModes
 
@@ -256,7 +262,7 @@ def _shape(args, comm) -> int:
     return 0
 
 
-def _phantom(args, comm) -> int:
+def _phantom(args: argparse.Namespace, comm: MPI.Comm) -> int:
     from lungmech.mesh.lung_shape import LungShape
     from lungmech.registration import image, phantom
 

@@ -94,7 +94,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
 
 
-def build(args) -> int:
+def build(args: argparse.Namespace) -> int:
     from lungmech.app.reduce import build
 
     comm, scene, name, path = setup(args)
@@ -151,7 +151,7 @@ def greedy_report(greedy: dict) -> str:
     return "\n".join(lines)
 
 
-def sweep(args) -> int:
+def sweep(args: argparse.Namespace) -> int:
     from lungmech.app.sweep import sweep as solve_points
 
     comm = logging_comm(args)

@@ -32,6 +32,7 @@ import platform
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, cast
 
 from mpi4py import MPI
 
@@ -49,7 +50,7 @@ from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel, ParametricModel, Solution, Step
 from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonSolver
-from lungmech.fem.start import Equilibrium, StartReport
+from lungmech.fem.start import Equilibrium, Start, StartReport
 from lungmech.mesh import write as write_geometry
 from lungmech.mesh.geometry import Geometry
 from lungmech.parallel import deferred, on_root
@@ -151,7 +152,7 @@ def full_order_model(
         raise ParameterError(f"start must be 'imaged' or 'defaults' (got {start!r})")
     model = build_model(scene, comm) if model is None else model
     probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
-    first = None
+    first: Start | None = None
     if scene.inverse is not None:
         imaged = lung.Imaged(model, scene.inverse, body_name(model))
         first = imaged
@@ -246,6 +247,7 @@ def run(
         # Outputs are collective writes: a signal now waits, and stops every rank together.
         hold_signals_until_swap()
         history, start = recorder.history, solution.start
+        assert start is not None  # every solve reports its start (trajectory)
         if start.kind == "imaged":
             write_geometry(fem_model.geometry, staging / "reference.vtu")
         mesh = fem_model.geometry.mesh
@@ -322,14 +324,16 @@ class _Recorder:
     the history rows and the pressures of the P–V curve, the progress on the console, the fields
     written (``fields``: the folder and format, or None), the largest volume."""
 
-    def __init__(self, model: ParametricModel, axis: lung.PressureAxis | None, fields, comm: MPI.Comm):
+    def __init__(
+        self, model: ParametricModel, axis: lung.PressureAxis | None, fields: tuple[Path, str] | None, comm: MPI.Comm
+    ) -> None:
         self.model, self.axis, self.fields, self.comm = model, axis, fields, comm
         self.planar = model.model.plane is not None
         self.body = "lung" if axis is not None and axis.lung else "body"
         self.history: list[dict] = []
         self.pressures: list[float] = []
         self.probes: np.ndarray | None = None  # at the last state, (points, 3)
-        self.largest = {"volume": -np.inf, "state": None, "time": 0.0}
+        self.largest: dict[str, Any] = {"volume": -np.inf, "state": None, "time": 0.0}
         self.steps = self.cuts = self.newton_iterations = 0
         self.progress: Progress | None = None
         self.writer: FieldWriter | None = None
@@ -346,6 +350,7 @@ class _Recorder:
         if step.phase == "approach":
             return
         if step.phase == "cut":
+            assert self.progress is not None and step.report is not None  # a load step's, after the start
             self.cuts += 1
             self.progress.note(
                 f"t = {step.time:.4g} s: Newton did not converge ({step.report.reason}); step cut back to "
@@ -353,6 +358,7 @@ class _Recorder:
             )
             return
         if step.phase == "start":
+            assert step.start is not None  # the start's step says what it is
             said = start_text(step.start, self.planar)
             if self.progress is not None:
                 self.progress.close(said)
@@ -360,6 +366,7 @@ class _Recorder:
                 print(f"lungmech: {said}", flush=True)
             self.progress = Progress("breathing" if self.body == "lung" else "loading")
         else:
+            assert self.progress is not None and step.report is not None  # a load step's, after the start
             self.steps += 1
             self.newton_iterations += step.report.iterations
         outputs = step.outputs()
@@ -372,7 +379,7 @@ class _Recorder:
         stepping = self.model.stepping
         shown = ""
         if self.axis is not None:
-            self.pressures.append(self.axis(outputs["loads"]))
+            self.pressures.append(self.axis(cast(dict[str, float], outputs["loads"])))  # Model.scalar_loads()
             shown = f"  {'P_L' if self.axis.lung else 'p'} {show_pressure(self.pressures[-1])}"
         newton = f"  {step.report.iterations} Newton" if step.report is not None else ""
         self.progress.update(
@@ -400,6 +407,7 @@ class _Recorder:
         """This state's fields, on the mesh as it is now (after the start: the reference)."""
         self.model.fields(step.state(), step.time)
         if self.writer is None:
+            assert self.fields is not None  # written only when fields were asked for
             self.writer = FieldWriter(self.model.model, *self.fields)
         with deferred(self.comm):  # a collective write: not cut on one rank only
             self.writer.write(step.time)
@@ -409,6 +417,7 @@ class _Recorder:
             self.writer.close()
 
     def close(self) -> None:
+        assert self.progress is not None  # made at the start, which every solve shows
         self.progress.close(f"{self.steps} steps ({self.cuts} cut back), {self.newton_iterations} Newton iterations")
 
 

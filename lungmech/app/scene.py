@@ -11,10 +11,10 @@ import copy
 import hashlib
 import json
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lungmech import checks
 from lungmech import mesh as _geometry
@@ -33,6 +33,9 @@ from lungmech.fem.solver import NewtonOptions, Stepping
 from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.lung.gravity import Gravity
 from lungmech.lung.inverse import InverseOptions
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
 
 SECTIONS = (
     "title",
@@ -68,7 +71,7 @@ LOADS = {
 FORMULATIONS = {"displacement": PureDisplacement, "mixed": TaylorHood, "poromechanics": Poromechanics}
 # Laws made of other laws, by name (their parameters are the builder's arguments).
 COMPOSITE_LAWS = {"lung_skeleton": skeleton}
-CONSTRAINTS = {"clamp": clamp, "symmetry": symmetry, "displacement": Displacement}
+CONSTRAINTS: dict[str, Callable[..., Any]] = {"clamp": clamp, "symmetry": symmetry, "displacement": Displacement}
 
 
 @dataclass(frozen=True)
@@ -79,7 +82,7 @@ class Output:
     probes: tuple[tuple[float, float, float], ...] = ()
     format: str = "vtk"  # of the fields: "vtk" (.pvd/.vtu, read by every viewer) or "vtx" (ADIOS2 .bp)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         checks.boolean("fields", self.fields)
         if self.format not in FIELD_FORMATS:
             raise ParameterError(f"format must be one of {', '.join(FIELD_FORMATS)} (got {self.format!r})")
@@ -110,7 +113,7 @@ class Scene:
     parameters: tuple[Parameter, ...] = ()
     values: dict[str, float] = field(default_factory=dict)  # set with --set (others at their defaults)
 
-    def law(self) -> Callable[[dict[str, float]], Material]:
+    def law(self) -> Callable[[Mapping[str, float]], Material]:
         """The law as a function of the material targets' values by key (``{"c1": 300.0}``): the
         scene's [material] rebuilt with those values, so its own checks and derived constants hold."""
         return lambda keys: material(substituted(self.table["material"], keys, "material"))
@@ -130,9 +133,9 @@ class Scene:
             files += [mesh] + [p for p in _geometry.companions(mesh) if p.exists()]
         files += list(cell_data(self.formulation).values())
         files += [
-            Path(p.region.marker.path)
+            Path(marker.path)
             for p in self.parameters
-            if isinstance(getattr(p.region, "marker", None), ImageLabel)
+            if isinstance(marker := getattr(p.region, "marker", None), ImageLabel)
         ]
         return files
 
@@ -219,7 +222,7 @@ def physics(scene: Scene) -> dict[str, Any]:
     file (of cell values, or a region's label image) is named by its SHA-256, not its path (a
     mesh is checked by its own fingerprint)."""
     table = copy.deepcopy(scene.table)
-    described = {
+    described: dict[str, Any] = {
         key: table[key]
         for key in ("material", "formulation", "constraints", "loads", "inverse", "parameters")
         if key in table
@@ -234,7 +237,7 @@ def physics(scene: Scene) -> dict[str, Any]:
     return json.loads(json.dumps(described, default=str), parse_int=float)
 
 
-def cell_data(formulation) -> dict[str, Path]:
+def cell_data(formulation: Formulation) -> dict[str, Path]:
     """The formulation's values given by files of cell values (Φs0, κ, …), by key."""
     return {
         key: Path(value)
@@ -303,7 +306,7 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
     return call(cls, table, where)
 
 
-def build_geometry(spec: dict[str, Any], comm) -> _geometry.Geometry:
+def build_geometry(spec: dict[str, Any], comm: MPI.Comm) -> _geometry.Geometry:
     """The mesh a scene's [geometry] section describes."""
     spec = dict(spec)
     if "file" in spec:
@@ -343,7 +346,7 @@ def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
     return {"builder": name, **{k: tuple(v) if isinstance(v, list) else v for k, v in parameters.items()}}
 
 
-def _entries(table: dict[str, Any], section: str, kinds: dict[str, Callable]) -> list:
+def _entries(table: dict[str, Any], section: str, kinds: Mapping[str, Callable[..., Any]]) -> list:
     entries = table.get(section, [])
     if not isinstance(entries, list):
         raise SceneError(f"{section}: expected a list of tables ([[{section}]])")

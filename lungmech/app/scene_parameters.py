@@ -5,15 +5,19 @@ load's amplitude, an interface), with its range, scale, region and unit, read an
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lungmech.app.table_checks import call, no_unknown_keys, typed
 from lungmech.errors import LungmechError, ParameterError, SceneError
 from lungmech.fem.parameters import Cells, HalfSpace, Parameter, Parameters
+
+if TYPE_CHECKING:
+    from lungmech.mesh.geometry import Geometry
 
 __all__ = ["ImageLabel", "parameters", "substituted"]
 
@@ -89,7 +93,7 @@ def parameters(table: dict[str, Any], folder: Path) -> tuple[Parameter, ...]:
     return tuple(built)
 
 
-def _region(spec: Any, where: str, folder: Path):
+def _region(spec: Any, where: str, folder: Path) -> Cells | HalfSpace | None:
     """A parameter's region: {tag = N} (cell tag), {image = "labels.nii.gz", label = N} (the cells
     whose midpoint lies in a voxel of that label) or {normal, position, width} (a half-space)."""
     if spec is None:
@@ -120,7 +124,7 @@ class ImageLabel:
     path: str
     label: int
 
-    def __call__(self, geometry) -> np.ndarray:
+    def __call__(self, geometry: Geometry) -> np.ndarray:
         from lungmech.registration import image as images
 
         try:
@@ -137,8 +141,9 @@ class ImageLabel:
         return marked
 
 
-def _value_at(table: dict[str, Any], target: str, where: str) -> float:
-    """The scene's own value at a parameter's target: its default when none is given."""
+def _value_at(table: dict[str, Any], target: str, where: str) -> object:
+    """The scene's own value at a parameter's target: its default when none is given (a load's
+    value as written, a number or not: :class:`~lungmech.fem.parameters.Parameter` checks it)."""
     kind, _, key = target.partition(".")
     name, _, attribute = key.rpartition(".")
     if kind == "loads" and attribute in ("amplitude", "pitch", "roll"):
@@ -158,7 +163,7 @@ def _value_at(table: dict[str, Any], target: str, where: str) -> float:
             known = ", ".join(k for k, v in section.items() if isinstance(v, int | float | list)) or "none"
             raise SceneError(f"{where}.target: the scene has no {target} ([{kind}] keys: {known})")
     if kind == "loads" and attribute == "value":
-        named = [e.get("name") for e in table.get("loads", []) if isinstance(e, dict) and e.get("name")]
+        named = [e["name"] for e in table.get("loads", []) if isinstance(e, dict) and e.get("name")]
         if name not in named:
             raise SceneError(f"{where}.target: no load named '{name}' (named loads: {', '.join(named) or 'none'})")
     raise SceneError(f"{where}: give a default (the scene has no number at {target})")
@@ -175,7 +180,7 @@ def _lookup(table: Any, path: str) -> Any:
     return table
 
 
-def substituted(table: dict[str, Any], keys: dict[str, float], where: str) -> dict[str, Any]:
+def substituted(table: dict[str, Any], keys: Mapping[str, float], where: str) -> dict[str, Any]:
     """A copy of ``table`` with the values at the dotted ``keys`` (``c1``, ``terms[1].c1``) replaced."""
     table = copy.deepcopy(table)
     for path, value in keys.items():

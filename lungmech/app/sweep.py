@@ -23,6 +23,7 @@ import math
 import re
 import time
 from pathlib import Path
+from typing import cast
 
 from mpi4py import MPI
 
@@ -119,15 +120,17 @@ def sweep(
             answers.append(reduced.solve(point, times=times))
             seconds.append(time.perf_counter() - tic)
         indicators = [a.indicator for a in answers]
+        start = answers[0].start
+        assert start is not None  # every solve reports its start (trajectory)
         summary = {
             "model": str(Path(model).resolve()),
             **reduced.describe(),
-            "start": {"kind": answers[0].start.kind, "description": answers[0].start.description},
+            "start": {"kind": start.kind, "description": start.description},
             "points": len(grid),
             "parameters": grid,
             "seconds_per_point": seconds,
             "median_seconds_per_point": float(np.median(seconds)),
-            "error_indicator_largest": None if None in indicators else float(max(indicators)),
+            "error_indicator_largest": None if None in indicators else float(max(cast(list[float], indicators))),
             "units": {
                 "parameters": "as declared in the scene's [parameters]",
                 "seconds_per_point": "s",

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 from lungmech.errors import LungmechError, SceneError
 
@@ -15,6 +15,8 @@ __all__ = ["call", "check_signature", "finite_numbers", "no_unknown_keys", "sect
 
 # Keys where TOML's inf is meaningful (an open range); nan is never a value.
 _INFINITY_ALLOWED = ("formulation.pore_range", "stepping.max_step")
+
+T = TypeVar("T")
 
 
 def finite_numbers(table: Any, where: str = "") -> None:
@@ -45,20 +47,20 @@ def with_tuple(table: dict[str, Any], key: str) -> dict[str, Any]:
     return table
 
 
-def typed(value, kind: type, where: str):
+def typed(value: object, kind: type[T], where: str) -> T:
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise SceneError(f"{where}: expected {kind.__name__} (got {value!r})")
     return value
 
 
-def no_unknown_keys(table: dict[str, Any], allowed, where: str) -> None:
+def no_unknown_keys(table: dict[str, Any], allowed: Sequence[str], where: str) -> None:
     for key in table:
         if key not in allowed:
             expected = f"expected one of: {', '.join(allowed)}" if allowed else f"[{where}] takes no keys"
             raise SceneError(f"{where}.{key}: unknown key ({expected})")
 
 
-def check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=()) -> None:
+def check_signature(func: Callable[..., object], kwargs: dict[str, Any], where: str, skip: Sequence[str] = ()) -> None:
     parameters = inspect.signature(func).parameters
     allowed = [p for p in parameters if p not in skip and p != "self"]
     no_unknown_keys(kwargs, allowed, where)
@@ -71,7 +73,7 @@ def check_signature(func: Callable, kwargs: dict[str, Any], where: str, skip=())
         raise SceneError(f"{where}: missing key(s) {', '.join(missing)}")
 
 
-def call(func: Callable, kwargs: dict[str, Any], where: str):
+def call(func: Callable[..., T], kwargs: dict[str, Any], where: str) -> T:
     """``func(**kwargs)``, with unknown/missing keys and bad values reported against ``where``."""
     check_signature(func, kwargs, where)
     try:

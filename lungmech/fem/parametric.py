@@ -94,8 +94,9 @@ class Solution:
 class ParametricModel(Protocol):
     """What every model of a problem provides, full order or reduced: ``solve(mu)`` with the
     keywords below, its fem ``model`` (for fields and pictures), its ``parameters`` and
-    ``stepping``, and :meth:`fields`. The application talks to nothing else."""
+    ``stepping``, :meth:`fields` and :meth:`describe`. The application talks to nothing else."""
 
+    model: Model
     parameters: Parameters
     stepping: Stepping
 
@@ -113,6 +114,10 @@ class ParametricModel(Protocol):
     def fields(self, state: np.ndarray, time: float) -> None:
         """The fem model's state the full field of ``state`` (a :class:`Step`'s or a
         solution's row) at ``time``, for writing fields or pictures. Collective."""
+
+    def describe(self) -> dict[str, object]:
+        """What solves it, for summaries: the solver and the linear solver, by name (merged into
+        a run's summary)."""
 
 
 @dataclass(frozen=True)
