@@ -50,22 +50,25 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check lungmech tests demos benchmarks docs
 	$(VENV)/bin/mypy $(TYPED)
 
-# Two workers (pytest-xdist) on the two cores CI has; the slowest tests are listed at the end.
+# One rank, two workers (pytest-xdist) on the two cores CI has; the tests marked mpi (several
+# ranks only) are left out by tests/conftest.py. The slowest are listed at the end.
 test-serial: $(STAMP)
-	$(PY) -m pytest -m "not mpi and not long" -n 2 --dist worksteal --durations=12 tests
+	$(PY) -m pytest -m "not long" -n 2 --dist worksteal --durations=12 tests
 
-# The edit–test loop: the tests that take under a second each (not slow, not MPI), on two
-# workers; with a warm JIT cache about two minutes. make test runs them all.
+# The edit–test loop: the tests that take under a second each (not slow), one rank, two
+# workers; with a warm JIT cache under two minutes. make test runs them all.
 test-quick: $(STAMP)
-	$(PY) -m pytest -m "not mpi and not long and not slow" -n 2 --dist worksteal -q -p no:cacheprovider tests
+	$(PY) -m pytest -m "not long and not slow" -n 2 --dist worksteal -q -p no:cacheprovider tests
 
 # The cases too long for the suite's budget (registrations of realistic lungs at 1 mm voxels).
 test-long: $(STAMP)
 	$(PY) -m pytest -m long -n 2 --durations=12 tests
 
+# The cheap part of the suite on two ranks (every test not slow, and the mpi ones, slow or
+# not), the tests marked serial left out (tests/conftest.py); in groups of files (.ci/test-mpi
+# says why).
 test-mpi: $(STAMP)
-	# A test failing on one rank only would leave the other waiting: bound the run.
-	timeout 1200 $(MPIEXEC) -n 2 $(PY) -m pytest -m mpi -p no:cacheprovider tests
+	bash .ci/test-mpi $(MPIEXEC) $(PY)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py

@@ -17,12 +17,13 @@ except ImportError:
 
 import importlib
 
-from lungmech import _moved
+from lungmech import _dispatch, _moved
 from lungmech.errors import GeometryError, LungmechError, ParameterError, SceneError, SolverError
 
 __version__ = "0.2.0"
 
 _moved.install()
+_dispatch.install()  # before UFL's algorithms run: Python 3.13.0-3.13.1 leak every form (gh-127750)
 
 _PUBLIC = {
     "lungmech.fem": (

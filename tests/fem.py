@@ -60,6 +60,15 @@ range = [0.5, 5.0]
 )
 
 
+def write_once(path: Path, content: str | bytes) -> Path:
+    """Write ``content`` to ``path`` from rank 0, the others waiting: under MPI ``tmp_path`` is
+    one folder for all ranks (tests/conftest.py)."""
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_bytes(content.encode() if isinstance(content, str) else content)
+    MPI.COMM_WORLD.Barrier()
+    return path
+
+
 def mean_cauchy(model: Model) -> np.ndarray:
     """Volume average of the Cauchy stress over the reference configuration."""
     comm = model.geometry.mesh.comm

@@ -6,6 +6,10 @@ folder of their own, a result lungmech wrote earlier, meshes, images and a reduc
 check is the same for all: exit code 2, one line on standard error that starts with
 ``lungmech: error:`` and says what is wrong, nothing on standard error that looks like a
 traceback, every file of the workspace unchanged (same bytes), and no staging folder left.
+
+On one rank only (``serial``): each case builds and compares a workspace of files, which is one
+process's work. The refusals under ``mpiexec -n 2`` (an output that is a file, ``-o .``, a bad
+value, a folder of the user's, an interrupt) are tests/test_interrupts.py's.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from lungmech import meshes
 from lungmech.app.cli import main
 from lungmech.rom import store
 
+pytestmark = pytest.mark.serial
 TINY = TINY_SCENE
 LUNG = """title = "lung cube"
 [geometry]

@@ -15,6 +15,10 @@ from lungmech.app.cli import main
 from lungmech.app.run import run
 from lungmech.errors import SceneError
 
+pytestmark = (
+    pytest.mark.serial
+)  # the command line's printed lines, read by capsys (rank 0 prints); runs under MPI: tests/test_mpi.py
+
 TINY = TINY_SCENE
 
 

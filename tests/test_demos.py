@@ -37,6 +37,8 @@ import pytest
 from lungmech.app.demo import NUMBERS
 from lungmech.parallel.destination import MARKER
 
+pytestmark = pytest.mark.serial  # executes notebooks and starts mpiexec itself
+
 ROOT = Path(__file__).resolve().parents[1]
 DEMOS = ROOT / "demos"
 CACHE = ROOT / "docs" / "_build" / ".jupyter_cache"  # docs/conf.py: nb_execution_cache_path

@@ -280,6 +280,7 @@ def unseen_at(scale: float, solver_type, basis, *args) -> tuple[np.ndarray, np.n
     return model.state.x.array.copy(), np.sort(np.real(eigvals(tangent, galerkin.reduced_jacobian())))
 
 
+@pytest.mark.serial  # compares this rank's rows of assembled vectors
 def test_the_internal_forces_and_the_loads_add_up_to_the_residual():
     from dolfinx import fem as dfem
     from dolfinx.fem.petsc import assemble_vector

@@ -1,7 +1,6 @@
 """Geometries: exact measures of simple shapes, the lung phantom's anatomy, files, MPI."""
 
 import math
-from pathlib import Path
 
 from mpi4py import MPI
 
@@ -19,11 +18,6 @@ LUNG_NAMES = {"pleura", "diaphragm", "mediastinum", "hilum"}
 OCTANT_1_2 = 4 / 3 * math.pi * (2**3 - 1**3) / 8  # an eighth of the shell 1 < r < 2
 # Collective calls must come in the same order on every rank: never loop over a set of strings
 # (its order depends on the per-process hash seed), loop over a sorted list.
-
-
-def shared_tmp(tmp_path: Path) -> Path:
-    """One temporary folder for all ranks (pytest makes one per process)."""
-    return Path(MPI.COMM_WORLD.bcast(str(tmp_path), root=0))
 
 
 def centroid(geometry: Geometry, name: str) -> np.ndarray:
@@ -110,7 +104,7 @@ def test_ball_and_ellipsoids():
 def test_gmsh_meshes_are_reproducible_and_leave_gmsh_alone(tmp_path):
     import gmsh
 
-    folder = shared_tmp(tmp_path)
+    folder = tmp_path
     gmsh.initialize()
     gmsh.model.add("mine")
     try:
@@ -150,7 +144,7 @@ def test_missing_and_unsupported_files():
 def test_files_without_facet_tags_are_rejected(tmp_path):
     import gmsh
 
-    folder = shared_tmp(tmp_path)
+    folder = tmp_path
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1)
     with dolfinx.io.XDMFFile(MPI.COMM_WORLD, str(folder / "bare.xdmf"), "w") as file:
         file.write_mesh(mesh)
@@ -172,7 +166,7 @@ def test_files_without_facet_tags_are_rejected(tmp_path):
 
 
 def test_write_and_read_back(tmp_path, lungs):
-    folder = shared_tmp(tmp_path)
+    folder = tmp_path
     geometries = {
         "hexbox": box(MPI.COMM_WORLD, (1.0, 2.0, 0.5), (2, 2, 2), cell_type="hexahedron"),
         "curved_sphere": sphere(MPI.COMM_WORLD, order=2),

@@ -60,6 +60,7 @@ def test_a_surface_that_cannot_balance_the_weight_is_an_error(lung):
         _hilum_reaction(lung, Gravity(DENSITY, G, balanced_on=("mediastinum",)))
 
 
+@pytest.mark.serial  # finite differences of this rank's rows
 def test_the_newton_tangent_is_the_derivative_of_the_balanced_residual(lung):
     """The low-rank tangent U Vᵀ d against central differences of R(u, Θ(u)) − R(u, θ frozen):
     the change of the residual through the coefficients alone. Newton's operator applies K + U Vᵀ."""

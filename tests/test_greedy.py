@@ -8,7 +8,7 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
-from fem import BOX, PARAMETRIC_SCENE, pushed_block
+from fem import BOX, PARAMETRIC_SCENE, pushed_block, write_once
 
 from lungmech.errors import ParameterError
 from lungmech.fem import BodyForce, LinearElastic, Model, Stepping, Traction, clamp
@@ -241,7 +241,7 @@ def test_rom_build_to_a_tolerance_from_the_command_line(tmp_path, capsys):
     from lungmech.rom import store
 
     scene = tmp_path / "scene.toml"
-    scene.write_text(SCENE)
+    write_once(scene, SCENE)
     model = tmp_path / "m.npz"
     assert main(["rom", "build", str(scene), "-o", str(model), "--tolerance", "1e-3", "--samples", "8", "-q"]) == 0
     said = capsys.readouterr().out

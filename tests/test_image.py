@@ -11,6 +11,8 @@ import pytest
 from lungmech.errors import ImageError
 from lungmech.registration.image import Image, from_array, read, write
 
+pytestmark = pytest.mark.serial  # image files written and read back by one process
+
 FLOAT32 = 1e-6  # NIfTI-1 stores its affine in single precision
 
 

@@ -25,6 +25,7 @@ from lungmech.app.run import run
 from lungmech.errors import OutputError
 from lungmech.parallel import destination
 
+pytestmark = pytest.mark.serial  # one process makes the user's files and runs on COMM_SELF
 COMM = MPI.COMM_SELF
 TINY = {
     "title": "tiny",

@@ -5,6 +5,7 @@ from mpi4py import MPI
 import dolfinx.jit
 import numpy as np
 import pytest
+from fem import write_once
 
 from lungmech.errors import ParameterError, SceneError
 from lungmech.fem import FollowerPressure, Model, NeoHookean, NewtonSolver, Stepping, clamp, deformed_volume, solve
@@ -274,6 +275,6 @@ def test_a_sweep_file_may_start_with_a_byte_order_mark(tmp_path):
     from lungmech.app.sweep import read_points
 
     path = tmp_path / "points.csv"
-    path.write_bytes("\ufeffE [Pa],p [Pa]\n6,0.2\n".encode())
+    write_once(path, "\ufeffE [Pa],p [Pa]\n6,0.2\n")
     box = Parameters([STIFFNESS, Parameter("p", "loads.push.value", 0.5, (0.1, 1.0), unit="Pa")])
     assert read_points(path, box, box.defaults) == [{"E": 6.0, "p": 0.2}]

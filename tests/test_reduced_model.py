@@ -87,6 +87,7 @@ fields = false
 """
 
 
+@pytest.mark.serial  # makes and removes the scene's files from one process
 def test_a_saved_model_holds_its_scene_and_mesh(tmp_path):
     """Built from a scene on a mesh file, the model file solves after the scene and mesh are gone."""
     from lungmech.mesh import write
@@ -142,7 +143,9 @@ def test_a_model_file_of_another_version_is_refused_with_what_to_do(tmp_path):
     from lungmech.rom import store
 
     path = tmp_path / "old.npz"
-    np.savez(path, metadata=json.dumps({"format": "lungmech-rom/1"}), vectors=np.zeros((3, 1)), values=np.ones(1))
+    if MPI.COMM_WORLD.rank == 0:
+        np.savez(path, metadata=json.dumps({"format": "lungmech-rom/1"}), vectors=np.zeros((3, 1)), values=np.ones(1))
+    MPI.COMM_WORLD.Barrier()
     with pytest.raises(ModelFileError, match="another lungmech version.*rebuild it"):
         store.read(path)
 

@@ -97,6 +97,7 @@ def test_plane_section_rejects_a_zero_normal():
         plane_section(np.zeros((1, 3, 3)), (0, 0, 0), 0.0)
 
 
+@pytest.mark.serial  # reads the picture rank 0 draws
 def test_registration_slices_draw_the_mask_the_mesh_and_the_reference(mesh, image, tmp_path):
     path = tmp_path / "new" / "folder" / "slices.png"
     reference = 0.8 * boundary_triangles(mesh) + [0.004, 0.0, 0.0]  # smaller and shifted
@@ -111,6 +112,7 @@ def test_registration_slices_draw_the_mask_the_mesh_and_the_reference(mesh, imag
     assert share(picture, BLUE) > 5e-4  # the reference, dashed
 
 
+@pytest.mark.serial  # reads the picture rank 0 draws
 def test_registration_slices_without_reference_has_no_blue(mesh, image, tmp_path):
     registration_slices(mesh, image, tmp_path / "slices.png")
     picture = matplotlib.image.imread(tmp_path / "slices.png")

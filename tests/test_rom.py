@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
+from fem import write_once
 
 from lungmech import rom
 from lungmech.errors import ModelFileError, ParameterError
@@ -204,7 +205,7 @@ def test_save_load_round_trip_and_mesh_check(trained, tmp_path):
         rom.load(path, moved)
     with pytest.raises(ParameterError, match="another mesh"):
         rom.ReducedSolver(moved, basis)
-    (tmp_path / "junk.npz").write_bytes(b"not a model")
+    write_once(tmp_path / "junk.npz", b"not a model")
     with pytest.raises(ModelFileError, match="not a lungmech reduced model"):
         rom.load(tmp_path / "junk.npz", model)
     with pytest.raises(ModelFileError, match="not found"):

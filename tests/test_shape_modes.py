@@ -5,6 +5,7 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
+from fem import write_once
 
 from lungmech import mesh as geometry
 from lungmech import meshes
@@ -107,7 +108,7 @@ def test_shape_modes_round_trip_and_refuse_another_mesh(reference, tmp_path):
         modes.geometry(other, [1.0])
     with pytest.raises(RegistrationError, match="at most"):
         modes.displacement(np.ones(len(modes.modes) + 1))
-    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    write_once(tmp_path / "bad.npz", b"not a zip")
     with pytest.raises(RegistrationError, match="not a shape-modes file"):
         ShapeModes.load(tmp_path / "bad.npz")
     with pytest.raises(RegistrationError, match="not found"):
@@ -130,11 +131,12 @@ def test_a_shape_from_coefficients_is_a_geometry_a_scene_runs_on(reference, tmp_
     assert placed is None or np.allclose(placed, expected, atol=1e-12)
     geometry.write(new, tmp_path / "new_lung.vtu")
     scene = tmp_path / "scene.toml"
-    scene.write_text(
+    write_once(
+        scene,
         '[geometry]\nfile = "new_lung.vtu"\n[material]\nlaw = "neo_hookean"\nE = 1.0e3\nnu = 0.3\n'
         '[[constraints]]\ntype = "clamp"\nboundary = "hilum"\n'
         '[[loads]]\ntype = "follower_pressure"\nboundary = "pleura"\nvalue = -20.0\n'
-        "[stepping]\nend = 1.0\ninitial_step = 1.0\n[output]\nfields = false\n"
+        "[stepping]\nend = 1.0\ninitial_step = 1.0\n[output]\nfields = false\n",
     )
     summary = run(scenes.load(scene), tmp_path / "out", MPI.COMM_WORLD)
     assert summary["reference_volume"] == pytest.approx(new.volume(), rel=1e-10)

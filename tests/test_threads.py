@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.serial  # starts mpiexec itself
+
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 SHOW = (  # every rank's values, printed by rank 0
     "import lungmech, os; from mpi4py import MPI; "

@@ -91,7 +91,7 @@ def test_pyvista_measures_the_body_and_each_boundary(written):
         assert np.sum(sizes.cell_data[facet_measure][on]) == pytest.approx(area, rel=rel)
 
 
-def test_lungmech_reads_it_back_in_the_same_order(written, shared_tmp_path):
+def test_lungmech_reads_it_back_in_the_same_order(written, tmp_path):
     geometry, path = written
     back = from_file(path, MPI.COMM_WORLD)
     assert dict(back.boundaries) == dict(geometry.boundaries)
@@ -103,14 +103,14 @@ def test_lungmech_reads_it_back_in_the_same_order(written, shared_tmp_path):
     np.testing.assert_array_equal([after[i] for i in range(len(after))], [before[k] for k in sorted(before)])
     assert (back.cell_tags is None) == (geometry.cell_tags is None)
 
-    again = shared_tmp_path / "again.vtu"
+    again = tmp_path / "again.vtu"
     write(back, again)
     if MPI.COMM_WORLD.rank == 0:
         assert again.read_bytes() == path.read_bytes()  # a round trip changes nothing
         assert is_lungmech_mesh(path) and is_lungmech_mesh(again)
 
 
-def test_cell_tags_survive(shared_tmp_path):
+def test_cell_tags_survive(tmp_path):
     """Two regions of a box, tagged 2 and 7, come back on the same cells."""
     import dolfinx.mesh
 
@@ -120,8 +120,8 @@ def test_cell_tags_survive(shared_tmp_path):
     cells = np.arange(mesh.topology.index_map(3).size_local + mesh.topology.index_map(3).num_ghosts, dtype=np.int32)
     midpoints = dolfinx.mesh.compute_midpoints(mesh, 3, cells)
     tags = dolfinx.mesh.meshtags(mesh, 3, cells, np.where(midpoints[:, 0] < 1.0, 2, 7).astype(np.int32))
-    write(Geometry(mesh, source.facet_tags, source.boundaries, tags), shared_tmp_path / "regions.vtu")
-    back = from_file(shared_tmp_path / "regions.vtu", comm)
+    write(Geometry(mesh, source.facet_tags, source.boundaries, tags), tmp_path / "regions.vtu")
+    back = from_file(tmp_path / "regions.vtu", comm)
     assert back.cell_tags is not None
     m = back.mesh
     owned = m.topology.index_map(3).size_local
@@ -133,16 +133,16 @@ def test_cell_tags_survive(shared_tmp_path):
 
 
 @pytest.mark.mpi
-def test_the_file_does_not_depend_on_the_partition(shared_tmp_path):
+def test_the_file_does_not_depend_on_the_partition(tmp_path):
     """Written from every rank, the file is byte for byte the one written from one."""
     comm = MPI.COMM_WORLD
     for name in ("hexahedra", "lung"):
-        write(BUILDS[name](comm), shared_tmp_path / f"{name}-distributed.vtu")
+        write(BUILDS[name](comm), tmp_path / f"{name}-distributed.vtu")
         if comm.rank == 0:
-            write(BUILDS[name](MPI.COMM_SELF), shared_tmp_path / f"{name}-serial.vtu")
+            write(BUILDS[name](MPI.COMM_SELF), tmp_path / f"{name}-serial.vtu")
         comm.Barrier()
-        serial = (shared_tmp_path / f"{name}-serial.vtu").read_bytes()
-        assert (shared_tmp_path / f"{name}-distributed.vtu").read_bytes() == serial
+        serial = (tmp_path / f"{name}-serial.vtu").read_bytes()
+        assert (tmp_path / f"{name}-distributed.vtu").read_bytes() == serial
 
 
 def _meshio_file(path: Path, cells: list, cell_data: dict | None = None, points=None) -> Path:
