@@ -76,7 +76,7 @@ def test_scene_run_same_on_all_ranks_as_on_one(tmp_path):
     folder = comm.bcast(tmp_path, root=0)
     scene = scenes.parse(SCENE)
     parallel = run(scene, folder / "parallel", comm)
-    serial = run(scene, tmp_path / "serial", MPI.COMM_SELF)
+    serial = run(scene, tmp_path / f"serial-{comm.rank}", MPI.COMM_SELF)  # each rank's own serial run
     assert parallel["dofs"] == serial["dofs"] and parallel["mpi_ranks"] == comm.size
     assert parallel["deformed_volume"] == pytest.approx(serial["deformed_volume"], rel=RTOL)
     assert np.allclose(parallel["probes"]["displacement"], serial["probes"]["displacement"], rtol=1e-8)

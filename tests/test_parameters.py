@@ -207,7 +207,9 @@ def test_an_image_region_marks_the_cells_of_its_label(tmp_path):
     affine[:3, 3] = [0.025, 0.05, 0.05]  # voxel centres; the label boundary is the plane x = 0.5
     image = nibabel.Nifti1Image(labels, affine)
     image.header.set_xyzt_units("meter")
-    nibabel.save(image, tmp_path / "zones.nii.gz")
+    if MPI.COMM_WORLD.rank == 0:
+        nibabel.save(image, tmp_path / "zones.nii.gz")
+    MPI.COMM_WORLD.Barrier()
     table = tomllib.loads(SCENE.replace("[2, 2, 2]", "[4, 2, 2]"))
     table["parameters"]["soft"] = {
         "target": "material.E",

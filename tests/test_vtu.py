@@ -184,7 +184,9 @@ TETRA, FACE = [("tetra", [[0, 1, 2, 3]])], [("triangle", [[0, 1, 2]])]
 )
 def test_bad_files_are_one_line(tmp_path, make, message):
     path = tmp_path / "bad.vtu"
-    make(path)
+    if MPI.COMM_WORLD.rank == 0:
+        make(path)
+    MPI.COMM_WORLD.Barrier()
     with pytest.raises(GeometryError, match=message) as error:
         from_file(path, MPI.COMM_SELF)
     assert "bad.vtu" in str(error.value) and "\n" not in str(error.value)
@@ -192,12 +194,14 @@ def test_bad_files_are_one_line(tmp_path, make, message):
 
 
 def test_a_changed_file_is_no_longer_lungmechs(tmp_path):
-    geometry = box(MPI.COMM_SELF, (1.0, 1.0, 1.0), (1, 1, 1))
-    write(geometry, tmp_path / "cube.vtu")
+    write(box(MPI.COMM_WORLD, (1.0, 1.0, 1.0), (1, 1, 1)), tmp_path / "cube.vtu")
     assert is_lungmech_mesh(tmp_path / "cube.vtu")
-    data = meshio.read(tmp_path / "cube.vtu")
-    data.points[0, 0] += 0.1
-    meshio.write(tmp_path / "cube.vtu", data, file_format="vtu")  # field data, digest included, is dropped
+    MPI.COMM_WORLD.Barrier()  # every rank has looked before rank 0 changes it
+    if MPI.COMM_WORLD.rank == 0:
+        data = meshio.read(tmp_path / "cube.vtu")
+        data.points[0, 0] += 0.1
+        meshio.write(tmp_path / "cube.vtu", data, file_format="vtu")  # field data, digest included, is dropped
+    MPI.COMM_WORLD.Barrier()
     assert not is_lungmech_mesh(tmp_path / "cube.vtu")
     from_file(tmp_path / "cube.vtu", MPI.COMM_SELF)  # still a mesh lungmech reads (its boundaries by number)
 
