@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import gc
+import sys
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -55,6 +56,9 @@ def _get(self: functools.singledispatchmethod, obj: Any, cls: type | None = None
 
 
 def install() -> None:
-    """Give a leaking ``singledispatchmethod`` the non-caching ``__get__`` (once; idempotent)."""
-    if leaks():
+    """Give a leaking ``singledispatchmethod`` the non-caching ``__get__`` (once; idempotent).
+
+    Only Python 3.13 has the per-instance cache: elsewhere ``import lungmech`` skips the probe
+    (and its full garbage collection)."""
+    if sys.version_info[:2] == (3, 13) and leaks():
         functools.singledispatchmethod.__get__ = _get  # type: ignore[method-assign]  # the stdlib's own bug, gh-127750
