@@ -76,6 +76,9 @@ class NewtonOptions:
             "snes_linesearch_type": "basic" if self.line_search == "none" else self.line_search,
             # The line searches' own absolute stop (cp's |F·Y| < 1e-15) depends on units: ours decides.
             "snes_linesearch_atol": 0.0,
+            # Nor does a step small beside the state (snes_stol): from a prediction far off, x is
+            # huge and every step small beside it, which PETSc took for convergence.
+            "snes_stol": 0.0,
             "snes_max_it": self.max_iterations,
             "snes_max_funcs": 10 * self.max_iterations + 100,
         }
