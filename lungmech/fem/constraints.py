@@ -15,6 +15,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.ramp import Ramp
 
 if TYPE_CHECKING:
+    from lungmech.fem.placement import Image
     from lungmech.mesh.geometry import Geometry
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -68,7 +69,8 @@ def symmetry(boundary: str, component: int | str) -> Displacement:
 
 @dataclass
 class ImposedValue:
-    """A built Dirichlet condition and how to set its value at time t."""
+    """A built Dirichlet condition and how to set its value at time t: the base value times
+    :meth:`factor`."""
 
     bc: fem.DirichletBC
     target: fem.Function
@@ -76,13 +78,27 @@ class ImposedValue:
     ramp: Ramp
     where: np.ndarray  # the entries of target the condition reads: its dofs (a surface's, not the mesh's)
     amplitude: float = 1.0  # a parameter's factor on the value
+    image: Image | None = None  # the unknown is not u but the motion from an image, or its inverse map
+
+    def factor(self, t: float) -> float:
+        """The factor on the base value at time t: amplitude · ramp(t) for u; on an image at t₀,
+        amplitude · (ramp(t) − ramp(t₀)) for the motion w = u(t) − u(t₀) and −amplitude ·
+        ramp(t₀) for the inverse map ξ = −u(t₀), since the image is the state at t₀."""
+        if self.image is None:
+            return self.amplitude * self.ramp(t)
+        if self.image.unknown == "motion":
+            return self.amplitude * (self.ramp(t) - self.ramp(self.image.time))
+        return -self.amplitude * self.ramp(self.image.time)
 
     def set_time(self, t: float) -> None:
-        self.target.x.array[self.where] = self.amplitude * self.ramp(t) * self.base
+        self.target.x.array[self.where] = self.factor(t) * self.base
 
 
-def build(constraint: Displacement, space: fem.FunctionSpace, geometry: Geometry) -> ImposedValue:
-    """The DirichletBC of ``constraint`` on the displacement (sub)space ``space``."""
+def build(
+    constraint: Displacement, space: fem.FunctionSpace, geometry: Geometry, image: Image | None = None
+) -> ImposedValue:
+    """The DirichletBC of ``constraint`` on the displacement (sub)space ``space`` (on an image,
+    of the motion or the inverse map, see :meth:`ImposedValue.factor`)."""
     assert not isinstance(constraint.component, str)  # __post_init__ made an axis name its index
     gdim = geometry.mesh.geometry.dim
     if constraint.component is not None and constraint.component >= gdim:
@@ -106,7 +122,7 @@ def build(constraint: Displacement, space: fem.FunctionSpace, geometry: Geometry
         bc = fem.dirichletbc(target, dofs)
         bs = values.dofmap.index_map_bs
         where = (bs * np.asarray(dofs)[:, None] + np.arange(bs)).reshape(-1)
-    return ImposedValue(bc, target, base.x.array[where].copy(), constraint.ramp, where)
+    return ImposedValue(bc, target, base.x.array[where].copy(), constraint.ramp, where, image=image)
 
 
 def _as_callable(constraint: Displacement, size: int) -> Callable[[np.ndarray], np.ndarray]:

@@ -136,7 +136,7 @@ class Named:
         magnitude), times the formulas of the reference position and t where there are any."""
         if not _has_formula(self.value):
             return value
-        position, time = ufl.SpatialCoordinate(model.geometry.mesh), model.time_constant
+        position, time = model.position, model.time_constant
 
         def component(item: float | str, i: int | None) -> Expr | float:
             where = f"load '{self.label}': value" + ("" if i is None else f"[{i}]")
@@ -223,7 +223,8 @@ class BodyForce(Named):
         self._check(vector=True, formulas=True)
 
     def potential(self, model: Model, value: Expr) -> ufl.Form:
-        return -ufl.dot(self.current(model, value), model.u) * ufl.dx(domain=model.geometry.mesh)
+        dX = model.kinematics.reference_volume(ufl.dx(domain=model.geometry.mesh))
+        return -ufl.dot(self.current(model, value), model.u) * dX
 
 
 @dataclass(frozen=True)
@@ -241,7 +242,8 @@ class Traction(Named):
         self._check(vector=True, formulas=True)
 
     def potential(self, model: Model, value: Expr) -> ufl.Form:
-        return -ufl.dot(self.current(model, value), model.u) * model.geometry.ds(self.boundary)
+        dA = model.kinematics.reference_area(model.geometry.ds(self.boundary))
+        return -ufl.dot(self.current(model, value), model.u) * dA
 
 
 @dataclass(frozen=True)
@@ -263,9 +265,9 @@ class Force(Named):
 
         ds = model.geometry.ds(self.boundary)
         mesh = model.geometry.mesh
-        area = mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ds)), op=MPI.SUM)
+        area = mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ds)), op=MPI.SUM)  # the mesh's
         per_area = fem.Constant(mesh, 1.0 / area)  # not a literal: another mesh compiles nothing
-        return -per_area * ufl.dot(value, model.u) * ds
+        return -per_area * ufl.dot(value, model.u) * model.kinematics.reference_area(ds)
 
 
 @dataclass(frozen=True)
@@ -284,8 +286,8 @@ class NormalPressure(Named):
         self._check(vector=False, formulas=True)
 
     def potential(self, model: Model, value: Expr) -> ufl.Form:
-        N = ufl.FacetNormal(model.geometry.mesh)
-        return self.current(model, value) * ufl.dot(N, model.u) * model.geometry.ds(self.boundary)
+        N_dA = model.area_normal  # per mesh area
+        return self.current(model, value) * ufl.dot(N_dA, model.u) * model.geometry.ds(self.boundary)
 
 
 @dataclass(frozen=True)
@@ -307,5 +309,5 @@ class FollowerPressure(Named):
         self._check(vector=False, formulas=True)
 
     def virtual_work(self, model: Model, v: Expr, value: Expr) -> ufl.Form:
-        n_da = current_area_normal(model.F, ufl.FacetNormal(model.geometry.mesh))
+        n_da = current_area_normal(model.F, model.area_normal)
         return -self.current(model, value) * ufl.dot(n_da, v) * model.geometry.ds(self.boundary)

@@ -23,10 +23,11 @@ from lungmech.fem import binding
 from lungmech.fem import constraints as _constraints
 from lungmech.fem.constraints import Displacement
 from lungmech.fem.formulations import Formulation, PlaneStress, PureDisplacement, TaylorHood
-from lungmech.fem.kinematics import PLANES, deformation_gradient
+from lungmech.fem.kinematics import PLANES
 from lungmech.fem.loads import Load, StateDependentWork, is_pressure
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
+from lungmech.fem.placement import Image, kinematics
 
 if TYPE_CHECKING:
     import dolfinx.mesh
@@ -54,6 +55,11 @@ class Model:
             :mod:`lungmech.fem.kinematics`. Required in 2-D, refused in 3-D.
         parameters: named parameters μ (:mod:`lungmech.fem.parameters`), set with
             :meth:`set_parameters` without recompiling anything.
+        image: the mesh is the body imaged under load, not its reference
+            (:mod:`lungmech.fem.placement`): the state's vector field is the motion w from the
+            image (``Image.motion(t₀)``, the reference map ξ in :attr:`reference_map`) or ξ
+            itself (``Image.inverse(t₀)``, the image's equilibrium). None: the mesh is the
+            reference and the state's vector field the displacement u.
     """
 
     def __init__(
@@ -69,7 +75,12 @@ class Model:
         quadrature_degree: int | None = None,
         parameters: Sequence[Parameter] = (),
         plane: str | None = None,
+        image: Image | None = None,
     ) -> None:
+        self._arguments = dict(
+            geometry=geometry, material=material, degree=degree, mixed=mixed, formulation=formulation, loads=loads,
+            constraints=constraints, quadrature_degree=quadrature_degree, parameters=parameters, plane=plane,
+        )  # fmt: skip
         mesh = geometry.mesh
         self.plane = _plane(mesh, plane)
         self.geometry = geometry
@@ -88,6 +99,12 @@ class Model:
                     "use plane = 'strain'"
                 )
             unbound = PlaneStress()
+            if image is not None:
+                raise ParameterError(
+                    "plane stress on an imaged mesh is not supported (the reference thickness would be an unknown "
+                    "too); use plane = 'strain'"
+                )
+        self.image = image
         self.formulation = unbound.bind(mesh)
         self.degree = degree
         self.loads, self.constraints = tuple(loads), tuple(constraints)
@@ -119,12 +136,21 @@ class Model:
             self.space = fem.functionspace(mesh, element_u)
             self.displacement_space = self.space
         self.state: fem.Function = fem.Function(self.space, name="state")
-        self.reset()
         unknowns = ufl.split(self.state) if extra else (self.state,)
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
-        self.u = self.fields["u"]
-
-        self.F = deformation_gradient(self.u, self.fields.get("thickness_stretch"))
+        # on an image: ξ, a coefficient of the motion's forms; w = 0, the inverse problem's direction
+        vectors = self.space.sub(0).collapse()[0] if extra else self.space  # the state's own numbering of u
+        self.reference_map = fem.Function(vectors, name="reference_map") if image and image.unknown == "motion" else None
+        self._motion = fem.Function(vectors, name="motion") if image and image.unknown == "inverse" else None
+        self.kinematics = kinematics(
+            mesh, self.fields["u"], image, self.reference_map, self._motion, self.fields.get("thickness_stretch")
+        )
+        self.reset()
+        self.fields["u"] = self.u = self.kinematics.u  # the displacement from the reference
+        self.position = self.kinematics.position  # X, where laws and loads are given as formulas
+        self.area_normal = self.kinematics.area_normal  # N dA per mesh area, for Nanson's formula
+        self.F = self.kinematics.F
+        self.dx = self.kinematics.reference_volume(self.dx)
         self.energy_density = self.formulation.energy_density(self.material, self.F, self.fields)
 
         v = ufl.TestFunction(self.space)
@@ -144,20 +170,18 @@ class Model:
                 work = work.form
             if work is not None:
                 virtual_work.append(work)
-        self.residual = ufl.derivative(self.potential, self.state, v)
+        self.residual = self._variation(self.potential, v)
         for work in virtual_work:
             self.residual -= work
         # the same residual in its two parts, R = R_int + R_load: the internal forces (of the
         # energy density) and the loads' (hyper-reduction samples them apart)
-        self.internal_residual = ufl.derivative(self.energy_density * self.dx, self.state, v)
-        self.load_residual = sum(
-            (ufl.derivative(potential, self.state, v) for potential in load_potentials), ufl.Form([])
-        )
+        self.internal_residual = self._variation(self.energy_density * self.dx, v)
+        self.load_residual = sum((self._variation(potential, v) for potential in load_potentials), ufl.Form([]))
         for work in virtual_work:
             self.load_residual -= work
         self.jacobian = ufl.derivative(self.residual, self.state, ufl.TrialFunction(self.space))
 
-        self._imposed = [_constraints.build(c, self.displacement_space, geometry) for c in self.constraints]
+        self._imposed = [_constraints.build(c, self.displacement_space, geometry, image) for c in self.constraints]
         self.bcs = [imposed.bc for imposed in self._imposed]
         self._amplitudes = np.ones(len(self.loads))
         self._assign_material = assign_material
@@ -187,9 +211,42 @@ class Model:
         self.parameter_values = current
         self.set_time(self.time, *self._scaling)
 
+    def _variation(self, form: ufl.Form, v: ufl.Argument) -> ufl.Form:
+        """δ``form`` along the test function ``v``: its derivative in the state — on an image's
+        inverse problem, in the motion w (at w = 0) and in the other fields, not in ξ (see
+        :mod:`lungmech.fem.placement`)."""
+        if self._motion is None:
+            return ufl.derivative(form, self.state, v)
+        v_u = ufl.split(v)[0] if self.multi_field else v
+        variation = ufl.derivative(form, self._motion, v_u)
+        if self.multi_field:  # the other fields' equations: along v with its vector part zero
+            d = len(v_u)
+            others = ufl.as_vector([0.0] * d + [v[i] for i in range(d, v.ufl_shape[0])])
+            variation += ufl.derivative(form, self.state, others)
+        return variation
+
+    def variant(self, image: Image | None) -> Model:
+        """The same problem with the mesh placed as ``image`` says (another unknown, the same
+        loads, law and parameters): e.g. the inverse problem of an imaged model's breath."""
+        return Model(**self._arguments, image=image)  # type: ignore[arg-type]  # the constructor's own arguments
+
+    def set_reference_map(self, values: np.ndarray) -> None:
+        """ξ = X − x of an imaged model's breath (``Image.motion``): ``values``, this rank's owned
+        entries of ξ (its ghosts follow; collective)."""
+        if self.reference_map is None:
+            raise ParameterError("only a model of an image's motion (Image.motion) has a reference map")
+        self.reference_map.x.array[: values.size] = values
+        self.reference_map.x.scatter_forward()
+
     def reset(self) -> None:
-        """Back to the unloaded state: u = 0 and every other field at its initial value."""
+        """Back to the unloaded state: u = 0 and every other field at its initial value (on an
+        image's motion, w = ξ: the state is its reference)."""
         self.state.x.array[:] = 0.0
+        if self.reference_map is not None:
+            if self.multi_field:
+                self.state.x.array[self.space.sub(0).collapse()[1]] = self.reference_map.x.array
+            else:
+                self.state.x.array[:] = self.reference_map.x.array
         initial = self.formulation.initial_values()
         for index, name in enumerate(self.formulation.fields, start=1):
             if name in initial:  # e.g. the solid fraction starts at its reference value, not 0
@@ -253,8 +310,9 @@ class Model:
         return self._imposed
 
     def imposed_amplitudes(self) -> np.ndarray:
-        """Each imposed displacement's factor on its base value now: amplitude · ramp(t)."""
-        return np.array([imposed.amplitude * imposed.ramp(self.time) for imposed in self._imposed])
+        """Each imposed displacement's factor on its base value now: amplitude · ramp(t) (on an
+        image, see :meth:`lungmech.fem.constraints.ImposedValue.factor`)."""
+        return np.array([imposed.factor(self.time) for imposed in self._imposed])
 
     @property
     def state_dependent(self) -> list[StateDependentWork]:
@@ -287,10 +345,14 @@ class Model:
         return self.first_piola() * self.F.T / ufl.det(self.F)
 
     def displacement(self) -> fem.Function:
-        """The displacement as a Function of its own (collapsed) space: a copy."""
-        if not self.multi_field:
-            return self.state.copy()
-        return self.state.sub(0).collapse()
+        """The displacement u from the reference as a Function of its own (collapsed) space: a
+        copy (on an image, w − ξ)."""
+        u = self.state.sub(0).collapse() if self.multi_field else self.state.copy()
+        if self.reference_map is not None:
+            u.x.array[:] -= self.reference_map.x.array
+        elif self._motion is not None:
+            u.x.array[:] *= -1.0
+        return u
 
     def field_dofs(self) -> dict[str, np.ndarray]:
         """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""

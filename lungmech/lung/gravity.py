@@ -130,12 +130,12 @@ class _BalancingPressure:
         self.centre = fem.Constant(mesh, np.zeros(3))
         self.coefficients = fem.Constant(mesh, np.zeros(9))
         centre = ufl.variable(self.centre)  # so that ∂/∂x_G is ufl.diff
-        x = ufl.SpatialCoordinate(mesh) + model.u
+        x = model.position + model.u  # the current position
         y = x - centre
         basis = ufl.as_vector(_quadratic_basis(y / length))
         q = ufl.dot(self.coefficients, basis)
         F = model.F
-        n_da = ufl.det(F) * ufl.inv(F).T * ufl.FacetNormal(mesh)  # Nanson: current n da on the reference
+        n_da = ufl.det(F) * ufl.inv(F).T * model.area_normal  # Nanson: current n da per mesh area
         self.surface = surface = geometry.ds(gravity.balanced_on)
         self.form = -q * ufl.dot(n_da, v) * surface
 
