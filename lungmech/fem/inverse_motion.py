@@ -34,7 +34,7 @@ from lungmech.fem.start import Progress, StartReport
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
 
-__all__ = ["InverseMotion"]
+__all__ = ["Handover", "InverseMotion"]
 
 
 class InverseMotion:
@@ -64,9 +64,11 @@ class InverseMotion:
         self.solver = NewtonSolver(self.inverse, options, self.inverse.residual, self.inverse.jacobian)
         self.stepping = stepping or Stepping(initial_step=1.0)  # cut back where Newton fails
         mesh = model.geometry.mesh
-        self.volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)()  # m³ (m³/m in 2-D), the image's
+        self.volume = integral(
+            fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm
+        )()  # m³ (m³/m in 2-D), the image's
         self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
-        self._layout = _Layout(model, self.inverse)
+        self._layout = Handover(model, self.inverse)
 
     def reset(self, model: Model) -> None:
         """The image as the unloaded reference (ξ = 0, w = 0) at the default parameters."""
@@ -122,18 +124,20 @@ class InverseMotion:
         )
 
 
-class _Layout:
+class Handover:
     """Where the inverse problem's unknowns go in the breath's model: its vector field (ξ) to
     the reference map, its other fields to the state's, the motion set to zero. The two models
-    are built alike on one mesh, so their spaces number the dofs alike (checked)."""
+    are built alike on one mesh, so their spaces number the dofs alike (checked). A reduced
+    inverse motion (:mod:`lungmech.rom.imaged`) hands over the same way."""
 
     def __init__(self, motion: Model, inverse: Model) -> None:
         if not np.array_equal(motion.space.dofmap.list, inverse.space.dofmap.list):
             raise SolverError("inverse motion: the inverse problem's dofs are numbered unlike the breath's")
-        if motion.multi_field:
-            self.vector = np.asarray(motion.space.sub(0).collapse()[1])
-        else:
-            self.vector = np.arange(motion.state.x.array.size)
+        self.vector: np.ndarray = (  # the state's entries of its vector field
+            np.asarray(motion.space.sub(0).collapse()[1])
+            if motion.multi_field
+            else np.arange(motion.state.x.array.size)
+        )
         space = motion.reference_map.function_space if motion.reference_map is not None else motion.space
         self.owned_vector = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
 

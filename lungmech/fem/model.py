@@ -140,7 +140,9 @@ class Model:
         self.fields = dict(zip(("u", *self.formulation.fields), unknowns))
         # on an image: ξ, a coefficient of the motion's forms; w = 0, the inverse problem's direction
         vectors = self.space.sub(0).collapse()[0] if extra else self.space  # the state's own numbering of u
-        self.reference_map = fem.Function(vectors, name="reference_map") if image and image.unknown == "motion" else None
+        self.reference_map = (
+            fem.Function(vectors, name="reference_map") if image and image.unknown == "motion" else None
+        )
         self._motion = fem.Function(vectors, name="motion") if image and image.unknown == "inverse" else None
         self.kinematics = kinematics(
             mesh, self.fields["u"], image, self.reference_map, self._motion, self.fields.get("thickness_stretch")

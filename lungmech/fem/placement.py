@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import dolfinx.mesh
 import ufl
 from ufl.core.expr import Expr
 
@@ -125,7 +126,7 @@ class Kinematics:
 
 
 def kinematics(
-    mesh: ufl.AbstractDomain,
+    mesh: dolfinx.mesh.Mesh,
     vector: Expr,
     image: Image | None = None,
     reference_map: Expr | None = None,

@@ -76,6 +76,14 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         self.description = f"reduced Galerkin: {basis.kind} basis of {basis.size} vectors"
         self.iterations_total = 0
 
+    def set_start(self, start: np.ndarray) -> None:
+        """The basis relative to ``start`` (a full local state array) from now on, and the model
+        at it, q = 0: where a start found anew at every μ puts it (an imaged body's,
+        :mod:`lungmech.rom.imaged`)."""
+        self.reference = np.array(start, dtype=float)
+        self.coordinates = np.zeros(self.basis.size)
+        self.reconstruct(self.coordinates)
+
     def start_path(self) -> None:
         """A new load path begins (each reduced solve scales its own residual)."""
 

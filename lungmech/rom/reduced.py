@@ -38,6 +38,7 @@ from lungmech.rom.basis import Basis, inner_product, reference_state
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
+from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.indicator import EnrichedIndicator, relative
 from lungmech.rom.outputs import ReducedOutputs
 from lungmech.rom.whole import Whole
@@ -67,6 +68,10 @@ class ReducedModel:
         whole: what a hyper-reduced model needs of the whole body (:mod:`lungmech.rom.whole`):
             computed on ``model``'s mesh by default; given back from a model file for a model of
             the sampled cells alone (:func:`lungmech.rom.store.load_body`).
+        image: for a model of an image's motion (``Image.motion``), the reduced inverse motion
+            that places its start at every μ (:class:`~lungmech.rom.imaged.ReducedImage`):
+            ``start`` is then the start at the defaults, and the basis is relative to the start
+            at μ, the image with that μ's other fields.
     """
 
     def __init__(
@@ -82,8 +87,11 @@ class ReducedModel:
         enrichment: np.ndarray | None = None,
         described: StartReport | None = None,
         whole: Whole | None = None,
+        image: ReducedImage | None = None,
     ) -> None:
-        self.model, self.basis, self.stepping, self.sample = model, basis, stepping, sample
+        if image is not None and sample is not None:
+            raise ParameterError("a hyper-reduced model of an imaged body is not built yet: reduce it without ECSW")
+        self.model, self.basis, self.stepping, self.sample, self.image = model, basis, stepping, sample, image
         self.described = described or StartReport(
             "equilibrium", "the reduced model's start (an equilibrium at the default parameters), moved to μ"
         )
@@ -117,8 +125,13 @@ class ReducedModel:
 
     def restart(self) -> None:
         """The solver at the start state: the model's state for the Galerkin solver, q = 0 (the
-        basis is relative to it) for the hyper-reduced one, which leaves the model's alone."""
-        if self.sample is None:
+        basis is relative to it) for the hyper-reduced one, which leaves the model's alone; an
+        imaged body's at its reference at the defaults."""
+        if self.image is not None:
+            assert isinstance(self.solver, ReducedSolver)  # (an imaged body is reduced without ECSW yet)
+            self.image.reset(self.model)
+            self.solver.set_start(self.start)
+        elif self.sample is None:
             self.model.state.x.array[:] = self.start
             self.model.state.x.scatter_forward()
         else:
@@ -138,6 +151,7 @@ class ReducedModel:
             self.sample,
             self.enrichment,
             self.described,
+            image=self.image,
         )
         smaller.built = dict(self.built)
         return smaller
@@ -173,7 +187,16 @@ class ReducedModel:
         estimates = []  # (η̂, ‖V q‖_E) at the output times: the answer's indicator
         path = []  # and at every state a Step's indicator() was asked for: the path's so far
 
+        if sensitivities and self.image is not None:
+            raise ParameterError(
+                "sensitivities of an imaged body would need the derivative of its unloaded reference with respect "
+                "to μ, which lungmech does not compute yet: leave sensitivities out"
+            )
+
         def start(on_approach: Callable | None) -> StartReport:
+            if self.image is not None:  # its reference at μ: the image is the start
+                assert isinstance(self.solver, ReducedSolver)  # (an imaged body is reduced without ECSW yet)
+                return self.image.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
             defaults = self.parameters.defaults
             self.model.set_parameters(defaults)
             self.restart()

@@ -41,14 +41,16 @@ import numpy as np
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem.inverse_motion import InverseMotion
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
-from lungmech.rom import ecsw, indicator
+from lungmech.rom import ecsw, imaged, indicator
 from lungmech.rom.accuracy import Errors, errors
 from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
 from lungmech.rom.greedy import Greedy, greedy
+from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import collected, pod
 from lungmech.rom.polynomial import polynomial_basis
@@ -217,7 +219,13 @@ class Reductor:
         self.full, self.training, self.inner, self.judge = full, training, inner, judge
         self.kind = "pod" if isinstance(basis, Greedy) else basis.kind
         model = full.model
-        self.start = one_state(full.start, model)  # refused before any work where there is none
+        self.imaged = isinstance(full.start, InverseMotion)  # two unknowns: ξ(μ), then the breath
+        if self.imaged and (training.tolerance is not None or not isinstance(basis, POD)):
+            raise ParameterError(
+                "an imaged body's reduced model is trained on POD bases of given size (its greedy is not built yet)"
+            )
+        # refused before any work where there is none
+        self.start = np.zeros(0) if self.imaged else one_state(full.start, model)
         require_positive_definite(model, inner)
         self.timings: dict[str, float] = {}
         self.modes: Basis | None = None  # every POD direction: the basis leads them, the enrichment follows
@@ -231,6 +239,9 @@ class Reductor:
                 full, self.points, training.tolerance, size=basis.size, inner=inner, timings=self.timings, hyper=judge
             )
             self.timings["greedy"] = time.perf_counter() - tic
+        elif self.imaged:
+            assert isinstance(basis, POD)  # (refused above otherwise)
+            self.basis = self._imaged_bases(basis.size)
         elif self.trained is None:
             assert not isinstance(basis, Greedy)  # (a Greedy is trained already)
             self.basis = _basis(full, basis, self._runs, inner, self)
@@ -241,7 +252,34 @@ class Reductor:
         self.enrichment = indicator.enrichment(self.basis, self.modes if self.basis.kind == "pod" else None)
         self._ecsw: ecsw.Training | None = None  # of [V W], made on the first hyper-reduced model
         self._samples: dict[float, tuple[ecsw.Sample, float]] = {}  # τ: (its sample, the NNLS's seconds)
+        self._image: ReducedImage | None = None  # an imaged body's reduced inverse motion, made once
         self._rest()
+
+    def _imaged_bases(self, size: int) -> Basis:
+        """An imaged body's two bases from one pass of the training solves: the breath's (returned;
+        its every POD direction in :attr:`modes`) and the inverse motion's (:attr:`inverse_basis`,
+        relative to its solution at the defaults, :attr:`inverse_start`)."""
+        full, tic = self.full, time.perf_counter()
+        assert isinstance(full.start, InverseMotion)  # (self.imaged)
+        trained = imaged.snapshots(full, self._runs)
+        self.timings["snapshots"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        source = {"training": self.points}
+        self.modes = pod(full.model, trained.motion, inner=self.inner, source=source)
+        inverse = pod(full.start.inverse, trained.inverse, inner=self.inner, source=source)
+        self.inverse_basis = inverse.truncate(min(size, inverse.size))
+        self.start, self.inverse_start = trained.start, trained.inverse_start
+        self.timings["svd"] = time.perf_counter() - tic
+        return self.modes.truncate(min(size, self.modes.size))
+
+    def _reduced_image(self) -> ReducedImage:
+        """The reduced inverse motion every reduced model of an imaged body starts from."""
+        if self._image is None:
+            start = self.full.start
+            assert isinstance(start, InverseMotion)  # (self.imaged)
+            options = self.full.solver.options
+            self._image = ReducedImage(self.full.model, self.inverse_basis, self.inverse_start, options, start.body)
+        return self._image
 
     def __enter__(self) -> Reductor:
         return self
@@ -259,15 +297,21 @@ class Reductor:
         """The reduced model on the basis (Galerkin: its forms on the full mesh), or with
         ``hyper`` hyper-reduced at its τ and truncated to its ``size`` (the sample stays the one
         of the whole basis and its enrichment). Collective."""
+        if self.imaged and hyper is not None:
+            raise ParameterError("a hyper-reduced model of an imaged body is not built yet: reduce it without ECSW")
         vectors, enrichment = self.basis, self.enrichment
         sample, seconds = self.sample(hyper.tolerance) if hyper is not None else (None, None)
         if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
             vectors = vectors.truncate(hyper.size)
             enrichment = indicator.enrichment(vectors, self.modes)[:, : enrichment.shape[1]]
         full, start = self.full, self.full.start
-        assert isinstance(start, Rest | Equilibrium)  # (one_state refused the others on construction)
         self._rest()
-        described = StartReport(start.kind, start.description, details=dict(start.details))
+        image, described = None, None
+        if self.imaged:
+            image = self._reduced_image()
+        else:
+            assert isinstance(start, Rest | Equilibrium)  # (one_state refused the others on construction)
+            described = StartReport(start.kind, start.description, details=dict(start.details))
         reduced = ReducedModel(
             full.model,
             vectors,
@@ -279,6 +323,7 @@ class Reductor:
             sample,
             enrichment,
             described,
+            image=image,
         )
         judge = self.judge or (hyper.tolerance if hyper is not None else None)
         reduced.built = {

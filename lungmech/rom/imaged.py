@@ -1,0 +1,164 @@
+"""A reduced model of an imaged body at every μ: the inverse motion reduced, then the breath.
+
+The full problem (:mod:`lungmech.fem.inverse_motion`) has two unknowns on the fixed imaged
+mesh: the inverse map ξ(μ), the image's equilibrium at the loads of t₀, and the motion w(t; μ)
+from the image, with ξ(μ) in its forms. A reduced model reduces both, each on its own basis:
+
+    x_ξ(μ) = x_ξ⁰ + V_ξ a,   V_ξᵀ R_ξ(x_ξ⁰ + V_ξ a; μ) = 0,
+    x(t; μ) = x₀(μ) + V q,   x₀(μ) = (w = 0, the other fields of x_ξ(μ)),
+
+x_ξ⁰ the inverse problem's solution at the default parameters (the lung's ξ and Φs there).
+The reduced inverse problem is solved by reduced Newton straight at μ from a = 0, continuing
+in μ only where it fails (:func:`lungmech.fem.start.approach`); its tangent V_ξᵀ K_ξ V_ξ is not
+symmetric, since R_ξ is no gradient (:mod:`lungmech.fem.placement`), and is factorised by LU.
+The breath then starts at q = 0, the image itself: its deformed volume is the image's at every
+μ, and the reference volume ∫ det(I + ∇ξ) dx is what moves with μ.
+
+:class:`ReducedImage` is that start (the :class:`lungmech.fem.start.Start` of a
+:class:`~lungmech.rom.reduced.ReducedModel` of an image's motion), :func:`snapshots` the
+training of both bases from one pass of the full model's solves
+(:class:`~lungmech.fem.inverse_motion.InverseMotion` starts). The reductor
+(:mod:`lungmech.rom.reductor`) makes both.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+import ufl
+from dolfinx import fem
+
+from lungmech.errors import ParameterError, SolverError
+from lungmech.fem.inverse_motion import Handover, InverseMotion
+from lungmech.fem.quantities import integral
+from lungmech.fem.solver import NewtonOptions, StepReport
+from lungmech.fem.start import Progress, StartReport, approach
+from lungmech.rom.basis import Basis
+from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.pod import snapshot
+
+if TYPE_CHECKING:
+    from lungmech.fem.model import Model
+    from lungmech.fem.parametric import FullOrderModel, Step
+
+__all__ = ["ImagedSnapshots", "ReducedImage", "snapshots"]
+
+
+@dataclass(frozen=True)
+class ImagedSnapshots:
+    """The training of a reduced imaged body (owned rows): ``motion``, the breath's states minus
+    their start x₀(μ), one column per accepted step; ``inverse``, the inverse problem's
+    solutions minus ``inverse_start`` (x_ξ⁰, at the defaults), one column per training point;
+    ``start``, the breath's start x₀ at the defaults (a full local array)."""
+
+    motion: np.ndarray
+    inverse: np.ndarray
+    inverse_start: np.ndarray
+    start: np.ndarray
+
+
+def snapshots(
+    full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]]
+) -> ImagedSnapshots:
+    """The snapshots of both unknowns from ``full``'s solves (an :class:`InverseMotion` start)
+    at the defaults and at each (parameter point, load scale) of ``runs``. The model is left at
+    its start, at the default parameters. Collective."""
+    start = full.start
+    if not isinstance(start, InverseMotion):
+        raise ParameterError("imaged snapshots need a full model started by InverseMotion")
+    model, inverse = full.model, start.inverse
+    motion: list[np.ndarray] = []
+    solutions: list[np.ndarray] = []
+    starts: list[np.ndarray] = []  # [x₀(μ) of the current solve, x_ξ⁰]
+
+    def first(step: Step) -> None:
+        if step.phase == "start":
+            starts[:] = [model.state.x.array.copy(), inverse.state.x.array.copy()]
+
+    def keep(step: Step) -> None:
+        if step.phase == "start":
+            starts[0] = model.state.x.array.copy()
+            solutions.append(snapshot(inverse, starts[1]))  # with μ's imposed values, as online
+        elif step.phase == "path":
+            motion.append(snapshot(model, starts[0]))
+
+    full.solve(times=[full.stepping.start], on_step=first)  # at the defaults: both starts
+    motion_start, inverse_start = starts
+    for point, scale in runs:
+        full.solve(point, scale=scale, on_step=keep)
+    full.reset()
+    model.set_time(full.stepping.start)
+    return ImagedSnapshots(np.column_stack(motion), np.column_stack(solutions), inverse_start, motion_start)
+
+
+class ReducedImage:
+    """The start of a reduced model of an image's motion (``model``, ``Image.motion``): at μ,
+    the reduced inverse problem on ``basis`` (relative to ``start``, x_ξ⁰, a full local array
+    of the inverse problem's state), then the breath's start x₀(μ) = (0, its other fields) and
+    ξ(μ) in the breath's forms. ``newton``: the reduced Newton settings (full steps or a
+    backtracking on ‖r‖, never an energy's line search). ``body``: the body's name in messages.
+    Collective."""
+
+    kind = "imaged"
+
+    def __init__(
+        self, model: Model, basis: Basis, start: np.ndarray, newton: NewtonOptions | None = None, body: str = "body"
+    ) -> None:
+        image = model.image
+        if image is None or image.unknown != "motion":
+            raise ParameterError(
+                "ReducedImage starts a model of an image's motion (Model(..., image=Image.motion(t0)))"
+            )
+        self.image, self.body, self.basis, self.start = image, body, basis, np.array(start, dtype=float)
+        self.inverse = model.variant(replace(image, unknown="inverse"))
+        self.solver = ReducedSolver(self.inverse, basis, newton, start=self.start)
+        mesh = model.geometry.mesh
+        self.volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)()  # m³ (m³/m in 2-D)
+        self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
+        self._handover = Handover(model, self.inverse)
+
+    def reset(self, model: Model) -> None:
+        """The breath's model at its start at the default parameters: ξ(defaults), the image."""
+        self.inverse.set_parameters(self.inverse.parameters.defaults)
+        self.solver.reconstruct(np.zeros(self.basis.size))
+        model.set_parameters(model.parameters.defaults)
+        self._handover.hand_over(self.inverse, model)
+
+    def place(
+        self,
+        model: Model,
+        solver: ReducedSolver,
+        values: Mapping[str, float],
+        time: float,
+        progress: Progress | None = None,
+        on_step: Callable[[StepReport], None] | None = None,
+    ) -> StartReport:
+        """ξ(μ) for ``values`` from the reduced inverse problem at ``time`` = t₀, and ``solver``
+        (the breath's reduced solver) at its start there, q = 0 (collective)."""
+        if abs(time - self.image.time) > 1e-12 * max(1.0, abs(time)):
+            raise ParameterError(
+                f"the {self.body} was imaged at t = {self.image.time:g} s; its path cannot start at t = {time:g} s"
+            )
+        inverse, defaults = self.inverse, self.inverse.parameters.defaults
+        inverse.set_parameters(defaults)
+        self.solver.reconstruct(np.zeros(self.basis.size))
+        try:
+            iterations = approach(inverse, self.solver, values, defaults, time, first_step=1.0)
+        except SolverError as error:
+            raise SolverError(
+                f"reduced inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"
+            ) from None
+        model.set_parameters(values)
+        self._handover.hand_over(inverse, model)
+        model.set_time(time)
+        solver.set_start(model.state.x.array)  # and q = 0 there: the image
+        details = {
+            "newton_iterations": iterations,
+            "imaged_volume": self.volume,
+            "reference_volume": self._reference_volume(),
+        }
+        description = f"the imaged {self.body} (its unloaded reference from the reduced inverse motion at μ)"
+        return StartReport("imaged", description, iterations, details)
