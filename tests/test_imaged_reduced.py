@@ -17,6 +17,7 @@ from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
 from lungmech.fem.solver import Stepping
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
+from lungmech.rom.store import write_reduced
 
 STEPPING = Stepping(start=0.5, end=1.0, max_step=0.25)
 
@@ -28,19 +29,27 @@ def imaged_block(plane: bool = False) -> FullOrderModel:
     return FullOrderModel(model, STEPPING, probes=[probe], start=InverseMotion(model))
 
 
+TAU = 1e-5  # the hyper-reduced model's ECSW tolerance
+# (reference volume, relative; breath volume, of the path's volume change; energy, of its
+# largest; probe, of the block's size): the Galerkin model's and the hyper-reduced one's
+BOUNDS = {"galerkin": (1e-7, 1e-6, 1e-6, 1e-7), "hyper": (1e-7, 5e-5, 2e-4, 1e-6)}
+
+
 @pytest.fixture(scope="module", params=[False, True], ids=["3-D", "plane strain"])
 def built(request):
     full = imaged_block(request.param)
     training = full.parameters.sample(8, seed=1)
     with Reductor(full, POD(10), TrainingSet(training)) as reductor:
-        yield full, reductor, reductor.reduce()
+        yield full, reductor, {"galerkin": reductor.reduce(), "hyper": reductor.reduce(ECSW(TAU))}
 
 
-def test_unseen_points_answer_the_full_problem(built):
-    """At points of the box it was not trained on (and two corners): the reference volume to
-    1e-7, the breath's volumes to 1e-5 of the path's volume change, the energies to 1e-5 of
-    their largest and the probe to 1e-6 of the block's size; the start is the image."""
-    full, _, reduced = built
+@pytest.mark.parametrize("kind", ["galerkin", "hyper"])
+def test_unseen_points_answer_the_full_problem(built, kind):
+    """At points of the box it was not trained on (and two corners), both reduced models start
+    on the image (its volume to round-off) from their reference at μ, and their reference
+    volumes, breaths, energies and probes are the full model's to the bounds."""
+    full, _, models = built
+    reduced, (reference_bound, volume_bound, energy_bound, probe_bound) = models[kind], BOUNDS[kind]
     box = full.parameters
     unseen = [*box.sample(4, seed=11), box.from_unit(np.zeros(2)), box.from_unit(np.ones(2))]
     for mu in unseen:
@@ -48,29 +57,30 @@ def test_unseen_points_answer_the_full_problem(built):
         assert b.start.kind == "imaged"
         assert b.start.details["volume"] == pytest.approx(b.start.details["imaged_volume"], rel=1e-12)
         reference = a.start.details["reference_volume"]
-        assert b.start.details["reference_volume"] == pytest.approx(reference, rel=1e-7)
+        assert b.start.details["reference_volume"] == pytest.approx(reference, rel=reference_bound)
         change = np.ptp(np.concatenate([[reference], a.outputs["volume"]]))
-        assert np.abs(b.outputs["volume"] - a.outputs["volume"]).max() <= 1e-5 * change
+        assert np.abs(b.outputs["volume"] - a.outputs["volume"]).max() <= volume_bound * change
         energy = np.abs(a.outputs["strain_energy"]).max()
-        assert np.abs(b.outputs["strain_energy"] - a.outputs["strain_energy"]).max() <= 1e-5 * energy
-        assert np.abs(b.outputs["probes"] - a.outputs["probes"]).max() <= 1e-6
+        assert np.abs(b.outputs["strain_energy"] - a.outputs["strain_energy"]).max() <= energy_bound * energy
+        assert np.abs(b.outputs["probes"] - a.outputs["probes"]).max() <= probe_bound
 
 
 def test_the_reduced_inverse_tangent_is_not_symmetric(built):
     """V_ξᵀ K_ξ V_ξ, the reduced inverse tangent, keeps the full one's asymmetry (it is solved
     by LU), while the breath's reduced tangent under dead loads would be symmetric."""
-    full, reductor, reduced = built
-    reduced.solve({"E": 7.0})
-    tangent = reduced.image.solver.reduced_jacobian()
-    asymmetry = np.linalg.norm(tangent - tangent.T) / np.linalg.norm(tangent)
-    assert asymmetry > 1e-4
+    full, reductor, models = built
+    for reduced in models.values():
+        reduced.solve({"E": 7.0})
+        tangent = reduced.image.solver.reduced_jacobian()
+        asymmetry = np.linalg.norm(tangent - tangent.T) / np.linalg.norm(tangent)
+        assert asymmetry > 1e-4
     assert reductor.inverse_basis.size >= 2
 
 
-def test_what_is_not_built_yet_is_refused_in_one_line(built):
-    _, reductor, reduced = built
-    with pytest.raises(ParameterError, match="hyper-reduced model of an imaged body is not built yet"):
-        reductor.reduce(ECSW(1e-4))
+def test_what_is_not_built_yet_is_refused_in_one_line(built, tmp_path):
+    reduced = built[2]["hyper"]
+    with pytest.raises(ParameterError, match="cannot be written to a model file yet"):
+        write_reduced(tmp_path / "imaged.npz", reduced)
     with pytest.raises(ParameterError, match="sensitivities of an imaged body"):
         reduced.solve({}, sensitivities=True)
     with pytest.raises(ParameterError, match="POD bases of given size"):

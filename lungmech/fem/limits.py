@@ -59,13 +59,18 @@ RUNAWAY = 10.0  # the load path's compliance grew this many times
 
 
 def at_quadrature_points(
-    expression: ufl.core.expr.Expr, mesh: dolfinx.mesh.Mesh, degree: int, cells: np.ndarray | None = None
+    expression: ufl.core.expr.Expr,
+    mesh: dolfinx.mesh.Mesh,
+    degree: int,
+    cells: np.ndarray | None = None,
+    entity_maps: list[dolfinx.mesh.EntityMap] | None = None,
 ) -> Callable[[], np.ndarray]:
     """A function returning ``expression`` at the degree-``degree`` quadrature points of the
-    owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points) + the value shape."""
+    owned cells of ``mesh`` (or of ``cells``, local indices), shaped (cells, points) + the value
+    shape; ``entity_maps`` reach coefficients of a parent mesh (a submesh's)."""
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], max(degree, 1))
     points = np.asarray(points)  # an array already: basix's hint says any array-like
-    compiled = fem.Expression(expression, points)
+    compiled = fem.Expression(expression, points, entity_maps=entity_maps)
     if cells is None:
         cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
     shape = (len(cells), len(points), *expression.ufl_shape)

@@ -356,6 +356,14 @@ class Model:
             u.x.array[:] *= -1.0
         return u
 
+    def motion(self) -> fem.Function:
+        """The displacement from the mesh as a Function of its own (collapsed) space, a copy:
+        u on a reference mesh, w on an image's motion, 0 on its inverse problem."""
+        w = self.state.sub(0).collapse() if self.multi_field else self.state.copy()
+        if self._motion is not None:
+            w.x.array[:] = 0.0
+        return w
+
     def field_dofs(self) -> dict[str, np.ndarray]:
         """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""
         owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs

@@ -146,7 +146,9 @@ class _BalancingPressure:
             + [[-basis[k] * ufl.cross(y, n_da)[i] for k in range(9)] for i in range(3)]
         )
         self.integrals = {
-            "moments": Integral(gravity.density * ufl.as_vector([1, *x]), model.dx, affine=True),
+            # affine in the state on a reference mesh; on an image dX = det(I + ∇ξ) dx, and ξ
+            # moves with μ (the inverse problem's unknown; a reduced breath's coefficient)
+            "moments": Integral(gravity.density * ufl.as_vector([1, *x]), model.dx, affine=model.image is None),
             "response": Integral(response, surface),
         }
         w = ufl.TestFunction(model.space)
@@ -165,7 +167,7 @@ class _BalancingPressure:
 
         self.contraction_u = contraction_u
         self.response_centre = ufl.diff(response, centre)
-        # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state)
+        # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state on a reference mesh)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
 
         # Can these boundaries balance a weight along g at all? Checked once, on the reference

@@ -36,7 +36,7 @@ from lungmech.rom.reduced_mesh import ReducedMesh
 from lungmech.rom.sampled_forms import SampledForms, SampledIntegration
 from lungmech.rom.whole import OnMesh, Whole
 
-__all__ = ["HyperReducedSolver"]
+__all__ = ["HyperReducedSolver", "Sensitivities"]
 
 
 class HyperReducedSolver:
@@ -112,8 +112,9 @@ class HyperReducedSolver:
         self._r, self._D = reduced.restrict(start_state), reduced.restrict(imposed)
         self._origin = self._r + self._D @ model.imposed_amplitudes()[self._constraints]
         degree = quadrature_degree(model)
-        self._gradient = at_quadrature_points(reduced.expression(model.F), reduced.mesh, degree)
-        jacobians = at_quadrature_points(reduced.expression(ufl.det(model.F)), reduced.mesh, degree)
+        maps = None if reduced.entity_map is None else [reduced.entity_map]  # F of an image reads ξ of the mesh
+        self._gradient = at_quadrature_points(reduced.expression(model.F), reduced.mesh, degree, entity_maps=maps)
+        jacobians = at_quadrature_points(reduced.expression(ufl.det(model.F)), reduced.mesh, degree, entity_maps=maps)
         # J > 0 is checked where the model is evaluated: on the sampled cells
         self.inversion = Inversion(model, smallest(jacobians, self.comm))
         cell_size = self.whole.get("cell_size", lambda: (np.array(Fields(model).cell_size),))[0]
@@ -149,6 +150,16 @@ class HyperReducedSolver:
 
     def set_state(self, state: np.ndarray) -> None:
         self.coordinates[:] = state
+
+    def set_start(self, start: np.ndarray) -> None:
+        """The basis relative to ``start`` (a full local state array) from now on, and q = 0:
+        where a start found anew at every μ puts it (an imaged body's, :mod:`lungmech.rom.imaged`;
+        its imposed directions D stay, r is ``start`` with the imposed dofs at 0). O(the model's
+        mesh): a body's sampled cells, online."""
+        self.reference = np.array(start, dtype=float)
+        self._r = self.mesh.restrict(imposed_directions(self.model, self.reference)[0])
+        self.coordinates[:] = 0.0
+        self._assembled = _Assembled()  # the forms' coefficients may have moved (ξ), not the loading
 
     def reconstruct(self, q: np.ndarray) -> None:
         """Set q, and the model's state to x₀ + V q at its current time."""
@@ -212,47 +223,9 @@ class HyperReducedSolver:
         return self._functionals()
 
     @functools.cached_property
-    def derivative_forms(self) -> DerivativeForms:
-        """∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the
-        reduced mesh (compiled on first use; collective)."""
-        if self._energy is None:
-            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
-        return DerivativeForms(self.model, self._restricted, self._energy, self.mesh.form, derivative_forms(self.model))
-
-    def state_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
-        """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
-        the exact derivative of this model's own answer, (k, parameters). Collective."""
-        forms = self.derivative_forms
-        self._at(self.coordinates)
-        jacobian = self.reduced_jacobian()  # and K on the reduced mesh, at q
-        imposed = self._on_columns(self._imposed_derivatives(derivatives))
-        rhs = gram(self._row_basis, self._tangent @ imposed, self.comm)
-        b = self._vector.array
-        self._assembled.forget_residual()
-        for i in range(len(derivatives.names) if forms.residual is not None else 0):
-            assert forms.residual is not None  # (the loop runs only then)
-            forms.set_weights(derivatives, i)
-            b[:] = 0.0
-            fem.assemble_vector(b, forms.residual)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
-            rhs[:, i] += gram(self.V, b[:, None], self.comm)[:, 0]
-        return -np.linalg.solve(jacobian, rhs)
-
-    def energy_derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> np.ndarray:
-        """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
-        at the current q, (parameters,). Collective."""
-        forms = self.derivative_forms
-        self._at(self.coordinates)
-        g = self._vector.array
-        self._assembled.forget_residual()
-        g[:] = 0.0
-        fem.assemble_vector(g, forms.energy_gradient)  # type: ignore[arg-type]  # the into-an-array overload, as above
-        total = gram(self.V, g[:, None], self.comm)[:, 0] @ dq
-        total = total + gram(g[:, None], self._imposed_derivatives(derivatives), self.comm)[0]
-        for i in range(len(derivatives.names) if forms.energy is not None else 0):
-            assert forms.energy is not None  # (the loop runs only then)
-            forms.set_weights(derivatives, i)
-            total[i] += self.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
-        return total
+    def sensitivities(self) -> Sensitivities:
+        """The derivatives of this model's own answer with respect to μ (compiled on first use)."""
+        return Sensitivities(self)
 
     def _imposed_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
         """dx₀/dμ = D da/dμ on the reduced mesh (its dofs, parameters): from the imposed
@@ -351,6 +324,56 @@ class HyperReducedSolver:
 
     def destroy(self) -> None:
         """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""
+
+
+class Sensitivities:
+    """The exact derivatives of a :class:`HyperReducedSolver`'s own answer with respect to μ:
+    its state's (:meth:`state`) and its sampled strain energy's (:meth:`energy`), from its
+    sampled residual, tangent and energy on the reduced mesh (collective)."""
+
+    def __init__(self, solver: HyperReducedSolver) -> None:
+        if solver._energy is None:
+            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
+        self.solver = solver
+        # ∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the reduced mesh
+        self.forms = DerivativeForms(
+            solver.model, solver._restricted, solver._energy, solver.mesh.form, derivative_forms(solver.model)
+        )
+
+    def state(self, derivatives: ValueDerivatives) -> np.ndarray:
+        """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
+        the exact derivative of this model's own answer, (k, parameters). Collective."""
+        solver, forms = self.solver, self.forms
+        solver._at(solver.coordinates)
+        jacobian = solver.reduced_jacobian()  # and K on the reduced mesh, at q
+        imposed = solver._on_columns(solver._imposed_derivatives(derivatives))
+        rhs = gram(solver._row_basis, solver._tangent @ imposed, solver.comm)
+        b = solver._vector.array
+        solver._assembled.forget_residual()
+        for i in range(len(derivatives.names) if forms.residual is not None else 0):
+            assert forms.residual is not None  # (the loop runs only then)
+            forms.set_weights(derivatives, i)
+            b[:] = 0.0
+            fem.assemble_vector(b, forms.residual)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
+            rhs[:, i] += gram(solver.V, b[:, None], solver.comm)[:, 0]
+        return -np.linalg.solve(jacobian, rhs)
+
+    def energy(self, dq: np.ndarray, derivatives: ValueDerivatives) -> np.ndarray:
+        """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
+        at the current q, (parameters,). Collective."""
+        solver, forms = self.solver, self.forms
+        solver._at(solver.coordinates)
+        g = solver._vector.array
+        solver._assembled.forget_residual()
+        g[:] = 0.0
+        fem.assemble_vector(g, forms.energy_gradient)  # type: ignore[arg-type]  # the into-an-array overload, as above
+        total = gram(solver.V, g[:, None], solver.comm)[:, 0] @ dq
+        total = total + gram(g[:, None], solver._imposed_derivatives(derivatives), solver.comm)[0]
+        for i in range(len(derivatives.names) if forms.energy is not None else 0):
+            assert forms.energy is not None  # (the loop runs only then)
+            forms.set_weights(derivatives, i)
+            total[i] += solver.comm.allreduce(fem.assemble_scalar(forms.energy), op=MPI.SUM)
+        return total
 
 
 class _Coupled(Protocol):

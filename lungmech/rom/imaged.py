@@ -33,11 +33,14 @@ from dolfinx import fem
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.inverse_motion import Handover, InverseMotion
-from lungmech.fem.quantities import integral
+from lungmech.fem.quantities import Probe, integral
 from lungmech.fem.solver import NewtonOptions, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.rom.basis import Basis
+from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
+from lungmech.rom.hyper_reduced import HyperReducedSolver
+from lungmech.rom.outputs import cubic, imposed_directions
 from lungmech.rom.pod import snapshot
 
 if TYPE_CHECKING:
@@ -98,14 +101,22 @@ class ReducedImage:
     """The start of a reduced model of an image's motion (``model``, ``Image.motion``): at μ,
     the reduced inverse problem on ``basis`` (relative to ``start``, x_ξ⁰, a full local array
     of the inverse problem's state), then the breath's start x₀(μ) = (0, its other fields) and
-    ξ(μ) in the breath's forms. ``newton``: the reduced Newton settings (full steps or a
-    backtracking on ‖r‖, never an energy's line search). ``body``: the body's name in messages.
-    Collective."""
+    ξ(μ) in the breath's forms. With an ECSW ``sample`` of the inverse problem (trained on
+    ``basis``) the inverse problem is hyper-reduced. ``newton``: the reduced Newton settings
+    (full steps or a backtracking on ‖r‖, never an energy's line search). ``body``: the body's
+    name in messages. It is also the breath's :class:`~lungmech.rom.outputs.Reference`: the
+    reference volume, a cubic in the reduced coordinates, and ξ at probe points. Collective."""
 
     kind = "imaged"
 
     def __init__(
-        self, model: Model, basis: Basis, start: np.ndarray, newton: NewtonOptions | None = None, body: str = "body"
+        self,
+        model: Model,
+        basis: Basis,
+        start: np.ndarray,
+        newton: NewtonOptions | None = None,
+        body: str = "body",
+        sample: Sample | None = None,
     ) -> None:
         image = model.image
         if image is None or image.unknown != "motion":
@@ -113,24 +124,32 @@ class ReducedImage:
                 "ReducedImage starts a model of an image's motion (Model(..., image=Image.motion(t0)))"
             )
         self.image, self.body, self.basis, self.start = image, body, basis, np.array(start, dtype=float)
-        self.inverse = model.variant(replace(image, unknown="inverse"))
-        self.solver = ReducedSolver(self.inverse, basis, newton, start=self.start)
+        self.inverse = inverse = model.variant(replace(image, unknown="inverse"))
+        self.solver: ReducedSolver | HyperReducedSolver = (
+            ReducedSolver(inverse, basis, newton, start=self.start)
+            if sample is None
+            else HyperReducedSolver(inverse, basis, sample, newton, self.start)
+        )
         mesh = model.geometry.mesh
         self.volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)()  # m³ (m³/m in 2-D)
-        self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
-        self._handover = Handover(model, self.inverse)
+        # x_ξ = r + Z z, z = (a, the imposed factors): the reference volume is a cubic in z
+        self._r, imposed, self._constraints = imposed_directions(inverse, self.start)
+        self._directions = np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
+        self._volume = cubic(inverse, fem.Constant(mesh, 1.0) * inverse.dx, self._r, self._directions)
+        self._a = np.zeros(basis.size)  # the reduced inverse problem's solution now
+        self._handover = Handover(model, inverse)
 
     def reset(self, model: Model) -> None:
         """The breath's model at its start at the default parameters: ξ(defaults), the image."""
         self.inverse.set_parameters(self.inverse.parameters.defaults)
-        self.solver.reconstruct(np.zeros(self.basis.size))
+        self._solved(np.zeros(self.basis.size))
         model.set_parameters(model.parameters.defaults)
         self._handover.hand_over(self.inverse, model)
 
     def place(
         self,
         model: Model,
-        solver: ReducedSolver,
+        solver: ReducedSolver | HyperReducedSolver,
         values: Mapping[str, float],
         time: float,
         progress: Progress | None = None,
@@ -142,15 +161,23 @@ class ReducedImage:
             raise ParameterError(
                 f"the {self.body} was imaged at t = {self.image.time:g} s; its path cannot start at t = {time:g} s"
             )
-        inverse, defaults = self.inverse, self.inverse.parameters.defaults
+        inverse, defaults, reduced = self.inverse, self.inverse.parameters.defaults, self.solver
         inverse.set_parameters(defaults)
-        self.solver.reconstruct(np.zeros(self.basis.size))
+        self._a = np.zeros(self.basis.size)
+        if isinstance(reduced, HyperReducedSolver):
+            reduced.set_state(self._a.copy())
+        else:
+            reduced.reconstruct(self._a)
         try:
-            iterations = approach(inverse, self.solver, values, defaults, time, first_step=1.0)
+            iterations = approach(inverse, reduced, values, defaults, time, first_step=1.0)
         except SolverError as error:
             raise SolverError(
                 f"reduced inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"
             ) from None
+        if isinstance(reduced, HyperReducedSolver):
+            self._solved(reduced.state.copy())  # the inverse problem's full state: O(the mesh's dofs · k)
+        else:
+            self._a = reduced.project()
         model.set_parameters(values)
         self._handover.hand_over(inverse, model)
         model.set_time(time)
@@ -158,7 +185,39 @@ class ReducedImage:
         details = {
             "newton_iterations": iterations,
             "imaged_volume": self.volume,
-            "reference_volume": self._reference_volume(),
+            "reference_volume": self.reference_volume(),
         }
         description = f"the imaged {self.body} (its unloaded reference from the reduced inverse motion at μ)"
         return StartReport("imaged", description, iterations, details)
+
+    def reference_volume(self) -> float:
+        """∫ det(I + ∇ξ) dx of the reference now (m³; m³/m in 2-D), from its cubic."""
+        return self._volume(self._coordinates())
+
+    def reference_map_at(self, probe: Probe) -> Callable[[], np.ndarray]:
+        """ξ at the points of ``probe`` (points, 3; m) now, linear in z: k + 2 evaluations."""
+        inverse, owned = self.inverse, self._directions.shape[0]
+
+        def reference_map(x: np.ndarray) -> np.ndarray:
+            inverse.state.x.array[:] = x
+            inverse.state.x.scatter_forward()
+            return -probe(inverse.displacement())  # u = −ξ in the inverse problem
+
+        with inverse.kept_state():
+            at_r = reference_map(self._r)
+            each = []
+            for column in self._directions.T:
+                x = np.zeros_like(self._r)
+                x[:owned] = column
+                each.append(reference_map(x))
+        columns = np.stack(each, axis=-1)
+        return lambda: at_r + columns @ self._coordinates()
+
+    def _coordinates(self) -> np.ndarray:
+        """z = (a, the imposed factors of the inverse problem's constraints now)."""
+        return np.concatenate([self._a, self.inverse.imposed_amplitudes()[self._constraints]])
+
+    def _solved(self, a: np.ndarray) -> None:
+        """The inverse problem's state x_ξ⁰ + V_ξ a, as a full field (for the hand-over)."""
+        self._a = np.array(a, dtype=float)
+        self.solver.reconstruct(self._a)

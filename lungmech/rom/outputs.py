@@ -20,13 +20,17 @@ imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` foll
   ∫ f w dX are sampled functionals alike, their denominators exact, the reference volume (a
   number of the whole body) or the current volume (the cubic above);
 * **the loads** are the model's scalar load values (no field).
+
+On an imaged body (:mod:`lungmech.rom.imaged`) u = w − ξ(μ): the probes above are those of the
+motion w, and ξ at them, with the reference volume, comes from the reduced inverse motion
+(:class:`Reference`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from mpi4py import MPI
 
@@ -49,7 +53,19 @@ from lungmech.rom.whole import Arrays
 if TYPE_CHECKING:  # (it imports this module)
     from lungmech.rom.hyper_reduced import HyperReducedSolver
 
-__all__ = ["Cubic", "ReducedOutputs", "affine", "cubic", "imposed_directions"]
+__all__ = ["Cubic", "ReducedOutputs", "Reference", "affine", "cubic", "imposed_directions"]
+
+
+class Reference(Protocol):
+    """An imaged body's reference at the current μ, as a reduced model has it."""
+
+    def reference_volume(self) -> float:
+        """∫ det(I + ∇ξ) dx (m³; m³/m in 2-D)."""
+        ...
+
+    def reference_map_at(self, probe: Probe) -> Callable[[], np.ndarray]:
+        """ξ at the probe's points now, (points, 3) in m, as a function of the reduced state."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -184,14 +200,21 @@ class ReducedOutputs:
     assemblies, through the solver's :attr:`whole`, which keeps them, or gives them back on a
     body of sampled cells: :mod:`lungmech.rom.whole`). ``solver`` is a
     :class:`~lungmech.rom.hyper_reduced.HyperReducedSolver`; ``probes`` points or a
-    :class:`~lungmech.fem.quantities.Probe` (material points) located already."""
+    :class:`~lungmech.fem.quantities.Probe` (material points) located already; ``reference``
+    an imaged body's reference at μ (:class:`Reference`)."""
 
-    def __init__(self, solver: HyperReducedSolver, probes: Sequence[Sequence[float]] | Probe = ()) -> None:
+    def __init__(
+        self,
+        solver: HyperReducedSolver,
+        probes: Sequence[Sequence[float]] | Probe = (),
+        reference: Reference | None = None,
+    ) -> None:
         model = self.model = solver.model
-        self.solver = solver
+        self.solver, self.reference = solver, reference
         # the averages whose numerators the sample has cells for (not a file of an older build)
         self._averages = {name: a for name, a in averages(model).items() if AVERAGE + name in solver.sample.cells}
-        self._reference_volume = model.geometry.volume()  # the whole body's, on a body of sampled cells
+        # the whole body's, on a body of sampled cells; an imaged body's at μ
+        self._reference_volume = model.geometry.volume if reference is None else reference.reference_volume
         self.units = dict(UNITS) | {f"averages/{name}": a.unit for name, a in self._averages.items()}
         owned = solver.basis.vectors.shape[0]
         start, imposed, self._constraints = solver.whole.imposed()
@@ -214,7 +237,7 @@ class ReducedOutputs:
             def displacement_at(x: np.ndarray) -> np.ndarray:
                 model.state.x.array[:] = x
                 model.state.x.scatter_forward()
-                return probe(model.displacement())
+                return probe(model.motion())  # w of an image (ξ at the probes is the Reference's)
 
             with model.kept_state():
                 at_start = displacement_at(start)
@@ -228,6 +251,10 @@ class ReducedOutputs:
         points, at_start, each = solver.whole.get("probes", located)
         self.probe_points = tuple(tuple(float(c) for c in p) for p in points)
         self._probes = (at_start, each) if len(points) else None  # p(r), and p(Z_i) on the last axis
+        self._reference_map: Callable[[], np.ndarray | float] = lambda: 0.0  # ξ at the probes
+        if reference is not None and len(points):
+            probe = probes if isinstance(probes, Probe) else Probe(model.geometry.mesh, probes)
+            self._reference_map = reference.reference_map_at(probe)
 
     def derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> dict[str, object]:
         """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives
@@ -238,7 +265,7 @@ class ReducedOutputs:
         dz = np.vstack([dq, derivatives.amplitudes[self._constraints]])
         result: dict[str, object] = {
             "volume": self._volume.gradient(self.coordinates()) @ dz,
-            "strain_energy": self.solver.energy_derivatives(dq, derivatives),
+            "strain_energy": self.solver.sensitivities.energy(dq, derivatives),
         }
         if self._probes is not None:
             result["probes"] = self._probes[1] @ dz
@@ -254,10 +281,10 @@ class ReducedOutputs:
         volume, sampled = self._volume(z), self.solver.functionals(self.solver.state)
         values: dict[str, object] = {"volume": volume, "strain_energy": sampled["strain_energy"]}
         if self._probes is not None:
-            values["probes"] = self._probes[0] + self._probes[1] @ z
+            values["probes"] = self._probes[0] + self._probes[1] @ z - self._reference_map()
         values["loads"] = self.model.scalar_loads()
         if self._averages:
-            per = {"reference": self._reference_volume, "current": volume}
+            per = {"reference": self._reference_volume(), "current": volume}
             values["averages"] = {
                 name: sampled[AVERAGE + name] / per[average.per] for name, average in self._averages.items()
             }

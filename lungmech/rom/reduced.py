@@ -89,8 +89,6 @@ class ReducedModel:
         whole: Whole | None = None,
         image: ReducedImage | None = None,
     ) -> None:
-        if image is not None and sample is not None:
-            raise ParameterError("a hyper-reduced model of an imaged body is not built yet: reduce it without ECSW")
         self.model, self.basis, self.stepping, self.sample, self.image = model, basis, stepping, sample, image
         self.described = described or StartReport(
             "equilibrium", "the reduced model's start (an equilibrium at the default parameters), moved to μ"
@@ -110,7 +108,7 @@ class ReducedModel:
             self.outputs = Outputs(model, probes)
         else:
             self.solver = HyperReducedSolver(model, basis, sample, newton, self.start, self.enrichment, whole)
-            self.outputs = ReducedOutputs(self.solver, probes)
+            self.outputs = ReducedOutputs(self.solver, probes, image)
         self.indicator: EnrichedIndicator | None = None
         if self.enrichment is not None:
             kept = self.solver.whole if isinstance(self.solver, HyperReducedSolver) else None
@@ -128,7 +126,6 @@ class ReducedModel:
         basis is relative to it) for the hyper-reduced one, which leaves the model's alone; an
         imaged body's at its reference at the defaults."""
         if self.image is not None:
-            assert isinstance(self.solver, ReducedSolver)  # (an imaged body is reduced without ECSW yet)
             self.image.reset(self.model)
             self.solver.set_start(self.start)
         elif self.sample is None:
@@ -195,7 +192,6 @@ class ReducedModel:
 
         def start(on_approach: Callable | None) -> StartReport:
             if self.image is not None:  # its reference at μ: the image is the start
-                assert isinstance(self.solver, ReducedSolver)  # (an imaged body is reduced without ECSW yet)
                 return self.image.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
             defaults = self.parameters.defaults
             self.model.set_parameters(defaults)
@@ -262,7 +258,7 @@ class ReducedModel:
         derivatives = value_derivatives(model)
         if self.sample is not None:
             assert isinstance(self.solver, HyperReducedSolver) and isinstance(self.outputs, ReducedOutputs)
-            return self.outputs.derivatives(self.solver.state_derivatives(derivatives), derivatives)
+            return self.outputs.derivatives(self.solver.sensitivities.state(derivatives), derivatives)
         dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
         dx = V @ dq + derivatives.imposed[: V.shape[0]]
         return output_derivatives(model, self.outputs, None, state_derivative=dx, derivatives=derivatives)

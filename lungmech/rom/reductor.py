@@ -252,7 +252,8 @@ class Reductor:
         self.enrichment = indicator.enrichment(self.basis, self.modes if self.basis.kind == "pod" else None)
         self._ecsw: ecsw.Training | None = None  # of [V W], made on the first hyper-reduced model
         self._samples: dict[float, tuple[ecsw.Sample, float]] = {}  # τ: (its sample, the NNLS's seconds)
-        self._image: ReducedImage | None = None  # an imaged body's reduced inverse motion, made once
+        self._images: dict[float | None, ReducedImage] = {}  # an imaged body's reduced inverse motion, per τ
+        self._inverse_ecsw: ecsw.Training | None = None  # and its ECSW training, made with the breath's
         self._rest()
 
     def _imaged_bases(self, size: int) -> Basis:
@@ -272,14 +273,23 @@ class Reductor:
         self.timings["svd"] = time.perf_counter() - tic
         return self.modes.truncate(min(size, self.modes.size))
 
-    def _reduced_image(self) -> ReducedImage:
-        """The reduced inverse motion every reduced model of an imaged body starts from."""
-        if self._image is None:
+    def _reduced_image(self, tolerance: float | None) -> ReducedImage:
+        """The reduced inverse motion a reduced model of an imaged body starts from: Galerkin, or
+        hyper-reduced at τ = ``tolerance`` (its sample from the same ECSW training pass as the
+        breath's). Made once per τ."""
+        if tolerance not in self._images:
             start = self.full.start
             assert isinstance(start, InverseMotion)  # (self.imaged)
+            sample = None
+            if tolerance is not None:
+                self._ecsw_training()
+                assert self._inverse_ecsw is not None  # (made with the breath's)
+                sample = self._inverse_ecsw.sample(tolerance)
             options = self.full.solver.options
-            self._image = ReducedImage(self.full.model, self.inverse_basis, self.inverse_start, options, start.body)
-        return self._image
+            self._images[tolerance] = ReducedImage(
+                self.full.model, self.inverse_basis, self.inverse_start, options, start.body, sample
+            )
+        return self._images[tolerance]
 
     def __enter__(self) -> Reductor:
         return self
@@ -289,16 +299,15 @@ class Reductor:
 
     def destroy(self) -> None:
         """Free the kept ECSW training (collective)."""
-        if self._ecsw is not None:
-            self._ecsw.destroy()
-            self._ecsw = None
+        for training in (self._ecsw, self._inverse_ecsw):
+            if training is not None:
+                training.destroy()
+        self._ecsw = self._inverse_ecsw = None
 
     def reduce(self, hyper: ECSW | None = None) -> ReducedModel:
         """The reduced model on the basis (Galerkin: its forms on the full mesh), or with
         ``hyper`` hyper-reduced at its τ and truncated to its ``size`` (the sample stays the one
         of the whole basis and its enrichment). Collective."""
-        if self.imaged and hyper is not None:
-            raise ParameterError("a hyper-reduced model of an imaged body is not built yet: reduce it without ECSW")
         vectors, enrichment = self.basis, self.enrichment
         sample, seconds = self.sample(hyper.tolerance) if hyper is not None else (None, None)
         if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
@@ -308,7 +317,7 @@ class Reductor:
         self._rest()
         image, described = None, None
         if self.imaged:
-            image = self._reduced_image()
+            image = self._reduced_image(hyper.tolerance if hyper is not None else None)
         else:
             assert isinstance(start, Rest | Equilibrium)  # (one_state refused the others on construction)
             described = StartReport(start.kind, start.description, details=dict(start.details))
@@ -359,7 +368,10 @@ class Reductor:
             full, tic = self.full, time.perf_counter()
             training = ecsw.Training(full.model, np.hstack([self.basis.vectors, self.enrichment]))
             try:
-                if self.trained is not None:
+                if self.imaged:  # the breath's and the inverse motion's, from one pass
+                    self._inverse_ecsw = self._imaged_training(training)
+                    self.timings["ecsw_training"] = time.perf_counter() - tic
+                elif self.trained is not None:
                     training.replay(self.trained.iterates)
                     self.timings["ecsw_replay"] = time.perf_counter() - tic
                 else:
@@ -372,6 +384,21 @@ class Reductor:
             self.timings |= {f"ecsw_{part}": seconds for part, seconds in training.seconds.items()}
             self._ecsw = training
         return self._ecsw
+
+    def _imaged_training(self, breath: ecsw.Training) -> ecsw.Training:
+        """ECSW's training of an imaged body: every Newton iterate of the training solves, the
+        breath's into ``breath`` and the inverse motion's into the training returned."""
+        start = self.full.start
+        assert isinstance(start, InverseMotion)  # (self.imaged)
+        inverse = ecsw.Training(start.inverse, self.inverse_basis.vectors)
+        try:
+            with breath.watching(cast(NewtonSolver, self.full.solver)), inverse.watching(start.solver):
+                for point, scale in self._runs:
+                    self.full.solve(point, scale=scale)
+        except BaseException:
+            inverse.destroy()
+            raise
+        return inverse
 
     def _rest(self) -> None:
         """The full model back at its start: the defaults, the start time."""

@@ -269,6 +269,11 @@ def write_reduced(
     model also keeps its body, the sampled cells with its rows there (:mod:`lungmech.rom.body`),
     and what it needs of the whole body (:mod:`lungmech.rom.whole`): :func:`load_body` loads it
     with no full mesh."""
+    if reduced.image is not None:  # its inverse motion's basis and sample would be lost: refused
+        raise ParameterError(
+            "a reduced model of an imaged body at every μ cannot be written to a model file yet (its inverse "
+            "motion is not stored): keep it in the session"
+        )
     model = reduced.model
     where = layout(model.space)
     owned = reduced.basis.vectors.shape[0]
