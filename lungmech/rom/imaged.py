@@ -102,7 +102,9 @@ class ReducedImage:
     the reduced inverse problem on ``basis`` (relative to ``start``, x_ξ⁰, a full local array
     of the inverse problem's state), then the breath's start x₀(μ) = (0, its other fields) and
     ξ(μ) in the breath's forms. With an ECSW ``sample`` of the inverse problem (trained on
-    ``basis``) the inverse problem is hyper-reduced. ``newton``: the reduced Newton settings
+    ``basis``) the inverse problem is hyper-reduced. ``known``: parameter points with their
+    coordinates a (the training's projected solutions): each solve starts from the nearest in
+    the unit box, the defaults' a = 0 among them. ``newton``: the reduced Newton settings
     (full steps or a backtracking on ‖r‖, never an energy's line search). ``body``: the body's
     name in messages. It is also the breath's :class:`~lungmech.rom.outputs.Reference`: the
     reference volume, a cubic in the reduced coordinates, and ξ at probe points. Collective."""
@@ -117,6 +119,7 @@ class ReducedImage:
         newton: NewtonOptions | None = None,
         body: str = "body",
         sample: Sample | None = None,
+        known: Sequence[tuple[Mapping[str, float], np.ndarray]] = (),
     ) -> None:
         image = model.image
         if image is None or image.unknown != "motion":
@@ -137,6 +140,9 @@ class ReducedImage:
         self._directions = np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
         self._volume = cubic(inverse, fem.Constant(mesh, 1.0) * inverse.dx, self._r, self._directions)
         self._a = np.zeros(basis.size)  # the reduced inverse problem's solution now
+        box = inverse.parameters
+        self._known = [(dict(box.defaults), np.zeros(basis.size))]
+        self._known += [(box.values(point), np.array(a, dtype=float)) for point, a in known]
         self._handover = Handover(model, inverse)
 
     def reset(self, model: Model) -> None:
@@ -161,15 +167,15 @@ class ReducedImage:
             raise ParameterError(
                 f"the {self.body} was imaged at t = {self.image.time:g} s; its path cannot start at t = {time:g} s"
             )
-        inverse, defaults, reduced = self.inverse, self.inverse.parameters.defaults, self.solver
-        inverse.set_parameters(defaults)
-        self._a = np.zeros(self.basis.size)
+        inverse, reduced = self.inverse, self.solver
+        nearest, self._a = self._nearest(values)
+        inverse.set_parameters(nearest)
         if isinstance(reduced, HyperReducedSolver):
             reduced.set_state(self._a.copy())
         else:
             reduced.reconstruct(self._a)
         try:
-            iterations = approach(inverse, reduced, values, defaults, time, first_step=1.0)
+            iterations = approach(inverse, reduced, values, nearest, time, first_step=1.0)
         except SolverError as error:
             raise SolverError(
                 f"reduced inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"
@@ -212,6 +218,15 @@ class ReducedImage:
                 each.append(reference_map(x))
         columns = np.stack(each, axis=-1)
         return lambda: at_r + columns @ self._coordinates()
+
+    def _nearest(self, values: Mapping[str, float]) -> tuple[dict[str, float], np.ndarray]:
+        """The known point nearest ``values`` in the unit box, and its coordinates (a copy)."""
+        box = self.inverse.parameters
+        if not len(box):
+            return self._known[0][0], self._known[0][1].copy()
+        target = box.to_unit(values)
+        point, a = min(self._known, key=lambda known: float(np.linalg.norm(box.to_unit(known[0]) - target)))
+        return point, a.copy()
 
     def _coordinates(self) -> np.ndarray:
         """z = (a, the imposed factors of the inverse problem's constraints now)."""

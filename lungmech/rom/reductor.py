@@ -46,9 +46,10 @@ from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
+from lungmech.parallel.linalg import gram
 from lungmech.rom import ecsw, imaged, indicator
 from lungmech.rom.accuracy import Errors, errors
-from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
+from lungmech.rom.basis import INNER_PRODUCTS, Basis, dual, enrich, require_positive_definite
 from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
@@ -270,6 +271,9 @@ class Reductor:
         inverse = pod(full.start.inverse, trained.inverse, inner=self.inner, source=source)
         self.inverse_basis = inverse.truncate(min(size, inverse.size))
         self.start, self.inverse_start = trained.start, trained.inverse_start
+        # each training point's a, where a reduced inverse solve near it starts
+        coordinates = gram(dual(full.start.inverse, self.inverse_basis), trained.inverse, full.model.geometry.mesh.comm)
+        self.inverse_known = [(point, coordinates[:, i]) for i, (point, _) in enumerate(self._runs)]
         self.timings["svd"] = time.perf_counter() - tic
         return self.modes.truncate(min(size, self.modes.size))
 
@@ -287,7 +291,7 @@ class Reductor:
                 sample = self._inverse_ecsw.sample(tolerance)
             options = self.full.solver.options
             self._images[tolerance] = ReducedImage(
-                self.full.model, self.inverse_basis, self.inverse_start, options, start.body, sample
+                self.full.model, self.inverse_basis, self.inverse_start, options, start.body, sample, self.inverse_known
             )
         return self._images[tolerance]
 
