@@ -200,3 +200,12 @@ def test_bad_inputs_are_refused_in_one_line():
         InverseMotion(model).place(model, None, model.parameters.defaults, 0.0)
     with pytest.raises(ParameterError, match="only a model of an image's motion"):
         inflated_block(None).set_reference_map(np.zeros(3))
+    porous = Model(
+        box(MPI.COMM_WORLD, (1.0, 1.0, 1.0), (1, 1, 1)),
+        skeleton(160.0, 0.5, 200.0, 400.0),
+        formulation=Poromechanics(1e4, imaged_porosity=0.7),
+        constraints=[clamp("x0")],
+        image=Image.motion(),
+    )
+    with pytest.raises(ParameterError, match="an imaged porosity is matched by the fixed point"):
+        InverseMotion(porous)

@@ -55,6 +55,12 @@ class InverseMotion:
             raise ParameterError(
                 "InverseMotion starts a model of an image's motion (Model(..., image=Image.motion(t0)))"
             )
+        if getattr(model.formulation, "imaged", lambda model: None)(model) is not None:
+            # Φs0 would be an unknown of the inverse problem too (Φs = (1 − φ̂f) on the image)
+            raise ParameterError(
+                "an imaged porosity is matched by the fixed point on a moving mesh (lung.inverse.Imaged), not yet "
+                "by the inverse motion: give phi_s0, or start with Imaged"
+            )
         self.image, self.body = image, body
         self.inverse = model.variant(Image.inverse(image.time))
         options = newton or NewtonOptions()
