@@ -23,6 +23,23 @@ from lungmech.mesh import box, sphere
 
 MESHES = Path(lungmech.meshes.__file__).parent  # the bundled meshes
 
+
+def bundled_lung(loads, comm: MPI.Comm = MPI.COMM_WORLD, **keywords) -> Model:
+    """The bundled right lung phantom, poromechanical (the bundled scene's skeleton, κ = 1e4 Pa,
+    Φs0 = 0.3), held at its hilum, under ``loads``; ``keywords`` to the Model (parameters, image)."""
+    from lungmech.lung import Poromechanics, skeleton
+    from lungmech.mesh import from_file
+
+    return Model(
+        from_file(MESHES / "lung_phantom_right.msh", comm),
+        skeleton(160.0, 0.5, 200.0, 400.0),
+        formulation=Poromechanics(1e4, 0.3),
+        loads=loads,
+        constraints=[clamp("hilum")],
+        **keywords,
+    )
+
+
 # A small scene: a 2 × 1 × 1 box of neo-Hookean rubber, clamped at x0 and pulled down at x1.
 TINY_SCENE = """title = "tiny"
 [geometry]

@@ -4,17 +4,14 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
-from fem import MESHES
+from fem import bundled_lung
 
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem.constraints import clamp
 from lungmech.fem.loads import FollowerPressure
 from lungmech.fem.model import Model
 from lungmech.fem.solver import Stepping, solve
-from lungmech.lung import Poromechanics, skeleton
 from lungmech.lung.gravity import Gravity
 from lungmech.lung.inverse import InverseOptions, node_displacements, unloaded_reference
-from lungmech.mesh import from_file
 
 SURROUNDING = ("pleura", "diaphragm", "mediastinum")
 
@@ -23,13 +20,7 @@ def end_expiration_lung(comm=MPI.COMM_WORLD) -> Model:
     """The bundled lung as imaged at end-expiration: pleural suction −500 Pa and its weight."""
     loads = [FollowerPressure(b, -500.0) for b in SURROUNDING]
     loads.append(Gravity(315.0, (0.0, 0.0, -9.81), balanced_on=SURROUNDING))
-    return Model(
-        from_file(MESHES / "lung_phantom_right.msh", comm),
-        skeleton(160.0, 0.5, 200.0, 400.0),
-        formulation=Poromechanics(1e4, 0.3),
-        loads=loads,
-        constraints=[clamp("hilum")],
-    )
+    return bundled_lung(loads, comm)
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 import pytest
-from fem import MESHES
+from fem import bundled_lung
 
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import Displacement, clamp
@@ -28,7 +28,7 @@ from lungmech.fem.solver import Stepping
 from lungmech.lung import Poromechanics, skeleton
 from lungmech.lung.gravity import Gravity
 from lungmech.lung.inverse import Imaged, InverseOptions
-from lungmech.mesh import box, from_file, rectangle
+from lungmech.mesh import box, rectangle
 
 BREATH = Ramp((0.0, 1.0, 2.0), (1.0, 2.0, 1.0))  # end-expiration, end-inspiration, end-expiration
 LUNG_PARAMETERS = (
@@ -47,15 +47,7 @@ def imaged_lung(image: Image | None, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
         FollowerPressure(surface, -500.0, ramp=BREATH, name="pleural"),
         Gravity(315.0, (0.0, 0.0, -9.81), balanced_on=surface, ramp=Ramp.constant(), name="gravity"),
     ]
-    return Model(
-        from_file(MESHES / "lung_phantom_right.msh", comm),
-        skeleton(160.0, 0.5, 200.0, 400.0),
-        formulation=Poromechanics(1e4, 0.3),
-        loads=loads,
-        constraints=[clamp("hilum")],
-        parameters=LUNG_PARAMETERS,
-        image=image,
-    )
+    return bundled_lung(loads, comm, parameters=LUNG_PARAMETERS, image=image)
 
 
 def inflated_block(
