@@ -92,10 +92,7 @@ class InverseMotion:
         on_step: Callable[[StepReport], None] | None = None,
     ) -> StartReport:
         """ξ(μ) for ``values`` and the image's state on it, at ``time`` = t₀ (collective)."""
-        if abs(time - self.image.time) > 1e-12 * max(1.0, abs(time)):
-            raise ParameterError(
-                f"the {self.body} was imaged at t = {self.image.time:g} s; its path cannot start at t = {time:g} s"
-            )
+        self.image.check_start(time, self.body)
         tic = perf_counter()
         inverse = self.inverse
         inverse.set_parameters(values)

@@ -59,6 +59,13 @@ class Image:
             raise ParameterError(f"image: unknown must be 'motion' or 'inverse' (got {self.unknown!r})")
         object.__setattr__(self, "time", checks.real("image: time", self.time))
 
+    def check_start(self, time: float, body: str = "body") -> None:
+        """A path of the imaged ``body`` starts at the time it was imaged, or is refused."""
+        if abs(time - self.time) > 1e-12 * max(1.0, abs(time)):
+            raise ParameterError(
+                f"the {body} was imaged at t = {self.time:g} s; its path cannot start at t = {time:g} s"
+            )
+
     @classmethod
     def motion(cls, time: float = 0.0) -> Image:
         """The breath from the image at ``time``: the unknown is the motion w."""

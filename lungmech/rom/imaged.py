@@ -163,10 +163,7 @@ class ReducedImage:
     ) -> StartReport:
         """ξ(μ) for ``values`` from the reduced inverse problem at ``time`` = t₀, and ``solver``
         (the breath's reduced solver) at its start there, q = 0 (collective)."""
-        if abs(time - self.image.time) > 1e-12 * max(1.0, abs(time)):
-            raise ParameterError(
-                f"the {self.body} was imaged at t = {self.image.time:g} s; its path cannot start at t = {time:g} s"
-            )
+        self.image.check_start(time, self.body)
         inverse, reduced = self.inverse, self.solver
         nearest, self._a = self._nearest(values)
         inverse.set_parameters(nearest)
