@@ -162,6 +162,17 @@ def test_the_inverse_tangent_is_not_symmetric_and_the_motion_tangent_is():
     assert asymmetry(model) < 1e-12
 
 
+def test_newton_converges_quadratically_with_the_weight_balanced():
+    """The inverse problem's tangent carries the balanced weight's whole derivative: on an image
+    the mass ∫ρ0 det(I + ∇ξ) dx moves with ξ, and with it the centre of mass and the force the
+    pleura balances. Without that term Newton was linear (13 iterations at the defaults, 50 at a
+    corner); with it, a few quadratic steps at every load."""
+    model = imaged_lung(Image.motion(0.0))
+    start = InverseMotion(model, body="lung")
+    for mu in ({}, {"stiffness": 100.0, "breath": 1.4, "posture": -90.0}):
+        assert start.place(model, None, model.parameters.values(mu), 0.0).newton_iterations <= 6
+
+
 @pytest.mark.slow
 def test_changing_mu_compiles_nothing(monkeypatch):
     """After one solve, the inverse motion and the breath at other μ compile no form."""

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 import ufl
 from dolfinx import fem
+from ufl.algorithms import expand_derivatives
 from ufl.core.expr import Expr
 
 from lungmech import checks
@@ -169,6 +170,10 @@ class _BalancingPressure:
         self.response_centre = ufl.diff(response, centre)
         # ∂(∫ρ0 x_a dX)/∂u, a = 1, 2, 3 (independent of the state on a reference mesh)
         self.first_moment_u = [ufl.derivative(gravity.density * x[a] * model.dx, model.state, w) for a in range(3)]
+        # ∂M/∂u of the mass M = ∫ρ0 dX, None where it is 0: on the reference, and on an image's
+        # motion (dX = det(I + ∇ξ) dx); the inverse problem's M moves with its unknown ξ
+        mass_u = ufl.derivative(gravity.density * model.dx, model.state, w)
+        self.mass_u = None if expand_derivatives(mass_u).empty() else mass_u
 
         # Can these boundaries balance a weight along g at all? Checked once, on the reference
         # of a whole body (a hyper-reduced model's piece of one holds a few of its cells only).
@@ -205,6 +210,7 @@ class _Balance:
         self._response_u = integration.bilinear_columns("response", p.contraction_u, p.left, p.right)
         self._response_centre = integration.vector("response", p.response_centre, p.surface)
         self._first_moment_u = [integration.column("moments", form) for form in p.first_moment_u]
+        self._mass_u = None if p.mass_u is None else integration.column("moments", p.mass_u)
 
     def update(self) -> None:
         """θ ← Θ(u): the centre of mass and the least correction balancing the current weight."""
@@ -224,7 +230,11 @@ class _Balance:
         integration's unknowns."""
         p = self.pressure
         work = self._work_derivative()  # the 12 directions θ = (x_G, c) at once
-        centre_u = [moment() / self.mass for moment in self._first_moment_u]  # dx_G/du = ∂(∫ρ0 x dX)/∂u / M
+        # dx_G/du = (∂(∫ρ0 x dX)/∂u − x_G ∂M/∂u) / M
+        mass_u = None if self._mass_u is None else self._mass_u()
+        centre_u = [moment() / self.mass for moment in self._first_moment_u]
+        if mass_u is not None:
+            centre_u = [column - p.centre.value[a] * mass_u / self.mass for a, column in enumerate(centre_u)]
         Q, c, lam = self._kkt_inverse[:9], p.coefficients.value, self._multipliers
         response_centre = self._response_centre()
         # Σ T_ik ∂A_ik/∂u for T_j = λ ⊗ Q_j[:9] + Q_j[9:] ⊗ c: from 9 + 6 columns
@@ -237,6 +247,8 @@ class _Balance:
         )
         centre = np.column_stack(centre_u)
         coefficients = -(left @ Q[:, :9].T + right @ Q[:, 9:].T + centre @ along.T)
+        if mass_u is not None:  # and the weight's, −M g the force the pressure balances: c = Q[:, 9:12] (−M g)
+            coefficients += np.outer(mass_u, Q[:, 9:12] @ -np.asarray(p.value.value, dtype=float))
         return work, np.hstack([centre, coefficients])
 
     def rounding(self) -> np.ndarray:
