@@ -78,19 +78,23 @@ class Training:
     internal forces and the loads each: they balance at an equilibrium, neither vanishes); for
     every functional, its cells' values scaled by its value. A family without force at a state
     (at rest; a load not applied yet) skips it. :meth:`add_tangents` adds the families' reduced
-    tangents at a state (see the module's doc).
+    tangents at a state (see the module's doc). ``outputs``: with the functionals (the strain
+    energy, the averages' numerators); a model whose answer is a start, not outputs (an imaged
+    body's inverse motion, :mod:`lungmech.rom.imaged`), samples its residual alone.
     """
 
-    def __init__(self, model: Model, V: np.ndarray) -> None:
+    def __init__(self, model: Model, V: np.ndarray, outputs: bool = True) -> None:
         self.model, self.V = model, np.ascontiguousarray(V)
         self.forms = WeightedForms(model)
+        functionals = tuple(self.forms.functionals) if outputs else ()
+        self.sampled = (*self.forms.families, *functionals, *self.forms.integrals)  # what gets a sample
         self.comm = model.geometry.mesh.comm
         self._state_dependent = StateDependent(model)
         self._integrals: dict[str, tuple[fem.Form, la.Vector, int]] = {}
         for name in self.forms.integrals:
             form, space = self.forms.cell_values(name)
             self._integrals[name] = (fem.form(form), fem.Function(space).x, space.dofmap.index_map_bs)
-        names = (*self.forms.families, *self.forms.functionals)
+        names = (*self.forms.families, *functionals)
         self._compiled = {name: fem.form(self.forms.contribution(name)) for name in names}
         self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         # ∂/∂x of each family's columns along a direction V_j: column e is K_e V_j
@@ -102,7 +106,7 @@ class Training:
                 compiled = fem.form(form)
                 self._tangents[family] = (compiled, create_matrix(compiled))
         self.cells = self.forms.space.dofmap.index_map.size_local
-        names = (*self.forms.sampled, *(family + TANGENT for family in self._tangents))
+        names = (*self.sampled, *(family + TANGENT for family in self._tangents))
         self.blocks: dict[str, list[np.ndarray]] = {name: [] for name in names}  # G's rows, compressed
         self.added = dict.fromkeys(names, 0)  # the training states in each family's G
         self._since = dict.fromkeys(names, 0)  # its rows since it was compressed
@@ -119,7 +123,9 @@ class Training:
             fem.assemble_vector(vector.array, form)  # type: ignore[arg-type]  # the into-an-array overload (singledispatch) is not in the hints
             vector.scatter_reverse(la.InsertMode.add)  # a facet's contribution to its cell's owner
             local[name] = vector.array[: self.cells * size].reshape(self.cells, size).T.copy()
-        for name in self.forms.functionals:  # a DG0 vector: entry e is cell e's integral
+        for name in (
+            n for n in self.forms.functionals if n in self._compiled
+        ):  # a DG0 vector: entry e is cell e's integral
             local[name] = fem.assemble_vector(self._compiled[name]).array[None, : self.cells].copy()
         for family in self.forms.families:
             local[family] = self._reduced_columns(self._compiled[family], self._matrices[family])
@@ -257,7 +263,7 @@ class Training:
     @property
     def states(self) -> int:
         """The most training states any family's forces hold."""
-        return max((self.added[name] for name in self.forms.sampled), default=0)
+        return max((self.added[name] for name in self.sampled), default=0)
 
     def matrix(self, family: str, tolerance: float = TANGENT_TOLERANCE) -> np.ndarray:
         """G of one family, columns the owned cells: rows (state, reduced component) or, once
@@ -280,7 +286,7 @@ class Training:
         see :meth:`matrix` and :func:`sparse_nnls`."""
         if not self.states:
             raise ParameterError("ECSW has no training state with a load (add states first)")
-        chosen = {name: sparse_nnls(self.matrix(name, tolerance), tolerance, self.comm) for name in self.forms.sampled}
+        chosen = {name: sparse_nnls(self.matrix(name, tolerance), tolerance, self.comm) for name in self.sampled}
         return Sample(
             {family: cells for family, (cells, _) in chosen.items()},
             {family: weights for family, (_, weights) in chosen.items()},

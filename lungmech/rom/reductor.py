@@ -394,7 +394,7 @@ class Reductor:
         breath's into ``breath`` and the inverse motion's into the training returned."""
         start = self.full.start
         assert isinstance(start, InverseMotion)  # (self.imaged)
-        inverse = ecsw.Training(start.inverse, self.inverse_basis.vectors)
+        inverse = ecsw.Training(start.inverse, self.inverse_basis.vectors, outputs=False)  # its answer is ξ
         try:
             with breath.watching(cast(NewtonSolver, self.full.solver)), inverse.watching(start.solver):
                 for point, scale in self._runs:
