@@ -28,20 +28,20 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.inverse_motion import Handover, InverseMotion
-from lungmech.fem.quantities import Probe, integral
+from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonOptions, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.rom.basis import Basis
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
-from lungmech.rom.outputs import cubic, imposed_directions
+from lungmech.rom.outputs import Cubic, cubic, imposed_directions
 from lungmech.rom.pod import snapshot
+from lungmech.rom.whole import OnMesh, Whole
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -107,7 +107,9 @@ class ReducedImage:
     the unit box, the defaults' a = 0 among them. ``newton``: the reduced Newton settings
     (full steps or a backtracking on ‖r‖, never an energy's line search). ``body``: the body's
     name in messages. It is also the breath's :class:`~lungmech.rom.outputs.Reference`: the
-    reference volume, a cubic in the reduced coordinates, and ξ at probe points. Collective."""
+    reference volume, a cubic in the reduced coordinates, and ξ at probe points, both of the
+    whole body (``whole``, :mod:`lungmech.rom.whole`: computed on ``model``'s mesh by default,
+    given back from a model file on a body of sampled cells). Collective."""
 
     kind = "imaged"
 
@@ -120,6 +122,7 @@ class ReducedImage:
         body: str = "body",
         sample: Sample | None = None,
         known: Sequence[tuple[Mapping[str, float], np.ndarray]] = (),
+        whole: Whole | None = None,
     ) -> None:
         image = model.image
         if image is None or image.unknown != "motion":
@@ -128,17 +131,24 @@ class ReducedImage:
             )
         self.image, self.body, self.basis, self.start = image, body, basis, np.array(start, dtype=float)
         self.inverse = inverse = model.variant(replace(image, unknown="inverse"))
+        self.whole = whole if whole is not None else OnMesh(imposed_directions(inverse, self.start))
         self.solver: ReducedSolver | HyperReducedSolver = (
             ReducedSolver(inverse, basis, newton, start=self.start)
             if sample is None
-            else HyperReducedSolver(inverse, basis, sample, newton, self.start)
+            else HyperReducedSolver(inverse, basis, sample, newton, self.start, whole=self.whole)
         )
-        mesh = model.geometry.mesh
-        self.volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)()  # m³ (m³/m in 2-D)
+        self.volume = model.geometry.volume()  # the image's, m³ (m³/m in 2-D): of the whole body on a body
         # x_ξ = r + Z z, z = (a, the imposed factors): the reference volume is a cubic in z
-        self._r, imposed, self._constraints = imposed_directions(inverse, self.start)
+        self._r, imposed, self._constraints = self.whole.imposed()
         self._directions = np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
-        self._volume = cubic(inverse, fem.Constant(mesh, 1.0) * inverse.dx, self._r, self._directions)
+
+        def volume() -> tuple[np.ndarray, ...]:
+            mesh = model.geometry.mesh
+            found = cubic(inverse, fem.Constant(mesh, 1.0) * inverse.dx, self._r, self._directions)
+            return np.array(found.c0), found.c1, found.c2, found.c3
+
+        c0, c1, c2, c3 = self.whole.get("reference_volume", volume)
+        self._volume = Cubic(float(c0), c1, c2, c3)
         self._a = np.zeros(basis.size)  # the reduced inverse problem's solution now
         box = inverse.parameters
         self._known = [(dict(box.defaults), np.zeros(basis.size))]
@@ -197,23 +207,29 @@ class ReducedImage:
         """∫ det(I + ∇ξ) dx of the reference now (m³; m³/m in 2-D), from its cubic."""
         return self._volume(self._coordinates())
 
-    def reference_map_at(self, probe: Probe) -> Callable[[], np.ndarray]:
-        """ξ at the points of ``probe`` (points, 3; m) now, linear in z: k + 2 evaluations."""
+    def reference_map_at(self, probe: Callable[[], Probe]) -> Callable[[], np.ndarray]:
+        """ξ at the points of ``probe()`` (points, 3; m) now, linear in z: k + 2 evaluations
+        on the whole body (``probe`` is called only there)."""
         inverse, owned = self.inverse, self._directions.shape[0]
 
-        def reference_map(x: np.ndarray) -> np.ndarray:
-            inverse.state.x.array[:] = x
-            inverse.state.x.scatter_forward()
-            return -probe(inverse.displacement())  # u = −ξ in the inverse problem
+        def located() -> tuple[np.ndarray, ...]:
+            at = probe()
 
-        with inverse.kept_state():
-            at_r = reference_map(self._r)
-            each = []
-            for column in self._directions.T:
-                x = np.zeros_like(self._r)
-                x[:owned] = column
-                each.append(reference_map(x))
-        columns = np.stack(each, axis=-1)
+            def reference_map(x: np.ndarray) -> np.ndarray:
+                inverse.state.x.array[:] = x
+                inverse.state.x.scatter_forward()
+                return -at(inverse.displacement())  # u = −ξ in the inverse problem
+
+            with inverse.kept_state():
+                at_r = reference_map(self._r)
+                each = []
+                for column in self._directions.T:
+                    x = np.zeros_like(self._r)
+                    x[:owned] = column
+                    each.append(reference_map(x))
+            return at_r, np.stack(each, axis=-1)
+
+        at_r, columns = self.whole.get("reference_probes", located)
         return lambda: at_r + columns @ self._coordinates()
 
     def _nearest(self, values: Mapping[str, float]) -> tuple[dict[str, float], np.ndarray]:

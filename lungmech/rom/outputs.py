@@ -63,8 +63,9 @@ class Reference(Protocol):
         """∫ det(I + ∇ξ) dx (m³; m³/m in 2-D)."""
         ...
 
-    def reference_map_at(self, probe: Probe) -> Callable[[], np.ndarray]:
-        """ξ at the probe's points now, (points, 3) in m, as a function of the reduced state."""
+    def reference_map_at(self, probe: Callable[[], Probe]) -> Callable[[], np.ndarray]:
+        """ξ at the points of ``probe()`` now, (points, 3) in m, as a function of the reduced
+        state (``probe`` is called on the whole body only)."""
         ...
 
 
@@ -252,9 +253,10 @@ class ReducedOutputs:
         self.probe_points = tuple(tuple(float(c) for c in p) for p in points)
         self._probes = (at_start, each) if len(points) else None  # p(r), and p(Z_i) on the last axis
         self._reference_map: Callable[[], np.ndarray | float] = lambda: 0.0  # ξ at the probes
-        if reference is not None and len(points):
-            probe = probes if isinstance(probes, Probe) else Probe(model.geometry.mesh, probes)
-            self._reference_map = reference.reference_map_at(probe)
+        if reference is not None and len(points):  # located on the whole body only
+            self._reference_map = reference.reference_map_at(
+                lambda: probes if isinstance(probes, Probe) else Probe(model.geometry.mesh, probes)
+            )
 
     def derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> dict[str, object]:
         """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives
