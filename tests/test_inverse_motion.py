@@ -29,6 +29,7 @@ from lungmech.lung import Poromechanics, skeleton
 from lungmech.lung.gravity import Gravity
 from lungmech.lung.inverse import Imaged, InverseOptions
 from lungmech.mesh import box, rectangle
+from lungmech.mesh.geometry import Geometry
 
 BREATH = Ramp((0.0, 1.0, 2.0), (1.0, 2.0, 1.0))  # end-expiration, end-inspiration, end-expiration
 LUNG_PARAMETERS = (
@@ -51,12 +52,18 @@ def imaged_lung(image: Image | None, comm: MPI.Comm = MPI.COMM_WORLD) -> Model:
 
 
 def inflated_block(
-    image: Image | None, plane: bool = False, follower: bool = True, comm: MPI.Comm = MPI.COMM_WORLD
+    image: Image | None,
+    plane: bool = False,
+    follower: bool = True,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    geometry: Geometry | None = None,
 ) -> Model:
     """A neo-Hookean block (3-D, or 2-D in plane strain) imaged at t₀ = 0.5 s: an imposed
     displacement already half applied, a follower pressure (or a dead traction) and a dead body
-    force, with the stiffness and the pressure as parameters."""
-    geometry = rectangle(comm, (1.0, 0.5), (6, 3)) if plane else box(comm, (1.0, 0.5, 0.5), (4, 2, 2))
+    force, with the stiffness and the pressure as parameters. ``geometry``: another mesh of it
+    (a hyper-reduced model's body of sampled cells)."""
+    if geometry is None:
+        geometry = rectangle(comm, (1.0, 0.5), (6, 3)) if plane else box(comm, (1.0, 0.5, 0.5), (4, 2, 2))
     d = 2 if plane else 3
     pull = np.zeros(d)
     pull[0] = 0.08

@@ -35,13 +35,16 @@ from lungmech.fem.inverse_motion import Handover, InverseMotion
 from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonOptions, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
+from lungmech.parallel.layout import layout
+from lungmech.rom import body
 from lungmech.rom.basis import Basis
+from lungmech.rom.body import cells_of
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.outputs import Cubic, cubic, imposed_directions
 from lungmech.rom.pod import snapshot
-from lungmech.rom.whole import OnMesh, Whole
+from lungmech.rom.whole import OnMesh, Stored, Whole
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -249,3 +252,81 @@ class ReducedImage:
         """The inverse problem's state x_ξ⁰ + V_ξ a, as a full field (for the hand-over)."""
         self._a = np.array(a, dtype=float)
         self.solver.reconstruct(self._a)
+
+
+# A reduced image in a model file (:mod:`lungmech.rom.store`): its arrays, canonical and
+# gathered on rank 0, are named image/… (its basis, values and start; its ECSW sample
+# image_ecsw/…; what its whole body gives, image_whole/…); its record holds the training points'
+# coordinates; on a body of sampled cells (:mod:`lungmech.rom.body`) its columns are body/image_….
+PREFIX = "image/"
+
+
+def exported(image: ReducedImage) -> tuple[dict, dict[str, np.ndarray | None]]:
+    """(record, arrays) of ``image`` for a model file (arrays on rank 0; collective)."""
+    model, owned = image.inverse, image.basis.vectors.shape[0]
+    where = layout(model.space)
+    arrays: dict[str, np.ndarray | None] = {
+        PREFIX + "basis": where.gather(image.basis.vectors),
+        PREFIX + "values": image.basis.values,
+        PREFIX + "start": where.gather(image.start[:owned]),
+    }
+    sample = image.solver.sample if isinstance(image.solver, HyperReducedSolver) else None
+    if sample is not None:
+        arrays |= {f"image_ecsw/{name}": data for name, data in sample.export(model.geometry.mesh).items()}
+        assert isinstance(image.whole, OnMesh)  # (built on the full model)
+        arrays |= {f"image_whole/{name}": data for name, data in image.whole.arrays().items()}
+    record = {
+        "body": image.body,
+        "inner": image.basis.inner_product,
+        "tolerance": None if sample is None else sample.tolerance,
+        "known": [[dict(point), a.tolist()] for point, a in image._known[1:]],
+    }
+    return record, arrays
+
+
+def body_columns(image: ReducedImage) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The cells a body must hold for ``image``'s sample (local) and its columns there (owned
+    rows, by name)."""
+    assert isinstance(image.solver, HyperReducedSolver)  # (a body is a hyper-reduced model's)
+    owned = image.basis.vectors.shape[0]
+    reference, imposed, _ = image.whole.imposed()
+    columns = {"basis": image.basis.vectors, "start": image.start[:owned], "reference": reference[:owned]}
+    columns |= {"imposed": imposed[:owned]}
+    return cells_of(image.solver.sample), {f"image_{name}": values for name, values in columns.items()}
+
+
+def placed(
+    model: Model,
+    record: dict,
+    arrays: Mapping[str, np.ndarray | None],
+    newton: NewtonOptions | None,
+    source: str,
+    on_body: bool = False,
+) -> ReducedImage:
+    """The reduced image a model file holds (``record``, ``arrays`` on rank 0), on ``model``: the
+    full model's mesh, or with ``on_body`` a body of the sampled cells (collective)."""
+    comm, space = model.geometry.mesh.comm, model.space
+    owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    values = comm.bcast(arrays[PREFIX + "values"])
+    data = comm.bcast({n[len("image_ecsw/") :]: a for n, a in arrays.items() if n.startswith("image_ecsw/")})
+    whole = None
+    if on_body:
+        local = {
+            name: body.place(space, arrays, f"image_{name}") for name in ("basis", "start", "reference", "imposed")
+        }
+        vectors, start = local["basis"][:owned], local["start"][:, 0]
+        operators = comm.bcast({n[len("image_whole/") :]: a for n, a in arrays.items() if n.startswith("image_whole/")})
+        whole = Stored(operators, local["reference"][:, 0], local["imposed"], source)
+        cells = comm.bcast(arrays[body.PREFIX + "cells"])  # the body's cells: a sample's are positions in it
+        data = {name: np.searchsorted(cells, a) if name.endswith("_cells") else a for name, a in data.items()}
+    else:
+        where = layout(space)
+        vectors = where.scatter(arrays[PREFIX + "basis"])
+        function = fem.Function(space)
+        function.x.array[:owned] = where.scatter(arrays[PREFIX + "start"])
+        function.x.scatter_forward()
+        start = function.x.array.copy()
+    basis = Basis(np.ascontiguousarray(vectors), values, "pod", record["inner"], layout(space).fingerprint)
+    sample = Sample.place(model.geometry.mesh, data, record["tolerance"]) if record["tolerance"] is not None else None
+    known = [(point, np.asarray(a, dtype=float)) for point, a in record["known"]]
+    return ReducedImage(model, basis, start, newton, record["body"], sample, known, whole)

@@ -37,7 +37,7 @@ from lungmech.parallel import on_root, together
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
-from lungmech.rom import body
+from lungmech.rom import body, imaged
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.hyper_reduced import HyperReducedSolver
@@ -269,11 +269,6 @@ def write_reduced(
     model also keeps its body, the sampled cells with its rows there (:mod:`lungmech.rom.body`),
     and what it needs of the whole body (:mod:`lungmech.rom.whole`): :func:`load_body` loads it
     with no full mesh."""
-    if reduced.image is not None:  # its inverse motion's basis and sample would be lost: refused
-        raise ParameterError(
-            "a reduced model of an imaged body at every μ cannot be written to a model file yet (its inverse "
-            "motion is not stored): keep it in the session"
-        )
     model = reduced.model
     where = layout(model.space)
     owned = reduced.basis.vectors.shape[0]
@@ -293,6 +288,9 @@ def write_reduced(
         "built": reduced.built,
         "body": None if reduced.sample is None else _whole_body(model),
     }
+    if reduced.image is not None:  # an imaged body's reduced inverse motion, its start at every μ
+        record["image"], held = imaged.exported(reduced.image)
+        content |= held
     write(path, model, reduced.basis, extra=(extra or {}) | {"reduced": record}, arrays=content | (arrays or {}))
 
 
@@ -333,8 +331,19 @@ def load_reduced(
         sample = Sample.place(model.geometry.mesh, data, record["hyper"]["tolerance"])
     enrichment = where.scatter(arrays["enrichment"])
     described = StartReport(**record["start"])
+    image = None if record.get("image") is None else imaged.placed(model, record["image"], arrays, newton, str(path))
     reduced = ReducedModel(
-        model, basis, stepping, newton, start, probes, record.get("training", []), sample, enrichment, described
+        model,
+        basis,
+        stepping,
+        newton,
+        start,
+        probes,
+        record.get("training", []),
+        sample,
+        enrichment,
+        described,
+        image=image,
     )
     reduced.built = dict(record.get("built", {}))
     return reduced
@@ -351,7 +360,11 @@ def _body(reduced: ReducedModel) -> dict[str, np.ndarray]:
     columns |= {"imposed": imposed[:owned]}
     if reduced.enrichment is not None:
         columns["enrichment"] = reduced.enrichment
-    cells = body.export(reduced.model, body.cells_of(reduced.sample), columns)
+    sampled = body.cells_of(reduced.sample)
+    if reduced.image is not None:  # and the inverse motion's sampled cells, with its columns
+        theirs, more = imaged.body_columns(reduced.image)
+        sampled, columns = np.union1d(sampled, theirs).astype(np.int32), columns | more
+    cells = body.export(reduced.model, sampled, columns)
     return (cells or {}) | {f"whole/{name}": array for name, array in whole.arrays().items()}
 
 
@@ -414,6 +427,9 @@ def load_body(
     model.state.x.array[:] = local["start"][:, 0]
     model.state.x.scatter_forward()
     model.set_time(stepping.start)
+    image = None
+    if record.get("image") is not None:
+        image = imaged.placed(model, record["image"], arrays, newton, str(path), on_body=True)
     reduced = ReducedModel(
         model,
         basis,
@@ -426,6 +442,7 @@ def load_body(
         enrichment,
         StartReport(**record["start"]),
         whole,
+        image,
     )
     reduced.built = dict(record.get("built", {}))
     reduced.full_size = {"dofs": kept["dofs"], "cells": kept["cells"]}
