@@ -68,7 +68,7 @@ def case(size: str, folder: Path) -> dict:
         tic = time.perf_counter()
         approximate = reduced.solve()
         seconds.append(time.perf_counter() - tic)
-    full = full_order_model(scene, start="defaults")  # started as its reduced models are
+    full = full_order_model(scene, start="defaults")  # the defaults' reference moved to μ, as its greedy trains
     tic = time.perf_counter()
     exact = full.solve()
     full_seconds = time.perf_counter() - tic

@@ -154,7 +154,7 @@ def measured(reduced, full, references: dict, case: Case, repeats: int) -> dict:
 
 def run_case(case: Case, sizes: tuple[int, ...], repeats: int, comm: MPI.Comm) -> list[dict]:
     say(f"{case.name}: the full model")
-    full = full_order_model(case.scene, comm, start="defaults")  # started as its reduced models are
+    full = full_order_model(case.scene, comm, start="defaults")  # the defaults' reference moved to μ
     space = full.model.space
     dofs = space.dofmap.index_map.size_global * space.dofmap.index_map_bs
     references = {test: full.solve(scale=test.scale) for test in case.tests}

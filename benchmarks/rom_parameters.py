@@ -87,7 +87,7 @@ def main() -> None:
     unseen = box.sample(args.test, seed=12345)
 
     say("full model: building (unloaded reference at the default parameters)")
-    full = full_order_model(scene, comm, start="defaults")  # started as its reduced models are
+    full = full_order_model(scene, comm, start="defaults")  # the defaults' reference moved to μ, as its greedy trains
     dofs = full.model.space.dofmap.index_map.size_global * full.model.space.dofmap.index_map_bs
     references, full_seconds = [], []
     for j, mu in enumerate(unseen):

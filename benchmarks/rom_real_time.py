@@ -114,7 +114,7 @@ def case(size: str, args) -> list[dict]:
     scene = lung_scene(size, TIMES)
     box = Parameters(scene.parameters)
     say(f"h = {size}: building the full model")
-    full = full_order_model(scene, start="defaults")  # started as its reduced models are
+    full = full_order_model(scene, start="defaults")  # the defaults' reference moved to μ, as its greedy trains
     model = full.model
     dofs = model.space.dofmap.index_map.size_global * model.space.dofmap.index_map_bs
     mesh = model.geometry.mesh

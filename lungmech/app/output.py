@@ -2,8 +2,9 @@
 
 Fields are written as VTK XML: ``fields.pvd`` lists one file per output time, a ``.vtu`` in a
 serial run, a ``.pvtu`` with one ``.vtu`` piece per rank under MPI. ParaView, pyvista and meshio
-(the ``.vtu`` files) read them. Each file holds the mesh in its reference configuration, the
-displacement (and the pressure of the mixed formulation) at the nodes of the displacement's
+(the ``.vtu`` files) read them. Each file holds the model's mesh (its reference configuration;
+for a model of an image's motion, the image), the displacement from it (``Model.motion``: u, or
+the motion w from the image) and the pressure of the mixed formulation at the nodes of the displacement's
 Lagrange space, quadratic cells included, and cellwise fields (J, stresses, the lung's
 fractions): "warp by vector" shows the deformed body. ``format="vtx"`` writes ADIOS2 ``.bp``
 folders instead (ParaView's ADIOS2 reader).
@@ -22,12 +23,14 @@ import numpy as np
 import ufl
 from dolfinx import fem, plot
 
+from lungmech.mesh import nodes
+from lungmech.mesh import write as write_geometry
 from lungmech.parallel import on_root, together
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
 
-__all__ = ["FORMATS", "FieldWriter", "cell_fields", "write_json"]
+__all__ = ["FORMATS", "FieldWriter", "cell_fields", "write_json", "write_reference"]
 
 FORMATS = ("vtk", "vtx")
 
@@ -60,7 +63,7 @@ class FieldWriter:
             raise ValueError(f"field format must be one of {', '.join(FORMATS)} (got {format!r})")
         mesh = model.geometry.mesh
         self._model, self._folder, self._format = model, Path(folder), format
-        self._u = model.displacement()
+        self._u = model.motion()  # from the mesh's nodes: warped by it, the mesh is the current body
         self._u.name = "displacement"
         self._point = [self._u]
         # The formulation's scalar fields at the displacement's nodes (the mixed pressure, say).
@@ -90,7 +93,7 @@ class FieldWriter:
             self._grid = _grid(self._u.function_space)
 
     def write(self, t: float) -> None:
-        self._u.x.array[:] = self._model.displacement().x.array
+        self._u.x.array[:] = self._model.motion().x.array
         for function, expression in (*self._nodal, *self._cells):
             function.interpolate(expression)
         if self._vtx is not None:
@@ -182,6 +185,19 @@ _MESHIO_TYPES = {
 def _as_vtk(values: np.ndarray) -> np.ndarray:
     """Point data as VTK reads vectors: an in-plane (2-D) vector gets its zero z component."""
     return np.column_stack([values, np.zeros(len(values))]) if values.shape[1] == 2 else values
+
+
+def write_reference(model: Model, path: Path) -> None:
+    """The model's unloaded reference as a mesh file (``reference.vtu``, :func:`lungmech.mesh.write`):
+    its mesh, or for a model of an image's motion the image moved by its reference map ξ
+    (the nodes are put back afterwards). Collective."""
+    if model.reference_map is None:
+        write_geometry(model.geometry, path)
+        return
+    xi = fem.Function(nodes.displacement_space(model.geometry.mesh)[0])
+    xi.interpolate(model.reference_map)
+    with nodes.deformed(xi):
+        write_geometry(model.geometry, path)
 
 
 def write_json(path: Path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:

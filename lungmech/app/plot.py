@@ -148,7 +148,7 @@ def deformed_body(model: Model, path: Path, title: str = "") -> None:
     from lungmech.parallel import on_root
 
     mesh = model.geometry.mesh
-    u = model.displacement()
+    u = model.motion()  # from the mesh's nodes (on an image: the motion w from it)
     cells_owned = mesh.topology.index_map(mesh.topology.dim).size_local
     topology, types, x = plot.vtk_mesh(u.function_space, np.arange(cells_owned, dtype=np.int32))  # type: ignore[arg-type]  # the FunctionSpace overload (singledispatch) is not in the hints
     dg0 = fem.functionspace(mesh, ("DG", 0))

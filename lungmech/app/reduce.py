@@ -1,7 +1,8 @@
 """Reduced models of a scene: built offline from full-order runs, solved online like a scene.
 
 Offline (:func:`build`): the scene's full-order model, started as its reduced models are (a scene
-with [inverse]: the imaged mesh unloaded once, at the default parameters), goes to the one
+with [inverse]: on its fixed imaged mesh, its reference found at every μ by the inverse motion,
+:mod:`lungmech.rom.imaged`), goes to the one
 reductor (:func:`lungmech.rom.reductor.reduce`) with the basis recipe, the training points — a
 seeded Sobol' sample of the scene's [parameters] box and the load scales, or a greedy over it
 to a tolerance — and the hyper-reduction asked for; the reduced model is written by
@@ -32,6 +33,7 @@ from lungmech.app.run import Scale, build_model, check_scale, full_order_model
 from lungmech.app.scene import Scene, differences, physics
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
+from lungmech.fem.placement import Image
 from lungmech.fem.quantities import Probe
 from lungmech.parallel.destination import hold_signals_until_swap, output_file
 from lungmech.parallel.layout import layout
@@ -148,11 +150,10 @@ def _build(
 ) -> dict:
     timings = {}
     tic = time.perf_counter()
-    model = build_model(scene, comm)
-    where = layout(model.space)  # of the imaged mesh (a solve checks it); its dof order survives moving the nodes
-    full = full_order_model(
-        scene, comm, start="defaults", model=model
-    )  # the imaged lung unloaded once, at the defaults
+    model = build_model(scene, comm, image=_image(scene))
+    where = layout(model.space)  # of the imaged mesh (a solve checks it)
+    # an imaged body's reduced models answer its problem at every μ: trained on the fixed image
+    full = full_order_model(scene, comm, start="inverse_motion", model=model)
     timings["build_and_inverse"] = time.perf_counter() - tic
     reduced = reductor.reduce(full, recipe, training, hyper, inner, timings)
     extra = {
@@ -205,10 +206,18 @@ def _loaded(
     path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content: tuple[dict, dict] | None
 ) -> ReducedModel:
     content = content if content is not None else store.read_on_root(path, comm)
-    if inside and not fields and content[0]["extra"].get("reduced", {}).get("body") is not None:
-        build = functools.partial(build_model, scene, comm)  # of the body's geometry
+    record = content[0]["extra"].get("reduced", {})
+    image = _image(scene) if record.get("image") is not None else None  # (a file of 0.2 moved the reference)
+    if inside and not fields and record.get("body") is not None:
+        build = functools.partial(build_model, scene, comm, image=image)  # of the body's geometry
         return store.load_body(path, build, scene.stepping, scene.newton, content, comm)
-    return _reduced(path, build_model(scene, comm), scene, inside, content)
+    return _reduced(path, build_model(scene, comm, image=image), scene, inside, content)
+
+
+def _image(scene: Scene) -> Image | None:
+    """How a scene's reduced models place its mesh: a scene with [inverse] is imaged at the
+    start, and its reduced models solve the image's motion (:mod:`lungmech.rom.imaged`)."""
+    return Image.motion(scene.stepping.start) if scene.inverse is not None else None
 
 
 def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:

@@ -42,16 +42,17 @@ import lungmech
 from lungmech import lung
 from lungmech.app.console import Progress, volume_text
 from lungmech.app.console import pressure as show_pressure
-from lungmech.app.output import FieldWriter, write_json
+from lungmech.app.output import FieldWriter, write_json, write_reference
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ParameterError
+from lungmech.fem.inverse_motion import InverseMotion
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel, ParametricModel, Solution, Step
+from lungmech.fem.placement import Image
 from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, Start, StartReport
-from lungmech.mesh import write as write_geometry
 from lungmech.mesh.geometry import Geometry
 from lungmech.parallel import deferred, on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
@@ -106,10 +107,13 @@ _COLUMN_UNITS = {
 }
 
 
-def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, geometry: Geometry | None = None) -> Model:
+def build_model(
+    scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, geometry: Geometry | None = None, image: Image | None = None
+) -> Model:
     """The model a scene declares, and nothing else, at the scene's parameter values; on
     ``geometry`` when given (a hyper-reduced model's body: :func:`lungmech.rom.store.load_body`),
-    else on the scene's."""
+    else on the scene's; ``image``: its mesh placed as an image says (:mod:`lungmech.fem.placement`:
+    a scene with [inverse] solved on its fixed imaged mesh)."""
     geometry = build_geometry(scene.geometry, comm) if geometry is None else geometry
     material_parameters = any(p.kind == "material" for p in scene.parameters)
     model = Model(
@@ -121,6 +125,7 @@ def build_model(scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, geometry: Geometr
         loads=scene.loads,
         constraints=scene.constraints,
         parameters=scene.parameters,
+        image=image,
     )
     model.set_parameters(scene.values)
     return model
@@ -132,6 +137,7 @@ def body_name(model: Model) -> str:
     return "lung" if axis is not None and axis.lung else "body"
 
 
+STARTS = ("imaged", "inverse_motion", "defaults")  # how full_order_model starts a scene with [inverse]
 IMAGED_AT_DEFAULTS = (
     "the imaged {body} unloaded at the default parameters, then moved to these parameters (not the image at them)"
 )
@@ -142,14 +148,21 @@ def full_order_model(
 ) -> FullOrderModel:
     """The scene's full-order model (``solve(mu)``). A scene with [inverse] solves the problem of
     an imaged body: its mesh is the loaded state at the start for every μ, and each solve finds
-    the unloaded reference at its μ (:class:`lungmech.lung.inverse.Imaged`); probe points are
-    then points of the image. ``start="defaults"`` instead finds the reference once, at the
-    default parameters, and moves its loaded state to each μ (:class:`~lungmech.fem.start.
-    Equilibrium`): what the reduced models of such a scene do for now, to compare them with a
-    full model started the same way. ``model``: the scene's :func:`build_model`, if built already
-    (on its mesh as built). Collective."""
-    if start not in ("imaged", "defaults"):
-        raise ParameterError(f"start must be 'imaged' or 'defaults' (got {start!r})")
+    the unloaded reference at its μ; probe points are then points of the image. ``start``
+    chooses how: "imaged" (:class:`lungmech.lung.inverse.Imaged`, the mesh moved to the
+    reference by a fixed point), "inverse_motion" (:class:`~lungmech.fem.inverse_motion.
+    InverseMotion`, the mesh kept as the image: what reduced models are trained from), or
+    "defaults", a model of another problem: the reference found once, at the default
+    parameters, and its loaded state moved to each μ (:class:`~lungmech.fem.start.Equilibrium`).
+    ``model``: the scene's :func:`build_model`, if built already (on its mesh as built; for
+    "inverse_motion", of the image's motion). Collective."""
+    if start not in STARTS:
+        raise ParameterError(f"start must be one of {', '.join(STARTS)} (got {start!r})")
+    if scene.inverse is not None and start == "inverse_motion":
+        model = build_model(scene, comm, image=Image.motion(scene.stepping.start)) if model is None else model
+        probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()
+        inverse = InverseMotion(model, scene.newton, body=body_name(model))
+        return FullOrderModel(model, scene.stepping, scene.newton, probes, inverse)
     model = build_model(scene, comm) if model is None else model
     probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
     first: Start | None = None
@@ -249,7 +262,7 @@ def run(
         history, start = recorder.history, solution.start
         assert start is not None  # every solve reports its start (trajectory)
         if start.kind == "imaged":
-            write_geometry(fem_model.geometry, staging / "reference.vtu")
+            write_reference(fem_model, staging / "reference.vtu")
         mesh = fem_model.geometry.mesh
         summary = {
             "title": scene.title,

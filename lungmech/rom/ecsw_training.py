@@ -31,6 +31,7 @@ from lungmech.rom.basis import Basis
 from lungmech.rom.ecsw import (
     Sample,
     WeightedForms,
+    is_functional,
     sparse_nnls,
 )
 
@@ -283,10 +284,18 @@ class Training:
     def sample(self, tolerance: float) -> Sample:
         """The sparse positive weights of each family that reproduce the training reduced forces
         to ``tolerance`` (relative, per family) and its tangents to :data:`TANGENT_TOLERANCE`,
-        see :meth:`matrix` and :func:`sparse_nnls`."""
+        see :meth:`matrix` and :func:`sparse_nnls`. An output's functional that vanishes at
+        every training state (an average of a stress the states leave at 0) gets no cells: its
+        reduced value is that 0."""
         if not self.states:
             raise ParameterError("ECSW has no training state with a load (add states first)")
-        chosen = {name: sparse_nnls(self.matrix(name, tolerance), tolerance, self.comm) for name in self.sampled}
+        nothing = (np.zeros(0, np.int32), np.zeros(0))
+        chosen = {
+            name: nothing
+            if is_functional(name) and not self.blocks[name]
+            else sparse_nnls(self.matrix(name, tolerance), tolerance, self.comm)
+            for name in self.sampled
+        }
         return Sample(
             {family: cells for family, (cells, _) in chosen.items()},
             {family: weights for family, (_, weights) in chosen.items()},
