@@ -243,19 +243,20 @@ class Training:
                 self.add_state(state, t, parameters=parameters, tangents=index in tangents)
 
     @contextlib.contextmanager
-    def watching(self, solver: NewtonSolver) -> Iterator[Training]:
+    def watching(self, solver: NewtonSolver, tangents: Callable[[], bool] = lambda: True) -> Iterator[Training]:
         """Within the block, :meth:`add` every Newton iterate of ``solver`` (a full
         :class:`~lungmech.fem.solver.NewtonSolver`): the states an online Newton passes through,
         not only the converged ones, so that the sample also reproduces the reduced forces away
         from equilibrium. Each iterate is added at the solver's loads of the moment, and the
-        first of every solve (a load step's start) with its tangents (:meth:`add_tangents`:
-        at every step, where :meth:`replay` picks :data:`TANGENT_STATES` of them)."""
+        first of a solve (a load step's start) with its tangents (:meth:`add_tangents`) where
+        ``tangents()`` says so: by default at every step, where :meth:`replay` picks
+        :data:`TANGENT_STATES` of them."""
         training = weakref.ref(self)  # PETSc keeps the monitor: it must not keep us
 
         def add(iteration: int) -> None:
             if (this := training()) is not None:
                 this.add()
-                if iteration == 0:  # a load step's first iterate
+                if iteration == 0 and tangents():  # a load step's first iterate
                     this.add_tangents()
 
         with iterates(solver, add):

@@ -33,7 +33,7 @@ answers, and carries what it was built from (:attr:`ReducedModel.built`). Collec
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -395,9 +395,20 @@ class Reductor:
         start = self.full.start
         assert isinstance(start, InverseMotion)  # (self.imaged)
         inverse = ecsw.Training(start.inverse, self.inverse_basis.vectors, outputs=False)  # its answer is ξ
+        # the tangents at each run's first load step of each problem: spread over the box, as a
+        # replay's are (one at every step costs k assemblies and a compression each)
+        fresh = {"breath": True, "inverse": True}
+
+        def first(problem: str) -> Callable[[], bool]:
+            return lambda: fresh.pop(problem, False)
+
         try:
-            with breath.watching(cast(NewtonSolver, self.full.solver)), inverse.watching(start.solver):
+            with (
+                breath.watching(cast(NewtonSolver, self.full.solver), first("breath")),
+                inverse.watching(start.solver, first("inverse")),
+            ):
                 for point, scale in self._runs:
+                    fresh.update(breath=True, inverse=True)
                     self.full.solve(point, scale=scale)
         except BaseException:
             inverse.destroy()
