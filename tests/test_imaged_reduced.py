@@ -17,8 +17,9 @@ from lungmech.errors import ParameterError
 from lungmech.fem.inverse_motion import InverseMotion
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
+from lungmech.fem.quantities import Probe, deformed_volume
 from lungmech.fem.solver import Stepping
-from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
+from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet, errors
 from lungmech.rom.store import load_body, load_reduced, write_reduced
 
 STEPPING = Stepping(start=0.5, end=1.0, max_step=0.25)
@@ -65,6 +66,26 @@ def test_unseen_points_answer_the_full_problem(built, kind):
         energy = np.abs(a.outputs["strain_energy"]).max()
         assert np.abs(b.outputs["strain_energy"] - a.outputs["strain_energy"]).max() <= energy_bound * energy
         assert np.abs(b.outputs["probes"] - a.outputs["probes"]).max() <= probe_bound
+
+
+def test_an_earlier_answer_is_rebuilt_on_its_own_reference(built):
+    """A reduced answer made whole after other solves — its state, its errors — is on the
+    reference of its own μ, not the last solve's; a training point's answer is a reduced
+    Newton's too, as its neighbours' are."""
+    full, reductor, models = built
+    reduced = models["galerkin"]
+    first, second = {"E": 6.5, "p": 1.3}, {"E": 17.0, "p": 0.6}
+    answer = reduced.solve(first)
+    reduced.solve(second)
+    reduced.reconstruct(answer, len(answer.times) - 1)
+    model = reduced.model
+    assert deformed_volume(model)() == pytest.approx(answer.outputs["volume"][-1], rel=1e-12)
+    u = Probe(model.geometry.mesh, reduced.outputs.probe_points)(model.displacement())  # w − ξ: its own ξ
+    assert np.allclose(u, answer.outputs["probes"][-1], rtol=1e-10, atol=1e-14)
+    found = errors(reduced, full.solve(first), answer)
+    assert found.energy < 1e-4 and found.volume_change < 1e-5
+    trained = reductor.points[0]
+    assert models["hyper"].solve(trained, times=[STEPPING.start]).start.newton_iterations >= 1
 
 
 def test_the_reduced_inverse_tangent_is_not_symmetric(built):

@@ -233,9 +233,12 @@ def test_a_reduced_model_of_an_imaged_scene_starts_on_the_image(imaged_model, tm
     said = capsys.readouterr().out
     line = next(line for line in said.splitlines() if "start:" in line)
     assert "(its unloaded reference from the reduced inverse motion at μ); volume 1000 L, the image's" in line
-    start = json.loads((out / "summary.json").read_text())["start"]
+    summary = json.loads((out / "summary.json").read_text())
+    start = summary["start"]
     assert start["kind"] == "imaged" and start["imaged_volume"] == pytest.approx(1.0)
     assert abs(start["from_image"]) <= 1e-12
+    assert summary["reference_volume"] == start["reference_volume"] < 0.99  # its reference, not the image
+    assert not (out / "reference.vtu").exists()  # a body of sampled cells: no field, no mesh
 
 
 @pytest.mark.slow

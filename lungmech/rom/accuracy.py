@@ -56,10 +56,11 @@ def errors(reduced: ReducedModel, full: Solution, approximate: Solution) -> Erro
     WV = apply(W, V, comm)
     gram_V = gram(V, WV, comm)
     error, change, best = 0.0, 0.0, 0.0
+    start = reduced.start_at(approximate.parameters)  # an imaged body's at μ
     for index in range(len(full.times)):
         x = full.states[index]
         x_r = reduced.reconstruct(approximate, index)
-        x_0 = origin(model, reduced.start)[: V.shape[0]]  # the start with this time's imposed values
+        x_0 = origin(model, start)[: V.shape[0]]  # the start with this time's imposed values
         change_here = x - x_0
         projected = V @ np.linalg.solve(gram_V, gram(WV, change_here[:, None], comm)[:, 0])
         difference = np.column_stack([x - x_r, change_here, change_here - projected])

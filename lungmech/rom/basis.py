@@ -73,7 +73,7 @@ def inner_product(model: Model, kind: str) -> PETSc.Mat | None:
     """The Gram operator W of ``kind`` on the state space (None for l2, i.e. W = I).
 
     mass: ∫ Σ_fields a·b dX; energy: the second variation of the stored energy ∫ψ at the
-    unloaded state and the default parameters (positive definite for a stable law with enough
+    unloaded state and the default parameters (on an image's motion: at rest on the image, ξ = 0) (positive definite for a stable law with enough
     imposed displacements): one norm for every parameter point, so that a basis stays
     orthonormal, and errors compare, across the box. Imposed dofs get 1 on the diagonal: basis
     vectors vanish there anyway.
@@ -90,14 +90,20 @@ def inner_product(model: Model, kind: str) -> PETSc.Mat | None:
         stored = model.energy_density * model.dx
         form = ufl.derivative(ufl.derivative(stored, model.state, b), model.state, a)
     current = model.parameter_values
+    reference_map = model.reference_map  # an image's motion: at rest on the image, whatever ξ it holds now
+    xi = None if reference_map is None else reference_map.x.array.copy()
     with model.kept_state():
         model.set_parameters(model.parameters.defaults)
+        if reference_map is not None:
+            reference_map.x.array[:] = 0.0
         model.reset()
         try:
             W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
             W.assemble()
         finally:
             model.set_parameters(current)
+            if reference_map is not None and xi is not None:
+                reference_map.x.array[:] = xi
     return W
 
 

@@ -153,6 +153,7 @@ class ReducedImage:
         c0, c1, c2, c3 = self.whole.get("reference_volume", volume)
         self._volume = Cubic(float(c0), c1, c2, c3)
         self._a = np.zeros(basis.size)  # the reduced inverse problem's solution now
+        self.placed_at: dict[str, float] | None = None  # the parameters of the last placement
         box = inverse.parameters
         self._known = [(dict(box.defaults), np.zeros(basis.size))]
         self._known += [(box.values(point), np.array(a, dtype=float)) for point, a in known]
@@ -160,6 +161,7 @@ class ReducedImage:
 
     def reset(self, model: Model) -> None:
         """The breath's model at its start at the default parameters: ξ(defaults), the image."""
+        self.placed_at = None
         self.inverse.set_parameters(self.inverse.parameters.defaults)
         self._solved(np.zeros(self.basis.size))
         model.set_parameters(model.parameters.defaults)
@@ -184,8 +186,14 @@ class ReducedImage:
             reduced.set_state(self._a.copy())
         else:
             reduced.reconstruct(self._a)
+        self.placed_at = None
         try:
             iterations = approach(inverse, reduced, values, nearest, time, first_step=1.0)
+            if not iterations:  # at a known point: its projected solution is no root of the reduced residual
+                result = reduced.solve()
+                if not result.converged:
+                    raise SolverError(f"reduced Newton did not converge: {result.reason}")
+                iterations = result.iterations
         except SolverError as error:
             raise SolverError(
                 f"reduced inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"
@@ -198,6 +206,7 @@ class ReducedImage:
         self._handover.hand_over(inverse, model)
         model.set_time(time)
         solver.set_start(model.state.x.array)  # and q = 0 there: the image
+        self.placed_at = dict(values)
         details = {
             "newton_iterations": iterations,
             "imaged_volume": self.volume,

@@ -109,14 +109,15 @@ class ResidualIndicator:
         """η of ``solution``, an answer of the reduced model ``reduced`` on this model:
         max_t η(t) / max_t ‖x_r(t) − x₀(t)‖_E. Leaves the model at the last output's state."""
         owned = reduced.basis.vectors.shape[0]
+        start = reduced.start_at(solution.parameters)  # an imaged body's at μ
         self.model.set_parameters(solution.parameters)
         self.model.set_time(float(reduced.stepping.start))
-        self.factorise(origin(self.model, reduced.start))
+        self.factorise(origin(self.model, start))
         worst, change = 0.0, 0.0
         for index in range(len(solution.times)):
             x_r = reduced.reconstruct(solution, index)  # and the parameters and time of that output
             worst = max(worst, self.at_state())
-            change = max(change, self._norm(x_r - origin(self.model, reduced.start)[:owned]))
+            change = max(change, self._norm(x_r - origin(self.model, start)[:owned]))
         return worst / change if change > 0 else worst
 
     def _norm(self, x: np.ndarray) -> float:

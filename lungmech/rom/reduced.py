@@ -242,10 +242,23 @@ class ReducedModel:
             return None
         return functools.partial(self.indicator.at, self.solver)
 
+    def start_at(self, parameters: Mapping[str, float]) -> np.ndarray:
+        """The full state the basis is relative to at ``parameters`` (a full local array): the
+        start, or an imaged body's start at μ, its reduced inverse motion placed there (which
+        then holds ξ(μ) in the model's forms; collective)."""
+        if self.image is None:
+            return self.start
+        if self.image.placed_at != dict(parameters):
+            values = self.parameters.values(parameters)
+            self.image.place(self.model, self.solver, values, self.stepping.start)
+        return self.solver.reference
+
     def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
         """The full state x₀ + V q of output ``index`` of ``solution``, as the model's state
-        (owned entries returned). Sets the model's parameters and time to that output's."""
+        (owned entries returned). Sets the model's parameters and time to that output's (an
+        imaged body's ξ and start too: :meth:`start_at`)."""
         model = self.model
+        self.start_at(solution.parameters)
         model.set_parameters(solution.parameters)
         model.set_time(float(solution.times[index]))
         self.solver.reconstruct(solution.states[index])  # the full field: O(mesh)

@@ -331,7 +331,10 @@ def load_reduced(
         sample = Sample.place(model.geometry.mesh, data, record["hyper"]["tolerance"])
     enrichment = where.scatter(arrays["enrichment"])
     described = StartReport(**record["start"])
-    image = None if record.get("image") is None else imaged.placed(model, record["image"], arrays, newton, str(path))
+    image = None
+    if record.get("image") is not None:
+        image = imaged.placed(model, record["image"], arrays, newton, str(path))
+        _check_orthonormal(path, image.inverse, image.basis)
     reduced = ReducedModel(
         model,
         basis,
