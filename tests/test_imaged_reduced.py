@@ -129,5 +129,7 @@ def test_what_is_not_built_yet_is_refused_in_one_line(built):
     reduced = built[2]["hyper"]
     with pytest.raises(ParameterError, match="sensitivities of an imaged body"):
         reduced.solve({}, sensitivities=True)
+    with pytest.raises(ParameterError, match="every training point has the unloaded reference of the defaults"):
+        Reductor(imaged_block(), POD(4), TrainingSet([{}]))
     with pytest.raises(ParameterError, match="POD bases of given size"):
         Reductor(imaged_block(), POD(4), TrainingSet([{}], tolerance=1e-3))

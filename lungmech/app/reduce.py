@@ -152,8 +152,9 @@ def _build(
     tic = time.perf_counter()
     model = build_model(scene, comm, image=_image(scene))
     where = layout(model.space)  # of the imaged mesh (a solve checks it)
-    # an imaged body's reduced models answer its problem at every μ: trained on the fixed image
-    full = full_order_model(scene, comm, start="inverse_motion", model=model)
+    # an imaged body's reduced models answer its problem at every μ: trained on the fixed image;
+    # without parameters its one reference is the defaults', found once (exact, and no basis of ξ)
+    full = full_order_model(scene, comm, start="inverse_motion" if _image(scene) else "defaults", model=model)
     timings["build_and_inverse"] = time.perf_counter() - tic
     reduced = reductor.reduce(full, recipe, training, hyper, inner, timings)
     extra = {
@@ -215,9 +216,10 @@ def _loaded(
 
 
 def _image(scene: Scene) -> Image | None:
-    """How a scene's reduced models place its mesh: a scene with [inverse] is imaged at the
-    start, and its reduced models solve the image's motion (:mod:`lungmech.rom.imaged`)."""
-    return Image.motion(scene.stepping.start) if scene.inverse is not None else None
+    """How a scene's reduced models place its mesh: a scene with [inverse] and parameters is
+    imaged at the start, and its reduced models solve the image's motion at every μ
+    (:mod:`lungmech.rom.imaged`); without parameters its one reference is found once."""
+    return Image.motion(scene.stepping.start) if scene.inverse is not None and scene.parameters else None
 
 
 def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:

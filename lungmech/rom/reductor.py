@@ -37,6 +37,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import cast
 
+from mpi4py import MPI
+
 import numpy as np
 
 from lungmech import checks
@@ -267,6 +269,12 @@ class Reductor:
         self.timings["snapshots"] = time.perf_counter() - tic
         tic = time.perf_counter()
         source = {"training": self.points}
+        comm = full.model.geometry.mesh.comm
+        if comm.allreduce(float(np.abs(trained.inverse).max(initial=0.0)), op=MPI.MAX) == 0.0:
+            raise ParameterError(
+                "every training point has the unloaded reference of the defaults (no parameter reaches the imaged "
+                "state): one reference serves them all; start the full model from it (an Equilibrium start)"
+            )
         self.modes = pod(full.model, trained.motion, inner=self.inner, source=source)
         inverse = pod(full.start.inverse, trained.inverse, inner=self.inner, source=source)
         self.inverse_basis = inverse.truncate(min(size, inverse.size))
