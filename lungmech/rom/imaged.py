@@ -25,7 +25,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
+
+from mpi4py import MPI
 
 import numpy as np
 from dolfinx import fem
@@ -33,17 +35,19 @@ from dolfinx import fem
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.inverse_motion import Handover, InverseMotion
 from lungmech.fem.quantities import Probe
-from lungmech.fem.solver import NewtonOptions, StepReport
+from lungmech.fem.solver import NewtonOptions, NewtonSolver, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
+from lungmech.parallel.linalg import gram
 from lungmech.rom import body
-from lungmech.rom.basis import Basis
+from lungmech.rom.basis import Basis, dual
 from lungmech.rom.body import cells_of
 from lungmech.rom.ecsw import Sample
+from lungmech.rom.ecsw_training import Training
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.outputs import Cubic, cubic, imposed_directions
-from lungmech.rom.pod import snapshot
+from lungmech.rom.pod import pod, snapshot
 from lungmech.rom.whole import OnMesh, Stored, Whole
 
 if TYPE_CHECKING:
@@ -98,6 +102,65 @@ def snapshots(
     full.reset()
     model.set_time(full.stepping.start)
     return ImagedSnapshots(np.column_stack(motion), np.column_stack(solutions), inverse_start, motion_start)
+
+
+def bases(
+    full: FullOrderModel,
+    trained: ImagedSnapshots,
+    runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]],
+    inner: str,
+    size: int,
+) -> tuple[Basis, Basis, list[tuple[Mapping[str, float], np.ndarray]]]:
+    """The breath's every POD direction, the inverse motion's POD basis of at most ``size``
+    vectors, and each training run's point with its coordinates in that basis (where a reduced
+    inverse solve near it starts), from the snapshots of :func:`snapshots`. Collective."""
+    start = full.start
+    assert isinstance(start, InverseMotion)  # (snapshots needs it)
+    comm = full.model.geometry.mesh.comm
+    if comm.allreduce(float(np.abs(trained.inverse).max(initial=0.0)), op=MPI.MAX) == 0.0:
+        raise ParameterError(
+            "every training point has the unloaded reference of the defaults (no parameter reaches the imaged "
+            "state): one reference serves them all; start the full model from it (an Equilibrium start)"
+        )
+    source = {"training": [dict(point) for point, _ in runs]}
+    modes = pod(full.model, trained.motion, inner=inner, source=source)
+    inverse = pod(start.inverse, trained.inverse, inner=inner, source=source)
+    inverse = inverse.truncate(min(size, inverse.size))
+    coordinates = gram(dual(start.inverse, inverse), trained.inverse, comm)
+    return modes, inverse, [(point, coordinates[:, i]) for i, (point, _) in enumerate(runs)]
+
+
+def ecsw_training(
+    full: FullOrderModel,
+    breath: Training,
+    basis: Basis,
+    runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]],
+) -> Training:
+    """ECSW's training of an imaged body from one more pass of ``full``'s solves at ``runs``:
+    every Newton iterate of the breath into ``breath``, and of the inverse motion into the
+    training returned (on its ``basis``; its residual alone: its answer is ξ, not outputs).
+    The tangents at each run's first load step of each problem: spread over the box, as a
+    replay's are (one at every step costs k assemblies and a compression each). Collective."""
+    start = full.start
+    assert isinstance(start, InverseMotion)  # (an imaged body's full model)
+    inverse = Training(start.inverse, basis.vectors, outputs=False)
+    fresh = {"breath": True, "inverse": True}
+
+    def first(problem: str) -> Callable[[], bool]:
+        return lambda: fresh.pop(problem, False)
+
+    try:
+        with (
+            breath.watching(cast(NewtonSolver, full.solver), first("breath")),
+            inverse.watching(start.solver, first("inverse")),
+        ):
+            for point, scale in runs:
+                fresh.update(breath=True, inverse=True)
+                full.solve(point, scale=scale)
+    except BaseException:
+        inverse.destroy()
+        raise
+    return inverse
 
 
 class ReducedImage:

@@ -33,11 +33,9 @@ answers, and carries what it was built from (:attr:`ReducedModel.built`). Collec
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import cast
-
-from mpi4py import MPI
 
 import numpy as np
 
@@ -48,10 +46,9 @@ from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
-from lungmech.parallel.linalg import gram
 from lungmech.rom import ecsw, imaged, indicator
 from lungmech.rom.accuracy import Errors, errors
-from lungmech.rom.basis import INNER_PRODUCTS, Basis, dual, enrich, require_positive_definite
+from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
 from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
@@ -268,20 +265,8 @@ class Reductor:
         trained = imaged.snapshots(full, self._runs)
         self.timings["snapshots"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        source = {"training": self.points}
-        comm = full.model.geometry.mesh.comm
-        if comm.allreduce(float(np.abs(trained.inverse).max(initial=0.0)), op=MPI.MAX) == 0.0:
-            raise ParameterError(
-                "every training point has the unloaded reference of the defaults (no parameter reaches the imaged "
-                "state): one reference serves them all; start the full model from it (an Equilibrium start)"
-            )
-        self.modes = pod(full.model, trained.motion, inner=self.inner, source=source)
-        inverse = pod(full.start.inverse, trained.inverse, inner=self.inner, source=source)
-        self.inverse_basis = inverse.truncate(min(size, inverse.size))
+        self.modes, self.inverse_basis, self.inverse_known = imaged.bases(full, trained, self._runs, self.inner, size)
         self.start, self.inverse_start = trained.start, trained.inverse_start
-        # each training point's a, where a reduced inverse solve near it starts
-        coordinates = gram(dual(full.start.inverse, self.inverse_basis), trained.inverse, full.model.geometry.mesh.comm)
-        self.inverse_known = [(point, coordinates[:, i]) for i, (point, _) in enumerate(self._runs)]
         self.timings["svd"] = time.perf_counter() - tic
         return self.modes.truncate(min(size, self.modes.size))
 
@@ -381,7 +366,7 @@ class Reductor:
             training = ecsw.Training(full.model, np.hstack([self.basis.vectors, self.enrichment]))
             try:
                 if self.imaged:  # the breath's and the inverse motion's, from one pass
-                    self._inverse_ecsw = self._imaged_training(training)
+                    self._inverse_ecsw = imaged.ecsw_training(full, training, self.inverse_basis, self._runs)
                     self.timings["ecsw_training"] = time.perf_counter() - tic
                 elif self.trained is not None:
                     training.replay(self.trained.iterates)
@@ -396,32 +381,6 @@ class Reductor:
             self.timings |= {f"ecsw_{part}": seconds for part, seconds in training.seconds.items()}
             self._ecsw = training
         return self._ecsw
-
-    def _imaged_training(self, breath: ecsw.Training) -> ecsw.Training:
-        """ECSW's training of an imaged body: every Newton iterate of the training solves, the
-        breath's into ``breath`` and the inverse motion's into the training returned."""
-        start = self.full.start
-        assert isinstance(start, InverseMotion)  # (self.imaged)
-        inverse = ecsw.Training(start.inverse, self.inverse_basis.vectors, outputs=False)  # its answer is ξ
-        # the tangents at each run's first load step of each problem: spread over the box, as a
-        # replay's are (one at every step costs k assemblies and a compression each)
-        fresh = {"breath": True, "inverse": True}
-
-        def first(problem: str) -> Callable[[], bool]:
-            return lambda: fresh.pop(problem, False)
-
-        try:
-            with (
-                breath.watching(cast(NewtonSolver, self.full.solver), first("breath")),
-                inverse.watching(start.solver, first("inverse")),
-            ):
-                for point, scale in self._runs:
-                    fresh.update(breath=True, inverse=True)
-                    self.full.solve(point, scale=scale)
-        except BaseException:
-            inverse.destroy()
-            raise
-        return inverse
 
     def _rest(self) -> None:
         """The full model back at its start: the defaults, the start time."""
