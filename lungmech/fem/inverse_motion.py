@@ -74,12 +74,12 @@ class InverseMotion:
             fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm
         )()  # m³ (m³/m in 2-D), the image's
         self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
-        self._layout = Handover(model, self.inverse)
+        self._handover = Handover(model, self.inverse)
 
     def reset(self, model: Model) -> None:
         """The image as the unloaded reference (ξ = 0, w = 0) at the default parameters."""
         model.set_parameters(model.parameters.defaults)
-        model.set_reference_map(np.zeros(self._layout.owned_vector))
+        model.set_reference_map(np.zeros(self._handover.owned_vector))
         model.reset()
 
     def place(
@@ -111,7 +111,7 @@ class InverseMotion:
                 f"inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"
             ) from None
         model.set_parameters(values)
-        self._layout.hand_over(inverse, model)
+        self._handover.hand_over(inverse, model)
         model.set_time(time)
         details = {
             "newton_iterations": report.newton_iterations,
