@@ -135,12 +135,12 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         return A
 
     def enriched_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q, Wᵀ R, Wᵀ K W) at x₀ + V q, q that of the model's state, W the enrichment: the
-        residual and tangent in the directions the basis leaves out (collective)."""
+        """(q, Uᵀ R, Uᵀ K U) at x₀ + V q, q that of the model's state, U = [V W] the basis and
+        its enrichment W: the residual and tangent of the enriched space (collective)."""
         q = self.project()
-        residual, W = self._residual_at(q), self.W
-        assert W is not None, "enriched terms need an enrichment"
-        return q, gram(W, residual[:, None], self.comm)[:, 0], gram(W, apply(self._tangent(), W, self.comm), self.comm)
+        assert self.W is not None, "enriched terms need an enrichment"
+        residual, U = self._residual_at(q), np.hstack([self.V, self.W])
+        return q, gram(U, residual[:, None], self.comm)[:, 0], gram(U, apply(self._tangent(), U, self.comm), self.comm)
 
     def reduced_jacobian(self) -> np.ndarray:
         """Vᵀ (K + U Wᵀ) V at the model's current state, U Wᵀ the tangent of state-dependent load

@@ -104,6 +104,9 @@ class HyperReducedSolver:
         self._rows, self._columns = (_positions(self._matrix.index_map(i), reduced.space) for i in (0, 1))
         self._row_basis, self._column_basis = self.V[self._rows], self._on_columns(self.V)
         self.W = None if enrichment is None else reduced.restrict_columns(np.ascontiguousarray(enrichment))
+        # U = [V W] on the sub dofs, the matrix's rows and its columns: the enriched terms'
+        U = None if self.W is None else np.hstack([self.V, self.W])
+        self._enriched = None if U is None else (U, U[self._rows], self._on_columns(U))
         self.forms = SampledForms(model, reduced, forms.weights, sample, self.V, lambda: self._q)
         self._functionals = self.forms.scalars(sampled)
         self._tangent = LocalCSR(self._matrix)  # shares the matrix's values
@@ -274,8 +277,8 @@ class HyperReducedSolver:
         return gram(self.V, b[:, None], self.comm)[:, 0]
 
     def enriched_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(q, Σ_e ξ_e Wᵀ r_e, Σ_e ξ_e Wᵀ K_e W) at the current q, W the enrichment: the sampled
-        residual and tangent in the directions the basis leaves out, on the reduced mesh
+        """(q, Σ_e ξ_e Uᵀ r_e, Σ_e ξ_e Uᵀ K_e U) at the current q, U = [V W] the basis and its
+        enrichment W: the sampled residual and tangent of the enriched space, on the reduced mesh
         (collective). Right after a solve, its last residual (at the answer) and its last
         tangent (at the iterate before: an indicator needs no quadratic convergence) serve, as
         assembled; else both are assembled at q."""
@@ -285,9 +288,10 @@ class HyperReducedSolver:
             self._matrix.set_value(0.0)
             fem.assemble_matrix(self._matrix, self._jacobian)  # type: ignore[arg-type]  # the into-a-matrix overload (singledispatch) is not in the hints
             self._assembled.tangent(self.model.loading)
-        assert self.W is not None, "enriched terms need an enrichment"
-        r = gram(self.W, self._vector.array[:, None], self.comm)[:, 0]
-        return self.coordinates.copy(), r, gram(self.W[self._rows], self._tangent @ self._on_columns(self.W), self.comm)
+        assert self._enriched is not None, "enriched terms need an enrichment"
+        U, on_rows, on_columns = self._enriched
+        r = gram(U, self._vector.array[:, None], self.comm)[:, 0]
+        return self.coordinates.copy(), r, gram(on_rows, self._tangent @ on_columns, self.comm)
 
     def reduced_jacobian(self) -> np.ndarray:
         """Σ_e ξ_e Vᵀ K_e V at the reduced mesh's state, plus the state-dependent loads' low-rank

@@ -1,9 +1,9 @@
 """Error indicators of reduced answers: the length of the Newton correction at them.
 
 Offline, :class:`ResidualIndicator` takes the full correction (O(mesh)); online,
-:class:`EnrichedIndicator` takes it in the span of an enrichment W, the POD directions next
-after the basis, from the reduced solver's own (sampled) residual and tangent, so that every
-online answer carries its indicator without touching the full mesh.
+:class:`EnrichedIndicator` takes it in the span of the basis and an enrichment W, the POD
+directions next after the basis, from the reduced solver's own (sampled) residual and tangent,
+so that every online answer carries its indicator without touching the full mesh.
 
 At a reduced state x_r the full residual R(x_r) is what the reduced model leaves unbalanced. The
 step a full Newton iteration would take from there, with the tangent K_μ at the start state x₀
@@ -130,45 +130,53 @@ class ResidualIndicator:
 
 
 class EnrichedIndicator:
-    """The online error indicator: the Newton correction in the span of the enrichment W,
+    """The online error indicator: the Newton correction in the enriched space U = [V W], the
+    basis and its enrichment W,
 
-        δ(t) = (Wᵀ K W)⁻¹ Wᵀ R(x_r(t)),   η̂(t) = ‖W δ‖_E = √(δᵀ G_W δ),
+        δ(t) = (Uᵀ K U)⁻¹ Uᵀ R(x_r(t)),   η̂(t) = ‖U δ‖_E = √(δᵀ G_U δ),
 
-    with Wᵀ R and Wᵀ K W from the reduced solver (``enriched_terms()``: sampled on the reduced
+    with Uᵀ R and Uᵀ K U from the reduced solver (``enriched_terms()``: sampled on the reduced
     mesh for a hyper-reduced model), against the change ‖V q(t)‖_E = √(qᵀ G_V q). An answer's
-    indicator is max_t η̂(t) / max_t ‖V q(t)‖_E, relative as :class:`ResidualIndicator`'s; it
-    sees the error only along W, so it estimates the error from below, as well as the training's
-    next directions describe it. G_V = Vᵀ E V and G_W = Wᵀ E W are assembled once here
-    (O(mesh), with the model; through ``whole``, :mod:`lungmech.rom.whole`, when given: kept,
-    or given back on a body of sampled cells); each evaluation costs one sampled residual and
-    tangent."""
+    indicator is max_t η̂(t) / max_t ‖V q(t)‖_E, relative as :class:`ResidualIndicator`'s.
+
+    Where the reduced solve converged, Vᵀ R = 0 and δ is the enriched Galerkin model's
+    correction to it: the error along W, and the shift it implies along V. Where the state was
+    not solved for — an imaged body's start, the image at its reduced reference ξ_r(μ)
+    (:mod:`lungmech.rom.imaged`) — Vᵀ R ≠ 0 too: R there is the inverse problem's own residual
+    R_ξ(ξ_r), and δ the breath's release from the image, ≈ −(ξ − ξ_r) in the small-strain
+    limit (R depends on w − ξ), so the reference's error is covered as well. It sees the error
+    only in U, so it estimates it from below, as well as the training's next directions
+    describe it. G_U = Uᵀ E U is assembled once here (O(mesh), with the model; through
+    ``whole``, :mod:`lungmech.rom.whole`, when given: kept, or given back on a body of sampled
+    cells); each evaluation costs one sampled residual and tangent."""
 
     def __init__(self, model: Model, basis: np.ndarray, enrichment: np.ndarray, whole: Whole | None = None) -> None:
-        def grams() -> tuple[np.ndarray, np.ndarray]:
+        def grams() -> tuple[np.ndarray]:
             comm = model.geometry.mesh.comm
             energy = inner_product(model, "energy")
+            U = np.hstack([basis, enrichment])
             try:
-                return gram(basis, apply(energy, basis, comm), comm), gram(
-                    enrichment, apply(energy, enrichment, comm), comm
-                )
+                return (gram(U, apply(energy, U, comm), comm),)
             finally:
                 energy.destroy()
 
-        self._gram_basis, self._gram_enrichment = grams() if whole is None else whole.get("indicator", grams)
+        (self._gram,) = grams() if whole is None else whole.get("indicator", grams)
+        self._size = basis.shape[1]
 
     @property
     def size(self) -> int:
         """The number of enrichment directions."""
-        return self._gram_enrichment.shape[0]
+        return self._gram.shape[0] - self._size
 
     def at(self, solver: ReducedSolver | HyperReducedSolver) -> tuple[float, float]:
         """(η̂(t), ‖V q‖_E) at the reduced ``solver``'s current state (collective)."""
         q, residual, tangent = solver.enriched_terms()
+        change = _norm(q, self._gram[: self._size, : self._size])
         try:
             step = np.linalg.solve(tangent, residual)
         except np.linalg.LinAlgError:
-            return np.inf, _norm(q, self._gram_basis)
-        return _norm(step, self._gram_enrichment), _norm(q, self._gram_basis)
+            return np.inf, change
+        return _norm(step, self._gram), change
 
 
 def relative(pairs: list[tuple[float, float]]) -> float:

@@ -46,9 +46,10 @@ from lungmech.rom.whole import OnMesh, Stored
 
 # 2: canonical order, the scene and its files inside; 3: the digest covers the metadata; 4: the reduced
 # model's own record (its start, how it was built) and its arrays written by rom.store itself; 5: a
-# hyper-reduced model's body (its sampled cells) and what it needs of the whole body
-FORMAT = "lungmech-rom/5"
-_DIGESTED = ("lungmech-rom/3", "lungmech-rom/4")  # older formats whose digest covers the metadata
+# hyper-reduced model's body (its sampled cells) and what it needs of the whole body; 6: the indicator's
+# Gram matrix of the basis and its enrichment together
+FORMAT = "lungmech-rom/6"
+_DIGESTED = ("lungmech-rom/3", "lungmech-rom/4", "lungmech-rom/5")  # older formats whose digest covers the metadata
 
 
 def save(
