@@ -22,6 +22,7 @@ QUICK = {
     "layout": (["--quick"], "layout/layout_quick"),
     "large_lung": (["--quick"], "large_lung_quick"),
     "rom_real_time": (["--quick"], "rom_real_time_quick"),
+    "rom_imaged": (["--quick"], "rom_imaged_quick"),
     "rom_parameters": (["--quick"], "rom_parameters_quick"),
     "ecsw_lung": (["--quick"], "ecsw_lung_quick"),
     "registration": (["--quick"], "registration_quick"),

@@ -175,7 +175,7 @@ class ReducedModel:
     ) -> Solution:
         """Outputs and reduced coordinates q at the output times — or at ``times`` (s) — for the
         parameters ``mu``, the loads' change from the start scaled by ``scale``; with an
-        enrichment, the answer's error indicator too (of its output times; a
+        enrichment, the answer's error indicator too (of its output times and an imaged body's start; a
         :class:`~lungmech.fem.parametric.Step`'s ``indicator()``: of the states so far). ``on_step`` sees
         every accepted state (:class:`~lungmech.fem.parametric.Step`); ``progress`` is unused
         (the start is a reduced continuation, not long work). As
@@ -190,17 +190,21 @@ class ReducedModel:
                 "to μ, which lungmech does not compute yet: leave sensitivities out"
             )
 
+        estimate = self.estimate
+
         def start(on_approach: Callable | None) -> StartReport:
             if self.image is not None:  # its reference at μ: the image is the start
-                return self.image.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
+                placed = self.image.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
+                if estimate is not None:  # the image at the reduced reference, not solved for: its release
+                    estimates.append(estimate())
+                    path.append(estimates[-1])
+                return placed
             defaults = self.parameters.defaults
             self.model.set_parameters(defaults)
             self.restart()
             # reduced Newton straight at μ; continuation only where it fails
             iterations = approach(self.model, self.solver, values, defaults, self.stepping.start, on_approach, 1.0)
             return replace(self.described, newton_iterations=iterations)
-
-        estimate = self.estimate
 
         def so_far() -> float | None:
             if estimate is None:
