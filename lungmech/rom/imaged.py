@@ -8,8 +8,8 @@ from the image, with ξ(μ) in its forms. A reduced model reduces both, each on 
     x(t; μ) = x₀(μ) + V q,   x₀(μ) = (w = 0, the other fields of x_ξ(μ)),
 
 x_ξ⁰ the inverse problem's solution at the default parameters (the lung's ξ and Φs there).
-The reduced inverse problem is solved by reduced Newton straight at μ from a = 0, continuing
-in μ only where it fails (:func:`lungmech.fem.start.approach`); its tangent V_ξᵀ K_ξ V_ξ is not
+The reduced inverse problem is solved by reduced Newton straight at μ from the nearest training
+point's coordinates, continuing in μ only where it fails (:func:`lungmech.fem.start.approach`); its tangent V_ξᵀ K_ξ V_ξ is not
 symmetric, since R_ξ is no gradient (:mod:`lungmech.fem.placement`), and is factorised by LU.
 The breath then starts at q = 0, the image itself: its deformed volume is the image's at every
 μ, and the reference volume ∫ det(I + ∇ξ) dx is what moves with μ.
@@ -243,20 +243,24 @@ class ReducedImage:
         (the breath's reduced solver) at its start there, q = 0 (collective)."""
         self.image.check_start(time, self.body)
         inverse, reduced = self.inverse, self.solver
-        nearest, self._a = self._nearest(values)
-        inverse.set_parameters(nearest)
-        if isinstance(reduced, HyperReducedSolver):
-            reduced.set_state(self._a.copy())
-        else:
-            reduced.reconstruct(self._a)
+        nearest, a = self._nearest(values)
+
+        def at(point: Mapping[str, float]) -> None:  # the inverse problem at ``point``, from the nearest's a
+            inverse.set_parameters(point)
+            inverse.set_time(time)
+            if isinstance(reduced, HyperReducedSolver):
+                reduced.set_state(a.copy())
+            else:
+                reduced.reconstruct(a)
+
         self.placed_at = None
         try:
-            iterations = approach(inverse, reduced, values, nearest, time, first_step=1.0)
-            if not iterations:  # at a known point: its projected solution is no root of the reduced residual
-                result = reduced.solve()
-                if not result.converged:
-                    raise SolverError(f"reduced Newton did not converge: {result.reason}")
-                iterations = result.iterations
+            at(values)  # reduced Newton straight at μ (a continuation's first step would be a Newton step more)
+            result = reduced.solve()
+            iterations = result.iterations
+            if not result.converged:  # continuing in μ from the nearest known point
+                at(nearest)
+                iterations += approach(inverse, reduced, values, nearest, time, first_step=0.5)
         except SolverError as error:
             raise SolverError(
                 f"reduced inverse motion: no unloaded reference of the {self.body} at these parameters ({error})"

@@ -191,11 +191,16 @@ class ReducedModel:
             )
 
         estimate = self.estimate
+        # an imaged body's start, the image at the reduced reference, is not solved for: the
+        # indicator there (its release) is the reference's error, unless an output is there anyway
+        outputs = self.times if times is None else np.asarray(times, dtype=float)
+        at_start = estimate is not None and not np.isclose(outputs, self.stepping.start).any()
 
         def start(on_approach: Callable | None) -> StartReport:
             if self.image is not None:  # its reference at μ: the image is the start
                 placed = self.image.place(self.model, self.solver, values, self.stepping.start, progress, on_approach)
-                if estimate is not None:  # the image at the reduced reference, not solved for: its release
+                if at_start:
+                    assert estimate is not None
                     estimates.append(estimate())
                     path.append(estimates[-1])
                 return placed
