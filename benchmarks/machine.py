@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 _MPI_ENVIRONMENT = ("PMI_RANK", "PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_RANK")
@@ -77,6 +78,42 @@ def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -
         writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
         writer.writeheader()
         writer.writerows(rows)
+
+
+def read_results(path: Path) -> list[dict]:
+    """The rows of a results CSV, numbers as numbers (for --replot, and the rows a run keeps)."""
+    import csv
+
+    def value(text: str):
+        for kind in (int, float):
+            try:
+                return kind(text)
+            except ValueError:
+                pass
+        return None if text == "" else text
+
+    with open(path, newline="") as stream:
+        return [{key: value(text) for key, text in row.items()} for row in csv.DictReader(stream)]
+
+
+def by_size(args, stem: str, case: Callable, report: Callable, command: str) -> None:
+    """Each mesh size of ``args.sizes`` (comma-separated) measured by ``case(size, args)`` (its
+    rows, each with its "mesh h [mm]" and "dofs") in turn, and ``report(rows, command)`` after
+    each, with the rows of the sizes this run does not measure kept from ``stem``.csv as it is
+    then (another run's may have landed meanwhile); the table printed at the end. With
+    ``args.replot``, only the report of the CSV's rows, under their own command and date."""
+    path = RESULTS / f"{stem}.csv"
+    if args.replot:
+        rows = read_results(path)
+        report(rows, rows[-1]["command"], rows[-1]["date"])
+        return
+    measured: list[dict] = []
+    for size in [size.strip() for size in args.sizes.split(",")]:
+        measured += case(size, args)
+        sizes = {str(r["mesh h [mm]"]) for r in measured}
+        kept = [r for r in (read_results(path) if path.exists() else []) if str(r["mesh h [mm]"]) not in sizes]
+        report(sorted([r for r in kept if "command" in r] + measured, key=lambda r: r["dofs"]), command)
+    print((RESULTS / f"{stem}.md").read_text())
 
 
 def relaunch(ranks: int, script: str, command_variable: str) -> None:

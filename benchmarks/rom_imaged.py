@@ -47,10 +47,10 @@ from mpi4py import MPI
 
 import machine
 import numpy as np
-from machine import provenance, say, write_results
+from machine import by_size, provenance, read_results, say, write_results
 from resumable import cached, code_version
 from rom_parameters import lung_scene
-from rom_real_time import _digest, _read, static_seconds, timed
+from rom_real_time import _digest, static_seconds, timed
 
 import lungmech  # noqa: F401  (before dolfinx: it loads the MPI library dolfinx's bindings need)
 from lungmech.app.run import build_model, full_order_model
@@ -296,7 +296,7 @@ def offline(rows: list[dict]) -> list[str]:
     greedy (``rom_real_time.csv``, where it has the size)."""
     lines = ["## Offline", ""]
     earlier = RESULTS / "rom_real_time.csv"
-    greedy = {str(r["mesh h [mm]"]): r["offline_greedy_s"] for r in _read(earlier)} if earlier.exists() else {}
+    greedy = {str(r["mesh h [mm]"]): r["offline_greedy_s"] for r in read_results(earlier)} if earlier.exists() else {}
     for size, r in {str(r["mesh h [mm]"]): r for r in rows}.items():
         parts = ", ".join(
             f"{part.removeprefix('offline_').removesuffix('_s')} {value:.0f} s"
@@ -388,20 +388,12 @@ def main() -> None:
         if getattr(args, option) < 1:
             parser.error(f"--{option}: a positive number (got {getattr(args, option)})")
     stem = "rom_imaged_quick" if args.quick else "rom_imaged"
-    if args.replot:
-        rows = _read(RESULTS / f"{stem}.csv")
-        write_results(RESULTS, stem, rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
+
+    def report(rows: list[dict], command: str, date: str | None = None) -> None:
+        write_results(RESULTS, stem, rows, markdown(rows, command, args, date))
         plot(rows, RESULTS / f"{stem}.png")
-        return
-    measured: list[dict] = []
-    for size in [s.strip() for s in args.sizes.split(",")]:
-        measured += case(size, args)
-        earlier = _read(RESULTS / f"{stem}.csv") if (RESULTS / f"{stem}.csv").exists() else []
-        done = {str(r["mesh h [mm]"]) for r in measured}
-        rows = sorted([r for r in earlier if str(r["mesh h [mm]"]) not in done] + measured, key=lambda r: r["dofs"])
-        write_results(RESULTS, stem, rows, markdown(rows, command_line(args), args))  # after each size
-        plot(rows, RESULTS / f"{stem}.png")
-    print((RESULTS / f"{stem}.md").read_text())
+
+    by_size(args, stem, case, report, command_line(args))
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import machine
 import numpy as np
-from machine import SAME_START, provenance, say, write_results
+from machine import SAME_START, by_size, provenance, say, write_results
 from resumable import cached, code_version, kept
 from rom_parameters import lung_scene
 
@@ -407,30 +407,6 @@ def _digest(value) -> str:
     return hashlib.sha1(repr(value).encode()).hexdigest()[:8]
 
 
-def _kept(measured: list[dict], stem: str) -> list[dict]:
-    """The rows of the results CSV as it is now (another run's may have landed meanwhile) of the
-    mesh sizes ``measured`` has not."""
-    path, sizes = RESULTS / f"{stem}.csv", {str(r["mesh h [mm]"]) for r in measured}
-    earlier = _read(path) if path.exists() else []
-    return [r for r in earlier if str(r["mesh h [mm]"]) not in sizes and "command" in r]
-
-
-def _read(path: Path) -> list[dict]:
-    """The rows of a results CSV, numbers as numbers (for --replot)."""
-    import csv
-
-    def value(text: str):
-        for kind in (int, float):
-            try:
-                return kind(text)
-            except ValueError:
-                pass
-        return None if text == "" else text
-
-    with open(path, newline="") as stream:
-        return [{key: value(text) for key, text in row.items()} for row in csv.DictReader(stream)]
-
-
 def command_line(args) -> str:
     """This run's command line (the options that differ from the defaults)."""
     if args.quick:
@@ -474,20 +450,14 @@ def main() -> None:
     stem = "rom_real_time_quick" if args.quick else "rom_real_time"
     if args.galerkin_points < 0:
         parser.error(f"--galerkin-points: a number of points, 0 for all (got {args.galerkin_points})")
-    if args.replot:
-        rows = _read(RESULTS / f"{stem}.csv")
-        write_results(RESULTS, stem, rows, markdown(rows, rows[-1]["command"], args, rows[-1]["date"]))
+
+    def report(rows: list[dict], command: str, date: str | None = None) -> None:
+        write_results(RESULTS, stem, rows, markdown(rows, command, args, date))
         pareto(rows, RESULTS / f"{stem}.png")
-        return
+
     # the clock time of each greedy round, to see where an offline build goes
     logging.basicConfig(level=logging.INFO, format="    %(asctime)s %(message)s", datefmt="%H:%M:%S")
-    measured = []
-    for size in [size.strip() for size in args.sizes.split(",")]:
-        measured += case(size, args)
-        rows = sorted(_kept(measured, stem) + measured, key=lambda r: r["dofs"])
-        write_results(RESULTS, stem, rows, markdown(rows, command_line(args), args))  # after each size
-        pareto(rows, RESULTS / f"{stem}.png")
-    print((RESULTS / f"{stem}.md").read_text())
+    by_size(args, stem, case, report, command_line(args))
 
 
 if __name__ == "__main__":

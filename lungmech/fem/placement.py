@@ -26,6 +26,12 @@ reference holds unchanged. Two problems share these forms:
   symmetric: it is solved with LU or GMRES, never with a symmetric factorisation or CG.
 
 Other fields of the state (the lung's Φs, a mixed pressure) are unknowns of both problems.
+
+A patient's shape is one factor more. On a template mesh x̂ mapped onto the image by
+x = φ(x̂), g = ∇φ (a registration, :mod:`lungmech.registration`), the same forms hold with
+∇ₓ = ∇_x̂ (·) g⁻¹ and dx = det g dx̂: F = (I + ∇_x̂ w g⁻¹)(I + ∇_x̂ ξ g⁻¹)⁻¹,
+dX = det f det g dx̂ and N dA = det(f g) (f g)⁻ᵀ n̂ dâ; both problems and their unknowns are
+unchanged, and g enters :class:`Kinematics` as f does.
 """
 
 from __future__ import annotations
