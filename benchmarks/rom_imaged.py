@@ -318,6 +318,7 @@ def plot(rows: list[dict], path) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
+    from matplotlib.ticker import FuncFormatter
 
     fig, axes = plt.subplots(1, 2, figsize=(10.0, 4.8))
     sizes = list(dict.fromkeys(str(r["mesh h [mm]"]) for r in rows))
@@ -341,6 +342,8 @@ def plot(rows: list[dict], path) -> None:
         ax.axhline(target, color="grey", lw=0.8, ls="--")
         if limit:
             ax.axvline(limit, color="grey", lw=0.8, ls=":")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.xaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3, which="both")
