@@ -9,8 +9,9 @@ from the image, with ξ(μ) in its forms. A reduced model reduces both, each on 
 
 x_ξ⁰ the inverse problem's solution at the default parameters (the lung's ξ and Φs there).
 The reduced inverse problem is solved by reduced Newton straight at μ from the nearest training
-point's coordinates, continuing in μ only where it fails (:func:`lungmech.fem.start.approach`); its tangent V_ξᵀ K_ξ V_ξ is not
-symmetric, since R_ξ is no gradient (:mod:`lungmech.fem.placement`), and is factorised by LU.
+point's coordinates, continuing in μ only where it fails (:func:`lungmech.fem.start.approach`);
+its tangent V_ξᵀ K_ξ V_ξ is not symmetric, since R_ξ is no gradient
+(:mod:`lungmech.fem.placement`), and is factorised by LU.
 The breath then starts at q = 0, the image itself: its deformed volume is the image's at every
 μ, and the reference volume ∫ det(I + ∇ξ) dx is what moves with μ.
 
