@@ -1,7 +1,8 @@
 """The house rules, read from the source: which part of lungmech may import which.
 
 Layers, lowest first: the base modules (errors, checks), ``parallel``, ``mesh``, ``fem``, ``lung``,
-then ``rom`` and ``registration`` side by side, and the application ``app`` on top. A module
+then ``rom`` and ``registration`` side by side, ``trade`` (which measures every model of a scene)
+above ``rom``, and the application ``app`` on top. A module
 imports its own layer and those below, never above; ``rom`` and ``registration`` never import each
 other; generic output code (``app/output.py``) knows no physics. Imports inside functions count.
 """
@@ -25,7 +26,8 @@ LAYERS = {  # part -> the parts it may import (besides the base modules and itse
     "lung": {"parallel", "mesh", "fem"},
     "rom": {"parallel", "mesh", "fem"},
     "registration": {"parallel", "mesh", "fem"},
-    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes"},
+    "trade": {"parallel", "mesh", "fem", "lung", "rom"},
+    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes", "trade"},
     "meshes": {"parallel", "mesh"},  # the bundled meshes and the script that makes them
 }
 
