@@ -190,7 +190,10 @@ def test_enrichment_spans_its_parts_without_repeats(trained):
 def test_save_load_round_trip_and_mesh_check(trained, tmp_path):
     model, data = trained
     basis = rom.pod(model, data, inner="energy")
-    path = rom.save(tmp_path / "beam.npz", model, basis, extra={"note": "test"}, arrays={"start": np.arange(3.0)})
+    # the beam is each rank's own (COMM_SELF) and tmp_path one folder for all: a file per rank (two
+    # ranks saving one path at once found each other's staging folder, a live run's, and stopped)
+    own = tmp_path / f"beam-rank{MPI.COMM_WORLD.rank}.npz"
+    path = rom.save(own, model, basis, extra={"note": "test"}, arrays={"start": np.arange(3.0)})
     loaded, extra, arrays = rom.load(path, model)
     assert np.array_equal(loaded.vectors, basis.vectors) and np.array_equal(loaded.values, basis.values)
     assert (loaded.kind, loaded.inner_product, loaded.fingerprint) == ("pod", "energy", basis.fingerprint)
