@@ -96,13 +96,19 @@ def read_results(path: Path) -> list[dict]:
         return [{key: value(text) for key, text in row.items()} for row in csv.DictReader(stream)]
 
 
-def by_size(args, stem: str, case: Callable, report: Callable, command: str) -> None:
+def by_size(args, stem: str, case: Callable, markdown: Callable, plot: Callable, command: str) -> None:
     """Each mesh size of ``args.sizes`` (comma-separated) measured by ``case(size, args)`` (its
-    rows, each with its "mesh h [mm]" and "dofs") in turn, and ``report(rows, command)`` after
-    each, with the rows of the sizes this run does not measure kept from ``stem``.csv as it is
-    then (another run's may have landed meanwhile); the table printed at the end. With
-    ``args.replot``, only the report of the CSV's rows, under their own command and date."""
+    rows, each with its "mesh h [mm]" and "dofs") in turn, and after each ``stem``.md
+    (``markdown(rows, command, args, date)``), .csv and .png (``plot(rows, path)``) written, with
+    the rows of the sizes this run does not measure kept from ``stem``.csv as it is then (another
+    run's may have landed meanwhile); the table printed at the end. With ``args.replot``, only
+    the CSV's rows written again, under their own command and date."""
     path = RESULTS / f"{stem}.csv"
+
+    def report(rows: list[dict], command: str, date: str | None = None) -> None:
+        write_results(RESULTS, stem, rows, markdown(rows, command, args, date))
+        plot(rows, RESULTS / f"{stem}.png")
+
     if args.replot:
         rows = read_results(path)
         report(rows, rows[-1]["command"], rows[-1]["date"])

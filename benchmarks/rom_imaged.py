@@ -50,7 +50,7 @@ from mpi4py import MPI
 
 import machine
 import numpy as np
-from machine import by_size, provenance, read_results, say, write_results
+from machine import by_size, provenance, read_results, say
 from resumable import cached, code_version
 from rom_parameters import lung_scene
 from rom_real_time import _digest, static_seconds, timed
@@ -422,11 +422,7 @@ def main() -> None:
             parser.error(f"--{option}: a positive number (got {getattr(args, option)})")
     stem = "rom_imaged_quick" if args.quick else "rom_imaged"
 
-    def report(rows: list[dict], command: str, date: str | None = None) -> None:
-        write_results(RESULTS, stem, rows, markdown(rows, command, args, date))
-        plot(rows, RESULTS / f"{stem}.png")
-
-    by_size(args, stem, case, report, command_line(args))
+    by_size(args, stem, case, markdown, plot, command_line(args))
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import machine
 import numpy as np
-from machine import SAME_START, by_size, provenance, say, write_results
+from machine import SAME_START, by_size, provenance, say
 from resumable import cached, code_version, kept
 from rom_parameters import lung_scene
 
@@ -451,13 +451,9 @@ def main() -> None:
     if args.galerkin_points < 0:
         parser.error(f"--galerkin-points: a number of points, 0 for all (got {args.galerkin_points})")
 
-    def report(rows: list[dict], command: str, date: str | None = None) -> None:
-        write_results(RESULTS, stem, rows, markdown(rows, command, args, date))
-        pareto(rows, RESULTS / f"{stem}.png")
-
     # the clock time of each greedy round, to see where an offline build goes
     logging.basicConfig(level=logging.INFO, format="    %(asctime)s %(message)s", datefmt="%H:%M:%S")
-    by_size(args, stem, case, report, command_line(args))
+    by_size(args, stem, case, markdown, pareto, command_line(args))
 
 
 if __name__ == "__main__":
