@@ -326,6 +326,17 @@ def reference_fraction(value: CellValues, mesh: dolfinx.mesh.Mesh) -> fem.Functi
 
 def _cell_values(path: Path, mesh: dolfinx.mesh.Mesh, name: str) -> np.ndarray:
     """One value per cell from a file in the mesh's input cell order, for this rank's cells."""
+    values = read_cell_values(path, name)
+    total = mesh.topology.index_map(mesh.topology.dim).size_global
+    if values.size != total:
+        raise ParameterError(f"{name} file '{path}' has {values.size} values; the mesh has {total} cells")
+    cells = mesh.topology.index_map(mesh.topology.dim)
+    original = np.asarray(mesh.topology.original_cell_index)[: cells.size_local + cells.num_ghosts]
+    return values[original]
+
+
+def read_cell_values(path: Path, name: str) -> np.ndarray:
+    """The finite numbers of a file of cell values (``.npy``, or text), in its order."""
     if not path.is_file():
         raise ParameterError(f"{name} file '{path}' not found")
     try:
@@ -341,12 +352,7 @@ def _cell_values(path: Path, mesh: dolfinx.mesh.Mesh, name: str) -> np.ndarray:
         raise ParameterError(
             f"{name} file '{path}' holds values that are not finite numbers (first: {values[bad]} for cell {bad})"
         )
-    total = mesh.topology.index_map(mesh.topology.dim).size_global
-    if values.size != total:
-        raise ParameterError(f"{name} file '{path}' has {values.size} values; the mesh has {total} cells")
-    cells = mesh.topology.index_map(mesh.topology.dim)
-    original = np.asarray(mesh.topology.original_cell_index)[: cells.size_local + cells.num_ghosts]
-    return values[original]
+    return values
 
 
 @dataclass(frozen=True)

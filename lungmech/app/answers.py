@@ -1,0 +1,110 @@
+"""One solve of many, and its answer: the unit of work of a trade (and of the ensembles next).
+
+A :class:`Task` is serialisable — the scene's file, the parameter values μ, the
+discretisation, the output times — so that any process can run it the same way. Its answer is
+what a trade compares (:mod:`lungmech.trade.quantities`): the outputs at the output times, the
+start's volume, the solve's time, or why the solve failed. Full-order answers are kept in
+lungmech's cache (:mod:`lungmech.app.cache`) under the task's content
+(:func:`content`): the scene's physics, its load path and solver settings, its probes, μ, the
+discretisation and the code's version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lungmech.app.cache import Cache, code_version, key
+from lungmech.app.ladder import Discretisation
+from lungmech.app.scene import Scene, physics
+from lungmech.errors import LungmechError
+from lungmech.fem.parametric import ParametricModel
+
+__all__ = ["Task", "answer", "content", "kept_answer"]
+
+
+@dataclass(frozen=True)
+class Task:
+    """Solve the scene (file ``scene``) at ``values`` μ, discretised as ``discretisation``,
+    with outputs at ``times`` (None: the scene's output times, the whole path)."""
+
+    scene: str
+    values: Mapping[str, float]
+    discretisation: Discretisation
+    times: tuple[float, ...] | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "scene": self.scene,
+            "values": dict(self.values),
+            "discretisation": self.discretisation.content(),
+            "times": None if self.times is None else list(self.times),
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Task:
+        times = data.get("times")
+        return cls(
+            str(data["scene"]),
+            {k: float(v) for k, v in data["values"].items()},
+            Discretisation(**data["discretisation"]),
+            None if times is None else tuple(float(t) for t in times),
+        )
+
+
+def content(scene: Scene, task: Task) -> dict:
+    """What a full-order answer depends on (its cache key is the SHA-256 of this)."""
+    table = scene.table
+    mesh_file = scene.geometry.get("file")
+    return {
+        "physics": physics(scene),
+        "mesh_file": None if mesh_file is None else hashlib.sha256(Path(mesh_file).read_bytes()).hexdigest(),
+        "stepping": table.get("stepping", {}),
+        "newton": table.get("newton", {}),
+        "probes": [list(map(float, p)) for p in scene.output.probes],
+        "values": {name: float(value) for name, value in sorted(task.values.items())},
+        "discretisation": task.discretisation.content(),
+        "times": None if task.times is None else [float(t) for t in task.times],
+        "code": code_version(),
+    }
+
+
+def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[float] | None) -> dict:
+    """``model.solve(values, times=times)`` as numbers (SI units: m³, m, J, s); a solve that fails
+    is an answer too: ``failed`` says why in one line, and its outputs are absent."""
+    began = time.perf_counter()
+    try:
+        solution = model.solve(dict(values), times=None if times is None else list(times))
+    except (LungmechError, RuntimeError, ArithmeticError) as error:  # PETSc's errors are RuntimeErrors
+        return {"failed": str(error).splitlines()[0] or type(error).__name__, "seconds": time.perf_counter() - began}
+    outputs = solution.outputs
+    start = solution.start.details if solution.start is not None else {}
+    return {
+        "failed": None,
+        "seconds": time.perf_counter() - began,
+        "times": np.asarray(solution.times, dtype=float).tolist(),
+        "volume": np.asarray(outputs["volume"], dtype=float).tolist(),
+        "strain_energy": np.asarray(outputs["strain_energy"], dtype=float).tolist(),
+        "probes": np.asarray(outputs["probes"], dtype=float).tolist() if "probes" in outputs else [],
+        "start_volume": float(start["volume"]) if "volume" in start else None,
+        "newton_iterations": int(solution.newton_iterations),
+        "indicator": solution.indicator,
+    }
+
+
+def kept_answer(cache: Cache, scene: Scene, task: Task, model: ParametricModel) -> tuple[dict, bool]:
+    """The full-order answer to ``task`` from the cache, or solved by ``model`` and kept (a
+    failure is kept too: the same task fails the same way); and whether it was kept before."""
+    name = key(content(scene, task))
+    kept = cache.read_json("answers", name)
+    if kept is not None:
+        return kept, True
+    found = answer(model, task.values, task.times)
+    cache.write_json("answers", name, found)
+    return found, False

@@ -1,0 +1,254 @@
+"""``lungmech trade``: every model of a scene measured on the same points, and the cheapest one
+that meets a tolerance chosen.
+
+The candidates are full models at several discretisations (:mod:`lungmech.app.ladder`: the
+scene's mesh, a coarser remesh where a builder can make one, refinements; P1 and P2) and
+reduced models given as files. The reference is the scene's mesh refined ``levels`` times,
+finer than every candidate; its three finest levels give the observed order of convergence
+and, where it agrees with the expected one, Richardson's estimate of the reference's own
+error (:mod:`lungmech.trade.convergence`). The points are seeded Sobol' points none of the
+models was trained on, and the box's corners (:mod:`lungmech.trade.points`). Each candidate
+is measured in a process of its own (:mod:`lungmech.app.measure`: warm online time, start-up,
+peak memory); full answers are kept in lungmech's cache, so that a second trade, or one
+interrupted, solves only what it has not solved before.
+
+Quantities that need no path are solved statically (``solve(μ, times=[t*])``) at t*, the
+output time of the largest load (end-inspiration for a breath, :func:`peak_time`); ``pv``
+solves the whole path.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mpi4py import MPI
+
+import numpy as np
+
+from lungmech.app import scene as scenes
+from lungmech.app.cache import default_folder
+from lungmech.app.ladder import Discretisation, remeshed
+from lungmech.errors import Interrupted, LungmechError, ParameterError
+from lungmech.fem.parameters import Parameters
+from lungmech.rom import store
+from lungmech.trade import quantities
+from lungmech.trade.choice import Choice, Measured, choose
+from lungmech.trade.convergence import Convergence, observed_order
+from lungmech.trade.points import ValidationPoints, failure_bound, validation_points
+
+__all__ = ["Candidate", "Trade", "candidates", "peak_time", "trade"]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A model to measure: its ``name``, ``family`` ("full", "galerkin", "ecsw") and what
+    :mod:`lungmech.app.measure` builds it from (``request``)."""
+
+    name: str
+    family: str
+    request: dict
+
+    @classmethod
+    def full(cls, discretisation: Discretisation) -> Candidate:
+        return cls(f"full {discretisation.name}", "full", {"kind": "full", "discretisation": discretisation.content()})
+
+    @classmethod
+    def file(cls, path: str | Path, family: str) -> Candidate:
+        return cls(Path(path).name, family, {"kind": "file", "path": str(Path(path).resolve())})
+
+
+@dataclass
+class Trade:
+    """What a trade measured: the points, the candidates' results by name (the reference's
+    too), the errors by quantity, the convergence, and the choice."""
+
+    scene: str
+    tolerance: float
+    quantity: str
+    points: ValidationPoints
+    times: list[float] | None
+    reference: str
+    queries: int | None = None
+    results: dict[str, dict] = field(default_factory=dict)
+    errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    convergence: dict[str, Convergence] = field(default_factory=dict)
+    measured: list[Measured] = field(default_factory=list)
+    choice: Choice | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def peak_time(scene: scenes.Scene) -> float:
+    """The output time at which the loads, each relative to its own largest value, sum largest
+    (the latest of equals): end-inspiration for a breath, the end for a monotone ramp."""
+    stepping = scene.stepping
+    grid = sorted({*stepping.times, stepping.end, *np.linspace(stepping.start, stepping.end, 201)[1:]})
+    ramps = [load.ramp for load in scene.loads if getattr(load, "ramp", None) is not None]
+    if not ramps:
+        return float(stepping.end)
+    levels = np.array([[abs(ramp(t)) for t in grid] for ramp in ramps])
+    levels /= np.maximum(levels.max(axis=1, keepdims=True), 1e-300)
+    total = levels.sum(axis=0)
+    return float(grid[int(np.flatnonzero(total >= total.max() - 1e-12)[-1])])
+
+
+def candidates(
+    scene: scenes.Scene, levels: int = 2, degrees: Sequence[int] = (1, 2), coarser: bool = True
+) -> tuple[list[Candidate], Candidate, list[str]]:
+    """The full candidates of ``scene`` — a remesh 2× coarser (where its builder makes one),
+    its mesh refined 0 … ``levels`` − 1 times, and each other degree of ``degrees`` on its
+    mesh —, the reference (refined ``levels`` times) and notes on what was not made."""
+    checks_levels(levels)
+    notes: list[str] = []
+    made = []
+    if coarser:
+        try:
+            remeshed(scene, 2.0)  # a check only: can the builder make it?
+            made.append(Candidate.full(Discretisation(-1, scene.degree)))
+        except ParameterError as why:
+            notes.append(f"no coarser full model: {why}")
+    made += [Candidate.full(Discretisation(level, scene.degree)) for level in range(levels)]
+    made += [Candidate.full(Discretisation(0, degree)) for degree in degrees if degree != scene.degree]
+    return made, Candidate.full(Discretisation(levels, scene.degree)), notes
+
+
+def checks_levels(levels: int) -> None:
+    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
+        raise ParameterError(f"--levels: the reference is the scene's mesh refined 1 or more times (got {levels!r})")
+
+
+def trade(
+    scene_path: str | Path,
+    tolerance: float,
+    quantity: str = "volume",
+    count: int = 8,
+    models: Sequence[str | Path] = (),
+    queries: int | None = None,
+    cache: str | Path | None = None,
+    levels: int = 2,
+    seed: int = 12345,
+    full: Sequence[Candidate] | None = None,
+) -> Trade:
+    """Measure the scene's candidates (``full`` ones, default :func:`candidates`, and the model
+    files ``models``) against the reference on the trade's points and choose (see the
+    module's doc). ``cache``: lungmech's cache folder (default
+    :func:`lungmech.app.cache.default_folder`)."""
+    quantities.expected_order(quantity, 1)  # the name's check
+    path = Path(scene_path).resolve()
+    scene = scenes.load(path)
+    made, reference, notes = candidates(scene, levels)
+    if full is not None:
+        made = list(full)
+    files = [Candidate.file(model, _family(model)) for model in models]
+    trained = [point for model in models for point in _training(model)]
+    points = validation_points(Parameters(scene.parameters), count, seed, trained)
+    times = None if quantity == "pv" else [peak_time(scene)]
+    found = Trade(str(path), tolerance, quantity, points, times, reference.name, queries, notes=notes)
+    cache_root = str(Path(cache).expanduser().resolve() if cache is not None else default_folder())
+    for candidate in [reference, *made, *files]:
+        found.results[candidate.name] = _measured(path, candidate, points, times, cache_root)
+    made = [candidate for candidate in made if not _same_as_scene_mesh(found, candidate, scene)]
+    failed = [i for i, a in enumerate(found.results[reference.name]["answers"]) if a["failed"] is not None]
+    if failed:
+        found.notes.append(
+            f"the reference failed at {len(failed)} of {len(points)} points (no model is judged there: each counts "
+            f"as failed): {', '.join(f'{points.kinds[i]} {points.points[i]}' for i in failed)}"
+        )
+    _judge(found, scene, [reference, *made, *files], levels)
+    return found
+
+
+def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene) -> bool:
+    """A remesh that gave the scene's own mesh size back (a builder's other limits held): noted, dropped."""
+    if candidate.request.get("discretisation", {}).get("level", 0) >= 0:
+        return False
+    scene_mesh = found.results.get(f"full {Discretisation(0, scene.degree).name}")
+    if scene_mesh is None or found.results[candidate.name]["dofs"] < (own := scene_mesh["dofs"]):
+        return False
+    found.notes.append(f"no coarser full model: the builder's mesh at twice the mesh size has {own} dofs too")
+    del found.results[candidate.name]
+    return True
+
+
+def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels: int) -> None:
+    """The errors of every candidate, the reference's convergence, and the choice."""
+    reference = found.results[found.reference]["answers"]
+    names = ["pv"] if found.quantity == "pv" else ["volume"] + (["probes"] if scene.output.probes else [])
+    for candidate in measured:
+        answers = found.results[candidate.name]["answers"]
+        found.errors[candidate.name] = {q: quantities.errors(answers, reference, q) for q in names}
+        if "probes" in names:
+            found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
+    ladder = [f"full {Discretisation(level, scene.degree).name}" for level in range(levels - 1, levels + 1)]
+    if levels >= 2 and all(name in found.results for name in ladder):
+        coarse = found.results[f"full {Discretisation(levels - 2, scene.degree).name}"]["answers"]
+        middle, fine = (found.results[name]["answers"] for name in ladder)
+        for q in names:
+            try:
+                q0, q1, q2 = (quantities.normalised(a, reference, q).ravel() for a in (coarse, middle, fine))
+                found.convergence[q] = observed_order(q0, q1, q2, quantities.expected_order(q, scene.degree))
+            except ParameterError as why:
+                found.notes.append(f"no observed order of {q}: {why}")
+    for candidate in measured:
+        if candidate.name == found.reference:
+            continue
+        result, errors = found.results[candidate.name], found.errors[candidate.name][found.quantity]
+        failed = int(np.isnan(errors).sum())
+        worst = float(np.nanmax(errors)) if failed < len(errors) else math.inf
+        online = result["online_seconds"] if result["online_seconds"] is not None else math.inf
+        found.measured.append(
+            Measured(candidate.name, candidate.family, worst, failed, online, float(result.get("offline_seconds", 0.0)))
+        )
+    convergence = found.convergence.get(found.quantity)
+    accuracy = None if convergence is None or convergence.estimate is None else convergence.estimate
+    found.choice = choose(found.measured, found.tolerance, found.quantity, found.queries, accuracy)
+
+
+def _measured(scene: Path, candidate: Candidate, points: ValidationPoints, times: list[float] | None, cache: str) -> dict:
+    """The candidate measured in a process of its own (:mod:`lungmech.app.measure`)."""
+    request = {"scene": str(scene), "candidate": candidate.request, "points": points.points, "times": times, "cache": cache}
+    with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
+        asked, told = Path(folder) / "request.json", Path(folder) / "result.json"
+        asked.write_text(json.dumps(request))
+        command = [sys.executable, "-m", "lungmech.app.measure", str(asked), str(told)]
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+        except KeyboardInterrupt:
+            raise Interrupted(2) from None
+        if done.returncode in (130, -2):
+            raise Interrupted(2)
+        if done.returncode in (143, -15):
+            raise Interrupted(15)
+        result = json.loads(told.read_text()) if told.is_file() else None
+    if result is None or "error" in result:
+        why = result["error"] if result else (done.stderr.strip().splitlines() or ["no result"])[-1]
+        raise LungmechError(f"candidate {candidate.name}: {why}")
+    return result
+
+
+def _family(path: str | Path) -> str:
+    """"ecsw" for a hyper-reduced model file, else "galerkin"."""
+    return "ecsw" if _record(path).get("hyper") else "galerkin"
+
+
+def _training(path: str | Path) -> list[dict[str, float]]:
+    return [dict(point) for point in _record(path).get("training", [])]
+
+
+def _record(path: str | Path) -> dict[str, Any]:
+    """A model file's record of how it was made (:mod:`lungmech.rom.store`)."""
+    metadata, _ = store.read_on_root(path, MPI.COMM_SELF, arrays=False)
+    return metadata.get("extra", {}).get("reduced", {})
+
+
+def failure_share(found: Trade) -> float:
+    """The 95 % bound on the share of the box that could fail, for a model failing nowhere."""
+    return failure_bound(len(found.points))
