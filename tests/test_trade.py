@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lungmech.app.trade import peak_time, trade
 from lungmech.app import scene as scenes
+from lungmech.app.trade import peak_time, trade
 from lungmech.errors import ParameterError
 from lungmech.trade.points import failure_bound
 

@@ -53,7 +53,7 @@ class Discretisation:
     @property
     def name(self) -> str:
         """E.g. "P1 h", "P1 h/4" (refined twice), "P2 h", "P1 2h" (remeshed coarser)."""
-        size = "h" if self.level == 0 else f"h/{2**self.level}" if self.level > 0 else f"{2 ** -self.level}h"
+        size = "h" if self.level == 0 else f"h/{2**self.level}" if self.level > 0 else f"{2**-self.level}h"
         return f"P{self.degree} {size}"
 
     @property

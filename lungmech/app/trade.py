@@ -212,9 +212,17 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
     found.choice = choose(found.measured, found.tolerance, found.quantity, found.queries, accuracy)
 
 
-def _measured(scene: Path, candidate: Candidate, points: ValidationPoints, times: list[float] | None, cache: str) -> dict:
+def _measured(
+    scene: Path, candidate: Candidate, points: ValidationPoints, times: list[float] | None, cache: str
+) -> dict:
     """The candidate measured in a process of its own (:mod:`lungmech.app.measure`)."""
-    request = {"scene": str(scene), "candidate": candidate.request, "points": points.points, "times": times, "cache": cache}
+    request = {
+        "scene": str(scene),
+        "candidate": candidate.request,
+        "points": points.points,
+        "times": times,
+        "cache": cache,
+    }
     with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
         asked, told = Path(folder) / "request.json", Path(folder) / "result.json"
         asked.write_text(json.dumps(request))
@@ -235,7 +243,7 @@ def _measured(scene: Path, candidate: Candidate, points: ValidationPoints, times
 
 
 def _family(path: str | Path) -> str:
-    """"ecsw" for a hyper-reduced model file, else "galerkin"."""
+    """ "ecsw" for a hyper-reduced model file, else "galerkin"."""
     return "ecsw" if _record(path).get("hyper") else "galerkin"
 
 
