@@ -11,18 +11,16 @@ discretisation and the code's version.
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lungmech.app.cache import Cache, code_version, key
 from lungmech.app.ladder import Discretisation
-from lungmech.app.scene import Scene, physics
+from lungmech.app.scene import Scene, file_sha256, physics
 from lungmech.errors import LungmechError
 from lungmech.fem.parametric import ParametricModel
 
@@ -64,7 +62,7 @@ def content(scene: Scene, task: Task) -> dict:
     mesh_file = scene.geometry.get("file")
     return {
         "physics": physics(scene),
-        "mesh_file": None if mesh_file is None else hashlib.sha256(Path(mesh_file).read_bytes()).hexdigest(),
+        "mesh_file": None if mesh_file is None else file_sha256(mesh_file),
         "stepping": table.get("stepping", {}),
         "newton": table.get("newton", {}),
         "probes": [list(map(float, p)) for p in scene.output.probes],

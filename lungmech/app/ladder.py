@@ -14,7 +14,6 @@ Collective: under MPI, call :func:`at` on all ranks.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech.app.cache import Cache, code_version, key
-from lungmech.app.scene import BUILDERS, Scene, build_geometry, cell_data, physics
+from lungmech.app.scene import BUILDERS, Scene, build_geometry, cell_data, file_sha256, physics
 from lungmech.errors import ParameterError
 from lungmech.lung.poromechanics import read_cell_values
 from lungmech.mesh import files
@@ -84,7 +83,7 @@ def _refined(scene: Scene, times: int, cache: Cache, comm: MPI.Comm) -> Scene:
     described = physics(scene)
     content = {
         "geometry": described["geometry"],
-        "mesh_file": _sha(scene.geometry.get("file")),
+        "mesh_file": file_sha256(scene.geometry["file"]) if "file" in scene.geometry else None,
         "cells": {name: described["formulation"][name] for name in cells},
         "refinements": times,
         "code": code_version(("mesh",)),
@@ -134,10 +133,3 @@ def remeshed(scene: Scene, factor: float) -> Scene:
 
 def _save(path: Path, values: np.ndarray, comm: MPI.Comm) -> None:
     on_root(comm, lambda: np.save(path, values))
-
-
-def _sha(path: object) -> str | None:
-    """A mesh file's SHA-256 (the scene's physics leaves its path out), or None."""
-    if path is None:
-        return None
-    return hashlib.sha256(Path(str(path)).read_bytes()).hexdigest()

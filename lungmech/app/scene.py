@@ -230,10 +230,10 @@ def physics(scene: Scene) -> dict[str, Any]:
     described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
     described["stepping.start"] = scene.stepping.start
     if files := cell_data(scene.formulation):
-        described["formulation"] = described["formulation"] | {key: _sha256(path) for key, path in files.items()}
+        described["formulation"] = described["formulation"] | {key: file_sha256(path) for key, path in files.items()}
     for p in scene.parameters:
         if isinstance(marker := getattr(p.region, "marker", None), ImageLabel):
-            described["parameters"][p.name]["region"]["image"] = _sha256(Path(marker.path))
+            described["parameters"][p.name]["region"]["image"] = file_sha256(Path(marker.path))
     return json.loads(json.dumps(described, default=str), parse_int=float)
 
 
@@ -270,8 +270,9 @@ def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix: value}
 
 
-def _sha256(path: Path) -> str:
-    return "sha256:" + hashlib.sha256(path.read_bytes()).hexdigest()
+def file_sha256(path: str | Path) -> str:
+    """A file's SHA-256 (hex): what its content is, wherever it lies."""
+    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def material(table: dict[str, Any], where: str = "material") -> Material:

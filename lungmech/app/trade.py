@@ -43,7 +43,7 @@ from lungmech.rom import store
 from lungmech.trade import quantities
 from lungmech.trade.choice import Choice, Measured, choose
 from lungmech.trade.convergence import Convergence, observed_order
-from lungmech.trade.points import ValidationPoints, failure_bound, validation_points
+from lungmech.trade.points import ValidationPoints, validation_points
 
 __all__ = ["Candidate", "Trade", "candidates", "peak_time", "trade"]
 
@@ -255,8 +255,3 @@ def _record(path: str | Path) -> dict[str, Any]:
     """A model file's record of how it was made (:mod:`lungmech.rom.store`)."""
     metadata, _ = store.read_on_root(path, MPI.COMM_SELF, arrays=False)
     return metadata.get("extra", {}).get("reduced", {})
-
-
-def failure_share(found: Trade) -> float:
-    """The 95 % bound on the share of the box that could fail, for a model failing nowhere."""
-    return failure_bound(len(found.points))
