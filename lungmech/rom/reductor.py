@@ -228,6 +228,7 @@ class Reductor:
         self.start = np.zeros(0) if self.imaged else one_state(full.start, model)
         require_positive_definite(model, inner)
         self.timings: dict[str, float] = {}
+        self.full_solves = 0  # of the full model, so far: a model's offline cost beside its seconds
         self.modes: Basis | None = None  # every POD direction: the basis leads them, the enrichment follows
         self.trained: Greedy | None = basis if isinstance(basis, Greedy) else None
         self.points = [full.parameters.values(p) for p in training.points]
@@ -245,7 +246,8 @@ class Reductor:
         elif self.trained is None:
             assert not isinstance(basis, Greedy)  # (a Greedy is trained already)
             self.basis = _basis(full, basis, self._runs, inner, self)
-        if self.trained is not None:
+        if self.trained is not None:  # trained here or before: its full solves are the model's cost
+            self.full_solves += len(self.trained.training)
             self.modes, self.points = self.trained.modes, self.trained.training
             self._runs = [(point, 1.0) for point in self.points]
             self.basis = self.trained.basis
@@ -264,6 +266,7 @@ class Reductor:
         assert isinstance(full.start, InverseMotion)  # (self.imaged)
         trained = imaged.snapshots(full, self._runs)
         self.timings["snapshots"] = time.perf_counter() - tic
+        self.full_solves += len(self._runs)
         tic = time.perf_counter()
         self.modes, self.inverse_basis, self.inverse_known = imaged.bases(full, trained, self._runs, self.inner, size)
         self.start, self.inverse_start = trained.start, trained.inverse_start
@@ -340,6 +343,7 @@ class Reductor:
             "greedy": _greedy_record(self.trained, self.training.tolerance, full.parameters),
             "hyper": None if hyper is None else {"method": "ecsw", "tolerance": hyper.tolerance, "judge": judge},
             "timings": self.timings | ({} if seconds is None else {"nnls": seconds}),
+            "full_solves": self.full_solves,
         }
         return reduced
 
@@ -368,6 +372,7 @@ class Reductor:
                 if self.imaged:  # the breath's and the inverse motion's, from one pass
                     self._inverse_ecsw = imaged.ecsw_training(full, training, self.inverse_basis, self._runs)
                     self.timings["ecsw_training"] = time.perf_counter() - tic
+                    self.full_solves += len(self._runs)
                 elif self.trained is not None:
                     training.replay(self.trained.iterates)
                     self.timings["ecsw_replay"] = time.perf_counter() - tic
@@ -375,6 +380,7 @@ class Reductor:
                     with training.watching(cast(NewtonSolver, full.solver)):  # (ECSW watches a full Newton solver)
                         collected(full, self._runs)
                     self.timings["ecsw_training"] = time.perf_counter() - tic
+                    self.full_solves += len(self._runs)
             except BaseException:
                 training.destroy()
                 raise
@@ -418,6 +424,7 @@ def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: R
         if isinstance(part, POD):
             data = collected(full, runs)
             made.timings["snapshots"] = time.perf_counter() - tic
+            made.full_solves += len(runs)
             tic = time.perf_counter()
             made.modes = pod(model, data, inner=inner, source={"training": made.points})
             bases.append(made.modes.truncate(min(part.size, made.modes.size)))
