@@ -43,7 +43,17 @@ from lungmech.rom.reduced import ReducedModel
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
 
-__all__ = ["build", "check_physics", "embedded_name", "embedded_scene", "load", "reduced_order", "trained_range"]
+__all__ = [
+    "build",
+    "build_family",
+    "check_physics",
+    "embedded_name",
+    "embedded_scene",
+    "family_files",
+    "load",
+    "reduced_order",
+    "trained_range",
+]
 
 KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
 HYPER = ("ecsw",)  # hyper-reductions
@@ -125,7 +135,7 @@ def build(
     ecsw = reductor.ECSW(hyper_tolerance, judge, hyper_size) if hyper else None
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
-        return _build(scene, staging, recipe, training, ecsw, inner, comm)
+        return _build(scene, [(staging, ecsw)], recipe, training, inner, comm)
 
 
 def _recipe(kind: str, size: int, order: int, density: float) -> reductor.Recipe:
@@ -139,15 +149,64 @@ def _recipe(kind: str, size: int, order: int, density: float) -> reductor.Recipe
     return reductor.Enriched((reductor.POD(size), reductor.Modal(size, density)), size)
 
 
+def build_family(
+    scene: Scene,
+    folder: str | Path,
+    taus: Sequence[float],
+    size: int = 20,
+    samples: int | None = None,
+    seed: int = 0,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+) -> dict[str, Path]:
+    """A family of reduced models of ``scene`` from one reductor, for a trade to measure side by
+    side: the POD Galerkin model of ``size`` vectors (``galerkin.npz``) and its ECSW
+    hyper-reductions at each τ of ``taus`` (``ecsw-<τ>.npz``, :func:`family_files`), trained at ``samples`` Sobol'
+    points (``seed``; default 8 with [parameters], else the loads at 0.5, 1, 1.5). The training
+    solves are done once for all of them, the ECSW training once for every τ; each file records
+    the seconds and full solves it would have cost alone. ``folder`` is an empty folder of
+    lungmech's own (a cache entry's staging folder: nothing is checked or replaced there);
+    returns the files by model name. Collective."""
+    if not taus:
+        raise ParameterError("give at least one ECSW tolerance τ for the family's hyper-reduced models")
+    for tau in taus:
+        reductor.ECSW(tau)  # the checks, before any work
+    family_files(taus)
+    box = Parameters(scene.parameters)
+    samples = samples if samples is not None else (8 if box else 1)
+    checks.integer("training samples", samples, minimum=1)
+    checks.integer("training seed", seed, minimum=0)
+    checks.integer("basis size", size, minimum=1)
+    scales = (1.0,) if box else (0.5, 1.0, 1.5)
+    training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
+    files = family_files(taus)
+    hypers = [None, *(reductor.ECSW(tau) for tau in taus)]
+    models = [(Path(folder) / file, hyper) for file, hyper in zip(files.values(), hypers, strict=True)]
+    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False)
+    return {name: Path(folder) / file for name, file in files.items()}
+
+
+def family_files(taus: Sequence[float]) -> dict[str, str]:
+    """The files of :func:`build_family`'s models by name: "POD Galerkin" (``galerkin.npz``),
+    and "POD ECSW τ=<τ>" (``ecsw-<τ>.npz``) for each τ of ``taus``."""
+    named = {"POD Galerkin": "galerkin.npz"} | {f"POD ECSW τ={tau:g}": f"ecsw-{tau:g}.npz" for tau in taus}
+    if len(named) != 1 + len(taus):
+        raise ParameterError(f"the ECSW tolerances τ are given twice: {', '.join(f'{tau:g}' for tau in taus)}")
+    return named
+
+
 def _build(
     scene: Scene,
-    path: Path,
+    models: Sequence[tuple[Path, reductor.ECSW | None]],
     recipe: reductor.Recipe,
     training: reductor.TrainingSet,
-    hyper: reductor.ECSW | None,
     inner: str,
     comm: MPI.Comm,
+    hold_signals: bool = True,
 ) -> dict:
+    """Each (path, hyper-reduction) of ``models`` from one :class:`~lungmech.rom.reductor.Reductor`
+    of the scene's full model; returns the summary of the last. ``hold_signals``: the paths are
+    an output's (:func:`~lungmech.parallel.destination.output_file`), whose swap the signals
+    wait for once the writing begins."""
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm, image=_image(scene))
@@ -156,28 +215,34 @@ def _build(
     # without parameters its one reference is the defaults', found once (exact, and no basis of ξ)
     full = full_order_model(scene, comm, start="inverse_motion" if _image(scene) else "defaults", model=model)
     timings["build_and_inverse"] = time.perf_counter() - tic
-    reduced = reductor.reduce(full, recipe, training, hyper, inner, timings)
-    extra = {
-        "scene": str(Path(scene.source).resolve()) if scene.source else None,
-        "title": scene.title,
-        "imaged_fingerprint": where.fingerprint,
-        "loads": len(scene.loads),
-        "scales": reduced.built["scales"],
-        "parameters": full.parameters.describe(),
-        "offline_seconds": timings,
-        "scene_table": scene.table,
-        "files": embedded_names(scene),
-    }
+    hypers = [hyper for _, hyper in models if hyper is not None]
+    judge = hypers[-1].judge or hypers[-1].tolerance if hypers else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
-    hyper_summary = store.hyper_record(reduced)
-    hold_signals_until_swap()  # the model file is a collective write
-    store.write_reduced(path, reduced, extra, arrays)
+    with reductor.Reductor(full, recipe, training, inner, judge) as made:
+        for path, hyper in models:
+            reduced = made.reduce(hyper)
+            spent = timings | reduced.built["timings"]
+            extra = {
+                "scene": str(Path(scene.source).resolve()) if scene.source else None,
+                "title": scene.title,
+                "imaged_fingerprint": where.fingerprint,
+                "loads": len(scene.loads),
+                "scales": reduced.built["scales"],
+                "parameters": full.parameters.describe(),
+                "offline_seconds": spent,
+                "scene_table": scene.table,
+                "files": embedded_names(scene),
+            }
+            hyper_summary = store.hyper_record(reduced)
+            if hold_signals:
+                hold_signals_until_swap()  # the model file is a collective write
+            store.write_reduced(path, reduced, extra, arrays)
     return {
         "kind": reduced.basis.kind,
         "size": reduced.size,
         "dofs": where.size,
         "values": reduced.basis.values.tolist(),
-        "offline_seconds": timings,
+        "offline_seconds": spent,
         "hyper": hyper_summary,
         "greedy": reduced.built["greedy"],
     }
