@@ -25,6 +25,11 @@ def ranks_launched() -> int:
     return max([int(value) for value in found if value.isdigit()] + [1])
 
 
+def under_launcher() -> bool:
+    """Whether an MPI launcher (``mpiexec``) started this process, even as its one rank."""
+    return any(name in os.environ for name in _RANKS)
+
+
 def one_blas_thread_per_rank() -> None:
     """Set the unset BLAS/OpenMP thread counts to 1 in a rank of several, if NumPy is not
     loaded yet (it reads them when it loads; after, nothing changes)."""

@@ -12,7 +12,7 @@ discretisation and the code's version.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -76,16 +76,19 @@ def content(scene: Scene, task: Task) -> dict:
 def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[float] | None) -> dict:
     """``model.solve(values, times=times)`` as numbers (SI units: m³, m, J, s); a solve that fails
     is an answer too: ``failed`` says why in one line, and its outputs are absent."""
+    dofs = _dofs(model)
     began = time.perf_counter()
     try:
         solution = model.solve(dict(values), times=None if times is None else list(times))
     except (LungmechError, RuntimeError, ArithmeticError) as error:  # PETSc's errors are RuntimeErrors
-        return {"failed": str(error).splitlines()[0] or type(error).__name__, "seconds": time.perf_counter() - began}
+        why = str(error).splitlines()[0] if str(error) else type(error).__name__
+        return {"failed": why, "seconds": time.perf_counter() - began, "dofs": dofs}
     outputs = solution.outputs
     start = solution.start.details if solution.start is not None else {}
     return {
         "failed": None,
         "seconds": time.perf_counter() - began,
+        "dofs": dofs,
         "times": np.asarray(solution.times, dtype=float).tolist(),
         "volume": np.asarray(outputs["volume"], dtype=float).tolist(),
         "strain_energy": np.asarray(outputs["strain_energy"], dtype=float).tolist(),
@@ -96,13 +99,22 @@ def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[
     }
 
 
-def kept_answer(cache: Cache, scene: Scene, task: Task, model: ParametricModel) -> tuple[dict, bool]:
-    """The full-order answer to ``task`` from the cache, or solved by ``model`` and kept (a
-    failure is kept too: the same task fails the same way); and whether it was kept before."""
+def _dofs(model: ParametricModel) -> int:
+    """The full model's unknowns (a reduced model's full model's, on its body alone too)."""
+    if full_size := getattr(model, "full_size", None):
+        return int(full_size["dofs"])
+    space = model.model.state.function_space
+    return int(space.dofmap.index_map.size_global * space.dofmap.index_map_bs)
+
+
+def kept_answer(cache: Cache, scene: Scene, task: Task, model: Callable[[], ParametricModel]) -> tuple[dict, bool]:
+    """The full-order answer to ``task`` from the cache, or solved by ``model()`` (built only
+    then) and kept (a failure is kept too: the same task fails the same way); and whether it
+    was kept before. Collective."""
     name = key(content(scene, task))
     kept = cache.read_json("answers", name)
     if kept is not None:
         return kept, True
-    found = answer(model, task.values, task.times)
+    found = answer(model(), task.values, task.times)
     cache.write_json("answers", name, found)
     return found, False

@@ -1,5 +1,6 @@
-"""Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve``, ``lungmech register``,
-``lungmech shape-modes``, ``lungmech shape``, ``lungmech phantom`` and ``lungmech info``.
+"""Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve``, ``lungmech trade``,
+``lungmech register``, ``lungmech shape-modes``, ``lungmech shape``, ``lungmech phantom`` and
+``lungmech info``.
 
 Every failure ends in one line on standard error and a non-zero exit: 2 for bad input or a
 failed computation, 130/143 for Ctrl-C/SIGTERM, 3 for an internal error (``LUNGMECH_DEBUG=1``
@@ -20,7 +21,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, NoReturn
 
 from lungmech.app import registration_cli as registration
-from lungmech.app import rom_cli
+from lungmech.app import rom_cli, trade_cli
 from lungmech.app.arguments import RESULTS, common, logging_comm, setup
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
@@ -49,6 +50,7 @@ def parser() -> argparse.ArgumentParser:
     )
     common(run, "results/<scene name>")
     rom_cli.add_commands(commands)
+    trade_cli.add_commands(commands)
     registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
     return top
@@ -60,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     with _interrupts():
         try:
             args = parser().parse_args(argv)
+            args.argv = list(sys.argv[1:] if argv is None else argv)
             # Values are judged by lungmech's own finite checks, which name them: NumPy's
             # overflow warnings on the way would only add lines before that one.
             with _quiet_arithmetic():
@@ -120,6 +123,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return _info()
     if args.command in registration.COMMANDS:
         return registration.run(args)
+    if args.command in trade_cli.COMMANDS:
+        return trade_cli.run(args)
     if args.command == "rom" and args.action == "build":
         return rom_cli.build(args)
     return _run(args)

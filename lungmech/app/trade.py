@@ -2,8 +2,10 @@
 that meets a tolerance chosen.
 
 The candidates are full models at several discretisations (:mod:`lungmech.app.ladder`: the
-scene's mesh, a coarser remesh where a builder can make one, refinements; P1 and P2) and
-reduced models given as files. The reference is the scene's mesh refined ``levels`` times,
+scene's mesh, a coarser remesh where a builder can make one, refinements; P1 and P2), reduced
+models given as files (of the same physics), and, on request (:class:`Family`), a family of
+reduced models built by the one reductor into lungmech's cache: the Galerkin model and its
+hyper-reductions at several τ, from one training. The reference is the scene's mesh refined ``levels`` times,
 finer than every candidate; its three finest levels give the observed order of convergence
 and, where it agrees with the expected one, Richardson's estimate of the reference's own
 error (:mod:`lungmech.trade.convergence`). The points are seeded Sobol' points none of the
@@ -19,14 +21,9 @@ solves the whole path.
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import subprocess
-import sys
-import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,18 +31,22 @@ from mpi4py import MPI
 
 import numpy as np
 
+from lungmech import checks
 from lungmech.app import scene as scenes
-from lungmech.app.cache import default_folder
+from lungmech.app.cache import SOLVING, Cache, code_version, default_folder, key
 from lungmech.app.ladder import Discretisation, remeshed
-from lungmech.errors import Interrupted, LungmechError, ParameterError
+from lungmech.app.measure import apart
+from lungmech.app.model_file import embedded_names
+from lungmech.app.reduce import build_family, check_physics, embedded_scene, family_files
+from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.rom import store
 from lungmech.trade import quantities
-from lungmech.trade.choice import Choice, Measured, choose
+from lungmech.trade.choice import Choice, Measured, check_tolerance, choose
 from lungmech.trade.convergence import Convergence, observed_order
 from lungmech.trade.points import ValidationPoints, validation_points
 
-__all__ = ["Candidate", "Trade", "candidates", "peak_time", "trade"]
+__all__ = ["Candidate", "Family", "Trade", "candidates", "peak_time", "trade"]
 
 
 @dataclass(frozen=True)
@@ -62,14 +63,39 @@ class Candidate:
         return cls(f"full {discretisation.name}", "full", {"kind": "full", "discretisation": discretisation.content()})
 
     @classmethod
-    def file(cls, path: str | Path, family: str) -> Candidate:
-        return cls(Path(path).name, family, {"kind": "file", "path": str(Path(path).resolve())})
+    def file(cls, path: str | Path, family: str, name: str | None = None) -> Candidate:
+        return cls(name or Path(path).name, family, {"kind": "file", "path": str(Path(path).resolve())})
+
+
+@dataclass(frozen=True)
+class Family:
+    """The reduced models a trade builds (``--build``): POD of ``size`` vectors from the full
+    model at ``samples`` seeded Sobol' points of the box (``seed``; default 8, or the loads at
+    0.5, 1, 1.5 without parameters), Galerkin and hyper-reduced by ECSW at each τ of ``taus``."""
+
+    taus: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
+    size: int = 20
+    samples: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.taus:
+            raise ParameterError("--taus: give at least one ECSW tolerance")
+        for tau in self.taus:
+            checks.real("ECSW tolerance τ", tau)
+            if not 0 < tau < 1:
+                raise ParameterError(f"--taus: an ECSW tolerance τ lies in (0, 1) (got {tau!r})")
+        checks.integer("--size", self.size, minimum=1)
+        if self.samples is not None:
+            checks.integer("--samples", self.samples, minimum=1)
+        checks.integer("--seed", self.seed, minimum=0)
+        family_files(self.taus)  # no τ twice
 
 
 @dataclass
 class Trade:
     """What a trade measured: the points, the candidates' results by name (the reference's
-    too), the errors by quantity, the convergence, and the choice."""
+    too), their families and requests, the errors by quantity, the convergence, and the choice."""
 
     scene: str
     tolerance: float
@@ -79,6 +105,9 @@ class Trade:
     reference: str
     queries: int | None = None
     results: dict[str, dict] = field(default_factory=dict)
+    families: dict[str, str] = field(default_factory=dict)
+    requests: dict[str, dict] = field(default_factory=dict)
+    indicator_ratios: dict[str, float] = field(default_factory=dict)
     errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     convergence: dict[str, Convergence] = field(default_factory=dict)
     measured: list[Measured] = field(default_factory=list)
@@ -136,25 +165,49 @@ def trade(
     levels: int = 2,
     seed: int = 12345,
     full: Sequence[Candidate] | None = None,
+    build: Family | None = None,
+    comm: MPI.Comm = MPI.COMM_WORLD,
 ) -> Trade:
-    """Measure the scene's candidates (``full`` ones, default :func:`candidates`, and the model
-    files ``models``) against the reference on the trade's points and choose (see the
-    module's doc). ``cache``: lungmech's cache folder (default
-    :func:`lungmech.app.cache.default_folder`)."""
+    """Measure the scene's candidates (``full`` ones, default :func:`candidates`, the model
+    files ``models``, and the reduced models ``build`` names, built first) against the
+    reference on the trade's points and choose (see the module's doc). ``cache``: lungmech's
+    cache folder (default :func:`lungmech.app.cache.default_folder`). Collective."""
     quantities.expected_order(quantity, 1)  # the name's check
+    check_tolerance(tolerance)
+    checks.integer("--points", count, minimum=1)
+    if queries is not None:
+        checks.integer("--queries", queries, minimum=1)
     path = Path(scene_path).resolve()
     scene = scenes.load(path)
     made, reference, notes = candidates(scene, levels)
     if full is not None:
         made = list(full)
-    files = [Candidate.file(model, _family(model)) for model in models]
-    trained = [point for model in models for point in _training(model)]
+    for model in models:
+        _check_model(model, scene, comm)
+    store_root = Cache(cache if cache is not None else default_folder(), comm)
+    built = _built(scene, build, store_root, comm) if build is not None else {}
+    files = [*models, *built.values()]
+    files_as = [Candidate.file(model, _family(model)) for model in models]
+    files_as += [Candidate.file(file, _family(file), name) for name, file in built.items()]
+    trained = [point for model in files for point in _training(model)]
     points = validation_points(Parameters(scene.parameters), count, seed, trained)
     times = None if quantity == "pv" else [peak_time(scene)]
     found = Trade(str(path), tolerance, quantity, points, times, reference.name, queries, notes=notes)
-    cache_root = str(Path(cache).expanduser().resolve() if cache is not None else default_folder())
-    for candidate in [reference, *made, *files]:
-        found.results[candidate.name] = _measured(path, candidate, points, times, cache_root)
+    for candidate in [reference, *made, *files_as]:
+        request = {
+            "scene": str(path),
+            "candidate": candidate.request,
+            "points": points.points,
+            "times": times,
+            "cache": str(store_root.root),
+            "timed": candidate is not reference,
+        }
+        result = apart(request, comm)
+        if "error" in result:
+            raise LungmechError(f"candidate {candidate.name}: {result['error']}")
+        found.results[candidate.name] = result
+        found.families[candidate.name] = candidate.family
+        found.requests[candidate.name] = candidate.request
     made = [candidate for candidate in made if not _same_as_scene_mesh(found, candidate, scene)]
     failed = [i for i, a in enumerate(found.results[reference.name]["answers"]) if a["failed"] is not None]
     if failed:
@@ -162,8 +215,35 @@ def trade(
             f"the reference failed at {len(failed)} of {len(points)} points (no model is judged there: each counts "
             f"as failed): {', '.join(f'{points.kinds[i]} {points.points[i]}' for i in failed)}"
         )
-    _judge(found, scene, [reference, *made, *files], levels)
+    _judge(found, scene, [reference, *made, *files_as], levels)
     return found
+
+
+def _check_model(path: str | Path, scene: scenes.Scene, comm: MPI.Comm) -> None:
+    """Refuse a model file that is not a model of the scene's physics (in one line)."""
+    if not Path(path).is_file():
+        raise ParameterError(f"--models: '{path}' is not a file")
+    content = store.read_on_root(path, comm)
+    with embedded_scene(path, comm, content=content) as built:
+        check_physics(Path(path), scenes.physics(built), scene)
+
+
+def _built(scene: scenes.Scene, family: Family, cache: Cache, comm: MPI.Comm) -> dict[str, Path]:
+    """The family's model files by name ("POD Galerkin", "POD ECSW τ=0.0001", …), built into the
+    cache once per content (the scene's every setting and file, the family, the code). Collective."""
+    content = {
+        "scene": scene.table,
+        "physics": scenes.physics(scene),
+        "files": {name: scenes.file_sha256(file) for name, file in embedded_names(scene).items()},
+        "family": asdict(family),
+        "code": code_version((*SOLVING, "app")),  # the build's own code (app.reduce) too
+    }
+
+    def fill(folder: Path) -> None:
+        build_family(scene, folder, family.taus, family.size, family.samples, family.seed, comm)
+
+    folder = cache.folder("models", key(content), fill)
+    return {name: folder / file for name, file in family_files(family.taus).items()}
 
 
 def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene) -> bool:
@@ -210,36 +290,6 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
     convergence = found.convergence.get(found.quantity)
     accuracy = None if convergence is None or convergence.estimate is None else convergence.estimate
     found.choice = choose(found.measured, found.tolerance, found.quantity, found.queries, accuracy)
-
-
-def _measured(
-    scene: Path, candidate: Candidate, points: ValidationPoints, times: list[float] | None, cache: str
-) -> dict:
-    """The candidate measured in a process of its own (:mod:`lungmech.app.measure`)."""
-    request = {
-        "scene": str(scene),
-        "candidate": candidate.request,
-        "points": points.points,
-        "times": times,
-        "cache": cache,
-    }
-    with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
-        asked, told = Path(folder) / "request.json", Path(folder) / "result.json"
-        asked.write_text(json.dumps(request))
-        command = [sys.executable, "-m", "lungmech.app.measure", str(asked), str(told)]
-        try:
-            done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
-        except KeyboardInterrupt:
-            raise Interrupted(2) from None
-        if done.returncode in (130, -2):
-            raise Interrupted(2)
-        if done.returncode in (143, -15):
-            raise Interrupted(15)
-        result = json.loads(told.read_text()) if told.is_file() else None
-    if result is None or "error" in result:
-        why = result["error"] if result else (done.stderr.strip().splitlines() or ["no result"])[-1]
-        raise LungmechError(f"candidate {candidate.name}: {why}")
-    return result
 
 
 def _family(path: str | Path) -> str:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from lungmech import checks
 from lungmech.errors import ParameterError
 
-__all__ = ["Choice", "Measured", "choose"]
+__all__ = ["Choice", "Measured", "check_tolerance", "choose"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,13 @@ class Choice:
     reason: str
 
 
+def check_tolerance(tolerance: float) -> None:
+    """Refuse a tolerance that is no relative error in (0, 1), in one line."""
+    checks.real("tolerance", tolerance)
+    if not 0 < tolerance < 1:
+        raise ParameterError(f"the tolerance (a relative error) must lie in (0, 1) (got {tolerance!r})")
+
+
 def choose(
     candidates: Sequence[Measured],
     tolerance: float,
@@ -61,9 +68,7 @@ def choose(
     ``quantity`` (its name, for the reason), its cost over ``queries`` queries when given; see
     the module's doc. ``reference_accuracy``: the reference's own relative error on the quantity
     (Richardson's estimate), where known."""
-    checks.real("tolerance", tolerance)
-    if not 0 < tolerance < 1:
-        raise ParameterError(f"the tolerance (a relative error) must lie in (0, 1) (got {tolerance!r})")
+    check_tolerance(tolerance)
     if queries is not None:
         checks.integer("queries", queries, minimum=1)
     if reference_accuracy is not None and tolerance <= reference_accuracy:

@@ -1,0 +1,146 @@
+"""``lungmech trade`` from the command line (lungmech.app.trade_cli): --build makes the Galerkin
+and hyper-reduced models by the one reductor into the cache; a loose tolerance chooses a
+hyper-reduced model, one that only a finer full model meets chooses that; OUT holds the table
+(md, csv, json), the Pareto plot and choice.json with the chosen model file, which rom solve
+answers with; bad requests are one line; the same errors on 1 and 2 ranks."""
+
+import csv
+import json
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+from trades import written
+
+from lungmech.app.cli import main
+from lungmech.app.ladder import Discretisation
+from lungmech.app.trade import Candidate, trade
+from lungmech.rom import store
+
+BUILD = ["--build", "--taus", "1e-2,1e-4", "--size", "6", "--samples", "4"]
+
+
+def traded(scene: Path, out: Path, cache: Path, tolerance: float, *extra: str) -> tuple[int, dict, list[dict]]:
+    code = main(
+        ["trade", str(scene), "--tolerance", f"{tolerance:g}", "--points", "2", "--cache", str(cache), "-o", str(out)]
+        + ["-q", *extra]
+    )
+    if code:
+        return code, {}, []
+    with open(out / "trade.csv") as stream:
+        table = list(csv.DictReader(stream))
+    return code, json.loads((out / "trade.json").read_text()), table
+
+
+@pytest.mark.serial
+@pytest.mark.slow
+def test_a_loose_tolerance_chooses_a_hyper_reduced_model_and_a_tight_one_a_full_model(tmp_path, capsys):
+    scene, cache = written(tmp_path), tmp_path / "cache"
+    code, loose, table = traded(scene, tmp_path / "loose", cache, 5e-2, *BUILD)
+    assert code == 0, capsys.readouterr().err
+    assert loose["reference"] == "full P1 h/4" and len(loose["points"]) == 4
+    assert [p["kind"] for p in loose["points"]].count("corner") == 2
+    assert loose["failure_bound_95"] == pytest.approx(1 - 0.05 ** (1 / 4))
+    assert set(loose["convergence"]) == {"volume", "probes"} and loose["convergence"]["volume"]["observed"] > 0
+    assert all(m["kept answers"] == 0 for m in loose["models"])  # a new cache: every answer solved
+    by_name = {row["model"]: row for row in table}
+    assert {"POD Galerkin", "POD ECSW τ=0.01", "POD ECSW τ=0.0001", "full P1 h", "full P2 h"} <= set(by_name)
+    errors = {name: float(row["volume error max [-]"]) for name, row in by_name.items() if row["family"] != "reference"}
+    for name, error in errors.items():  # measured against an independent finer reference: never zero
+        assert 0 < error < 0.2 and float(by_name[name]["online [ms]"]) > 0 and by_name[name]["failed points"] == "0"
+    meeting = [name for name, error in errors.items() if error <= 5e-2]
+    online = {name: float(by_name[name]["online [ms]"]) for name in meeting}
+    chosen = json.loads((tmp_path / "loose" / "choice.json").read_text())
+    assert chosen["model"]["name"] == min(online, key=online.get)  # the cheapest that meets it
+    assert chosen["model"]["family"] == "ecsw"
+    # a reduced model of the scene's mesh answers that mesh's problem: its error against the
+    # finer reference is the full model's on that mesh, to its own reduction error
+    assert errors["POD Galerkin"] == pytest.approx(errors["full P1 h"], rel=0.05)
+    assert errors["full P1 h/2"] < errors["full P1 h"]
+    # the built models record their cost, and no test point is one they were trained on
+    galerkin = by_name["POD Galerkin"]
+    assert float(galerkin["offline [s]"]) > 0 and int(galerkin["full solves"]) == 4
+    assert int(by_name["POD ECSW τ=0.01"]["full solves"]) == 8  # and ECSW's own training pass
+    metadata, _ = store.read_on_root(tmp_path / "loose" / "model.npz", MPI.COMM_SELF, arrays=False)
+    trained = [point["stiffness"] for point in metadata["extra"]["reduced"]["training"]]
+    tested = [point["values"]["stiffness"] for point in loose["points"]]
+    assert len(trained) == 4 and not set(trained) & set(tested)
+    assert (tmp_path / "loose" / "model.npz").read_bytes() == Path(chosen["model"]["built_from"]).read_bytes()
+    for name in ("trade.md", "trade.png"):
+        assert (tmp_path / "loose" / name).stat().st_size > 0
+    assert "| **POD ECSW" in (tmp_path / "loose" / "trade.md").read_text()
+    # the chosen model file answers rom solve, as measured
+    solved = tmp_path / "solved"
+    point = loose["points"][0]["values"]
+    assert (
+        main(
+            ["rom", "solve", str(tmp_path / "loose" / "model.npz"), "--at", "1", "-q", "-o", str(solved)]
+            + [f"--set=stiffness={point['stiffness']!r}"]
+        )
+        == 0
+    )
+    # a tolerance only the finer full models meet: a full model, every solve and model kept
+    tight = 0.5 * (errors["full P1 h/2"] + errors["full P2 h"])
+    assert tight < min(errors[name] for name in errors if not name.startswith("full P"))
+    code, again, table = traded(scene, tmp_path / "tight", cache, tight, *BUILD)
+    assert code == 0, capsys.readouterr().err
+    chosen = json.loads((tmp_path / "tight" / "choice.json").read_text())
+    assert chosen["model"]["family"] == "full" and chosen["model"]["worst_error"] <= tight
+    assert chosen["model"]["name"] == "full P2 h"
+    assert not (tmp_path / "tight" / "model.npz").exists()
+    assert len(list((cache / "models").iterdir())) == 1  # built once
+    assert [m["errors"] for m in again["models"]] == [m["errors"] for m in loose["models"]]
+    assert all(
+        m["kept answers"] == len(again["points"]) for m in again["models"] if m["family"] in ("full", "reference")
+    )
+    out = capsys.readouterr().out
+    assert "* full P2 h" in out and "choice: full P2 h" in out
+
+
+@pytest.mark.serial
+def test_bad_trade_requests_are_one_line(tmp_path, capsys):
+    scene = written(tmp_path)
+    cache = str(tmp_path / "cache")
+    cases = [
+        (["--tolerance", "0"], "tolerance"),
+        (["--tolerance", "nan"], "tolerance"),
+        (["--tolerance", "1e-2", "--quantity", "speed"], "--quantity"),
+        (["--tolerance", "1e-2", "--points", "0"], "--points"),
+        (["--tolerance", "1e-2", "--queries", "0"], "--queries"),
+        (["--tolerance", "1e-2", "--samples", "4"], "--build"),
+        (["--tolerance", "1e-2", "--build", "--taus", "1e-3,1e-3"], "twice"),
+        (["--tolerance", "1e-2", "--build", "--taus", "2"], "--taus"),
+        (["--tolerance", "1e-2", "--models", str(tmp_path / "missing.npz")], "missing.npz"),
+        (["--tolerance", "1e-2", "--models", str(scene)], "sphere.toml"),
+        (["--tolerance", "1e-2", "-o", "."], "current folder"),
+        (["--tolerance", "1e-2", "--levels", "0"], "--levels"),
+    ]
+    for arguments, named in cases:
+        code = main(["trade", str(scene), "--cache", cache, "-o", str(tmp_path / "out"), *arguments])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and named in err[0], (arguments, err)
+        assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+def test_the_same_errors_on_one_and_two_ranks(tmp_path):
+    """Each candidate measured on two spawned ranks, and on one (rank 0's own trade): the same
+    answers to the solvers' tolerances."""
+    comm = MPI.COMM_WORLD
+    scene = written(tmp_path)
+    full = [Candidate.full(Discretisation(0, 1))]
+    both = trade(scene, 5e-2, count=1, cache=tmp_path / "two", levels=1, full=full, comm=comm)
+    alone = comm.Split(comm.rank)
+    one = (
+        trade(scene, 5e-2, count=1, cache=tmp_path / "one", levels=1, full=full, comm=alone) if comm.rank == 0 else None
+    )
+    one = comm.bcast(one, root=0)
+    assert both.results["full P1 h"]["ranks"] == comm.size and one.results["full P1 h"]["ranks"] == 1
+    for name in ("full P1 h/2", "full P1 h"):
+        for a, b in zip(both.results[name]["answers"], one.results[name]["answers"], strict=True):
+            np.testing.assert_allclose(a["volume"], b["volume"], rtol=1e-8)
+    np.testing.assert_allclose(both.errors["full P1 h"]["volume"], one.errors["full P1 h"]["volume"], rtol=1e-5)
+    alone.Free()
