@@ -1,4 +1,5 @@
-"""One solve of many, and its answer: the unit of work of a trade (and of the ensembles next).
+"""One solve of many, and its answer: the unit of work of a trade and of the ensembles that run it
+(:mod:`lungmech.parallel.ensemble`: :func:`solved` is the work every mode runs alike).
 
 A :class:`Task` is serialisable — the scene's file, the parameter values μ, the
 discretisation, the output times — so that any process can run it the same way. Its answer is
@@ -16,15 +17,18 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from mpi4py import MPI
+
 import numpy as np
 
+from lungmech.app import scene as scenes
 from lungmech.app.cache import Cache, code_version, key
-from lungmech.app.ladder import Discretisation
+from lungmech.app.ladder import Discretisation, at
 from lungmech.app.scene import Scene, file_sha256, physics
 from lungmech.errors import LungmechError
 from lungmech.fem.parametric import ParametricModel
 
-__all__ = ["Task", "answer", "content", "kept_answer"]
+__all__ = ["Task", "answer", "content", "forget", "kept_answer", "solved"]
 
 
 @dataclass(frozen=True)
@@ -118,3 +122,39 @@ def kept_answer(cache: Cache, scene: Scene, task: Task, model: Callable[[], Para
     found = answer(model(), task.values, task.times)
     cache.write_json("answers", name, found)
     return found, False
+
+
+def solved(task: Task, comm: MPI.Comm, cache: str) -> dict:
+    """The full-order answer to ``task`` on ``comm``, from lungmech's cache folder ``cache`` or
+    solved and kept there (``kept`` says which): the work of an ensemble
+    (:mod:`lungmech.parallel.ensemble`). The model of a process's last scene and
+    discretisation is kept for its next task. Collective."""
+    kept = Cache(cache, comm)
+    scene = scenes.load(task.scene)
+    found, was_kept = kept_answer(kept, scene, task, lambda: _model(scene, task, kept, comm))
+    return found | {"kept": was_kept}
+
+
+class _Last:
+    """The model of a process's last (scene, discretisation), on its communicator."""
+
+    which: tuple | None = None
+    comm: MPI.Comm | None = None
+    model: ParametricModel | None = None
+
+
+def _model(scene: Scene, task: Task, cache: Cache, comm: MPI.Comm) -> ParametricModel:
+    from lungmech.app.run import full_order_model
+
+    which = (task.scene, task.discretisation)
+    if _Last.model is None or _Last.which != which or _Last.comm is not comm:
+        forget()
+        model = full_order_model(at(scene, task.discretisation, cache, comm), comm, start="inverse_motion")
+        _Last.which, _Last.comm, _Last.model = which, comm, model
+    assert _Last.model is not None
+    return _Last.model
+
+
+def forget() -> None:
+    """Drop the model :func:`solved` keeps (before its communicator is freed, say)."""
+    _Last.which = _Last.comm = _Last.model = None

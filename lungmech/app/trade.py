@@ -21,9 +21,11 @@ solves the whole path.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +34,7 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech import checks
+from lungmech.app import answers
 from lungmech.app import scene as scenes
 from lungmech.app.cache import SOLVING, Cache, code_version, default_folder, key
 from lungmech.app.ladder import Discretisation, remeshed
@@ -40,6 +43,7 @@ from lungmech.app.model_file import embedded_names
 from lungmech.app.reduce import build_family, check_physics, embedded_scene, family_files
 from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.parameters import Parameters
+from lungmech.parallel.ensemble import Ensemble, Serial
 from lungmech.rom import store
 from lungmech.trade import quantities
 from lungmech.trade.choice import Choice, Measured, check_tolerance, choose
@@ -47,6 +51,8 @@ from lungmech.trade.convergence import Convergence, observed_order
 from lungmech.trade.points import ValidationPoints, validation_points
 
 __all__ = ["Candidate", "Family", "Trade", "candidates", "peak_time", "trade"]
+
+log = logging.getLogger("lungmech")
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,8 @@ class Trade:
     times: list[float] | None
     reference: str
     queries: int | None = None
+    ensemble: str = ""
+    full_solves: dict[str, int] = field(default_factory=dict)  # "solved" here and "kept" from before
     results: dict[str, dict] = field(default_factory=dict)
     families: dict[str, str] = field(default_factory=dict)
     requests: dict[str, dict] = field(default_factory=dict)
@@ -167,11 +175,14 @@ def trade(
     full: Sequence[Candidate] | None = None,
     build: Family | None = None,
     comm: MPI.Comm = MPI.COMM_WORLD,
+    ensemble: Ensemble | None = None,
 ) -> Trade:
     """Measure the scene's candidates (``full`` ones, default :func:`candidates`, the model
     files ``models``, and the reduced models ``build`` names, built first) against the
     reference on the trade's points and choose (see the module's doc). ``cache``: lungmech's
-    cache folder (default :func:`lungmech.app.cache.default_folder`). Collective."""
+    cache folder (default :func:`lungmech.app.cache.default_folder`). The full solves run on
+    ``ensemble`` (default: :class:`~lungmech.parallel.ensemble.Serial` on ``comm``) into the
+    cache, before each candidate is measured. Collective."""
     quantities.expected_order(quantity, 1)  # the name's check
     check_tolerance(tolerance)
     checks.integer("--points", count, minimum=1)
@@ -192,7 +203,11 @@ def trade(
     trained = [point for model in files for point in _training(model)]
     points = validation_points(Parameters(scene.parameters), count, seed, trained)
     times = None if quantity == "pv" else [peak_time(scene)]
-    found = Trade(str(path), tolerance, quantity, points, times, reference.name, queries, notes=notes)
+    engine = ensemble if ensemble is not None else Serial(comm)
+    found = Trade(
+        str(path), tolerance, quantity, points, times, reference.name, queries, engine.description, notes=notes
+    )
+    _solve_all(found, path, [reference, *made], engine, str(store_root.root))
     for candidate in [reference, *made, *files_as]:
         request = {
             "scene": str(path),
@@ -217,6 +232,27 @@ def trade(
         )
     _judge(found, scene, [reference, *made, *files_as], levels)
     return found
+
+
+def _solve_all(found: Trade, scene: Path, full: Sequence[Candidate], engine: Ensemble, cache: str) -> None:
+    """Every full candidate's answer at every point, solved on ``engine`` into the cache (the
+    costliest first, so that groups share the work evenly); a solve that failed outside the
+    solver is noted (its candidate's measurement fails the same way and says so)."""
+    times = None if found.times is None else tuple(found.times)
+    work = [
+        answers.Task(str(scene), point, Discretisation(**candidate.request["discretisation"]), times)
+        for candidate in full
+        for point in found.points.points
+    ]
+    work.sort(key=lambda task: 8.0**task.discretisation.level * 8.0 ** (task.discretisation.degree - 1), reverse=True)
+    log.info("lungmech: %d full solves (%s)", len(work), engine.description)
+    outcomes = engine.map(partial(answers.solved, cache=cache), work, lambda line: log.info("trade: %s", line))
+    answers.forget()
+    kept = sum(bool(outcome.value and outcome.value["kept"]) for outcome in outcomes)
+    found.full_solves = {"solved": len(work) - kept, "kept": kept}
+    for task, outcome in zip(work, outcomes, strict=True):
+        if outcome.failed is not None:
+            found.notes.append(f"full {task.discretisation.name} at {task.values}: {outcome.failed}")
 
 
 def _check_model(path: str | Path, scene: scenes.Scene, comm: MPI.Comm) -> None:

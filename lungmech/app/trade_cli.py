@@ -73,6 +73,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "full candidate (h and its refinements down to h/2^(levels-1), 2h, P2 on h)",
     )
     trade.add_argument(
+        "--group-size",
+        type=int,
+        default=None,
+        metavar="K",
+        help="under mpiexec -n P: run the full solves in P/K groups of K ranks, each solving its own points "
+        "(default: every solve on all P ranks)",
+    )
+    trade.add_argument(
         "--cache", default=None, help="lungmech's cache folder (default $LUNGMECH_CACHE or ~/.cache/lungmech)"
     )
     trade.add_argument(
@@ -90,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from lungmech.errors import ParameterError
     from lungmech.parallel import on_root
     from lungmech.parallel.destination import hold_signals_until_swap, output_folder
+    from lungmech.parallel.ensemble import Groups, Serial
     from lungmech.trade.choice import check_tolerance
 
     check_tolerance(args.tolerance)
@@ -97,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     family = Family(tuple(args.taus), args.size, args.samples) if args.build else None
     if not args.build and (args.samples is not None or args.size != 20):
         raise ParameterError("--size and --samples shape the models --build makes: give --build")
+    ensemble = Groups(args.group_size, comm) if args.group_size is not None else Serial(comm)
     output = Path(args.output if args.output is not None else RESULTS / f"{path.stem}-trade")
     if comm.rank == 0:
         print(f"lungmech: trading the models of {name} at {args.tolerance:g} on {args.quantity}", flush=True)
@@ -113,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
             args.seed,
             build=family,
             comm=comm,
+            ensemble=ensemble,
         )
         hold_signals_until_swap()
         on_root(comm, lambda: trade_report.write(found, staging, "lungmech " + shlex.join(args.argv)))

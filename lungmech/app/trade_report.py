@@ -88,6 +88,8 @@ def summary(found: Trade) -> dict[str, Any]:
         "quantity": found.quantity,
         "denominator": quantities.DENOMINATORS[found.quantity],
         "queries": found.queries,
+        "full_solves_on": found.ensemble,
+        "full_solves": found.full_solves,
         "output_times_s": found.times,
         "reference": found.reference,
         "points": [
@@ -103,7 +105,6 @@ def summary(found: Trade) -> dict[str, Any]:
             | {
                 "errors": {q: _listed(v) for q, v in found.errors.get(row["model"], {}).items()},
                 "failures": [a["failed"] for a in found.results[row["model"]]["answers"]],
-                "kept answers": sum(found.results[row["model"]].get("kept", [])),
                 "ranks": found.results[row["model"]].get("ranks"),
             }
             for row in rows(found)
@@ -136,6 +137,11 @@ def markdown(found: Trade, command: str = "") -> str:
     for q, c in found.convergence.items():
         estimate = f"; the reference's own error ≈ {c.estimate:.1e} (Richardson)" if c.estimate is not None else ""
         lines.append(f"- Observed order of {q}: {c.observed:.2f} (expected {c.expected:g}){estimate}.")
+    solves = found.full_solves
+    lines.append(
+        f"- Full solves: {solves.get('solved', 0)} solved ({found.ensemble}), {solves.get('kept', 0)} found in the "
+        "cache; each candidate then measured in a process of its own."
+    )
     if command:
         lines.append(f"- Command: `{command}`")
     lines += ["", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]

@@ -1,0 +1,263 @@
+"""Many independent tasks, one interface, three ways to run them.
+
+A task is serialisable data; ``work(task, comm)`` solves it on the communicator it is given and
+returns something JSON-like (a full solve's answer, say). :meth:`Ensemble.map` runs every task
+and returns an :class:`Outcome` per task, in their order: its value, or why it failed, in one
+line. A failing task never stops the others, in any mode.
+
+* :class:`Serial` — every task in this process, one after another, on the whole communicator
+  (the default: a single machine, or a run already under ``mpiexec`` whose every solve is
+  parallel).
+* :class:`Groups` — inside one ``mpiexec -n P``: the world split into P/k groups of k ranks
+  (``comm.Split``, the ensemble pattern of Firedrake's ``Ensemble``), each group solving its
+  own tasks, dealt round-robin in the order given (give the costliest first); every rank gets
+  every outcome. A process that dies ends the run (MPI's rule); the tasks' own results, kept
+  by the caller (lungmech's cache), make a rerun resume.
+* :class:`Pool` — an existing engine's :class:`concurrent.futures.Executor` whose workers may
+  be k-rank MPI jobs (executorlib's, on this machine or through Slurm or Flux): each task is
+  submitted as ``run_task(work, task)``, which solves it on the worker's communicator; a task
+  whose worker died is submitted once more.
+
+Each worker's BLAS and OpenMP threads are capped to one per rank before it starts
+(:func:`one_thread_per_rank`): threaded dense algebra competing for cores slows a solve far
+more than the oversubscription factor (an ECSW build took 14× longer under a load of 2–8).
+
+Progress: one line for the ensemble, on the first rank — tasks done of the total, failures and
+the time left at the pace so far.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar, cast
+
+from mpi4py import MPI
+
+from lungmech.errors import Interrupted, LungmechError, ParameterError
+
+__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "one_thread_per_rank", "run_task"]
+
+T = TypeVar("T")
+R = TypeVar("R")
+Work = Callable[[T, MPI.Comm], R]
+
+
+@dataclass(frozen=True)
+class Outcome(Generic[R]):
+    """A task's value, or why it failed (one line; then ``value`` is None)."""
+
+    value: R | None
+    failed: str | None = None
+
+
+class Ensemble(ABC):
+    """Runs independent tasks (see the module's doc)."""
+
+    @abstractmethod
+    def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
+        """An :class:`Outcome` per task, in their order; ``progress`` receives one line per task
+        done. Collective over the ensemble's communicator."""
+
+    @property
+    @abstractmethod
+    def description(self) -> str:
+        """How it runs, for a report ("serial on 2 ranks", "2 groups of 1 rank", …)."""
+
+
+class Serial(Ensemble):
+    """Every task on the whole ``comm``, one after another, in this process."""
+
+    def __init__(self, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+        self.comm = comm
+
+    @property
+    def description(self) -> str:
+        return f"serial on {self.comm.size} rank{'s' * (self.comm.size > 1)}"
+
+    def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
+        pace = Pace(len(tasks), progress if self.comm.rank == 0 else None)
+        outcomes = []
+        for task in tasks:
+            outcomes.append(attempt(work, task, self.comm))
+            pace.done(outcomes[-1])
+        return outcomes
+
+
+class Groups(Ensemble):
+    """The world ``comm`` split into groups of ``size`` ranks, each solving its share of the
+    tasks (round-robin in their order) on its group's communicator. Collective over ``comm``."""
+
+    def __init__(self, size: int = 1, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1 or comm.size % size:
+            raise ParameterError(
+                f"--group-size: groups of k ranks must divide the {comm.size} ranks of the run (got {size!r})"
+            )
+        self.comm, self.size = comm, size
+        self.count = comm.size // size
+        self.group = comm.Split(comm.rank // size, comm.rank)
+
+    @property
+    def description(self) -> str:
+        return f"{self.count} group{'s' * (self.count > 1)} of {self.size} rank{'s' * (self.size > 1)}"
+
+    def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
+        colour = self.comm.rank // self.size
+        mine = range(colour, len(tasks), self.count)
+        counter = _Counter(cast(MPI.Intracomm, self.comm))
+        pace = Pace(len(tasks), progress if self.comm.rank == 0 else None)
+        found = {}
+        for index in mine:
+            found[index] = attempt(work, tasks[index], self.group)
+            finished = counter.add(found[index].failed is not None) if self.group.rank == 0 else None
+            if self.comm.rank == 0 and finished is not None:
+                pace.report(*finished)
+        counter.free()
+        gathered = self.comm.allgather(found if self.group.rank == 0 else {})
+        outcomes = {index: outcome for part in gathered for index, outcome in part.items()}
+        pace.report(len(tasks), sum(outcome.failed is not None for outcome in outcomes.values()))
+        return [outcomes[index] for index in range(len(tasks))]
+
+    def free(self) -> None:
+        """Free the groups' communicator (collective)."""
+        self.group.Free()
+
+
+class Pool(Ensemble):
+    """Tasks submitted to ``executor`` (a :class:`concurrent.futures.Executor` of an existing
+    engine, its workers possibly MPI jobs), with ``options`` passed to each ``submit`` (e.g.
+    executorlib's ``resource_dict={"cores": k}``). A task whose worker died — an exception
+    that is not the task's own failure — is submitted ``retries`` times more. Runs on the
+    caller's rank; give it a one-rank caller."""
+
+    def __init__(self, executor: concurrent.futures.Executor, options: dict | None = None, retries: int = 1) -> None:
+        self.executor, self.options, self.retries = executor, dict(options or {}), retries
+
+    @property
+    def description(self) -> str:
+        cores = (self.options.get("resource_dict") or {}).get("cores", 1)
+        return f"{type(self.executor).__name__} workers of {cores} rank{'s' * (cores > 1)}"
+
+    def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
+        pace = Pace(len(tasks), progress)
+        futures = {self._submit(work, task): (index, 0) for index, task in enumerate(tasks)}
+        outcomes: dict[int, Outcome] = {}
+        try:
+            while futures:
+                done, _ = concurrent.futures.wait(futures, return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in done:
+                    index, tries = futures.pop(future)
+                    try:
+                        outcome = _first(future.result())
+                    except Exception as error:  # the worker, not the task: the task's own errors are outcomes
+                        if tries < self.retries:
+                            futures[self._submit(work, tasks[index])] = (index, tries + 1)
+                            continue
+                        outcome = Outcome(None, f"its worker failed {tries + 1}× ({_line(error)})")
+                    outcomes[index] = outcome
+                    pace.done(outcome)
+        except KeyboardInterrupt:
+            raise Interrupted(2) from None
+        finally:
+            for future in futures:
+                future.cancel()
+        return [outcomes[index] for index in range(len(tasks))]
+
+    def _submit(self, work: Work, task: Any) -> concurrent.futures.Future:
+        return self.executor.submit(run_task, work, task, **self.options)
+
+
+def run_task(work: Work, task: Any) -> Outcome:
+    """``work(task, comm)`` on a worker, ``comm`` its world (a k-rank MPI job's k ranks), its
+    threads capped first: what :class:`Pool` submits."""
+    one_thread_per_rank()
+    return attempt(work, task, MPI.COMM_WORLD)
+
+
+def attempt(work: Work, task: Any, comm: MPI.Comm) -> Outcome:
+    """``work(task, comm)`` as an :class:`Outcome`: a lungmech error, or any other exception
+    (a bug, a library's error), is the task's failure in one line; an interrupt is not."""
+    try:
+        return Outcome(work(task, comm))
+    except (Interrupted, KeyboardInterrupt):
+        raise
+    except LungmechError as error:
+        return Outcome(None, _line(error))
+    except Exception as error:
+        return Outcome(None, f"{type(error).__name__}: {_line(error)}")
+
+
+def one_thread_per_rank() -> None:
+    """Cap this process's BLAS and OpenMP thread pools to one thread (threadpoolctl), where
+    the user did not set them: a worker's rank owns one core."""
+    import os
+
+    from threadpoolctl import threadpool_limits
+
+    if not any(os.environ.get(name) for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")):
+        threadpool_limits(limits=1)
+
+
+class Pace:
+    """The ensemble's progress line: tasks done of ``total``, failures, the time left."""
+
+    def __init__(self, total: int, say: Callable[[str], None] | None) -> None:
+        self.total, self.say = total, say
+        self.started = time.perf_counter()
+        self.finished = self.failures = 0
+
+    def done(self, outcome: Outcome) -> None:
+        self.report(self.finished + 1, self.failures + (outcome.failed is not None))
+
+    def report(self, finished: int, failures: int) -> None:
+        self.finished, self.failures = finished, failures
+        if self.say is None:
+            return
+        spent = time.perf_counter() - self.started
+        left = spent / finished * (self.total - finished) if finished else float("nan")
+        failed = f", {failures} failed" if failures else ""
+        self.say(f"{finished}/{self.total} solves done{failed}, about {_duration(left)} left")
+
+
+class _Counter:
+    """Tasks finished and failed over every group: two integers in the world's first rank's
+    memory, added to by each group's first rank (one-sided, atomic)."""
+
+    def __init__(self, comm: MPI.Intracomm) -> None:
+        import numpy as np
+
+        self.np = np
+        self.memory = np.zeros(2, dtype=np.int64) if comm.rank == 0 else None
+        self.window = MPI.Win.Create(self.memory, comm=comm) if comm.rank == 0 else MPI.Win.Create(None, comm=comm)
+
+    def add(self, failed: bool) -> tuple[int, int]:
+        """Add one finished task (and a failure) and return the totals after it."""
+        np = self.np
+        before = np.zeros(2, dtype=np.int64)
+        self.window.Lock(0, MPI.LOCK_SHARED)
+        self.window.Fetch_and_op(np.array([1], dtype=np.int64), before[:1], 0, 0, MPI.SUM)
+        self.window.Fetch_and_op(np.array([int(failed)], dtype=np.int64), before[1:], 0, 1, MPI.SUM)
+        self.window.Unlock(0)
+        return int(before[0]) + 1, int(before[1]) + int(failed)
+
+    def free(self) -> None:
+        self.window.Free()
+
+
+def _first(result: Any) -> Outcome:
+    """A k-rank worker's outcome: its first rank's (an engine returns one per rank)."""
+    return result[0] if isinstance(result, list) else result
+
+
+def _line(error: BaseException) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def _duration(seconds: float) -> str:
+    if seconds != seconds:  # nan: no pace yet
+        return "?"
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
