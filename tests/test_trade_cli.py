@@ -2,7 +2,7 @@
 and hyper-reduced models by the one reductor into the cache; a loose tolerance chooses a
 hyper-reduced model, one that only a finer full model meets chooses that; OUT holds the table
 (md, csv, json), the Pareto plot and choice.json with the chosen model file, which rom solve
-answers with; bad requests are one line; the same errors on 1 and 2 ranks."""
+answers with; bad requests are one line; the same table on 1 rank, 2 ranks and 2 groups."""
 
 import csv
 import json
@@ -17,6 +17,7 @@ from trades import written
 from lungmech.app.cli import main
 from lungmech.app.ladder import Discretisation
 from lungmech.app.trade import Candidate, trade
+from lungmech.parallel.ensemble import Groups
 from lungmech.rom import store
 
 BUILD = ["--build", "--taus", "1e-2,1e-4", "--size", "6", "--samples", "4"]
@@ -124,21 +125,29 @@ def test_bad_trade_requests_are_one_line(tmp_path, capsys):
 
 @pytest.mark.mpi
 @pytest.mark.slow
-def test_the_same_errors_on_one_and_two_ranks(tmp_path):
-    """Each candidate measured on two spawned ranks, and on one (rank 0's own trade): the same
-    answers to the solvers' tolerances."""
+def test_the_same_table_on_one_rank_two_ranks_and_two_groups(tmp_path):
+    """The full solves on two ranks, in two groups of one rank, and on one rank (rank 0's own
+    trade); each candidate measured on the trade's ranks: the same answers — bitwise between
+    the groups and one rank, to the solvers' tolerances on two ranks."""
     comm = MPI.COMM_WORLD
     scene = written(tmp_path)
     full = [Candidate.full(Discretisation(0, 1))]
     both = trade(scene, 5e-2, count=1, cache=tmp_path / "two", levels=1, full=full, comm=comm)
+    groups = Groups(1, comm)
+    dealt = trade(scene, 5e-2, count=1, cache=tmp_path / "groups", levels=1, full=full, comm=comm, ensemble=groups)
+    groups.free()
     alone = comm.Split(comm.rank)
     one = (
         trade(scene, 5e-2, count=1, cache=tmp_path / "one", levels=1, full=full, comm=alone) if comm.rank == 0 else None
     )
+    alone.Free()
     one = comm.bcast(one, root=0)
     assert both.results["full P1 h"]["ranks"] == comm.size and one.results["full P1 h"]["ranks"] == 1
+    assert dealt.ensemble == "2 groups of 1 rank" and one.ensemble == "serial on 1 rank"
     for name in ("full P1 h/2", "full P1 h"):
-        for a, b in zip(both.results[name]["answers"], one.results[name]["answers"], strict=True):
-            np.testing.assert_allclose(a["volume"], b["volume"], rtol=1e-8)
+        for a, b, c in zip(one.results[name]["answers"], dealt.results[name]["answers"], both.results[name]["answers"]):
+            assert a["volume"] == b["volume"] and a["probes"] == b["probes"]
+            np.testing.assert_allclose(c["volume"], a["volume"], rtol=1e-8)
+    np.testing.assert_array_equal(dealt.errors["full P1 h"]["volume"], one.errors["full P1 h"]["volume"])
     np.testing.assert_allclose(both.errors["full P1 h"]["volume"], one.errors["full P1 h"]["volume"], rtol=1e-5)
-    alone.Free()
+    assert one.choice.chosen.name == dealt.choice.chosen.name == both.choice.chosen.name
