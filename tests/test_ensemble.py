@@ -3,6 +3,7 @@ groups of ranks, give the same answers (bitwise for groups of one rank, to 1e-9 
 of two); a failing task is reported for its point and the others go on."""
 
 from functools import partial
+from pathlib import Path
 
 from mpi4py import MPI
 
@@ -86,3 +87,42 @@ def test_an_interrupt_is_not_a_failed_task():
 
     with pytest.raises(KeyboardInterrupt):
         attempt(interrupted, 1, MPI.COMM_WORLD)
+
+
+def dies(task: tuple[str, bool], comm: MPI.Comm) -> str:
+    """Kill this process — the first time (its marker file absent), or ``always``: a lost worker."""
+    import os
+    import signal
+
+    marker, always = task
+    if always or not os.path.exists(marker):
+        open(marker, "w").close()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return f"{comm.size} rank(s), on the second try"
+
+
+@pytest.mark.serial
+@pytest.mark.slow
+def test_parsl_workers_answer_as_the_serial_solves_and_a_lost_worker_retries(tmp_path, monkeypatch):
+    """Parsl's local pool: 2 workers of 1 rank give the one-rank answers bitwise, 1 worker of
+    2 ranks to 1e-9; a task whose process is killed is submitted once more; a task that
+    always dies is reported failed, the others go on."""
+    from lungmech.parallel.engine import local_pool
+
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # the workers import this file's functions
+    work = tasks(tmp_path)
+    serial = Serial(MPI.COMM_SELF).map(partial(answers.solved, cache=str(tmp_path / "serial")), work)
+    answers.forget()
+    with local_pool(2, 1) as pool:
+        assert pool.description == "Parsl, 2 workers of 1 rank"
+        dealt = pool.map(partial(answers.solved, cache=str(tmp_path / "pool")), work)
+        lost = pool.map(dies, [(str(tmp_path / "once"), False), (str(tmp_path / "always"), True)])
+    for a, b in zip(serial[:4], dealt[:4], strict=True):
+        assert a.value["volume"] == b.value["volume"] and a.value["probes"] == b.value["probes"]
+    assert "missing.toml" in dealt[4].failed
+    assert lost[0].value == "1 rank(s), on the second try"
+    assert lost[1].value is None and lost[1].failed.startswith("its worker failed 2×")
+    with local_pool(1, 2) as pool:
+        wide = pool.map(partial(answers.solved, cache=str(tmp_path / "wide")), work[:2])
+    for a, b in zip(serial[:2], wide, strict=True):
+        np.testing.assert_allclose(b.value["volume"], a.value["volume"], rtol=1e-9)

@@ -115,6 +115,10 @@ def test_bad_trade_requests_are_one_line(tmp_path, capsys):
         (["--tolerance", "1e-2", "--models", str(scene)], "sphere.toml"),
         (["--tolerance", "1e-2", "-o", "."], "current folder"),
         (["--tolerance", "1e-2", "--levels", "0"], "--levels"),
+        (["--tolerance", "1e-2", "--engine", "parsl", "--group-size", "1"], "--engine"),
+        (["--tolerance", "1e-2", "--workers", "3"], "--engine parsl"),
+        (["--tolerance", "1e-2", "--engine", "parsl", "--workers", "64"], "cores"),
+        (["--tolerance", "1e-2", "--group-size", "0"], "--group-size"),
     ]
     for arguments, named in cases:
         code = main(["trade", str(scene), "--cache", cache, "-o", str(tmp_path / "out"), *arguments])

@@ -5,11 +5,19 @@ the least cost, measured (:func:`lungmech.app.trade.trade`), written to ``OUT``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lungmech.app.arguments import RESULTS, setup
 from lungmech.trade.quantities import QUANTITIES
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.parallel.ensemble import Ensemble
 
 COMMANDS = ("trade",)
 
@@ -81,6 +89,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "(default: every solve on all P ranks)",
     )
     trade.add_argument(
+        "--engine",
+        choices=("parsl",),
+        default=None,
+        help="run the full solves on Parsl's workers on this machine (pip install lungmech[cluster]); "
+        "a cluster's provider is given in Python (docs: the MPI guide)",
+    )
+    trade.add_argument("--workers", type=int, default=2, help="with --engine: solves at once (default 2)")
+    trade.add_argument("--worker-ranks", type=int, default=1, help="with --engine: MPI ranks of each (default 1)")
+    trade.add_argument(
         "--cache", default=None, help="lungmech's cache folder (default $LUNGMECH_CACHE or ~/.cache/lungmech)"
     )
     trade.add_argument(
@@ -98,7 +115,6 @@ def run(args: argparse.Namespace) -> int:
     from lungmech.errors import ParameterError
     from lungmech.parallel import on_root
     from lungmech.parallel.destination import hold_signals_until_swap, output_folder
-    from lungmech.parallel.ensemble import Groups, Serial
     from lungmech.trade.choice import check_tolerance
 
     check_tolerance(args.tolerance)
@@ -106,11 +122,17 @@ def run(args: argparse.Namespace) -> int:
     family = Family(tuple(args.taus), args.size, args.samples) if args.build else None
     if not args.build and (args.samples is not None or args.size != 20):
         raise ParameterError("--size and --samples shape the models --build makes: give --build")
-    ensemble = Groups(args.group_size, comm) if args.group_size is not None else Serial(comm)
+    if args.engine is not None and (comm.size > 1 or args.group_size is not None):
+        raise ParameterError("--engine starts its own workers: run it on one rank, without --group-size")
+    if args.engine is None and (args.workers != 2 or args.worker_ranks != 1):
+        raise ParameterError("--workers and --worker-ranks shape an engine's workers: give --engine parsl")
     output = Path(args.output if args.output is not None else RESULTS / f"{path.stem}-trade")
     if comm.rank == 0:
         print(f"lungmech: trading the models of {name} at {args.tolerance:g} on {args.quantity}", flush=True)
-    with output_folder(output, comm, inputs=[path, *args.models], command="trade") as staging:
+    with (
+        output_folder(output, comm, inputs=[path, *args.models], command="trade") as staging,
+        _ensemble(args, comm) as ensemble,
+    ):
         found = trade(
             path,
             args.tolerance,
@@ -131,6 +153,27 @@ def run(args: argparse.Namespace) -> int:
         print(trade_report.console_table(found))
         print(f"lungmech: outputs in {output.resolve()}")
     return 0
+
+
+@contextlib.contextmanager
+def _ensemble(args: argparse.Namespace, comm: MPI.Comm) -> Iterator[Ensemble]:
+    """Where the full solves run: Parsl's workers (--engine), groups of ranks (--group-size),
+    or this process on every rank; stopped at the end."""
+    from lungmech.parallel.ensemble import Groups, Serial
+
+    if args.engine is not None:
+        from lungmech.parallel.engine import local_pool
+
+        with local_pool(args.workers, args.worker_ranks) as pool:
+            yield pool
+    elif args.group_size is not None:
+        groups = Groups(args.group_size, comm)
+        try:
+            yield groups
+        finally:
+            groups.free()
+    else:
+        yield Serial(comm)
 
 
 def _numbers(text: str) -> list[float]:

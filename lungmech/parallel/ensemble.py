@@ -128,18 +128,39 @@ class Groups(Ensemble):
 
 class Pool(Ensemble):
     """Tasks submitted to ``executor`` (a :class:`concurrent.futures.Executor` of an existing
-    engine, its workers possibly MPI jobs), with ``options`` passed to each ``submit`` (e.g.
-    executorlib's ``resource_dict={"cores": k}``). A task whose worker died — an exception
-    that is not the task's own failure — is submitted ``retries`` times more. Runs on the
-    caller's rank; give it a one-rank caller."""
+    engine, its workers possibly MPI jobs) as ``function(work, task, **options)``
+    (:func:`run_task` by default; :func:`lungmech.parallel.engine.launched` for Parsl's MPI
+    tasks). A task whose future fails — its worker died; the task's own failure is an
+    outcome — is submitted ``retries`` times more. Runs on the caller's rank (give it a
+    one-rank caller); close it (``with``) to stop the engine."""
 
-    def __init__(self, executor: concurrent.futures.Executor, options: dict | None = None, retries: int = 1) -> None:
-        self.executor, self.options, self.retries = executor, dict(options or {}), retries
+    def __init__(
+        self,
+        executor: concurrent.futures.Executor,
+        function: Callable[..., Outcome] | None = None,
+        options: dict | None = None,
+        retries: int = 1,
+        description: str = "",
+    ) -> None:
+        self.executor = executor
+        self.function: Callable[..., Outcome] = function or run_task
+        self.options, self.retries = dict(options or {}), retries
+        self._description = description or f"{type(executor).__name__} workers"
 
     @property
     def description(self) -> str:
-        cores = (self.options.get("resource_dict") or {}).get("cores", 1)
-        return f"{type(self.executor).__name__} workers of {cores} rank{'s' * (cores > 1)}"
+        return self._description
+
+    def __enter__(self) -> Pool:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
+        self.close(wait=kind is None)
+
+    def close(self, wait: bool = True) -> None:
+        """Stop the engine's workers: once its tasks are done, or at once (``wait`` False: an
+        error or an interrupt)."""
+        self.executor.shutdown(wait=wait)
 
     def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
         pace = Pace(len(tasks), progress)
@@ -167,7 +188,7 @@ class Pool(Ensemble):
         return [outcomes[index] for index in range(len(tasks))]
 
     def _submit(self, work: Work, task: Any) -> concurrent.futures.Future:
-        return self.executor.submit(run_task, work, task, **self.options)
+        return self.executor.submit(self.function, work, task, **self.options)
 
 
 def run_task(work: Work, task: Any) -> Outcome:
