@@ -34,6 +34,7 @@ __all__ = ["Cache", "code_version", "default_folder", "key"]
 TAG = "CACHEDIR.TAG"
 SIGNATURE = "Signature: 8a477f597d28d172789f06886806bc55"  # what the standard asks the tag to begin with
 SOLVING = ("fem", "lung", "mesh", "parallel", "rom")  # the sub-packages an answer depends on
+DISPATCH = ("parallel/ensemble.py", "parallel/engine.py")  # where a solve runs, not what it answers
 
 
 def default_folder() -> Path:
@@ -44,12 +45,15 @@ def default_folder() -> Path:
 
 
 def code_version(packages: tuple[str, ...] = SOLVING) -> str:
-    """The SHA-256 (16 hex digits) of lungmech's version and of the sources of ``packages``:
-    a result computed by other code is another entry."""
+    """The SHA-256 (16 hex digits) of lungmech's version and of the sources of ``packages`` (but
+    :data:`DISPATCH`'s, which only say where a solve runs): a result computed by other code is
+    another entry."""
     root = Path(lungmech.__file__).parent
     sha = hashlib.sha256(str(getattr(lungmech, "__version__", "")).encode())
     for package in packages:
         for source in sorted((root / package).rglob("*.py")):
+            if source.relative_to(root).as_posix() in DISPATCH:
+                continue
             sha.update(source.relative_to(root).as_posix().encode())
             sha.update(source.read_bytes())
     return sha.hexdigest()[:16]
