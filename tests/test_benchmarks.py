@@ -27,6 +27,7 @@ QUICK = {
     "ecsw_lung": (["--quick"], "ecsw_lung_quick"),
     "registration": (["--quick"], "registration_quick"),
     "rom": (["--quick"], "rom_quick"),
+    "ensemble": (["--quick"], "ensemble_quick"),
 }
 
 

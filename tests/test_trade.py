@@ -36,3 +36,31 @@ def test_bad_requests_are_one_line(tmp_path):
         trade(written(tmp_path), 1e-2, quantity="speed", cache=tmp_path / "cache")
     with pytest.raises(ParameterError, match="--levels"):
         trade(written(tmp_path), 1e-2, levels=0, cache=tmp_path / "cache")
+
+
+def test_a_tolerance_below_the_references_own_error_is_refused(tmp_path):
+    """Three nested levels converging at exactly the expected order (2 for a P1 volume): the
+    reference's own error is Richardson's estimate, and a tolerance below it is refused with
+    the number; one above it is judged."""
+    from lungmech.app.trade import Trade, _judge
+    from lungmech.trade.points import ValidationPoints
+
+    scene = scenes.load(written(tmp_path))
+    levels = [Candidate.full(Discretisation(level, 1)) for level in range(3)]
+
+    def judged(tolerance: float) -> Trade:
+        found = Trade("sphere.toml", tolerance, "volume", ValidationPoints([{}], ["interior"]), [1.0], levels[2].name)
+        for candidate, h in zip(levels, (1.0, 0.5, 0.25), strict=True):
+            volume = 2.0 + 0.01 * h**2  # → 2 at order 2, from a start of 1
+            answer = {"failed": None, "volume": [volume], "start_volume": 1.0, "probes": [[[0.0, 0.0, 0.0]]]}
+            found.results[candidate.name] = {"answers": [answer], "online_seconds": 1 / h, "offline_seconds": 0.0}
+        _judge(found, scene, levels, 2)
+        return found
+
+    own = 0.01 * (0.5**2 - 0.25**2) / 3 / (2.000625 - 1.0)  # Richardson: the finest difference / (2² − 1)
+    found = judged(1e-2)
+    assert found.convergence["volume"].observed == pytest.approx(2.0)
+    assert found.convergence["volume"].estimate == pytest.approx(own)
+    assert found.choice.chosen.name == "full P1 h"  # 9.4e-3 ≤ 1e-2, the cheapest
+    with pytest.raises(ParameterError, match=r"below the reference's own accuracy \(6\.2e-04\)"):
+        judged(5e-4)
