@@ -7,7 +7,7 @@ from trades import written
 
 from lungmech.app import scene as scenes
 from lungmech.app.ladder import Discretisation
-from lungmech.app.trade import Candidate, peak_time, trade
+from lungmech.app.trade import Candidate, candidates, peak_time, trade
 from lungmech.errors import ParameterError
 
 pytestmark = pytest.mark.serial  # each candidate runs in a process of its own
@@ -64,3 +64,23 @@ def test_a_tolerance_below_the_references_own_error_is_refused(tmp_path):
     assert found.choice.chosen.name == "full P1 h"  # 9.4e-3 ≤ 1e-2, the cheapest
     with pytest.raises(ParameterError, match=r"below the reference's own accuracy \(6\.2e-04\)"):
         judged(5e-4)
+
+
+def test_the_candidates_of_a_scene_and_what_is_not_made(tmp_path):
+    """The sphere (a builder's mesh, a law with a volumetric split): a 2h remesh, h and h/2, P2
+    and Taylor–Hood P2–P1 on h, the reference h/4. The bundled lung (poromechanics) has no
+    mixed version, and a mesh file no coarser level: both said in a note."""
+    from lungmech.scenes import bundled
+
+    made, reference, notes = candidates(scenes.load(written(tmp_path)), levels=2)
+    assert [c.name for c in made] == ["full P1 2h", "full P1 h", "full P1 h/2", "full P2 h", "full P2–P1 h"]
+    assert reference.name == "full P1 h/4" and not notes
+    assert made[-1].request["discretisation"] == {"level": 0, "degree": 2, "mixed": True}
+    lung = scenes.load(bundled("lung_breathing_parameters"))
+    made, _, notes = candidates(lung, levels=1)
+    assert "full P2–P1 h" not in [c.name for c in made]
+    assert notes == [
+        "no mixed full model: formulation.type: the poromechanics formulation has no Taylor–Hood (mixed) version"
+    ]
+    with pytest.raises(ParameterError, match="Taylor–Hood: its displacement degree is ≥ 2"):
+        Discretisation(0, 1, mixed=True)

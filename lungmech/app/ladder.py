@@ -3,7 +3,9 @@
 A :class:`Discretisation` names one: ``level`` k > 0 is the scene's mesh refined k times
 (nested: the same polyhedron, each edge halved k times, :mod:`lungmech.mesh.refine`), k < 0
 the body remeshed by its builder at 2^|k| times its mesh size (another, coarser polyhedron),
-and ``degree`` the elements' polynomial degree. :func:`at` gives the scene at one: the same
+``degree`` the elements' polynomial degree (of the displacement), and ``mixed`` the
+Taylor–Hood formulation P_k–P_{k−1} in place of the scene's displacement formulation (where
+its law has a volumetric split: :func:`mixed_allowed`). :func:`at` gives the scene at one: the same
 physics on that mesh. Values the scene gives per cell of its mesh (an imaged porosity, say)
 pass to a refined mesh's children unchanged; a remeshed body has other cells and cannot take
 them. A refined mesh and its cell values are files in lungmech's cache
@@ -24,13 +26,14 @@ import numpy as np
 from lungmech.app.cache import Cache, code_version, key
 from lungmech.app.scene import BUILDERS, Scene, build_geometry, cell_data, file_sha256, physics
 from lungmech.errors import ParameterError
+from lungmech.fem.formulations import TaylorHood
 from lungmech.lung.poromechanics import read_cell_values
 from lungmech.mesh import files
 from lungmech.mesh.builders import default_mesh_size
 from lungmech.mesh.refine import refined
 from lungmech.parallel import on_root
 
-__all__ = ["Discretisation", "at", "remeshed"]
+__all__ = ["Discretisation", "at", "mixed_allowed", "remeshed"]
 
 DEGREES = (1, 2)
 
@@ -42,18 +45,25 @@ class Discretisation:
 
     level: int = 0
     degree: int = 1
+    mixed: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.level, bool) or not isinstance(self.level, int):
             raise ParameterError(f"a mesh level is an integer (got {self.level!r})")
         if self.degree not in DEGREES:
             raise ParameterError(f"element degree must be one of {', '.join(map(str, DEGREES))} (got {self.degree!r})")
+        if self.mixed and self.degree < 2:
+            raise ParameterError(
+                f"the mixed formulation is Taylor–Hood: its displacement degree is ≥ 2 (got {self.degree})"
+            )
 
     @property
     def name(self) -> str:
-        """E.g. "P1 h", "P1 h/4" (refined twice), "P2 h", "P1 2h" (remeshed coarser)."""
+        """E.g. "P1 h", "P1 h/4" (refined twice), "P2 h", "P1 2h" (remeshed coarser), "P2–P1 h"
+        (Taylor–Hood)."""
         size = "h" if self.level == 0 else f"h/{2**self.level}" if self.level > 0 else f"{2**-self.level}h"
-        return f"P{self.degree} {size}"
+        elements = f"P{self.degree}–P{self.degree - 1}" if self.mixed else f"P{self.degree}"
+        return f"{elements} {size}"
 
     @property
     def mesh_factor(self) -> float:
@@ -61,8 +71,8 @@ class Discretisation:
         return 2.0**-self.level
 
     def content(self) -> dict:
-        """What this discretisation is, for a cache key."""
-        return {"level": self.level, "degree": self.degree}
+        """What this discretisation is, for a cache key (and, as keywords, itself)."""
+        return {"level": self.level, "degree": self.degree} | ({"mixed": True} if self.mixed else {})
 
 
 def at(scene: Scene, discretisation: Discretisation, cache: Cache, comm: MPI.Comm = MPI.COMM_WORLD) -> Scene:
@@ -70,11 +80,23 @@ def at(scene: Scene, discretisation: Discretisation, cache: Cache, comm: MPI.Com
     file of the scene's (a builder's ``msh_file`` is left out)."""
     geometry = {k: v for k, v in scene.geometry.items() if k != "msh_file"}
     scene = replace(scene, geometry=geometry, degree=discretisation.degree)
+    if discretisation.mixed:
+        mixed_allowed(scene)
+        scene = replace(scene, formulation=TaylorHood())
     if discretisation.level > 0:
         return _refined(scene, discretisation.level, cache, comm)
     if discretisation.level < 0:
         return remeshed(scene, discretisation.mesh_factor)
     return scene
+
+
+def mixed_allowed(scene: Scene) -> None:
+    """Refuse, in one line, a scene that has no Taylor–Hood version: a formulation other than
+    the displacement one (the lung's poromechanics, say), or a law without a volumetric split."""
+    kind = scene.table.get("formulation", {}).get("type", "displacement")
+    if kind != "displacement":
+        raise ParameterError(f"formulation.type: the {kind} formulation has no Taylor–Hood (mixed) version")
+    TaylorHood().check(scene.material, 2)
 
 
 def _refined(scene: Scene, times: int, cache: Cache, comm: MPI.Comm) -> Scene:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -37,7 +37,7 @@ from lungmech import checks
 from lungmech.app import answers
 from lungmech.app import scene as scenes
 from lungmech.app.cache import SOLVING, Cache, code_version, default_folder, key
-from lungmech.app.ladder import Discretisation, remeshed
+from lungmech.app.ladder import Discretisation, mixed_allowed, remeshed
 from lungmech.app.measure import apart
 from lungmech.app.model_file import embedded_names
 from lungmech.app.reduce import build_family, check_physics, embedded_scene, family_files
@@ -141,20 +141,38 @@ def candidates(
     scene: scenes.Scene, levels: int = 2, degrees: Sequence[int] = (1, 2), coarser: bool = True
 ) -> tuple[list[Candidate], Candidate, list[str]]:
     """The full candidates of ``scene`` — a remesh 2× coarser (where its builder makes one),
-    its mesh refined 0 … ``levels`` − 1 times, and each other degree of ``degrees`` on its
-    mesh —, the reference (refined ``levels`` times) and notes on what was not made."""
+    its mesh refined 0 … ``levels`` − 1 times, each other degree of ``degrees`` on its mesh
+    (a mixed scene's ≥ 2), and Taylor–Hood P2–P1 on its mesh where the scene's displacement
+    formulation allows —, the reference (refined ``levels`` times) and notes on what was not
+    made."""
     checks_levels(levels)
     notes: list[str] = []
     made = []
+    own = _own(scene)
     if coarser:
         try:
             remeshed(scene, 2.0)  # a check only: can the builder make it?
-            made.append(Candidate.full(Discretisation(-1, scene.degree)))
+            made.append(Candidate.full(replace(own, level=-1)))
         except ParameterError as why:
             notes.append(f"no coarser full model: {why}")
-    made += [Candidate.full(Discretisation(level, scene.degree)) for level in range(levels)]
-    made += [Candidate.full(Discretisation(0, degree)) for degree in degrees if degree != scene.degree]
-    return made, Candidate.full(Discretisation(levels, scene.degree)), notes
+    made += [Candidate.full(replace(own, level=level)) for level in range(levels)]
+    made += [
+        Candidate.full(replace(own, degree=degree))
+        for degree in degrees
+        if degree != scene.degree and (degree >= 2 or not own.mixed)
+    ]
+    if not own.mixed:
+        try:
+            mixed_allowed(scene)
+            made.append(Candidate.full(Discretisation(0, max(2, scene.degree), mixed=True)))
+        except ParameterError as why:
+            notes.append(f"no mixed full model: {why}")
+    return made, Candidate.full(replace(own, level=levels)), notes
+
+
+def _own(scene: scenes.Scene, level: int = 0) -> Discretisation:
+    """The scene's own discretisation at mesh ``level``."""
+    return Discretisation(level, scene.degree, scene.table.get("formulation", {}).get("type") == "mixed")
 
 
 def checks_levels(levels: int) -> None:
@@ -286,7 +304,7 @@ def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene)
     """A remesh that gave the scene's own mesh size back (a builder's other limits held): noted, dropped."""
     if candidate.request.get("discretisation", {}).get("level", 0) >= 0:
         return False
-    scene_mesh = found.results.get(f"full {Discretisation(0, scene.degree).name}")
+    scene_mesh = found.results.get(f"full {_own(scene).name}")
     if scene_mesh is None or found.results[candidate.name]["dofs"] < (own := scene_mesh["dofs"]):
         return False
     found.notes.append(f"no coarser full model: the builder's mesh at twice the mesh size has {own} dofs too")
@@ -303,9 +321,9 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
         found.errors[candidate.name] = {q: quantities.errors(answers, reference, q) for q in names}
         if "probes" in names:
             found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
-    ladder = [f"full {Discretisation(level, scene.degree).name}" for level in range(levels - 1, levels + 1)]
+    ladder = [f"full {_own(scene, level).name}" for level in range(levels - 1, levels + 1)]
     if levels >= 2 and all(name in found.results for name in ladder):
-        coarse = found.results[f"full {Discretisation(levels - 2, scene.degree).name}"]["answers"]
+        coarse = found.results[f"full {_own(scene, levels - 2).name}"]["answers"]
         middle, fine = (found.results[name]["answers"] for name in ladder)
         for q in names:
             try:
@@ -313,6 +331,14 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
                 found.convergence[q] = observed_order(q0, q1, q2, quantities.expected_order(q, scene.degree))
             except ParameterError as why:
                 found.notes.append(f"no observed order of {q}: {why}")
+    for q, order in found.convergence.items():
+        last = found.errors[ladder[0]][q] if ladder[0] in found.errors else np.array([np.nan])
+        if order.estimate is None and np.isfinite(last).any():
+            found.notes.append(
+                f"the reference's own error on {q} is not estimated (observed order {order.observed:.2f}, "
+                f"expected {order.expected:g}); its last refinement moved it by up to {np.nanmax(last):.1e}, "
+                "so errors near that are not told apart from the reference's own"
+            )
     for candidate in measured:
         if candidate.name == found.reference:
             continue

@@ -177,6 +177,7 @@ def console_table(found: Trade) -> str:
     for name, c in found.convergence.items():
         lines.append(f"observed order of {name}: {c.observed:.2f} (expected {c.expected:g})")
     lines.append(f"choice: {found.choice.reason if found.choice else 'none'}")
+    lines += [f"note: {note}" for note in found.notes]
     return "\n".join(lines)
 
 
