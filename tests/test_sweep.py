@@ -133,3 +133,46 @@ def test_a_sweep_on_all_ranks_answers_as_on_one(built):
         mine = [float(r["volume [m^3]"]) for r in rows if r["point [1]"] == str(index)]
         assert np.allclose(mine, answer.outputs["volume"], rtol=1e-10)
         assert float(rows[2 * index]["error_indicator [1]"]) == pytest.approx(answer.indicator, rel=1e-6)
+
+
+@pytest.mark.slow
+def test_a_full_sweep_answers_as_run_does_and_reports_a_failed_point(tmp_path, capsys):
+    """run --sweep: each point one full solve of the ensemble, its row the answer `run --set`
+    gives there (bit for bit: the same model and solver); a point past the sphere's limit
+    pressure fails and is a row that says so, while the others go on; the cache makes a second
+    sweep solve nothing."""
+    from trades import written
+
+    scene = written(tmp_path, low=0.05, min_step=0.25)
+    points = _points(tmp_path, "stiffness [Pa]\n10\n0.05\n17.5\n")
+    cache, out = tmp_path / "cache", tmp_path / "swept"
+    assert main(["run", str(scene), "--sweep", str(points), "--at", "1", "--cache", str(cache), "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "3 points (serial on 1 rank)" in said and "1 failed" in said
+    rows = list(csv.DictReader((out / "sweep.csv").open()))
+    assert [row["point [1]"] for row in rows] == ["0", "1", "2"] and rows[1]["failed"] and not rows[0]["failed"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["failed"][0]["point"] == 1 and summary["full solves on"] == "serial on 1 rank"
+    assert main(["run", str(scene), "--set", "stiffness=17.5", "--at", "1", "-q", "-o", str(tmp_path / "one")]) == 0
+    alone = json.loads((tmp_path / "one" / "summary.json").read_text())
+    assert float(rows[2]["volume [m^3]"]) == alone["deformed_volume"]
+    kept = sorted((cache / "answers").iterdir())
+    assert main(["run", str(scene), "--sweep", str(points), "--at", "1", "--cache", str(cache), "-o", str(out)]) == 0
+    assert sorted((cache / "answers").iterdir()) == kept
+    assert list(csv.DictReader((out / "sweep.csv").open())) == rows
+
+
+@pytest.mark.serial
+def test_a_full_sweep_refuses_options_that_cannot_act(tmp_path, capsys):
+    from trades import written
+
+    scene = written(tmp_path)
+    points = _points(tmp_path, "stiffness [Pa]\n10\n")
+    for extra, said in (
+        (["--group-size", "1"], "give --sweep"),
+        (["--sweep", str(points), "--workers", "3"], "--engine parsl"),
+        (["--sweep", str(points), "--scale", "2"], "--scale"),
+    ):
+        assert main(["run", str(scene), "-o", str(tmp_path / "out"), *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and said in err[0], err

@@ -78,8 +78,10 @@ def content(scene: Scene, task: Task) -> dict:
 
 
 def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[float] | None) -> dict:
-    """``model.solve(values, times=times)`` as numbers (SI units: m³, m, J, s); a solve that fails
-    is an answer too: ``failed`` says why in one line, and its outputs are absent."""
+    """``model.solve(values, times=times)`` as numbers (SI units: m³, m, J, s; the scalar loads
+    and the formulation's averages under ``outputs``, every output's unit under ``units``); a
+    solve that fails is an answer too: ``failed`` says why in one line, and its outputs are
+    absent."""
     dofs = _dofs(model)
     began = time.perf_counter()
     try:
@@ -89,6 +91,7 @@ def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[
         return {"failed": why, "seconds": time.perf_counter() - began, "dofs": dofs}
     outputs = solution.outputs
     start = solution.start.details if solution.start is not None else {}
+    others = [name for name in outputs if name.startswith(("loads/", "averages/"))]
     return {
         "failed": None,
         "seconds": time.perf_counter() - began,
@@ -98,9 +101,19 @@ def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[
         "strain_energy": np.asarray(outputs["strain_energy"], dtype=float).tolist(),
         "probes": np.asarray(outputs["probes"], dtype=float).tolist() if "probes" in outputs else [],
         "start_volume": float(start["volume"]) if "volume" in start else None,
+        "start": None
+        if solution.start is None
+        else {"kind": solution.start.kind, "description": solution.start.description},
         "newton_iterations": int(solution.newton_iterations),
         "indicator": solution.indicator,
+        "outputs": {name: np.asarray(outputs[name], dtype=float).tolist() for name in others},
+        "units": {name: _unit(solution.units, name) for name in ("volume", "strain_energy", *others)},
     }
+
+
+def _unit(units: Mapping[str, str], name: str) -> str:
+    """An output's unit: its own, or its kind's ("loads/pleural": a load's, Pa)."""
+    return units.get(name) or units[name.split("/")[0]]
 
 
 def _dofs(model: ParametricModel) -> int:

@@ -4,9 +4,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import sys
+from collections.abc import Iterator
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,6 +17,7 @@ if TYPE_CHECKING:
     from mpi4py import MPI
 
     from lungmech.app.scene import Scene
+    from lungmech.parallel.ensemble import Ensemble
 
 DEFAULT_SCENE = "lung_breathing.toml"
 RESULTS = Path("results")  # default outputs go to results/<name of the scene, model or image>
@@ -118,3 +121,61 @@ def setup(args: argparse.Namespace) -> tuple[MPI.Comm, Scene, str, Path]:
         with resources.as_file(found) as path:
             return comm, scenes.load(path), f"bundled scene {path.name}", Path(path)
     return comm, scenes.load(args.scene), args.scene, Path(args.scene)
+
+
+def ensemble_options(command: argparse.ArgumentParser, what: str) -> None:
+    """Where ``what`` (many independent solves) run: --group-size, --engine, --workers,
+    --worker-ranks, and --cache, where their answers are kept."""
+    command.add_argument(
+        "--group-size",
+        type=int,
+        default=None,
+        metavar="K",
+        help=f"under mpiexec -n P: {what} in P/K groups of K ranks, each solving its own points "
+        "(default: every solve on all P ranks)",
+    )
+    command.add_argument(
+        "--engine",
+        choices=("parsl",),
+        default=None,
+        help=f"{what} on Parsl's workers on this machine (pip install lungmech[cluster]); a cluster's "
+        "provider is given in Python (docs: the MPI guide)",
+    )
+    command.add_argument("--workers", type=int, default=2, help="with --engine: solves at once (default 2)")
+    command.add_argument("--worker-ranks", type=int, default=1, help="with --engine: MPI ranks of each (default 1)")
+    command.add_argument(
+        "--cache",
+        default=None,
+        help="lungmech's cache folder, where full answers are kept (default $LUNGMECH_CACHE or ~/.cache/lungmech)",
+    )
+
+
+def check_ensemble(args: argparse.Namespace, comm: MPI.Comm) -> None:
+    """Refuse ensemble options that cannot act together, in one line."""
+    from lungmech.errors import ParameterError
+
+    if args.engine is not None and (comm.size > 1 or args.group_size is not None):
+        raise ParameterError("--engine starts its own workers: run it on one rank, without --group-size")
+    if args.engine is None and (args.workers != 2 or args.worker_ranks != 1):
+        raise ParameterError("--workers and --worker-ranks shape an engine's workers: give --engine parsl")
+
+
+@contextlib.contextmanager
+def ensemble_of(args: argparse.Namespace, comm: MPI.Comm) -> Iterator[Ensemble]:
+    """Where the solves run: Parsl's workers (--engine), groups of ranks (--group-size), or
+    this process on every rank; stopped at the end. Collective."""
+    from lungmech.parallel.ensemble import Groups, Serial
+
+    if args.engine is not None:
+        from lungmech.parallel.engine import local_pool
+
+        with local_pool(args.workers, args.worker_ranks) as pool:
+            yield pool
+    elif args.group_size is not None:
+        groups = Groups(args.group_size, comm)
+        try:
+            yield groups
+        finally:
+            groups.free()
+    else:
+        yield Serial(comm)

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, NoReturn
 
 from lungmech.app import registration_cli as registration
 from lungmech.app import rom_cli, trade_cli
-from lungmech.app.arguments import RESULTS, common, logging_comm, setup
+from lungmech.app.arguments import RESULTS, check_ensemble, common, ensemble_of, ensemble_options, logging_comm, setup
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
 if TYPE_CHECKING:
@@ -49,6 +49,14 @@ def parser() -> argparse.ArgumentParser:
         "scene", nargs="?", help="scene file (.toml), or a bundled scene by name (e.g. lung_breathing_parameters)"
     )
     common(run, "results/<scene name>")
+    run.add_argument(
+        "--sweep",
+        metavar="CSV",
+        help="solve the full model at every parameter point of this CSV file (a header of parameter names, one "
+        "row per point), each point one solve of an ensemble: sweep.csv, summary.json and sweep.png in the "
+        "output folder (default results/<scene name>-sweep)",
+    )
+    ensemble_options(run, "with --sweep, the points' solves")
     rom_cli.add_commands(commands)
     trade_cli.add_commands(commands)
     registration.add_commands(commands)
@@ -195,6 +203,10 @@ def _interrupts() -> Iterator[None]:
 def _run(args: argparse.Namespace) -> int:
     if args.command == "rom" and args.sweep is not None:
         return rom_cli.sweep(args)
+    if args.command == "run" and args.sweep is not None:
+        return _sweep(args)
+    if args.command == "run" and (args.group_size, args.engine, args.cache) != (None, None, None):
+        raise ParameterError("--group-size, --engine and --cache say where a sweep's solves run: give --sweep")
     if args.command == "rom" and args.scene is None:  # the scene inside the model file
         from lungmech.app.reduce import embedded_scene
         from lungmech.rom import store
@@ -245,6 +257,30 @@ def _solve(
     )
     if comm.rank == 0:
         print(end_of_run(summary, Path(output).resolve()))
+    return 0
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    """``run SCENE --sweep CSV``: the full model at every point, on the ensemble the options name."""
+    from lungmech.app.cache import default_folder
+    from lungmech.app.sweep import sweep_full
+
+    comm, scene, name, path = setup(args)
+    check_ensemble(args, comm)
+    if args.scale != (1.0,):
+        raise ParameterError("--sweep takes no --scale: sweep a load's amplitude as a column of [parameters]")
+    output = args.output if args.output is not None else RESULTS / f"{path.stem}-sweep"
+    if comm.rank == 0:
+        print(f"lungmech: sweeping the full model of {name} over the points of {args.sweep}", flush=True)
+    cache = args.cache if args.cache is not None else default_folder()
+    with ensemble_of(args, comm) as ensemble:
+        summary = sweep_full(path, args.sweep, output, ensemble, cache, comm, dict(args.set), _at(args, scene))
+    if comm.rank == 0:
+        failed = f", {len(summary['failed'])} failed (see summary.json)" if summary["failed"] else ""
+        print(
+            f"lungmech: {summary['points']} points ({summary['full solves on']}), median "
+            f"{summary['median_seconds_per_point']:.2f} s per solve{failed}; outputs in {Path(output).resolve()}"
+        )
     return 0
 
 

@@ -57,6 +57,11 @@ class Discretisation:
                 f"the mixed formulation is Taylor–Hood: its displacement degree is ≥ 2 (got {self.degree})"
             )
 
+    @classmethod
+    def of(cls, scene: Scene, level: int = 0) -> Discretisation:
+        """The scene's own discretisation (its degree, its formulation's mixedness) at mesh ``level``."""
+        return cls(level, scene.degree, scene.table.get("formulation", {}).get("type") == "mixed")
+
     @property
     def name(self) -> str:
         """E.g. "P1 h", "P1 h/4" (refined twice), "P2 h", "P1 2h" (remeshed coarser), "P2–P1 h"

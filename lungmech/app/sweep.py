@@ -1,27 +1,34 @@
-"""Many parameter points at once: a reduced model's answers for a CSV file of points.
+"""Many parameter points at once: a model's answers for a CSV file of points.
 
-``lungmech rom solve model.npz --sweep points.csv -o OUT`` reads one parameter point per row:
+``lungmech rom solve model.npz --sweep points.csv -o OUT`` (a reduced model, :func:`sweep`) and
+``lungmech run scene.toml --sweep points.csv -o OUT`` (the full model, :func:`sweep_full`) read
+one parameter point per row:
 a header of parameter names (a name may carry its unit in brackets, ``stiffness [Pa]``: it must
 be the parameter's own, values are not converted), values in the parameters' units; a parameter without a column keeps the scene's value (``--set``
 included). A bad file is refused in one line that names the file, the row and the column: an
 unknown name, a value that is not a finite number, a point outside the trained box. Every point
-is solved by the reduced model from its start (:meth:`ReducedModel.solve`: its outputs from
-reduced operators, no full field), and the folder gets:
+is solved from its start: by the reduced model in this process (its outputs from reduced
+operators, no full field), or as one full solve of an ensemble
+(:mod:`lungmech.parallel.ensemble`: this process, groups of ranks or an engine's workers; each
+answer kept in lungmech's cache, so an interrupted sweep resumes; a point whose solve failed
+is a row that says why, and the others go on). The folder gets:
 
 - ``sweep.csv``: one row per point and output time: the point, the time, the volume, the
   strain energy, the probes' displacements, the scalar loads, the formulation's averages (a
   lung's fractions and mean stresses) and the answer's error indicator, every column named with
   its unit;
-- ``summary.json``: the model, the points, the solve time of each (s), the largest indicator;
+- ``summary.json``: the model, the points, the solve time of each (s), the largest indicator,
+  the points that failed;
 - ``sweep.png``: the volume of every point against time.
 """
 
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import re
-import time
+from functools import partial
 from pathlib import Path
 from typing import cast
 
@@ -29,16 +36,16 @@ from mpi4py import MPI
 
 import numpy as np
 
+from lungmech.app.answers import answer
 from lungmech.app.output import write_json
 from lungmech.app.plot import drawn, sweep_volumes
 from lungmech.errors import ParameterError, SceneError
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.parametric import Solution
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
-from lungmech.rom.reduced import ReducedModel
+from lungmech.parallel.ensemble import Ensemble
 
-__all__ = ["read_points", "sweep"]
+__all__ = ["read_points", "sweep", "sweep_full"]
 
 _UNIT = re.compile(r"^(?P<name>.*?)\s*\[(?P<unit>[^\]]*)\]\s*$")  # "stiffness [Pa]"
 
@@ -114,50 +121,110 @@ def sweep(
         reduced = load(model, comm)
         base = reduced.parameters.values(values or {}, start=reduced.model.parameter_values)
         grid = read_points(points, reduced.parameters, base)
-        answers, seconds = [], []
-        for point in grid:
-            tic = time.perf_counter()
-            answers.append(reduced.solve(point, times=times))
-            seconds.append(time.perf_counter() - tic)
-        indicators = [a.indicator for a in answers]
-        start = answers[0].start
-        assert start is not None  # every solve reports its start (trajectory)
-        summary = {
-            "model": str(Path(model).resolve()),
-            **reduced.describe(),
-            "start": {"kind": start.kind, "description": start.description},
-            "points": len(grid),
-            "parameters": grid,
-            "seconds_per_point": seconds,
-            "median_seconds_per_point": float(np.median(seconds)),
-            "error_indicator_largest": None if None in indicators else float(max(cast(list[float], indicators))),
-            "units": {
-                "parameters": "as declared in the scene's [parameters]",
-                "seconds_per_point": "s",
-                "median_seconds_per_point": "s",
-                "error_indicator_largest": "1 (relative energy-norm error estimate)",
-            },
-        }
-        hold_signals_until_swap()  # the outputs are collective writes
-        write_json(staging / "summary.json", summary, comm)
-        on_root(comm, lambda: _write_table(reduced, grid, answers, staging / "sweep.csv"))
-        drawn(
-            comm,
-            staging / "sweep.png",
-            lambda: on_root(
-                comm,
-                lambda: sweep_volumes(
-                    answers[0].times,
-                    [a.outputs["volume"] for a in answers],
-                    [reduced.parameters.text(p) for p in grid],
-                    staging / "sweep.png",
-                    f"{len(grid)} points of {Path(model).name}",
-                    planar=reduced.model.plane is not None,
-                    against=_varying(reduced.parameters, grid),
-                ),
-            ),
-        )
+        found = [answer(reduced, point, times) for point in grid]
+        described = {"model": str(Path(model).resolve()), **reduced.describe()}
+        title = f"{len(grid)} points of {Path(model).name}"
+        summary = _summary(found, grid, described)
+        _written(staging, reduced.parameters, grid, found, summary, title, reduced.model.plane is not None, comm)
     return summary
+
+
+def sweep_full(
+    scene: str | Path,
+    points: str | Path,
+    out: str | Path,
+    ensemble: Ensemble,
+    cache: str | Path,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    values: dict[str, float] | None = None,
+    times: list[float] | None = None,
+) -> dict:
+    """Solve the scene in the file ``scene`` with its full model at every point of the CSV file
+    ``points`` (parameters without a column at ``values``, else the scene's), one solve of
+    ``ensemble`` a point, the answers kept in lungmech's cache folder ``cache``, and write the
+    folder ``out`` (see the module's doc). ``times`` as :func:`sweep`'s. Collective over the
+    ensemble's ranks; returns the summary."""
+    from lungmech.app import answers as full
+    from lungmech.app import scene as scenes
+    from lungmech.app.ladder import Discretisation
+
+    path = Path(scene).resolve()
+    read = scenes.load(path)
+    parameters = Parameters(read.parameters)
+    command = f"lungmech run {scene} --sweep {points}"
+    with output_folder(out, comm, inputs=[path, points, *read.inputs], command=command) as staging:
+        grid = read_points(points, parameters, parameters.values(values or {}))
+        steps = None if times is None else tuple(times)
+        tasks = [full.Task(str(path), point, Discretisation.of(read), steps) for point in grid]
+        say = logging.getLogger("lungmech").info
+        outcomes = ensemble.map(partial(full.solved, cache=str(cache)), tasks, lambda line: say("sweep: %s", line))
+        full.forget()
+        found = [o.value if o.value is not None else {"failed": o.failed, "seconds": None} for o in outcomes]
+        described = {"scene": str(path), "title": read.title, "full solves on": ensemble.description}
+        title = f"{len(grid)} points of {path.name} (full model)"
+        summary = _summary(found, grid, described)
+        _written(staging, parameters, grid, found, summary, title, read.plane is not None, comm)
+    return summary
+
+
+def _summary(found: list[dict], grid: list[dict[str, float]], described: dict) -> dict:
+    """summary.json's content (see the module's doc)."""
+    solved = [a for a in found if a["failed"] is None]
+    indicators = [a["indicator"] for a in solved]
+    seconds = [a["seconds"] for a in solved]
+    start = solved[0]["start"] if solved else None
+    return described | {
+        "start": start,
+        "points": len(grid),
+        "parameters": grid,
+        "seconds_per_point": [a["seconds"] for a in found],
+        "median_seconds_per_point": float(np.median(seconds)) if seconds else None,
+        "error_indicator_largest": None
+        if not indicators or None in indicators
+        else float(max(cast(list[float], indicators))),
+        "failed": [{"point": index, "why": a["failed"]} for index, a in enumerate(found) if a["failed"] is not None],
+        "units": {
+            "parameters": "as declared in the scene's [parameters]",
+            "seconds_per_point": "s",
+            "median_seconds_per_point": "s",
+            "error_indicator_largest": "1 (relative energy-norm error estimate)",
+        },
+    }
+
+
+def _written(
+    staging: Path,
+    parameters: Parameters,
+    grid: list[dict[str, float]],
+    found: list[dict],
+    summary: dict,
+    title: str,
+    planar: bool,
+    comm: MPI.Comm,
+) -> None:
+    """``summary`` (summary.json), sweep.csv and sweep.png into ``staging`` (collective)."""
+    if all(a["failed"] is not None for a in found):
+        raise ParameterError(f"the sweep's every solve failed; the first: {found[0]['failed']}")
+    hold_signals_until_swap()  # the outputs are collective writes
+    write_json(staging / "summary.json", summary, comm)
+    on_root(comm, lambda: _write_table(parameters, grid, found, staging / "sweep.csv"))
+    solved = [(point, a) for point, a in zip(grid, found) if a["failed"] is None]
+    drawn(
+        comm,
+        staging / "sweep.png",
+        lambda: on_root(
+            comm,
+            lambda: sweep_volumes(
+                solved[0][1]["times"],
+                [a["volume"] for _, a in solved],
+                [parameters.text(point) for point, _ in solved],
+                staging / "sweep.png",
+                title,
+                planar=planar,
+                against=_varying(parameters, [point for point, _ in solved]),
+            ),
+        ),
+    )
 
 
 def _varying(parameters: Parameters, points: list[dict[str, float]]) -> list[tuple[str, list[float]]]:
@@ -170,28 +237,32 @@ def _varying(parameters: Parameters, points: list[dict[str, float]]) -> list[tup
     return [(f"{p.name} [{p.unit or '1'}]", [point[p.name] for point in points]) for p in chosen]
 
 
-def _write_table(reduced: ReducedModel, points: list[dict], answers: list[Solution], path: Path) -> None:
-    """sweep.csv (rank 0): one row per point and output time, every column with its unit."""
-    parameters = reduced.parameters
+def _write_table(parameters: Parameters, points: list[dict], found: list[dict], path: Path) -> None:
+    """sweep.csv (rank 0): one row per point and output time, every column with its unit; a
+    point whose solve failed is one row saying why (a ``failed`` column, where any did)."""
+    first = next(a for a in found if a["failed"] is None)
     header = ["point [1]"] + [f"{p.name} [{p.unit or '1'}]" for p in parameters] + ["time [s]"]
-    first = answers[0].outputs
-    outputs = [name for name in ("volume", "strain_energy") if name in first]
-    header += [f"{name} [{answers[0].units[name]}]" for name in outputs]
-    probes = first["probes"].shape[1] if "probes" in first else 0
+    outputs = [name for name in ("volume", "strain_energy") if name in first["units"]]
+    header += [f"{name} [{first['units'][name]}]" for name in outputs]
+    probes = len(first["probes"][0]) if first["probes"] else 0
     header += [f"probe{i}_u{c} [m]" for i in range(probes) for c in "xyz"]
-    loads = [name for name in first if name.startswith("loads/")]
-    header += [f"{name.removeprefix('loads/')} [Pa]" for name in loads]
-    averages = [name for name in first if name.startswith("averages/")]
-    header += [f"{name.removeprefix('averages/')} [{answers[0].units[name]}]" for name in averages]
+    others = list(first["outputs"])
+    header += [f"{name.split('/', 1)[1]} [{first['units'][name]}]" for name in others]
     header += ["error_indicator [1]"]
+    failures = any(a["failed"] is not None for a in found)
+    header += ["failed"] if failures else []
+    width = len(header) - len(parameters) - 2 - failures
     with open(path, "w", newline="") as stream:
         table = csv.writer(stream)
         table.writerow(header)
-        for index, (point, answer) in enumerate(zip(points, answers)):
-            for t, time_ in enumerate(answer.times):
-                row = [index, *(point[p.name] for p in parameters), time_]
-                row += [answer.outputs[name][t] for name in outputs]
-                row += list(np.asarray(answer.outputs["probes"][t]).reshape(-1)) if probes else []
-                row += [answer.outputs[name][t] for name in (*loads, *averages)]
-                row += ["" if answer.indicator is None else answer.indicator]
-                table.writerow(row)
+        for index, (point, found_here) in enumerate(zip(points, found)):
+            given = [index, *(point[p.name] for p in parameters)]
+            if found_here["failed"] is not None:
+                table.writerow([*given, "", *([""] * width), found_here["failed"]])
+                continue
+            for t, time_ in enumerate(found_here["times"]):
+                row = [*given, time_, *(found_here[name][t] for name in outputs)]
+                row += list(np.asarray(found_here["probes"][t]).reshape(-1)) if probes else []
+                row += [found_here["outputs"][name][t] for name in others]
+                row += ["" if found_here["indicator"] is None else found_here["indicator"]]
+                table.writerow(row + ([""] if failures else []))

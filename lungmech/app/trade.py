@@ -148,7 +148,7 @@ def candidates(
     checks_levels(levels)
     notes: list[str] = []
     made = []
-    own = _own(scene)
+    own = Discretisation.of(scene)
     if coarser:
         try:
             remeshed(scene, 2.0)  # a check only: can the builder make it?
@@ -168,11 +168,6 @@ def candidates(
         except ParameterError as why:
             notes.append(f"no mixed full model: {why}")
     return made, Candidate.full(replace(own, level=levels)), notes
-
-
-def _own(scene: scenes.Scene, level: int = 0) -> Discretisation:
-    """The scene's own discretisation at mesh ``level``."""
-    return Discretisation(level, scene.degree, scene.table.get("formulation", {}).get("type") == "mixed")
 
 
 def checks_levels(levels: int) -> None:
@@ -304,7 +299,7 @@ def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene)
     """A remesh that gave the scene's own mesh size back (a builder's other limits held): noted, dropped."""
     if candidate.request.get("discretisation", {}).get("level", 0) >= 0:
         return False
-    scene_mesh = found.results.get(f"full {_own(scene).name}")
+    scene_mesh = found.results.get(f"full {Discretisation.of(scene).name}")
     if scene_mesh is None or found.results[candidate.name]["dofs"] < (own := scene_mesh["dofs"]):
         return False
     found.notes.append(f"no coarser full model: the builder's mesh at twice the mesh size has {own} dofs too")
@@ -321,9 +316,9 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
         found.errors[candidate.name] = {q: quantities.errors(answers, reference, q) for q in names}
         if "probes" in names:
             found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
-    ladder = [f"full {_own(scene, level).name}" for level in range(levels - 1, levels + 1)]
+    ladder = [f"full {Discretisation.of(scene, level).name}" for level in range(levels - 1, levels + 1)]
     if levels >= 2 and all(name in found.results for name in ladder):
-        coarse = found.results[f"full {_own(scene, levels - 2).name}"]["answers"]
+        coarse = found.results[f"full {Discretisation.of(scene, levels - 2).name}"]["answers"]
         middle, fine = (found.results[name]["answers"] for name in ladder)
         for q in names:
             try:

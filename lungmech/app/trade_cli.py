@@ -5,19 +5,11 @@ the least cost, measured (:func:`lungmech.app.trade.trade`), written to ``OUT``
 from __future__ import annotations
 
 import argparse
-import contextlib
 import shlex
-from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from lungmech.app.arguments import RESULTS, setup
+from lungmech.app.arguments import RESULTS, check_ensemble, ensemble_of, ensemble_options, setup
 from lungmech.trade.quantities import QUANTITIES
-
-if TYPE_CHECKING:
-    from mpi4py import MPI
-
-    from lungmech.parallel.ensemble import Ensemble
 
 COMMANDS = ("trade",)
 
@@ -80,26 +72,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="the reference is the scene's mesh refined this many times (default 2: h/4), finer than every "
         "full candidate (h and its refinements down to h/2^(levels-1), 2h, P2 on h)",
     )
-    trade.add_argument(
-        "--group-size",
-        type=int,
-        default=None,
-        metavar="K",
-        help="under mpiexec -n P: run the full solves in P/K groups of K ranks, each solving its own points "
-        "(default: every solve on all P ranks)",
-    )
-    trade.add_argument(
-        "--engine",
-        choices=("parsl",),
-        default=None,
-        help="run the full solves on Parsl's workers on this machine (pip install lungmech[cluster]); "
-        "a cluster's provider is given in Python (docs: the MPI guide)",
-    )
-    trade.add_argument("--workers", type=int, default=2, help="with --engine: solves at once (default 2)")
-    trade.add_argument("--worker-ranks", type=int, default=1, help="with --engine: MPI ranks of each (default 1)")
-    trade.add_argument(
-        "--cache", default=None, help="lungmech's cache folder (default $LUNGMECH_CACHE or ~/.cache/lungmech)"
-    )
+    ensemble_options(trade, "the full solves")
     trade.add_argument(
         "-o",
         "--output",
@@ -122,16 +95,13 @@ def run(args: argparse.Namespace) -> int:
     family = Family(tuple(args.taus), args.size, args.samples) if args.build else None
     if not args.build and (args.samples is not None or args.size != 20):
         raise ParameterError("--size and --samples shape the models --build makes: give --build")
-    if args.engine is not None and (comm.size > 1 or args.group_size is not None):
-        raise ParameterError("--engine starts its own workers: run it on one rank, without --group-size")
-    if args.engine is None and (args.workers != 2 or args.worker_ranks != 1):
-        raise ParameterError("--workers and --worker-ranks shape an engine's workers: give --engine parsl")
+    check_ensemble(args, comm)
     output = Path(args.output if args.output is not None else RESULTS / f"{path.stem}-trade")
     if comm.rank == 0:
         print(f"lungmech: trading the models of {name} at {args.tolerance:g} on {args.quantity}", flush=True)
     with (
         output_folder(output, comm, inputs=[path, *args.models], command="trade") as staging,
-        _ensemble(args, comm) as ensemble,
+        ensemble_of(args, comm) as ensemble,
     ):
         found = trade(
             path,
@@ -153,27 +123,6 @@ def run(args: argparse.Namespace) -> int:
         print(trade_report.console_table(found))
         print(f"lungmech: outputs in {output.resolve()}")
     return 0
-
-
-@contextlib.contextmanager
-def _ensemble(args: argparse.Namespace, comm: MPI.Comm) -> Iterator[Ensemble]:
-    """Where the full solves run: Parsl's workers (--engine), groups of ranks (--group-size),
-    or this process on every rank; stopped at the end."""
-    from lungmech.parallel.ensemble import Groups, Serial
-
-    if args.engine is not None:
-        from lungmech.parallel.engine import local_pool
-
-        with local_pool(args.workers, args.worker_ranks) as pool:
-            yield pool
-    elif args.group_size is not None:
-        groups = Groups(args.group_size, comm)
-        try:
-            yield groups
-        finally:
-            groups.free()
-    else:
-        yield Serial(comm)
 
 
 def _numbers(text: str) -> list[float]:
