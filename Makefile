@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -101,6 +101,10 @@ bench-registration: $(STAMP)
 # Memory and time of the canonical dof layout on 1 and 2 ranks (starts mpiexec itself).
 bench-rom-parameters: $(STAMP)
 	$(PY) benchmarks/rom_parameters.py
+
+# The bundled lung's speed–accuracy trade, by lungmech trade itself (about 1.5 h; resumable).
+bench-trade: $(STAMP)
+	$(PY) benchmarks/trade.py
 
 # Many full solves serially, in 2 groups of 1 rank and on Parsl's 2 local workers: throughput.
 bench-ensemble: $(STAMP)

@@ -30,6 +30,16 @@ def under_launcher() -> bool:
     return any(name in os.environ for name in _RANKS)
 
 
+def cap_threads() -> None:
+    """Cap this process's BLAS and OpenMP pools to one thread (threadpoolctl: NumPy's are
+    started already), unless the user set their sizes: an engine's worker rank owns one core."""
+    if any(os.environ.get(name) for name in _THREADS):
+        return
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+
+
 def one_blas_thread_per_rank() -> None:
     """Set the unset BLAS/OpenMP thread counts to 1 in a rank of several, if NumPy is not
     loaded yet (it reads them when it loads; after, nothing changes)."""

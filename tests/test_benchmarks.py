@@ -28,6 +28,7 @@ QUICK = {
     "registration": (["--quick"], "registration_quick"),
     "rom": (["--quick"], "rom_quick"),
     "ensemble": (["--quick"], "ensemble_quick"),
+    "trade": (["--quick"], "trade_quick"),
 }
 
 

@@ -48,8 +48,12 @@ def test_serial_outcomes_in_order_and_failures_in_one_line():
 def test_groups_deal_the_tasks_and_every_rank_gets_every_outcome():
     comm = MPI.COMM_WORLD
     groups = Groups(1, comm)
-    found = groups.map(halve, [float(i) for i in range(1, 8)] + [-2.0])
+    lines = []
+    found = groups.map(halve, [float(i) for i in range(1, 8)] + [-2.0], lines.append)
     groups.free()
+    if comm.rank == 0:  # the progress counts every group's tasks, and the failure
+        assert lines[-1].startswith("8/8 solves done, 1 failed")
+        assert all(int(line.split("/")[0]) <= 8 for line in lines)
     assert [o.value for o in found[:7]] == [i / 2 for i in range(1, 8)]
     assert found[7].failed == "no negative task (got -2.0)"
     with pytest.raises(ParameterError, match="--group-size"):

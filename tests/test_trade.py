@@ -6,7 +6,8 @@ import pytest
 from trades import written
 
 from lungmech.app import scene as scenes
-from lungmech.app.ladder import Discretisation
+from lungmech.app.cache import Cache
+from lungmech.app.ladder import Discretisation, at
 from lungmech.app.trade import Candidate, candidates, peak_time, trade
 from lungmech.errors import ParameterError
 
@@ -84,3 +85,10 @@ def test_the_candidates_of_a_scene_and_what_is_not_made(tmp_path):
     ]
     with pytest.raises(ParameterError, match="Taylor–Hood: its displacement degree is ≥ 2"):
         Discretisation(0, 1, mixed=True)
+    mixed = written(tmp_path, name="mixed.toml")
+    mixed.write_text(mixed.read_text().replace("nu = 0.3\n", 'nu = 0.3\n[formulation]\ntype = "mixed"\ndegree = 2\n'))
+    own = scenes.load(mixed)
+    made, reference, notes = candidates(own, levels=2)  # its own ladder stays mixed, and has no P1
+    assert [c.name for c in made] == ["full P2–P1 2h", "full P2–P1 h", "full P2–P1 h/2"] and not notes
+    assert reference.name == "full P2–P1 h/4"
+    assert at(own, Discretisation.of(own), Cache(tmp_path / "cache")).formulation is own.formulation

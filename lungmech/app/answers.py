@@ -88,7 +88,8 @@ def answer(model: ParametricModel, values: Mapping[str, float], times: Sequence[
         solution = model.solve(dict(values), times=None if times is None else list(times))
     except (LungmechError, RuntimeError, ArithmeticError) as error:  # PETSc's errors are RuntimeErrors
         why = str(error).splitlines()[0] if str(error) else type(error).__name__
-        return {"failed": why, "seconds": time.perf_counter() - began, "dofs": dofs}
+        origin = "solver" if isinstance(error, LungmechError) else "library"  # lungmech's own verdict, or PETSc's
+        return {"failed": why, "error": origin, "seconds": time.perf_counter() - began, "dofs": dofs}
     outputs = solution.outputs
     start = solution.start.details if solution.start is not None else {}
     others = [name for name in outputs if name.startswith(("loads/", "averages/"))]
@@ -126,14 +127,16 @@ def _dofs(model: ParametricModel) -> int:
 
 def kept_answer(cache: Cache, scene: Scene, task: Task, model: Callable[[], ParametricModel]) -> tuple[dict, bool]:
     """The full-order answer to ``task`` from the cache, or solved by ``model()`` (built only
-    then) and kept (a failure is kept too: the same task fails the same way); and whether it
-    was kept before. Collective."""
+    then) and kept — a failure lungmech's solver reports too (the same task fails the same
+    way), not a library's error (out of memory, say: on more ranks it may pass) —; and whether
+    it was kept before. Collective."""
     name = key(content(scene, task))
     kept = cache.read_json("answers", name)
     if kept is not None:
         return kept, True
     found = answer(model(), task.values, task.times)
-    cache.write_json("answers", name, found)
+    if found["failed"] is None or found.get("error") == "solver":
+        cache.write_json("answers", name, found)  # not a failure of this process's means (its memory, say)
     return found, False
 
 

@@ -29,11 +29,23 @@ import lungmech
 from lungmech.errors import OutputError
 from lungmech.parallel import on_root
 
-__all__ = ["Cache", "code_version", "default_folder", "key"]
+__all__ = ["ANSWERING", "BUILDING", "Cache", "code_version", "default_folder", "key"]
 
 TAG = "CACHEDIR.TAG"
 SIGNATURE = "Signature: 8a477f597d28d172789f06886806bc55"  # what the standard asks the tag to begin with
-SOLVING = ("fem", "lung", "mesh", "parallel", "rom")  # the sub-packages an answer depends on
+SOLVING = ("fem", "lung", "mesh", "parallel", "rom")  # the sub-packages a solve runs in
+# the application's modules that say what a full answer is: the scene read, its model built at
+# a discretisation, the solve's numbers
+ANSWERING = (
+    *SOLVING,
+    "app/answers.py",
+    "app/run.py",
+    "app/ladder.py",
+    "app/scene.py",
+    "app/scene_parameters.py",
+    "app/table_checks.py",
+)
+BUILDING = (*ANSWERING, "app/reduce.py", "app/model_file.py")  # and a reduced model's build, and its file
 DISPATCH = ("parallel/ensemble.py", "parallel/engine.py")  # where a solve runs, not what it answers
 
 
@@ -44,14 +56,15 @@ def default_folder() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lungmech"
 
 
-def code_version(packages: tuple[str, ...] = SOLVING) -> str:
-    """The SHA-256 (16 hex digits) of lungmech's version and of the sources of ``packages`` (but
-    :data:`DISPATCH`'s, which only say where a solve runs): a result computed by other code is
-    another entry."""
+def code_version(parts: tuple[str, ...] = ANSWERING) -> str:
+    """The SHA-256 (16 hex digits) of lungmech's version and of the sources of ``parts`` —
+    sub-packages ("fem") and modules ("app/run.py") — but :data:`DISPATCH`'s, which only say
+    where a solve runs: a result computed by other code is another entry."""
     root = Path(lungmech.__file__).parent
     sha = hashlib.sha256(str(getattr(lungmech, "__version__", "")).encode())
-    for package in packages:
-        for source in sorted((root / package).rglob("*.py")):
+    for part in parts:
+        sources = [root / part] if part.endswith(".py") else sorted((root / part).rglob("*.py"))
+        for source in sources:
             if source.relative_to(root).as_posix() in DISPATCH:
                 continue
             sha.update(source.relative_to(root).as_posix().encode())

@@ -205,8 +205,16 @@ def _run(args: argparse.Namespace) -> int:
         return rom_cli.sweep(args)
     if args.command == "run" and args.sweep is not None:
         return _sweep(args)
-    if args.command == "run" and (args.group_size, args.engine, args.cache) != (None, None, None):
-        raise ParameterError("--group-size, --engine and --cache say where a sweep's solves run: give --sweep")
+    if args.command == "run" and (args.group_size, args.engine, args.cache, args.workers, args.worker_ranks) != (
+        None,
+        None,
+        None,
+        2,
+        1,
+    ):
+        raise ParameterError(
+            "--group-size, --engine, --workers, --worker-ranks and --cache say where a sweep's solves run: give --sweep"
+        )
     if args.command == "rom" and args.scene is None:  # the scene inside the model file
         from lungmech.app.reduce import embedded_scene
         from lungmech.rom import store

@@ -85,8 +85,8 @@ def at(scene: Scene, discretisation: Discretisation, cache: Cache, comm: MPI.Com
     file of the scene's (a builder's ``msh_file`` is left out)."""
     geometry = {k: v for k, v in scene.geometry.items() if k != "msh_file"}
     scene = replace(scene, geometry=geometry, degree=discretisation.degree)
-    if discretisation.mixed:
-        mixed_allowed(scene)
+    if discretisation.mixed and scene.table.get("formulation", {}).get("type") != "mixed":
+        mixed_allowed(scene)  # the displacement scene's Taylor–Hood version (a mixed one keeps its own)
         scene = replace(scene, formulation=TaylorHood())
     if discretisation.level > 0:
         return _refined(scene, discretisation.level, cache, comm)

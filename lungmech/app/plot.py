@@ -233,24 +233,27 @@ MARKERS = {"full": "o", "galerkin": "s", "ecsw": "^", "pgd": "D"}  # a marker pe
 
 def pareto(
     models: Sequence[tuple[str, str, float | None, float | None, int, float]],
-    tolerance: float,
+    tolerance: float | Sequence[float],
     error_label: str,
     path: Path,
-    chosen: str | None = None,
+    chosen: str | Sequence[str] | None = None,
     title: str = "",
     accuracy: float | None = None,
 ) -> None:
     """The speed–accuracy trade: each model's worst error against its warm online time per
     point (ms), log–log, a marker per family; ``models`` are (name, family, online ms, worst
-    error, failed points, offline s). The tolerance is a line, and so is the reference's own
-    ``accuracy`` where known; the chosen model is ringed, a model that failed somewhere drawn
-    hollow and red, and each is labelled with its offline cost."""
+    error, failed points, offline s). Each tolerance is a line, and so is the reference's own
+    ``accuracy`` where known; the chosen models are ringed, a model that failed somewhere drawn
+    hollow and red, and each is labelled with its offline cost (neighbours' labels above and
+    below their markers in turn)."""
+    tolerances = [float(tolerance)] if isinstance(tolerance, int | float) else [float(t) for t in tolerance]
+    ringed = [chosen] if isinstance(chosen, str) else list(chosen or ())
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.8))
+    fig, ax = plt.subplots(figsize=(8.6, 4.8))
     shown = [
         (m[0], m[1], float(m[2]), float(m[3]), m[4], m[5]) for m in models if m[2] is not None and m[3] is not None
     ]
-    floor = min([m[3] for m in shown if m[3] > 0] + [tolerance]) / 10
+    floor = min([m[3] for m in shown if m[3] > 0] + tolerances) / 10
     for i, family in enumerate(dict.fromkeys(m[1] for m in shown)):
         mine, colour = [m for m in shown if m[1] == family], f"C{i}"
         ax.scatter(
@@ -262,14 +265,14 @@ def pareto(
             facecolors=["none" if m[4] else colour for m in mine],
             edgecolors=["tab:red" if m[4] else colour for m in mine],
         )
-    for name, _, online, error, failed, offline in shown:
-        note = (
-            f"{name}" + (f", offline {offline:.3g} s" if offline else "") + (f", fails at {failed}" if failed else "")
-        )
-        ax.annotate(note, (online, max(error, floor)), xytext=(4, 3), textcoords="offset points", fontsize=6.5)
-        if name == chosen:
-            ax.scatter([online], [max(error, floor)], s=260, facecolors="none", edgecolors="k", linewidths=1.4)
-    ax.axhline(tolerance, color="0.4", ls="--", lw=1, label=f"tolerance {tolerance:.0e}")
+    for k, (name, _, online, error, failed, offline) in enumerate(sorted(shown, key=lambda m: m[2])):
+        note = name + (f", offline {offline:.3g} s" if offline else "") + (f", fails at {failed}" if failed else "")
+        where = (online, max(error, floor))
+        ax.annotate(note, where, xytext=(5, -9 if k % 2 else 4), textcoords="offset points", fontsize=6.5)
+        if name in ringed:
+            ax.scatter(*where, s=260, facecolors="none", edgecolors="k", linewidths=1.4)
+    for k, line in enumerate(tolerances):
+        ax.axhline(line, color="0.4", ls=("--", "-.", ":")[k % 3], lw=1, label=f"tolerance {line:.0e}")
     if accuracy is not None:
         ax.axhline(accuracy, color="0.6", ls=":", lw=1, label=f"the reference's own error ≈ {accuracy:.1e}")
     ax.margins(x=0.25, y=0.15)
@@ -278,9 +281,10 @@ def pareto(
     ax.set_xlabel("online time per point, warm median [ms]")
     ax.set_ylabel(error_label)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="best")
-    if chosen is not None:
-        ax.text(0.99, 0.01, f"chosen (ringed): {chosen}", transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: the markers keep the plot
+    if ringed:
+        text = "chosen (ringed): " + ", ".join(ringed)
+        ax.text(0.99, 0.01, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -168,9 +168,8 @@ def build_family(
     returns the files by model name. Collective."""
     if not taus:
         raise ParameterError("give at least one ECSW tolerance τ for the family's hyper-reduced models")
-    for tau in taus:
-        reductor.ECSW(tau)  # the checks, before any work
-    family_files(taus)
+    files = family_files(taus)  # no τ twice, before any work
+    hypers = [None, *(reductor.ECSW(tau) for tau in taus)]  # each τ checked
     box = Parameters(scene.parameters)
     samples = samples if samples is not None else (8 if box else 1)
     checks.integer("training samples", samples, minimum=1)
@@ -178,10 +177,8 @@ def build_family(
     checks.integer("basis size", size, minimum=1)
     scales = (1.0,) if box else (0.5, 1.0, 1.5)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
-    files = family_files(taus)
-    hypers = [None, *(reductor.ECSW(tau) for tau in taus)]
     models = [(Path(folder) / file, hyper) for file, hyper in zip(files.values(), hypers, strict=True)]
-    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False)
+    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False, judged=False)
     return {name: Path(folder) / file for name, file in files.items()}
 
 
@@ -202,11 +199,13 @@ def _build(
     inner: str,
     comm: MPI.Comm,
     hold_signals: bool = True,
+    judged: bool = True,
 ) -> dict:
     """Each (path, hyper-reduction) of ``models`` from one :class:`~lungmech.rom.reductor.Reductor`
     of the scene's full model; returns the summary of the last. ``hold_signals``: the paths are
     an output's (:func:`~lungmech.parallel.destination.output_file`), whose swap the signals
-    wait for once the writing begins."""
+    wait for once the writing begins. ``judged``: a greedy's rounds judge at the last
+    hyper-reduction's τ (a family of fixed training has no judge)."""
     timings = {}
     tic = time.perf_counter()
     model = build_model(scene, comm, image=_image(scene))
@@ -216,7 +215,7 @@ def _build(
     full = full_order_model(scene, comm, start="inverse_motion" if _image(scene) else "defaults", model=model)
     timings["build_and_inverse"] = time.perf_counter() - tic
     hypers = [hyper for _, hyper in models if hyper is not None]
-    judge = hypers[-1].judge or hypers[-1].tolerance if hypers else None
+    judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
     with reductor.Reductor(full, recipe, training, inner, judge) as made:
         for path, hyper in models:

@@ -36,7 +36,7 @@ import numpy as np
 from lungmech import checks
 from lungmech.app import answers
 from lungmech.app import scene as scenes
-from lungmech.app.cache import SOLVING, Cache, code_version, default_folder, key
+from lungmech.app.cache import BUILDING, Cache, code_version, default_folder, key
 from lungmech.app.ladder import Discretisation, mixed_allowed, remeshed
 from lungmech.app.measure import apart
 from lungmech.app.model_file import embedded_names
@@ -115,7 +115,6 @@ class Trade:
     results: dict[str, dict] = field(default_factory=dict)
     families: dict[str, str] = field(default_factory=dict)
     requests: dict[str, dict] = field(default_factory=dict)
-    indicator_ratios: dict[str, float] = field(default_factory=dict)
     errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     convergence: dict[str, Convergence] = field(default_factory=dict)
     measured: list[Measured] = field(default_factory=list)
@@ -285,7 +284,7 @@ def _built(scene: scenes.Scene, family: Family, cache: Cache, comm: MPI.Comm) ->
         "physics": scenes.physics(scene),
         "files": {name: scenes.file_sha256(file) for name, file in embedded_names(scene).items()},
         "family": asdict(family),
-        "code": code_version((*SOLVING, "app")),  # the build's own code (app.reduce) too
+        "code": code_version(BUILDING),
     }
 
     def fill(folder: Path) -> None:
@@ -316,10 +315,9 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
         found.errors[candidate.name] = {q: quantities.errors(answers, reference, q) for q in names}
         if "probes" in names:
             found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
-    ladder = [f"full {Discretisation.of(scene, level).name}" for level in range(levels - 1, levels + 1)]
+    ladder = [f"full {Discretisation.of(scene, level).name}" for level in range(levels - 2, levels + 1)]
     if levels >= 2 and all(name in found.results for name in ladder):
-        coarse = found.results[f"full {Discretisation.of(scene, levels - 2).name}"]["answers"]
-        middle, fine = (found.results[name]["answers"] for name in ladder)
+        coarse, middle, fine = (found.results[name]["answers"] for name in ladder)
         for q in names:
             try:
                 q0, q1, q2 = (quantities.normalised(a, reference, q).ravel() for a in (coarse, middle, fine))
@@ -327,7 +325,7 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
             except ParameterError as why:
                 found.notes.append(f"no observed order of {q}: {why}")
     for q, order in found.convergence.items():
-        last = found.errors[ladder[0]][q] if ladder[0] in found.errors else np.array([np.nan])
+        last = found.errors[ladder[1]][q] if ladder[1] in found.errors else np.array([np.nan])
         if order.estimate is None and np.isfinite(last).any():
             found.notes.append(
                 f"the reference's own error on {q} is not estimated (observed order {order.observed:.2f}, "

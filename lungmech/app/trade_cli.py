@@ -53,11 +53,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     trade.add_argument(
         "--taus",
-        default="1e-3,1e-4,1e-5",
+        default=None,
         type=_numbers,
         help="with --build: the ECSW tolerances τ, comma-separated (default 1e-3,1e-4,1e-5)",
     )
-    trade.add_argument("--size", type=int, default=20, help="with --build: basis vectors, at most (default 20)")
+    trade.add_argument("--size", type=int, default=None, help="with --build: basis vectors, at most (default 20)")
     trade.add_argument("--samples", type=int, default=None, help="with --build: training points (Sobol'; default 8)")
     trade.add_argument(
         "--queries",
@@ -92,9 +92,10 @@ def run(args: argparse.Namespace) -> int:
 
     check_tolerance(args.tolerance)
     comm, _, name, path = setup(args)
-    family = Family(tuple(args.taus), args.size, args.samples) if args.build else None
-    if not args.build and (args.samples is not None or args.size != 20):
-        raise ParameterError("--size and --samples shape the models --build makes: give --build")
+    if not args.build and (args.samples, args.size, args.taus) != (None, None, None):
+        raise ParameterError("--taus, --size and --samples shape the models --build makes: give --build")
+    given = {"taus": None if args.taus is None else tuple(args.taus), "size": args.size, "samples": args.samples}
+    family = Family(**{name: value for name, value in given.items() if value is not None}) if args.build else None
     check_ensemble(args, comm)
     output = Path(args.output if args.output is not None else RESULTS / f"{path.stem}-trade")
     if comm.rank == 0:

@@ -5,8 +5,7 @@ model file beside it) for ``rom solve`` and the twin.
 Every column carries its unit; every error says its denominator (:mod:`lungmech.trade.quantities`).
 Per model: the worst and mean error over the points on each quantity and the point of the
 worst, the points where it failed, its warm online time per point, its start-up, its offline
-cost (seconds and full solves), its peak memory, and — where it has an error indicator — the
-indicator's worst ratio to the measured energy-norm error.
+cost (seconds and full solves) and its peak memory.
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ from lungmech.trade.points import failure_bound
 if TYPE_CHECKING:
     from lungmech.app.trade import Trade
 
-__all__ = ["console_table", "markdown", "rows", "summary", "write"]
+__all__ = ["console_table", "markdown", "pareto_points", "rows", "summary", "write"]
 
 FAMILIES = {"full": "full order", "galerkin": "Galerkin (reduced)", "ecsw": "hyper-reduced (ECSW)", "pgd": "PGD"}
 COLUMNS = {  # a quantity's error columns: the name and unit they carry
@@ -64,12 +63,11 @@ def rows(found: Trade) -> list[dict[str, Any]]:
         answers = result["answers"]
         row["failed points"] = sum(a["failed"] is not None for a in answers)
         row["online [ms]"] = _ms(result.get("online_seconds")) if judged else None
+        row["timed solves"] = result.get("timed_solves") if judged else None
         row["start-up [s]"] = result.get("start_up_seconds") if judged else None
         row["offline [s]"] = result.get("offline_seconds", 0.0) if judged else None
         row["full solves"] = result.get("full_solves", 0) if judged else None
         row["peak RSS [MiB]"] = result.get("peak_rss_mib") if judged else None
-        ratio = found.indicator_ratios.get(name)
-        row["indicator / error [-]"] = None if ratio is None else ratio
         row["chosen"] = name == chosen
         out.append(row)
     return out
@@ -79,41 +77,44 @@ def summary(found: Trade) -> dict[str, Any]:
     """Everything the trade measured, as JSON: the settings, the points, each model's errors at
     every point (nan as null), its costs, the reference's convergence, the choice and the notes."""
     choice = found.choice
-    return {
-        "lungmech": lungmech.__version__,
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
-        "scene": found.scene,
-        "tolerance": found.tolerance,
-        "quantity": found.quantity,
-        "denominator": quantities.DENOMINATORS[found.quantity],
-        "queries": found.queries,
-        "full_solves_on": found.ensemble,
-        "full_solves": found.full_solves,
-        "output_times_s": found.times,
-        "reference": found.reference,
-        "points": [
-            {"kind": kind, "values": point} for kind, point in zip(found.points.kinds, found.points.points, strict=True)
-        ],
-        "failure_bound_95": failure_bound(len(found.points)),
-        "convergence": {
-            q: {"observed": c.observed, "expected": c.expected, "agree": c.agree, "reference_error": c.estimate}
-            for q, c in found.convergence.items()
-        },
-        "models": [
-            row
-            | {
-                "errors": {q: _listed(v) for q, v in found.errors.get(row["model"], {}).items()},
-                "failures": [a["failed"] for a in found.results[row["model"]]["answers"]],
-                "ranks": found.results[row["model"]].get("ranks"),
-            }
-            for row in rows(found)
-        ],
-        "choice": None
-        if choice is None
-        else {"model": None if choice.chosen is None else choice.chosen.name, "reason": choice.reason},
-        "notes": found.notes,
-    }
+    return _finite(
+        {
+            "lungmech": lungmech.__version__,
+            "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
+            "scene": found.scene,
+            "tolerance": found.tolerance,
+            "quantity": found.quantity,
+            "denominator": quantities.DENOMINATORS[found.quantity],
+            "queries": found.queries,
+            "full_solves_on": found.ensemble,
+            "full_solves": found.full_solves,
+            "output_times_s": found.times,
+            "reference": found.reference,
+            "points": [
+                {"kind": kind, "values": point}
+                for kind, point in zip(found.points.kinds, found.points.points, strict=True)
+            ],
+            "failure_bound_95": failure_bound(len(found.points)),
+            "convergence": {
+                q: {"observed": c.observed, "expected": c.expected, "agree": c.agree, "reference_error": c.estimate}
+                for q, c in found.convergence.items()
+            },
+            "models": [
+                row
+                | {
+                    "errors": {q: _listed(v) for q, v in found.errors.get(row["model"], {}).items()},
+                    "failures": [a["failed"] for a in found.results[row["model"]]["answers"]],
+                    "ranks": found.results[row["model"]].get("ranks"),
+                }
+                for row in rows(found)
+            ],
+            "choice": None
+            if choice is None
+            else {"model": None if choice.chosen is None else choice.chosen.name, "reason": choice.reason},
+            "notes": found.notes,
+        }
+    )
 
 
 def markdown(found: Trade, command: str = "") -> str:
@@ -194,20 +195,9 @@ def write(found: Trade, folder: Path, command: str = "") -> None:
         writer = csv.DictWriter(stream, fieldnames=list(table[0]))
         writer.writeheader()
         writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in table)
-    (folder / "trade.json").write_text(json.dumps(_finite(summary(found) | {"command": command}), indent=1) + "\n")
+    (folder / "trade.json").write_text(json.dumps(summary(found) | {"command": command}, indent=1) + "\n")
     (folder / "choice.json").write_text(json.dumps(_finite(choice_record(found, folder)), indent=1) + "\n")
-    shown = [
-        (
-            row["model"],
-            row["family"],
-            row.get("online [ms]"),
-            row.get(f"{COLUMNS[found.quantity][0]} max [-]"),
-            row["failed points"],
-            row.get("offline [s]") or 0.0,
-        )
-        for row in table
-        if row["family"] != "reference"
-    ]
+    shown = pareto_points(found)
     chosen = next((row["model"] for row in table if row["chosen"]), None)
     title = f"{Path(found.scene).name}: worst of {len(found.points)} points against {found.reference}"
     label = f"{COLUMNS[found.quantity][0]} (of {quantities.DENOMINATORS[found.quantity]}) [-]"
@@ -218,6 +208,17 @@ def write(found: Trade, folder: Path, command: str = "") -> None:
         folder / "trade.png",
         lambda: pareto(shown, found.tolerance, label, folder / "trade.png", chosen, title, accuracy),
     )
+
+
+def pareto_points(found: Trade) -> list[tuple[str, str, float | None, float | None, int, float]]:
+    """Each candidate's (name, family, online ms, worst error, failed points, offline s), for
+    :func:`lungmech.app.plot.pareto`."""
+    label = COLUMNS[found.quantity][0]
+    return [
+        (r["model"], r["family"], r["online [ms]"], r[f"{label} max [-]"], r["failed points"], r["offline [s]"] or 0.0)
+        for r in rows(found)
+        if r["family"] != "reference"
+    ]
 
 
 def choice_record(found: Trade, folder: Path) -> dict[str, Any]:

@@ -27,6 +27,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +46,9 @@ def launched(work: Work, task: Any, parsl_resource_specification: dict | None = 
         given, told = folder / "task.pickle", folder / "outcome.pickle"
         given.write_bytes(pickle.dumps((work, task)))
         prefix = os.environ.get("PARSL_MPI_PREFIX", "")
-        command = f"{prefix} {sys.executable} -m lungmech.parallel.engine {given} {told}"
-        done = subprocess.run(command, shell=True, capture_output=True, text=True)
+        arguments = shlex.join([sys.executable, "-m", "lungmech.parallel.engine", str(given), str(told)])
+        command = f"{prefix} {arguments}"
+        done = subprocess.run(command, shell=True, capture_output=True, text=True)  # the prefix is a shell line
         if not told.is_file():
             last = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
             raise RuntimeError(f"the task's processes ended without an outcome ({last})")
@@ -55,18 +57,24 @@ def launched(work: Work, task: Any, parsl_resource_specification: dict | None = 
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def pool(provider: Any, workers: int, ranks: int = 1, launcher: str = "mpiexec", per_core: bool = False) -> Pool:
+def pool(
+    provider: Any,
+    workers: int,
+    ranks: int = 1,
+    launcher: str = "mpiexec",
+    per_core: bool = False,
+    closed: Callable[[], None] | None = None,
+) -> Pool:
     """A :class:`~lungmech.parallel.ensemble.Pool` of ``workers`` concurrent tasks of ``ranks``
     MPI ranks each, on Parsl's ``provider`` (e.g. ``parsl.providers.SlurmProvider``; its
     ``worker_init`` activates lungmech's environment), each task launched by ``launcher``
     ("mpiexec" or "srun"). ``per_core``: the provider's nodes are cores (one line per core in
-    the node file, :func:`local_pool`). Close it (``with``) to stop Parsl's processes."""
+    the node file, :func:`local_pool`). Close it (``with``) to stop Parsl's processes (and
+    then call ``closed``); its run folder of logs is removed then."""
     for name, value in (("workers", workers), ("ranks", ranks)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ParameterError(f"--{name}: a whole number ≥ 1 (got {value!r})")
-    from parsl.concurrent import ParslPoolExecutor
-    from parsl.config import Config
-    from parsl.executors import MPIExecutor
+    ParslPoolExecutor, Config, MPIExecutor = _parsl()
 
     logging.getLogger("parsl").propagate = False  # its configuration goes to its log file, not the console
 
@@ -84,20 +92,41 @@ def pool(provider: Any, workers: int, ranks: int = 1, launcher: str = "mpiexec",
     # a list of arguments, as its base executor takes them (MPIExecutor's checked annotation
     # allows one string only, which cannot hold setsid's)
     executor.interchange_launch_cmd = interchange
-    config = Config(executors=[executor], retries=0, strategy_period=0.2, run_dir=tempfile.mkdtemp(prefix="parsl-"))
+    logs = tempfile.mkdtemp(prefix="lungmech-parsl-")
+    config = Config(executors=[executor], retries=0, strategy_period=0.2, run_dir=logs)
     shape = {"num_nodes": ranks, "ranks_per_node": 1} if per_core else {"num_nodes": 1, "ranks_per_node": ranks}
+
+    def tidy() -> None:
+        shutil.rmtree(logs, ignore_errors=True)
+        if closed is not None:
+            closed()
+
     return Pool(
         ParslPoolExecutor(config=config),
         launched,
         {"parsl_resource_specification": shape | {"num_ranks": ranks}},
         description=f"Parsl, {workers} worker{'s' * (workers > 1)} of {ranks} rank{'s' * (ranks > 1)}",
+        closed=tidy,
     )
+
+
+def _parsl() -> tuple[Any, Any, Any]:
+    """Parsl's pool executor, config and MPI executor; refused in one line where Parsl is not
+    installed."""
+    try:
+        from parsl.concurrent import ParslPoolExecutor
+        from parsl.config import Config
+        from parsl.executors import MPIExecutor
+    except ImportError:
+        raise ParameterError("--engine parsl needs Parsl: pip install 'lungmech[cluster]'") from None
+    return ParslPoolExecutor, Config, MPIExecutor
 
 
 def local_pool(workers: int = 2, ranks: int = 1) -> Pool:
     """A Parsl pool on this machine: ``workers`` tasks at once, each on ``ranks`` ranks of this
     environment's ``mpiexec`` (a node file of one line per core, as a batch system would give);
     the workers see this process's ``PYTHONPATH``."""
+    _parsl()  # installed?
     from parsl.launchers import SimpleLauncher
     from parsl.providers import LocalProvider
 
@@ -106,7 +135,8 @@ def local_pool(workers: int = 2, ranks: int = 1) -> Pool:
         raise ParameterError(
             f"--workers × --worker-ranks: {workers} × {ranks} ranks is more than this machine's {cores} cores"
         )
-    nodes = Path(tempfile.mkdtemp(prefix="lungmech-nodes-")) / "nodefile"
+    folder = Path(tempfile.mkdtemp(prefix="lungmech-nodes-"))
+    nodes = folder / "nodefile"
     nodes.write_text("localhost\n" * cores)
     here = Path(sys.executable).parent
     provider = LocalProvider(
@@ -117,7 +147,11 @@ def local_pool(workers: int = 2, ranks: int = 1) -> Pool:
         worker_init=f"export PBS_NODEFILE={nodes}; export PATH={here}:$PATH"
         + (f"; export PYTHONPATH={shlex.quote(path)}" if (path := os.environ.get("PYTHONPATH")) else ""),
     )
-    return pool(provider, workers, ranks, "mpiexec", per_core=True)
+    try:
+        return pool(provider, workers, ranks, "mpiexec", per_core=True, closed=lambda: shutil.rmtree(folder, True))
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
 
 
 def main(argv: list[str]) -> int:

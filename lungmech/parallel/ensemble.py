@@ -14,13 +14,14 @@ line. A failing task never stops the others, in any mode.
   every outcome. A process that dies ends the run (MPI's rule); the tasks' own results, kept
   by the caller (lungmech's cache), make a rerun resume.
 * :class:`Pool` — an existing engine's :class:`concurrent.futures.Executor` whose workers may
-  be k-rank MPI jobs (executorlib's, on this machine or through Slurm or Flux): each task is
-  submitted as ``run_task(work, task)``, which solves it on the worker's communicator; a task
-  whose worker died is submitted once more.
+  be k-rank MPI jobs (Parsl's, :mod:`lungmech.parallel.engine`, on this machine or through
+  Slurm or PBS): each task is submitted as ``run_task(work, task)``, or the engine's launcher,
+  which solves it on the worker's communicator; a task whose worker died is submitted once more.
 
-Each worker's BLAS and OpenMP threads are capped to one per rank before it starts
-(:func:`one_thread_per_rank`): threaded dense algebra competing for cores slows a solve far
-more than the oversubscription factor (an ECSW build took 14× longer under a load of 2–8).
+A pool's workers cap their BLAS and OpenMP threads to one per rank before they solve
+(:func:`lungmech._threads.cap_threads`), as ``import lungmech`` does in a rank of several:
+threaded dense algebra competing for cores slows a solve far more than the oversubscription
+factor (an ECSW build took 14× longer under a load of 2–8).
 
 Progress: one line for the ensemble, on the first rank — tasks done of the total, failures and
 the time left at the pace so far.
@@ -37,9 +38,10 @@ from typing import Any, Generic, TypeVar, cast
 
 from mpi4py import MPI
 
+from lungmech._threads import cap_threads
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
-__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "one_thread_per_rank", "run_task"]
+__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "attempt", "run_task"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -82,7 +84,7 @@ class Serial(Ensemble):
         pace = Pace(len(tasks), progress if self.comm.rank == 0 else None)
         outcomes = []
         for task in tasks:
-            outcomes.append(attempt(work, task, self.comm))
+            outcomes.append(self.comm.bcast(attempt(work, task, self.comm), root=0))  # one outcome on every rank
             pace.done(outcomes[-1])
         return outcomes
 
@@ -141,8 +143,10 @@ class Pool(Ensemble):
         options: dict | None = None,
         retries: int = 1,
         description: str = "",
+        closed: Callable[[], None] | None = None,
     ) -> None:
         self.executor = executor
+        self.closed = closed  # what else to tidy once the engine stopped (its run folder, say)
         self.function: Callable[..., Outcome] = function or run_task
         self.options, self.retries = dict(options or {}), retries
         self._description = description or f"{type(executor).__name__} workers"
@@ -160,7 +164,11 @@ class Pool(Ensemble):
     def close(self, wait: bool = True) -> None:
         """Stop the engine's workers: once its tasks are done, or at once (``wait`` False: an
         error or an interrupt)."""
-        self.executor.shutdown(wait=wait)
+        try:
+            self.executor.shutdown(wait=wait)
+        finally:
+            if self.closed is not None:
+                self.closed()
 
     def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
         pace = Pace(len(tasks), progress)
@@ -172,7 +180,7 @@ class Pool(Ensemble):
                 for future in done:
                     index, tries = futures.pop(future)
                     try:
-                        outcome = _first(future.result())
+                        outcome = future.result()
                     except Exception as error:  # the worker, not the task: the task's own errors are outcomes
                         if tries < self.retries:
                             futures[self._submit(work, tasks[index])] = (index, tries + 1)
@@ -194,7 +202,7 @@ class Pool(Ensemble):
 def run_task(work: Work, task: Any) -> Outcome:
     """``work(task, comm)`` on a worker, ``comm`` its world (a k-rank MPI job's k ranks), its
     threads capped first: what :class:`Pool` submits."""
-    one_thread_per_rank()
+    cap_threads()
     return attempt(work, task, MPI.COMM_WORLD)
 
 
@@ -209,17 +217,6 @@ def attempt(work: Work, task: Any, comm: MPI.Comm) -> Outcome:
         return Outcome(None, _line(error))
     except Exception as error:
         return Outcome(None, f"{type(error).__name__}: {_line(error)}")
-
-
-def one_thread_per_rank() -> None:
-    """Cap this process's BLAS and OpenMP thread pools to one thread (threadpoolctl), where
-    the user did not set them: a worker's rank owns one core."""
-    import os
-
-    from threadpoolctl import threadpool_limits
-
-    if not any(os.environ.get(name) for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")):
-        threadpool_limits(limits=1)
 
 
 class Pace:
@@ -252,7 +249,8 @@ class _Counter:
 
         self.np = np
         self.memory = np.zeros(2, dtype=np.int64) if comm.rank == 0 else None
-        self.window = MPI.Win.Create(self.memory, comm=comm) if comm.rank == 0 else MPI.Win.Create(None, comm=comm)
+        unit = np.dtype(np.int64).itemsize  # displacements count integers, not bytes
+        self.window = MPI.Win.Create(self.memory if comm.rank == 0 else None, disp_unit=unit, comm=comm)
 
     def add(self, failed: bool) -> tuple[int, int]:
         """Add one finished task (and a failure) and return the totals after it."""
@@ -266,11 +264,6 @@ class _Counter:
 
     def free(self) -> None:
         self.window.Free()
-
-
-def _first(result: Any) -> Outcome:
-    """A k-rank worker's outcome: its first rank's (an engine returns one per rank)."""
-    return result[0] if isinstance(result, list) else result
 
 
 def _line(error: BaseException) -> str:

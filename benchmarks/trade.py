@@ -1,0 +1,167 @@
+"""The speed–accuracy trade of the bundled breathing lung, measured by `lungmech trade` itself.
+
+    python benchmarks/trade.py             # the imaged lung over its 3-parameter box (about 1.5 h on 2 cores)
+    python benchmarks/trade.py --quick     # the thick sphere octant over its stiffness, reference h/2 (about a minute)
+
+A thin caller of :func:`lungmech.app.trade.trade`: the bundled ``lung_breathing_parameters``
+scene, as the imaged-lung problem every command answers (the image is the lung at
+end-expiration for every μ), over stiffness × breath depth × posture. Candidates: the full
+model P1 at 2h (remeshed), h and h/2 and P2 on h; POD Galerkin (20 vectors at most, 8
+training points) and its ECSW hyper-reductions at τ = 1e-3, 1e-4, 1e-5, built by the one
+reductor (``--build``). Reference: P1 h/4. Points: 8 seeded Sobol' points and the box's 8
+corners. The quantity: the volume at end-inspiration, relative to the breath's volume change.
+The full solves run on Parsl's 2 local workers (``--workers 0``: one after another); each
+candidate is then measured in a process of its own, on one rank.
+
+Two tolerances, 1e-2 and 1e-4, chosen from one measurement. Every full answer and the models
+are kept in lungmech's cache (``--cache``, default ``results/raw/lungmech-cache``): an
+interrupted run resumes. Writes results/trade{,_quick}.{md,csv,png} and, beside them,
+trade{,_quick}.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from importlib import resources
+from pathlib import Path
+
+import machine
+from machine import provenance, say, write_results
+
+TOLERANCES = (1e-2, 1e-4)
+QUICK_TOLERANCES = (5e-2, 1e-3)
+SPHERE = """title = "a thick sphere octant inflated from inside"
+[geometry]
+builder = "sphere"
+inner_radius = 0.5
+outer_radius = 1.0
+mesh_size = 0.4
+[material]
+law = "neo_hookean"
+E = 10.0
+nu = 0.3
+[[constraints]]
+type = "symmetry"
+boundary = "x0"
+component = 0
+[[constraints]]
+type = "symmetry"
+boundary = "y0"
+component = 1
+[[constraints]]
+type = "symmetry"
+boundary = "z0"
+component = 2
+[[loads]]
+type = "follower_pressure"
+name = "inner"
+boundary = "inner"
+value = 0.5
+ramp = { times = [0.0, 1.0, 2.0], values = [0.0, 1.0, 0.5] }
+[stepping]
+end = 2.0
+max_step = 0.5
+[parameters.stiffness]
+target = "material.E"
+range = [5.0, 20.0]
+[output]
+probes = [[0.5, 0.0, 0.0]]
+"""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="the sphere octant, 2 interior points, small models")
+    parser.add_argument("--workers", type=int, default=None, help="Parsl's local workers (default 2; 0 with --quick)")
+    parser.add_argument("--cache", default=None, help="lungmech's cache folder (default results/raw/lungmech-cache)")
+    args = parser.parse_args()
+    workers = args.workers if args.workers is not None else (0 if args.quick else 2)
+    with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
+        if args.quick:
+            scene = Path(folder) / "sphere.toml"
+            scene.write_text(SPHERE)
+        else:
+            scene = Path(str(resources.files("lungmech.scenes") / "lung_breathing_parameters.toml"))
+        cache = Path(args.cache) if args.cache else (Path(folder) / "cache" if args.quick else _default_cache())
+        found = _traded(scene, cache, workers, args.quick)
+    stem = "trade_quick" if args.quick else "trade"
+    command = "python benchmarks/trade.py" + (" --quick" if args.quick else "")
+    _report(found, stem, command, workers)
+
+
+def _default_cache() -> Path:
+    return machine.RESULTS / "raw" / "lungmech-cache"
+
+
+def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
+    """The trade of ``scene`` at the first tolerance, measured; at the others, the same
+    measurement chosen from again (:func:`lungmech.trade.choice.choose`)."""
+    from dataclasses import replace
+
+    from lungmech.app.trade import Family, trade
+    from lungmech.parallel.engine import local_pool
+    from lungmech.parallel.ensemble import Serial
+    from lungmech.trade.choice import choose
+
+    family = Family(taus=(1e-2, 1e-4), size=6, samples=4) if quick else Family()
+    count, levels = (1, 1) if quick else (8, 2)
+    first, *others = QUICK_TOLERANCES if quick else TOLERANCES
+    say(f"trade at {first:g}")
+    began = time.perf_counter()
+    if workers:
+        with local_pool(workers, 1) as pool:
+            found = trade(scene, first, count=count, cache=cache, levels=levels, build=family, ensemble=pool)
+    else:
+        found = trade(scene, first, count=count, cache=cache, levels=levels, build=family, ensemble=Serial())
+    kept = found.full_solves.get("kept", 0)
+    found.notes.append(f"the trade took {time.perf_counter() - began:.0f} s; {kept} full answers were kept before")
+    convergence = found.convergence.get(found.quantity)
+    accuracy = None if convergence is None else convergence.estimate
+    chosen = [
+        replace(found, tolerance=tolerance, choice=choose(found.measured, tolerance, found.quantity, None, accuracy))
+        for tolerance in others
+    ]
+    return [found, *chosen]
+
+
+def _report(found: list, stem: str, command: str, workers: int) -> None:
+    """results/<stem>.md (the first trade's page, each tolerance's choice), .csv, .png, .json."""
+    from lungmech.app import trade_report
+    from lungmech.app.plot import pareto
+
+    first = found[0]
+    choices = [f"- **{t.tolerance:.0e}**: {t.choice.reason if t.choice else 'none'}" for t in found]
+    engine = f"Parsl's {workers} local workers of 1 rank" if workers else "one process"
+    header = [
+        "# The speed–accuracy trade of the bundled breathing lung",
+        "",
+        provenance(command, f"full solves on {engine}; each candidate measured on one rank"),
+        "",
+        "The choice at each tolerance on the volume at end-inspiration (relative to the breath's volume change):",
+        "",
+        *choices,
+        "",
+    ]
+    page = trade_report.markdown(first, command).replace("![error against online time](trade.png)", "")
+    page = page.replace(f"# Trade: {Path(first.scene).name}", "## The table")
+    machine.RESULTS.mkdir(parents=True, exist_ok=True)
+    write_results(machine.RESULTS, stem, trade_report.rows(first), "\n".join(header) + page + f"\n![]({stem}.png)\n")
+    (machine.RESULTS / f"{stem}.json").write_text(json.dumps(trade_report.summary(first), indent=1) + "\n")
+    label = trade_report.COLUMNS[first.quantity][0]
+    pareto(
+        trade_report.pareto_points(first),
+        [t.tolerance for t in found],
+        f"{label} (of {trade_report.quantities.DENOMINATORS[first.quantity]}) [-]",
+        machine.RESULTS / f"{stem}.png",
+        [t.choice.chosen.name for t in found if t.choice and t.choice.chosen],
+        f"{Path(first.scene).name}: worst of {len(first.points)} points against {first.reference}",
+    )
+    print((machine.RESULTS / f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
