@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import tempfile
 import time
@@ -79,6 +80,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=None, help="Parsl's local workers (default 2; 0 with --quick)")
     parser.add_argument("--cache", default=None, help="lungmech's cache folder (default results/raw/lungmech-cache)")
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the trade's progress lines
     workers = args.workers if args.workers is not None else (0 if args.quick else 2)
     with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
         if args.quick:
