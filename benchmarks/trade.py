@@ -107,7 +107,8 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
     from lungmech.app.trade import Family, trade
     from lungmech.parallel.engine import local_pool
     from lungmech.parallel.ensemble import Serial
-    from lungmech.trade.choice import choose
+    from lungmech.errors import ParameterError
+    from lungmech.trade.choice import Choice, choose
 
     family = Family(taus=(1e-2, 1e-4), size=6, samples=4) if quick else Family()
     count, levels = (1, 1) if quick else (8, 2)
