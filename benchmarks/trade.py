@@ -105,9 +105,9 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
     from dataclasses import replace
 
     from lungmech.app.trade import Family, trade
+    from lungmech.errors import ParameterError
     from lungmech.parallel.engine import local_pool
     from lungmech.parallel.ensemble import Serial
-    from lungmech.errors import ParameterError
     from lungmech.trade.choice import Choice, choose
 
     family = Family(taus=(1e-2, 1e-4), size=6, samples=4) if quick else Family()
@@ -124,10 +124,13 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
     found.notes.append(f"the trade took {time.perf_counter() - began:.0f} s; {kept} full answers were kept before")
     convergence = found.convergence.get(found.quantity)
     accuracy = None if convergence is None else convergence.estimate
-    chosen = [
-        replace(found, tolerance=tolerance, choice=choose(found.measured, tolerance, found.quantity, None, accuracy))
-        for tolerance in others
-    ]
+    chosen = []
+    for tolerance in others:
+        try:
+            choice = choose(found.measured, tolerance, found.quantity, None, accuracy)
+        except ParameterError as refused:  # below the reference's own accuracy: the trade says so
+            choice = Choice(None, f"refused: {refused}")
+        chosen.append(replace(found, tolerance=tolerance, choice=choice))
     return [found, *chosen]
 
 
