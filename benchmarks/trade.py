@@ -1,7 +1,7 @@
 """The speed–accuracy trade of the bundled breathing lung, measured by `lungmech trade` itself.
 
     python benchmarks/trade.py             # the imaged lung over its 3-parameter box (about 1.5 h on 2 cores)
-    python benchmarks/trade.py --quick     # the thick sphere octant over its stiffness, reference h/2 (about a minute)
+    python benchmarks/trade.py --quick     # the sphere octant over its stiffness: P1, P2 and 2 reduced models against h/2
 
 A thin caller of :func:`lungmech.app.trade.trade`: the bundled ``lung_breathing_parameters``
 scene, as the imaged-lung problem every command answers (the image is the lung at
@@ -104,22 +104,24 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
     measurement chosen from again (:func:`lungmech.trade.choice.choose`)."""
     from dataclasses import replace
 
-    from lungmech.app.trade import Family, trade
+    from lungmech.app.ladder import Discretisation
+    from lungmech.app.trade import Candidate, Family, trade
     from lungmech.errors import ParameterError
     from lungmech.parallel.engine import local_pool
     from lungmech.parallel.ensemble import Serial
     from lungmech.trade.choice import Choice, choose
 
-    family = Family(taus=(1e-2, 1e-4), size=6, samples=4) if quick else Family()
+    family = Family(taus=(1e-2,), size=6, samples=4) if quick else Family()
     count, levels = (1, 1) if quick else (8, 2)
+    full = [Candidate.full(Discretisation(0, degree)) for degree in (1, 2)] if quick else None  # quick: P1, P2 on h
     first, *others = QUICK_TOLERANCES if quick else TOLERANCES
     say(f"trade at {first:g}")
     began = time.perf_counter()
     if workers:
         with local_pool(workers, 1) as pool:
-            found = trade(scene, first, count=count, cache=cache, levels=levels, build=family, ensemble=pool)
+            found = trade(scene, first, count=count, cache=cache, levels=levels, full=full, build=family, ensemble=pool)
     else:
-        found = trade(scene, first, count=count, cache=cache, levels=levels, build=family, ensemble=Serial())
+        found = trade(scene, first, count=count, cache=cache, levels=levels, full=full, build=family, ensemble=Serial())
     kept = found.full_solves.get("kept", 0)
     found.notes.append(f"the trade took {time.perf_counter() - began:.0f} s; {kept} full answers were kept before")
     convergence = found.convergence.get(found.quantity)
