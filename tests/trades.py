@@ -3,6 +3,8 @@ its stiffness a parameter (tests/test_trade.py, tests/test_trade_cli.py)."""
 
 from pathlib import Path
 
+from mpi4py import MPI
+
 SCENE = """
 title = "a thick sphere octant inflated from inside"
 [geometry]
@@ -47,7 +49,10 @@ probes = [[0.5, 0.0, 0.0]]
 def written(
     folder: Path, low: float = 5.0, min_step: float = 1e-3, pressure: float = 0.5, name: str = "sphere.toml"
 ) -> Path:
-    """The scene file ``name`` in ``folder``: stiffness E in [``low``, 20] Pa, ``pressure`` Pa inside."""
+    """The scene file ``name`` in ``folder``: stiffness E in [``low``, 20] Pa, ``pressure`` Pa
+    inside; written by rank 0 (under MPI the ranks share ``folder``: one writer, then all read)."""
     path = folder / name
-    path.write_text(SCENE.format(low=low, min_step=min_step, pressure=pressure))
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(SCENE.format(low=low, min_step=min_step, pressure=pressure))
+    MPI.COMM_WORLD.Barrier()
     return path
