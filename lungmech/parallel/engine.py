@@ -6,7 +6,8 @@ Parsl (``pip install lungmech[cluster]``) runs tasks on workers it starts throug
 in its MPI mode gives each task its ranks as ``$PARSL_MPI_PREFIX`` (``mpiexec -n k …`` or
 ``srun -n k …``). A task here is :func:`launched`: the worker runs ``python -m
 lungmech.parallel.engine IN OUT`` under that prefix, which solves it on its k ranks
-(:func:`~lungmech.parallel.ensemble.run_task`) and gives the outcome back. A task's own
+(:func:`~lungmech.parallel.ensemble.run_task`) and gives the outcome back; a one-rank task
+runs in the worker itself, whose model the next task may reuse. A task's own
 failure is its outcome; a process that dies (killed, out of memory) makes the task's future
 fail, and the pool submits it once more.
 
@@ -39,8 +40,11 @@ __all__ = ["launched", "local_pool", "pool"]
 
 def launched(work: Work, task: Any, parsl_resource_specification: dict | None = None) -> Outcome:
     """In a Parsl worker: ``work(task, comm)`` on the ranks Parsl gave the task
-    (``$PARSL_MPI_PREFIX``; one rank without it), in processes of their own. A process that
-    failed without an outcome (killed, say) raises, for the pool to retry."""
+    (``$PARSL_MPI_PREFIX``), in processes of their own; a one-rank task in the worker itself,
+    which keeps what the work keeps between its tasks (the last model built, say). A process
+    that failed without an outcome (killed, say) raises, for the pool to retry."""
+    if (parsl_resource_specification or {}).get("num_ranks", 1) == 1:
+        return run_task(work, task)
     folder = Path(tempfile.mkdtemp(prefix="lungmech-task-"))
     try:
         given, told = folder / "task.pickle", folder / "outcome.pickle"
