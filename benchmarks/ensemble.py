@@ -150,8 +150,9 @@ def main() -> None:
                 for r in rows
             ),
             "",
-            f"Parsl's start-up, apart from its wall time: {rows[-1]['engine start-up [s]']:.1f} s. Each Parsl task "
-            "is an MPI job of its own, whose model is built anew; a group keeps its last model for its next task.",
+            f"Parsl's start-up, apart from its wall time: {rows[-1]['engine start-up [s]']:.1f} s. A one-rank task "
+            "runs in its Parsl worker, and a group solves in its own ranks: each keeps its last model for its "
+            "next task.",
             "",
         ]
     )
