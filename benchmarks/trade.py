@@ -158,6 +158,7 @@ def _report(found: list, stem: str, command: str, workers: int) -> None:
         "",
         *choices,
         "",
+        "",
     ]
     page = trade_report.markdown(first, command).replace("![error against online time](trade.png)", "")
     page = page.replace(f"# Trade: {Path(first.scene).name}", "## The table")

@@ -244,8 +244,8 @@ def pareto(
     point (ms), log–log, a marker per family; ``models`` are (name, family, online ms, worst
     error, failed points, offline s). Each tolerance is a line, and so is the reference's own
     ``accuracy`` where known; the chosen models are ringed, a model that failed somewhere drawn
-    hollow and red, and each is labelled with its offline cost (neighbours' labels above and
-    below their markers in turn)."""
+    hollow and red. Each marker carries a number, and a key beside the plot names its model
+    with its offline cost (names beside markers overlap where models are close)."""
     tolerances = [float(tolerance)] if isinstance(tolerance, int | float) else [float(t) for t in tolerance]
     ringed = [chosen] if isinstance(chosen, str) else list(chosen or ())
     plt = _pyplot()
@@ -265,12 +265,15 @@ def pareto(
             facecolors=["none" if m[4] else colour for m in mine],
             edgecolors=["tab:red" if m[4] else colour for m in mine],
         )
-    for k, (name, _, online, error, failed, offline) in enumerate(sorted(shown, key=lambda m: m[2])):
-        note = name + (f", offline {offline:.3g} s" if offline else "") + (f", fails at {failed}" if failed else "")
+    key = []
+    for number, (name, _, online, error, failed, offline) in enumerate(shown, start=1):
         where = (online, max(error, floor))
-        ax.annotate(note, where, xytext=(5, -9 if k % 2 else 4), textcoords="offset points", fontsize=6.5)
+        ax.annotate(str(number), where, xytext=(5, 3), textcoords="offset points", fontsize=7)
         if name in ringed:
             ax.scatter(*where, s=260, facecolors="none", edgecolors="k", linewidths=1.4)
+        cost = (f", offline {offline:.3g} s" if offline else "") + (f", fails at {failed} points" if failed else "")
+        key.append(f"{number}  {name}{cost}")
+    ax.text(1.02, 0.0, "\n".join(key), transform=ax.transAxes, ha="left", va="bottom", fontsize=7)
     for k, line in enumerate(tolerances):
         ax.axhline(line, color="0.4", ls=("--", "-.", ":")[k % 3], lw=1, label=f"tolerance {line:.0e}")
     if accuracy is not None:
@@ -287,5 +290,5 @@ def pareto(
         ax.text(0.99, 0.01, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # with the legend and the key outside the axes
     plt.close(fig)
