@@ -11,7 +11,9 @@ line. A failing task never stops the others, in any mode.
 * :class:`Groups` — inside one ``mpiexec -n P``: the world split into P/k groups of k ranks
   (``comm.Split``, the ensemble pattern of Firedrake's ``Ensemble``), each group solving its
   own tasks, dealt round-robin in the order given (give the costliest first); every rank gets
-  every outcome. A process that dies ends the run (MPI's rule); the tasks' own results, kept
+  every outcome. The groups never wait for one another until the end: each tells the first
+  rank of a task done by a message it does not wait on (a one-sided counter, tried first,
+  held a group until the busy first rank next called MPI). A process that dies ends the run (MPI's rule); the tasks' own results, kept
   by the caller (lungmech's cache), make a rerun resume.
 * :class:`Pool` — an existing engine's :class:`concurrent.futures.Executor` whose workers may
   be k-rank MPI jobs (Parsl's, :mod:`lungmech.parallel.engine`, on this machine or through
@@ -34,7 +36,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar, cast
+from typing import Any, Generic, TypeVar
 
 from mpi4py import MPI
 
@@ -93,6 +95,8 @@ class Groups(Ensemble):
     """The world ``comm`` split into groups of ``size`` ranks, each solving its share of the
     tasks (round-robin in their order) on its group's communicator. Collective over ``comm``."""
 
+    PROGRESS = 7  # the tag of a group's "one more task done" message to the first rank
+
     def __init__(self, size: int = 1, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
         if isinstance(size, bool) or not isinstance(size, int) or size < 1 or comm.size % size:
             raise ParameterError(
@@ -107,17 +111,25 @@ class Groups(Ensemble):
         return f"{self.count} group{'s' * (self.count > 1)} of {self.size} rank{'s' * (self.size > 1)}"
 
     def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
-        colour = self.comm.rank // self.size
+        colour, world = self.comm.rank // self.size, self.comm
         mine = range(colour, len(tasks), self.count)
-        counter = _Counter(cast(MPI.Intracomm, self.comm))
-        pace = Pace(len(tasks), progress if self.comm.rank == 0 else None)
+        pace = Pace(len(tasks), progress if world.rank == 0 else None)
+        told = [0, 0]  # tasks done and failed, as the first rank knows them
+        sent = []
         found = {}
         for index in mine:
             found[index] = attempt(work, tasks[index], self.group)
-            finished = counter.add(found[index].failed is not None) if self.group.rank == 0 else None
-            if self.comm.rank == 0 and finished is not None:
-                pace.report(*finished)
-        counter.free()
+            failed = found[index].failed is not None
+            if world.rank == 0:
+                told = [told[0] + 1, told[1] + failed]
+                told = _heard(world, told, self.PROGRESS, pace)
+            elif self.group.rank == 0:
+                sent.append(world.isend(failed, dest=0, tag=self.PROGRESS))
+        if world.rank == 0:
+            expected = len(tasks) - len(range(0, len(tasks), self.count))  # the other groups' tasks
+            while told[0] - len(mine) < expected:
+                told = _heard(world, told, self.PROGRESS, pace, wait=True)
+        MPI.Request.Waitall(sent)
         gathered = self.comm.allgather(found if self.group.rank == 0 else {})
         outcomes = {index: outcome for part in gathered for index, outcome in part.items()}
         pace.report(len(tasks), sum(outcome.failed is not None for outcome in outcomes.values()))
@@ -240,30 +252,16 @@ class Pace:
         self.say(f"{finished}/{self.total} solves done{failed}, about {_duration(left)} left")
 
 
-class _Counter:
-    """Tasks finished and failed over every group: two integers in the world's first rank's
-    memory, added to by each group's first rank (one-sided, atomic)."""
-
-    def __init__(self, comm: MPI.Intracomm) -> None:
-        import numpy as np
-
-        self.np = np
-        self.memory = np.zeros(2, dtype=np.int64) if comm.rank == 0 else None
-        unit = np.dtype(np.int64).itemsize  # displacements count integers, not bytes
-        self.window = MPI.Win.Create(self.memory if comm.rank == 0 else None, disp_unit=unit, comm=comm)
-
-    def add(self, failed: bool) -> tuple[int, int]:
-        """Add one finished task (and a failure) and return the totals after it."""
-        np = self.np
-        before = np.zeros(2, dtype=np.int64)
-        self.window.Lock(0, MPI.LOCK_SHARED)
-        self.window.Fetch_and_op(np.array([1], dtype=np.int64), before[:1], 0, 0, MPI.SUM)
-        self.window.Fetch_and_op(np.array([int(failed)], dtype=np.int64), before[1:], 0, 1, MPI.SUM)
-        self.window.Unlock(0)
-        return int(before[0]) + 1, int(before[1]) + int(failed)
-
-    def free(self) -> None:
-        self.window.Free()
+def _heard(comm: MPI.Comm, told: list[int], tag: int, pace: Pace, wait: bool = False) -> list[int]:
+    """The first rank: every "task done" message waiting (one at least, with ``wait``) added to
+    ``told`` (done, failed), and the progress line updated."""
+    status = MPI.Status()
+    while wait or comm.iprobe(source=MPI.ANY_SOURCE, tag=tag, status=status):
+        failed = comm.recv(source=MPI.ANY_SOURCE, tag=tag)
+        told = [told[0] + 1, told[1] + bool(failed)]
+        wait = False
+    pace.report(*told)
+    return told
 
 
 def _line(error: BaseException) -> str:
