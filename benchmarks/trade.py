@@ -163,7 +163,7 @@ def _report(found: list, stem: str, command: str, workers: int) -> None:
     page = trade_report.markdown(first, command).replace("![error against online time](trade.png)", "")
     page = page.replace(f"# Trade: {Path(first.scene).name}", "## The table")
     machine.RESULTS.mkdir(parents=True, exist_ok=True)
-    write_results(machine.RESULTS, stem, trade_report.rows(first), "\n".join(header) + page + f"\n![]({stem}.png)\n")
+    write_results(machine.RESULTS, stem, trade_report.rows(first), "\n".join(header) + page)  # the plot beside it
     (machine.RESULTS / f"{stem}.json").write_text(json.dumps(trade_report.summary(first), indent=1) + "\n")
     label = trade_report.COLUMNS[first.quantity][0]
     pareto(
