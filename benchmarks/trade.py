@@ -37,45 +37,6 @@ from machine import provenance, say, write_results
 
 TOLERANCES = (1e-2, 1e-4)
 QUICK_TOLERANCES = (5e-2, 1e-3)
-SPHERE = """title = "a thick sphere octant inflated from inside"
-[geometry]
-builder = "sphere"
-inner_radius = 0.5
-outer_radius = 1.0
-mesh_size = 0.4
-[material]
-law = "neo_hookean"
-E = 10.0
-nu = 0.3
-[[constraints]]
-type = "symmetry"
-boundary = "x0"
-component = 0
-[[constraints]]
-type = "symmetry"
-boundary = "y0"
-component = 1
-[[constraints]]
-type = "symmetry"
-boundary = "z0"
-component = 2
-[[loads]]
-type = "follower_pressure"
-name = "inner"
-boundary = "inner"
-value = 0.5
-ramp = { times = [0.0, 1.0, 2.0], values = [0.0, 1.0, 0.5] }
-[stepping]
-end = 2.0
-max_step = 0.5
-[parameters.stiffness]
-target = "material.E"
-range = [5.0, 20.0]
-[output]
-probes = [[0.5, 0.0, 0.0]]
-"""
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="the sphere octant, 2 interior points, small models")
@@ -85,11 +46,8 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # the trade's progress lines
     workers = args.workers if args.workers is not None else (0 if args.quick else 2)
     with tempfile.TemporaryDirectory(prefix="lungmech-trade-") as folder:
-        if args.quick:
-            scene = Path(folder) / "sphere.toml"
-            scene.write_text(SPHERE)
-        else:
-            scene = Path(str(resources.files("lungmech.scenes") / "lung_breathing_parameters.toml"))
+        bundled = "sphere_inflation_parameters.toml" if args.quick else "lung_breathing_parameters.toml"
+        scene = Path(str(resources.files("lungmech.scenes") / bundled))
         cache = Path(args.cache) if args.cache else (Path(folder) / "cache" if args.quick else _default_cache())
         found = _traded(scene, cache, workers, args.quick)
     stem = "trade_quick" if args.quick else "trade"

@@ -1,49 +1,12 @@
-"""A small scene to trade on: a thick sphere octant inflated from inside and let out again,
-its stiffness a parameter (tests/test_trade.py, tests/test_trade_cli.py)."""
+"""The bundled small scene to trade on (a thick sphere octant inflated from inside and let out
+again, its stiffness a parameter), varied for tests/test_trade.py and tests/test_trade_cli.py."""
 
+from importlib import resources
 from pathlib import Path
 
 from mpi4py import MPI
 
-SCENE = """
-title = "a thick sphere octant inflated from inside"
-[geometry]
-builder = "sphere"
-inner_radius = 0.5
-outer_radius = 1.0
-mesh_size = 0.4
-[material]
-law = "neo_hookean"
-E = 10.0
-nu = 0.3
-[[constraints]]
-type = "symmetry"
-boundary = "x0"
-component = 0
-[[constraints]]
-type = "symmetry"
-boundary = "y0"
-component = 1
-[[constraints]]
-type = "symmetry"
-boundary = "z0"
-component = 2
-[[loads]]
-type = "follower_pressure"
-name = "inner"
-boundary = "inner"
-value = {pressure}
-ramp = {{ times = [0.0, 1.0, 2.0], values = [0.0, 1.0, 0.5] }}
-[stepping]
-end = 2.0
-max_step = 0.5
-min_step = {min_step}
-[parameters.stiffness]
-target = "material.E"
-range = [{low}, 20.0]
-[output]
-probes = [[0.5, 0.0, 0.0]]
-"""
+BUNDLED = resources.files("lungmech.scenes") / "sphere_inflation_parameters.toml"
 
 
 def written(
@@ -53,6 +16,19 @@ def written(
     inside; written by rank 0 (under MPI the ranks share ``folder``: one writer, then all read)."""
     path = folder / name
     if MPI.COMM_WORLD.rank == 0:
-        path.write_text(SCENE.format(low=low, min_step=min_step, pressure=pressure))
+        path.write_text(_varied(BUNDLED.read_text(), low, min_step, pressure))
     MPI.COMM_WORLD.Barrier()
     return path
+
+
+def _varied(text: str, low: float, min_step: float, pressure: float) -> str:
+    """The bundled scene's text with its stiffness range, smallest step and pressure replaced."""
+    for old, new in (
+        ("range = [5.0, 20.0]", f"range = [{low}, 20.0]"),
+        ("min_step = 1e-3", f"min_step = {min_step}"),
+        ("value = 0.5 ", f"value = {pressure} "),
+    ):
+        if old not in text:
+            raise AssertionError(f"the bundled sphere scene no longer holds {old!r}")
+        text = text.replace(old, new, 1)
+    return text
