@@ -8,13 +8,17 @@
   computed on ``COMM_SELF``); left out of the one-rank run.
 
 ``tmp_path`` is one folder for all ranks (rank 0's), so a test writes and reads its files as a
-user's run does.
+user's run does. lungmech's cache (``$LUNGMECH_CACHE``) is a folder of the session's, removed
+at its end: the suite never writes into the user's.
 """
 
+import atexit
 import gc
 import os
 import re
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 from mpi4py import MPI
@@ -26,6 +30,12 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # workers share the cores: one BLAS t
         os.environ.setdefault(_name, "1")
 
 import lungmech  # noqa: E402, F401  (orders MPI before the DOLFINx bindings; under mpiexec, one BLAS thread a rank)
+
+if "LUNGMECH_CACHE" not in os.environ:  # lungmech's cache: one folder of the session's, not the user's
+    _cache = tempfile.mkdtemp(prefix="lungmech-test-cache-") if MPI.COMM_WORLD.rank == 0 else None
+    os.environ["LUNGMECH_CACHE"] = MPI.COMM_WORLD.bcast(_cache, root=0)
+    if _cache is not None:
+        atexit.register(shutil.rmtree, _cache, ignore_errors=True)
 
 
 def _serial(item) -> bool:

@@ -18,12 +18,15 @@ import json
 import os
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from mpi4py import MPI
+
+import numpy as np
 
 import lungmech
 from lungmech.errors import OutputError
@@ -124,6 +127,34 @@ class Cache:
             target.parent.mkdir(parents=True, exist_ok=True)
             with _beside(target) as partial:
                 partial.write_text(json.dumps(content, indent=1) + "\n")
+
+        on_root(self.comm, write)
+
+    def has(self, kind: str, name: str) -> bool:
+        """Whether the entry file ``name`` of ``kind`` exists, as rank 0 sees it. Collective."""
+        return bool(self.comm.bcast(self.path(kind, name).is_file() if self.comm.rank == 0 else None, root=0))
+
+    def read_arrays(self, kind: str, name: str) -> dict[str, np.ndarray] | None:
+        """The arrays of the entry ``name`` (.npz) on rank 0 (None elsewhere, or if absent or
+        unreadable). Not collective: rank 0 alone reads."""
+        if self.comm.rank != 0:
+            return None
+        try:
+            with np.load(self.path(kind, f"{name}.npz"), allow_pickle=False) as data:
+                return {field: data[field] for field in data.files}
+        except (OSError, ValueError, zipfile.BadZipFile):
+            return None
+
+    def write_arrays(self, kind: str, name: str, arrays: dict[str, np.ndarray] | None) -> None:
+        """Keep ``arrays`` (given on rank 0) as the entry ``name`` (.npz; rank 0 writes, whole
+        or not at all). Collective."""
+
+        def write() -> None:
+            assert arrays is not None  # (given on rank 0)
+            target = self.path(kind, f"{name}.npz")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with _beside(target) as partial, partial.open("wb") as stream:
+                np.savez(stream, **arrays)
 
         on_root(self.comm, write)
 

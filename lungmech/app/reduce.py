@@ -28,14 +28,16 @@ from mpi4py import MPI
 import numpy as np
 
 from lungmech import checks
+from lungmech.app.cache import Cache, default_folder
 from lungmech.app.model_file import embedded_name, embedded_names, embedded_scene, file_bytes
-from lungmech.app.run import Scale, build_model, check_scale, full_order_model
+from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import Scene, differences, physics
+from lungmech.app.training_paths import EnsemblePaths, image_of, training_model
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.placement import Image
 from lungmech.fem.quantities import Probe
 from lungmech.parallel.destination import hold_signals_until_swap, output_file
+from lungmech.parallel.ensemble import Ensemble, Serial
 from lungmech.parallel.layout import layout
 from lungmech.rom import reductor, store
 from lungmech.rom.reduced import ReducedModel
@@ -76,6 +78,9 @@ def build(
     tolerance: float | None = None,
     hyper_size: int | None = None,
     judge: float | None = None,
+    batch: int = 1,
+    ensemble: Ensemble | None = None,
+    cache: str | Path | None = None,
 ) -> dict:
     """Build a reduced model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
@@ -94,6 +99,11 @@ def build(
     (relative energy-norm error) there; ``size`` then caps the basis. Hyper-reduced, the greedy
     judges the hyper-reduced model itself at τ = ``judge`` (default ``hyper_tolerance``), and the
     model's sample is re-sampled at ``hyper_tolerance`` from the same Newton iterates.
+    ``batch``: the greedy's full solves a round (at its ``batch`` largest indicators).
+    The training's full solves run on ``ensemble`` (default: this process, on ``comm``) and are
+    kept in lungmech's ``cache`` folder (default :func:`lungmech.app.cache.default_folder`), so a
+    build that was interrupted resumes from them (:mod:`lungmech.app.training_paths`); an imaged
+    body's run in this process alone.
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
@@ -131,11 +141,35 @@ def build(
     checks.integer("training samples", samples, minimum=1)
     checks.integer("training seed", seed, minimum=0)
     recipe = _recipe(kind, size, order, density)
-    training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], tuple(scales), tolerance)
+    training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], tuple(scales), tolerance, batch)
     ecsw = reductor.ECSW(hyper_tolerance, judge, hyper_size) if hyper else None
+    where = _training_solves(scene, ensemble, cache, comm)
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
-        return _build(scene, [(staging, ecsw)], recipe, training, inner, comm)
+        return _build(scene, [(staging, ecsw)], recipe, training, inner, comm, solves=where)
+
+
+def _training_solves(
+    scene: Scene, ensemble: Ensemble | None, cache: str | Path | None, comm: MPI.Comm
+) -> tuple[Ensemble, str] | None:
+    """Where the training's full solves run and are kept: ``ensemble`` (default: serial on
+    ``comm``) and the ``cache`` folder (made now: a folder not lungmech's is refused before any
+    work); None for an imaged body (its solves run in the build's process, refused with an
+    ensemble), or for a scene made in Python (with no file to name it)."""
+    if image_of(scene) is not None:
+        if ensemble is not None:
+            raise ParameterError(
+                "--group-size/--engine: an imaged body's training solves run in the build's own process (each "
+                "finds its reference at μ as it goes); give neither"
+            )
+        return None
+    if scene.source is None:  # made in Python: solved here, not kept (a kept path is named by the scene's file)
+        if ensemble is not None:
+            raise ParameterError("an ensemble solves a scene from its file: give the scene as a file")
+        return None
+    folder = Path(cache) if cache is not None else default_folder()
+    Cache(folder, comm)  # its checks, on the first rank
+    return ensemble or Serial(comm), str(folder.expanduser().resolve())
 
 
 def _recipe(kind: str, size: int, order: int, density: float) -> reductor.Recipe:
@@ -157,6 +191,8 @@ def build_family(
     samples: int | None = None,
     seed: int = 0,
     comm: MPI.Comm = MPI.COMM_WORLD,
+    ensemble: Ensemble | None = None,
+    cache: str | Path | None = None,
 ) -> dict[str, Path]:
     """A family of reduced models of ``scene`` from one reductor, for a trade to measure side by
     side: the POD Galerkin model of ``size`` vectors (``galerkin.npz``) and its ECSW
@@ -165,7 +201,8 @@ def build_family(
     solves are done once for all of them, the ECSW training once for every τ; each file records
     the seconds and full solves it would have cost alone. ``folder`` is an empty folder of
     lungmech's own (a cache entry's staging folder: nothing is checked or replaced there);
-    returns the files by model name. Collective."""
+    returns the files by model name. The training solves run on ``ensemble`` and are kept in
+    ``cache``, as :func:`build`'s (an imaged body's in this process). Collective."""
     if not taus:
         raise ParameterError("give at least one ECSW tolerance τ for the family's hyper-reduced models")
     files = family_files(taus)  # no τ twice, before any work
@@ -178,7 +215,8 @@ def build_family(
     scales = (1.0,) if box else (0.5, 1.0, 1.5)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
     models = [(Path(folder) / file, hyper) for file, hyper in zip(files.values(), hypers, strict=True)]
-    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False, judged=False)
+    solves = None if image_of(scene) is not None else _training_solves(scene, ensemble, cache, comm)
+    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False, judged=False, solves=solves)
     return {name: Path(folder) / file for name, file in files.items()}
 
 
@@ -200,24 +238,27 @@ def _build(
     comm: MPI.Comm,
     hold_signals: bool = True,
     judged: bool = True,
+    solves: tuple[Ensemble, str] | None = None,
 ) -> dict:
     """Each (path, hyper-reduction) of ``models`` from one :class:`~lungmech.rom.reductor.Reductor`
     of the scene's full model; returns the summary of the last. ``hold_signals``: the paths are
     an output's (:func:`~lungmech.parallel.destination.output_file`), whose swap the signals
     wait for once the writing begins. ``judged``: a greedy's rounds judge at the last
-    hyper-reduction's τ (a family of fixed training has no judge)."""
+    hyper-reduction's τ (a family of fixed training has no judge). ``solves``: the ensemble
+    the training's full solves run on and the cache folder they are kept in (None: in this
+    process, not kept)."""
     timings = {}
     tic = time.perf_counter()
-    model = build_model(scene, comm, image=_image(scene))
-    where = layout(model.space)  # of the imaged mesh (a solve checks it)
     # an imaged body's reduced models answer its problem at every μ: trained on the fixed image;
     # without parameters its one reference is the defaults', found once (exact, and no basis of ξ)
-    full = full_order_model(scene, comm, start="inverse_motion" if _image(scene) else "defaults", model=model)
+    full = training_model(scene, comm)
+    where = layout(full.model.space)  # of the imaged mesh (a solve checks it)
     timings["build_and_inverse"] = time.perf_counter() - tic
     hypers = [hyper for _, hyper in models if hyper is not None]
     judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
-    with reductor.Reductor(full, recipe, training, inner, judge) as made:
+    paths = None if solves is None else EnsemblePaths(str(Path(scene.source).resolve()), full, *solves)
+    with reductor.Reductor(full, recipe, training, inner, judge, paths) as made:
         for path, hyper in models:
             reduced = made.reduce(hyper)
             spent = timings | reduced.built["timings"]
@@ -231,6 +272,7 @@ def _build(
                 "offline_seconds": spent,
                 "scene_table": scene.table,
                 "files": embedded_names(scene),
+                "training_paths": None if paths is None else {"solved": paths.solved, "kept": paths.kept},
             }
             hyper_summary = store.hyper_record(reduced)
             if hold_signals:
@@ -244,6 +286,9 @@ def _build(
         "offline_seconds": spent,
         "hyper": hyper_summary,
         "greedy": reduced.built["greedy"],
+        "training_paths": None
+        if paths is None
+        else {"solved": paths.solved, "kept": paths.kept, "cache": solves[1], "where": solves[0].description},
     }
 
 
@@ -272,18 +317,11 @@ def _loaded(
 ) -> ReducedModel:
     content = content if content is not None else store.read_on_root(path, comm)
     record = content[0]["extra"].get("reduced", {})
-    image = _image(scene) if record.get("image") is not None else None  # (a file of 0.2 moved the reference)
+    image = image_of(scene) if record.get("image") is not None else None  # (a file of 0.2 moved the reference)
     if inside and not fields and record.get("body") is not None:
         build = functools.partial(build_model, scene, comm, image=image)  # of the body's geometry
         return store.load_body(path, build, scene.stepping, scene.newton, content, comm)
     return _reduced(path, build_model(scene, comm, image=image), scene, inside, content)
-
-
-def _image(scene: Scene) -> Image | None:
-    """How a scene's reduced models place its mesh: a scene with [inverse] and parameters is
-    imaged at the start, and its reduced models solve the image's motion at every μ
-    (:mod:`lungmech.rom.imaged`); without parameters its one reference is found once."""
-    return Image.motion(scene.stepping.start) if scene.inverse is not None and scene.parameters else None
 
 
 def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:

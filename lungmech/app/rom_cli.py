@@ -4,10 +4,27 @@ single solve is ``run``'s, :func:`lungmech.app.cli.main`)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from lungmech.app.arguments import RESULTS, common, logging_comm, scales, setup
+from lungmech.app.arguments import (
+    RESULTS,
+    check_ensemble,
+    common,
+    ensemble_of,
+    ensemble_options,
+    logging_comm,
+    scales,
+    setup,
+)
 from lungmech.errors import ParameterError
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.app.scene import Scene
+    from lungmech.parallel.ensemble import Ensemble
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -75,6 +92,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="ECSW with --tolerance: the tolerance the greedy judges its rounds at (default --ecsw-tolerance); "
         "the model is then re-sampled at --ecsw-tolerance",
     )
+    build.add_argument(
+        "--batch",
+        type=int,
+        default=1,
+        metavar="B",
+        help="with --tolerance: full solves a greedy round adds, at its B largest indicators, solved at once on "
+        "the groups or workers below (default 1)",
+    )
+    ensemble_options(build, "the training's full solves")
     build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
@@ -95,12 +121,39 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def build(args: argparse.Namespace) -> int:
-    from lungmech.app.reduce import build
-
     comm, scene, name, path = setup(args)
+    check_ensemble(args, comm)
     if comm.rank == 0:
         print(f"lungmech: building a {args.basis} reduced model of {name}", flush=True)
-    summary = build(
+    given = args.engine is not None or args.group_size is not None
+    with ensemble_of(args, comm) if given else contextlib.nullcontext(None) as ensemble:
+        summary = _built(args, scene, comm, ensemble)
+    if comm.rank == 0:
+        seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
+        hyper = summary["hyper"]
+        sampled = (
+            f", hyper-reduced by ECSW at τ = {hyper['tolerance']:g} on {hyper['described']} of the mesh's {hyper['cells']}"
+            if hyper
+            else ""
+        )
+        print(
+            f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs{sampled} "
+            f"({seconds}); saved to {Path(args.output).resolve()}"
+        )
+        if paths := summary.get("training_paths"):
+            print(
+                f"lungmech: training: {paths['solved'] + paths['kept']} full solves ({paths['where']}), "
+                f"{paths['solved']} solved now, {paths['kept']} found in the cache {paths['cache']}"
+            )
+        if greedy := summary["greedy"]:
+            print(greedy_report(greedy))
+    return 0
+
+
+def _built(args: argparse.Namespace, scene: Scene, comm: MPI.Comm, ensemble: Ensemble | None) -> dict:
+    from lungmech.app.reduce import build
+
+    return build(
         scene,
         args.output,
         kind=args.basis,
@@ -116,22 +169,10 @@ def build(args: argparse.Namespace) -> int:
         tolerance=args.tolerance,
         hyper_size=args.ecsw_size,
         judge=args.ecsw_judge,
+        batch=args.batch,
+        ensemble=ensemble,
+        cache=args.cache,
     )
-    if comm.rank == 0:
-        seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
-        hyper = summary["hyper"]
-        sampled = (
-            f", hyper-reduced by ECSW at τ = {hyper['tolerance']:g} on {hyper['described']} of the mesh's {hyper['cells']}"
-            if hyper
-            else ""
-        )
-        print(
-            f"lungmech: {summary['kind']} basis of {summary['size']} vectors on {summary['dofs']} dofs{sampled} "
-            f"({seconds}); saved to {Path(args.output).resolve()}"
-        )
-        if greedy := summary["greedy"]:
-            print(greedy_report(greedy))
-    return 0
 
 
 def greedy_report(greedy: dict) -> str:

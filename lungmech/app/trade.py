@@ -208,14 +208,14 @@ def trade(
     for model in models:
         _check_model(model, scene, comm)
     store_root = Cache(cache if cache is not None else default_folder(), comm)
-    built = _built(scene, build, store_root, comm) if build is not None else {}
+    engine = ensemble if ensemble is not None else Serial(comm)
+    built = _built(scene, build, store_root, engine, comm) if build is not None else {}
     files = [*models, *built.values()]
     files_as = [Candidate.file(model, _family(model)) for model in models]
     files_as += [Candidate.file(file, _family(file), name) for name, file in built.items()]
     trained = [point for model in files for point in _training(model)]
     points = validation_points(Parameters(scene.parameters), count, seed, trained)
     times = None if quantity == "pv" else [peak_time(scene)]
-    engine = ensemble if ensemble is not None else Serial(comm)
     found = Trade(
         str(path), tolerance, quantity, points, times, reference.name, queries, engine.description, notes=notes
     )
@@ -276,9 +276,10 @@ def _check_model(path: str | Path, scene: scenes.Scene, comm: MPI.Comm) -> None:
         check_physics(Path(path), scenes.physics(built), scene)
 
 
-def _built(scene: scenes.Scene, family: Family, cache: Cache, comm: MPI.Comm) -> dict[str, Path]:
+def _built(scene: scenes.Scene, family: Family, cache: Cache, engine: Ensemble, comm: MPI.Comm) -> dict[str, Path]:
     """The family's model files by name ("POD Galerkin", "POD ECSW τ=0.0001", …), built into the
-    cache once per content (the scene's every setting and file, the family, the code). Collective."""
+    cache once per content (the scene's every setting and file, the family, the code), their
+    training solves on ``engine`` and kept in the cache too. Collective."""
     content = {
         "scene": scene.table,
         "physics": scenes.physics(scene),
@@ -288,7 +289,7 @@ def _built(scene: scenes.Scene, family: Family, cache: Cache, comm: MPI.Comm) ->
     }
 
     def fill(folder: Path) -> None:
-        build_family(scene, folder, family.taus, family.size, family.samples, family.seed, comm)
+        build_family(scene, folder, family.taus, family.size, family.samples, family.seed, comm, engine, cache.root)
 
     folder = cache.folder("models", key(content), fill)
     return {name: folder / file for name, file in family_files(family.taus).items()}

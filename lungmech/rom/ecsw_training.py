@@ -216,12 +216,12 @@ class Training:
         parameters: dict[str, float] | None = None,
         tangents: bool = False,
     ) -> bool:
-        """Set the model to a stored state (its whole local array) at its time, load factor and
-        ``parameters`` (default: as they are), then :meth:`add` it (and, with ``tangents``,
-        :meth:`add_tangents`)."""
+        """Set the model to a stored state (its owned rows, or its whole local array: the ghosts
+        are updated from their owners) at its time, load factor and ``parameters`` (default: as
+        they are), then :meth:`add` it (and, with ``tangents``, :meth:`add_tangents`)."""
         if parameters is not None:
             self.model.set_parameters(parameters)
-        self.model.state.x.array[:] = state
+        self.model.state.x.array[: len(state)] = state
         self.model.state.x.scatter_forward()
         self.model.set_time(time, load_factor=load_factor)
         added = self.add()

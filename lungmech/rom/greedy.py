@@ -24,28 +24,26 @@ model, and the last round's sample comes with the basis.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import cast
 
 import numpy as np
 
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.model import Model
-from lungmech.fem.parametric import FullOrderModel, Solution, Step
-from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.parametric import FullOrderModel, Solution
 from lungmech.fem.start import one_state
 from lungmech.parallel.linalg import norms
-from lungmech.rom import ecsw
+from lungmech.rom import ecsw, load_paths
 from lungmech.rom.accuracy import errors
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.indicator import ResidualIndicator, enrichment
-from lungmech.rom.pod import pod, snapshot
+from lungmech.rom.load_paths import Paths
+from lungmech.rom.pod import pod
 from lungmech.rom.reduced import ReducedModel
 
 __all__ = ["Greedy", "Round", "greedy"]
@@ -96,6 +94,8 @@ def greedy(
     most: int | None = None,
     timings: dict[str, float] | None = None,
     hyper: float | None = None,
+    batch: int = 1,
+    paths: Paths | None = None,
 ) -> Greedy:
     """Train a POD basis of ``full`` until every candidate's indicator is ≤ ``tolerance``.
 
@@ -104,7 +104,10 @@ def greedy(
     full solves (default: one per candidate, and the defaults'). ``hyper``: the ECSW tolerance
     τ of a hyper-reduced model to judge (see the module's doc). ``timings`` receives the
     seconds of the full solves, the POD, the ECSW training (and of it, the tangents and the
-    compressions) and NNLS, and the judging. Each round is logged ("lungmech", INFO). Collective.
+    compressions) and NNLS, and the judging. Each round is logged ("lungmech", INFO).
+    ``batch``: the full solves a round adds — at the ``batch`` candidates of largest indicator,
+    solved together by ``paths`` (default: one after another on ``full``; an ensemble's,
+    :mod:`lungmech.app.training_paths`, solves them at once). Collective.
     """
     checks.real("greedy tolerance", tolerance)
     if not 0 < tolerance < 1:
@@ -112,6 +115,7 @@ def greedy(
     if not candidates:
         raise ParameterError("the greedy training needs at least one candidate parameter point")
     most = len(candidates) + 1 if most is None else checks.integer("greedy full solves", most, minimum=1)
+    batch = checks.integer("greedy batch", batch, minimum=1)
     if hyper is not None:
         checks.real("ECSW tolerance", hyper)
         if not 0 < hyper < 1:
@@ -120,40 +124,35 @@ def greedy(
     seconds |= {"ecsw_training": 0.0, "nnls": 0.0} if hyper is not None else {}
     start = one_state(full.start, model)
     remaining = [full.parameters.values(point) for point in candidates]
-    training, paths = [], []
+    solved = paths or load_paths.serial(full, start)
+    training, scaled = [], []  # the training points, and each one's snapshots divided by their largest norm
     rounds: list[Round] = []
-    iterates = []  # with hyper: (state, time, parameters) of every Newton iterate of the full solves
+    iterates: list = []  # with hyper: (owned rows, time, parameters) of every Newton iterate of the full solves
     indicator = ResidualIndicator(model)
     weight = inner_product(model, inner)
 
-    def add(
-        point: dict[str, float], reduced: ReducedModel | None = None, approximate: Solution | None = None
-    ) -> float | None:
+    def add(points: list[dict[str, float]], judged: list[tuple[ReducedModel, Solution | None]] | None = None) -> list:
+        """Solve the full paths at ``points``, keep their snapshots (and iterates), and return
+        the true error at each of the reduced model that ``judged`` them (its answer there)."""
         tic = time.perf_counter()
-        columns = []
-        kept = lambda iteration: iterates.append((model.state.x.array.copy(), model.time, dict(model.parameter_values)))  # noqa: E731
-
-        def keep(step: Step) -> None:
-            if step.phase in ("approach", "path"):
-                columns.append(snapshot(model, start))
-
-        with ecsw.iterates(cast(NewtonSolver, full.solver), kept) if hyper is not None else contextlib.nullcontext():
-            solution = full.solve(point, on_step=keep)
-        path = np.column_stack(columns)
-        largest = float(np.max(norms(path, weight, model.geometry.mesh.comm)))
-        paths.append(path / largest if largest > 0 else path)
-        training.append(point)
+        found = solved([(point, 1.0) for point in points], hyper is not None)
+        errors_here = []
+        for point, path, (reduced, approximate) in zip(
+            points, found, judged or [(None, None)] * len(points), strict=True
+        ):
+            largest = float(np.max(norms(path.snapshots, weight, model.geometry.mesh.comm)))
+            scaled.append(path.snapshots / largest if largest > 0 else path.snapshots)
+            iterates.extend(path.iterates)
+            training.append(point)
+            errors_here.append(None if approximate is None else errors(reduced, path.solution, approximate).energy)
         seconds["snapshots"] += time.perf_counter() - tic
-        if approximate is None:
-            return None
-        assert reduced is not None  # (an approximate answer comes with its reduced model)
-        return errors(reduced, solution, approximate).energy
+        return errors_here
 
     try:
-        add(full.parameters.defaults)
+        add([full.parameters.defaults])
         while True:
             tic = time.perf_counter()
-            modes = pod(model, np.hstack(paths), inner=inner, source={"training": list(training)})
+            modes = pod(model, np.hstack(scaled), inner=inner, source={"training": list(training)})
             basis = _truncated(modes, size, tolerance)
             seconds["pod"] += time.perf_counter() - tic
             W = enrichment(basis, modes)
@@ -187,14 +186,18 @@ def greedy(
                     f"(tolerance {tolerance:.0e})"
                 )
                 break
-            eta, approximate = judged[worst]
-            point = remaining.pop(worst)
-            error = add(point, reduced, approximate)
-            rounds.append(Round(basis.size, point, eta, error))
-            shown = f"{error:.2e}" if error is not None else "n/a (its reduced solve failed)"
-            log.info(
-                f"greedy: {basis.size} vectors, largest indicator {eta:.2e} at {full.parameters.text(point)}: true error {shown}"
-            )
+            chosen = _largest(judged, min(batch, most - len(training)))
+            points = [remaining[i] for i in chosen]
+            found = add(points, [(reduced, judged[i][1]) for i in chosen])
+            for i, point, error in zip(chosen, points, found, strict=True):
+                eta = judged[i][0]
+                rounds.append(Round(basis.size, point, eta, error))
+                shown = f"{error:.2e}" if error is not None else "n/a (its reduced solve failed)"
+                log.info(
+                    f"greedy: {basis.size} vectors, indicator {eta:.2e} at {full.parameters.text(point)}: "
+                    f"true error {shown}"
+                )
+            remaining = [point for i, point in enumerate(remaining) if i not in chosen]
     finally:
         indicator.destroy()
         if weight is not None:
@@ -205,6 +208,12 @@ def greedy(
     safety = _safety(rounds, tolerance)
     met = rounds[-1].indicator * safety <= tolerance
     return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates), tolerance)
+
+
+def _largest(judged: Sequence[tuple[float, object]], count: int) -> list[int]:
+    """The indices of the ``count`` largest indicators, largest first (ties: the first given)."""
+    order = sorted(range(len(judged)), key=lambda i: (-judged[i][0], i))
+    return order[:count]
 
 
 SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes

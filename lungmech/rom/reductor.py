@@ -46,11 +46,12 @@ from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
-from lungmech.rom import ecsw, imaged, indicator
+from lungmech.rom import ecsw, imaged, indicator, load_paths
 from lungmech.rom.accuracy import Errors, errors
 from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
 from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.imaged import ReducedImage
+from lungmech.rom.load_paths import Paths
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
 from lungmech.rom.pod import collected, pod
 from lungmech.rom.polynomial import polynomial_basis
@@ -129,11 +130,13 @@ class TrainingSet:
     """Where the full model is solved: each parameter point (a mapping of names to values, the
     others at their defaults) at each load scale (a factor on the loads' change from the start,
     or one per load). With ``tolerance`` (a relative energy-norm error), the points are a
-    greedy's candidates instead, at the scene's loads."""
+    greedy's candidates instead, at the scene's loads, and ``batch`` of them solved at each of
+    its rounds (together, where the training's paths are solved by an ensemble)."""
 
     points: Sequence[Mapping[str, float]] = ({},)
     scales: Sequence[float | Sequence[float]] = (1.0,)
     tolerance: float | None = None
+    batch: int = 1
 
     def __post_init__(self) -> None:
         if not self.points:
@@ -151,6 +154,9 @@ class TrainingSet:
                     "a greedy training trains at the scene's loads over its [parameters] box; put a load's "
                     "amplitude in [parameters] instead of giving load scales"
                 )
+        checks.integer("greedy batch", self.batch, minimum=1)
+        if self.batch > 1 and self.tolerance is None:
+            raise ParameterError("a batch is the full solves of a greedy's round: give a tolerance")
 
 
 @dataclass(frozen=True)
@@ -189,7 +195,9 @@ class Reductor:
     training points, inner product and judging τ, the other arguments unused. On the first hyper-reduced
     model: the ECSW training on the basis and its enrichment, from the greedy's Newton
     iterates or from a second pass of the training solves; every τ is then an NNLS on it
-    alone, and every truncation is free — the full model is not solved again. ``timings``
+    alone, and every truncation is free — the full model is not solved again. ``paths``: where
+    the training's full solves run (:data:`~lungmech.rom.load_paths.Paths`; default: one after
+    another on ``full``; an ensemble's: :mod:`lungmech.app.training_paths`). ``timings``
     holds the seconds of each part so far. Collective; the kept ECSW training is freed on
     leaving the block (or by :meth:`destroy`).
     """
@@ -201,6 +209,7 @@ class Reductor:
         training: TrainingSet = TrainingSet(),
         inner: str = "energy",
         judge: float | None = None,
+        paths: Paths | None = None,
     ) -> None:
         if isinstance(basis, Greedy):  # trained already: its own training, inner product and τ
             training = TrainingSet(basis.training, tolerance=basis.tolerance)
@@ -224,8 +233,14 @@ class Reductor:
             raise ParameterError(
                 "an imaged body's reduced model is trained on POD bases of given size (its greedy is not built yet)"
             )
+        if self.imaged and paths is not None:
+            raise ParameterError(
+                "an imaged body's training solves run in the build's own process (each finds its reference "
+                "at μ as it goes): give no ensemble"
+            )
         # refused before any work where there is none
         self.start = np.zeros(0) if self.imaged else one_state(full.start, model)
+        self.paths = paths or load_paths.serial(full, self.start)  # where the training's full solves run
         require_positive_definite(model, inner)
         self.timings: dict[str, float] = {}
         self.full_solves = 0  # of the full model, so far: a model's offline cost beside its seconds
@@ -237,7 +252,15 @@ class Reductor:
             assert isinstance(basis, POD)  # (a greedy trains a POD basis: refused above otherwise)
             tic = time.perf_counter()
             self.trained = greedy(
-                full, self.points, training.tolerance, size=basis.size, inner=inner, timings=self.timings, hyper=judge
+                full,
+                self.points,
+                training.tolerance,
+                size=basis.size,
+                inner=inner,
+                timings=self.timings,
+                hyper=judge,
+                batch=training.batch,
+                paths=self.paths,
             )
             self.timings["greedy"] = time.perf_counter() - tic
         elif self.imaged:
@@ -422,7 +445,8 @@ def _basis(full: FullOrderModel, recipe: Recipe, runs: list, inner: str, made: R
     for part in parts:
         tic = time.perf_counter()
         if isinstance(part, POD):
-            data = collected(full, runs)
+            data = np.hstack([path.snapshots for path in made.paths(runs, False)])
+            made._rest()
             made.timings["snapshots"] = time.perf_counter() - tic
             made.full_solves += len(runs)
             tic = time.perf_counter()

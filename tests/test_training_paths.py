@@ -1,0 +1,150 @@
+"""A reduction's full training solves on an ensemble, kept in the cache: a path brought back from
+the cache is the path solved in place; a greedy run through an ensemble, resumed after an
+interrupt, or in batches trains as it should; bad requests are refused in one line."""
+
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+from fem import BOX, PARAMETRIC_SCENE, pushed_block, write_once
+
+from lungmech.app import reduce
+from lungmech.app import scene as scenes
+from lungmech.app.cli import main
+from lungmech.errors import Interrupted, ParameterError
+from lungmech.fem.parameters import Parameters
+from lungmech.fem.start import one_state
+from lungmech.parallel.ensemble import Groups, Serial
+from lungmech.parallel.layout import layout
+from lungmech.rom import store
+from lungmech.rom.greedy import greedy
+from lungmech.rom.load_paths import canonical, placed, solve_path
+from lungmech.rom.reductor import TrainingSet
+
+
+def test_a_path_from_canonical_arrays_is_the_path_solved_here():
+    """Snapshots, states at the output times and Newton iterates go to canonical arrays and back
+    to the very same numbers (1 rank or several: the layout is partition-independent)."""
+    full = pushed_block(MPI.COMM_WORLD)
+    start = one_state(full.start, full.model)
+    path = solve_path(full, {"E": 15.0, "p": 1.5}, start, iterates=True)
+    full.reset()
+    where = layout(full.model.space)
+    back = placed(canonical(path, where), where, iterates=True)
+    assert np.array_equal(back.snapshots, path.snapshots) and back.snapshots.shape[1] >= 2
+    assert np.array_equal(back.solution.states, path.solution.states)
+    assert np.array_equal(back.solution.outputs["volume"], path.solution.outputs["volume"])
+    assert back.solution.parameters == path.solution.parameters
+    assert len(back.iterates) == len(path.iterates) > back.snapshots.shape[1]
+    for (x, t, mu), (y, s, nu) in zip(back.iterates, path.iterates, strict=True):
+        assert np.array_equal(x, y) and t == s and mu == nu
+    with pytest.raises(ParameterError, match="without its Newton iterates"):
+        placed(canonical(solve_path(full, {}, start), where), where, iterates=True)
+
+
+def test_a_batch_greedy_adds_its_largest_indicators_each_round():
+    """batch = 3: every round but the last solves the 3 candidates of largest indicator; the
+    model still meets the tolerance; the batch is checked."""
+    full = pushed_block()
+    candidates = Parameters(BOX).sample(16, seed=1)
+    trained = greedy(full, candidates, 1e-3, batch=3)
+    assert trained.met
+    sizes = [r.size for r in trained.rounds[:-1]]
+    assert len(trained.training) == 1 + len(sizes) and all(sizes.count(size) == 3 for size in set(sizes[:-3]))
+    for left in trained.rounds[:-1]:  # a batch's points: the largest indicators of its round
+        assert left.indicator >= trained.rounds[-1].indicator
+    with pytest.raises(ParameterError, match="greedy batch"):
+        greedy(full, candidates, 1e-3, batch=0)
+    with pytest.raises(ParameterError, match="give a tolerance"):
+        TrainingSet(candidates, batch=2)
+
+
+class _Stopping(Serial):
+    """A serial ensemble interrupted (as by Ctrl-C) after ``after`` tasks."""
+
+    def __init__(self, after: int) -> None:
+        super().__init__(MPI.COMM_WORLD)
+        self.after = after
+
+    def map(self, work, tasks, progress=None):
+        if self.after < len(tasks):
+            super().map(work, tasks[: self.after])
+            raise Interrupted(2)
+        self.after -= len(tasks)
+        return super().map(work, tasks, progress)
+
+
+def _basis(path: Path) -> np.ndarray:
+    return store.read(path)[1]["vectors"]
+
+
+def test_an_interrupted_build_resumes_from_the_paths_it_solved(tmp_path):
+    """A greedy build stopped after its first full solve leaves no model file; run again, it finds them
+    in the cache, solves the rest, and writes the model an uninterrupted build writes, to the
+    last bit. Built once more, it solves nothing."""
+    scene = scenes.load(write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE))
+    cache, model = tmp_path / "cache", tmp_path / "m.npz"
+    common = {"tolerance": 1e-3, "samples": 8, "cache": cache}
+    with pytest.raises(Interrupted):
+        reduce.build(scene, model, ensemble=_Stopping(1), **common)
+    assert not model.exists()
+    resumed = reduce.build(scene, model, **common)["training_paths"]
+    assert resumed["kept"] == 1 and resumed["solved"] >= 1
+    alone = reduce.build(scene, tmp_path / "alone.npz", **common | {"cache": tmp_path / "other"})["training_paths"]
+    assert alone["solved"] == resumed["solved"] + 1 and alone["kept"] == 0
+    assert np.array_equal(_basis(model), _basis(tmp_path / "alone.npz"))
+    again = reduce.build(scene, tmp_path / "again.npz", **common)["training_paths"]
+    assert again["solved"] == 0 and again["kept"] == alone["solved"]
+
+
+@pytest.mark.mpi
+def test_groups_of_one_rank_train_the_model_of_the_whole_run(tmp_path):
+    """Under mpiexec -n 2: the greedy's full solves in 2 groups of 1 rank give the basis the
+    solves on both ranks give, to round-off (the same points, the same vectors)."""
+    scene = scenes.load(write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE))
+    common = {"tolerance": 1e-3, "samples": 8, "batch": 2}
+    whole = reduce.build(scene, tmp_path / "whole.npz", cache=tmp_path / "whole", **common)
+    groups = Groups(1)
+    try:
+        split = reduce.build(scene, tmp_path / "split.npz", ensemble=groups, cache=tmp_path / "split", **common)
+    finally:
+        groups.free()
+    assert split["training_paths"]["where"] == "2 groups of 1 rank"
+    assert [r["point"] for r in split["greedy"]["rounds"]] == [r["point"] for r in whole["greedy"]["rounds"]]
+    np.testing.assert_allclose(_basis(tmp_path / "split.npz"), _basis(tmp_path / "whole.npz"), atol=1e-8)
+
+
+@pytest.mark.serial
+@pytest.mark.slow
+def test_rom_build_on_parsl_workers_is_the_serial_build(tmp_path, capsys):
+    """rom build --batch 2 --engine parsl: the training's paths on 2 workers of 1 rank, the
+    model bitwise the serial one's; the printout says where they ran and what was kept."""
+    scene = write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE)
+    common = ["--tolerance", "1e-3", "--samples", "8", "--batch", "2", "-q"]
+    serial = ["rom", "build", str(scene), "-o", str(tmp_path / "s.npz"), "--cache", str(tmp_path / "s"), *common]
+    assert main(serial) == 0
+    engine = ["--engine", "parsl", "--workers", "2", "--cache", str(tmp_path / "p")]
+    assert main(["rom", "build", str(scene), "-o", str(tmp_path / "p.npz"), *common, *engine]) == 0
+    said = capsys.readouterr().out
+    assert "(Parsl, 2 workers of 1 rank)" in said and "found in the cache" in said
+    assert np.array_equal(_basis(tmp_path / "s.npz"), _basis(tmp_path / "p.npz"))
+
+
+def test_bad_training_ensemble_requests_are_refused_in_one_line(tmp_path, capsys):
+    """--batch without --tolerance, --workers without --engine, an ensemble for an imaged
+    body's training: one line each, exit 2, no model file."""
+    scene = write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE)
+    out = str(tmp_path / "m.npz")
+    for extra, said in (
+        (["--batch", "2"], "a batch is the full solves of a greedy's round: give a tolerance"),
+        (["--tolerance", "1e-3", "--batch", "0"], "greedy batch"),
+        (["--workers", "3"], "give --engine parsl"),
+    ):
+        assert main(["rom", "build", str(scene), "-o", out, "-q", *extra]) == 2
+        err = capsys.readouterr().err
+        assert said in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert main(["rom", "build", "lung_breathing_parameters", "-o", out, "-q", "--group-size", "1"]) == 2
+    assert "an imaged body's training solves run in the build's own process" in capsys.readouterr().err
+    assert not Path(out).exists()
