@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -109,6 +109,14 @@ bench-trade: $(STAMP)
 # Many full solves serially, in 2 groups of 1 rank and on Parsl's 2 local workers: throughput.
 bench-ensemble: $(STAMP)
 	$(PY) benchmarks/ensemble.py
+
+# A greedy adding 2 full solves a round, in this process and on Parsl's 2 workers, against 1.
+bench-greedy-batch: $(STAMP)
+	$(PY) benchmarks/greedy_batch.py
+
+# An offline build with 1 BLAS thread and with the machine's, quiet and under a load of 4.
+bench-threads: $(STAMP)
+	$(PY) benchmarks/threads.py
 
 bench-layout: $(STAMP)
 	$(PY) benchmarks/layout.py

@@ -67,6 +67,38 @@ def time_against_dofs(rows: list[dict], series: list[tuple[str, str]], ylabel: s
     plt.close(fig)
 
 
+def stacked_bars(
+    labels: list[str],
+    parts: dict[str, tuple[list[float], str]],
+    notes: list[str],
+    xlabel: str,
+    title: str,
+    path: Path,
+) -> None:
+    """Horizontal bars, one per label, stacked from ``parts`` (name: (one width per label,
+    colour)), each bar's note at its end, the legend below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.0, 0.6 * len(labels) + 2.0))
+    left = [0.0] * len(labels)
+    for name, (widths, colour) in parts.items():
+        ax.barh(labels, widths, left=left, color=colour, label=name)
+        left = [a + b for a, b in zip(left, widths, strict=True)]
+    for y, (end, note) in enumerate(zip(left, notes, strict=True)):
+        ax.text(end, y, f"  {note}", va="center", fontsize=8)
+    ax.set_xlabel(xlabel)
+    ax.invert_yaxis()
+    ax.margins(x=0.45 if max(map(len, notes), default=0) > 20 else 0.2)
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=len(parts), fontsize=8, frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def write_results(directory: Path, stem: str, rows: list[dict], markdown: str) -> None:
     """``stem``.md (the table, as written) and ``stem``.csv (the rows; the columns of all rows,
     in the order they first appear) in ``directory``."""

@@ -37,6 +37,8 @@ from machine import provenance, say, write_results
 
 TOLERANCES = (1e-2, 1e-4)
 QUICK_TOLERANCES = (5e-2, 1e-3)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="the sphere octant, 2 interior points, small models")

@@ -8,6 +8,15 @@ hyper-reduced build took 37.5 s on 2 ranks of a 2-core machine, 5.4 s with one t
 OMPI_COMM_WORLD_SIZE or MPI_LOCALNRANKS say so) and before NumPy loads OpenBLAS, the thread
 counts the user left unset are set to 1; a value the user set is kept. Importing this module
 does it (``lungmech/__init__.py`` imports it first).
+
+A command of the CLI, and an ensemble's worker, goes further (:func:`cap_threads`): one thread
+even as the one process of a run. On a shared machine, BLAS threads that spin for cores another
+load holds cost far more than a second thread gives: the bundled lung's ECSW build (2 training
+points) took 31.2 s quiet and 113.7 s (3.6×) under a background load of 4 busy processes with 2
+threads (its ECSW compression 11× slower), against 33.1 s and 87.8 s (2.7×) with one
+(``python benchmarks/threads.py``, 2 cores, 2026-12-05). The limit is set in the environment
+too, for the libraries loaded later (DOLFINx's and PETSc's own OpenBLAS), which threadpoolctl
+alone would leave at a thread per core.
 """
 
 from __future__ import annotations
@@ -32,12 +41,15 @@ def under_launcher() -> bool:
 
 def cap_threads() -> None:
     """Cap this process's BLAS and OpenMP pools to one thread (threadpoolctl: NumPy's are
-    started already), unless the user set their sizes: an engine's worker rank owns one core."""
+    started already), unless the user set their sizes (``OPENBLAS_NUM_THREADS`` and the like):
+    a CLI command's process, an engine's worker rank (see the module's doc)."""
     if any(os.environ.get(name) for name in _THREADS):
         return
     from threadpoolctl import threadpool_limits
 
-    threadpool_limits(limits=1)
+    for name in _THREADS:  # the libraries loaded later (DOLFINx's and PETSc's own OpenBLAS) read these
+        os.environ[name] = "1"
+    threadpool_limits(limits=1)  # those loaded already
 
 
 def one_blas_thread_per_rank() -> None:

@@ -29,6 +29,8 @@ QUICK = {
     "rom": (["--quick"], "rom_quick"),
     "ensemble": (["--quick"], "ensemble_quick"),
     "trade": (["--quick"], "trade_quick"),
+    "threads": (["--quick"], "threads_quick"),
+    "greedy_batch": (["--quick"], "greedy_batch_quick"),
 }
 
 

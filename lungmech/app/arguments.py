@@ -146,7 +146,8 @@ def ensemble_options(command: argparse.ArgumentParser, what: str) -> None:
     command.add_argument(
         "--cache",
         default=None,
-        help="lungmech's cache folder, where full answers are kept (default $LUNGMECH_CACHE or ~/.cache/lungmech)",
+        help=f"lungmech's cache folder, where {what} are kept: a rerun resumes from them (default $LUNGMECH_CACHE "
+        "or ~/.cache/lungmech)",
     )
 
 

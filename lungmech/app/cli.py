@@ -20,6 +20,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, NoReturn
 
+from lungmech._threads import cap_threads
 from lungmech.app import registration_cli as registration
 from lungmech.app import rom_cli, trade_cli
 from lungmech.app.arguments import RESULTS, check_ensemble, common, ensemble_of, ensemble_options, logging_comm, setup
@@ -67,6 +68,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns the exit code (never raises for bad input, interrupts or failures)."""
     _failures()  # collective, now, while every rank is here
+    cap_threads()  # one BLAS thread: threads that spin for cores another load holds cost far more than they give
     with _interrupts():
         try:
             args = parser().parse_args(argv)

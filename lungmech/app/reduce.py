@@ -17,9 +17,10 @@ reduced run writes the same outputs as a full one, through the same ``solve(μ)`
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -32,7 +33,7 @@ from lungmech.app.cache import Cache, default_folder
 from lungmech.app.model_file import embedded_name, embedded_names, embedded_scene, file_bytes
 from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import Scene, differences, physics
-from lungmech.app.training_paths import EnsemblePaths, image_of, training_model
+from lungmech.app.training_paths import EnsemblePaths, forget, image_of, training_model
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe
@@ -149,6 +150,16 @@ def build(
         return _build(scene, [(staging, ecsw)], recipe, training, inner, comm, solves=where)
 
 
+@contextlib.contextmanager
+def _forgetting() -> Iterator[None]:
+    """Within the block, the training models a process keeps for its next path; dropped after
+    (an ensemble's groups free their communicators)."""
+    try:
+        yield
+    finally:
+        forget()
+
+
 def _training_solves(
     scene: Scene, ensemble: Ensemble | None, cache: str | Path | None, comm: MPI.Comm
 ) -> tuple[Ensemble, str] | None:
@@ -258,7 +269,7 @@ def _build(
     judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
     paths = None if solves is None else EnsemblePaths(str(Path(scene.source).resolve()), full, *solves)
-    with reductor.Reductor(full, recipe, training, inner, judge, paths) as made:
+    with reductor.Reductor(full, recipe, training, inner, judge, paths) as made, _forgetting():
         for path, hyper in models:
             reduced = made.reduce(hyper)
             spent = timings | reduced.built["timings"]

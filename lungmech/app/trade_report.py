@@ -4,7 +4,8 @@ model file beside it) for ``rom solve`` and the twin.
 
 Every column carries its unit; every error says its denominator (:mod:`lungmech.trade.quantities`).
 Per model: the worst and mean error over the points on each quantity and the point of the
-worst, the points where it failed, its warm online time per point, its start-up, its offline
+worst, the largest error it estimated of itself (a reduced model's indicator, in the energy norm:
+beside the measured errors, a check of its own warning light), the points where it failed, its warm online time per point, its start-up, its offline
 cost (seconds and full solves) and its peak memory.
 """
 
@@ -61,6 +62,7 @@ def rows(found: Trade) -> list[dict[str, Any]]:
         errors = found.errors.get(name, {}).get(found.quantity)
         row["point of max"] = _point(_worst_point(found, errors)) if judged and errors is not None else None
         answers = result["answers"]
+        row["own estimate max [-]"] = _own_estimate(answers) if judged else None
         row["failed points"] = sum(a["failed"] is not None for a in answers)
         row["online [ms]"] = _ms(result.get("online_seconds")) if judged else None
         row["timed solves"] = result.get("timed_solves") if judged else None
@@ -71,6 +73,14 @@ def rows(found: Trade) -> list[dict[str, Any]]:
         row["chosen"] = name == chosen
         out.append(row)
     return out
+
+
+def _own_estimate(answers: list[dict]) -> float | None:
+    """The largest error a model estimated of its own answers (a reduced model's indicator: its
+    relative energy-norm error along the path, :mod:`lungmech.rom.indicator`), None where it
+    gives none (a full model, a basis without an enrichment)."""
+    estimates = [a["indicator"] for a in answers if a["failed"] is None and a.get("indicator") is not None]
+    return max(estimates) if estimates else None
 
 
 def summary(found: Trade) -> dict[str, Any]:

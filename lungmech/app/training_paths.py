@@ -43,7 +43,7 @@ from lungmech.parallel.ensemble import Ensemble, Serial
 from lungmech.parallel.layout import Layout, layout
 from lungmech.rom.load_paths import LoadPath, Run, canonical, placed, solve_path
 
-__all__ = ["EnsemblePaths", "PathTask", "image_of", "training_model", "training_path"]
+__all__ = ["EnsemblePaths", "PathTask", "forget", "image_of", "training_model", "training_path"]
 
 log = logging.getLogger("lungmech")
 
@@ -116,6 +116,11 @@ class _Last:
     scene: str | None = None
     comm: MPI.Comm | None = None
     model: tuple[FullOrderModel, Layout] | None = None
+
+
+def forget() -> None:
+    """Drop the training model :func:`training_path` keeps (before its communicator is freed)."""
+    _Last.scene = _Last.comm = _Last.model = None
 
 
 def _model(scene: Scene, task: PathTask, comm: MPI.Comm) -> tuple[FullOrderModel, Layout]:
