@@ -154,7 +154,7 @@ class Cache:
             target = self.path(kind, f"{name}.npz")
             target.parent.mkdir(parents=True, exist_ok=True)
             with _beside(target) as partial, partial.open("wb") as stream:
-                np.savez(stream, **arrays)
+                np.savez(stream, allow_pickle=False, **arrays)
 
         on_root(self.comm, write)
 

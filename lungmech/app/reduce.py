@@ -268,7 +268,10 @@ def _build(
     hypers = [hyper for _, hyper in models if hyper is not None]
     judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
-    paths = None if solves is None else EnsemblePaths(str(Path(scene.source).resolve()), full, *solves)
+    paths = None
+    if solves is not None:
+        assert scene.source is not None  # (_training_solves gives none for a scene without a file)
+        paths = EnsemblePaths(str(Path(scene.source).resolve()), full, *solves)
     with reductor.Reductor(full, recipe, training, inner, judge, paths) as made, _forgetting():
         for path, hyper in models:
             reduced = made.reduce(hyper)
@@ -299,7 +302,7 @@ def _build(
         "greedy": reduced.built["greedy"],
         "training_paths": None
         if paths is None
-        else {"solved": paths.solved, "kept": paths.kept, "cache": solves[1], "where": solves[0].description},
+        else {"solved": paths.solved, "kept": paths.kept, "cache": paths.cache, "where": paths.ensemble.description},
     }
 
 

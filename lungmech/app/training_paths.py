@@ -24,6 +24,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import cast
 
 from mpi4py import MPI
 
@@ -155,15 +156,20 @@ class EnsemblePaths:
         kept = Cache(self.cache, self.comm)
         found = []
         for outcome in outcomes:
-            arrays = kept.read_arrays(KIND, outcome.value["entry"])
+            value = outcome.value
+            assert value is not None  # (a failure was raised above)
+            arrays = kept.read_arrays(KIND, value["entry"])
             if self.comm.bcast(arrays is None if self.comm.rank == 0 else None, root=0):
-                lost = kept.path(KIND, f"{outcome.value['entry']}.npz")
+                lost = kept.path(KIND, f"{value['entry']}.npz")
                 raise ParameterError(f"cache: the training path {lost} it had just kept cannot be read")
             found.append(placed(arrays, self.where, iterates))
-            self.kept += bool(outcome.value["kept"])
-            self.solved += not outcome.value["kept"]
+            self.kept += bool(value["kept"])
+            self.solved += not value["kept"]
         return found
 
 
 def _scale(scale: float | Sequence[float]) -> float | tuple[float, ...]:
-    return float(scale) if np.ndim(scale) == 0 else tuple(float(s) for s in scale)  # type: ignore[arg-type]
+    """A load scale as plain numbers: one factor, or one per load."""
+    if np.ndim(scale) == 0:
+        return float(cast(float, scale))
+    return tuple(float(s) for s in cast(Sequence[float], scale))

@@ -131,20 +131,23 @@ def greedy(
     indicator = ResidualIndicator(model)
     weight = inner_product(model, inner)
 
-    def add(points: list[dict[str, float]], judged: list[tuple[ReducedModel, Solution | None]] | None = None) -> list:
+    def add(
+        points: list[dict[str, float]], reduced: ReducedModel | None = None, answers: Sequence[Solution | None] = ()
+    ) -> list[float | None]:
         """Solve the full paths at ``points``, keep their snapshots (and iterates), and return
-        the true error at each of the reduced model that ``judged`` them (its answer there)."""
+        the true error at each of ``reduced``, which gave ``answers`` there (None: it failed)."""
         tic = time.perf_counter()
         found = solved([(point, 1.0) for point in points], hyper is not None)
-        errors_here = []
-        for point, path, (reduced, approximate) in zip(
-            points, found, judged or [(None, None)] * len(points), strict=True
-        ):
+        errors_here: list[float | None] = []
+        for index, (point, path) in enumerate(zip(points, found, strict=True)):
             largest = float(np.max(norms(path.snapshots, weight, model.geometry.mesh.comm)))
             scaled.append(path.snapshots / largest if largest > 0 else path.snapshots)
             iterates.extend(path.iterates)
             training.append(point)
-            errors_here.append(None if approximate is None else errors(reduced, path.solution, approximate).energy)
+            approximate = answers[index] if answers else None
+            errors_here.append(
+                None if reduced is None or approximate is None else errors(reduced, path.solution, approximate).energy
+            )
         seconds["snapshots"] += time.perf_counter() - tic
         return errors_here
 
@@ -188,7 +191,7 @@ def greedy(
                 break
             chosen = _largest(judged, min(batch, most - len(training)))
             points = [remaining[i] for i in chosen]
-            found = add(points, [(reduced, judged[i][1]) for i in chosen])
+            found = add(points, reduced, [judged[i][1] for i in chosen])
             for i, point, error in zip(chosen, points, found, strict=True):
                 eta = judged[i][0]
                 rounds.append(Round(basis.size, point, eta, error))

@@ -92,8 +92,9 @@ def canonical(path: LoadPath, where: Layout) -> dict[str, np.ndarray] | None:
     iterated = where.gather(np.column_stack([state for state, _, _ in path.iterates])) if path.iterates else None
     if where.comm.rank != 0:
         return None
+    assert states is not None and snapshots is not None  # (gathered on rank 0)
     names = sorted(solution.parameters)
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "fingerprint": np.array(where.fingerprint),
         "parameter_names": np.array(names, dtype=str),
         "parameter_values": np.array([solution.parameters[n] for n in names], dtype=float),
