@@ -46,13 +46,14 @@ def scene_file(quick: bool, folder: Path) -> Path:
     return path
 
 
-def trained(full, scene: Path, candidates: list, tolerance: float, batch: int, ensemble, cache: Path):
+def trained(full, where, scene: Path, candidates: list, tolerance: float, batch: int, ensemble, cache: Path):
     """The POD Galerkin model of one greedy training, and its offline wall time."""
+    from lungmech.app import scene as scenes
     from lungmech.app.training_paths import EnsemblePaths
     from lungmech.rom.reductor import POD, Reductor, TrainingSet
 
     began = time.perf_counter()
-    paths = EnsemblePaths(str(scene), full, ensemble, str(cache))
+    paths = EnsemblePaths(scenes.load(scene), full, where, ensemble, str(cache))
     with Reductor(full, POD(40), TrainingSet(candidates, tolerance=tolerance, batch=batch), paths=paths) as made:
         reduced = made.reduce()
     return reduced, time.perf_counter() - began
@@ -81,7 +82,7 @@ def main() -> None:
         scene = scene_file(args.quick, Path(folder))
         box = Parameters(scenes.load(scene).parameters)
         candidates, tests = box.sample(count, seed=0), box.sample(held_out, seed=99)
-        full = training_model(scenes.load(scene), MPI.COMM_SELF)
+        full, where = training_model(scenes.load(scene), MPI.COMM_SELF)
         say(f"the full model at {held_out} held-out points")
         truths = [full.solve(point) for point in tests]
         full.reset()
@@ -92,9 +93,10 @@ def main() -> None:
             cache = Path(folder) / f"cache-{len(rows)}"
             if engine:
                 with local_pool(2, 1) as pool:
-                    reduced, wall = trained(full, scene, candidates, tolerance, batch, pool, cache)
+                    reduced, wall = trained(full, where, scene, candidates, tolerance, batch, pool, cache)
             else:
-                reduced, wall = trained(full, scene, candidates, tolerance, batch, Serial(MPI.COMM_SELF), cache)
+                serial = Serial(MPI.COMM_SELF)
+                reduced, wall = trained(full, where, scene, candidates, tolerance, batch, serial, cache)
             record, timings = reduced.built["greedy"], reduced.built["timings"]
             measured = [errors(reduced, truth, reduced.solve(point)).energy for point, truth in zip(tests, truths)]
             rows.append(

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fem import BOX, PARAMETRIC_SCENE, pushed_block, write_once
 
-from lungmech.app import reduce
+from lungmech.app import reduce, training_paths
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
 from lungmech.errors import Interrupted, ParameterError
@@ -97,6 +97,30 @@ def test_an_interrupted_build_resumes_from_the_paths_it_solved(tmp_path):
     assert np.array_equal(_basis(model), _basis(tmp_path / "alone.npz"))
     again = reduce.build(scene, tmp_path / "again.npz", **common)["training_paths"]
     assert again["solved"] == 0 and again["kept"] == alone["solved"]
+
+
+def test_a_kept_path_serves_again_and_a_changed_scene_is_refused(tmp_path):
+    """A path kept without its Newton iterates is solved again when they are asked for (and
+    then serves both); a task named from another scene than its file holds now is refused."""
+    path = write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE)
+    scene = scenes.load(path)
+    named = training_paths.scene_key(scene)
+    point = {"stiffness": 900.0, "pull": 2.0}
+    cache = str(tmp_path / "cache")
+
+    def task(iterates: bool, key: str = named) -> training_paths.PathTask:
+        return training_paths.PathTask(str(path), point, 1.0, iterates, training_paths.entry(key, point, 1.0))
+
+    comm = MPI.COMM_WORLD
+    assert not training_paths.training_path(task(False), comm, cache)["kept"]
+    assert not training_paths.training_path(task(True), comm, cache)["kept"]  # the iterates were missing
+    assert training_paths.training_path(task(False), comm, cache)["kept"]
+    assert training_paths.training_path(task(True), comm, cache)["kept"]
+    training_paths.forget()
+    stiffer = scenes.load(write_once(tmp_path / "stiffer.toml", PARAMETRIC_SCENE.replace("500.0", "600.0")))
+    assert training_paths.scene_key(stiffer) != named
+    with pytest.raises(ParameterError, match="is not the scene the build read"):
+        training_paths.training_path(task(False, training_paths.scene_key(stiffer)), comm, cache)
 
 
 @pytest.mark.mpi

@@ -130,9 +130,18 @@ class Cache:
 
         on_root(self.comm, write)
 
-    def has(self, kind: str, name: str) -> bool:
-        """Whether the entry file ``name`` of ``kind`` exists, as rank 0 sees it. Collective."""
-        return bool(self.comm.bcast(self.path(kind, name).is_file() if self.comm.rank == 0 else None, root=0))
+    def array_names(self, kind: str, name: str) -> list[str] | None:
+        """The names of the arrays the entry ``name`` (.npz) holds, as rank 0 reads its index;
+        None if it is absent or unreadable (then it is computed again). Collective."""
+
+        def names() -> list[str] | None:
+            try:
+                with np.load(self.path(kind, f"{name}.npz"), allow_pickle=False) as data:
+                    return list(data.files)
+            except (OSError, ValueError, zipfile.BadZipFile):
+                return None
+
+        return self.comm.bcast(names() if self.comm.rank == 0 else None, root=0)
 
     def read_arrays(self, kind: str, name: str) -> dict[str, np.ndarray] | None:
         """The arrays of the entry ``name`` (.npz) on rank 0 (None elsewhere, or if absent or

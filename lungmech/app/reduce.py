@@ -104,7 +104,8 @@ def build(
     The training's full solves run on ``ensemble`` (default: this process, on ``comm``) and are
     kept in lungmech's ``cache`` folder (default :func:`lungmech.app.cache.default_folder`), so a
     build that was interrupted resumes from them (:mod:`lungmech.app.training_paths`); an imaged
-    body's run in this process alone.
+    body's run in this process alone, and so does the second pass of a fixed sample's solves
+    that trains its ECSW sample (a greedy's reuses its iterates).
     ``path`` is checked before any work (an existing file is replaced only if it is a lungmech
     reduced model) and written only when the build succeeds.
     """
@@ -178,6 +179,8 @@ def _training_solves(
         if ensemble is not None:
             raise ParameterError("an ensemble solves a scene from its file: give the scene as a file")
         return None
+    if ensemble is not None:
+        ensemble.check(comm)
     folder = Path(cache) if cache is not None else default_folder()
     Cache(folder, comm)  # its checks, on the first rank
     return ensemble or Serial(comm), str(folder.expanduser().resolve())
@@ -262,16 +265,12 @@ def _build(
     tic = time.perf_counter()
     # an imaged body's reduced models answer its problem at every μ: trained on the fixed image;
     # without parameters its one reference is the defaults', found once (exact, and no basis of ξ)
-    full = training_model(scene, comm)
-    where = layout(full.model.space)  # of the imaged mesh (a solve checks it)
+    full, where = training_model(scene, comm)  # where: of the imaged mesh (a solve checks it)
     timings["build_and_inverse"] = time.perf_counter() - tic
     hypers = [hyper for _, hyper in models if hyper is not None]
     judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
-    paths = None
-    if solves is not None:
-        assert scene.source is not None  # (_training_solves gives none for a scene without a file)
-        paths = EnsemblePaths(str(Path(scene.source).resolve()), full, *solves)
+    paths = None if solves is None else EnsemblePaths(scene, full, where, *solves)
     with reductor.Reductor(full, recipe, training, inner, judge, paths) as made, _forgetting():
         for path, hyper in models:
             reduced = made.reduce(hyper)

@@ -8,14 +8,17 @@ model, as :func:`lungmech.app.reduce.build` trains it, solved at μ). A solved p
 through the cache (:mod:`lungmech.app.cache`, kind "paths"): its snapshots, its states at the
 output times and, for a hyper-reduction, its Newton iterates, in the canonical dof order
 (:func:`lungmech.rom.load_paths.canonical`), named by the SHA-256 of what determines them — the
-scene's physics, load path and solver settings, μ, the load scale, the code. So a build that
-was interrupted finds every path it solved before, and the next build of the same scene with
-another basis size, τ or tolerance too. An engine's workers on other machines need the cache
-on a file system they share.
+scene's physics, mesh file, load path and solver settings, μ, the load scale, the code. So a
+build that was interrupted finds every path it solved before, and the next build of the same
+scene with another basis size or tolerance too; a hyper-reduction, which needs the iterates,
+solves again a path kept without them, and keeps it with them. The build names each path from
+the scene it solves; a worker that reads the scene's file refuses it if it changed since. An
+engine's workers on other machines need the cache on a file system they share.
 
 Only the first rank of the build reads an entry, and scatters it to the ranks of the build's
-model (:func:`lungmech.rom.load_paths.placed`); paths solved on the build's own ranks are the
-same to the last bit as solved in place.
+model (:func:`lungmech.rom.load_paths.placed`); a path solved on as many ranks is the same to
+the last bit as solved in place (each entry records its ranks). A path is gathered whole on the
+first rank that writes it, as a model file's basis is.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import cast
 
 from mpi4py import MPI
@@ -40,11 +44,20 @@ from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
 from lungmech.fem.start import one_state
-from lungmech.parallel.ensemble import Ensemble, Serial
+from lungmech.parallel.ensemble import Ensemble
 from lungmech.parallel.layout import Layout, layout
 from lungmech.rom.load_paths import LoadPath, Run, canonical, placed, solve_path
 
-__all__ = ["EnsemblePaths", "PathTask", "forget", "image_of", "training_model", "training_path"]
+__all__ = [
+    "EnsemblePaths",
+    "PathTask",
+    "entry",
+    "forget",
+    "image_of",
+    "scene_key",
+    "training_model",
+    "training_path",
+]
 
 log = logging.getLogger("lungmech")
 
@@ -55,12 +68,14 @@ TRAINING = (*ANSWERING, "app/training_paths.py")  # the code a training path dep
 @dataclass(frozen=True)
 class PathTask:
     """The full load path of the scene (file ``scene``) at ``values`` μ with the loads' change
-    scaled by ``scale``, with its Newton iterates when ``iterates``."""
+    scaled by ``scale``, with its Newton iterates when ``iterates``; ``entry``: its name in the
+    cache, as the build named it from the scene it solves (:func:`entry`)."""
 
     scene: str
     values: Mapping[str, float]
-    scale: float | tuple[float, ...] = 1.0
-    iterates: bool = False
+    scale: float | tuple[float, ...]
+    iterates: bool
+    entry: str
 
 
 def image_of(scene: Scene) -> Image | None:
@@ -70,49 +85,76 @@ def image_of(scene: Scene) -> Image | None:
     return Image.motion(scene.stepping.start) if scene.inverse is not None and scene.parameters else None
 
 
-def training_model(scene: Scene, comm: MPI.Comm) -> FullOrderModel:
-    """The scene's full model as its reduced models are trained on it: an imaged body's on its
+def training_model(scene: Scene, comm: MPI.Comm) -> tuple[FullOrderModel, Layout]:
+    """The scene's full model as its reduced models are trained on it — an imaged body's on its
     fixed image, its reference found at every μ; another's from its equilibrium at the
-    defaults. Collective."""
+    defaults (a scene with [inverse] moved to its reference then) — and the canonical layout of
+    its mesh as built, before a start moves it: the mesh a model file and a kept path name by
+    its fingerprint. Collective."""
     image = image_of(scene)
     model = build_model(scene, comm, image=image)
-    return full_order_model(scene, comm, start="inverse_motion" if image else "defaults", model=model)
+    where = layout(model.space)
+    return full_order_model(scene, comm, start="inverse_motion" if image else "defaults", model=model), where
 
 
-def entry(scene: Scene, task: PathTask) -> str:
-    """The cache entry's name of ``task``'s path."""
-    answer = content(scene, Task(task.scene, task.values, Discretisation.of(scene)))
-    scale = np.asarray(task.scale, dtype=float).tolist()
-    return key(
-        answer | {"what": "training path", "scale": scale, "iterates": task.iterates, "code": code_version(TRAINING)}
-    )
+def scene_key(scene: Scene) -> str:
+    """What a scene's training paths depend on but μ and the load scale: its physics, its mesh
+    file, its load path and solver settings, and the code (not its probes or output times: a
+    path's snapshots and states are the same without them)."""
+    answer = content(scene, Task(str(scene.source), {}, Discretisation.of(scene)))
+    kept = {name: value for name, value in answer.items() if name not in ("probes", "values", "times", "code")}
+    return key(kept | {"what": "training path", "code": code_version(TRAINING)})
+
+
+def entry(scene: str, values: Mapping[str, float], scale: float | Sequence[float]) -> str:
+    """The cache entry's name of the path at ``values`` μ and load ``scale`` of the scene whose
+    :func:`scene_key` is ``scene``. One entry whether or not it holds the Newton iterates (a
+    path solved with them serves a build without)."""
+    point = {name: float(value) for name, value in sorted(values.items())}
+    return key({"scene": scene, "values": point, "scale": np.asarray(scale, dtype=float).tolist()})
 
 
 def training_path(
     task: PathTask, comm: MPI.Comm, cache: str, full: tuple[FullOrderModel, Layout] | None = None
 ) -> dict:
     """Solve ``task``'s path on ``comm`` into the cache folder ``cache``, unless it is there
-    already; returns its entry's name and whether it was ``kept`` before. ``full``: the
-    training model itself and its layout, on ``comm`` (a serial ensemble on the build's
-    ranks), else one is built (and kept for the process's next task). Collective: the work of
-    an ensemble."""
+    already (with its iterates, if asked for; an unreadable entry is solved again); returns its
+    entry's name and whether it was ``kept`` before. ``full``: the build's own training model
+    and its layout, on ``comm`` (a serial ensemble on the build's ranks); else the scene is read
+    from its file — refused if it is no longer the scene the build named the task from — and
+    its model built (and kept for the process's next task). Collective: the work of an
+    ensemble."""
     kept = Cache(cache, comm)
-    scene = scenes.load(task.scene)
-    name = entry(scene, task)
-    if kept.has(KIND, f"{name}.npz"):
-        return {"entry": name, "kept": True}
-    model, where = _model(scene, task, comm) if full is None else full
+    names = kept.array_names(KIND, task.entry)
+    if names is not None and (not task.iterates or "iterates" in names):
+        return {"entry": task.entry, "kept": True}
+    if full is None:
+        scene = scenes.load(task.scene)
+        named = scene_key(scene)
+        if entry(named, task.values, task.scale) != task.entry:
+            raise ParameterError(
+                f"scene '{task.scene}' is not the scene the build read (changed since, or made in Python): "
+                "build again from the file"
+            )
+        full = _model(scene, named, comm)
+    model, where = full
     try:
         path = solve_path(model, task.values, one_state(model.start, model.model), task.iterates, task.scale)
     finally:
         model.reset()
-    kept.write_arrays(KIND, name, canonical(path, where))
+    kept.write_arrays(KIND, task.entry, canonical(path, where))
     solution = path.solution
-    return {"entry": name, "kept": False, "seconds": solution.seconds, "newton_iterations": solution.newton_iterations}
+    return {
+        "entry": task.entry,
+        "kept": False,
+        "seconds": solution.seconds,
+        "newton_iterations": solution.newton_iterations,
+    }
 
 
 class _Last:
-    """The training model of a process's last scene, on its communicator, and its layout."""
+    """The training model of a process's last scene (by its :func:`scene_key`), on its
+    communicator, and its layout."""
 
     scene: str | None = None
     comm: MPI.Comm | None = None
@@ -124,29 +166,34 @@ def forget() -> None:
     _Last.scene = _Last.comm = _Last.model = None
 
 
-def _model(scene: Scene, task: PathTask, comm: MPI.Comm) -> tuple[FullOrderModel, Layout]:
-    if _Last.model is None or _Last.scene != task.scene or _Last.comm is not comm:
-        _Last.model = None
-        full = training_model(scene, comm)
-        _Last.scene, _Last.comm, _Last.model = task.scene, comm, (full, layout(full.model.space))
+def _model(scene: Scene, named: str, comm: MPI.Comm) -> tuple[FullOrderModel, Layout]:
+    if _Last.model is None or _Last.scene != named or _Last.comm is not comm:
+        forget()
+        _Last.scene, _Last.comm, _Last.model = named, comm, training_model(scene, comm)
     return _Last.model
 
 
 class EnsemblePaths:
     """The :data:`~lungmech.rom.load_paths.Paths` of a training on ``ensemble``: the full load
-    paths of the scene (file ``scene``) solved as :class:`PathTask`\\ s into lungmech's cache
-    folder ``cache`` and placed on ``full`` (the build's own training model). Collective over
-    ``full``'s communicator (an engine's pool: one rank)."""
+    paths of ``scene`` (read from its file) solved as :class:`PathTask`\\ s into lungmech's
+    cache folder ``cache`` and placed on ``full``, the build's own training model of it, whose
+    canonical layout is ``where``. Collective over ``full``'s communicator (an engine's pool:
+    one rank)."""
 
-    def __init__(self, scene: str, full: FullOrderModel, ensemble: Ensemble, cache: str) -> None:
-        self.scene, self.full, self.ensemble, self.cache = scene, full, ensemble, cache
+    def __init__(self, scene: Scene, full: FullOrderModel, where: Layout, ensemble: Ensemble, cache: str) -> None:
+        if scene.source is None:
+            raise ParameterError("an ensemble solves a scene from its file: give the scene as a file")
+        self.scene, self.key = str(Path(scene.source).resolve()), scene_key(scene)
+        self.full, self.where, self.ensemble, self.cache = full, where, ensemble, cache
         self.comm = full.model.geometry.mesh.comm
-        self.where = layout(full.model.space)
         self.solved = self.kept = 0  # paths solved by this build, and found in the cache
 
     def __call__(self, runs: Sequence[Run], iterates: bool) -> list[LoadPath]:
-        tasks = [PathTask(self.scene, dict(point), _scale(scale), iterates) for point, scale in runs]
-        here = isinstance(self.ensemble, Serial) and MPI.Comm.Compare(self.ensemble.comm, self.comm) != MPI.UNEQUAL
+        tasks = [
+            PathTask(self.scene, dict(point), _scale(scale), iterates, entry(self.key, point, scale))
+            for point, scale in runs
+        ]
+        here = self.ensemble.runs_here(self.comm)  # then on the build's own model
         work = partial(training_path, cache=self.cache, full=(self.full, self.where) if here else None)
         outcomes = self.ensemble.map(work, tasks, lambda line: log.info("training: %s", line))
         for (point, _), outcome in zip(runs, outcomes, strict=True):
@@ -155,13 +202,13 @@ class EnsemblePaths:
                 raise SolverError(f"the full training solve at {text} failed: {outcome.failed}")
         kept = Cache(self.cache, self.comm)
         found = []
-        for outcome in outcomes:
+        for task, outcome in zip(tasks, outcomes, strict=True):
             value = outcome.value
             assert value is not None  # (a failure was raised above)
-            arrays = kept.read_arrays(KIND, value["entry"])
+            arrays = kept.read_arrays(KIND, task.entry)
             if self.comm.bcast(arrays is None if self.comm.rank == 0 else None, root=0):
-                lost = kept.path(KIND, f"{value['entry']}.npz")
-                raise ParameterError(f"cache: the training path {lost} it had just kept cannot be read")
+                lost = kept.path(KIND, f"{task.entry}.npz")
+                raise ParameterError(f"cache: the training path {lost} was removed or damaged during the build")
             found.append(placed(arrays, self.where, iterates))
             self.kept += bool(value["kept"])
             self.solved += not value["kept"]

@@ -43,7 +43,7 @@ from mpi4py import MPI
 from lungmech._threads import cap_threads
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
-__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "attempt", "run_task"]
+__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "attempt", "run_task", "same_ranks"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -71,6 +71,15 @@ class Ensemble(ABC):
     def description(self) -> str:
         """How it runs, for a report ("serial on 2 ranks", "2 groups of 1 rank", …)."""
 
+    @abstractmethod
+    def check(self, comm: MPI.Comm) -> None:
+        """Refuse in one line to be driven from the ranks of ``comm`` if it cannot be."""
+
+    def runs_here(self, comm: MPI.Comm) -> bool:
+        """Whether every task runs in this process on exactly ``comm``'s ranks (a task may then
+        use what lives on them)."""
+        return False
+
 
 class Serial(Ensemble):
     """Every task on the whole ``comm``, one after another, in this process."""
@@ -81,6 +90,13 @@ class Serial(Ensemble):
     @property
     def description(self) -> str:
         return f"serial on {self.comm.size} rank{'s' * (self.comm.size > 1)}"
+
+    def check(self, comm: MPI.Comm) -> None:
+        if not same_ranks(self.comm, comm):
+            raise ParameterError("a serial ensemble runs on the ranks it was made on: make it on the caller's")
+
+    def runs_here(self, comm: MPI.Comm) -> bool:
+        return same_ranks(self.comm, comm)
 
     def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
         pace = Pace(len(tasks), progress if self.comm.rank == 0 else None)
@@ -109,6 +125,10 @@ class Groups(Ensemble):
     @property
     def description(self) -> str:
         return f"{self.count} group{'s' * (self.count > 1)} of {self.size} rank{'s' * (self.size > 1)}"
+
+    def check(self, comm: MPI.Comm) -> None:
+        if not same_ranks(self.comm, comm):
+            raise ParameterError("groups split the ranks they were made on: make them on the caller's")
 
     def map(self, work: Work, tasks: Sequence[Any], progress: Callable[[str], None] | None = None) -> list[Outcome]:
         colour, world = self.comm.rank // self.size, self.comm
@@ -167,6 +187,10 @@ class Pool(Ensemble):
     def description(self) -> str:
         return self._description
 
+    def check(self, comm: MPI.Comm) -> None:
+        if comm.size > 1:
+            raise ParameterError("an engine's pool is driven from one rank (its workers are the parallel part)")
+
     def __enter__(self) -> Pool:
         return self
 
@@ -209,6 +233,11 @@ class Pool(Ensemble):
 
     def _submit(self, work: Work, task: Any) -> concurrent.futures.Future:
         return self.executor.submit(self.function, work, task, **self.options)
+
+
+def same_ranks(one: MPI.Comm, other: MPI.Comm) -> bool:
+    """Whether two communicators hold the same ranks in the same order."""
+    return MPI.Comm.Compare(one, other) in (MPI.IDENT, MPI.CONGRUENT)
 
 
 def run_task(work: Work, task: Any) -> Outcome:

@@ -4,12 +4,14 @@ Start from the full load path at the default parameters. Each round makes the PO
 every snapshot so far, solves that reduced model at every candidate point of the box (cheap) and
 measures its error indicator η (:mod:`lungmech.rom.indicator`). If the largest η meets the
 tolerance — over the candidates and, for the last model, its own training points too — the
-basis is done. Otherwise the full model solves the load path at that candidate:
-its states become snapshots, and the reduced model's true error there (energy norm, as
-:func:`lungmech.rom.accuracy.errors`) is measured on the way, so every round reports the
-indicator next to the error it estimates, and the largest ratio error / indicator of the last
-three rounds near the tolerance (at least 1) scales the indicator before it is compared with
-the tolerance: an indicator that has underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
+basis is done. Otherwise the full model solves the load path at that candidate — or, with
+``batch`` B, at the B candidates of largest η above the tolerance, solved together by the
+training's ``paths`` (an ensemble's: at once) —: its states become snapshots, and the reduced
+model's true error there (energy norm, as :func:`lungmech.rom.accuracy.errors`) is measured on
+the way, so every full solve reports the indicator next to the error it estimates, and the
+largest ratio error / indicator of the last three solves near the tolerance (at least 1)
+scales the indicator before it is compared with the tolerance: an indicator that has
+underestimated the error does not end the training early. Errors are relative to each load path's largest change, so each path's snapshots enter the POD
 divided by their largest norm (a small load path weighs as much as a large one), and the POD
 keeps the fewest vectors whose discarded energy of these lies below (tolerance / 10)²: the
 truncation does not spend the error budget.
@@ -53,10 +55,11 @@ log = logging.getLogger("lungmech")
 
 @dataclass(frozen=True)
 class Round:
-    """One round: the reduced model of ``size`` vectors judged every candidate; ``point`` had the
-    largest indicator η (inf: the reduced solve failed there). ``error`` is that model's true
-    energy-norm error at ``point``, measured by the full solve that followed (None when the
-    round ended the training)."""
+    """One full solve of a round (a round of a batch greedy has several): the reduced model of
+    ``size`` vectors judged every candidate, and ``point`` had one of its largest indicators η
+    (inf: the reduced solve failed there). ``error`` is that model's true energy-norm error at
+    ``point``, measured by the full solve that followed (None for the last, which ended the
+    training: its ``point`` has the largest η of all)."""
 
     size: int
     point: dict[str, float]
@@ -83,6 +86,7 @@ class Greedy:
     safety: float = 1.0  # the factor on the indicator when it stopped (see _safety)
     iterates: tuple = ()
     tolerance: float | None = None  # what it trained to
+    batch: int = 1  # full solves a round
 
 
 def greedy(
@@ -189,7 +193,9 @@ def greedy(
                     f"(tolerance {tolerance:.0e})"
                 )
                 break
-            chosen = _largest(judged, min(batch, most - len(training)))
+            safety = _safety(rounds, tolerance)  # a batch takes no candidate that meets the tolerance
+            largest = _largest(judged, min(batch, most - len(training)))
+            chosen = [i for i in largest if i == worst or judged[i][0] * safety > tolerance]
             points = [remaining[i] for i in chosen]
             found = add(points, reduced, [judged[i][1] for i in chosen])
             for i, point, error in zip(chosen, points, found, strict=True):
@@ -210,7 +216,7 @@ def greedy(
         timings.update(seconds)
     safety = _safety(rounds, tolerance)
     met = rounds[-1].indicator * safety <= tolerance
-    return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates), tolerance)
+    return Greedy(basis, training, rounds, met, modes, sample, safety, tuple(iterates), tolerance, batch)
 
 
 def _largest(judged: Sequence[tuple[float, object]], count: int) -> list[int]:
@@ -219,11 +225,11 @@ def _largest(judged: Sequence[tuple[float, object]], count: int) -> list[int]:
     return order[:count]
 
 
-SAFETY_ROUNDS = 3  # the indicator's latest effectivities the safety factor takes
+SAFETY_ROUNDS = 3  # the indicator's latest effectivities (a full solve's each) the safety factor takes
 
 
 def _safety(rounds: Sequence[Round], tolerance: float) -> float:
-    """The largest error / indicator of the last :data:`SAFETY_ROUNDS` rounds whose error was
+    """The largest error / indicator of the last :data:`SAFETY_ROUNDS` full solves whose error was
     near the tolerance (at most 10 times it: where the indicator decides when to stop; far
     above, in the nonlinear regime of a poor basis, it only ranks the candidates), at least 1.
     The latest: the indicator of the basis at hand, not of the poorer ones before it."""

@@ -105,6 +105,7 @@ def canonical(path: LoadPath, where: Layout) -> dict[str, np.ndarray] | None:
         "snapshots": snapshots,
         "newton_iterations": np.array(solution.newton_iterations),
         "seconds": np.array(solution.seconds),
+        "ranks": np.array(where.comm.size),  # where it was solved (round-off differs with it)
     }
     if iterated is not None:
         arrays["iterates"] = iterated

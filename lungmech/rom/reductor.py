@@ -477,6 +477,7 @@ def _greedy_record(trained: Greedy | None, tolerance: float | None, parameters: 
         return None
     return {
         "tolerance": tolerance,
+        "batch": trained.batch,
         "met": trained.met,
         "safety": trained.safety,
         "full_solves": len(trained.training),
