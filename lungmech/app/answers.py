@@ -27,6 +27,7 @@ from lungmech.app.ladder import Discretisation, at
 from lungmech.app.scene import Scene, file_sha256, physics
 from lungmech.errors import LungmechError
 from lungmech.fem.parametric import ParametricModel
+from lungmech.parallel.ensemble import Kept
 
 __all__ = ["Task", "answer", "content", "forget", "kept_answer", "solved"]
 
@@ -151,26 +152,18 @@ def solved(task: Task, comm: MPI.Comm, cache: str) -> dict:
     return found | {"kept": was_kept}
 
 
-class _Last:
-    """The model of a process's last (scene, discretisation), on its communicator."""
-
-    which: tuple | None = None
-    comm: MPI.Comm | None = None
-    model: ParametricModel | None = None
+_LAST: Kept[ParametricModel] = Kept()  # the model of a process's last scene and discretisation
 
 
 def _model(scene: Scene, task: Task, cache: Cache, comm: MPI.Comm) -> ParametricModel:
     from lungmech.app.run import full_order_model
 
-    which = (task.scene, task.discretisation)
-    if _Last.model is None or _Last.which != which or _Last.comm is not comm:
-        forget()
-        model = full_order_model(at(scene, task.discretisation, cache, comm), comm, start="inverse_motion")
-        _Last.which, _Last.comm, _Last.model = which, comm, model
-    assert _Last.model is not None
-    return _Last.model
+    which = key(content(scene, Task(task.scene, {}, task.discretisation)))  # the scene's content, not its path
+    return _LAST.get(
+        which, comm, lambda: full_order_model(at(scene, task.discretisation, cache, comm), comm, start="inverse_motion")
+    )
 
 
 def forget() -> None:
     """Drop the model :func:`solved` keeps (before its communicator is freed, say)."""
-    _Last.which = _Last.comm = _Last.model = None
+    _LAST.forget()

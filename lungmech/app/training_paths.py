@@ -44,7 +44,7 @@ from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
 from lungmech.fem.start import one_state
-from lungmech.parallel.ensemble import Ensemble
+from lungmech.parallel.ensemble import Ensemble, Kept
 from lungmech.parallel.layout import Layout, layout
 from lungmech.rom.load_paths import LoadPath, Run, canonical, placed, solve_path
 
@@ -136,7 +136,7 @@ def training_path(
                 f"scene '{task.scene}' is not the scene the build read (changed since, or made in Python): "
                 "build again from the file"
             )
-        full = _model(scene, named, comm)
+        full = _LAST.get(named, comm, lambda: training_model(scene, comm))
     model, where = full
     try:
         path = solve_path(model, task.values, one_state(model.start, model.model), task.iterates, task.scale)
@@ -152,25 +152,12 @@ def training_path(
     }
 
 
-class _Last:
-    """The training model of a process's last scene (by its :func:`scene_key`), on its
-    communicator, and its layout."""
-
-    scene: str | None = None
-    comm: MPI.Comm | None = None
-    model: tuple[FullOrderModel, Layout] | None = None
+_LAST: Kept[tuple[FullOrderModel, Layout]] = Kept()  # the training model of a process's last scene
 
 
 def forget() -> None:
     """Drop the training model :func:`training_path` keeps (before its communicator is freed)."""
-    _Last.scene = _Last.comm = _Last.model = None
-
-
-def _model(scene: Scene, named: str, comm: MPI.Comm) -> tuple[FullOrderModel, Layout]:
-    if _Last.model is None or _Last.scene != named or _Last.comm is not comm:
-        forget()
-        _Last.scene, _Last.comm, _Last.model = named, comm, training_model(scene, comm)
-    return _Last.model
+    _LAST.forget()
 
 
 class EnsemblePaths:

@@ -43,7 +43,7 @@ from mpi4py import MPI
 from lungmech._threads import cap_threads
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
-__all__ = ["Ensemble", "Groups", "Outcome", "Pool", "Serial", "attempt", "run_task", "same_ranks"]
+__all__ = ["Ensemble", "Groups", "Kept", "Outcome", "Pool", "Serial", "attempt", "run_task", "same_ranks"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -233,6 +233,29 @@ class Pool(Ensemble):
 
     def _submit(self, work: Work, task: Any) -> concurrent.futures.Future:
         return self.executor.submit(self.function, work, task, **self.options)
+
+
+class Kept(Generic[T]):
+    """What a process keeps from one task of an ensemble for its next — the model of its last
+    scene, say —: made again when what it is made from (``which``) or the communicator
+    differs. :meth:`forget` drops it (before its communicator is freed)."""
+
+    def __init__(self) -> None:
+        self._which: object = None
+        self._comm: MPI.Comm | None = None
+        self._value: T | None = None
+
+    def get(self, which: object, comm: MPI.Comm, make: Callable[[], T]) -> T:
+        """The value kept for ``which`` on ``comm``, or ``make()``'s, kept (collective when
+        ``make`` is)."""
+        if self._value is None or self._which != which or self._comm is not comm:
+            self.forget()
+            self._value = make()
+            self._which, self._comm = which, comm
+        return self._value
+
+    def forget(self) -> None:
+        self._which = self._comm = self._value = None
 
 
 def same_ranks(one: MPI.Comm, other: MPI.Comm) -> bool:
