@@ -206,3 +206,10 @@ def origin(model: Model, reference: np.ndarray) -> np.ndarray:
     for bc in model.bcs:
         bc.set(x)
     return x
+
+
+def snapshot(model: Model, start: np.ndarray) -> np.ndarray:
+    """The model's state minus ``start`` (with the imposed displacements of the current time):
+    one column of snapshots, owned rows."""
+    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    return (model.state.x.array - origin(model, start))[:owned].copy()

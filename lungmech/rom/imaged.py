@@ -41,14 +41,14 @@ from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import gram
 from lungmech.rom import body
-from lungmech.rom.basis import Basis, dual
+from lungmech.rom.basis import Basis, dual, snapshot
 from lungmech.rom.body import cells_of
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.ecsw_training import Training
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.outputs import Cubic, cubic, imposed_directions
-from lungmech.rom.pod import pod, snapshot
+from lungmech.rom.pod import pod
 from lungmech.rom.whole import OnMesh, Stored, Whole
 
 if TYPE_CHECKING:

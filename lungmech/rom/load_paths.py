@@ -27,11 +27,12 @@ import numpy as np
 from lungmech.errors import ParameterError
 from lungmech.fem.parametric import FullOrderModel, Solution, Step
 from lungmech.fem.solver import NewtonSolver
+from lungmech.fem.start import one_state
 from lungmech.parallel.layout import Layout
 from lungmech.rom import ecsw
-from lungmech.rom.pod import snapshot
+from lungmech.rom.basis import snapshot
 
-__all__ = ["LoadPath", "Paths", "Run", "canonical", "placed", "serial", "solve_path"]
+__all__ = ["LoadPath", "Paths", "Run", "canonical", "collected", "placed", "serial", "solve_path"]
 
 Iterate = tuple[np.ndarray, float, dict[str, float]]  # a Newton iterate: (owned rows, time, μ)
 Run = tuple[Mapping[str, float], float | Sequence[float]]  # a parameter point and the load scale(s)
@@ -76,6 +77,17 @@ def solve_path(
     with watching:
         solution = full.solve(dict(point), on_step=keep, scale=scale)
     return LoadPath(np.column_stack(columns), solution, tuple(kept))
+
+
+def collected(full: FullOrderModel, runs: Sequence[Run]) -> np.ndarray:
+    """The snapshots of ``full``'s solves at each (parameter point, load scale) of ``runs``,
+    side by side (owned rows); the model is left at its start, at the default parameters.
+    Collective."""
+    start = one_state(full.start, full.model)
+    columns = [solve_path(full, point, start, scale=scale).snapshots for point, scale in runs]
+    full.reset()
+    full.model.set_time(full.stepping.start)
+    return np.hstack(columns)
 
 
 def serial(full: FullOrderModel, start: np.ndarray) -> Paths:

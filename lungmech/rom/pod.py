@@ -8,12 +8,12 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
-from lungmech.fem.parametric import FullOrderModel, Step
+from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping
-from lungmech.fem.start import one_state
 from lungmech.parallel import linalg
 from lungmech.parallel.layout import layout
-from lungmech.rom.basis import Basis, inner_product, origin, positive, reference_state, zero_imposed
+from lungmech.rom.basis import Basis, inner_product, positive, reference_state, zero_imposed
+from lungmech.rom.load_paths import collected
 
 
 def snapshots(
@@ -39,31 +39,6 @@ def snapshots(
     start = reference_state(model) if start is None else start.copy()
     full = FullOrderModel(model, stepping, options, start=start, solver=solver)
     return collected(full, [(point, scale) for point in parameters for scale in scales])
-
-
-def collected(full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]]) -> np.ndarray:
-    """The snapshots of ``full``'s solves at each (parameter point, load scale) of ``runs``:
-    every accepted state of the approach and the load path, minus the start state (owned rows).
-    The model is left at its start, at the default parameters. Collective."""
-    model = full.model
-    start = one_state(full.start, model)
-    columns = []
-
-    def keep(step: Step) -> None:
-        if step.phase in ("approach", "path"):
-            columns.append(snapshot(model, start))
-
-    for point, scale in runs:
-        full.solve(point, scale=scale, on_step=keep)
-    full.reset()
-    model.set_time(full.stepping.start)
-    return np.column_stack(columns)
-
-
-def snapshot(model: Model, start: np.ndarray) -> np.ndarray:
-    """The model's state minus ``start`` (with the imposed displacements of the current time):
-    one column of snapshots, owned rows."""
-    return (model.state.x.array - origin(model, start))[: _owned(model)].copy()
 
 
 def pod(

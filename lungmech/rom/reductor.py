@@ -53,7 +53,7 @@ from lungmech.rom.greedy import Greedy, greedy
 from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.load_paths import Paths
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
-from lungmech.rom.pod import collected, pod
+from lungmech.rom.pod import pod
 from lungmech.rom.polynomial import polynomial_basis
 from lungmech.rom.reduced import ReducedModel
 
@@ -401,7 +401,7 @@ class Reductor:
                     self.timings["ecsw_replay"] = time.perf_counter() - tic
                 else:
                     with training.watching(cast(NewtonSolver, full.solver)):  # (ECSW watches a full Newton solver)
-                        collected(full, self._runs)
+                        load_paths.collected(full, self._runs)
                     self.timings["ecsw_training"] = time.perf_counter() - tic
                     self.full_solves += len(self._runs)
             except BaseException:
