@@ -135,6 +135,7 @@ def test_shape_spectrum_with_and_without_leave_one_out(tmp_path):
         shape_spectrum([0.0, 0.0], tmp_path / "zero.png")
 
 
+@pytest.mark.serial  # a one-rank picture, as the spectrum above
 def test_surface_sections_draw_every_surface(mesh, tmp_path):
     triangles = boundary_triangles(mesh)
     path = tmp_path / "sections.png"
