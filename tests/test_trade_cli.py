@@ -134,18 +134,19 @@ def test_bad_trade_requests_are_one_line(tmp_path, capsys):
 def test_the_same_table_on_one_rank_two_ranks_and_two_groups(tmp_path):
     """The full solves on two ranks, in two groups of one rank, and on one rank (rank 0's own
     trade); each candidate measured on the trade's ranks: the same answers — bitwise between
-    the groups and one rank, to the solvers' tolerances on two ranks."""
+    the groups and one rank, to the solvers' tolerances on two ranks —, and the same
+    energy-norm errors (their fields carried and measured on the trade's ranks: to round-off
+    between the groups and one rank)."""
     comm = MPI.COMM_WORLD
     scene = written(tmp_path)
     full = [Candidate.full(Discretisation(0, 1))]
-    both = trade(scene, 5e-2, count=1, cache=tmp_path / "two", levels=1, full=full, comm=comm)
+    energy = {"quantity": "energy", "count": 1, "levels": 1, "full": full}
+    both = trade(scene, 0.5, cache=tmp_path / "two", comm=comm, **energy)
     groups = Groups(1, comm)
-    dealt = trade(scene, 5e-2, count=1, cache=tmp_path / "groups", levels=1, full=full, comm=comm, ensemble=groups)
+    dealt = trade(scene, 0.5, cache=tmp_path / "groups", comm=comm, ensemble=groups, **energy)
     groups.free()
     alone = comm.Split(comm.rank)
-    one = (
-        trade(scene, 5e-2, count=1, cache=tmp_path / "one", levels=1, full=full, comm=alone) if comm.rank == 0 else None
-    )
+    one = trade(scene, 0.5, cache=tmp_path / "one", comm=alone, **energy) if comm.rank == 0 else None
     alone.Free()
     one = comm.bcast(one, root=0)
     assert both.results["full P1 h"]["ranks"] == comm.size and one.results["full P1 h"]["ranks"] == 1
@@ -156,4 +157,6 @@ def test_the_same_table_on_one_rank_two_ranks_and_two_groups(tmp_path):
             np.testing.assert_allclose(c["volume"], a["volume"], rtol=1e-8)
     np.testing.assert_array_equal(dealt.errors["full P1 h"]["volume"], one.errors["full P1 h"]["volume"])
     np.testing.assert_allclose(both.errors["full P1 h"]["volume"], one.errors["full P1 h"]["volume"], rtol=1e-5)
+    np.testing.assert_allclose(dealt.errors["full P1 h"]["energy"], one.errors["full P1 h"]["energy"], rtol=1e-9)
+    np.testing.assert_allclose(both.errors["full P1 h"]["energy"], one.errors["full P1 h"]["energy"], rtol=1e-5)
     assert one.choice.chosen.name == dealt.choice.chosen.name == both.choice.chosen.name

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lungmech.errors import ParameterError
-from lungmech.trade.convergence import observed_order
+from lungmech.trade.convergence import observed_order, order_of_differences
 
 
 def levels(order: float, h: float = 0.1, ratio: float = 2.0, higher: float = 0.0):
@@ -81,3 +81,20 @@ def test_bad_levels_are_refused_in_one_line(arguments, message):
     values, options = arguments
     with pytest.raises(ParameterError, match=message):
         observed_order(*values, **options)
+
+
+def test_the_norms_of_two_differences_give_the_order_of_a_field():
+    """‖x_h − x_h/2‖ = C hᵖ (1 − 2⁻ᵖ) and ‖x_h/2 − x_h/4‖ = C (h/2)ᵖ (1 − 2⁻ᵖ) of a field whose error
+    is C hᵖ along one direction: the order p, and the finest level's error C (h/4)ᵖ exactly."""
+    C, h, p = 0.7, 0.2, 1.0
+    large, small = (C * s**p * (1 - 2**-p) for s in (h, h / 2))
+    found = order_of_differences(large, small, expected=p)
+    assert found.observed == pytest.approx(p) and found.agree
+    assert found.estimate == pytest.approx(C * (h / 4) ** p)
+    assert not order_of_differences(large, small, expected=3.0).agree
+
+
+@pytest.mark.parametrize("sizes", [(-1.0, 0.5), (math.nan, 0.5), (1.0, math.inf)])
+def test_differences_that_are_no_sizes_are_refused_in_one_line(sizes):
+    with pytest.raises(ParameterError, match="finite sizes"):
+        order_of_differences(*sizes, expected=1.0)

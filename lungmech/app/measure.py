@@ -9,7 +9,8 @@ trade on P ranks measures each candidate on P ranks of its own.
 
 ``REQUEST`` names the scene file, the candidate — a full model at a discretisation
 (``{"kind": "full", "discretisation": {...}}``) or a model file (``{"kind": "file", "path":
-...}``) —, the points μ, the output times (null: the whole path) and lungmech's cache folder.
+...}``) —, the points μ, the output times (null: the whole path), whether a full model's
+fields are kept (``fields``) and lungmech's cache folder.
 A process of its own makes the peak resident memory that of this candidate alone. Full-order
 answers come from the cache where it has them (:func:`lungmech.app.answers.kept_answer`) and
 go into it otherwise. The first solve of the process is its warm-up: a reduced model solves
@@ -79,7 +80,8 @@ def measure(request: dict[str, Any], comm: MPI.Comm = MPI.COMM_WORLD) -> dict[st
     if full:
         discretisation = Discretisation(**candidate["discretisation"])
         for point in points:
-            task = Task(str(request["scene"]), point, discretisation, None if times is None else tuple(times))
+            when = None if times is None else tuple(times)
+            task = Task(str(request["scene"]), point, discretisation, when, bool(request.get("fields")))
             found, was_kept = kept_answer(cache, scene, task, model)
             answers.append(found)
             kept.append(was_kept)

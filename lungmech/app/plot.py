@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
@@ -282,7 +283,7 @@ def pareto(
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("online time per point, warm median [ms]")
-    ax.set_ylabel(error_label)
+    ax.set_ylabel(textwrap.fill(error_label, 48))  # a long denominator on two lines, inside the figure
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: the markers keep the plot
     if ringed:

@@ -37,10 +37,12 @@ from lungmech import checks
 from lungmech.app import answers
 from lungmech.app import scene as scenes
 from lungmech.app.cache import BUILDING, Cache, code_version, default_folder, key
+from lungmech.app.field_errors import energy_errors, energy_norm_allowed
 from lungmech.app.ladder import Discretisation, mixed_allowed, remeshed
 from lungmech.app.measure import apart
 from lungmech.app.model_file import embedded_names
 from lungmech.app.reduce import build_family, check_physics, embedded_scene, family_files
+from lungmech.app.run import full_order_model
 from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.parallel.ensemble import Ensemble, Serial
@@ -207,6 +209,8 @@ def trade(
         made = list(full)
     for model in models:
         _check_model(model, scene, comm)
+    if quantity in quantities.FIELDS:
+        energy_norm_allowed(full_order_model(scene, comm, start="inverse_motion").model)  # before any solve
     store_root = Cache(cache if cache is not None else default_folder(), comm)
     engine = ensemble if ensemble is not None else Serial(comm)
     built = _built(scene, build, store_root, engine, comm) if build is not None else {}
@@ -226,6 +230,7 @@ def trade(
             "candidate": candidate.request,
             "points": points.points,
             "times": times,
+            "fields": quantity in quantities.FIELDS,
             "cache": str(store_root.root),
             "timed": candidate is not reference,
         }
@@ -242,7 +247,7 @@ def trade(
             f"the reference failed at {len(failed)} of {len(points)} points (no model is judged there: each counts "
             f"as failed): {', '.join(f'{points.kinds[i]} {points.points[i]}' for i in failed)}"
         )
-    _judge(found, scene, [reference, *made, *files_as], levels)
+    _judge(found, scene, [reference, *made, *files_as], levels, store_root)
     return found
 
 
@@ -251,8 +256,9 @@ def _solve_all(found: Trade, scene: Path, full: Sequence[Candidate], engine: Ens
     costliest first, so that groups share the work evenly); a solve that failed outside the
     solver is noted (its candidate's measurement fails the same way and says so)."""
     times = None if found.times is None else tuple(found.times)
+    fields = found.quantity in quantities.FIELDS
     work = [
-        answers.Task(str(scene), point, Discretisation(**candidate.request["discretisation"]), times)
+        answers.Task(str(scene), point, Discretisation(**candidate.request["discretisation"]), times, fields)
         for candidate in full
         for point in found.points.points
     ]
@@ -307,8 +313,11 @@ def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene)
     return True
 
 
-def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels: int) -> None:
-    """The errors of every candidate, the reference's convergence, and the choice."""
+def _judge(
+    found: Trade, scene: scenes.Scene, measured: list[Candidate], levels: int, cache: Cache | None = None
+) -> None:
+    """The errors of every candidate, the reference's convergence, and the choice (``cache``:
+    where the full solves kept their fields, for a quantity of fields)."""
     reference = found.results[found.reference]["answers"]
     names = ["pv"] if found.quantity == "pv" else ["volume"] + (["probes"] if scene.output.probes else [])
     for candidate in measured:
@@ -317,6 +326,9 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
         if "probes" in names:
             found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
     ladder = [f"full {Discretisation.of(scene, level).name}" for level in range(levels - 2, levels + 1)]
+    if found.quantity in quantities.FIELDS:
+        assert cache is not None, "a quantity of fields is judged on the fields the cache keeps"
+        _judge_fields(found, scene, measured, ladder if levels >= 2 else [], cache)
     if levels >= 2 and all(name in found.results for name in ladder):
         coarse, middle, fine = (found.results[name]["answers"] for name in ladder)
         for q in names:
@@ -346,6 +358,22 @@ def _judge(found: Trade, scene: scenes.Scene, measured: list[Candidate], levels:
     convergence = found.convergence.get(found.quantity)
     accuracy = None if convergence is None or convergence.estimate is None else convergence.estimate
     found.choice = choose(found.measured, found.tolerance, found.quantity, found.queries, accuracy)
+
+
+def _judge_fields(
+    found: Trade, scene: scenes.Scene, measured: list[Candidate], ladder: list[str], cache: Cache
+) -> None:
+    """The energy-norm errors of every candidate (:mod:`lungmech.app.field_errors`) and the
+    reference's observed order in that norm."""
+    assert found.times is not None  # (a static quantity)
+    reference = Discretisation(**found.requests[found.reference]["discretisation"])
+    requests = {candidate.name: candidate.request for candidate in measured}
+    fields = energy_errors(found.scene, scene, found.points.points, found.times, reference, requests, cache, ladder)
+    found.notes += fields.notes
+    for name, errors in fields.errors.items():
+        found.errors[name]["energy"] = errors
+    if fields.convergence is not None:
+        found.convergence["energy"] = fields.convergence
 
 
 def _family(path: str | Path) -> str:

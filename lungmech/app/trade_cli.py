@@ -33,7 +33,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         default="volume",
         choices=QUANTITIES,
         help="what the tolerance is on: volume (at end-inspiration, of the volume change to it; default), "
-        "pv (the P–V curve, of the path's largest volume change), probes (of their largest motion)",
+        "pv (the P–V curve, of the path's largest volume change), probes (of their largest motion), "
+        "energy (the state at end-inspiration on the reference's mesh, in the energy norm, of its change from the start)",
     )
     trade.add_argument(
         "--points",

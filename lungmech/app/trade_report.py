@@ -171,14 +171,16 @@ def markdown(found: Trade, command: str = "") -> str:
 def console_table(found: Trade) -> str:
     """One screen: a line per model (the chosen one starred), the reference, the choice."""
     q = found.quantity
-    header = f"{'':2}{'model':<22}{'family':<10}{'dofs':>9}{'worst ' + COLUMNS[q][0]:>22}{'failed':>8}"
+    worst = f"worst {COLUMNS[q][0]}"
+    width = len(worst) + 2
+    header = f"{'':2}{'model':<22}{'family':<10}{'dofs':>9}{worst:>{width}}{'failed':>8}"
     header += f"{'online ms':>11}{'offline s':>11}{'RSS MiB':>9}"
     lines = [header]
     for row in rows(found):
         mark = "* " if row["chosen"] else "  "
         dofs = "" if row["dofs"] is None else str(row["dofs"])
         line = f"{mark}{row['model'][:21]:<22}{row['family'][:9]:<10}{dofs:>9}"
-        line += f"{_short(row.get(f'{COLUMNS[q][0]} max [-]')):>22}{row['failed points']:>8}"
+        line += f"{_short(row.get(f'{COLUMNS[q][0]} max [-]')):>{width}}{row['failed points']:>8}"
         line += f"{_short(row.get('online [ms]')):>11}{_short(row.get('offline [s]')):>11}"
         line += f"{_short(row.get('peak RSS [MiB]')):>9}"
         lines.append(line)

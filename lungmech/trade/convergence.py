@@ -24,7 +24,7 @@ import numpy as np
 from lungmech import checks
 from lungmech.errors import ParameterError
 
-__all__ = ["AGREEMENT", "Convergence", "observed_order"]
+__all__ = ["AGREEMENT", "Convergence", "observed_order", "order_of_differences"]
 
 AGREEMENT = 0.5  # |p − expected| at most this: the levels are in the asymptotic range
 
@@ -46,24 +46,34 @@ def observed_order(coarse: object, middle: object, fine: object, expected: float
     """The observed order of the quantity ``coarse``, ``middle``, ``fine`` (numbers, or arrays of
     one shape: a curve over the output times) on meshes refined by ``ratio`` each time, against
     the ``expected`` order (see the module's doc)."""
-    checks.real("refinement ratio", ratio)
-    checks.real("expected order", expected)
-    if not ratio > 1:
-        raise ParameterError(f"the refinement ratio must be > 1 (got {ratio!r})")
-    if not expected > 0:
-        raise ParameterError(f"the expected order must be > 0 (got {expected!r})")
     levels = [np.atleast_1d(np.asarray(q, dtype=float)) for q in (coarse, middle, fine)]
     if len({level.shape for level in levels}) != 1:
         raise ParameterError(f"the three levels have different shapes ({', '.join(str(q.shape) for q in levels)})")
     if not all(np.all(np.isfinite(level)) for level in levels):
         raise ParameterError("a level of the quantity is not finite (a failed solve?)")
     first, second = levels[1] - levels[0], levels[2] - levels[1]
-    large, small = float(np.abs(first).max()), float(np.abs(second).max())
+    one_sign = bool(np.all(first * second >= 0.0))
+    return order_of_differences(float(np.abs(first).max()), float(np.abs(second).max()), expected, ratio, one_sign)
+
+
+def order_of_differences(
+    large: float, small: float, expected: float, ratio: float = 2.0, one_sign: bool = True
+) -> Convergence:
+    """The observed order from the sizes of the two differences, ‖d₁‖ = ``large`` and ‖d₂‖ =
+    ``small`` (of numbers, or norms of fields: ‖x_h/r − x_h‖, ‖x_h/r² − x_h/r‖), against the
+    ``expected`` order; ``one_sign``: the differences did not oscillate (see the module's doc)."""
+    checks.real("refinement ratio", ratio)
+    checks.real("expected order", expected)
+    if not ratio > 1:
+        raise ParameterError(f"the refinement ratio must be > 1 (got {ratio!r})")
+    if not expected > 0:
+        raise ParameterError(f"the expected order must be > 0 (got {expected!r})")
+    if not (math.isfinite(large) and math.isfinite(small) and large >= 0 and small >= 0):
+        raise ParameterError(f"the differences of the levels must be finite sizes ≥ 0 (got {large!r}, {small!r})")
     if small == 0.0:
         return Convergence(math.inf if large > 0 else math.nan, expected, False, None)
     if large == 0.0:  # the finest two differ where the coarsest two did not: no convergence seen
         return Convergence(-math.inf, expected, False, None)
     observed = math.log(large / small) / math.log(ratio)
-    one_sign = bool(np.all(first * second >= 0.0))
     agree = one_sign and abs(observed - expected) <= AGREEMENT
     return Convergence(observed, expected, agree, small / (ratio**observed - 1.0) if agree else None)

@@ -8,7 +8,10 @@ candidate's and the reference's at the same μ and output times. Per point:
 * ``pv`` — the P–V curve: max over the output times of |V(t) − V_ref(t)|, relative to the
   path's largest volume change max_t |V_ref(t) − V_ref,start|;
 * ``probes`` — the largest probe displacement error |u − u_ref| at the last output time,
-  relative to the probes' largest motion |u_ref| (and in mm: :func:`probe_millimetres`).
+  relative to the probes' largest motion |u_ref| (and in mm: :func:`probe_millimetres`);
+* ``energy`` — the state at the last output time, in the energy norm on the reference's mesh,
+  relative to the reference's change of state from its start: fields, not answers' numbers
+  (:mod:`lungmech.app.field_errors` measures them).
 
 A failed answer's error is nan (it failed there; it is never dropped), and so is every
 answer's where the reference failed (it cannot be judged there). The same denominators
@@ -23,26 +26,30 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 
-__all__ = ["DENOMINATORS", "QUANTITIES", "errors", "expected_order", "normalised", "probe_millimetres"]
+__all__ = ["DENOMINATORS", "FIELDS", "QUANTITIES", "errors", "expected_order", "normalised", "probe_millimetres"]
 
-QUANTITIES = ("volume", "pv", "probes")
+QUANTITIES = ("volume", "pv", "probes", "energy")
 DENOMINATORS = {
     "volume": "the volume change to the last output time",
     "pv": "the path's largest volume change",
     "probes": "the probes' largest displacement",
+    "energy": "the state's change from the start to the last output time",
 }
+FIELDS = ("energy",)  # measured on fields (lungmech.app.field_errors), not on answers
 
 
 def expected_order(quantity: str, degree: int) -> float:
     """The order at which the quantity converges under refinement with elements of ``degree``
     p on one polyhedron: 2p for the volume (a smooth functional of the solution), p + 1 for a
-    point's displacement."""
-    return {"volume": 2.0 * degree, "pv": 2.0 * degree, "probes": degree + 1.0}[_known(quantity)]
+    point's displacement, p for the state in the energy norm."""
+    orders = {"volume": 2.0 * degree, "pv": 2.0 * degree, "probes": degree + 1.0, "energy": float(degree)}
+    return orders[_known(quantity)]
 
 
 def normalised(answers: Sequence[dict], references: Sequence[dict], quantity: str) -> np.ndarray:
     """Each answer's quantity over the reference's denominator at its point (nan where either
     failed): rows of a level, for :func:`lungmech.trade.convergence.observed_order`."""
+    _of_answers(quantity)
     width = next((len(_values(r, quantity)) for r in references if r["failed"] is None), 1)
     rows = []
     for found, reference in zip(answers, references, strict=True):
@@ -55,7 +62,7 @@ def normalised(answers: Sequence[dict], references: Sequence[dict], quantity: st
 
 def errors(answers: Sequence[dict], references: Sequence[dict], quantity: str) -> np.ndarray:
     """The relative error of each answer at its point (see the module's doc); nan where it failed."""
-    _known(quantity)
+    _of_answers(quantity)
     found = []
     for answer, reference in zip(answers, references, strict=True):
         if answer["failed"] is not None or reference["failed"] is not None:
@@ -81,6 +88,14 @@ def probe_millimetres(answers: Sequence[dict], references: Sequence[dict]) -> np
 def _known(quantity: str) -> str:
     if quantity not in QUANTITIES:
         raise ParameterError(f"quantity must be one of {', '.join(QUANTITIES)} (got {quantity!r})")
+    return quantity
+
+
+def _of_answers(quantity: str) -> str:
+    if _known(quantity) in FIELDS:
+        raise ParameterError(
+            f"the quantity {quantity!r} is measured on fields (lungmech.app.field_errors), not answers"
+        )
     return quantity
 
 

@@ -1,0 +1,126 @@
+"""A trade's energy-norm errors (lungmech.app.field_errors): a field carried between non-matching
+meshes and elements is exact for what both spaces hold (a quadratic onto P2, its nodal values
+onto P1, a Taylor–Hood state's displacement alone); the energy norm at rest is the linear
+elastic energy of the difference (an analytic value); a mesh that does not cover the
+reference is refused; and on a small scene the trade's energy errors shrink under refinement
+at the order of P1 elements."""
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+from dolfinx import fem
+from trades import written
+
+from lungmech.app.cli import main
+from lungmech.app.field_errors import Transfer, energy_norm_allowed
+from lungmech.app.ladder import Discretisation
+from lungmech.app.trade import Candidate, trade
+from lungmech.errors import LungmechError, ParameterError
+from lungmech.fem.constraints import clamp
+from lungmech.fem.materials import NeoHookean
+from lungmech.fem.model import Model
+from lungmech.mesh import box, sphere
+from lungmech.parallel.linalg import norms
+from lungmech.rom.basis import inner_product
+
+E, NU = 1.0e3, 0.3
+LAME, SHEAR = E * NU / ((1 + NU) * (1 - 2 * NU)), E / (2 * (1 + NU))
+
+
+def model(cells, degree=1, mixed=False, lengths=(1.0, 1.0, 1.0), constraints=()):
+    geometry = box(MPI.COMM_WORLD, lengths, cells)
+    return Model(geometry, NeoHookean.from_young(E, NU), degree=degree, mixed=mixed, constraints=constraints)
+
+
+def quadratic(x):
+    return np.vstack([x[0] ** 2, x[0] * x[1] - x[2], 0.5 * x[2] ** 2 + x[1]])
+
+
+def interpolant(target: Model, field) -> np.ndarray:
+    """The owned entries of ``target``'s state holding ``field`` in its displacement, 0 elsewhere."""
+    state = fem.Function(target.space)
+    if target.multi_field:
+        space, dofs = target.space.sub(0).collapse()
+        part = fem.Function(space)
+        part.interpolate(field)
+        state.x.array[np.asarray(dofs)] = part.x.array
+    else:
+        state.interpolate(field)
+    return state.x.array[: target.space.dofmap.index_map.size_local * target.space.dofmap.index_map_bs].copy()
+
+
+@pytest.mark.parametrize(
+    "source, target",
+    [
+        (((2, 2, 2), 2, False), ((3, 3, 3), 2)),  # non-nested P2 meshes: the quadratic exactly
+        (((2, 2, 2), 2, False), ((3, 2, 4), 1)),  # onto P1: its nodal values
+        (((2, 2, 2), 2, True), ((3, 3, 3), 2)),  # a Taylor–Hood state's displacement, its pressure left
+    ],
+)
+def test_a_field_carried_between_non_matching_meshes_is_exact_where_both_hold_it(source, target):
+    (cells, degree, mixed), (target_cells, target_degree) = source, target
+    giver, taker = model(cells, degree, mixed), model(target_cells, target_degree)
+    carried = Transfer(giver, taker)(interpolant(giver, quadratic))
+    assert np.allclose(carried, interpolant(taker, quadratic), rtol=0.0, atol=1e-12)
+
+
+def test_a_coarser_remesh_of_a_curved_body_reaches_the_finer_ones_boundary():
+    """The finer sphere's boundary nodes lie outside the coarser's chords: they take the
+    nearest cell's values, which for a linear field are its own."""
+    A = np.array([[1.0, 2.0, 0.0], [0.0, -0.5, 1.0], [3.0, 0.0, 0.25]])
+    coarse, fine = (Model(sphere(MPI.COMM_WORLD, 0.5, 1.0, size), NeoHookean.from_young(E, NU)) for size in (0.5, 0.2))
+    carried = Transfer(coarse, fine)(interpolant(coarse, lambda x: A @ x))
+    assert np.allclose(carried, interpolant(fine, lambda x: A @ x), rtol=0.0, atol=1e-12)
+
+
+def test_the_energy_norm_at_rest_is_the_linear_elastic_energy():
+    """‖e‖²_E = ∫ λ (tr ε)² + 2μ ε:ε for e = A x on a 2 × 1 × 1 box: V (λ (tr ε)² + 2μ ε:ε)."""
+    taker = model((4, 2, 2), lengths=(2.0, 1.0, 1.0))
+    A = np.array([[1.0, 2.0, 0.0], [0.0, -0.5, 1.0], [3.0, 0.0, 0.25]]) * 1e-2
+    strain = 0.5 * (A + A.T)
+    expected = 2.0 * (LAME * np.trace(strain) ** 2 + 2 * SHEAR * np.sum(strain * strain))
+    e = interpolant(taker, lambda x: A @ x)
+    W = inner_product(taker, "energy")
+    assert norms(e[:, None], W, MPI.COMM_WORLD)[0] ** 2 == pytest.approx(expected, rel=1e-10)
+    W.destroy()
+
+
+def test_a_mesh_that_does_not_cover_the_reference_is_refused():
+    with pytest.raises(LungmechError, match="outside the candidate's mesh"):
+        Transfer(model((2, 2, 2), lengths=(0.5, 1.0, 1.0)), model((3, 3, 3)))
+
+
+def test_an_energy_that_is_no_norm_is_refused_in_one_line():
+    with pytest.raises(ParameterError, match="--quantity energy") as raised:
+        energy_norm_allowed(model((2, 2, 2)))  # nothing holds it: free to move rigidly
+    assert "\n" not in str(raised.value)
+    energy_norm_allowed(model((2, 2, 2), constraints=[clamp("x0")]))
+
+
+@pytest.mark.slow
+def test_a_trades_energy_errors_shrink_at_the_order_of_its_elements(tmp_path):
+    """P1 at h and h/2 against h/4: the errors fall by about 2 per halving, the reference's is
+    0, and the observed order agrees with 1 (on two ranks: tests/test_trade_cli.py)."""
+    scene = written(tmp_path)
+    full = [Candidate.full(Discretisation(level, 1)) for level in (0, 1)]
+    found = trade(scene, 0.5, quantity="energy", count=2, full=full, cache=tmp_path / "cache")
+    h, half = (found.errors[f"full P1 {name}"]["energy"] for name in ("h", "h/2"))
+    assert np.all(np.isfinite(h)) and np.all(h > half) and np.all(half > 0)
+    assert np.all((h / half > 1.5) & (h / half < 3.0))
+    assert np.all(found.errors[found.reference]["energy"] == 0.0)
+    order = found.convergence["energy"]
+    assert order.expected == 1.0 and abs(order.observed - 1.0) < 0.5
+    assert found.choice is not None
+
+
+@pytest.mark.serial
+def test_the_energy_quantity_from_the_command_line(tmp_path, capsys):
+    scene = written(tmp_path)
+    code = main(
+        ["trade", str(scene), "--tolerance", "0.5", "--quantity", "energy", "--points", "1", "--levels", "1"]
+        + ["--cache", str(tmp_path / "cache"), "-o", str(tmp_path / "out"), "-q"]
+    )
+    assert code == 0, capsys.readouterr().err
+    table = (tmp_path / "out" / "trade.csv").read_text()
+    assert "energy-norm error max [-]" in table
