@@ -95,6 +95,8 @@ def test_an_energy_that_is_no_norm_is_refused_in_one_line():
     with pytest.raises(ParameterError, match="--quantity energy") as raised:
         energy_norm_allowed(model((2, 2, 2)))  # nothing holds it: free to move rigidly
     assert "\n" not in str(raised.value)
+    with pytest.raises(ParameterError, match="--quantity energy"):  # a mixed formulation's saddle point
+        energy_norm_allowed(model((2, 2, 2), degree=2, mixed=True, constraints=[clamp("x0")]))
     energy_norm_allowed(model((2, 2, 2), constraints=[clamp("x0")]))
 
 
