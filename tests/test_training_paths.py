@@ -1,7 +1,9 @@
 """A reduction's full training solves on an ensemble, kept in the cache: a path brought back from
 the cache is the path solved in place; a greedy run through an ensemble, resumed after an
-interrupt, or in batches trains as it should; bad requests are refused in one line."""
+interrupt, or in batches trains as it should; an imaged body's paths (both its unknowns) too;
+bad requests are refused in one line."""
 
+from dataclasses import replace
 from pathlib import Path
 
 from mpi4py import MPI
@@ -9,6 +11,7 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 from fem import BOX, PARAMETRIC_SCENE, pushed_block, write_once
+from test_one_path import IMAGED
 
 from lungmech.app import reduce, training_paths
 from lungmech.app import scene as scenes
@@ -157,8 +160,8 @@ def test_rom_build_on_parsl_workers_is_the_serial_build(tmp_path, capsys):
 
 
 def test_bad_training_ensemble_requests_are_refused_in_one_line(tmp_path, capsys):
-    """--batch without --tolerance, --workers without --engine, an ensemble for an imaged
-    body's training: one line each, exit 2, no model file."""
+    """--batch without --tolerance, --workers without --engine: one line each, exit 2, no model
+    file."""
     scene = write_once(tmp_path / "scene.toml", PARAMETRIC_SCENE)
     out = str(tmp_path / "m.npz")
     for extra, said in (
@@ -169,6 +172,48 @@ def test_bad_training_ensemble_requests_are_refused_in_one_line(tmp_path, capsys
         assert main(["rom", "build", str(scene), "-o", out, "-q", *extra]) == 2
         err = capsys.readouterr().err
         assert said in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
-    assert main(["rom", "build", "lung_breathing_parameters", "-o", out, "-q", "--group-size", "1"]) == 2
-    assert "an imaged body's training solves run in the build's own process" in capsys.readouterr().err
     assert not Path(out).exists()
+
+
+# the imaged cube held at one face (its symmetry planes would make every state one shape): 6
+# directions of its breath and 4 of its inverse motion from 4 points
+SYMMETRY = "".join(f'[[constraints]]\ntype = "symmetry"\nboundary = "{a}0"\ncomponent = "{a}"\n' for a in "xyz")
+IMAGED_CLAMPED = IMAGED.replace(SYMMETRY, '[[constraints]]\ntype = "clamp"\nboundary = "x0"\n')
+assert IMAGED_CLAMPED != IMAGED
+
+
+def test_an_imaged_bodys_paths_from_the_cache_train_the_model_solved_in_place(tmp_path):
+    """Both unknowns of an imaged body's training — the breath's snapshots and the inverse
+    motion's solution at each μ — solved as tasks into the cache and placed back, train the
+    model its in-process training makes, to the last bit; built again, nothing is solved."""
+    scene = scenes.load(write_once(tmp_path / "imaged.toml", IMAGED_CLAMPED))
+    common = {"samples": 4, "size": 6, "cache": tmp_path / "cache"}
+    first = reduce.build(scene, tmp_path / "a.npz", **common)["training_paths"]
+    assert first == first | {"solved": 4, "kept": 0}
+    again = reduce.build(scene, tmp_path / "b.npz", **common)["training_paths"]
+    assert again == again | {"solved": 0, "kept": 4}
+    in_place = replace(scene, source=None)  # a scene made in Python: its paths solved by the reductor itself
+    reduce.build(in_place, tmp_path / "c.npz", **common)
+    arrays = [store.read(tmp_path / name)[1] for name in ("a.npz", "b.npz", "c.npz")]
+    assert arrays[0]["vectors"].shape[1] == 6 and arrays[0]["image/basis"].shape[1] == 4
+    for name in ("vectors", "image/basis"):
+        assert np.array_equal(arrays[0][name], arrays[1][name])
+        assert np.array_equal(arrays[0][name], arrays[2][name])
+
+
+@pytest.mark.mpi
+def test_groups_of_one_rank_train_an_imaged_body_as_the_whole_run(tmp_path):
+    """Under mpiexec -n 2: an imaged body's paths in 2 groups of 1 rank give the bases the
+    solves on both ranks give, to round-off."""
+    scene = scenes.load(write_once(tmp_path / "imaged.toml", IMAGED_CLAMPED))
+    common = {"samples": 4, "size": 6}
+    reduce.build(scene, tmp_path / "whole.npz", cache=tmp_path / "whole", **common)
+    groups = Groups(1)
+    try:
+        split = reduce.build(scene, tmp_path / "split.npz", ensemble=groups, cache=tmp_path / "split", **common)
+    finally:
+        groups.free()
+    assert split["training_paths"]["where"] == "2 groups of 1 rank" and split["training_paths"]["solved"] == 4
+    whole, apart = (store.read(tmp_path / name)[1] for name in ("whole.npz", "split.npz"))
+    for name in ("vectors", "image/basis"):
+        np.testing.assert_allclose(np.abs(apart[name]), np.abs(whole[name]), atol=1e-8)

@@ -166,15 +166,7 @@ def _training_solves(
 ) -> tuple[Ensemble, str] | None:
     """Where the training's full solves run and are kept: ``ensemble`` (default: serial on
     ``comm``) and the ``cache`` folder (made now: a folder not lungmech's is refused before any
-    work); None for an imaged body (its solves run in the build's process, refused with an
-    ensemble), or for a scene made in Python (with no file to name it)."""
-    if image_of(scene) is not None:
-        if ensemble is not None:
-            raise ParameterError(
-                "--group-size/--engine: an imaged body's training solves run in the build's own process (each "
-                "finds its reference at μ as it goes); give neither"
-            )
-        return None
+    work); None for a scene made in Python (with no file to name it)."""
     if scene.source is None:  # made in Python: solved here, not kept (a kept path is named by the scene's file)
         if ensemble is not None:
             raise ParameterError("an ensemble solves a scene from its file: give the scene as a file")
@@ -229,7 +221,7 @@ def build_family(
     scales = (1.0,) if box else (0.5, 1.0, 1.5)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
     models = [(Path(folder) / file, hyper) for file, hyper in zip(files.values(), hypers, strict=True)]
-    solves = None if image_of(scene) is not None else _training_solves(scene, ensemble, cache, comm)
+    solves = _training_solves(scene, ensemble, cache, comm)
     _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False, judged=False, solves=solves)
     return {name: Path(folder) / file for name, file in files.items()}
 

@@ -43,10 +43,9 @@ from lungmech.app.scene import Scene
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
-from lungmech.fem.start import one_state
 from lungmech.parallel.ensemble import Ensemble, Kept
 from lungmech.parallel.layout import Layout, layout
-from lungmech.rom.load_paths import LoadPath, Run, canonical, placed, solve_path
+from lungmech.rom.load_paths import LoadPath, Run, canonical, placed, relative_to, solve_path
 
 __all__ = [
     "EnsemblePaths",
@@ -139,7 +138,7 @@ def training_path(
         full = _LAST.get(named, comm, lambda: training_model(scene, comm))
     model, where = full
     try:
-        path = solve_path(model, task.values, one_state(model.start, model.model), task.iterates, task.scale)
+        path = solve_path(model, task.values, relative_to(model), task.iterates, task.scale)
     finally:
         model.reset()
     kept.write_arrays(KIND, task.entry, canonical(path, where))

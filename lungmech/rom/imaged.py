@@ -40,13 +40,14 @@ from lungmech.fem.solver import NewtonOptions, NewtonSolver, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import gram
-from lungmech.rom import body
-from lungmech.rom.basis import Basis, dual, snapshot
+from lungmech.rom import body, load_paths
+from lungmech.rom.basis import Basis, dual, origin
 from lungmech.rom.body import cells_of
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.ecsw_training import Training
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
+from lungmech.rom.load_paths import LoadPath, Paths
 from lungmech.rom.outputs import Cubic, cubic, imposed_directions
 from lungmech.rom.pod import pod
 from lungmech.rom.whole import OnMesh, Stored, Whole
@@ -72,37 +73,42 @@ class ImagedSnapshots:
 
 
 def snapshots(
-    full: FullOrderModel, runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]]
+    full: FullOrderModel,
+    runs: Sequence[tuple[Mapping[str, float], float | Sequence[float]]],
+    paths: Paths | None = None,
 ) -> ImagedSnapshots:
     """The snapshots of both unknowns from ``full``'s solves (an :class:`InverseMotion` start)
-    at the defaults and at each (parameter point, load scale) of ``runs``. The model is left at
-    its start, at the default parameters. Collective."""
+    at the defaults (here) and at each (parameter point, load scale) of ``runs``, solved by
+    ``paths`` (default: one after another on ``full``; an ensemble's:
+    :mod:`lungmech.app.training_paths`). The model is left at its start, at the default
+    parameters. Collective."""
     start = full.start
     if not isinstance(start, InverseMotion):
         raise ParameterError("imaged snapshots need a full model started by InverseMotion")
     model, inverse = full.model, start.inverse
-    motion: list[np.ndarray] = []
-    solutions: list[np.ndarray] = []
-    starts: list[np.ndarray] = []  # [x₀(μ) of the current solve, x_ξ⁰]
+    starts: list[np.ndarray] = []  # [x₀ at the defaults, x_ξ⁰]
 
     def first(step: Step) -> None:
         if step.phase == "start":
             starts[:] = [model.state.x.array.copy(), inverse.state.x.array.copy()]
 
-    def keep(step: Step) -> None:
-        if step.phase == "start":
-            starts[0] = model.state.x.array.copy()
-            solutions.append(snapshot(inverse, starts[1]))  # with μ's imposed values, as online
-        elif step.phase == "path":
-            motion.append(snapshot(model, starts[0]))
-
     full.solve(times=[full.stepping.start], on_step=first)  # at the defaults: both starts
     motion_start, inverse_start = starts
-    for point, scale in runs:
-        full.solve(point, scale=scale, on_step=keep)
+    solved = (paths or load_paths.serial(full, motion_start))(runs, False)
+    solutions = [_from_defaults(inverse, path, inverse_start, full.stepping.start) for path in solved]
     full.reset()
     model.set_time(full.stepping.start)
-    return ImagedSnapshots(np.column_stack(motion), np.column_stack(solutions), inverse_start, motion_start)
+    motion = np.hstack([path.snapshots for path in solved])
+    return ImagedSnapshots(motion, np.column_stack(solutions), inverse_start, motion_start)
+
+
+def _from_defaults(inverse: Model, path: LoadPath, inverse_start: np.ndarray, time: float) -> np.ndarray:
+    """The inverse problem's solution of ``path`` minus its solution at the defaults x_ξ⁰, with
+    the imposed displacements of the path's μ at t₀ (as online): one column, owned rows."""
+    assert path.inverse is not None  # (an imaged body's path)
+    inverse.set_parameters(path.solution.parameters)
+    inverse.set_time(time)
+    return path.inverse - origin(inverse, inverse_start)[: path.inverse.size]
 
 
 def bases(

@@ -4,8 +4,10 @@ elsewhere and brought here in the canonical dof order.
 A :class:`LoadPath` holds what a greedy training takes from one full solve: the snapshots (every
 accepted state of the approach to μ and of the load path, minus the start state), the solution
 (its states at the output times, for the true error of the reduced model there) and, when a
-hyper-reduction is trained on them, every Newton iterate ``(state, time, parameters)``. All
-arrays are a rank's owned rows.
+hyper-reduction is trained on them, every Newton iterate ``(state, time, parameters)``. An
+imaged body's path (:class:`~lungmech.fem.inverse_motion.InverseMotion` start) holds its two
+unknowns' (:mod:`lungmech.rom.imaged`): the breath's accepted states minus its own start at μ,
+and the inverse problem's solution at μ. All arrays are a rank's owned rows.
 
 :func:`solve_path` solves one on the model at hand. A training that runs its full solves
 elsewhere — other processes, other groups of ranks, other machines
@@ -25,6 +27,8 @@ from typing import cast
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.inverse_motion import InverseMotion
+from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel, Solution, Step
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import one_state
@@ -32,7 +36,7 @@ from lungmech.parallel.layout import Layout
 from lungmech.rom import ecsw
 from lungmech.rom.basis import snapshot
 
-__all__ = ["LoadPath", "Paths", "Run", "canonical", "collected", "placed", "serial", "solve_path"]
+__all__ = ["LoadPath", "Paths", "Run", "canonical", "collected", "placed", "relative_to", "serial", "solve_path"]
 
 Iterate = tuple[np.ndarray, float, dict[str, float]]  # a Newton iterate: (owned rows, time, μ)
 Run = tuple[Mapping[str, float], float | Sequence[float]]  # a parameter point and the load scale(s)
@@ -41,12 +45,14 @@ Run = tuple[Mapping[str, float], float | Sequence[float]]  # a parameter point a
 @dataclass(frozen=True)
 class LoadPath:
     """One full solve at ``solution.parameters``: ``snapshots`` (owned rows × accepted states),
-    its ``solution`` (states: owned rows at the output times; outputs: volume, strain energy) and
-    its Newton ``iterates`` (empty unless asked for)."""
+    its ``solution`` (states: owned rows at the output times; outputs: volume, strain energy),
+    its Newton ``iterates`` (empty unless asked for) and, for an imaged body, ``inverse``: the
+    inverse problem's solution x_ξ(μ) (owned rows of its state; None otherwise)."""
 
     snapshots: np.ndarray
     solution: Solution
     iterates: tuple[Iterate, ...] = ()
+    inverse: np.ndarray | None = None
 
 
 Paths = Callable[[Sequence[Run], bool], list[LoadPath]]
@@ -62,13 +68,24 @@ def solve_path(
     scale: float | Sequence[float] = 1.0,
 ) -> LoadPath:
     """``full``'s load path at ``point``, the loads' change scaled by ``scale``; snapshots
-    relative to ``start`` (a full local array, the start state at the defaults). Collective."""
+    relative to ``start`` (a full local array, the start state at the defaults). An imaged
+    body's (an :class:`InverseMotion` start; ``start`` is not read): the load path's snapshots
+    relative to its own start at μ, and the inverse problem's solution there; its iterates are
+    refused (its hyper-reduction trains on both problems' in the build's process). Collective."""
     model, columns, kept = full.model, [], []
     owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    imaged = full.start if isinstance(full.start, InverseMotion) else None
+    if imaged is not None and iterates:
+        raise ParameterError("an imaged body's Newton iterates are taken in the build's own process")
+    inverse: list[np.ndarray] = []
+    relative_to = [start]  # the start at the defaults, or an imaged body's own at μ
 
     def keep(step: Step) -> None:
-        if step.phase in ("approach", "path"):
-            columns.append(snapshot(model, start))
+        if imaged is not None and step.phase == "start":
+            relative_to[0] = model.state.x.array.copy()  # the image: w = 0, and x_ξ(μ)'s other fields
+            inverse.append(_owned_rows(imaged.inverse))
+        elif step.phase == "path" or (step.phase == "approach" and imaged is None):
+            columns.append(snapshot(model, relative_to[0]))
 
     def seen(iteration: int) -> None:
         kept.append((model.state.x.array[:owned].copy(), float(model.time), dict(model.parameter_values)))
@@ -76,7 +93,18 @@ def solve_path(
     watching = ecsw.iterates(cast(NewtonSolver, full.solver), seen) if iterates else contextlib.nullcontext()
     with watching:
         solution = full.solve(dict(point), on_step=keep, scale=scale)
-    return LoadPath(np.column_stack(columns), solution, tuple(kept))
+    return LoadPath(np.column_stack(columns), solution, tuple(kept), inverse[0] if inverse else None)
+
+
+def relative_to(full: FullOrderModel) -> np.ndarray:
+    """What :func:`solve_path`'s snapshots of ``full`` are relative to: its start state at the
+    defaults (a full local array), or nothing for an imaged body (its own start at each μ)."""
+    return np.zeros(0) if isinstance(full.start, InverseMotion) else one_state(full.start, full.model)
+
+
+def _owned_rows(model: Model) -> np.ndarray:
+    """A copy of the owned entries of the model's state."""
+    return model.state.x.array[: model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs].copy()
 
 
 def collected(full: FullOrderModel, runs: Sequence[Run]) -> np.ndarray:
@@ -102,6 +130,7 @@ def canonical(path: LoadPath, where: Layout) -> dict[str, np.ndarray] | None:
     states = where.gather(np.asarray(solution.states).T)
     snapshots = where.gather(path.snapshots)
     iterated = where.gather(np.column_stack([state for state, _, _ in path.iterates])) if path.iterates else None
+    inverse = None if path.inverse is None else where.gather(path.inverse)
     if where.comm.rank != 0:
         return None
     assert states is not None and snapshots is not None  # (gathered on rank 0)
@@ -119,6 +148,8 @@ def canonical(path: LoadPath, where: Layout) -> dict[str, np.ndarray] | None:
         "seconds": np.array(solution.seconds),
         "ranks": np.array(where.comm.size),  # where it was solved (round-off differs with it)
     }
+    if inverse is not None:
+        arrays["inverse"] = inverse
     if iterated is not None:
         arrays["iterates"] = iterated
         arrays["iterate_times"] = np.array([t for _, t, _ in path.iterates], dtype=float)
@@ -145,6 +176,7 @@ def placed(arrays: Mapping[str, np.ndarray] | None, where: Layout, iterates: boo
             "newton": int(arrays["newton_iterations"]),
             "seconds": float(arrays["seconds"]),
             "iterates": "iterates" in arrays,
+            "inverse": "inverse" in arrays,
             "iterate_times": np.asarray(arrays.get("iterate_times", [])),
             "iterate_names": [str(n) for n in arrays.get("iterate_names", [])],
             "iterate_parameters": np.asarray(arrays.get("iterate_parameters", [])),
@@ -181,4 +213,5 @@ def placed(arrays: Mapping[str, np.ndarray] | None, where: Layout, iterates: boo
             )
             for i, (t, mu) in enumerate(zip(header["iterate_times"], header["iterate_parameters"], strict=True))
         )
-    return LoadPath(where.scatter(get("snapshots")), solution, kept)
+    inverse = where.scatter(get("inverse")) if header["inverse"] else None
+    return LoadPath(where.scatter(get("snapshots")), solution, kept, inverse)

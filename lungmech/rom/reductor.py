@@ -45,7 +45,7 @@ from lungmech.fem.inverse_motion import InverseMotion
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonSolver
-from lungmech.fem.start import Equilibrium, Rest, StartReport, one_state
+from lungmech.fem.start import Equilibrium, Rest, StartReport
 from lungmech.rom import ecsw, imaged, indicator, load_paths
 from lungmech.rom.accuracy import Errors, errors
 from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
@@ -233,13 +233,8 @@ class Reductor:
             raise ParameterError(
                 "an imaged body's reduced model is trained on POD bases of given size (its greedy is not built yet)"
             )
-        if self.imaged and paths is not None:
-            raise ParameterError(
-                "an imaged body's training solves run in the build's own process (each finds its reference "
-                "at μ as it goes): give no ensemble"
-            )
         # refused before any work where there is none
-        self.start = np.zeros(0) if self.imaged else one_state(full.start, model)
+        self.start = load_paths.relative_to(full)
         self.paths = paths or load_paths.serial(full, self.start)  # where the training's full solves run
         require_positive_definite(model, inner)
         self.timings: dict[str, float] = {}
@@ -287,7 +282,7 @@ class Reductor:
         relative to its solution at the defaults, :attr:`inverse_start`)."""
         full, tic = self.full, time.perf_counter()
         assert isinstance(full.start, InverseMotion)  # (self.imaged)
-        trained = imaged.snapshots(full, self._runs)
+        trained = imaged.snapshots(full, self._runs, self.paths)
         self.timings["snapshots"] = time.perf_counter() - tic
         self.full_solves += len(self._runs)
         tic = time.perf_counter()
