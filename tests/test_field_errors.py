@@ -2,8 +2,10 @@
 meshes and elements is exact for what both spaces hold (a quadratic onto P2, its nodal values
 onto P1, a Taylor–Hood state's displacement alone); the energy norm at rest is the linear
 elastic energy of the difference (an analytic value); a mesh that does not cover the
-reference is refused; and on a small scene the trade's energy errors shrink under refinement
-at the order of P1 elements."""
+reference is refused; on a small scene the trade's energy errors shrink under refinement
+at the order of P1 elements; and a full solve keeps its fields in the cache when asked."""
+
+from dataclasses import replace
 
 from mpi4py import MPI
 
@@ -12,15 +14,21 @@ import pytest
 from dolfinx import fem
 from trades import written
 
+from lungmech.app import answers
+from lungmech.app import scene as scenes
+from lungmech.app.answers import Task
+from lungmech.app.cache import Cache
 from lungmech.app.cli import main
 from lungmech.app.field_errors import Transfer, energy_norm_allowed
 from lungmech.app.ladder import Discretisation
+from lungmech.app.run import full_order_model
 from lungmech.app.trade import Candidate, trade
 from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.constraints import clamp
 from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.mesh import box, sphere
+from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import norms
 from lungmech.rom.basis import inner_product
 
@@ -126,3 +134,26 @@ def test_the_energy_quantity_from_the_command_line(tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     table = (tmp_path / "out" / "trade.csv").read_text()
     assert "energy-norm error max [-]" in table
+
+
+def test_an_answer_kept_without_its_fields_is_solved_again_for_them(tmp_path):
+    """A task asking for fields finds an answer kept without them: it is solved again, and then
+    serves both kinds of task; the fields kept are the model's start and last states in the
+    canonical order (any number of ranks)."""
+    path = written(tmp_path)
+    cache, comm = str(tmp_path / "cache"), MPI.COMM_WORLD
+    plain = Task(str(path), {"stiffness": 8.0}, Discretisation(0, 1), (1.0,))
+    wanted = replace(plain, fields=True)
+    kept = [answers.solved(task, comm, cache)["kept"] for task in (plain, wanted, plain, wanted)]
+    answers.forget()
+    assert kept == [False, False, True, True]
+    scene = scenes.load(path)
+    fields = Cache(cache, comm).read_arrays("fields", answers.entry(scene, wanted))
+    full = full_order_model(scene, comm, start="inverse_motion")
+    solution = full.solve({"stiffness": 8.0}, times=[1.0])
+    where = layout(full.model.space)
+    end, start = where.gather(solution.states[-1]), where.gather(np.zeros_like(solution.states[-1]))
+    if comm.rank == 0:
+        assert fields is not None and str(fields["fingerprint"]) == where.fingerprint
+        assert np.array_equal(fields["end"], end) and np.array_equal(fields["start"], start)
+        assert np.abs(end).max() > 0
