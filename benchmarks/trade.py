@@ -2,6 +2,7 @@
 
     python benchmarks/trade.py             # the imaged lung over its 3-parameter box (about 1.5 h on 2 cores)
     python benchmarks/trade.py --quick     # the sphere octant over its stiffness: P1, P2 and 2 reduced models against h/2
+    python benchmarks/trade.py --quantity energy    # the same trade on the state in the energy norm (trade_energy.*)
 
 A thin caller of :func:`lungmech.app.trade.trade`: the bundled ``lung_breathing_parameters``
 scene, as the imaged-lung problem every command answers (the image is the lung at
@@ -11,7 +12,8 @@ and its ECSW hyper-reductions at τ = 1e-3, 1e-4, 1e-5, built by the one reducto
 (``--build``). P2 on h is left out: with balanced gravity it took 957–997 s a point here (26
 Newton iterations, 85 % of them in the gravity's state-dependent tangent, assembled a unit at a
 time), against 29 s for P1 h/2 — sixteen points would have cost four hours more. Reference: P1 h/4. Points: 8 seeded Sobol' points and the box's 8
-corners. The quantity: the volume at end-inspiration, relative to the breath's volume change.
+corners. The quantity (``--quantity``): the volume at end-inspiration, relative to the breath's
+volume change; or another of ``lungmech trade``'s, its results named after it.
 The full solves run on Parsl's 2 local workers (``--workers 0``: one after another); each
 candidate is then measured in a process of its own, on one rank.
 
@@ -44,6 +46,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the sphere octant, 2 interior points, small models")
     parser.add_argument("--workers", type=int, default=None, help="Parsl's local workers (default 2; 0 with --quick)")
     parser.add_argument("--cache", default=None, help="lungmech's cache folder (default results/raw/lungmech-cache)")
+    parser.add_argument("--quantity", default="volume", help="what the tolerances are on (lungmech trade's --quantity)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # the trade's progress lines
     workers = args.workers if args.workers is not None else (0 if args.quick else 2)
@@ -51,9 +54,14 @@ def main() -> None:
         bundled = "sphere_inflation_parameters.toml" if args.quick else "lung_breathing_parameters.toml"
         scene = Path(str(resources.files("lungmech.scenes") / bundled))
         cache = Path(args.cache) if args.cache else (Path(folder) / "cache" if args.quick else _default_cache())
-        found = _traded(scene, cache, workers, args.quick)
-    stem = "trade_quick" if args.quick else "trade"
-    command = "python benchmarks/trade.py" + (" --quick" if args.quick else "")
+        found = _traded(scene, cache, workers, args.quick, args.quantity)
+    named = "" if args.quantity == "volume" else f"_{args.quantity}"
+    stem = f"trade{named}_quick" if args.quick else f"trade{named}"
+    command = (
+        "python benchmarks/trade.py"
+        + (" --quick" if args.quick else "")
+        + (f" --quantity {args.quantity}" if named else "")
+    )
     _report(found, stem, command, workers)
 
 
@@ -61,7 +69,7 @@ def _default_cache() -> Path:
     return machine.RESULTS / "raw" / "lungmech-cache"
 
 
-def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
+def _traded(scene: Path, cache: Path, workers: int, quick: bool, quantity: str) -> list:
     """The trade of ``scene`` at the first tolerance, measured; at the others, the same
     measurement chosen from again (:func:`lungmech.trade.choice.choose`)."""
     from dataclasses import replace
@@ -84,9 +92,13 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool) -> list:
     began = time.perf_counter()
     if workers:
         with local_pool(workers, 1) as pool:
-            found = trade(scene, first, count=count, cache=cache, levels=levels, full=full, build=family, ensemble=pool)
+            found = trade(
+                scene, first, quantity, count, cache=cache, levels=levels, full=full, build=family, ensemble=pool
+            )
     else:
-        found = trade(scene, first, count=count, cache=cache, levels=levels, full=full, build=family, ensemble=Serial())
+        found = trade(
+            scene, first, quantity, count, cache=cache, levels=levels, full=full, build=family, ensemble=Serial()
+        )
     kept = found.full_solves.get("kept", 0)
     found.notes.append(f"the trade took {time.perf_counter() - began:.0f} s; {kept} full answers were kept before")
     convergence = found.convergence.get(found.quantity)
@@ -114,7 +126,8 @@ def _report(found: list, stem: str, command: str, workers: int) -> None:
         "",
         provenance(command, f"full solves on {engine}; each candidate measured on one rank"),
         "",
-        "The choice at each tolerance on the volume at end-inspiration (relative to the breath's volume change):",
+        f"The choice at each tolerance on the {trade_report.COLUMNS[first.quantity][0]} (relative to "
+        f"{trade_report.quantities.DENOMINATORS[first.quantity]}):",
         "",
         *choices,
         "",

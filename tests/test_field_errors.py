@@ -134,6 +134,11 @@ def test_the_energy_quantity_from_the_command_line(tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     table = (tmp_path / "out" / "trade.csv").read_text()
     assert "energy-norm error max [-]" in table
+    # P2 on h against P1 on h/2: the reference may be the less accurate, and the page says so
+    assert (
+        "full P2 h, full P2–P1 h: of a higher degree than the reference (P1 h/2)"
+        in (tmp_path / "out" / "trade.md").read_text()
+    )
 
 
 def test_an_answer_kept_without_its_fields_is_solved_again_for_them(tmp_path):

@@ -337,6 +337,7 @@ def _judge(
                 found.convergence[q] = observed_order(q0, q1, q2, quantities.expected_order(q, scene.degree))
             except ParameterError as why:
                 found.notes.append(f"no observed order of {q}: {why}")
+    _note_higher_degrees(found, measured)
     for q, order in found.convergence.items():
         last = found.errors[ladder[1]][q] if ladder[1] in found.errors else np.array([np.nan])
         if order.estimate is None and np.isfinite(last).any():
@@ -358,6 +359,26 @@ def _judge(
     convergence = found.convergence.get(found.quantity)
     accuracy = None if convergence is None or convergence.estimate is None else convergence.estimate
     found.choice = choose(found.measured, found.tolerance, found.quantity, found.queries, accuracy)
+
+
+def _note_higher_degrees(found: Trade, measured: list[Candidate]) -> None:
+    """Say where a full candidate's elements are of a higher degree than the reference's: there
+    the reference may be the less accurate of the two, and the measured error its own."""
+    named = [candidate for candidate in measured if candidate.name == found.reference]
+    if not named:
+        return
+    reference = Discretisation(**named[0].request["discretisation"])
+    higher = [
+        candidate.name
+        for candidate in measured
+        if candidate.family == "full"
+        and Discretisation(**candidate.request["discretisation"]).degree > reference.degree
+    ]
+    if higher:
+        found.notes.append(
+            f"{', '.join(higher)}: of a higher degree than the reference ({reference.name}), which may be the less "
+            "accurate: the error measured there may be the reference's own"
+        )
 
 
 def _judge_fields(
