@@ -121,9 +121,10 @@ def energy_norm_allowed(model: Model) -> None:
     a body free to move rigidly). Collective: one factorisation."""
     try:
         require_positive_definite(model, "energy")
-    except ParameterError as why:
+    except ParameterError:
         raise ParameterError(
-            f"--quantity energy: {str(why).split(':')[0]}; compare volume, pv or probes instead"
+            "--quantity energy: the energy at rest is no norm of this scene's states (a saddle point, as a mixed "
+            "formulation's pressure, or a body nothing holds): compare volume, pv or probes instead"
         ) from None
 
 
@@ -149,7 +150,8 @@ def energy_errors(
     energy_norm_allowed(target)
     norm = _EnergyNorm(inner_product(target, "energy"), comm)
     try:
-        kept = [tasks.kept(layout(target.space), point, reference) for point in points]
+        where = layout(target.space)
+        kept = [tasks.kept(where, point, reference) for point in points]
         ends = [end for _, end in kept]
         scales = [math.nan if end is None else _positive(norm(end - start)) for start, end in kept]
 
