@@ -31,6 +31,7 @@ from lungmech.fem.quantities import Probe, integral, strain_energy
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import NewtonOptions
 from lungmech.mesh import box
+from lungmech.parallel.owned import owned_size
 from lungmech.rom import modal_basis, pod, reduced_solver
 
 LENGTH, WIDTH, THICKNESS = 10.0, 0.6, 0.4  # a flat section: bending in z is the single softest mode
@@ -327,7 +328,7 @@ def test_reduced_implicit_euler_on_the_pod_of_the_trajectory_is_the_full_one():
     density, rayleigh, steps = 1.0, (1e-3, 0.2), 12
     model = beam(traction=(0.0, 1e-4, -1e-3))
     h = 2 * np.pi / np.sqrt(modal_analysis(model, 1, density).eigenvalues[0]) / 30
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     full, reduced = [], []
     integrate(
         model,

@@ -16,6 +16,7 @@ from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.solver import Stepping, solve
 from lungmech.mesh import box
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.ecsw import Sample, Training, sparse_nnls
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.sampled_forms import cells_visited
@@ -57,7 +58,7 @@ def train(comm=MPI.COMM_WORLD, make=block) -> tuple[rom.Basis, Training]:
     """A POD basis of the training paths of ``make(comm)``, and the ECSW training matrix on the
     same (converged) states."""
     model = make(comm)
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     states = training_states(model)
     basis = rom.pod(model, np.column_stack([x[:owned] for x, _, _ in states]), inner="energy", size=6)
     training = Training(model, basis.vectors)

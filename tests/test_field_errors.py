@@ -29,6 +29,7 @@ from lungmech.fem.model import Model
 from lungmech.mesh import box, sphere
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import norms
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import inner_product
 
 E, NU = 1.0e3, 0.3
@@ -54,7 +55,7 @@ def interpolant(target: Model, field) -> np.ndarray:
         state.x.array[np.asarray(dofs)] = part.x.array
     else:
         state.interpolate(field)
-    return state.x.array[: target.space.dofmap.index_map.size_local * target.space.dofmap.index_map_bs].copy()
+    return state.x.array[: owned_size(target.space)].copy()
 
 
 @pytest.mark.parametrize(

@@ -22,6 +22,7 @@ from lungmech.fem.parametric import FullOrderModel, Outputs
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver import Stepping
 from lungmech.mesh import box, rectangle
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import origin, reference_state
 from lungmech.rom.ecsw import Training
 from lungmech.rom.outputs import cubic, imposed_directions
@@ -49,7 +50,7 @@ def hyper_reduced(make=stretched, comm=MPI.COMM_WORLD):
     load path (converged states and Newton iterates)."""
     model = make(comm)
     full = FullOrderModel(model, STEPPING, probes=PROBES)
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     states = []
 
     def keep(step) -> None:
@@ -168,7 +169,7 @@ def test_the_volume_is_an_exact_cubic_of_the_coordinates():
         Model(box(MPI.COMM_WORLD, cells=(3, 3, 3)), NeoHookean.from_young(1.0, 0.3)),
         Model(rectangle(MPI.COMM_WORLD, cells=(4, 4)), NeoHookean.from_young(1.0, 0.3), plane="strain"),
     ):
-        owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+        owned = owned_size(model.space)
         start = reference_state(model)
         Z = np.random.default_rng(MPI.COMM_WORLD.rank).uniform(
             -0.05, 0.05, (owned, 4)
@@ -226,7 +227,7 @@ def assert_sensitivities_of_own_answer(comm) -> None:
     stepping = Stepping(times=(0.5,))
     model = parametric_block(parameters=BLOCK)
     reference = reference_state(model)
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     solver = NewtonSolver(model)
     full = FullOrderModel(model, stepping, solver=solver)
     points = model.parameters.sample(8, seed=1)

@@ -30,6 +30,7 @@ from lungmech.lung.gravity import Gravity
 from lungmech.lung.inverse import Imaged, InverseOptions
 from lungmech.mesh import box, rectangle
 from lungmech.mesh.geometry import Geometry
+from lungmech.parallel.owned import owned_size
 
 BREATH = Ramp((0.0, 1.0, 2.0), (1.0, 2.0, 1.0))  # end-expiration, end-inspiration, end-expiration
 LUNG_PARAMETERS = (
@@ -140,7 +141,7 @@ def test_the_image_stays_where_it_was_imaged():
     model = inflated_block(Image.motion(0.5))
     start = InverseMotion(model)
     start.place(model, None, model.parameters.values({"E": 7.0}), 0.5)
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     assert np.all(model.state.x.array[:owned] == 0.0)
     pulled = model.imposed[1]
     xi = model.reference_map.x.array[pulled.where]

@@ -24,6 +24,7 @@ from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
 from lungmech.fem.solver import Stepping, solve
 from lungmech.lung import Poromechanics, skeleton
 from lungmech.mesh import box, from_file, sphere
+from lungmech.parallel.owned import owned_size
 
 # Each test compares the distributed result with a serial one (COMM_SELF): on one rank the two
 # are the same computation, and the comparison proves nothing.
@@ -163,7 +164,7 @@ def _dof_table(space) -> np.ndarray:
     """(field, component, x, y, z) of every owned dof of ``space``."""
     from lungmech.parallel.layout import field_dofs
 
-    table = np.empty((space.dofmap.index_map.size_local * space.dofmap.index_map_bs, 5))
+    table = np.empty((owned_size(space), 5))
     for field, (collapsed, parent) in enumerate(field_dofs(space)):
         bs, nodes = collapsed.dofmap.index_map_bs, collapsed.dofmap.index_map.size_local
         points = collapsed.tabulate_dof_coordinates()[:nodes]

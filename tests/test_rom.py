@@ -19,6 +19,7 @@ from lungmech.fem.solver import NewtonSolver, Stepping, solve
 from lungmech.mesh import box
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import Basis
 
 STEPPING = Stepping(initial_step=0.25, max_step=0.25)
@@ -49,7 +50,7 @@ def trained():
 
 
 def owned(model) -> int:
-    return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    return owned_size(model.space)
 
 
 @pytest.mark.parametrize("inner", ["l2", "mass", "energy"])

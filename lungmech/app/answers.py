@@ -31,6 +31,7 @@ from lungmech.errors import LungmechError
 from lungmech.fem.parametric import ParametricModel, Step
 from lungmech.parallel.ensemble import Kept
 from lungmech.parallel.layout import layout
+from lungmech.parallel.owned import owned_values
 
 __all__ = ["Task", "answer", "content", "entry", "forget", "kept_answer", "kept_fields", "solved"]
 
@@ -140,8 +141,7 @@ def answer(
 def _field(model: ParametricModel, state: np.ndarray, at: float) -> np.ndarray:
     """The full field of a solution's ``state`` at time ``at``: the fem model's owned entries."""
     model.fields(state, at)
-    space = model.model.space
-    return model.model.state.x.array[: space.dofmap.index_map.size_local * space.dofmap.index_map_bs].copy()
+    return owned_values(model.model.state)
 
 
 def _unit(units: Mapping[str, str], name: str) -> str:

@@ -45,6 +45,7 @@ from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.model import Model
 from lungmech.parallel.layout import Layout, field_dofs, layout
 from lungmech.parallel.linalg import norms
+from lungmech.parallel.owned import owned_size, owned_values
 from lungmech.rom.basis import inner_product, require_positive_definite
 from lungmech.trade.convergence import Convergence, order_of_differences
 
@@ -58,7 +59,6 @@ class Transfer:
     def __init__(self, source: Model, target: Model) -> None:
         offered = dict(zip(source.field_dofs(), field_dofs(source.space), strict=True))
         self._source, self._target = fem.Function(source.space), fem.Function(target.space)
-        self._owned = _owned(target.space)
         mesh = target.geometry.mesh
         cell_map = mesh.topology.index_map(mesh.topology.dim)
         cells = np.arange(cell_map.size_local + cell_map.num_ghosts, dtype=np.int32)
@@ -97,11 +97,11 @@ class Transfer:
             target.x.scatter_forward()
             if target is not self._target:
                 self._target.x.array[dofs] = target.x.array
-        return self._target.x.array[: self._owned].copy()
+        return owned_values(self._target)
 
     def _missed(self, source: Model) -> int:
         """The number of the target's dofs the transfer leaves at zero: ones do not come out ones."""
-        carried = self(np.ones(_owned(source.space)))
+        carried = self(np.ones(owned_size(source.space)))
         return source.geometry.mesh.comm.allreduce(int(np.sum(np.abs(carried - 1.0) > 1e-8)), op=MPI.SUM)
 
 
@@ -243,10 +243,6 @@ class _Tasks:
 
 def _positive(scale: float) -> float:
     return scale if scale > 0 else 1.0
-
-
-def _owned(space: fem.FunctionSpace) -> int:
-    return space.dofmap.index_map.size_local * space.dofmap.index_map_bs
 
 
 def _largest_cell(model: Model) -> float:

@@ -30,6 +30,7 @@ from lungmech.fem.placement import Image
 from lungmech.fem.quantities import integral
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, StepReport, solve
 from lungmech.fem.start import Progress, StartReport
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -142,7 +143,7 @@ class Handover:
             else np.arange(motion.state.x.array.size)
         )
         space = motion.reference_map.function_space if motion.reference_map is not None else motion.space
-        self.owned_vector = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+        self.owned_vector = owned_size(space)
 
     def hand_over(self, inverse: Model, motion: Model) -> None:
         """ξ and the fields of ``inverse``'s state to ``motion``, whose state becomes the image."""

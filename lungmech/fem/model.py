@@ -28,6 +28,7 @@ from lungmech.fem.loads import Load, StateDependentWork, is_pressure
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.placement import Image, kinematics
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     import dolfinx.mesh
@@ -366,7 +367,7 @@ class Model:
 
     def field_dofs(self) -> dict[str, np.ndarray]:
         """This rank's owned entries of the state vector, by field ("u", then the formulation's)."""
-        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        owned = owned_size(self.space)
         if not self.multi_field:
             return {"u": np.arange(owned)}
         names = ("u", *self.formulation.fields)
@@ -375,7 +376,7 @@ class Model:
 
     def constrained_dofs(self) -> np.ndarray:
         """This rank's owned entries of the state vector that an imposed displacement sets."""
-        owned = self.space.dofmap.index_map.size_local * self.space.dofmap.index_map_bs
+        owned = owned_size(self.space)
         dofs = [bc.dof_indices()[0] for bc in self.bcs]
         everything = np.unique(np.concatenate(dofs)) if dofs else np.zeros(0, dtype=np.int32)
         return everything[everything < owned]

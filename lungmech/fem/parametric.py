@@ -43,6 +43,7 @@ from lungmech.fem.solver import (
     steps_model_state,
 )
 from lungmech.fem.start import Equilibrium, Rest, Start, StartReport, approach
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -375,7 +376,7 @@ class FullOrderModel:
                 "sensitivities of an imaged body would need the derivative of its unloaded reference with respect "
                 "to μ, which lungmech does not compute yet: leave sensitivities out, or start from an Equilibrium"
             )
-        owned = self.model.space.dofmap.index_map.size_local * self.model.space.dofmap.index_map_bs
+        owned = owned_size(self.model.space)
         values = self.parameters.values(mu)
 
         def start(on_approach: Callable[[StepReport], None] | None) -> StartReport:

@@ -19,6 +19,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.formulations import incompressible
 from lungmech.fem.materials import VolumetricSplit, shear_modulus
 from lungmech.fem.nullspace import rigid_body_modes
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -156,7 +157,7 @@ def _field_index_sets(model: Model) -> dict[str, PETSc.IS]:
     sets = {}
     for i, name in enumerate(("u", *model.formulation.fields)):
         collapsed, parent = space.sub(i).collapse()
-        owned = collapsed.dofmap.index_map.size_local * collapsed.dofmap.index_map_bs
+        owned = owned_size(collapsed)
         rows = np.asarray(parent).ravel()[:owned]
         sets[name] = PETSc.IS().createGeneral((rows + first).astype(PETSc.IntType), comm=space.mesh.comm)
     return sets

@@ -60,6 +60,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.linear import factorised
 from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     from ufl.core.expr import Expr
@@ -269,10 +270,6 @@ def value_derivatives(model: Model) -> ValueDerivatives:
     return ValueDerivatives(parameters.names, constants, functions, imposed, loads, amplitudes)
 
 
-def _owned(model: Model) -> int:
-    return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
-
-
 def residual_derivatives(model: Model, derivatives: ValueDerivatives | None = None) -> np.ndarray:
     """∂R/∂μ_i = Σ_k ∂R/∂c_k ∂c_k/∂μ_i at the current state (fixed x, imposed rows included):
     owned rows, one column per parameter. One assembly of the compiled form per parameter.
@@ -280,7 +277,7 @@ def residual_derivatives(model: Model, derivatives: ValueDerivatives | None = No
     forms = derivative_forms(model)
     derivatives = derivatives or value_derivatives(model)
     vector = fem.Function(model.space).x
-    owned = _owned(model)
+    owned = owned_size(model.space)
     columns = np.zeros((owned, len(derivatives.names)))
     for i in range(len(derivatives.names)):
         forms.set_weights(derivatives, i)
@@ -308,7 +305,7 @@ def state_derivatives(model: Model, jacobian_form: fem.Form, derivatives: ValueD
     parameter. Collective.
     """
     derivatives = derivatives or value_derivatives(model)
-    comm, owned = model.geometry.mesh.comm, _owned(model)
+    comm, owned = model.geometry.mesh.comm, owned_size(model.space)
     n = len(derivatives.names)
     if n == 0:
         return np.zeros((owned, 0))
@@ -346,7 +343,7 @@ def reduced_state_derivatives(
     (vanishing on imposed dofs); dx₀/dμ = ``derivatives.imposed``. The state's derivative is
     V dq/dμ + dx₀/dμ (pass it to :func:`output_derivatives`). Collective."""
     derivatives = derivatives or value_derivatives(model)
-    comm, owned = model.geometry.mesh.comm, _owned(model)
+    comm, owned = model.geometry.mesh.comm, owned_size(model.space)
     V = np.ascontiguousarray(V)
     dR = residual_derivatives(model, derivatives)
     K = _jacobian(jacobian_form)
@@ -377,7 +374,7 @@ def output_derivatives(
     """
     forms = derivative_forms(model)
     derivatives = derivatives or value_derivatives(model)
-    comm, owned, n = forms.comm, _owned(model), len(derivatives.names)
+    comm, owned, n = forms.comm, owned_size(model.space), len(derivatives.names)
     dx = (
         state_derivative
         if state_derivative is not None

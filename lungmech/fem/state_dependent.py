@@ -26,6 +26,7 @@ from dolfinx import fem
 
 from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.parallel.linalg import gram
+from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
@@ -81,7 +82,7 @@ class FullIntegration:
     def __init__(self, model: Model) -> None:
         self.mesh, space = model.geometry.mesh, model.space
         self._vector = fem.Function(space).x
-        self._owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+        self._owned = owned_size(space)
 
     def vector(self, name: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
         return vector_integral(expr, measure, self.mesh)
@@ -124,7 +125,7 @@ class StateDependent:
     def __init__(self, model: Model) -> None:
         self.terms = model.state_dependent
         space = model.space
-        self.owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+        self.owned = owned_size(space)
         self.comm = space.mesh.comm
         self._constrained = model.constrained_dofs()  # their rows carry the constraint: U vanishes there
 

@@ -25,6 +25,7 @@ from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 
 from lungmech.parallel.layout import Layout, layout
+from lungmech.parallel.owned import owned_size
 
 __all__ = [
     "deformed",
@@ -80,7 +81,7 @@ def positions(space: fem.FunctionSpace, where: Layout) -> np.ndarray | None:
 def scatter(values: np.ndarray | None, function: fem.Function, where: Layout) -> None:
     """Collective: set ``function`` (ghosts included) from canonical (nodes, gdim) ``values``
     given on rank 0 (the other ranks may pass None)."""
-    owned = function.function_space.dofmap.index_map.size_local * function.function_space.dofmap.index_map_bs
+    owned = owned_size(function.function_space)
     canonical = None if values is None else np.asarray(values).T.ravel()
     function.x.array[:owned] = where.scatter(canonical)
     function.x.scatter_forward()

@@ -48,6 +48,8 @@ import numpy.typing as npt
 from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 
+from lungmech.parallel.owned import owned_size
+
 __all__ = ["Layout", "field_dofs", "layout"]
 
 _RESOLUTION = 1e-9  # coordinates are compared on a grid of 1e-9 × the mesh diameter
@@ -130,7 +132,7 @@ def layout(space: fem.FunctionSpace) -> Layout:
     comm = mesh.comm
     cells = _input_cells(mesh)
     cell_count = comm.allreduce(int(cells.max(initial=-1)) + 1, op=MPI.MAX)
-    owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    owned = owned_size(space)
     index = np.full(owned, -1, dtype=np.int64)
     start = 0
     for collapsed, parent in field_dofs(space):
@@ -150,7 +152,7 @@ def field_dofs(space: fem.FunctionSpace) -> list[tuple[fem.FunctionSpace, np.nda
     """(collapsed space, its dofs in ``space``) per field: one for a plain (vector) space."""
     mixed = space.dofmap.index_map_bs == 1 and space.ufl_element().num_sub_elements > 1
     if not mixed:
-        return [(space, np.arange(space.dofmap.index_map.size_local * space.dofmap.index_map_bs))]
+        return [(space, np.arange(owned_size(space)))]
     fields = [space.sub(i).collapse() for i in range(space.ufl_element().num_sub_elements)]
     return [(collapsed, np.asarray(parent).ravel()) for collapsed, parent in fields]
 

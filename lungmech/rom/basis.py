@@ -24,6 +24,7 @@ from dolfinx.fem.petsc import assemble_matrix
 from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.parallel.linalg import NotPositive, apply, gram_schmidt
+from lungmech.parallel.owned import owned_size
 
 INNER_PRODUCTS = ("l2", "mass", "energy")
 
@@ -211,5 +212,5 @@ def origin(model: Model, reference: np.ndarray) -> np.ndarray:
 def snapshot(model: Model, start: np.ndarray) -> np.ndarray:
     """The model's state minus ``start`` (with the imposed displacements of the current time):
     one column of snapshots, owned rows."""
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     return (model.state.x.array - origin(model, start))[:owned].copy()

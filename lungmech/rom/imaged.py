@@ -40,6 +40,7 @@ from lungmech.fem.solver import NewtonOptions, NewtonSolver, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import gram
+from lungmech.parallel.owned import owned_size
 from lungmech.rom import body, load_paths
 from lungmech.rom.basis import Basis, dual, origin
 from lungmech.rom.body import cells_of
@@ -389,7 +390,7 @@ def placed(
     """The reduced image a model file holds (``record``, ``arrays`` on rank 0), on ``model``: the
     full model's mesh, or with ``on_body`` a body of the sampled cells (collective)."""
     comm, space = model.geometry.mesh.comm, model.space
-    owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    owned = owned_size(space)
     values = comm.bcast(arrays[PREFIX + "values"])
     data = comm.bcast({n[len("image_ecsw/") :]: a for n, a in arrays.items() if n.startswith("image_ecsw/")})
     whole = None

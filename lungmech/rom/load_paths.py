@@ -28,11 +28,11 @@ import numpy as np
 
 from lungmech.errors import ParameterError
 from lungmech.fem.inverse_motion import InverseMotion
-from lungmech.fem.model import Model
 from lungmech.fem.parametric import FullOrderModel, Solution, Step
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.start import one_state
 from lungmech.parallel.layout import Layout
+from lungmech.parallel.owned import owned_size, owned_values
 from lungmech.rom import ecsw
 from lungmech.rom.basis import snapshot
 
@@ -73,7 +73,7 @@ def solve_path(
     relative to its own start at μ, and the inverse problem's solution there; its iterates are
     refused (its hyper-reduction trains on both problems' in the build's process). Collective."""
     model, columns, kept = full.model, [], []
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     imaged = full.start if isinstance(full.start, InverseMotion) else None
     if imaged is not None and iterates:
         raise ParameterError("an imaged body's Newton iterates are taken in the build's own process")
@@ -83,7 +83,7 @@ def solve_path(
     def keep(step: Step) -> None:
         if imaged is not None and step.phase == "start":
             relative_to[0] = model.state.x.array.copy()  # the image: w = 0, and x_ξ(μ)'s other fields
-            inverse.append(_owned_rows(imaged.inverse))
+            inverse.append(owned_values(imaged.inverse.state))
         elif step.phase == "path" or (step.phase == "approach" and imaged is None):
             columns.append(snapshot(model, relative_to[0]))
 
@@ -100,11 +100,6 @@ def relative_to(full: FullOrderModel) -> np.ndarray:
     """What :func:`solve_path`'s snapshots of ``full`` are relative to: its start state at the
     defaults (a full local array), or nothing for an imaged body (its own start at each μ)."""
     return np.zeros(0) if isinstance(full.start, InverseMotion) else one_state(full.start, full.model)
-
-
-def _owned_rows(model: Model) -> np.ndarray:
-    """A copy of the owned entries of the model's state."""
-    return model.state.x.array[: model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs].copy()
 
 
 def collected(full: FullOrderModel, runs: Sequence[Run]) -> np.ndarray:

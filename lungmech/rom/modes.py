@@ -12,6 +12,7 @@ from lungmech.fem.linear import factorised
 from lungmech.fem.modal import modal_analysis
 from lungmech.fem.model import Model
 from lungmech.parallel.layout import layout
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import Basis, enrich, zero_imposed
 
 
@@ -19,7 +20,7 @@ def modal_basis(model: Model, size: int, density: float = 1.0, shift: float | No
     """The ``size`` lowest modes of K y = λ M y at the current state, orthonormal in the mass
     inner product (ρ = 1 units, so the vectors do not depend on the density); values are λ."""
     modes = modal_analysis(model, size, density=density, shift=shift)
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     vectors = np.column_stack([v.x.array[:owned] for v in modes.vectors]) * np.sqrt(density)
     source = {"density": density, "eigenvalues": modes.eigenvalues.tolist()}
     return Basis(vectors, modes.eigenvalues.copy(), "modal", "mass", layout(model.space).fingerprint, source)

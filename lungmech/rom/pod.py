@@ -12,6 +12,7 @@ from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Stepping
 from lungmech.parallel import linalg
 from lungmech.parallel.layout import layout
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import Basis, inner_product, positive, reference_state, zero_imposed
 from lungmech.rom.load_paths import collected
 
@@ -56,7 +57,7 @@ def pod(
     (fraction of Σσ² to keep) truncates further. ``values`` are the singular values.
     """
     comm = model.geometry.mesh.comm
-    if data.ndim != 2 or data.shape[0] != _owned(model):
+    if data.ndim != 2 or data.shape[0] != owned_size(model.space):
         raise ParameterError("pod: snapshots must be (owned dofs of the model, number of snapshots)")
     data = zero_imposed(model, data.copy())
     W = inner_product(model, inner)
@@ -73,7 +74,3 @@ def pod(
     if size is not None or energy is not None:
         basis = basis.truncate(size=size if size is None else min(size, basis.size), energy=energy)
     return basis
-
-
-def _owned(model: Model) -> int:
-    return model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs

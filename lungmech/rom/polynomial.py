@@ -13,6 +13,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.parallel.layout import field_dofs, layout
 from lungmech.parallel.linalg import gram_schmidt
+from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import Basis, inner_product, positive, zero_imposed
 
 
@@ -22,7 +23,7 @@ def polynomial_basis(model: Model, order: int, inner: str = "mass") -> Basis:
     if not (isinstance(order, int) and 1 <= order <= 6):
         raise ParameterError(f"polynomial basis: order must be an integer in [1, 6] (got {order!r})")
     comm = model.geometry.mesh.comm
-    owned = model.space.dofmap.index_map.size_local * model.space.dofmap.index_map_bs
+    owned = owned_size(model.space)
     x = model.geometry.mesh.geometry.x
     centre = comm.allreduce(x.sum(axis=0)) / comm.allreduce(len(x))
     scale = comm.allreduce(np.abs(x - centre).max(initial=0.0), op=MPI.MAX) or 1.0

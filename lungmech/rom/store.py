@@ -37,6 +37,7 @@ from lungmech.parallel import on_root, together
 from lungmech.parallel.destination import output_file
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import apply, gram
+from lungmech.parallel.owned import owned_size
 from lungmech.rom import body, imaged
 from lungmech.rom.basis import Basis, inner_product
 from lungmech.rom.ecsw import Sample
@@ -412,7 +413,7 @@ def load_body(
     body.place_functions(model, arrays)
     space = model.space
     local = {name: body.place(space, arrays, name) for name in ("basis", "start", "reference", "imposed")}
-    owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
+    owned = owned_size(space)
     basis = Basis(
         np.ascontiguousarray(local["basis"][:owned]),
         comm.bcast(arrays["values"]),
