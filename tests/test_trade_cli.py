@@ -14,8 +14,12 @@ import numpy as np
 import pytest
 from trades import written
 
+from lungmech.app import reduce
+from lungmech.app import scene as scenes
+from lungmech.app.answers import answer
 from lungmech.app.cli import main
 from lungmech.app.ladder import Discretisation
+from lungmech.app.run import full_order_model
 from lungmech.app.trade import Candidate, trade
 from lungmech.parallel.ensemble import Groups
 from lungmech.rom import store
@@ -62,6 +66,7 @@ def test_a_loose_tolerance_chooses_a_hyper_reduced_model_and_a_tight_one_a_full_
     # finer reference is the full model's on that mesh, to its own reduction error
     assert errors["POD Galerkin"] == pytest.approx(errors["full P1 h"], rel=0.05)
     assert errors["full P1 h/2"] < errors["full P1 h"]
+    reduced_against(loose, by_name, tmp_path / "loose" / "model.npz", scene)
     # the built models record their cost, and no test point is one they were trained on
     galerkin = by_name["POD Galerkin"]
     assert float(galerkin["offline [s]"]) > 0 and int(galerkin["full solves"]) == 4
@@ -98,6 +103,32 @@ def test_a_loose_tolerance_chooses_a_hyper_reduced_model_and_a_tight_one_a_full_
     assert again["full_solves"] == {"solved": 0, "kept": 24}
     out = capsys.readouterr().out
     assert "* full P2 h" in out and "choice: full P2 h" in out
+
+
+def reduced_against(found: dict, by_name: dict, chosen: Path, scene: Path) -> None:
+    """The reduced models' error of reduction: against the full model on the scene's mesh, the
+    same as solving the chosen model file and that full model here, one by one, gives; at each
+    point within the triangle its error and that full model's against the finer reference make
+    (their denominators, the two volume changes, within 10 %)."""
+    assert found["reduced_against"] == "full P1 h"
+    rows = {row["model"]: row for row in found["models"]}
+    mesh = np.array(rows["full P1 h"]["errors"]["volume"])
+    for name, row in by_name.items():
+        reduction = row["reduction error max [-]"]
+        assert (reduction == "") == (row["family"] in ("full", "reference")), name
+        if reduction:
+            alone, total = (np.array(rows[name][key]["volume"]) for key in ("reduction_errors", "errors"))
+            assert float(reduction) == pytest.approx(alone.max()) and (alone > 0).all()
+            assert (alone <= 1.1 * (total + mesh)).all() and (alone >= np.abs(total - mesh) / 1.1).all()
+    chosen_name = json.loads((chosen.parent / "choice.json").read_text())["model"]["name"]
+    measured = rows[chosen_name]["reduction_errors"]["volume"]
+    full = full_order_model(scenes.load(scene), MPI.COMM_SELF, start="inverse_motion")
+    reduced = reduce.load(chosen, MPI.COMM_SELF)
+    times = found["output_times_s"]
+    for point, error in zip(found["points"], measured, strict=True):
+        mine, theirs = answer(reduced, point["values"], times), answer(full, point["values"], times)
+        change = abs(theirs["volume"][-1] - theirs["start_volume"])
+        assert error == pytest.approx(abs(mine["volume"][-1] - theirs["volume"][-1]) / change, rel=1e-6, abs=1e-12)
 
 
 @pytest.mark.serial

@@ -103,7 +103,9 @@ class Family:
 @dataclass
 class Trade:
     """What a trade measured: the points, the candidates' results by name (the reference's
-    too), their families and requests, the errors by quantity, the convergence, and the choice."""
+    too), their families and requests, the errors by quantity, each reduced model's error of
+    reduction alone (against ``own``, the full model it reduces), the convergence, and the
+    choice."""
 
     scene: str
     tolerance: float
@@ -118,6 +120,8 @@ class Trade:
     families: dict[str, str] = field(default_factory=dict)
     requests: dict[str, dict] = field(default_factory=dict)
     errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    reduction: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # against ``own``
+    own: str | None = None  # the full model on the scene's own mesh: the reduced models' own full model
     convergence: dict[str, Convergence] = field(default_factory=dict)
     measured: list[Measured] = field(default_factory=list)
     choice: Choice | None = None
@@ -338,6 +342,7 @@ def _judge(
             except ParameterError as why:
                 found.notes.append(f"no observed order of {q}: {why}")
     _note_higher_degrees(found, measured)
+    _judge_reduction(found, scene, measured, names, cache)
     for q, order in found.convergence.items():
         last = found.errors[ladder[1]][q] if ladder[1] in found.errors else np.array([np.nan])
         if order.estimate is None and np.isfinite(last).any():
@@ -379,6 +384,37 @@ def _note_higher_degrees(found: Trade, measured: list[Candidate]) -> None:
             f"{', '.join(higher)}: of a higher degree than the reference ({reference.name}), which may be the less "
             "accurate: the error measured there may be the reference's own"
         )
+
+
+def _judge_reduction(
+    found: Trade, scene: scenes.Scene, measured: list[Candidate], names: list[str], cache: Cache | None
+) -> None:
+    """Each reduced model's error of reduction alone: against the full model on the scene's own
+    mesh, which it reduces, on every quantity the trade judges — the share of its error that a
+    larger basis or a smaller τ could remove; the rest is the mesh's. A model file of another
+    mesh (its dofs differ) is noted and not judged so."""
+    own = Discretisation.of(scene)
+    found.own = f"full {own.name}" if f"full {own.name}" in found.results else None
+    reduced = [c for c in measured if c.family != "full" and c.name != found.reference]
+    if found.own is None or not reduced:
+        return
+    target = found.results[found.own]
+    others = [c.name for c in reduced if found.results[c.name].get("dofs") != target.get("dofs")]
+    if others:
+        found.notes.append(
+            f"{', '.join(others)}: not of the scene's own mesh ({target.get('dofs')} dofs), so no error of reduction "
+            f"against {found.own} is measured"
+        )
+    reduced = [c for c in reduced if c.name not in others]
+    for candidate in reduced:
+        answers = found.results[candidate.name]["answers"]
+        found.reduction[candidate.name] = {q: quantities.errors(answers, target["answers"], q) for q in names}
+    if found.quantity in quantities.FIELDS and reduced:
+        assert cache is not None and found.times is not None
+        requests = {candidate.name: candidate.request for candidate in reduced}
+        fields = energy_errors(found.scene, scene, found.points.points, found.times, own, requests, cache)
+        for name, errors in fields.errors.items():
+            found.reduction[name]["energy"] = errors
 
 
 def _judge_fields(

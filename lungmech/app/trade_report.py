@@ -4,8 +4,9 @@ model file beside it) for ``rom solve`` and the twin.
 
 Every column carries its unit; every error says its denominator (:mod:`lungmech.trade.quantities`).
 Per model: the worst and mean error over the points on each quantity and the point of the
-worst, the largest error it estimated of itself (a reduced model's indicator, in the energy norm:
-beside the measured errors, a check of its own warning light), the points where it failed, its warm online time per point, its start-up, its offline
+worst, a reduced model's error of reduction alone (against the full model on the scene's mesh,
+which it reduces), the largest error it estimated of itself (a reduced model's indicator, in the
+energy norm: beside the measured errors, a check of its own warning light), the points where it failed, its warm online time per point, its start-up, its offline
 cost (seconds and full solves) and its peak memory.
 """
 
@@ -61,6 +62,8 @@ def rows(found: Trade) -> list[dict[str, Any]]:
             row[f"{label} mean [{unit}]"] = _mean(values) if judged else None
         errors = found.errors.get(name, {}).get(found.quantity)
         row["point of max"] = _point(_worst_point(found, errors)) if judged and errors is not None else None
+        reduction = found.reduction.get(name, {}).get(found.quantity)
+        row["reduction error max [-]"] = None if reduction is None else _max(reduction)
         answers = result["answers"]
         row["own estimate max [-]"] = _own_estimate(answers) if judged else None
         row["failed points"] = sum(a["failed"] is not None for a in answers)
@@ -101,6 +104,7 @@ def summary(found: Trade) -> dict[str, Any]:
             "full_solves": found.full_solves,
             "output_times_s": found.times,
             "reference": found.reference,
+            "reduced_against": found.own,
             "points": [
                 {"kind": kind, "values": point}
                 for kind, point in zip(found.points.kinds, found.points.points, strict=True)
@@ -114,6 +118,7 @@ def summary(found: Trade) -> dict[str, Any]:
                 row
                 | {
                     "errors": {q: _listed(v) for q, v in found.errors.get(row["model"], {}).items()},
+                    "reduction_errors": {q: _listed(v) for q, v in found.reduction.get(row["model"], {}).items()},
                     "failures": [a["failed"] for a in found.results[row["model"]]["answers"]],
                     "ranks": found.results[row["model"]].get("ranks"),
                 }
@@ -145,6 +150,12 @@ def markdown(found: Trade, command: str = "") -> str:
         + (f", static at t = {found.times[0]:g} s" if found.times else ", the whole path")
         + ".",
     ]
+    if found.reduction:
+        lines.append(
+            f"- Reduction error: a reduced model against {found.own}, the full model it reduces (same "
+            "denominator): its own share of the error, which a larger basis or a smaller τ removes; the rest is "
+            "the mesh's. Its own estimate estimates this share."
+        )
     for q, c in found.convergence.items():
         estimate = f"; the reference's own error ≈ {c.estimate:.1e} (Richardson)" if c.estimate is not None else ""
         lines.append(f"- Observed order of {q}: {c.observed:.2f} (expected {c.expected:g}){estimate}.")
