@@ -81,7 +81,7 @@ def _traded(scene: Path, cache: Path, workers: int, quick: bool, quantity: str) 
     from lungmech.parallel.ensemble import Serial
     from lungmech.trade.choice import Choice, choose
 
-    family = Family(taus=(1e-2,), size=6, samples=4) if quick else Family()
+    family = Family(taus=(1e-2,), sizes=(6,), samples=4) if quick else Family()
     count, levels = (1, 1) if quick else (8, 2)
     if quick:  # P1 and P2 on h
         full = [Candidate.full(Discretisation(0, degree)) for degree in (1, 2)]

@@ -59,6 +59,22 @@ def test_pod_training_scales_and_points_make_the_error_small(full):
     assert errors(rich, reference, rich.solve(MU)).energy < errors(poor, reference, poor.solve(MU)).energy / 10
 
 
+def test_a_galerkin_model_of_the_leading_vectors_is_the_smaller_pods(full):
+    """reduce(size=k) of a POD of 8: the model a POD of k gives (a POD is nested), its answers
+    and its indicator too (the enrichment made for its own k vectors, not the 8's)."""
+    with Reductor(full, POD(8), TrainingSet(POINTS)) as larger, Reductor(full, POD(3), TrainingSet(POINTS)) as small:
+        cut, own = larger.reduce(size=3), small.reduce()
+        assert larger.reduce(size=99).size == larger.basis.size  # no more vectors than the basis has
+        with pytest.raises(ParameterError, match="basis size must be a positive integer"):
+            larger.reduce(size=0)
+    assert cut.size == own.size == 3
+    signs = np.sign(np.sum(cut.basis.vectors * own.basis.vectors, axis=0))  # a POD vector's sign is free
+    np.testing.assert_allclose(cut.basis.vectors * signs, own.basis.vectors, atol=1e-9)
+    a, b = cut.solve(MU), own.solve(MU)
+    np.testing.assert_allclose(a.outputs["volume"], b.outputs["volume"], rtol=1e-10)
+    assert a.indicator is not None and a.indicator == pytest.approx(b.indicator, rel=1e-6)
+
+
 @pytest.mark.slow
 def test_a_hyper_reduced_model_truncated_after_sampling(full):
     """ECSW(τ, size=k): the sample of the whole basis, the basis cut to its first k vectors."""

@@ -8,7 +8,8 @@ from trades import written
 from lungmech.app import scene as scenes
 from lungmech.app.cache import Cache
 from lungmech.app.ladder import Discretisation, at
-from lungmech.app.trade import Candidate, candidates, peak_time, trade
+from lungmech.app.reduce import family_files
+from lungmech.app.trade import Candidate, Family, candidates, peak_time, trade
 from lungmech.errors import ParameterError
 
 pytestmark = pytest.mark.serial  # each candidate runs in a process of its own
@@ -92,3 +93,25 @@ def test_the_candidates_of_a_scene_and_what_is_not_made(tmp_path):
     assert [c.name for c in made] == ["full P2–P1 2h", "full P2–P1 h", "full P2–P1 h/2"] and not notes
     assert reference.name == "full P2–P1 h/4"
     assert at(own, Discretisation.of(own), Cache(tmp_path / "cache")).formulation is own.formulation
+
+
+def test_a_family_names_its_models_by_tau_and_size_and_refuses_repeats():
+    """One size: the names and files of before; several: each ends in its size k; no τ, no size
+    twice; Galerkin alone without τ."""
+    assert family_files((1e-3,)) == {"POD Galerkin": "galerkin.npz", "POD ECSW τ=0.001": "ecsw-0.001.npz"}
+    assert family_files((1e-3,), (5, 10)) == {
+        "POD Galerkin k=5": "galerkin-5.npz",
+        "POD Galerkin k=10": "galerkin-10.npz",
+        "POD ECSW τ=0.001 k=5": "ecsw-0.001-5.npz",
+        "POD ECSW τ=0.001 k=10": "ecsw-0.001-10.npz",
+    }
+    assert Family(taus=(), sizes=(4, 8)).taus == ()
+    for family, said in (
+        (lambda: Family(taus=(1e-3, 1e-3)), "given twice"),
+        (lambda: Family(sizes=(5, 5)), "the basis sizes are given twice"),
+        (lambda: Family(sizes=()), "--sizes: give at least one basis size"),
+        (lambda: Family(sizes=(0,)), "--sizes: a basis size"),
+        (lambda: Family(taus=(1.5,)), "lies in"),
+    ):
+        with pytest.raises(ParameterError, match=said):
+            family()

@@ -144,6 +144,8 @@ def test_bad_trade_requests_are_one_line(tmp_path, capsys):
         (["--tolerance", "1e-2", "--samples", "4"], "--build"),
         (["--tolerance", "1e-2", "--build", "--taus", "1e-3,1e-3"], "twice"),
         (["--tolerance", "1e-2", "--build", "--taus", "2"], "--taus"),
+        (["--tolerance", "1e-2", "--build", "--sizes", "4,4"], "the basis sizes are given twice"),
+        (["--tolerance", "1e-2", "--sizes", "4"], "give --build"),
         (["--tolerance", "1e-2", "--models", str(tmp_path / "missing.npz")], "missing.npz"),
         (["--tolerance", "1e-2", "--models", str(scene)], "sphere.toml"),
         (["--tolerance", "1e-2", "-o", "."], "current folder"),

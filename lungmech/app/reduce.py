@@ -148,7 +148,7 @@ def build(
     where = _training_solves(scene, ensemble, cache, comm)
     path = store._suffix(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
-        return _build(scene, [(staging, ecsw)], recipe, training, inner, comm, solves=where)
+        return _build(scene, [(staging, ecsw, None)], recipe, training, inner, comm, solves=where)
 
 
 @contextlib.contextmanager
@@ -193,7 +193,7 @@ def build_family(
     scene: Scene,
     folder: str | Path,
     taus: Sequence[float],
-    size: int = 20,
+    sizes: Sequence[int] = (20,),
     samples: int | None = None,
     seed: int = 0,
     comm: MPI.Comm = MPI.COMM_WORLD,
@@ -201,43 +201,57 @@ def build_family(
     cache: str | Path | None = None,
 ) -> dict[str, Path]:
     """A family of reduced models of ``scene`` from one reductor, for a trade to measure side by
-    side: the POD Galerkin model of ``size`` vectors (``galerkin.npz``) and its ECSW
-    hyper-reductions at each τ of ``taus`` (``ecsw-<τ>.npz``, :func:`family_files`), trained at ``samples`` Sobol'
+    side: at each basis size k of ``sizes``, the POD Galerkin model of the POD's k leading
+    vectors and its ECSW hyper-reductions at each τ of ``taus`` (none: Galerkin alone; the files
+    and names of :func:`family_files`), trained at ``samples`` Sobol'
     points (``seed``; default 8 with [parameters], else the loads at 0.5, 1, 1.5). The training
-    solves are done once for all of them, the ECSW training once for every τ; each file records
+    solves are done once for all of them (one POD, of the largest size), the ECSW training once
+    for every τ and size; each file records
     the seconds and full solves it would have cost alone. ``folder`` is an empty folder of
     lungmech's own (a cache entry's staging folder: nothing is checked or replaced there);
     returns the files by model name. The training solves run on ``ensemble`` and are kept in
     ``cache``, as :func:`build`'s (an imaged body's in this process). Collective."""
-    if not taus:
-        raise ParameterError("give at least one ECSW tolerance τ for the family's hyper-reduced models")
-    files = family_files(taus)  # no τ twice, before any work
-    hypers = [None, *(reductor.ECSW(tau) for tau in taus)]  # each τ checked
+    files = family_files(taus, sizes)  # no τ or size twice, before any work
+    for size in sizes:
+        checks.integer("basis size", size, minimum=1)
+    made = [(None, k) for k in sizes] + [(reductor.ECSW(tau, size=k), k) for tau in taus for k in sizes]
     box = Parameters(scene.parameters)
     samples = samples if samples is not None else (8 if box else 1)
     checks.integer("training samples", samples, minimum=1)
     checks.integer("training seed", seed, minimum=0)
-    checks.integer("basis size", size, minimum=1)
     scales = (1.0,) if box else (0.5, 1.0, 1.5)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
-    models = [(Path(folder) / file, hyper) for file, hyper in zip(files.values(), hypers, strict=True)]
+    models = [(Path(folder) / file, *how) for file, how in zip(files.values(), made, strict=True)]
     solves = _training_solves(scene, ensemble, cache, comm)
-    _build(scene, models, reductor.POD(size), training, "energy", comm, hold_signals=False, judged=False, solves=solves)
+    recipe = reductor.POD(max(sizes))
+    _build(scene, models, recipe, training, "energy", comm, hold_signals=False, judged=False, solves=solves)
     return {name: Path(folder) / file for name, file in files.items()}
 
 
-def family_files(taus: Sequence[float]) -> dict[str, str]:
-    """The files of :func:`build_family`'s models by name: "POD Galerkin" (``galerkin.npz``),
-    and "POD ECSW τ=<τ>" (``ecsw-<τ>.npz``) for each τ of ``taus``."""
-    named = {"POD Galerkin": "galerkin.npz"} | {f"POD ECSW τ={tau:g}": f"ecsw-{tau:g}.npz" for tau in taus}
-    if len(named) != 1 + len(taus):
+def family_files(taus: Sequence[float], sizes: Sequence[int] = (20,)) -> dict[str, str]:
+    """The files of :func:`build_family`'s models by name, Galerkin's at every size first, then
+    each τ's: "POD Galerkin" (``galerkin.npz``) and "POD ECSW τ=<τ>" (``ecsw-<τ>.npz``) for
+    each τ of ``taus`` with one size; with several, each name and file ends in its size k ("POD
+    Galerkin k=10", ``galerkin-10.npz``)."""
+    if not sizes:
+        raise ParameterError("give at least one basis size for the family's models")
+    if len(set(sizes)) != len(sizes):
+        raise ParameterError(f"the basis sizes are given twice: {', '.join(map(str, sizes))}")
+    if len(set(taus)) != len(taus):
         raise ParameterError(f"the ECSW tolerances τ are given twice: {', '.join(f'{tau:g}' for tau in taus)}")
+    one = len(sizes) == 1
+    named = {}
+    for tau in (None, *taus):
+        for k in sizes:
+            name = "POD Galerkin" if tau is None else f"POD ECSW τ={tau:g}"
+            file = "galerkin" if tau is None else f"ecsw-{tau:g}"
+            named[name if one else f"{name} k={k}"] = f"{file}.npz" if one else f"{file}-{k}.npz"
     return named
 
 
 def _build(
     scene: Scene,
-    models: Sequence[tuple[Path, reductor.ECSW | None]],
+    models: Sequence[tuple[Path, reductor.ECSW | None, int | None]],
     recipe: reductor.Recipe,
     training: reductor.TrainingSet,
     inner: str,
@@ -246,7 +260,7 @@ def _build(
     judged: bool = True,
     solves: tuple[Ensemble, str] | None = None,
 ) -> dict:
-    """Each (path, hyper-reduction) of ``models`` from one :class:`~lungmech.rom.reductor.Reductor`
+    """Each (path, hyper-reduction, Galerkin's basis size) of ``models`` from one :class:`~lungmech.rom.reductor.Reductor`
     of the scene's full model; returns the summary of the last. ``hold_signals``: the paths are
     an output's (:func:`~lungmech.parallel.destination.output_file`), whose swap the signals
     wait for once the writing begins. ``judged``: a greedy's rounds judge at the last
@@ -259,13 +273,13 @@ def _build(
     # without parameters its one reference is the defaults', found once (exact, and no basis of ξ)
     full, where = training_model(scene, comm)  # where: of the imaged mesh (a solve checks it)
     timings["build_and_inverse"] = time.perf_counter() - tic
-    hypers = [hyper for _, hyper in models if hyper is not None]
+    hypers = [hyper for _, hyper, _ in models if hyper is not None]
     judge = hypers[-1].judge or hypers[-1].tolerance if hypers and judged else None
     arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
     paths = None if solves is None else EnsemblePaths(scene, full, where, *solves)
     with reductor.Reductor(full, recipe, training, inner, judge, paths) as made, _forgetting():
-        for path, hyper in models:
-            reduced = made.reduce(hyper)
+        for path, hyper, size in models:
+            reduced = made.reduce(hyper, size)
             spent = timings | reduced.built["timings"]
             extra = {
                 "scene": str(Path(scene.source).resolve()) if scene.source else None,

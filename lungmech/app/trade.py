@@ -77,27 +77,30 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Family:
-    """The reduced models a trade builds (``--build``): POD of ``size`` vectors from the full
-    model at ``samples`` seeded Sobol' points of the box (``seed``; default 8, or the loads at
-    0.5, 1, 1.5 without parameters), Galerkin and hyper-reduced by ECSW at each τ of ``taus``."""
+    """The reduced models a trade builds (``--build``): one POD of the full model's paths at
+    ``samples`` seeded Sobol' points of the box (``seed``; default 8, or the loads at 0.5, 1,
+    1.5 without parameters); at each basis size of ``sizes``, its leading vectors Galerkin and
+    hyper-reduced by ECSW at each τ of ``taus`` (none: Galerkin alone) — the error and the
+    speed per basis size and τ side by side."""
 
     taus: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
-    size: int = 20
+    sizes: tuple[int, ...] = (20,)
     samples: int | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not self.taus:
-            raise ParameterError("--taus: give at least one ECSW tolerance")
         for tau in self.taus:
             checks.real("ECSW tolerance τ", tau)
             if not 0 < tau < 1:
                 raise ParameterError(f"--taus: an ECSW tolerance τ lies in (0, 1) (got {tau!r})")
-        checks.integer("--size", self.size, minimum=1)
+        if not self.sizes:
+            raise ParameterError("--sizes: give at least one basis size")
+        for size in self.sizes:
+            checks.integer("--sizes: a basis size", size, minimum=1)
         if self.samples is not None:
             checks.integer("--samples", self.samples, minimum=1)
         checks.integer("--seed", self.seed, minimum=0)
-        family_files(self.taus)  # no τ twice
+        family_files(self.taus, self.sizes)  # no τ or size twice
 
 
 @dataclass
@@ -299,10 +302,10 @@ def _built(scene: scenes.Scene, family: Family, cache: Cache, engine: Ensemble, 
     }
 
     def fill(folder: Path) -> None:
-        build_family(scene, folder, family.taus, family.size, family.samples, family.seed, comm, engine, cache.root)
+        build_family(scene, folder, family.taus, family.sizes, family.samples, family.seed, comm, engine, cache.root)
 
     folder = cache.folder("models", key(content), fill)
-    return {name: folder / file for name, file in family_files(family.taus).items()}
+    return {name: folder / file for name, file in family_files(family.taus, family.sizes).items()}
 
 
 def _same_as_scene_mesh(found: Trade, candidate: Candidate, scene: scenes.Scene) -> bool:

@@ -50,15 +50,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     trade.add_argument(
         "--build",
         action="store_true",
-        help="also build reduced models (POD Galerkin and ECSW at each --taus) by the one reductor, kept in the cache",
+        help="also build reduced models (POD Galerkin and ECSW at each --taus, at each of --sizes) by the one "
+        "reductor, kept in the cache",
     )
     trade.add_argument(
         "--taus",
         default=None,
         type=_numbers,
-        help="with --build: the ECSW tolerances τ, comma-separated (default 1e-3,1e-4,1e-5)",
+        help="with --build: the ECSW tolerances τ, comma-separated, or 'none' for Galerkin alone "
+        "(default 1e-3,1e-4,1e-5)",
     )
-    trade.add_argument("--size", type=int, default=None, help="with --build: basis vectors, at most (default 20)")
+    trade.add_argument(
+        "--sizes",
+        "--size",
+        type=_integers,
+        default=None,
+        help="with --build: basis sizes, comma-separated: the POD's leading vectors, each a Galerkin model and "
+        "each τ's ECSW (default 20)",
+    )
     trade.add_argument("--samples", type=int, default=None, help="with --build: training points (Sobol'; default 8)")
     trade.add_argument(
         "--queries",
@@ -93,9 +102,13 @@ def run(args: argparse.Namespace) -> int:
 
     check_tolerance(args.tolerance)
     comm, _, name, path = setup(args)
-    if not args.build and (args.samples, args.size, args.taus) != (None, None, None):
-        raise ParameterError("--taus, --size and --samples shape the models --build makes: give --build")
-    given = {"taus": None if args.taus is None else tuple(args.taus), "size": args.size, "samples": args.samples}
+    if not args.build and (args.samples, args.sizes, args.taus) != (None, None, None):
+        raise ParameterError("--taus, --sizes and --samples shape the models --build makes: give --build")
+    given = {
+        "taus": None if args.taus is None else tuple(args.taus),
+        "sizes": None if args.sizes is None else tuple(args.sizes),
+        "samples": args.samples,
+    }
     family = Family(**{name: value for name, value in given.items() if value is not None}) if args.build else None
     check_ensemble(args, comm)
     output = Path(args.output if args.output is not None else RESULTS / f"{path.stem}-trade")
@@ -128,7 +141,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _numbers(text: str) -> list[float]:
+    if text.strip().lower() == "none":
+        return []
     try:
         return [float(item) for item in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {text!r}") from None
+
+
+def _integers(text: str) -> list[int]:
+    try:
+        return [int(item) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of whole numbers: {text!r}") from None

@@ -322,15 +322,20 @@ class Reductor:
                 training.destroy()
         self._ecsw = self._inverse_ecsw = None
 
-    def reduce(self, hyper: ECSW | None = None) -> ReducedModel:
+    def reduce(self, hyper: ECSW | None = None, size: int | None = None) -> ReducedModel:
         """The reduced model on the basis (Galerkin: its forms on the full mesh), or with
-        ``hyper`` hyper-reduced at its τ and truncated to its ``size`` (the sample stays the one
-        of the whole basis and its enrichment). Collective."""
+        ``hyper`` hyper-reduced at its τ; truncated to the leading ``size`` vectors (a
+        hyper-reduction's own ``size``; its sample stays the one of the whole basis and its
+        enrichment): the model a smaller POD would give, its indicator's enrichment made anew.
+        Collective."""
         vectors, enrichment = self.basis, self.enrichment
         sample, seconds = self.sample(hyper.tolerance) if hyper is not None else (None, None)
-        if hyper is not None and hyper.size is not None and hyper.size < vectors.size:
-            vectors = vectors.truncate(hyper.size)
-            enrichment = indicator.enrichment(vectors, self.modes)[:, : enrichment.shape[1]]
+        size = hyper.size if hyper is not None else (None if size is None else _size(size))
+        if size is not None and size < vectors.size:
+            vectors = vectors.truncate(size)
+            enrichment = indicator.enrichment(vectors, self.modes)
+            if hyper is not None:  # as wide as the one the sample was trained on, with the basis
+                enrichment = enrichment[:, : self.enrichment.shape[1]]
         full, start = self.full, self.full.start
         self._rest()
         image, described = None, None
