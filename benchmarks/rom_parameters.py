@@ -74,10 +74,10 @@ def lung_scene(size: str = "default", times: list[float] | None = None) -> scene
 def scene_file(folder: Path, size: str) -> Path:
     """The bundled scene's file, as it is ("default") or at mesh size h = ``size`` mm (its text
     with the size added to [geometry], written into ``folder``): a trade reads a scene file."""
-    with resources.as_file(bundled(SCENE)) as path:
-        text = Path(path).read_text()
     if size == "default":
         return Path(str(resources.files("lungmech.scenes") / f"{SCENE}.toml"))
+    with resources.as_file(bundled(SCENE)) as path:
+        text = Path(path).read_text()
     marker = 'builder = "lung_phantom"\n'
     if marker not in text:
         raise SystemExit(f"the bundled {SCENE} scene no longer has {marker.strip()!r} in [geometry]")

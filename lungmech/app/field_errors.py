@@ -137,15 +137,18 @@ def energy_errors(
     candidates: dict[str, dict],
     cache: Cache,
     ladder: Sequence[str] = (),
+    solved: dict[str, tuple[Model, list[np.ndarray | None]]] | None = None,
 ) -> FieldErrors:
     """The energy-norm errors (see the module's doc) of the ``candidates`` (name → request, as
     :mod:`lungmech.app.measure` takes them: a full model at a discretisation, whose fields the
     trade's solves kept in ``cache`` at ``points`` and ``times``, or a model file) against the
     full model at ``reference``; ``ladder``: the names of the three finest nested levels (the
     last the reference) for the observed order, expected to be the elements' degree.
-    Collective on the cache's communicator."""
+    ``solved``: the model files' last states on their own meshes by path, filled here and read
+    by a later call at the same points and times (a reduced model is solved once, whatever mesh
+    it is judged on). Collective on the cache's communicator."""
     comm = cache.comm
-    tasks = _Tasks(str(scene_path), scene, tuple(float(t) for t in times), cache)
+    tasks = _Tasks(str(scene_path), scene, tuple(float(t) for t in times), cache, solved if solved is not None else {})
     target = full_order_model(at(scene, reference, cache, comm), comm, start="inverse_motion").model
     energy_norm_allowed(target)
     norm = _EnergyNorm(inner_product(target, "energy"), comm)
@@ -202,6 +205,7 @@ class _Tasks:
     scene: Scene
     times: tuple[float, ...]
     cache: Cache
+    solved: dict[str, tuple[Model, list[np.ndarray | None]]]  # a model file's states, by its path
 
     def kept(
         self, where: Layout, point: dict[str, float], discretisation: Discretisation
@@ -231,14 +235,21 @@ class _Tasks:
             where = layout(source.space)
             states = [self.kept(where, point, discretisation)[1] for point in points]
         else:
-            model = reduce.load(request["path"], comm, fields=True)  # on its whole mesh
-            source = model.model
-            for point in points:
-                fields: list[np.ndarray] = []
-                found = answer(model, point, self.times, fields)
-                states.append(fields[1] if found["failed"] is None else None)
+            source, states = self.solved.get(request["path"]) or self._solved(request["path"], points)
         transfer = Transfer(source, target)
         return [None if state is None else transfer(state) for state in states]
+
+    def _solved(self, path: str, points: Sequence[dict[str, float]]) -> tuple[Model, list[np.ndarray | None]]:
+        """The last states of the model file at ``path`` at ``points`` (None: it failed there),
+        solved on its whole mesh, and kept in ``solved``."""
+        model = reduce.load(path, self.cache.comm, fields=True)  # on its whole mesh
+        states: list[np.ndarray | None] = []
+        for point in points:
+            fields: list[np.ndarray] = []
+            found = answer(model, point, self.times, fields)
+            states.append(fields[1] if found["failed"] is None else None)
+        self.solved[path] = (model.model, states)
+        return self.solved[path]
 
 
 def _positive(scale: float) -> float:

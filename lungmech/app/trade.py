@@ -333,9 +333,10 @@ def _judge(
         if "probes" in names:
             found.errors[candidate.name]["probes_mm"] = quantities.probe_millimetres(answers, reference)
     ladder = [f"full {Discretisation.of(scene, level).name}" for level in range(levels - 2, levels + 1)]
+    solved: dict = {}  # the model files' fields, solved once for both meshes they are judged on
     if found.quantity in quantities.FIELDS:
         assert cache is not None, "a quantity of fields is judged on the fields the cache keeps"
-        _judge_fields(found, scene, measured, ladder if levels >= 2 else [], cache)
+        _judge_fields(found, scene, measured, ladder if levels >= 2 else [], cache, solved)
     if levels >= 2 and all(name in found.results for name in ladder):
         coarse, middle, fine = (found.results[name]["answers"] for name in ladder)
         for q in names:
@@ -345,7 +346,7 @@ def _judge(
             except ParameterError as why:
                 found.notes.append(f"no observed order of {q}: {why}")
     _note_higher_degrees(found, measured)
-    _judge_reduction(found, scene, measured, names, cache)
+    _judge_reduction(found, scene, measured, names, cache, solved)
     for q, order in found.convergence.items():
         last = found.errors[ladder[1]][q] if ladder[1] in found.errors else np.array([np.nan])
         if order.estimate is None and np.isfinite(last).any():
@@ -390,7 +391,12 @@ def _note_higher_degrees(found: Trade, measured: list[Candidate]) -> None:
 
 
 def _judge_reduction(
-    found: Trade, scene: scenes.Scene, measured: list[Candidate], names: list[str], cache: Cache | None
+    found: Trade,
+    scene: scenes.Scene,
+    measured: list[Candidate],
+    names: list[str],
+    cache: Cache | None,
+    solved: dict | None = None,
 ) -> None:
     """Each reduced model's error of reduction alone: against the full model on the scene's own
     mesh, which it reduces, on every quantity the trade judges — the share of its error that a
@@ -415,20 +421,29 @@ def _judge_reduction(
     if found.quantity in quantities.FIELDS and reduced:
         assert cache is not None and found.times is not None
         requests = {candidate.name: candidate.request for candidate in reduced}
-        fields = energy_errors(found.scene, scene, found.points.points, found.times, own, requests, cache)
+        fields = energy_errors(
+            found.scene, scene, found.points.points, found.times, own, requests, cache, solved=solved
+        )
         for name, errors in fields.errors.items():
             found.reduction[name]["energy"] = errors
 
 
 def _judge_fields(
-    found: Trade, scene: scenes.Scene, measured: list[Candidate], ladder: list[str], cache: Cache
+    found: Trade,
+    scene: scenes.Scene,
+    measured: list[Candidate],
+    ladder: list[str],
+    cache: Cache,
+    solved: dict | None = None,
 ) -> None:
     """The energy-norm errors of every candidate (:mod:`lungmech.app.field_errors`) and the
     reference's observed order in that norm."""
     assert found.times is not None  # (a static quantity)
     reference = Discretisation(**found.requests[found.reference]["discretisation"])
     requests = {candidate.name: candidate.request for candidate in measured}
-    fields = energy_errors(found.scene, scene, found.points.points, found.times, reference, requests, cache, ladder)
+    fields = energy_errors(
+        found.scene, scene, found.points.points, found.times, reference, requests, cache, ladder, solved
+    )
     found.notes += fields.notes
     for name, errors in fields.errors.items():
         found.errors[name]["energy"] = errors
