@@ -128,10 +128,7 @@ def test_a_model_file_answers_as_the_model_it_was_written_from(built, tmp_path_f
                 assert np.allclose(answer.outputs[name], expected.outputs[name], rtol=1e-9, atol=1e-14), name
 
 
-def test_what_is_not_built_yet_is_refused_in_one_line(built):
-    reduced = built[2]["hyper"]
-    with pytest.raises(ParameterError, match="sensitivities of an imaged body"):
-        reduced.solve({}, sensitivities=True)
+def test_a_training_that_cannot_make_an_imaged_model_is_refused_in_one_line():
     with pytest.raises(ParameterError, match="every training point has the unloaded reference of the defaults"):
         Reductor(imaged_block(), POD(4), TrainingSet([{}]))
     with pytest.raises(ParameterError, match="POD bases of given size"):

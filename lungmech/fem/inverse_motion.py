@@ -28,6 +28,7 @@ from dolfinx import fem
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.placement import Image
 from lungmech.fem.quantities import integral
+from lungmech.fem.sensitivity import ValueDerivatives, state_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, StepReport, solve
 from lungmech.fem.start import Progress, StartReport
 from lungmech.parallel.owned import owned_size
@@ -76,6 +77,7 @@ class InverseMotion:
         )()  # m³ (m³/m in 2-D), the image's
         self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
         self._handover = Handover(model, self.inverse)
+        self._derivative: np.ndarray | None = None  # dx_ξ/dμ at the last placement, once asked
 
     def reset(self, model: Model) -> None:
         """The image as the unloaded reference (ξ = 0, w = 0) at the default parameters."""
@@ -96,6 +98,7 @@ class InverseMotion:
         self.image.check_start(time, self.body)
         tic = perf_counter()
         inverse = self.inverse
+        self._derivative = None
         inverse.set_parameters(values)
         inverse.reset()
 
@@ -127,6 +130,14 @@ class InverseMotion:
             details,
         )
 
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """``derivatives`` with dξ/dμ and the image's other fields' d/dμ from the inverse
+        problem's direct sensitivities at the last placement, K_ξ dx_ξ/dμ = −∂R_ξ/∂μ (its exact,
+        non-symmetric tangent, LU; solved once per placement). Collective."""
+        if self._derivative is None:
+            self._derivative = state_derivatives(self.inverse, self.solver.jacobian_form)
+        return self._handover.derivatives(self.inverse, derivatives, self._derivative)
+
 
 class Handover:
     """Where the inverse problem's unknowns go in the breath's model: its vector field (ξ) to
@@ -138,12 +149,13 @@ class Handover:
         if not np.array_equal(motion.space.dofmap.list, inverse.space.dofmap.list):
             raise SolverError("inverse motion: the inverse problem's dofs are numbered unlike the breath's")
         self.vector: np.ndarray = (  # the state's entries of its vector field
-            np.asarray(motion.space.sub(0).collapse()[1])
+            np.asarray(motion.space.sub(0).collapse()[1]).reshape(-1)
             if motion.multi_field
             else np.arange(motion.state.x.array.size)
         )
-        space = motion.reference_map.function_space if motion.reference_map is not None else motion.space
-        self.owned_vector = owned_size(space)
+        assert motion.reference_map is not None  # (a model of an image's motion has one)
+        self.reference_map = motion.reference_map
+        self.owned_vector = owned_size(self.reference_map.function_space)
 
     def hand_over(self, inverse: Model, motion: Model) -> None:
         """ξ and the fields of ``inverse``'s state to ``motion``, whose state becomes the image."""
@@ -152,3 +164,17 @@ class Handover:
         motion.state.x.array[:] = inverse.state.x.array
         motion.state.x.array[self.vector] = 0.0  # w = 0: the image
         motion.state.x.scatter_forward()
+
+    def derivatives(self, inverse: Model, derivatives: ValueDerivatives, solution: np.ndarray) -> ValueDerivatives:
+        """The breath's value ``derivatives`` with what the hand-over sets, from ``solution`` =
+        dx_ξ/dμ (the inverse problem's state derivative, owned rows × parameters): dξ/dμ in the
+        reference map, and the other fields' derivative in the start (the motion's is 0)."""
+        function, columns = fem.Function(inverse.space), []
+        for column in solution.T:  # each with its ghosts
+            function.x.array[: column.size] = column
+            function.x.scatter_forward()
+            columns.append(function.x.array.copy())
+        local = np.column_stack(columns) if columns else np.zeros((function.x.array.size, 0))
+        start = local.copy()
+        start[self.vector] = 0.0
+        return derivatives.with_start({self.reference_map: local[self.vector]}, start)

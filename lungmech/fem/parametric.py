@@ -32,7 +32,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.averages import means
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
-from lungmech.fem.sensitivity import check_differentiable, output_derivatives
+from lungmech.fem.sensitivity import check_differentiable, output_derivatives, value_derivatives
 from lungmech.fem.solver import (
     NewtonOptions,
     NewtonSolver,
@@ -371,11 +371,6 @@ class FullOrderModel:
         by ``scale``. ``on_step`` sees every accepted state (:class:`Step`: e.g. snapshots, a
         history); ``progress(fraction, text)`` the start's own work (an inverse problem's
         iterations)."""
-        if sensitivities and self.start.kind == "imaged":
-            raise ParameterError(
-                "sensitivities of an imaged body would need the derivative of its unloaded reference with respect "
-                "to μ, which lungmech does not compute yet: leave sensitivities out, or start from an Equilibrium"
-            )
         owned = owned_size(self.model.space)
         values = self.parameters.values(mu)
 
@@ -409,5 +404,7 @@ class FullOrderModel:
         self.start.reset(self.model)
 
     def sensitivities(self) -> dict[str, object]:
-        """∂outputs/∂μ at the current state: direct sensitivities (:mod:`lungmech.fem.sensitivity`)."""
-        return output_derivatives(self.model, self.outputs, self.solver)
+        """∂outputs/∂μ at the current state: direct sensitivities (:mod:`lungmech.fem.sensitivity`),
+        with what the start set at μ (an imaged body's reference map: its own sensitivities)."""
+        derivatives = self.start.derivatives(self.model, value_derivatives(self.model))
+        return output_derivatives(self.model, self.outputs, self.solver, derivatives=derivatives)

@@ -42,8 +42,8 @@ from __future__ import annotations
 import contextlib
 import math
 import weakref
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, cast
 
 from mpi4py import MPI
@@ -94,6 +94,11 @@ class ValueDerivatives:
     dx_D/dμ, the derivative of the imposed values as a state vector (local entries, n; zero on
     free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label;
     ``amplitudes`` that of each imposed displacement's factor amplitude · ramp(t) (constraints, n).
+
+    A start found at every μ adds what it sets (:meth:`with_start`): an imaged body's reference
+    map ξ among ``functions`` (dξ/dμ) and ``start``, the derivative of the state its path starts
+    from beyond the imposed values (the image's other fields; local entries, n), which a reduced
+    path is relative to: dx₀/dμ = ``imposed`` + ``start``.
     """
 
     names: tuple[str, ...]
@@ -102,6 +107,22 @@ class ValueDerivatives:
     imposed: np.ndarray
     loads: dict[str, np.ndarray]
     amplitudes: np.ndarray
+    start: np.ndarray | None = None
+
+    def with_start(self, functions: Mapping[fem.Function, np.ndarray], start: np.ndarray) -> ValueDerivatives:
+        """These derivatives with a start's: ``functions`` (the fields it sets in the forms, local
+        entries × parameters) replacing theirs, and ``start`` (dx₀/dμ beyond the imposed values)."""
+        unknown = [f.name for f in functions if f not in self.functions]
+        if unknown:
+            raise ParameterError(
+                f"sensitivities: the start sets {', '.join(unknown)}, which no form of the model holds"
+            )
+        return replace(self, functions={**self.functions, **functions}, start=start)
+
+    def start_state(self, owned: int) -> np.ndarray:
+        """dx₀/dμ on the ``owned`` rows: the imposed values' and the start's (owned × parameters)."""
+        dx0 = self.imposed[:owned]
+        return np.ascontiguousarray(dx0 if self.start is None else dx0 + self.start[:owned])
 
 
 class DerivativeForms:
@@ -115,6 +136,8 @@ class DerivativeForms:
     A hyper-reduced model gives its own ``residual`` and ``energy`` (weighted, over sampled
     cells), ``compile`` (onto its reduced mesh) and ``like``, the full model's forms, whose
     constants and functions are the ones the parameters set; it has no ``volume_gradient``.
+    ``with_energy=False``: the residual's alone (a problem whose answer is its state, an imaged
+    body's inverse motion): ``energy`` and ``energy_gradient`` are None.
     """
 
     def __init__(
@@ -124,14 +147,14 @@ class DerivativeForms:
         energy: ufl.Form | None = None,
         compile: Callable[[ufl.Form], fem.Form] = fem.form,
         like: DerivativeForms | None = None,
+        with_energy: bool = True,
     ) -> None:
         residual = expand_derivatives(model.residual if residual is None else residual)
         energy = model.energy_density * model.dx if energy is None else energy
+        forms = (residual, energy) if with_energy else (residual,)
         if like is None:
-            found_constants = {c: None for form in (residual, energy) for c in form.constants()}
-            found_functions = {
-                f: None for form in (residual, energy) for f in form.coefficients() if f is not model.state
-            }
+            found_constants = {c: None for form in forms for c in form.constants()}
+            found_functions = {f: None for form in forms for f in form.coefficients() if f is not model.state}
             self.constants, self.functions = tuple(found_constants), tuple(found_functions)
         else:
             self.constants, self.functions = like.constants, like.functions
@@ -139,9 +162,10 @@ class DerivativeForms:
         self.weights = tuple(fem.Constant(mesh, np.zeros(c.ufl_shape)) for c in self.constants)
         self.directions = tuple(fem.Function(f.function_space) for f in self.functions)
         self._compile = compile
-        self.residual, self.energy = self._explicit(residual), self._explicit(energy)  # None: no parameter acts
+        self.residual = self._explicit(residual)  # None: no parameter acts
+        self.energy = self._explicit(energy) if with_energy else None
         self.volume_gradient = None if like else fem.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
-        self.energy_gradient = compile(ufl.derivative(energy, model.state))
+        self.energy_gradient = compile(ufl.derivative(energy, model.state)) if with_energy else None
         self.comm = mesh.comm
 
     def _explicit(self, form: ufl.Form) -> fem.Form | None:
@@ -340,8 +364,8 @@ def reduced_state_derivatives(
 ) -> np.ndarray:
     """Reduced sensitivities dq/dμ = −(Vᵀ K V)⁻¹ Vᵀ (∂R/∂μ + K dx₀/dμ) of x = x₀ + V q at the
     current (converged) reduced state, shape (k, parameters). ``V``: the basis's owned rows
-    (vanishing on imposed dofs); dx₀/dμ = ``derivatives.imposed``. The state's derivative is
-    V dq/dμ + dx₀/dμ (pass it to :func:`output_derivatives`). Collective."""
+    (vanishing on imposed dofs); dx₀/dμ = ``derivatives.start_state``. The state's derivative
+    is V dq/dμ + dx₀/dμ (pass it to :func:`output_derivatives`). Collective."""
     derivatives = derivatives or value_derivatives(model)
     comm, owned = model.geometry.mesh.comm, owned_size(model.space)
     V = np.ascontiguousarray(V)
@@ -349,7 +373,7 @@ def reduced_state_derivatives(
     K = _jacobian(jacobian_form)
     try:
         KV = apply(K, V, comm)
-        KdxD = apply(K, np.ascontiguousarray(derivatives.imposed[:owned]), comm)
+        KdxD = apply(K, derivatives.start_state(owned), comm)
     finally:
         K.destroy()
     return -np.linalg.solve(gram(V, KV, comm), gram(V, dR + KdxD, comm))
@@ -367,7 +391,7 @@ def output_derivatives(
     strain_energy (n,), probes (points, 3, n), loads {label: (n,)}.
 
     dV/dμ = ∂V/∂x · dx/dμ; dE/dμ = ∂E/∂x · dx/dμ + Σ_k ∂E/∂c_k ∂c_k/∂μ; probes: the displacement
-    part of dx/dμ at the points; loads: ∂(load value)/∂μ. ``state_derivative`` (owned rows,
+    part of dx/dμ at the points (on an image, u = w − ξ: less dξ/dμ there); loads: ∂(load value)/∂μ. ``state_derivative`` (owned rows,
     parameters) is dx/dμ if known (a reduced model's V dq/dμ + dx₀/dμ); otherwise the direct
     sensitivities with ``solver.jacobian_form``, which must be the exact Jacobian of
     ``model.residual``. Collective.
@@ -387,7 +411,7 @@ def output_derivatives(
         return assemble_owned(form, vector, owned)[:, None]
 
     volume = gram(gradient(cast(fem.Form, forms.volume_gradient)), dx, comm)[0]  # the full model's forms have it
-    energy = gram(gradient(forms.energy_gradient), dx, comm)[0]
+    energy = gram(gradient(cast(fem.Form, forms.energy_gradient)), dx, comm)[0]  # the full model's forms have it
     for i in range(n if forms.energy is not None else 0):
         forms.set_weights(derivatives, i)
         energy[i] += comm.allreduce(fem.assemble_scalar(cast(fem.Form, forms.energy)), op=MPI.SUM)  # there is one
@@ -395,11 +419,15 @@ def output_derivatives(
     probe = getattr(outputs, "probe", None)
     if probe is not None:
         direction = fem.Function(model.space)
+        reference = derivatives.functions.get(model.reference_map) if model.reference_map is not None else None
         columns = []
         for i in range(n):
             direction.x.array[:owned] = dx[:, i]
             direction.x.scatter_forward()
-            columns.append(probe(direction.sub(0).collapse() if model.multi_field else direction))
+            moved = direction.sub(0).collapse() if model.multi_field else direction.copy()
+            if reference is not None:  # on an image u = w − ξ: du/dμ = dw/dμ − dξ/dμ
+                moved.x.array[:] -= reference[:, i]
+            columns.append(probe(moved))
         result["probes"] = np.stack(columns, axis=-1) if columns else np.zeros((len(probe.points), 3, 0))
     result["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
     return result

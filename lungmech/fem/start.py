@@ -26,6 +26,7 @@ from lungmech.fem.solver import Solver, Stepping, StepReport, solve
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
+    from lungmech.fem.sensitivity import ValueDerivatives
 
 __all__ = ["Equilibrium", "Rest", "Start", "StartReport", "approach", "one_state"]
 
@@ -72,6 +73,10 @@ class Start(Protocol):
         """The model's state an equilibrium at ``values`` at ``time``; what was done.
         ``progress(fraction, text)`` follows long work; ``on_step(report)`` sees every accepted
         continuation step."""
+
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """``derivatives`` (the model's values' d/dμ) with those of what the last placement set
+        beyond them: nothing for a start that is an equilibrium of the model's own forms at μ."""
 
 
 def approach(
@@ -140,6 +145,10 @@ class Rest:
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("rest", self.description, iterations)
 
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """As they are: the path's every state is solved on the model's own forms."""
+        return derivatives
+
 
 class Equilibrium:
     """A given equilibrium at the default parameters at the start time — ``state``, a full
@@ -180,6 +189,10 @@ class Equilibrium:
         self.reset(model)
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("equilibrium", self.description, iterations, dict(self.details))
+
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """As they are: the path's every state is solved on the model's own forms."""
+        return derivatives
 
 
 def one_state(start: Start, model: Model) -> np.ndarray:

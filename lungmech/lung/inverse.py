@@ -31,6 +31,7 @@ from lungmech.mesh import nodes as mesh_nodes
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
+    from lungmech.fem.sensitivity import ValueDerivatives
     from lungmech.lung.poromechanics import ImagedPorosity
 
 
@@ -241,4 +242,11 @@ class Imaged:
             "iterations)",
             report.newton_iterations,
             details,
+        )
+
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """Refused: here the reference is the mesh's nodes, which no sensitivity follows."""
+        raise ParameterError(
+            "sensitivities of an imaged body follow its reference on the fixed image (the inverse motion: "
+            "FullOrderModel(..., start=InverseMotion(model)) on a model of Image.motion), not the moving mesh"
         )

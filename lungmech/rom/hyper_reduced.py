@@ -230,10 +230,12 @@ class HyperReducedSolver:
         """The derivatives of this model's own answer with respect to μ (compiled on first use)."""
         return Sensitivities(self)
 
-    def _imposed_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
+    def _start_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
         """dx₀/dμ = D da/dμ on the reduced mesh (its dofs, parameters): from the imposed
-        displacements' directions, which a body of sampled cells holds whole."""
-        return self._D @ derivatives.amplitudes[self._constraints]
+        displacements' directions, which a body of sampled cells holds whole; and a start found
+        at every μ, its own (an imaged body's other fields: ``derivatives.start``)."""
+        imposed = self._D @ derivatives.amplitudes[self._constraints]
+        return imposed if derivatives.start is None else imposed + self.mesh.restrict(derivatives.start)
 
     def _at_loads(self) -> None:
         """x₀ = r + D a on the reduced mesh, a the imposed displacements' factors of the current
@@ -336,12 +338,16 @@ class Sensitivities:
     sampled residual, tangent and energy on the reduced mesh (collective)."""
 
     def __init__(self, solver: HyperReducedSolver) -> None:
-        if solver._energy is None:
-            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
         self.solver = solver
-        # ∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the reduced mesh
+        # ∂/∂c of the sampled residual and strain energy, and the energy's gradient, on the reduced
+        # mesh; without the energy's sample (an imaged body's inverse motion) the residual's alone
         self.forms = DerivativeForms(
-            solver.model, solver._restricted, solver._energy, solver.mesh.form, derivative_forms(solver.model)
+            solver.model,
+            solver._restricted,
+            solver._energy,
+            solver.mesh.form,
+            derivative_forms(solver.model),
+            with_energy=solver._energy is not None,
         )
 
     def state(self, derivatives: ValueDerivatives) -> np.ndarray:
@@ -350,7 +356,7 @@ class Sensitivities:
         solver, forms = self.solver, self.forms
         solver._at(solver.coordinates)
         jacobian = solver.reduced_jacobian()  # and K on the reduced mesh, at q
-        imposed = solver._on_columns(solver._imposed_derivatives(derivatives))
+        imposed = solver._on_columns(solver._start_derivatives(derivatives))
         rhs = gram(solver._row_basis, solver._tangent @ imposed, solver.comm)
         b = solver._vector.array
         solver._assembled.forget_residual()
@@ -366,13 +372,15 @@ class Sensitivities:
         """dẼ/dμ = ∇Ẽ · (V dq/dμ + dx₀/dμ) + Σ_k ∂Ẽ/∂c_k ∂c_k/∂μ of the sampled strain energy Ẽ
         at the current q, (parameters,). Collective."""
         solver, forms = self.solver, self.forms
+        if forms.energy_gradient is None:
+            raise ParameterError("sensitivities need the strain energy's ECSW sample (train it)")
         solver._at(solver.coordinates)
         g = solver._vector.array
         solver._assembled.forget_residual()
         g[:] = 0.0
         fem.assemble_vector(g, forms.energy_gradient)  # type: ignore[arg-type]  # the into-an-array overload, as above
         total = gram(solver.V, g[:, None], solver.comm)[:, 0] @ dq
-        total = total + gram(g[:, None], solver._imposed_derivatives(derivatives), solver.comm)[0]
+        total = total + gram(g[:, None], solver._start_derivatives(derivatives), solver.comm)[0]
         for i in range(len(derivatives.names) if forms.energy is not None else 0):
             assert forms.energy is not None  # (the loop runs only then)
             forms.set_weights(derivatives, i)

@@ -36,6 +36,7 @@ from dolfinx import fem
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.inverse_motion import Handover, InverseMotion
 from lungmech.fem.quantities import Probe
+from lungmech.fem.sensitivity import ValueDerivatives, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
@@ -49,7 +50,7 @@ from lungmech.rom.ecsw_training import Training
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.load_paths import LoadPath, Paths
-from lungmech.rom.outputs import Cubic, cubic, imposed_directions
+from lungmech.rom.outputs import Cubic, OnPoints, cubic, imposed_directions
 from lungmech.rom.pod import pod
 from lungmech.rom.whole import OnMesh, Stored, Whole
 
@@ -229,6 +230,7 @@ class ReducedImage:
         self._known = [(dict(box.defaults), np.zeros(basis.size))]
         self._known += [(box.values(point), np.array(a, dtype=float)) for point, a in known]
         self._handover = Handover(model, inverse)
+        self._derivative: tuple[np.ndarray, np.ndarray] | None = None  # (dz/dμ, dx_ξ/dμ) once asked
 
     def reset(self, model: Model) -> None:
         """The breath's model at its start at the default parameters: ξ(defaults), the image."""
@@ -261,7 +263,7 @@ class ReducedImage:
             else:
                 reduced.reconstruct(a)
 
-        self.placed_at = None
+        self.placed_at, self._derivative = None, None
         try:
             at(values)  # reduced Newton straight at μ (a continuation's first step would be a Newton step more)
             result = reduced.solve()
@@ -294,9 +296,26 @@ class ReducedImage:
         """∫ det(I + ∇ξ) dx of the reference now (m³; m³/m in 2-D), from its cubic."""
         return self._volume(self._coordinates())
 
-    def reference_map_at(self, probe: Callable[[], Probe]) -> Callable[[], np.ndarray]:
-        """ξ at the points of ``probe()`` (points, 3; m) now, linear in z: k + 2 evaluations
-        on the whole body (``probe`` is called only there)."""
+    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+        """The breath's value ``derivatives`` with dξ/dμ and the image's other fields' d/dμ at
+        the last placement, from the reduced inverse problem's own sensitivities:
+        da/dμ = −(V_ξᵀ K_ξ V_ξ)⁻¹ V_ξᵀ (∂R_ξ/∂μ + K_ξ dx_ξ⁰/dμ) (Galerkin, or on its sample),
+        and dx_ξ/dμ = Z dz/dμ with z = (a, the imposed factors). Once per placement. Collective."""
+        if self._derivative is None:
+            inverse, reduced = self.inverse, self.solver
+            own = value_derivatives(inverse)
+            if isinstance(reduced, HyperReducedSolver):
+                da = reduced.sensitivities.state(own)
+            else:
+                da = reduced_state_derivatives(inverse, self.basis.vectors, reduced.jacobian_form, own)
+            dz = np.vstack([da, own.amplitudes[self._constraints]])
+            self._derivative = (dz, self._directions @ dz)
+        return self._handover.derivatives(self.inverse, derivatives, self._derivative[1])
+
+    def reference_map_at(self, probe: Callable[[], Probe]) -> OnPoints:
+        """ξ at the points of ``probe()`` (points, 3; m) now, linear in z, and its derivative
+        at the last placement: k + 2 evaluations on the whole body (``probe`` is called only
+        there)."""
         inverse, owned = self.inverse, self._directions.shape[0]
 
         def located() -> tuple[np.ndarray, ...]:
@@ -317,7 +336,13 @@ class ReducedImage:
             return at_r, np.stack(each, axis=-1)
 
         at_r, columns = self.whole.get("reference_probes", located)
-        return lambda: at_r + columns @ self._coordinates()
+        return OnPoints(lambda: at_r + columns @ self._coordinates(), lambda: columns @ self._dz())
+
+    def _dz(self) -> np.ndarray:
+        """dz/dμ at the last placement (:meth:`derivatives` computes it)."""
+        if self._derivative is None:
+            raise ParameterError("the reference's derivatives are asked before they were computed (derivatives)")
+        return self._derivative[0]
 
     def _nearest(self, values: Mapping[str, float]) -> tuple[dict[str, float], np.ndarray]:
         """The known point nearest ``values`` in the unit box, and its coordinates (a copy)."""

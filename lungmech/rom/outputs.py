@@ -53,7 +53,7 @@ from lungmech.rom.whole import Arrays
 if TYPE_CHECKING:  # (it imports this module)
     from lungmech.rom.hyper_reduced import HyperReducedSolver
 
-__all__ = ["Cubic", "ReducedOutputs", "Reference", "affine", "cubic", "imposed_directions"]
+__all__ = ["Cubic", "OnPoints", "ReducedOutputs", "Reference", "affine", "cubic", "imposed_directions"]
 
 
 class Reference(Protocol):
@@ -63,10 +63,19 @@ class Reference(Protocol):
         """∫ det(I + ∇ξ) dx (m³; m³/m in 2-D)."""
         ...
 
-    def reference_map_at(self, probe: Callable[[], Probe]) -> Callable[[], np.ndarray]:
+    def reference_map_at(self, probe: Callable[[], Probe]) -> OnPoints:
         """ξ at the points of ``probe()`` now, (points, 3) in m, as a function of the reduced
-        state (``probe`` is called on the whole body only)."""
+        state, and its derivative with respect to μ (``probe`` is called on the whole body only)."""
         ...
+
+
+@dataclass(frozen=True)
+class OnPoints:
+    """A field at points, (points, 3), as it is now (``value()``) and its derivative with
+    respect to μ at the last placement (``derivative()``, the parameters on a last axis)."""
+
+    value: Callable[[], np.ndarray]
+    derivative: Callable[[], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -252,7 +261,7 @@ class ReducedOutputs:
         points, at_start, each = solver.whole.get("probes", located)
         self.probe_points = tuple(tuple(float(c) for c in p) for p in points)
         self._probes = (at_start, each) if len(points) else None  # p(r), and p(Z_i) on the last axis
-        self._reference_map: Callable[[], np.ndarray | float] = lambda: 0.0  # ξ at the probes
+        self._reference_map: OnPoints | None = None  # ξ at the probes
         if reference is not None and len(points):  # located on the whole body only
             self._reference_map = reference.reference_map_at(
                 lambda: probes if isinstance(probes, Probe) else Probe(model.geometry.mesh, probes)
@@ -269,8 +278,9 @@ class ReducedOutputs:
             "volume": self._volume.gradient(self.coordinates()) @ dz,
             "strain_energy": self.solver.sensitivities.energy(dq, derivatives),
         }
-        if self._probes is not None:
-            result["probes"] = self._probes[1] @ dz
+        if self._probes is not None:  # on an image u = w − ξ: du/dμ = dw/dμ − dξ/dμ
+            moved = self._probes[1] @ dz
+            result["probes"] = moved if self._reference_map is None else moved - self._reference_map.derivative()
         result["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
         return result
 
@@ -283,7 +293,8 @@ class ReducedOutputs:
         volume, sampled = self._volume(z), self.solver.functionals(self.solver.state)
         values: dict[str, object] = {"volume": volume, "strain_energy": sampled["strain_energy"]}
         if self._probes is not None:
-            values["probes"] = self._probes[0] + self._probes[1] @ z - self._reference_map()
+            moved = self._probes[0] + self._probes[1] @ z
+            values["probes"] = moved if self._reference_map is None else moved - self._reference_map.value()
         values["loads"] = self.model.scalar_loads()
         if self._averages:
             per = {"reference": self._reference_volume(), "current": volume}

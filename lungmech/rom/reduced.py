@@ -184,12 +184,6 @@ class ReducedModel:
         estimates = []  # (η̂, ‖V q‖_E) at the output times: the answer's indicator
         path = []  # and at every state a Step's indicator() was asked for: the path's so far
 
-        if sensitivities and self.image is not None:
-            raise ParameterError(
-                "sensitivities of an imaged body would need the derivative of its unloaded reference with respect "
-                "to μ, which lungmech does not compute yet: leave sensitivities out"
-            )
-
         estimate = self.estimate
         # an imaged body's start, the image at the reduced reference, is not solved for: the
         # indicator there (its release) is the reference's error, unless an output is there anyway
@@ -275,12 +269,15 @@ class ReducedModel:
 
     def _sensitivities(self) -> dict[str, object]:
         """Reduced sensitivities: dx/dμ = V dq/dμ + dx₀/dμ, dq/dμ = −(VᵀKV)⁻¹Vᵀ(∂R/∂μ + K dx₀/dμ);
-        hyper-reduced, with the sample's r and K, and the outputs' from reduced operators."""
+        hyper-reduced, with the sample's r and K, and the outputs' from reduced operators; on an
+        image, ∂R/∂μ and dx₀/dμ with the reduced inverse motion's dξ/dμ and start."""
         model, V = self.model, self.basis.vectors
         derivatives = value_derivatives(model)
+        if self.image is not None:  # dξ/dμ and the start's, from the reduced inverse motion
+            derivatives = self.image.derivatives(model, derivatives)
         if self.sample is not None:
             assert isinstance(self.solver, HyperReducedSolver) and isinstance(self.outputs, ReducedOutputs)
             return self.outputs.derivatives(self.solver.sensitivities.state(derivatives), derivatives)
         dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
-        dx = V @ dq + derivatives.imposed[: V.shape[0]]
+        dx = V @ dq + derivatives.start_state(V.shape[0])
         return output_derivatives(model, self.outputs, None, state_derivative=dx, derivatives=derivatives)
