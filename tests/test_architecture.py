@@ -2,7 +2,8 @@
 
 Layers, lowest first: the base modules (errors, checks), ``parallel``, ``mesh``, ``fem``, ``lung``,
 then ``rom`` and ``registration`` side by side, ``trade`` (which measures every model of a scene)
-above ``rom``, and the application ``app`` on top. A module
+above ``rom``, ``twin`` (parameters from images: models and registration meet there) above both,
+and the application ``app`` on top. A module
 imports its own layer and those below, never above; ``rom`` and ``registration`` never import each
 other; generic output code (``app/output.py``) knows no physics. Imports inside functions count.
 """
@@ -27,7 +28,8 @@ LAYERS = {  # part -> the parts it may import (besides the base modules and itse
     "rom": {"parallel", "mesh", "fem"},
     "registration": {"parallel", "mesh", "fem"},
     "trade": {"parallel", "mesh", "fem", "lung", "rom"},
-    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes", "trade"},
+    "twin": {"parallel", "mesh", "fem", "lung", "rom", "registration"},
+    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes", "trade", "twin"},
     "meshes": {"parallel", "mesh"},  # the bundled meshes and the script that makes them
 }
 

@@ -197,6 +197,25 @@ class Parameter:
             )
         return float(value)
 
+    def to_unit(self, value: float) -> float:
+        """θ ∈ [0, 1] of ``value``: (μ − low)/(high − low), or in log μ on a log scale."""
+        low, high = self.range
+        if self.log:
+            return (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
+        return (value - low) / (high - low)
+
+    def from_unit(self, u: float) -> float:
+        """The value at θ = ``u`` (the inverse of :meth:`to_unit`), kept inside the range."""
+        low, high = self.range
+        if self.log:
+            return float(min(max(math.exp(math.log(low) + u * (math.log(high) - math.log(low))), low), high))
+        return float(min(max(low + u * (high - low), low), high))
+
+    def unit_derivative(self, value: float) -> float:
+        """∂μ/∂θ at ``value``: high − low, or μ ln(high/low) on a log scale."""
+        low, high = self.range
+        return value * math.log(high / low) if self.log else high - low
+
     def describe(self) -> dict:
         """Plain values: what the parameter is and acts on (part of a reduced model's fingerprint)."""
         described = {
@@ -300,11 +319,11 @@ class Parameters(Sequence[Parameter]):
 
     def to_unit(self, values: Mapping[str, float]) -> np.ndarray:
         """Coordinates in the unit box [0, 1]^n (log parameters in log μ)."""
-        return np.array([_unit(p, values[p.name]) for p in self._items])
+        return np.array([p.to_unit(values[p.name]) for p in self._items])
 
     def from_unit(self, unit: np.ndarray) -> dict[str, float]:
         """Values from coordinates in the unit box (the inverse of :meth:`to_unit`)."""
-        return {p.name: _from_unit(p, float(u)) for p, u in zip(self._items, np.asarray(unit, dtype=float))}
+        return {p.name: p.from_unit(float(u)) for p, u in zip(self._items, np.asarray(unit, dtype=float))}
 
     def sample(self, count: int, seed: int = 0) -> list[dict[str, float]]:
         """``count`` points spread over the box: the first ``count`` of a scrambled Sobol' sequence
@@ -352,17 +371,3 @@ def _one_owner(sharing: list[Parameter]) -> None:
             f"parameters {names} set {target} on regions, with different values outside them: give them "
             "the same 'outside', or a parameter of their own for the value outside"
         )
-
-
-def _unit(p: Parameter, value: float) -> float:
-    low, high = p.range
-    if p.log:
-        return (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
-    return (value - low) / (high - low)
-
-
-def _from_unit(p: Parameter, u: float) -> float:
-    low, high = p.range
-    if p.log:
-        return float(min(max(math.exp(math.log(low) + u * (math.log(high) - math.log(low))), low), high))
-    return float(min(max(low + u * (high - low), low), high))
