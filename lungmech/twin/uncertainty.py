@@ -5,9 +5,9 @@ At the estimate θ̂ (unit coordinates) with residual r̂ (n rows, m) and Jacobi
 * **noise**: σ̂² = ‖r̂‖² / (n − p), the Gauss–Newton (Laplace) covariance Σ = σ̂² (JᵀJ)⁻¹;
 * **the model's own error** ε (per row, m: how far the model's predicted surface and volume may
   be from the full model's) is a bias, not a noise that averages away: the estimate moves by
-  δθ = A δr with A = (JᵀJ)⁻¹Jᵀ, so |δθ| ≤ |A| ε row by row;
-* **the interval** at level 1 − α is θ̂ ± (z_{1−α/2} Σᵢᵢ^½ + (|A| ε)ᵢ), mapped to physical values
-  through the parameter's range (so a log-scaled one is asymmetric in μ); a parameter at a bound
+  δθ = A δr with A = (JᵀJ)⁻¹Jᵀ, so ``abs(δθ) ≤ abs(A) ε`` row by row;
+* **the interval** at level 1 − α is θ̂ ± (z Σᵢᵢ^½ + (``abs(A) ε``)ᵢ), z the normal quantile
+  of 1 − α/2, mapped to physical values through the parameter's range (so a log-scaled one is asymmetric in μ); a parameter at a bound
   of its box has no Gaussian interval — the Laplace approximation assumes an interior optimum;
 * **identifiability**: the correlations Σᵢⱼ/(Σᵢᵢ Σⱼⱼ)^½, and the eigenvectors of JᵀJ: a
   combination v whose standard deviation σ̂ λ^−½ is a large part of the box is one the data
