@@ -48,6 +48,7 @@ class InverseMotion:
     the body is called in messages ("lung"). Built once per model; collective."""
 
     kind = "imaged"
+    refuses_sensitivities: str | None = None
 
     def __init__(
         self, model: Model, newton: NewtonOptions | None = None, stepping: Stepping | None = None, body: str = "body"

@@ -371,6 +371,8 @@ class FullOrderModel:
         by ``scale``. ``on_step`` sees every accepted state (:class:`Step`: e.g. snapshots, a
         history); ``progress(fraction, text)`` the start's own work (an inverse problem's
         iterations)."""
+        if sensitivities and self.start.refuses_sensitivities:
+            raise ParameterError(self.start.refuses_sensitivities)  # before the work
         owned = owned_size(self.model.space)
         values = self.parameters.values(mu)
 

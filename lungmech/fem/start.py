@@ -57,6 +57,7 @@ class Start(Protocol):
     """How a model's load path starts (collective methods)."""
 
     kind: str
+    refuses_sensitivities: str | None  # why its answers have no sensitivities (one line), or None
 
     def reset(self, model: Model) -> None:
         """The model at the start state at the default parameters (nothing solved)."""
@@ -119,6 +120,7 @@ class Rest:
     an equilibrium when the loads at the start vanish; moved to μ by :func:`approach`."""
 
     kind = "rest"
+    refuses_sensitivities: str | None = None
     description = "the unloaded state"
     details: dict = {}
 
@@ -157,6 +159,7 @@ class Equilibrium:
     to μ", say); ``details`` are its numbers for the summaries."""
 
     kind = "equilibrium"
+    refuses_sensitivities: str | None = None
 
     def __init__(
         self,

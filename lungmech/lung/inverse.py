@@ -184,6 +184,10 @@ class Imaged:
     alone: no solve depends on the one before. Built on the imaged mesh, before any move."""
 
     kind = "imaged"
+    refuses_sensitivities: str | None = (  # here the reference is the mesh's nodes, which no sensitivity follows
+        "sensitivities of an imaged body follow its reference on the fixed image (the inverse motion: "
+        "FullOrderModel(..., start=InverseMotion(model)) on a model of Image.motion), not the moving mesh"
+    )
 
     def __init__(self, model: Model, options: InverseOptions = InverseOptions(), body: str = "body") -> None:
         mesh = model.geometry.mesh
@@ -245,8 +249,5 @@ class Imaged:
         )
 
     def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """Refused: here the reference is the mesh's nodes, which no sensitivity follows."""
-        raise ParameterError(
-            "sensitivities of an imaged body follow its reference on the fixed image (the inverse motion: "
-            "FullOrderModel(..., start=InverseMotion(model)) on a model of Image.motion), not the moving mesh"
-        )
+        """Refused (:attr:`refuses_sensitivities`)."""
+        raise ParameterError(self.refuses_sensitivities)

@@ -187,6 +187,7 @@ class ReducedImage:
     given back from a model file on a body of sampled cells). Collective."""
 
     kind = "imaged"
+    refuses_sensitivities: str | None = None
 
     def __init__(
         self,

@@ -28,7 +28,7 @@ from lungmech.errors import ParameterError
 from lungmech.registration.field import ImageFunction, signed_distance
 from lungmech.registration.image import Image
 
-__all__ = ["Surface", "SurfaceNodes", "check_overlap", "surface_data", "surface_nodes"]
+__all__ = ["Surface", "SurfaceNodes", "surface_data", "surface_nodes"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,15 +88,3 @@ def surface_nodes(mesh: dolfinx.mesh.Mesh) -> SurfaceNodes:
     unique, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     lumped = np.bincount(inverse.reshape(-1), weights=shares, minlength=len(unique))
     return SurfaceNodes(np.ascontiguousarray(corners[first]), lumped)  # the nodes as they are (unique sorts)
-
-
-def check_overlap(surface: Surface, nodes: SurfaceNodes, what: str) -> None:
-    """Refuse data whose image does not reach the lung: no surface node within a few voxels of
-    the segmentation's surface."""
-    values, _ = surface.distance(nodes.points)
-    near = np.abs(values) <= 10 * surface.voxel
-    if not near.any():
-        raise ParameterError(
-            f"{what}: the segmentation's surface lies {np.abs(values).min() * 1e3:.0f} mm or more from the lung's "
-            "surface: the images do not overlap in space (check their origins and orientation)"
-        )

@@ -26,7 +26,7 @@ from scipy.stats import norm
 from lungmech.errors import ParameterError
 from lungmech.twin.fit import Estimate, Fit, estimate
 
-__all__ = ["Direction", "Interval", "Uncertainty", "laplace", "resampled"]
+__all__ = ["Direction", "Interval", "Uncertainty", "laplace", "noise_level", "resampled"]
 
 WEAK = 0.1  # a combination whose standard deviation exceeds this fraction of the box is not determined
 
@@ -76,16 +76,22 @@ class Uncertainty:
     level: float
 
 
+def noise_level(result: Estimate) -> float:
+    """σ̂ = (‖r̂‖² / (n − p))^½ in m: the data's noise as the residual shows it."""
+    n, p = result.jacobian.shape
+    if n <= p:
+        raise ParameterError(f"{n} data cannot determine {p} parameters with an uncertainty")
+    return float(np.sqrt(result.residual @ result.residual / (n - p)))
+
+
 def laplace(result: Estimate, fit: Fit, model_error: np.ndarray | None = None, level: float = 0.95) -> Uncertainty:
     """The Laplace uncertainty of ``result`` (see the module's doc); ``model_error``: ε per
     residual row (m), or None for a model taken as exact."""
-    J, r = result.jacobian, result.residual
-    n, p = J.shape
-    if n <= p:
-        raise ParameterError(f"{n} data cannot determine {p} parameters with an uncertainty")
+    J = result.jacobian
+    n = J.shape[0]
     if not 0 < level < 1:
         raise ParameterError(f"the interval's level must lie in (0, 1) (got {level})")
-    sigma = float(np.sqrt(r @ r / (n - p)))
+    sigma = noise_level(result)
     normal = J.T @ J
     try:
         inverse = np.linalg.inv(normal)
@@ -127,9 +133,8 @@ def resampled(fit: Fit, result: Estimate, count: int = 20, seed: int = 0) -> np.
     again: each view's surface residuals resampled with replacement (centred), each volume row
     drawn from N(0, σ̂²); each estimate starts at θ̂ (a few evaluations each)."""
     rng = np.random.default_rng(seed)
-    r = result.residual
-    n, p = result.jacobian.shape
-    sigma = float(np.sqrt(r @ r / max(n - p, 1)))
+    r, n = result.residual, len(result.residual)
+    sigma = noise_level(result)
     surfaces = fit.surface_rows()
     estimates = []
     for _ in range(count):
