@@ -372,7 +372,7 @@ def assert_balanced_gravity_reduces(comm) -> ReducedModel:
 @pytest.mark.slow
 def test_balanced_gravity_reduces():
     """And what it cannot do is said before any work: a sample without the pressure's response
-    (trained on another model), and sensitivities (not differentiated for these loads yet)."""
+    (trained on another model). (Its sensitivities: tests/test_imaged_sensitivity.py.)"""
     from lungmech.rom.ecsw import Sample
     from lungmech.rom.hyper_reduced import HyperReducedSolver
 
@@ -384,5 +384,3 @@ def test_balanced_gravity_reduces():
     )
     with pytest.raises(ParameterError, match="no cells for load0_response"):
         HyperReducedSolver(weighed_lung(), hyper.basis, partial)
-    with pytest.raises(ParameterError, match="state-dependent coefficients"):
-        hyper.solve(sensitivities=True)

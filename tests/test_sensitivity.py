@@ -12,7 +12,7 @@ from lungmech.fem import FollowerPressure, Model, NeoHookean, Stepping, clamp, s
 from lungmech.fem.constraints import Displacement, symmetry
 from lungmech.fem.parameters import HalfSpace, Parameter
 from lungmech.fem.parametric import FullOrderModel
-from lungmech.lung import AlveolarPressure, Gravity, Poromechanics, skeleton
+from lungmech.lung import AlveolarPressure, Poromechanics, skeleton
 from lungmech.mesh import box
 from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import origin, reference_state
@@ -206,17 +206,7 @@ def test_a_complete_basis_gives_the_direct_sensitivities():
     assert np.allclose(reduced, direct, rtol=1e-10, atol=1e-12 * np.abs(direct).max())
 
 
-def test_state_dependent_loads_and_loads_set_by_hand_are_refused():
-    balanced = Model(
-        box(MPI.COMM_SELF, cells=(2, 2, 2)),
-        NeoHookean.from_young(10.0, 0.3),
-        constraints=[clamp("x0")],
-        loads=[Gravity(1.0, (0.0, 0.0, -1.0), balanced_on=("x0", "x1", "y0", "y1", "z0", "z1"))],
-        parameters=[Parameter("mu", "material.mu", 10.0 / 2.6, (1.0, 10.0))],
-    )
-    with pytest.raises(ParameterError, match="state-dependent coefficients") as error:
-        sensitivity.value_derivatives(balanced)
-    assert "\n" not in str(error.value)
+def test_loads_set_by_hand_are_refused():
     model = block()
     model.set_time(1.0)
     model._load_values[0].value = 0.3  # not what set_time sets

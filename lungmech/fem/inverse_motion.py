@@ -28,7 +28,7 @@ from dolfinx import fem
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.placement import Image
 from lungmech.fem.quantities import integral
-from lungmech.fem.sensitivity import ValueDerivatives, state_derivatives
+from lungmech.fem.sensitivity import Moved, state_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, Solver, Stepping, StepReport, solve
 from lungmech.fem.start import Progress, StartReport
 from lungmech.parallel.owned import owned_size
@@ -131,13 +131,13 @@ class InverseMotion:
             details,
         )
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """``derivatives`` with dξ/dμ and the image's other fields' d/dμ from the inverse
-        problem's direct sensitivities at the last placement, K_ξ dx_ξ/dμ = −∂R_ξ/∂μ (its exact,
-        non-symmetric tangent, LU; solved once per placement). Collective."""
+    def moved(self, model: Model) -> Moved:
+        """dξ/dμ and the image's other fields' d/dμ from the inverse problem's direct
+        sensitivities at the last placement, K_ξ dx_ξ/dμ = −∂R_ξ/∂μ (its exact, non-symmetric
+        tangent, LU; solved once per placement). Collective."""
         if self._derivative is None:
             self._derivative = state_derivatives(self.inverse, self.solver.jacobian_form)
-        return self._handover.derivatives(self.inverse, derivatives, self._derivative)
+        return self._handover.moved(self.inverse, self._derivative)
 
 
 class Handover:
@@ -166,10 +166,10 @@ class Handover:
         motion.state.x.array[self.vector] = 0.0  # w = 0: the image
         motion.state.x.scatter_forward()
 
-    def derivatives(self, inverse: Model, derivatives: ValueDerivatives, solution: np.ndarray) -> ValueDerivatives:
-        """The breath's value ``derivatives`` with what the hand-over sets, from ``solution`` =
-        dx_ξ/dμ (the inverse problem's state derivative, owned rows × parameters): dξ/dμ in the
-        reference map, and the other fields' derivative in the start (the motion's is 0)."""
+    def moved(self, inverse: Model, solution: np.ndarray) -> Moved:
+        """What the hand-over sets, with its derivatives, from ``solution`` = dx_ξ/dμ (the
+        inverse problem's state derivative, owned rows × parameters): dξ/dμ in the reference
+        map, and the other fields' derivative in the start (the motion's is 0)."""
         function, columns = fem.Function(inverse.space), []
         for column in solution.T:  # each with its ghosts
             function.x.array[: column.size] = column
@@ -178,4 +178,4 @@ class Handover:
         local = np.column_stack(columns) if columns else np.zeros((function.x.array.size, 0))
         start = local.copy()
         start[self.vector] = 0.0
-        return derivatives.with_start({self.reference_map: local[self.vector]}, start)
+        return Moved({self.reference_map: local[self.vector]}, start)

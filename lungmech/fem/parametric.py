@@ -32,7 +32,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.averages import means
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.quantities import Probe, deformed_volume, strain_energy
-from lungmech.fem.sensitivity import check_differentiable, output_derivatives, value_derivatives
+from lungmech.fem.sensitivity import output_derivatives, value_derivatives
 from lungmech.fem.solver import (
     NewtonOptions,
     NewtonSolver,
@@ -198,8 +198,6 @@ def trajectory(
     estimate); ``on_step`` sees every state (:class:`Step`, with ``indicator``). Collective."""
     model, stepping = owner.model, owner.stepping
     wanted = owner.times if times is None else _checked_times(times, stepping)
-    if derivatives is not None:
-        check_differentiable(model)  # before the solve, not after it
     tic = time.perf_counter()
     rows, states, derived = [], [], []
 
@@ -408,5 +406,5 @@ class FullOrderModel:
     def sensitivities(self) -> dict[str, object]:
         """∂outputs/∂μ at the current state: direct sensitivities (:mod:`lungmech.fem.sensitivity`),
         with what the start set at μ (an imaged body's reference map: its own sensitivities)."""
-        derivatives = self.start.derivatives(self.model, value_derivatives(self.model))
+        derivatives = value_derivatives(self.model, self.start.moved(self.model))
         return output_derivatives(self.model, self.outputs, self.solver, derivatives=derivatives)

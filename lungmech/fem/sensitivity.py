@@ -32,9 +32,12 @@ h = 10⁻⁵ of the parameter's range: ≈ 10⁻⁹ for ν in [0.2, 0.4]).
 The direct method solves once per parameter and serves every output (volume, energy, each probe
 component, loads); an adjoint would pay off only for more parameters than outputs.
 
-Loads whose coefficients depend on the state (balanced gravity) are refused: their tangent is
-K + U Vᵀ (:mod:`lungmech.fem.state_dependent`) and their coefficients also depend on μ (the
-weight), which these direct solves do not yet carry.
+Loads whose coefficients θ = Θ(x; c) depend on the state (balanced gravity) add a low-rank
+term to the tangent, J = K + U Wᵀ (U = ∂R/∂θ, W = (∂Θ/∂x)ᵀ: :mod:`lungmech.fem.state_dependent`),
+and their explicit dependence on the values, ∂Θ/∂c, is one more value the parameters set
+(:func:`value_derivatives` sets θ again at each of its points): the direct solves are then
+J dx/dμ = −∂R/∂μ, by Woodbury's identity on the one factorisation of K, and a reduced model's
+are Vᵀ J V dq/dμ = −Vᵀ(∂R/∂μ + J dx₀/dμ).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ import contextlib
 import math
 import weakref
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, cast
 
 from mpi4py import MPI
@@ -59,6 +62,7 @@ from ufl.algorithms.map_integrands import map_integrands
 from lungmech.errors import ParameterError
 from lungmech.fem.linear import factorised
 from lungmech.fem.quantities import assemble_owned
+from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import apply, gram
 from lungmech.parallel.owned import owned_size
 
@@ -72,8 +76,8 @@ if TYPE_CHECKING:
 __all__ = [
     "STEP",
     "DerivativeForms",
+    "Moved",
     "ValueDerivatives",
-    "check_differentiable",
     "derivative_forms",
     "output_derivatives",
     "reduced_state_derivatives",
@@ -95,10 +99,10 @@ class ValueDerivatives:
     free dofs); ``loads`` the derivative of each scalar load's value (Pa per unit of μ) by label;
     ``amplitudes`` that of each imposed displacement's factor amplitude · ramp(t) (constraints, n).
 
-    A start found at every μ adds what it sets (:meth:`with_start`): an imaged body's reference
-    map ξ among ``functions`` (dξ/dμ) and ``start``, the derivative of the state its path starts
-    from beyond the imposed values (the image's other fields; local entries, n), which a reduced
-    path is relative to: dx₀/dμ = ``imposed`` + ``start``.
+    A start found at every μ moves what it sets with them (:class:`Moved`): an imaged body's
+    reference map ξ among ``functions`` (dξ/dμ), and ``start``, the derivative of the state its
+    path starts from beyond the imposed values (the image's other fields; local entries, n),
+    which a reduced path is relative to: dx₀/dμ = ``imposed`` + ``start``.
     """
 
     names: tuple[str, ...]
@@ -109,20 +113,20 @@ class ValueDerivatives:
     amplitudes: np.ndarray
     start: np.ndarray | None = None
 
-    def with_start(self, functions: Mapping[fem.Function, np.ndarray], start: np.ndarray) -> ValueDerivatives:
-        """These derivatives with a start's: ``functions`` (the fields it sets in the forms, local
-        entries × parameters) replacing theirs, and ``start`` (dx₀/dμ beyond the imposed values)."""
-        unknown = [f.name for f in functions if f not in self.functions]
-        if unknown:
-            raise ParameterError(
-                f"sensitivities: the start sets {', '.join(unknown)}, which no form of the model holds"
-            )
-        return replace(self, functions={**self.functions, **functions}, start=start)
-
     def start_state(self, owned: int) -> np.ndarray:
         """dx₀/dμ on the ``owned`` rows: the imposed values' and the start's (owned × parameters)."""
         dx0 = self.imposed[:owned]
         return np.ascontiguousarray(dx0 if self.start is None else dx0 + self.start[:owned])
+
+
+@dataclass(frozen=True)
+class Moved:
+    """What a start found at μ sets beyond the parameters' values, with its derivatives:
+    ``functions`` (Function → d/dμ, local entries × parameters: an imaged body's ξ) and ``start``
+    (dx₀/dμ beyond the imposed values: the image's other fields; local entries × parameters)."""
+
+    functions: Mapping[fem.Function, np.ndarray]
+    start: np.ndarray
 
 
 class DerivativeForms:
@@ -203,15 +207,6 @@ def derivative_forms(model: Model) -> DerivativeForms:
     return _compiled[model]
 
 
-def check_differentiable(model: Model) -> None:
-    """Refuse, in one line, a model whose sensitivities are not available (state-dependent loads)."""
-    if model.state_dependent:
-        raise ParameterError(
-            "sensitivities: this model has loads with state-dependent coefficients (balanced gravity), "
-            "whose dependence on the parameters is not differentiated yet; leave balanced_on out"
-        )
-
-
 def _stencil(parameter: Parameter, value: float) -> tuple[np.ndarray, np.ndarray]:
     """Points and weights of a second-order first derivative that stay inside the range: central
     (c(μ+h) − c(μ−h))/2h, or one-sided (±(−3c(μ) + 4c(μ±h) − c(μ±2h))/2h) at an end of the range.
@@ -247,19 +242,31 @@ def _restored(model: Model, forms: DerivativeForms) -> Iterator[None]:
         model.state.x.scatter_forward()
 
 
-def value_derivatives(model: Model) -> ValueDerivatives:
+def value_derivatives(
+    model: Model, moved: Moved | None = None, update: Callable[[], None] | None = None
+) -> ValueDerivatives:
     """∂c/∂μ of every value the parameters set, dx_D/dμ and ∂(scalar load)/∂μ, at the current μ
     and time: differences of the model's own assignment (:meth:`Model.set_parameters` at a few μ
     around the current one, reading the constants, functions, imposed values and loads; no
     assembly). Exact for values that depend linearly on μ, second-order accurate otherwise (see
     :func:`_stencil`). The model is left as it was: parameters, constants, time, load values, state.
 
+    ``moved``: what a start sets at μ, moved along (f + (μ_i' − μ_i) ∂f/∂μ_i at each difference
+    point). The coefficients θ of state-dependent loads (balanced gravity's centre of mass and
+    pressure) are values too: at the fixed state θ = Θ(x; c, ξ) is set again at each point
+    (``update``: default, on the whole mesh; a hyper-reduced model's on its sample), so their
+    explicit dependence on μ — the weight's direction, an imaged reference's dX — enters ∂R/∂μ.
+
     The loads are differentiated as :meth:`Model.set_time` last set them (its time, load factor
     and reference time); a model whose loads were set otherwise is refused. Collective (the
     first call compiles the model's derivative forms).
     """
-    check_differentiable(model)
     forms = derivative_forms(model)
+    along = dict(moved.functions) if moved is not None else {}
+    if unknown := [f.name for f in along if f not in forms.functions]:
+        raise ParameterError(f"sensitivities: the start sets {', '.join(unknown)}, which no form of the model holds")
+    terms = model.state_dependent
+    refresh = update or (lambda: [term.update() for term in terms])
     parameters = model.parameters
     size = len(model.state.x.array)
     constants = {c: np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants}
@@ -268,6 +275,7 @@ def value_derivatives(model: Model) -> ValueDerivatives:
     loads = {label: np.zeros(len(parameters)) for label in model.scalar_loads()}
     amplitudes = np.zeros((len(model.imposed), len(parameters)))
     with _restored(model, forms):
+        kept = {f: f.x.array.copy() for f in along}
         current = dict(model.parameter_values)
         given = [np.array(v.value, copy=True) for v in model._load_values]
         model.set_parameters(current)
@@ -279,6 +287,10 @@ def value_derivatives(model: Model) -> ValueDerivatives:
             points, weights = _stencil(parameter, current[parameter.name])
             for point, weight in zip(points, weights):
                 model.set_parameters({parameter.name: float(point)})
+                for f, derivative in along.items():
+                    f.x.array[:] = kept[f] + (point - current[parameter.name]) * derivative[:, i]
+                if terms:
+                    refresh()  # θ = Θ(x; values here), at the fixed state
                 for c, d in constants.items():
                     d[..., i] += weight * np.asarray(c.value, dtype=float)
                 for f, d in functions.items():
@@ -291,7 +303,10 @@ def value_derivatives(model: Model) -> ValueDerivatives:
                     loads[label][i] += weight * value
                 amplitudes[:, i] += weight * model.imposed_amplitudes()
             model.set_parameters(current)
-    return ValueDerivatives(parameters.names, constants, functions, imposed, loads, amplitudes)
+    if terms:  # the terms' own record (their last Θ's linearisation) back at the values restored
+        refresh()
+    start = None if moved is None else moved.start
+    return ValueDerivatives(parameters.names, constants, functions, imposed, loads, amplitudes, start)
 
 
 def residual_derivatives(model: Model, derivatives: ValueDerivatives | None = None) -> np.ndarray:
@@ -333,6 +348,7 @@ def state_derivatives(model: Model, jacobian_form: fem.Form, derivatives: ValueD
     n = len(derivatives.names)
     if n == 0:
         return np.zeros((owned, 0))
+    low_rank = _low_rank(model)
     dR = residual_derivatives(model, derivatives)
     dx_D = np.ascontiguousarray(derivatives.imposed[:owned])
     K = _jacobian(jacobian_form)
@@ -343,16 +359,21 @@ def state_derivatives(model: Model, jacobian_form: fem.Form, derivatives: ValueD
     K.zeroRowsColumns((index_map.local_range[0] * model.space.dofmap.index_map_bs + imposed).astype(PETSc.IntType))
     ksp = factorised(K)
     b, x = K.createVecLeft(), K.createVecRight()
-    result = np.zeros((owned, n))
+
+    def solve(column: np.ndarray) -> np.ndarray:
+        b.array[:] = column
+        ksp.solve(b, x)
+        if ksp.getConvergedReason() < 0:  # type: ignore[operator]  # an int at run time; the stubs say a class
+            raise ParameterError(
+                f"sensitivities: the linear solve with the Jacobian failed (reason {ksp.getConvergedReason()})"
+            )
+        return x.array.copy()
+
     try:
-        for i in range(n):
-            b.array[:] = rhs[:, i]
-            ksp.solve(b, x)
-            if ksp.getConvergedReason() < 0:  # type: ignore[operator]  # an int at run time; the stubs say a class
-                raise ParameterError(
-                    f"sensitivities: the linear solve with the Jacobian failed (reason {ksp.getConvergedReason()})"
-                )
-            result[:, i] = x.array
+        result = np.column_stack([solve(rhs[:, i]) for i in range(n)])
+        if low_rank is not None:  # (K + U Wᵀ)⁻¹ from K⁻¹: U vanishes on the imposed rows, which stay dx_D
+            terms, U, W = low_rank
+            result = terms.woodbury(result, U, W, solve)
     finally:
         for obj in (b, x, ksp, K):
             obj.destroy()
@@ -370,13 +391,28 @@ def reduced_state_derivatives(
     comm, owned = model.geometry.mesh.comm, owned_size(model.space)
     V = np.ascontiguousarray(V)
     dR = residual_derivatives(model, derivatives)
+    dx0 = derivatives.start_state(owned)
     K = _jacobian(jacobian_form)
     try:
-        KV = apply(K, V, comm)
-        KdxD = apply(K, derivatives.start_state(owned), comm)
+        KV, Kdx0 = apply(K, V, comm), apply(K, dx0, comm)
     finally:
         K.destroy()
-    return -np.linalg.solve(gram(V, KV, comm), gram(V, dR + KdxD, comm))
+    low_rank = _low_rank(model)
+    if low_rank is not None:  # J = K + U Wᵀ
+        _, U, W = low_rank
+        KV, Kdx0 = KV + U @ gram(W, V, comm), Kdx0 + U @ gram(W, dx0, comm)
+    return -np.linalg.solve(gram(V, KV, comm), gram(V, dR + Kdx0, comm))
+
+
+def _low_rank(model: Model) -> tuple[StateDependent, np.ndarray, np.ndarray] | None:
+    """The state-dependent loads' low-rank tangent U Wᵀ at the current state (θ set again from
+    it), or None without such loads (collective)."""
+    terms = StateDependent(model)
+    if not terms:
+        return None
+    terms.update()
+    U, W = terms.low_rank()
+    return terms, U, W
 
 
 def output_derivatives(

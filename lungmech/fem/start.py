@@ -26,7 +26,7 @@ from lungmech.fem.solver import Solver, Stepping, StepReport, solve
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
-    from lungmech.fem.sensitivity import ValueDerivatives
+    from lungmech.fem.sensitivity import Moved
 
 __all__ = ["Equilibrium", "Rest", "Start", "StartReport", "approach", "one_state"]
 
@@ -75,9 +75,10 @@ class Start(Protocol):
         ``progress(fraction, text)`` follows long work; ``on_step(report)`` sees every accepted
         continuation step."""
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """``derivatives`` (the model's values' d/dμ) with those of what the last placement set
-        beyond them: nothing for a start that is an equilibrium of the model's own forms at μ."""
+    def moved(self, model: Model) -> Moved | None:
+        """What the last placement set beyond the parameters' values, with its derivatives with
+        respect to μ (:class:`lungmech.fem.sensitivity.Moved`); None for a start whose states are
+        all solved on the model's own forms."""
 
 
 def approach(
@@ -147,9 +148,9 @@ class Rest:
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("rest", self.description, iterations)
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """As they are: the path's every state is solved on the model's own forms."""
-        return derivatives
+    def moved(self, model: Model) -> Moved | None:
+        """Nothing: the path's every state is solved on the model's own forms."""
+        return None
 
 
 class Equilibrium:
@@ -193,9 +194,9 @@ class Equilibrium:
         iterations = approach(model, solver, values, model.parameters.defaults, time, on_step)
         return StartReport("equilibrium", self.description, iterations, dict(self.details))
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """As they are: the path's every state is solved on the model's own forms."""
-        return derivatives
+    def moved(self, model: Model) -> Moved | None:
+        """Nothing: the path's every state is solved on the model's own forms."""
+        return None
 
 
 def one_state(start: Start, model: Model) -> np.ndarray:

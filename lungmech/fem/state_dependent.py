@@ -148,7 +148,10 @@ class StateDependent:
     def woodbury(
         self, y: np.ndarray, U: np.ndarray, V: np.ndarray, solve: Callable[[np.ndarray], np.ndarray]
     ) -> np.ndarray:
-        """(K + U Vᵀ)⁻¹ r from y = K⁻¹ r, with ``solve(b)`` = K⁻¹ b (owned rows; collective)."""
+        """(K + U Vᵀ)⁻¹ r from y = K⁻¹ r, with ``solve(b)`` = K⁻¹ b (owned rows; a column or
+        several side by side; collective)."""
         Z = np.column_stack([solve(U[:, j]) for j in range(U.shape[1])])
         small = np.eye(U.shape[1]) + gram(V, Z, self.comm)
-        return y - Z @ np.linalg.solve(small, gram(V, y[:, None], self.comm)[:, 0])
+        columns = y.reshape(len(y), -1)
+        corrected = columns - Z @ np.linalg.solve(small, gram(V, columns, self.comm))
+        return corrected.reshape(y.shape)

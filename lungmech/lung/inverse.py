@@ -31,7 +31,7 @@ from lungmech.mesh import nodes as mesh_nodes
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
-    from lungmech.fem.sensitivity import ValueDerivatives
+    from lungmech.fem.sensitivity import Moved
     from lungmech.lung.poromechanics import ImagedPorosity
 
 
@@ -248,6 +248,6 @@ class Imaged:
             details,
         )
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
+    def moved(self, model: Model) -> Moved | None:
         """Refused (:attr:`refuses_sensitivities`)."""
         raise ParameterError(self.refuses_sensitivities)

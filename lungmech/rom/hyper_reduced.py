@@ -225,6 +225,13 @@ class HyperReducedSolver:
         self._at(q)
         return self._functionals()
 
+    def update_coefficients(self) -> None:
+        """θ = Θ(x₀ + V q) of the state-dependent loads at the current q and values, from the
+        sample (collective)."""
+        self._at(self.coordinates)
+        for term in self._coupled:
+            term.update()
+
     @functools.cached_property
     def sensitivities(self) -> Sensitivities:
         """The derivatives of this model's own answer with respect to μ (compiled on first use)."""
@@ -354,9 +361,15 @@ class Sensitivities:
         """dq/dμ = −J⁻¹ (∂r/∂μ + Vᵀ K dx₀/dμ) at the current q, J, r and K those of the sample:
         the exact derivative of this model's own answer, (k, parameters). Collective."""
         solver, forms = self.solver, self.forms
-        solver._at(solver.coordinates)
-        jacobian = solver.reduced_jacobian()  # and K on the reduced mesh, at q
-        imposed = solver._on_columns(solver._start_derivatives(derivatives))
+        solver.update_coefficients()
+        jacobian = solver.reduced_jacobian()  # and K on the reduced mesh, at q (with θ's low rank)
+        start = solver._start_derivatives(derivatives)
+        if solver._coupled and _moves_the_body(solver, start):
+            raise ParameterError(
+                "sensitivities of a hyper-reduced model with balanced gravity: a parameter moves its start's "
+                "displacement (an imposed displacement), which the sampled coefficients' derivative does not follow"
+            )
+        imposed = solver._on_columns(start)
         rhs = gram(solver._row_basis, solver._tangent @ imposed, solver.comm)
         b = solver._vector.array
         solver._assembled.forget_residual()
@@ -437,6 +450,14 @@ def _positions(index_map: common.IndexMap, space: fem.FunctionSpace) -> np.ndarr
     order = np.argsort(numbers)
     at = np.minimum(np.searchsorted(numbers[order], wanted), len(numbers) - 1)
     return np.where(numbers[order][at] == wanted, order[at], -1)
+
+
+def _moves_the_body(solver: HyperReducedSolver, start: np.ndarray) -> bool:
+    """Whether dx₀/dμ (the reduced mesh's dofs × parameters) has a displacement part on any rank."""
+    reduced = solver.mesh
+    rows = reduced.space.sub(0).collapse()[1] if solver.model.multi_field else slice(None)
+    local = float(np.abs(start[rows]).max(initial=0.0))
+    return solver.comm.allreduce(local, op=MPI.MAX) > 0.0
 
 
 def _displacement_magnitude(model: Model, reduced: ReducedMesh, h: float) -> np.ndarray:

@@ -36,7 +36,7 @@ from dolfinx import fem
 from lungmech.errors import ParameterError, SolverError
 from lungmech.fem.inverse_motion import Handover, InverseMotion
 from lungmech.fem.quantities import Probe
-from lungmech.fem.sensitivity import ValueDerivatives, reduced_state_derivatives, value_derivatives
+from lungmech.fem.sensitivity import Moved, reduced_state_derivatives, value_derivatives
 from lungmech.fem.solver import NewtonOptions, NewtonSolver, StepReport
 from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
@@ -297,21 +297,22 @@ class ReducedImage:
         """∫ det(I + ∇ξ) dx of the reference now (m³; m³/m in 2-D), from its cubic."""
         return self._volume(self._coordinates())
 
-    def derivatives(self, model: Model, derivatives: ValueDerivatives) -> ValueDerivatives:
-        """The breath's value ``derivatives`` with dξ/dμ and the image's other fields' d/dμ at
-        the last placement, from the reduced inverse problem's own sensitivities:
+    def moved(self, model: Model) -> Moved:
+        """dξ/dμ and the image's other fields' d/dμ at the last placement, from the reduced
+        inverse problem's own sensitivities:
         da/dμ = −(V_ξᵀ K_ξ V_ξ)⁻¹ V_ξᵀ (∂R_ξ/∂μ + K_ξ dx_ξ⁰/dμ) (Galerkin, or on its sample),
         and dx_ξ/dμ = Z dz/dμ with z = (a, the imposed factors). Once per placement. Collective."""
         if self._derivative is None:
             inverse, reduced = self.inverse, self.solver
-            own = value_derivatives(inverse)
             if isinstance(reduced, HyperReducedSolver):
+                own = value_derivatives(inverse, update=reduced.update_coefficients)
                 da = reduced.sensitivities.state(own)
             else:
+                own = value_derivatives(inverse)
                 da = reduced_state_derivatives(inverse, self.basis.vectors, reduced.jacobian_form, own)
             dz = np.vstack([da, own.amplitudes[self._constraints]])
             self._derivative = (dz, self._directions @ dz)
-        return self._handover.derivatives(self.inverse, derivatives, self._derivative[1])
+        return self._handover.moved(self.inverse, self._derivative[1])
 
     def reference_map_at(self, probe: Callable[[], Probe]) -> OnPoints:
         """ξ at the points of ``probe()`` (points, 3; m) now, linear in z, and its derivative

@@ -272,12 +272,12 @@ class ReducedModel:
         hyper-reduced, with the sample's r and K, and the outputs' from reduced operators; on an
         image, ∂R/∂μ and dx₀/dμ with the reduced inverse motion's dξ/dμ and start."""
         model, V = self.model, self.basis.vectors
-        derivatives = value_derivatives(model)
-        if self.image is not None:  # dξ/dμ and the start's, from the reduced inverse motion
-            derivatives = self.image.derivatives(model, derivatives)
-        if self.sample is not None:
+        moved = self.image.moved(model) if self.image is not None else None  # dξ/dμ and the start's
+        if self.sample is not None:  # θ of state-dependent loads from the sample
             assert isinstance(self.solver, HyperReducedSolver) and isinstance(self.outputs, ReducedOutputs)
+            derivatives = value_derivatives(model, moved, update=self.solver.update_coefficients)
             return self.outputs.derivatives(self.solver.sensitivities.state(derivatives), derivatives)
+        derivatives = value_derivatives(model, moved)
         dq = reduced_state_derivatives(model, V, self.solver.jacobian_form, derivatives)
         dx = V @ dq + derivatives.start_state(V.shape[0])
         return output_derivatives(model, self.outputs, None, state_derivative=dx, derivatives=derivatives)
