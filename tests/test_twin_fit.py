@@ -253,3 +253,10 @@ def test_a_meshs_surface_nodes_and_areas_are_the_same_on_any_partition():
     assert nodes.area == pytest.approx(2 * (0.5 + 0.5 + 0.25), rel=1e-12)
     gathered = MPI.COMM_WORLD.allgather(nodes.points)
     assert all(np.array_equal(points, gathered[0]) for points in gathered)
+
+
+def test_an_interval_beside_a_parameter_at_its_bound_says_so(data):
+    """With swell stopped at its bound, tilt's interval is conditional on it: the note says so."""
+    fit = fit_of(data, swell=(0.2, 0.7))
+    interval = laplace(estimate(fit), fit).intervals["tilt"]
+    assert interval.low is not None and "swell at a bound" in interval.reason

@@ -144,7 +144,12 @@ IMAGED_AT_DEFAULTS = (
 
 
 def full_order_model(
-    scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, *, start: str = "imaged", model: Model | None = None
+    scene: Scene,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    *,
+    start: str = "imaged",
+    model: Model | None = None,
+    probes: Sequence[Sequence[float]] | None = None,
 ) -> FullOrderModel:
     """The scene's full-order model (``solve(mu)``). A scene with [inverse] solves the problem of
     an imaged body: its mesh is the loaded state at the start for every μ, and each solve finds
@@ -155,16 +160,16 @@ def full_order_model(
     "defaults", a model of another problem: the reference found once, at the default
     parameters, and its loaded state moved to each μ (:class:`~lungmech.fem.start.Equilibrium`).
     ``model``: the scene's :func:`build_model`, if built already (on its mesh as built; for
-    "inverse_motion", of the image's motion). Collective."""
+    "inverse_motion", of the image's motion). ``probes``: points of the mesh (of the image)
+    whose displacement is an output (default: the scene's). Collective."""
     if start not in STARTS:
         raise ParameterError(f"start must be one of {', '.join(STARTS)} (got {start!r})")
     if scene.inverse is not None and start == "inverse_motion":
         model = build_model(scene, comm, image=Image.motion(scene.stepping.start)) if model is None else model
-        probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()
         inverse = InverseMotion(model, scene.newton, body=body_name(model))
-        return FullOrderModel(model, scene.stepping, scene.newton, probes, inverse)
+        return FullOrderModel(model, scene.stepping, scene.newton, _probe(model, scene, probes), inverse)
     model = build_model(scene, comm) if model is None else model
-    probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()  # in the image
+    located = _probe(model, scene, probes)  # in the image
     first: Start | None = None
     if scene.inverse is not None:
         imaged = lung.Imaged(model, scene.inverse, body_name(model))
@@ -174,8 +179,14 @@ def full_order_model(
             placed = imaged.place(model, solver, model.parameters.defaults, scene.stepping.start)
             details = {"imaged_volume": imaged.volume, "reference_volume": placed.details["reference_volume"]}
             first = Equilibrium(model.state.x.array.copy(), IMAGED_AT_DEFAULTS.format(body=imaged.body), details)
-            return FullOrderModel(model, scene.stepping, scene.newton, probes, first, solver)
-    return FullOrderModel(model, scene.stepping, scene.newton, probes, first)
+            return FullOrderModel(model, scene.stepping, scene.newton, located, first, solver)
+    return FullOrderModel(model, scene.stepping, scene.newton, located, first)
+
+
+def _probe(model: Model, scene: Scene, points: Sequence[Sequence[float]] | None) -> Probe | tuple:
+    """The probe of ``points`` (default: the scene's), located on the model's mesh as it is."""
+    chosen = scene.output.probes if points is None else points
+    return Probe(model.geometry.mesh, chosen) if len(chosen) else ()
 
 
 def check_scale(scene: Scene, scale: Scale) -> Scale:

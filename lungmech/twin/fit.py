@@ -22,34 +22,23 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from time import perf_counter
-from typing import Protocol
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from lungmech.errors import ParameterError
-from lungmech.fem.parameters import Parameter, Parameters
+from lungmech.fem.parameters import Parameter
+from lungmech.fem.parametric import ParametricModel
 from lungmech.twin.surface import Surface, SurfaceNodes
 
 __all__ = ["Estimate", "Fit", "View", "estimate"]
-
-
-class Answering(Protocol):
-    """What a view needs of a model: its parameters, its load path's start and ``solve``."""
-
-    parameters: Parameters
-
-    @property
-    def stepping(self) -> object: ...
-
-    def solve(self, mu: Mapping[str, float] | None = None, **options: object) -> object: ...
 
 
 @dataclass(frozen=True)
 class View:
     """One image pair's data and the model that predicts it (see the module's doc)."""
 
-    model: Answering
+    model: ParametricModel
     nodes: SurfaceNodes
     surface: Surface
     time: float
@@ -76,9 +65,8 @@ class Prediction:
 def predict(view: View, values: Mapping[str, float]) -> Prediction:
     """The view's residual and Jacobian at the parameter ``values`` (one solve with
     sensitivities from t₀ to T)."""
-    start = float(view.model.stepping.start)  # type: ignore[attr-defined]  # both models' Stepping
-    solution = view.model.solve(values, sensitivities=True, times=[start, view.time])
-    outputs, derivatives = solution.outputs, solution.sensitivities  # type: ignore[attr-defined]
+    solution = view.model.solve(values, sensitivities=True, times=[view.model.stepping.start, view.time])
+    outputs, derivatives = solution.outputs, solution.sensitivities or {}
     probes = np.asarray(outputs["probes"])
     if probes.shape[1] != len(view.nodes.points):
         raise ParameterError(

@@ -116,6 +116,9 @@ def laplace(result: Estimate, fit: Fit, model_error: np.ndarray | None = None, l
         low, high = (parameter.from_unit(result.unit[i] + s * half) for s in (-1.0, 1.0))
         clipped = result.unit[i] - half < 0 or result.unit[i] + half > 1
         reason = "reaches the edge of the model's range: the interval is cut there" if clipped else None
+        if bounded := [other for other, side in result.active.items() if side is not None]:
+            held = f"{', '.join(bounded)} at a bound of {'its' if len(bounded) == 1 else 'their'} range"
+            reason = "; ".join(filter(None, [reason, f"holds with {held}, where the optimum is not interior"]))
         intervals[name] = Interval(low, high, z * deviation[i], bias[i], reason)
     scale = np.where(deviation > 0, deviation, 1.0)
     correlation = covariance / np.outer(scale, scale)

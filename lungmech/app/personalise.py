@@ -1,0 +1,262 @@
+"""A patient's lung parameters from a pair of segmentations: what ``lungmech personalise`` does.
+
+scene (its lung, physics and parameter box) + the end-expiration and end-inspiration
+segmentations →
+
+1. **registration**: the scene's reference lung mapped onto the end-expiration segmentation
+   (:func:`lungmech.registration.sobolev.register`); that mesh is the lung as imaged, posed as
+   an imaged body (its unloaded reference found at every μ: the inverse motion);
+2. **the patient's reduced model** (the offline step, timed apart): POD of ``training`` full
+   breaths over the box (the position's parameters fixed), Galerkin or ECSW at τ, its probes the
+   registered lung's surface nodes; checked at 3 further points against the full model, which
+   gives ε, the model's own error on each datum;
+3. **the estimate** (:mod:`lungmech.twin`): bounded least squares on the surface distances to
+   the end-inspiration segmentation and its volume, with the reduced model's exact
+   sensitivities; the Laplace intervals widened by ε as a bias; the identifiability; a check
+   by resampling;
+4. **confirmation**: one full-order solve at the estimate, its residual beside the reduced one's.
+
+The application talks to the models through ``solve(μ)`` only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+from lungmech.app.output import write_json
+from lungmech.app.run import build_model, full_order_model
+from lungmech.app.scene import Scene, build_geometry
+from lungmech.errors import ParameterError
+from lungmech.fem.parameters import Parameters
+from lungmech.fem.parametric import ParametricModel
+from lungmech.fem.placement import Image as Placement
+from lungmech.mesh import nodes
+from lungmech.parallel.destination import hold_signals_until_swap, output_folder
+from lungmech.registration import metrics
+from lungmech.registration.image import Image
+from lungmech.registration.sobolev import Options, register
+from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
+from lungmech.twin.fit import Estimate, Fit, View, estimate
+from lungmech.twin.surface import surface_data, surface_nodes
+from lungmech.twin.uncertainty import Uncertainty, laplace, resampled
+
+__all__ = ["POSITIONS", "Setting", "personalise"]
+
+POSITIONS = {"supine": -90.0, "upright": 0.0, "prone": 90.0}  # the weight's pitch (deg) in each position
+
+
+@dataclass(frozen=True)
+class Setting:
+    """How to personalise: ``estimate`` (parameter names; default: every parameter the position
+    does not fix), ``position`` (fixes a gravity pitch parameter, if the scene has one),
+    ``inspiration`` (s, the path's time of end-inspiration; default: the path's end),
+    ``training`` breaths and basis ``size`` of the patient's reduced model, ``tau`` (ECSW; None:
+    Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``; ``full_fit``:
+    also fit the full model on the same mesh to the same images (from the estimate), whose
+    distance from the truth is the discretisation's gap (twin experiments; minutes, not
+    seconds)."""
+
+    estimate: tuple[str, ...] = ()
+    position: str = "supine"
+    inspiration: float | None = None
+    training: int = 8
+    size: int = 10
+    tau: float | None = 1e-4
+    level: float = 0.95
+    resamples: int = 20
+    seed: int = 0
+    full_fit: bool = False
+
+
+def personalise(
+    scene: Scene,
+    expiration: Image,
+    inspiration: Image,
+    out: str | Path,
+    setting: Setting = Setting(),
+    comm: MPI.Comm = MPI.COMM_WORLD,
+) -> dict:
+    """Estimate ``scene``'s parameters from the segmentations ``expiration`` and ``inspiration``
+    (see the module's doc); write ``report.json`` into the folder ``out`` (replaced only on
+    success) and return the report. Collective."""
+    fixed = position_values(scene, setting.position)
+    box = Parameters(scene.parameters)
+    names = setting.estimate or tuple(p.name for p in box if p.name not in fixed)
+    for name in names:
+        box.named(name)
+    if not names:
+        raise ParameterError("personalise: the scene has no parameter to estimate (give it [parameters])")
+    if scene.inverse is None:
+        raise ParameterError(
+            "personalise: the scene must pose the imaged lung ([inverse]): the image is its loaded state"
+        )
+    end = float(scene.stepping.end) if setting.inspiration is None else float(setting.inspiration)
+    if not scene.stepping.start < end <= scene.stepping.end:
+        raise ParameterError(
+            f"personalise: end-inspiration at {end:g} s lies outside the scene's load path "
+            f"({scene.stepping.start:g}, {scene.stepping.end:g}] s"
+        )
+    seconds: dict[str, float] = {}
+    with output_folder(out, comm, command="lungmech personalise") as staging:
+        tic = time.perf_counter()
+        geometry = build_geometry(scene.geometry, comm)
+        registration = register(geometry.mesh, expiration, Options())
+        nodes.move_nodes(registration.displacement)  # the lung as imaged at end-expiration
+        registered = metrics.report(geometry.mesh, expiration) | registration.summary()
+        seconds["registration"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        model = build_model(scene, comm, geometry=geometry, image=Placement.motion(scene.stepping.start))
+        surface = surface_nodes(geometry.mesh)
+        full = full_order_model(scene, comm, start="inverse_motion", model=model, probes=surface.points.tolist())
+        training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
+        with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
+            reduced = reductor.reduce(None if setting.tau is None else ECSW(setting.tau))
+        seconds["offline"] = time.perf_counter() - tic
+
+        data = surface_data(inspiration)
+        checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
+        tic = time.perf_counter()
+        error, checked = model_error(full, reduced, checks, end, surface.area)
+        seconds["check"] = time.perf_counter() - tic
+
+        view = View(reduced, surface, data, end, fixed, setting.position)
+        fit = Fit([view], names)
+        found = estimate(fit)
+        seconds["estimate"] = found.seconds
+        tic = time.perf_counter()
+        uncertainty = laplace(found, fit, error, setting.level)
+        draws = (
+            resampled(fit, found, setting.resamples, setting.seed) if setting.resamples else np.zeros((0, len(names)))
+        )
+        seconds["uncertainty"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        confirm = Fit([View(full, surface, data, end, fixed, setting.position)], names)
+        full_residual = confirm.residual(found.unit)
+        seconds["confirmation"] = time.perf_counter() - tic
+        full_values = estimate(confirm, start=found.values).values if setting.full_fit else None
+
+        report = _report(box, names, fixed, found, uncertainty, draws, full_residual, checked, registered, seconds)
+        report["model"] = {"basis_size": reduced.size, "tau": setting.tau, "training": setting.training}
+        report["full_order_estimate"] = full_values
+        hold_signals_until_swap()
+        write_json(staging / "report.json", report, comm)
+    return report
+
+
+def position_values(scene: Scene, position: str) -> dict[str, float]:
+    """The parameters a position fixes: a parameter on a gravity load's pitch, at the position's
+    angle (none if the scene has no such parameter: then only "supine", its own, is accepted)."""
+    if position not in POSITIONS:
+        raise ParameterError(f"--position must be one of {', '.join(POSITIONS)} (got {position!r})")
+    pitched = [p for p in scene.parameters if p.target.endswith(".pitch")]
+    if not pitched:
+        if position != "supine":
+            raise ParameterError(
+                f"personalise: position {position} needs a parameter on the weight's pitch (loads.<gravity>.pitch), "
+                "which this scene does not have"
+            )
+        return {}
+    angle = POSITIONS[position]
+    for p in pitched:
+        p.check(angle, f"its pitch in position {position}")
+    return {p.name: angle for p in pitched}
+
+
+def model_error(
+    full: ParametricModel, reduced: ParametricModel, points: Sequence[Mapping[str, float]], end: float, area: float
+) -> tuple[np.ndarray, list[dict]]:
+    """ε per datum (m): over ``points``, the largest difference between the reduced and the
+    full model in each surface node's motion to ``end`` and in the volume's mean offset
+    (ΔV / ``area``); and each point's worst numbers."""
+    start = full.stepping.start
+    worst: np.ndarray | None = None
+    checked = []
+    for point in points:
+        answers = [m.solve(point, times=[start, end]) for m in (full, reduced)]
+        motion = [np.asarray(a.outputs["probes"])[1] - np.asarray(a.outputs["probes"])[0] for a in answers]
+        node = np.linalg.norm(motion[1] - motion[0], axis=1)
+        volume = abs(float(answers[1].outputs["volume"][1] - answers[0].outputs["volume"][1])) / area
+        row = np.append(node, volume)
+        worst = row if worst is None else np.maximum(worst, row)
+        checked.append({"parameters": dict(point), "motion_error_max": float(node.max()), "volume_offset": volume})
+    assert worst is not None  # (three points)
+    return worst, checked
+
+
+def _report(
+    box: Parameters,
+    names: Sequence[str],
+    fixed: Mapping[str, float],
+    found: Estimate,
+    uncertainty: Uncertainty,
+    draws: np.ndarray,
+    full_residual: np.ndarray,
+    checked: list[dict],
+    registered: dict,
+    seconds: dict[str, float],
+) -> dict:
+    """The report's plain values, each with its unit."""
+    parameters = {}
+    spread = draws.std(axis=0, ddof=1) if len(draws) > 1 else np.full(len(names), np.nan)
+    deviation = np.sqrt(np.diag(uncertainty.covariance))
+    for i, name in enumerate(names):
+        interval = uncertainty.intervals[name]
+        parameters[name] = {
+            "value": found.values[name],
+            "unit": box.named(name).unit or "1",
+            "interval": None if interval.low is None else [interval.low, interval.high],
+            "note": interval.reason,
+            "at_bound": found.active[name],
+            "deviation_unit_box": float(deviation[i]),
+            "resampled_deviation_unit_box": float(spread[i]),
+            "model_bias_unit_box": float(interval.bias),
+        }
+    residual = found.residual
+    return {
+        "parameters": parameters,
+        "fixed": dict(fixed),
+        "level": uncertainty.level,
+        "noise_sigma": uncertainty.sigma,
+        "correlation": np.asarray(uncertainty.correlation).tolist(),
+        "directions": [
+            {"combination": d.combination, "deviation_unit_box": d.deviation, "weak": d.weak, "text": d.text()}
+            for d in uncertainty.directions
+        ],
+        "fit": {
+            "surface_rms": float(np.sqrt(np.mean(residual[:-1] ** 2))),
+            "surface_max": float(np.abs(residual[:-1]).max()),
+            "volume_offset": float(residual[-1]),
+            "full_order_surface_rms": float(np.sqrt(np.mean(full_residual[:-1] ** 2))),
+            "full_order_volume_offset": float(full_residual[-1]),
+            "evaluations": found.evaluations,
+            "message": found.message,
+            "history": found.history,
+        },
+        "model_check": checked,
+        "registration": registered,
+        "seconds": seconds,
+        "units": UNITS,
+    }
+
+
+UNITS = {
+    "value": "the parameter's unit",
+    "interval": "the parameter's unit",
+    "deviation_unit_box": "1 (fraction of the parameter's range, log range on a log scale)",
+    "noise_sigma": "m",
+    "surface_rms": "m",
+    "surface_max": "m",
+    "volume_offset": "m (volume mismatch over the surface area)",
+    "motion_error_max": "m",
+    "cost": "m^2",
+    "seconds": "s",
+}

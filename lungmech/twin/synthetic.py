@@ -1,0 +1,73 @@
+"""Synthetic patients: a pair of segmentations made by a model whose parameters are known.
+
+A model of an imaged lung (its mesh the lung at end-expiration, t₀) solved at μ gives its
+motion w to end-inspiration T; both states, voxelised on one CT-like grid, are the pair of
+segmentations a clinic would have. Made on a finer mesh than the one that estimates, and read
+back as images only, they test the whole pipeline without an inverse crime: the estimating
+model never sees the mesh, the nodes or the motion that made them.
+
+Noise where it arises on segmentations: :func:`flip_boundary` flips a fraction of the voxels on
+the segmentation's surface (either side), seeded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from scipy import ndimage
+
+from lungmech.errors import ParameterError
+from lungmech.fem.parametric import ParametricModel
+from lungmech.mesh import nodes
+from lungmech.registration.image import Image, from_array
+from lungmech.registration.metrics import voxelise
+
+__all__ = ["flip_boundary", "image_pair"]
+
+
+def image_pair(
+    model: ParametricModel, mu: Mapping[str, float], time: float, spacing: float, margin: float = 0.02
+) -> tuple[Image, Image]:
+    """(end-expiration, end-inspiration) segmentations of the lung ``model`` (a full model of an
+    imaged body: ``solve``, ``fields`` and ``model``) at ``mu``, voxelised at ``spacing`` (m) on
+    one grid that holds both with ``margin`` (m) around. Collective."""
+    if not spacing > 0:
+        raise ParameterError(f"the voxel spacing must be a positive length in m (got {spacing})")
+    solution = model.solve(mu, times=[model.stepping.start, time])
+    model.fields(solution.states[-1], time)
+    fe = model.model
+    mesh = fe.geometry.mesh
+    motion = fe.motion()
+    expiration_nodes = mesh.geometry.x.copy()
+    with nodes.deformed(motion):
+        inspiration_nodes = mesh.geometry.x.copy()
+    both = np.vstack([expiration_nodes, inspiration_nodes])
+    low = np.min(mesh.comm.allgather(both.min(axis=0)), axis=0) - margin
+    high = np.max(mesh.comm.allgather(both.max(axis=0)), axis=0) + margin
+    shape = np.ceil((high - low) / spacing).astype(int)
+    grid = from_array(np.ones(shape, dtype=bool), spacing=(spacing,) * 3, origin=low + spacing / 2)
+    expiration = voxelise(mesh, grid)
+    with nodes.deformed(motion):
+        inspiration = voxelise(mesh, grid)
+    return (
+        from_array(expiration, spacing=(spacing,) * 3, origin=low + spacing / 2),
+        from_array(inspiration, spacing=(spacing,) * 3, origin=low + spacing / 2),
+    )
+
+
+def flip_boundary(image: Image, fraction: float, seed: int = 0) -> Image:
+    """``image`` with ``fraction`` of its surface voxels (those with a neighbour across the
+    surface, on either side) flipped, chosen at random (seeded): a segmentation's own noise."""
+    if not 0 <= fraction <= 1:
+        raise ParameterError(f"the fraction of surface voxels to flip must lie in [0, 1] (got {fraction})")
+    mask = image.mask
+    surface = mask ^ ndimage.binary_erosion(mask) | ndimage.binary_dilation(mask) ^ mask
+    where = np.flatnonzero(surface)
+    chosen = np.random.default_rng(seed).choice(where, size=int(round(fraction * where.size)), replace=False)
+    flipped = mask.copy().reshape(-1)
+    flipped[chosen] = ~flipped[chosen]
+    direction = image.affine[:3, :3] / image.spacing
+    return from_array(
+        flipped.reshape(mask.shape), spacing=image.spacing, origin=image.affine[:3, 3], direction=direction
+    )
