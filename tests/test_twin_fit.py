@@ -260,3 +260,23 @@ def test_an_interval_beside_a_parameter_at_its_bound_says_so(data):
     fit = fit_of(data, swell=(0.2, 0.7))
     interval = laplace(estimate(fit), fit).intervals["tilt"]
     assert interval.low is not None and "swell at a bound" in interval.reason
+
+
+def test_a_segmentations_boundary_noise_flips_surface_voxels_only():
+    """A fraction of the voxels with a neighbour across the surface, and no others, flipped."""
+    from lungmech.twin.synthetic import flip_boundary
+
+    mask = np.zeros((12, 12, 12), dtype=bool)
+    mask[3:9, 3:9, 3:9] = True
+    image = from_array(mask, spacing=(0.002,) * 3, origin=(0.1, 0.0, -0.05))
+    noisy = flip_boundary(image, 0.25, seed=4)
+    changed = noisy.mask != mask
+    inner, outer = np.zeros_like(mask), np.zeros_like(mask)
+    inner[4:8, 4:8, 4:8] = True  # deeper than one voxel inside
+    outer[2:10, 2:10, 2:10] = True  # within one voxel outside
+    assert not (changed & inner).any() and not (changed & ~outer).any()
+    surface = (6**3 - 4**3) + 6 * 6**2  # the cube's outer shell and the face-neighbours outside it
+    assert changed.sum() == round(0.25 * surface)
+    assert np.allclose(noisy.affine, image.affine)
+    with pytest.raises(ParameterError, match="must lie in"):
+        flip_boundary(image, 1.5)
