@@ -100,11 +100,11 @@ def test_a_synthetic_patients_breath_is_found_as_well_as_the_full_model_finds_it
     found = report["parameters"]["breath"]["value"]
     full = report["full_order_estimate"]["breath"]
     assert abs(found - TRUTH["breath"]) <= abs(full - TRUTH["breath"]) + 0.01 * 0.8
-    assert abs(full - TRUTH["breath"]) < 0.2 * TRUTH["breath"]  # the gap: coarse mesh, 4 mm voxels, registration
+    assert abs(full - TRUTH["breath"]) < 0.03 * TRUTH["breath"]  # the gap (coarse mesh, 4 mm voxels, registration)
     low, high = report["parameters"]["breath"]["interval"]
     assert low < found < high
     assert report["fixed"] == {"posture": -90.0}
-    assert report["fit"]["surface_rms"] < 0.004  # m: under a voxel
+    assert report["fit"]["surface_rms"] < 0.001  # m: a quarter of a voxel
     assert report["registration"]["dice"] > 0.97
     assert set(report["seconds"]) >= {"registration", "offline", "estimate", "confirmation"}
 

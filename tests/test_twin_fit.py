@@ -280,3 +280,28 @@ def test_a_segmentations_boundary_noise_flips_surface_voxels_only():
     assert np.allclose(noisy.affine, image.affine)
     with pytest.raises(ParameterError, match="must lie in"):
         flip_boundary(image, 1.5)
+
+
+def test_a_registered_meshs_own_offset_is_not_taken_for_motion(exact):
+    """Nodes left 0.5 mm outside the end-expiration surface (as a registration that matches
+    volumes leaves a faceted mesh's nodes): fitted to the distances themselves, the swell is
+    short by that offset; to their changes from end-expiration (the baseline), it is found."""
+    spacing = 0.001
+    centres, corner = grid(spacing)
+    affine = np.diag([spacing, spacing, spacing, 1.0])
+    affine[:3, 3] = corner + spacing / 2
+    at_rest = Surface(
+        ImageFunction(np.linalg.norm(centres, axis=-1) - R0, affine, distance_outside=True),
+        4 * np.pi / 3 * R0**3,
+        spacing,
+    )
+    nodes = sphere_nodes()
+    outside = SurfaceNodes(nodes.points * (R0 + 5e-4) / R0, nodes.areas)
+    model = BreathingSphere(nodes.points)  # its motion is the sphere's, from where the nodes are
+
+    def swell(baseline):
+        fit = Fit([View(model, outside, exact, 1.0, baseline=baseline)], ["swell", "tilt"])
+        return estimate(fit).values["swell"]
+
+    assert abs(swell(None) - TRUTH["swell"]) * A == pytest.approx(5e-4, rel=0.1)  # the offset, taken for motion
+    assert abs(swell(at_rest) - TRUTH["swell"]) * A < 5e-5

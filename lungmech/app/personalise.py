@@ -127,7 +127,8 @@ def personalise(
         error, checked = model_error(full, reduced, checks, end, surface.area)
         seconds["check"] = time.perf_counter() - tic
 
-        view = View(reduced, surface, data, end, fixed, setting.position)
+        baseline = surface_data(expiration)
+        view = View(reduced, surface, data, end, fixed, setting.position, baseline)
         fit = Fit([view], names)
         found = estimate(fit)
         seconds["estimate"] = found.seconds
@@ -139,7 +140,7 @@ def personalise(
         seconds["uncertainty"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        confirm = Fit([View(full, surface, data, end, fixed, setting.position)], names)
+        confirm = Fit([View(full, surface, data, end, fixed, setting.position, baseline)], names)
         full_residual = confirm.residual(found.unit)
         seconds["confirmation"] = time.perf_counter() - tic
         full_values = estimate(confirm, start=found.values).values if setting.full_fit else None

@@ -5,10 +5,15 @@ whose probes are the surface nodes x_i, the end-inspiration segmentation's data
 (:mod:`lungmech.twin.surface`), the time of end-inspiration T, and the values of the
 parameters this pair fixes (its posture). The residual of a view at μ is, in metres,
 
-    r_i(μ) = d(x_i + w_i(T; μ))            for each surface node,
-    r_V(μ) = (V(T; μ) − V_seg) / Σ a_i      for the volume (a mean normal offset),
+    r_i(μ) = d(x_i + w_i(T; μ)) − d₀(x_i)                  for each surface node,
+    r_V(μ) = ((V(T; μ) − V(t₀)) − (V_seg − V₀_seg)) / Σ a_i   for the volume (a mean normal offset),
 
-with w = u(T) − u(t₀) the motion from the image (the probes' displacement from the reference,
+d₀ and V₀_seg the end-expiration segmentation's (its ``baseline``; zero without one): a
+registered mesh does not lie on the segmented surface — its facets are chords, and the
+registration, which matches volumes, leaves its nodes about half a millimetre outside (on a
+coarse lung at 4 mm voxels) —, and what a breath must reproduce is each node's change of
+distance and the volume's change, not the offset the mesh had from the start (left in, it
+biased a breath's depth by 15 %). w = u(T) − u(t₀) is the motion from the image (the probes' displacement from the reference,
 u = w − ξ, at both times). Its Jacobian comes from the model's own exact sensitivities
 (``solve(μ, sensitivities=True)``): ∂r_i/∂μ = ∇d · ∂w_i/∂μ and ∂r_V/∂μ = (∂V/∂μ)/Σ a_i —
 never from differences of solves. The views' residuals are stacked; the estimated parameters
@@ -44,6 +49,7 @@ class View:
     time: float
     fixed: Mapping[str, float] = field(default_factory=dict)
     name: str = "view"
+    baseline: Surface | None = None
 
     @property
     def rows(self) -> int:
@@ -78,8 +84,14 @@ def predict(view: View, values: Mapping[str, float]) -> Prediction:
     positions = view.nodes.points + motion
     distance, gradient = view.surface.distance(positions)
     scale = view.nodes.area
-    volume = float(np.asarray(outputs["volume"])[1])
-    residual = np.append(distance, (volume - view.surface.volume) / scale)
+    volumes = np.asarray(outputs["volume"])
+    volume = float(volumes[1])
+    if view.baseline is None:
+        residual = np.append(distance, (volume - view.surface.volume) / scale)
+    else:  # the changes from end-expiration (see the module's doc)
+        offset, _ = view.baseline.distance(view.nodes.points)
+        change = (volume - float(volumes[0])) - (view.surface.volume - view.baseline.volume)
+        residual = np.append(distance - offset, change / scale)
     jacobian = np.vstack(
         [np.einsum("nc,ncp->np", gradient, motion_derivative), np.asarray(derivatives["volume"])[1][None, :] / scale]
     )
