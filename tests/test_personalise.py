@@ -12,6 +12,7 @@ import json
 
 from mpi4py import MPI
 
+import numpy as np
 import pytest
 
 from lungmech.app import scene as scenes
@@ -121,3 +122,41 @@ def test_positions_and_estimated_names_are_checked_in_one_line(tmp_path):
     with pytest.raises(ParameterError, match="outside the scene's load path"):
         personalise(scene, None, None, tmp_path / "out", Setting(inspiration=3.0))
     assert not (tmp_path / "out").exists()
+
+
+def _cube(path, low: int, size: int, shift=(0.0, 0.0, 0.0)):
+    """A cube of ``size`` voxels (2 mm) at index ``low`` in a 20³ grid, written to ``path``."""
+    from lungmech.registration.image import from_array, write
+
+    mask = np.zeros((20, 20, 20), dtype=bool)
+    mask[low : low + size, low : low + size, low : low + size] = True
+    write(from_array(mask, spacing=(0.002,) * 3, origin=shift), path)
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("apart", "do not overlap in space"),
+        ("swapped", "no more than"),
+        ("estimate", "unknown parameter 'stiff'"),
+        ("tau", "--tau must be a number or 'none'"),
+        ("missing", "nowhere.npz"),
+        ("position", "invalid choice: 'sideways'"),
+    ],
+)
+def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, capsys):
+    """Each refused before any work, in one line naming what is wrong, exit 2, nothing written."""
+    from lungmech.app.cli import main
+
+    small, large = _cube(tmp_path / "small.npz", 6, 6), _cube(tmp_path / "large.npz", 5, 9)
+    far = _cube(tmp_path / "far.npz", 5, 9, shift=(1.0, 0.0, 0.0))
+    pair = {"apart": (small, far), "swapped": (large, small), "missing": (small, str(tmp_path / "nowhere.npz"))}
+    expiration, inspiration = pair.get(case, (small, large))
+    extra = {"estimate": ["--estimate", "stiff"], "tau": ["--tau", "small"], "position": ["--position", "sideways"]}
+    out = tmp_path / "out"
+    argv = ["personalise", "--expiration", expiration, "--inspiration", inspiration, "-o", str(out), "-q"]
+    assert main(argv + extra.get(case, [])) == 2
+    said = capsys.readouterr().err
+    assert said.count("\n") == 1 and expected in said, said
+    assert not out.exists()

@@ -1,4 +1,5 @@
 """Command line: ``lungmech run [SCENE] -o OUT``, ``lungmech rom build|solve``, ``lungmech trade``,
+``lungmech personalise``,
 ``lungmech register``, ``lungmech shape-modes``, ``lungmech shape``, ``lungmech phantom`` and
 ``lungmech info``.
 
@@ -21,8 +22,8 @@ from types import FrameType
 from typing import TYPE_CHECKING, NoReturn
 
 from lungmech._threads import cap_threads
+from lungmech.app import personalise_cli, rom_cli, trade_cli
 from lungmech.app import registration_cli as registration
-from lungmech.app import rom_cli, trade_cli
 from lungmech.app.arguments import RESULTS, check_ensemble, common, ensemble_of, ensemble_options, logging_comm, setup
 from lungmech.errors import Interrupted, LungmechError, ParameterError
 
@@ -60,6 +61,7 @@ def parser() -> argparse.ArgumentParser:
     ensemble_options(run, "with --sweep, the points' solves")
     rom_cli.add_commands(commands)
     trade_cli.add_commands(commands)
+    personalise_cli.add_commands(commands)
     registration.add_commands(commands)
     commands.add_parser("info", help="versions, MPI size and available laws")
     return top
@@ -135,6 +137,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return registration.run(args)
     if args.command in trade_cli.COMMANDS:
         return trade_cli.run(args)
+    if args.command in personalise_cli.COMMANDS:
+        return personalise_cli.run(args)
     if args.command == "rom" and args.action == "build":
         return rom_cli.build(args)
     return _run(args)

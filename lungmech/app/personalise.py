@@ -33,13 +33,14 @@ import numpy as np
 from lungmech.app.output import write_json
 from lungmech.app.run import build_model, full_order_model
 from lungmech.app.scene import Scene, build_geometry
-from lungmech.errors import ParameterError
+from lungmech.errors import ImageError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import ParametricModel
 from lungmech.fem.placement import Image as Placement
 from lungmech.mesh import nodes
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.registration import metrics
+from lungmech.registration import side as sides
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
@@ -47,7 +48,7 @@ from lungmech.twin.fit import Estimate, Fit, View, estimate
 from lungmech.twin.surface import surface_data, surface_nodes
 from lungmech.twin.uncertainty import Uncertainty, laplace, resampled
 
-__all__ = ["POSITIONS", "Setting", "personalise"]
+__all__ = ["POSITIONS", "Setting", "check_pair", "personalise", "position_values"]
 
 POSITIONS = {"supine": -90.0, "upright": 0.0, "prone": 90.0}  # the weight's pitch (deg) in each position
 
@@ -103,6 +104,7 @@ def personalise(
             f"personalise: end-inspiration at {end:g} s lies outside the scene's load path "
             f"({scene.stepping.start:g}, {scene.stepping.end:g}] s"
         )
+    check_pair(expiration, inspiration, scene.geometry.get("side"))
     seconds: dict[str, float] = {}
     with output_folder(out, comm, command="lungmech personalise") as staging:
         tic = time.perf_counter()
@@ -151,6 +153,40 @@ def personalise(
         hold_signals_until_swap()
         write_json(staging / "report.json", report, comm)
     return report
+
+
+def check_pair(expiration: Image, inspiration: Image, side: str | None) -> None:
+    """Refuse, in one line naming the image, a pair that cannot be one lung breathing in: images
+    whose physical extents do not overlap, an end-inspiration lung smaller than the
+    end-expiration one, a lung of the other side than the scene's (where the image's header
+    tells its side)."""
+    names = {
+        "expiration": _name(expiration, "the end-expiration image"),
+        "inspiration": _name(inspiration, "the end-inspiration image"),
+    }
+    (low, high), (other_low, other_high) = expiration.bounds(), inspiration.bounds()
+    if np.any(high < other_low) or np.any(other_high < low):
+        raise ImageError(
+            f"{names['expiration']} and {names['inspiration']} do not overlap in space (their boxes span "
+            "[{}] and [{}] m): check their origins and orientations".format(
+                ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(low, high)),
+                ", ".join(f"{a:.3f}..{b:.3f}" for a, b in zip(other_low, other_high)),
+            )
+        )
+    volumes = [image.mask.sum() * image.voxel_volume for image in (expiration, inspiration)]
+    if volumes[1] <= volumes[0]:
+        raise ImageError(
+            f"{names['inspiration']} holds {1e3 * volumes[1]:.3f} L, no more than {names['expiration']}'s "
+            f"{1e3 * volumes[0]:.3f} L: the images are swapped, or not one lung breathing in"
+        )
+    for which, image in (("expiration", expiration), ("inspiration", inspiration)):
+        found = sides.of_image(image).side
+        if side is not None and found is not None and found != side:
+            raise ImageError(f"{names[which]} holds a {found} lung; the scene's lung is a {side} one")
+
+
+def _name(image: Image, default: str) -> str:
+    return f"'{Path(image.source).name}'" if image.source is not None else default
 
 
 def position_values(scene: Scene, position: str) -> dict[str, float]:

@@ -67,7 +67,4 @@ def flip_boundary(image: Image, fraction: float, seed: int = 0) -> Image:
     chosen = np.random.default_rng(seed).choice(where, size=int(round(fraction * where.size)), replace=False)
     flipped = mask.copy().reshape(-1)
     flipped[chosen] = ~flipped[chosen]
-    direction = image.affine[:3, :3] / image.spacing
-    return from_array(
-        flipped.reshape(mask.shape), spacing=image.spacing, origin=image.affine[:3, 3], direction=direction
-    )
+    return image.with_mask(flipped.reshape(mask.shape))
