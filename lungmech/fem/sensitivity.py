@@ -266,7 +266,12 @@ def value_derivatives(
     if unknown := [f.name for f in along if f not in forms.functions]:
         raise ParameterError(f"sensitivities: the start sets {', '.join(unknown)}, which no form of the model holds")
     terms = model.state_dependent
-    refresh = update or (lambda: [term.update() for term in terms])
+
+    def on_the_whole_mesh() -> None:
+        for term in terms:
+            term.update()
+
+    refresh = update or on_the_whole_mesh
     parameters = model.parameters
     size = len(model.state.x.array)
     constants = {c: np.zeros((*np.shape(c.value), len(parameters))) for c in forms.constants}
