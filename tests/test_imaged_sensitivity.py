@@ -173,8 +173,9 @@ def test_balanced_gravitys_sensitivities_are_the_finite_differences(weighed, kin
     for name in WEIGHED_MU:
         i = solution.parameter_names.index(name)
         for key, approximate in finite_differences(model, WEIGHED_MU, name).items():
-            # the weight barely changes the volume: its derivative there is near the differences' noise
-            bound = 1e-5 if name == "pitch" and key == "volume" else RTOL
+            # the weight's direction barely changes the volume and the energy (derivatives ~1e-9 of
+            # them): there the differences' own noise is ~1e-6
+            bound = 1e-5 if name == "pitch" and key in ("volume", "strain_energy") else RTOL
             assert disagreement(solution.sensitivities[key][..., i], approximate) < bound, (kind, name, key)
 
 
