@@ -8,8 +8,9 @@ segmentations →
    an imaged body (its unloaded reference found at every μ: the inverse motion);
 2. **the patient's reduced model** (the offline step, timed apart): POD of ``training`` full
    breaths over the box (the position's parameters fixed), Galerkin or ECSW at τ, its probes the
-   registered lung's surface nodes; checked at 3 further points against the full model, which
-   gives ε, the model's own error on each datum;
+   registered lung's surface nodes; checked at 3 further points against the full model, and
+   that against the full model on the lung refined once (the mesh's own error): their sum is
+   ε, the model's error on each datum;
 3. **the estimate** (:mod:`lungmech.twin`): bounded least squares on the surface distances to
    the end-inspiration segmentation and its volume, with the reduced model's exact
    sensitivities; the Laplace intervals widened by ε as a bias; the identifiability; a check
@@ -38,6 +39,7 @@ from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import ParametricModel
 from lungmech.fem.placement import Image as Placement
 from lungmech.mesh import nodes
+from lungmech.mesh.refine import refined
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.registration import metrics
 from lungmech.registration import side as sides
@@ -59,7 +61,9 @@ class Setting:
     does not fix), ``position`` (fixes a gravity pitch parameter, if the scene has one),
     ``inspiration`` (s, the path's time of end-inspiration; default: the path's end),
     ``training`` breaths and basis ``size`` of the patient's reduced model, ``tau`` (ECSW; None:
-    Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``; ``full_fit``:
+    Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
+    ``mesh_check``: ε also holds the mesh's own error, the full model's against the same lung
+    refined once at the 3 check points (8 times the unknowns); ``full_fit``:
     also fit the full model on the same mesh to the same images (from the estimate), whose
     distance from the truth is the discretisation's gap (twin experiments; minutes, not
     seconds)."""
@@ -74,6 +78,7 @@ class Setting:
     resamples: int = 20
     seed: int = 0
     full_fit: bool = False
+    mesh_check: bool = True
 
 
 def personalise(
@@ -126,7 +131,15 @@ def personalise(
         data = surface_data(inspiration)
         checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
         tic = time.perf_counter()
-        error, checked = model_error(full, reduced, checks, end, surface.area)
+        chain: list[ParametricModel] = [reduced, full]
+        if setting.mesh_check:  # the mesh's own error: the same lung refined once
+            finer = build_model(
+                scene, comm, geometry=refined(geometry).geometry, image=Placement.motion(scene.stepping.start)
+            )
+            chain.append(
+                full_order_model(scene, comm, start="inverse_motion", model=finer, probes=surface.points.tolist())
+            )
+        error, checked = model_error(chain, checks, end, surface.area)
         seconds["check"] = time.perf_counter() - tic
 
         baseline = surface_data(expiration)
@@ -209,22 +222,29 @@ def position_values(scene: Scene, position: str) -> dict[str, float]:
 
 
 def model_error(
-    full: ParametricModel, reduced: ParametricModel, points: Sequence[Mapping[str, float]], end: float, area: float
+    chain: Sequence[ParametricModel], points: Sequence[Mapping[str, float]], end: float, area: float
 ) -> tuple[np.ndarray, list[dict]]:
-    """ε per datum (m): over ``points``, the largest difference between the reduced and the
-    full model in each surface node's motion to ``end`` and in the volume's mean offset
-    (ΔV / ``area``); and each point's worst numbers."""
-    start = full.stepping.start
+    """ε per datum (m) of the first model of ``chain`` against the truth, bounded by the chain's
+    steps (the reduced model against the full one on its mesh, that against the full model on
+    a finer mesh: the error of reduction and the mesh's own): over ``points``, the largest sum
+    of each step's difference in each surface node's motion to ``end`` and in the volume
+    change's mean offset (ΔV / ``area``); and each point's worst numbers per step."""
+    start = chain[0].stepping.start
     worst: np.ndarray | None = None
     checked = []
     for point in points:
-        answers = [m.solve(point, times=[start, end]) for m in (full, reduced)]
-        motion = [np.asarray(a.outputs["probes"])[1] - np.asarray(a.outputs["probes"])[0] for a in answers]
-        node = np.linalg.norm(motion[1] - motion[0], axis=1)
-        volume = abs(float(answers[1].outputs["volume"][1] - answers[0].outputs["volume"][1])) / area
-        row = np.append(node, volume)
+        answers = [model.solve(point, times=[start, end]) for model in chain]
+        motions = [np.asarray(a.outputs["probes"])[1] - np.asarray(a.outputs["probes"])[0] for a in answers]
+        changes = [float(a.outputs["volume"][1] - a.outputs["volume"][0]) for a in answers]
+        row = np.zeros(len(motions[0]) + 1)
+        steps = []
+        for k in range(len(chain) - 1):
+            node = np.linalg.norm(motions[k] - motions[k + 1], axis=1)
+            volume = abs(changes[k] - changes[k + 1]) / area
+            row += np.append(node, volume)
+            steps.append({"motion_error_max": float(node.max()), "volume_offset": volume})
         worst = row if worst is None else np.maximum(worst, row)
-        checked.append({"parameters": dict(point), "motion_error_max": float(node.max()), "volume_offset": volume})
+        checked.append({"parameters": dict(point), "steps": steps})
     assert worst is not None  # (three points)
     return worst, checked
 
