@@ -162,3 +162,18 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
     said = capsys.readouterr().err
     assert said.count("\n") == 1 and expected in said, said
     assert not out.exists()
+
+
+def test_an_output_folder_that_holds_the_images_is_refused(tmp_path, capsys):
+    """Even a folder lungmech wrote before: replacing it would take the images with it."""
+    from lungmech.app.cli import main
+
+    folder = tmp_path / "earlier"
+    folder.mkdir()
+    (folder / ".lungmech-output").write_text("")  # (any marker: refused on the inputs before it is read)
+    small, large = _cube(folder / "small.npz", 6, 6), _cube(folder / "large.npz", 5, 9)
+    argv = ["personalise", "--expiration", small, "--inspiration", large, "-o", str(folder), "-q"]
+    assert main(argv) == 2
+    said = capsys.readouterr().err
+    assert said.count("\n") == 1 and "holds the input" in said
+    assert sorted(p.name for p in folder.iterdir()) == [".lungmech-output", "large.npz", "small.npz"]

@@ -111,7 +111,8 @@ def personalise(
         )
     check_pair(expiration, inspiration, scene.geometry.get("side"))
     seconds: dict[str, float] = {}
-    with output_folder(out, comm, command="lungmech personalise") as staging:
+    inputs = [image.source for image in (expiration, inspiration) if image.source is not None]
+    with output_folder(out, comm, inputs=inputs, command="lungmech personalise") as staging:
         tic = time.perf_counter()
         geometry = build_geometry(scene.geometry, comm)
         registration = register(geometry.mesh, expiration, Options())
