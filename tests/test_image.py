@@ -142,6 +142,68 @@ def test_itk_physical_points_are_lps(tmp_path):
     assert np.allclose(via_itk.affine, via_nibabel.affine, rtol=FLOAT32, atol=FLOAT32 * 1e-3)
 
 
+def write_dicom_series(image: Image, folder: Path, patient: str = "Doe^Jane") -> Path:
+    """``image`` as a DICOM series, a slice a file (SimpleITK's GDCM writer), its geometry in
+    the slices' orientation and positions, a patient's name in every header."""
+    sitk = pytest.importorskip("SimpleITK")
+    write(image, folder / "source.mha")
+    itk = sitk.Cast(sitk.ReadImage(str(folder / "source.mha")), sitk.sitkUInt16)
+    (folder / "series").mkdir()
+    d = itk.GetDirection()
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(itk.GetDepth()):
+        piece = itk[:, :, k]
+        tags = {
+            "0008|0060": "CT",
+            "0010|0010": patient,
+            "0020|000d": "1.2.826.0.1.3680043.2.1125.1",
+            "0020|000e": "1.2.826.0.1.3680043.2.1125.1.2",
+            "0020|0037": "\\".join(f"{v:.12f}" for v in (d[0], d[3], d[6], d[1], d[4], d[7])),
+            "0020|0032": "\\".join(f"{v:.12f}" for v in itk.TransformIndexToPhysicalPoint((0, 0, k))),
+            "0020|0013": str(k + 1),
+            "0008|0018": f"1.2.826.0.1.3680043.2.1125.1.2.{k + 1}",
+        }
+        for tag, value in tags.items():
+            piece.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / "series" / f"slice{k:03d}.dcm"))
+        writer.Execute(piece)
+    (folder / "source.mha").unlink()
+    return folder / "series"
+
+
+def test_a_dicom_series_is_read_from_its_folder(tmp_path):
+    """A segmentation as a folder of DICOM slices (a rotated grid, anisotropic voxels): the same
+    voxels at the same points as the image it was written from; the patient's name is not read."""
+    image = oblique()
+    read_back = read(write_dicom_series(image, tmp_path))
+    assert read_back.mask.sum() == image.mask.sum()
+
+    def inside(im: Image) -> np.ndarray:  # the voxels' centres inside, in one order (µm)
+        points = np.round(im.points(np.argwhere(im.mask)) * 1e6).astype(np.int64)
+        return points[np.lexsort(points.T)]
+
+    assert np.array_equal(inside(read_back), inside(image))
+    assert np.allclose(np.sort(read_back.spacing), np.sort(image.spacing), rtol=1e-6)
+    assert "Doe" not in repr(vars(read_back))
+
+
+def test_a_dicom_folder_must_hold_one_series(tmp_path):
+    pytest.importorskip("SimpleITK")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ImageError, match="holds no DICOM series"):
+        read(tmp_path / "empty")
+    first = write_dicom_series(oblique(), tmp_path)
+    other = tmp_path / "other"
+    other.mkdir()
+    second = write_dicom_series(oblique(), other)
+    for path in second.iterdir():  # the same study, another series
+        text = path.read_bytes().replace(b"1.2.826.0.1.3680043.2.1125.1.2", b"1.2.826.0.1.3680043.2.1125.1.3")
+        (first / f"b-{path.name}").write_bytes(text)
+    with pytest.raises(ImageError, match="holds 2 DICOM series"):
+        read(first)
+
+
 def test_label_selection(tmp_path):
     data = np.zeros((5, 5, 5), dtype=np.int16)
     data[:2] = 1

@@ -23,7 +23,9 @@ COMMANDS = ("register", "shape-modes", "shape", "phantom")
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
     register = commands.add_parser("register", help="map a reference mesh onto a segmented 3-D image")
-    register.add_argument("image", help="segmentation (.nii, .nii.gz, .mha, .nrrd or .npz)")
+    register.add_argument(
+        "image", help="segmentation (.nii, .nii.gz, .mha, .nrrd, .npz, or a folder of one DICOM series)"
+    )
     _reference(register, default=None)
     register.add_argument(
         "--side",

@@ -181,31 +181,34 @@ def from_array(
 
 
 def read(path: str | Path, *, label: int | None = None, unit: str | None = None) -> Image:
-    """Read a segmentation from a file.
+    """Read a segmentation from a file, or from a folder of one DICOM series.
 
     Args:
         path: A ``.nii`` or ``.nii.gz`` file (NIfTI, affine as nibabel chooses it from the
             sform and qform), a ``.mha``, ``.mhd``, ``.nrrd`` or ``.nhdr`` file (needs
-            SimpleITK), or a ``.npz`` file from :func:`write`.
+            SimpleITK), a ``.npz`` file from :func:`write`, or a folder holding one DICOM
+            series (needs SimpleITK; only its pixels and geometry are read, no other tag).
         label: Select the voxels with this value. Without it, the image must be binary
             (boolean, or values 0 and 1 only).
         unit: Length unit of the file's geometry, ``"m"`` or ``"mm"``, overriding what the file
             says. By default, NIfTI's header unit is used (millimetres when it is unset), and
-            ITK formats are taken as millimetres. Ignored for ``.npz``, which is always in metres.
+            ITK formats and DICOM are taken as millimetres. Ignored for ``.npz``, which is always in metres.
 
     Raises:
         ImageError: The file is missing, unreadable or not a usable 3-D segmentation.
     """
     path = Path(path)
-    format_ = kind(path)
+    format_ = "dicom" if path.is_dir() else kind(path)
     if unit is not None and unit not in _UNITS:
         raise ImageError(f"unknown unit {unit!r} for image '{path}'; use 'm' or 'mm'")
-    if not path.is_file():
+    if not path.exists():
         raise ImageError(f"image file '{path}' not found")
     what = f"image '{path}'"
     scale = None if unit is None else _UNITS[unit]
     oriented = True
-    if format_ == "nifti":
+    if format_ == "dicom":
+        data, affine = _read_dicom(path, scale)
+    elif format_ == "nifti":
         data, affine, oriented = _read_nifti(path, scale)
     elif format_ == "itk":
         data, affine = _read_itk(path, scale)
@@ -347,6 +350,37 @@ def _read_itk(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.ND
     sitk = _simpleitk(path)
     try:
         itk = sitk.ReadImage(str(path))
+    except Exception as e:
+        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+    return _from_itk(itk, path, scale)
+
+
+def _read_dicom(folder: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+    """The one DICOM series in ``folder`` (its slices ordered by position, the geometry from
+    their orientation and positions, by ITK's GDCM reader). Only the pixels and their geometry
+    are read: none of the headers' other tags (the patient's name, say) is loaded."""
+    sitk = _simpleitk(folder)
+    try:
+        series = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)))
+    except Exception as e:
+        raise ImageError(f"cannot read the DICOM folder '{folder}': {_one_line(e)}") from e
+    if len(series) != 1:
+        held = "no DICOM series" if not series else f"{len(series)} DICOM series"
+        raise ImageError(f"image folder '{folder}' holds {held}: give a folder of one segmentation's series")
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), series[0]))
+    reader.MetaDataDictionaryArrayUpdateOff()  # (ITK's default: the tags stay unread)
+    try:
+        itk = reader.Execute()
+    except Exception as e:
+        raise ImageError(f"cannot read the DICOM series in '{folder}': {_one_line(e)}") from e
+    return _from_itk(itk, folder, scale)
+
+
+def _from_itk(itk: Any, path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
+    """An ITK image's voxels, indexed [i, j, k], and its affine in lungmech's metres."""
+    sitk = _simpleitk(path)
+    try:
         components = itk.GetNumberOfComponentsPerPixel()
         dim = itk.GetDimension()
         data = sitk.GetArrayFromImage(itk).transpose()  # ITK arrays are [k, j, i]
