@@ -253,6 +253,12 @@ def test_a_meshs_surface_nodes_and_areas_are_the_same_on_any_partition():
     assert nodes.area == pytest.approx(2 * (0.5 + 0.5 + 0.25), rel=1e-12)
     gathered = MPI.COMM_WORLD.allgather(nodes.points)
     assert all(np.array_equal(points, gathered[0]) for points in gathered)
+    # its triangles: the box's 2 (4·2 + 4·2 + 2·2) boundary triangles, closed (each edge in two), the same area
+    corners = nodes.points[nodes.triangles]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    assert len(nodes.triangles) == 2 * 2 * (8 + 8 + 4) and areas.sum() == pytest.approx(nodes.area, rel=1e-12)
+    edges = np.sort(nodes.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    assert set(np.unique(edges, axis=0, return_counts=True)[1]) == {2}
 
 
 def test_an_interval_beside_a_parameter_at_its_bound_says_so(data):

@@ -31,6 +31,7 @@ from mpi4py import MPI
 
 import numpy as np
 
+from lungmech.app import twin_pictures
 from lungmech.app.output import write_json
 from lungmech.app.run import build_model, full_order_model
 from lungmech.app.scene import Scene, build_geometry
@@ -48,28 +49,48 @@ from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
 from lungmech.twin.fit import Estimate, Fit, View, estimate
 from lungmech.twin.surface import surface_data, surface_nodes
+from lungmech.twin.synthetic import surface_noise
 from lungmech.twin.uncertainty import Uncertainty, laplace, resampled
 
-__all__ = ["POSITIONS", "Setting", "check_pair", "personalise", "position_values"]
+__all__ = [
+    "POSITIONS",
+    "Pair",
+    "Patient",
+    "Setting",
+    "check_pair",
+    "estimated",
+    "personalise",
+    "position_values",
+    "prepare",
+]
 
 POSITIONS = {"supine": -90.0, "upright": 0.0, "prone": 90.0}  # the weight's pitch (deg) in each position
 
 
 @dataclass(frozen=True)
+class Pair:
+    """One pair of a patient's segmentations, end-expiration and end-inspiration, taken in one
+    ``position`` (supine, upright or prone)."""
+
+    expiration: Image
+    inspiration: Image
+    position: str = "supine"
+
+
+@dataclass(frozen=True)
 class Setting:
-    """How to personalise: ``estimate`` (parameter names; default: every parameter the position
-    does not fix), ``position`` (fixes a gravity pitch parameter, if the scene has one),
-    ``inspiration`` (s, the path's time of end-inspiration; default: the path's end),
-    ``training`` breaths and basis ``size`` of the patient's reduced model, ``tau`` (ECSW; None:
-    Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
+    """How to personalise: ``estimate`` (parameter names; default: every parameter no pair's
+    position fixes), ``inspiration`` (s, the path's time of end-inspiration; default: the
+    path's end), ``training`` breaths and basis ``size`` of each pair's reduced model, ``tau``
+    (ECSW; None: Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
     ``mesh_check``: ε also holds the mesh's own error, the full model's against the same lung
-    refined once at the 3 check points (8 times the unknowns); ``full_fit``:
-    also fit the full model on the same mesh to the same images (from the estimate), whose
-    distance from the truth is the discretisation's gap (twin experiments; minutes, not
-    seconds)."""
+    refined once at the 3 check points (8 times the unknowns); ``full_fit``: also fit the full
+    model on the same mesh to the same images (from the estimate), whose distance from the
+    truth is the discretisation's gap (twin experiments; minutes, not seconds); ``noise``
+    (twin experiments): Gaussian noise added to every surface datum, its standard deviation
+    this fraction of the RMS of the surface's observed motion (seeded by ``seed``)."""
 
     estimate: tuple[str, ...] = ()
-    position: str = "supine"
     inspiration: float | None = None
     training: int = 8
     size: int = 10
@@ -79,22 +100,166 @@ class Setting:
     seed: int = 0
     full_fit: bool = False
     mesh_check: bool = True
+    noise: float = 0.0
+
+
+@dataclass(frozen=True)
+class Patient:
+    """A patient made ready for estimates (:func:`prepare`): per pair, the ``views`` of its
+    reduced model and of its full model on the same mesh (``full_views``), ε per datum
+    (``error``, m), each check point's numbers (``checked``) and registration summary
+    (``registered``); the ``estimated`` parameters' names, the ``box`` and the offline
+    ``seconds``."""
+
+    box: Parameters
+    estimated: tuple[str, ...]
+    views: tuple[View, ...]
+    full_views: tuple[View, ...]
+    error: np.ndarray
+    checked: tuple[dict, ...]
+    registered: tuple[dict, ...]
+    seconds: dict[str, float]
+    basis_sizes: tuple[int, ...]
+
+    def fit(self, full: bool = False) -> Fit:
+        """The least-squares problem of every pair, on the reduced models (or the full ones)."""
+        return Fit(self.full_views if full else self.views, self.estimated)
 
 
 def personalise(
     scene: Scene,
-    expiration: Image,
-    inspiration: Image,
+    pairs: Sequence[Pair],
     out: str | Path,
     setting: Setting = Setting(),
     comm: MPI.Comm = MPI.COMM_WORLD,
 ) -> dict:
-    """Estimate ``scene``'s parameters from the segmentations ``expiration`` and ``inspiration``
-    (see the module's doc); write ``report.json`` into the folder ``out`` (replaced only on
-    success) and return the report. Collective."""
-    fixed = position_values(scene, setting.position)
+    """Estimate ``scene``'s parameters from the segmentations of ``pairs`` (see the module's
+    doc); write ``report.json`` into the folder ``out`` (replaced only on success) and return
+    the report. Collective."""
+    pairs = tuple(pairs)
+    names, end = _checked_request(scene, pairs, setting)
+    inputs = [image.source for p in pairs for image in (p.expiration, p.inspiration) if image.source is not None]
+    with output_folder(out, comm, inputs=inputs, command="lungmech personalise") as staging:
+        patient = prepare(scene, pairs, setting, comm, names, end)
+        report = estimated(patient, setting, staging, comm)
+        hold_signals_until_swap()
+        write_json(staging / "report.json", report, comm)
+    return report
+
+
+def prepare(
+    scene: Scene,
+    pairs: Sequence[Pair],
+    setting: Setting = Setting(),
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    estimated: Sequence[str] | None = None,
+    end: float | None = None,
+) -> Patient:
+    """Each pair's registration, reduced model and its check (the steps 1–2 of the module's
+    doc). Collective."""
+    if estimated is None or end is None:
+        estimated, end = _checked_request(scene, tuple(pairs), setting)
     box = Parameters(scene.parameters)
-    names = setting.estimate or tuple(p.name for p in box if p.name not in fixed)
+    seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
+    views: list[View] = []
+    full_views: list[View] = []
+    errors: list[np.ndarray] = []
+    checked: list[dict] = []
+    registered: list[dict] = []
+    sizes: list[int] = []
+    for index, pair in enumerate(pairs):
+        name = pair.position if sum(p.position == pair.position for p in pairs) == 1 else f"{pair.position}-{index + 1}"
+        fixed = position_values(scene, pair.position)
+        tic = time.perf_counter()
+        geometry = build_geometry(scene.geometry, comm)
+        registration = register(geometry.mesh, pair.expiration, Options())
+        nodes.move_nodes(registration.displacement)  # the lung as imaged at end-expiration
+        registered.append({"pair": name} | metrics.report(geometry.mesh, pair.expiration) | registration.summary())
+        seconds["registration"] += time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        model = build_model(scene, comm, geometry=geometry, image=Placement.motion(scene.stepping.start))
+        surface = surface_nodes(geometry.mesh)
+        probes = surface.points.tolist()
+        full = full_order_model(scene, comm, start="inverse_motion", model=model, probes=probes)
+        training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
+        with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
+            reduced = reductor.reduce(None if setting.tau is None else ECSW(setting.tau))
+        sizes.append(reduced.size)
+        seconds["offline"] += time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        chain: list[ParametricModel] = [reduced, full]
+        if setting.mesh_check:  # the mesh's own error: the same lung refined once
+            finer = build_model(
+                scene, comm, geometry=refined(geometry).geometry, image=Placement.motion(scene.stepping.start)
+            )
+            chain.append(full_order_model(scene, comm, start="inverse_motion", model=finer, probes=probes))
+        checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
+        error, points = model_error(chain, checks, end, surface.area)
+        errors.append(error)
+        checked.extend({"pair": name} | point for point in points)
+        seconds["check"] += time.perf_counter() - tic
+
+        data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
+        views.append(View(reduced, surface, data, end, fixed, name, baseline))
+        full_views.append(View(full, surface, data, end, fixed, name, baseline))
+    return Patient(
+        box,
+        tuple(estimated),
+        tuple(views),
+        tuple(full_views),
+        np.concatenate(errors),
+        tuple(checked),
+        tuple(registered),
+        seconds,
+        tuple(sizes),
+    )
+
+
+def estimated(
+    patient: Patient, setting: Setting = Setting(), pictures: Path | None = None, comm: MPI.Comm = MPI.COMM_WORLD
+) -> dict:
+    """The estimate, its uncertainty and its confirmation (steps 3–4 of the module's doc), as
+    the report's plain values with their units; with a folder for ``pictures``, each pair's
+    fitted surface and P–V curve with its band drawn there
+    (:mod:`lungmech.app.twin_pictures`). Collective."""
+    seconds = dict(patient.seconds)
+    fit = patient.fit()
+    offset = surface_noise(fit, setting.noise, setting.seed) if setting.noise else None
+    found = estimate(fit, offset=offset)
+    seconds["estimate"] = found.seconds
+    tic = time.perf_counter()
+    uncertainty = laplace(found, fit, patient.error, setting.level)
+    draws = (
+        resampled(fit, found, setting.resamples, setting.seed) if setting.resamples else np.zeros((0, len(fit.names)))
+    )
+    seconds["uncertainty"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    confirm = patient.fit(full=True)
+    full_residual = confirm.residual(found.unit) + found.offset
+    seconds["confirmation"] = time.perf_counter() - tic
+    full_values = estimate(confirm, start=found.values, offset=offset).values if setting.full_fit else None
+
+    report = _report(patient, fit, found, uncertainty, draws, full_residual, seconds)
+    report["model"] = {"basis_sizes": list(patient.basis_sizes), "tau": setting.tau, "training": setting.training}
+    report["data_noise"] = setting.noise
+    report["full_order_estimate"] = full_values
+    if pictures is not None:
+        tic = time.perf_counter()
+        report["pictures"] = twin_pictures.pictures(fit, found, uncertainty.intervals, Path(pictures), comm)
+        seconds["pictures"] = time.perf_counter() - tic
+    return report
+
+
+def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) -> tuple[tuple[str, ...], float]:
+    """The estimated names and end-inspiration's time, or one line on what cannot be asked."""
+    if not pairs:
+        raise ParameterError("personalise: give at least one pair of segmentations")
+    fixed = [position_values(scene, pair.position) for pair in pairs]
+    box = Parameters(scene.parameters)
+    names = setting.estimate or tuple(p.name for p in box if not any(p.name in f for f in fixed))
     for name in names:
         box.named(name)
     if not names:
@@ -109,64 +274,13 @@ def personalise(
             f"personalise: end-inspiration at {end:g} s lies outside the scene's load path "
             f"({scene.stepping.start:g}, {scene.stepping.end:g}] s"
         )
-    check_pair(expiration, inspiration, scene.geometry.get("side"))
-    seconds: dict[str, float] = {}
-    inputs = [image.source for image in (expiration, inspiration) if image.source is not None]
-    with output_folder(out, comm, inputs=inputs, command="lungmech personalise") as staging:
-        tic = time.perf_counter()
-        geometry = build_geometry(scene.geometry, comm)
-        registration = register(geometry.mesh, expiration, Options())
-        nodes.move_nodes(registration.displacement)  # the lung as imaged at end-expiration
-        registered = metrics.report(geometry.mesh, expiration) | registration.summary()
-        seconds["registration"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        model = build_model(scene, comm, geometry=geometry, image=Placement.motion(scene.stepping.start))
-        surface = surface_nodes(geometry.mesh)
-        full = full_order_model(scene, comm, start="inverse_motion", model=model, probes=surface.points.tolist())
-        training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
-        with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
-            reduced = reductor.reduce(None if setting.tau is None else ECSW(setting.tau))
-        seconds["offline"] = time.perf_counter() - tic
-
-        data = surface_data(inspiration)
-        checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
-        tic = time.perf_counter()
-        chain: list[ParametricModel] = [reduced, full]
-        if setting.mesh_check:  # the mesh's own error: the same lung refined once
-            finer = build_model(
-                scene, comm, geometry=refined(geometry).geometry, image=Placement.motion(scene.stepping.start)
-            )
-            chain.append(
-                full_order_model(scene, comm, start="inverse_motion", model=finer, probes=surface.points.tolist())
-            )
-        error, checked = model_error(chain, checks, end, surface.area)
-        seconds["check"] = time.perf_counter() - tic
-
-        baseline = surface_data(expiration)
-        view = View(reduced, surface, data, end, fixed, setting.position, baseline)
-        fit = Fit([view], names)
-        found = estimate(fit)
-        seconds["estimate"] = found.seconds
-        tic = time.perf_counter()
-        uncertainty = laplace(found, fit, error, setting.level)
-        draws = (
-            resampled(fit, found, setting.resamples, setting.seed) if setting.resamples else np.zeros((0, len(names)))
+    if not 0 <= setting.noise < 10:
+        raise ParameterError(
+            f"personalise: the data noise is a fraction of the surface's motion in [0, 10) (got {setting.noise})"
         )
-        seconds["uncertainty"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        confirm = Fit([View(full, surface, data, end, fixed, setting.position, baseline)], names)
-        full_residual = confirm.residual(found.unit)
-        seconds["confirmation"] = time.perf_counter() - tic
-        full_values = estimate(confirm, start=found.values).values if setting.full_fit else None
-
-        report = _report(box, names, fixed, found, uncertainty, draws, full_residual, checked, registered, seconds)
-        report["model"] = {"basis_size": reduced.size, "tau": setting.tau, "training": setting.training}
-        report["full_order_estimate"] = full_values
-        hold_signals_until_swap()
-        write_json(staging / "report.json", report, comm)
-    return report
+    for pair in pairs:
+        check_pair(pair.expiration, pair.inspiration, scene.geometry.get("side"))
+    return tuple(names), end
 
 
 def check_pair(expiration: Image, inspiration: Image, side: str | None) -> None:
@@ -251,26 +365,23 @@ def model_error(
 
 
 def _report(
-    box: Parameters,
-    names: Sequence[str],
-    fixed: Mapping[str, float],
+    patient: Patient,
+    fit: Fit,
     found: Estimate,
     uncertainty: Uncertainty,
     draws: np.ndarray,
     full_residual: np.ndarray,
-    checked: list[dict],
-    registered: dict,
     seconds: dict[str, float],
 ) -> dict:
     """The report's plain values, each with its unit."""
     parameters = {}
-    spread = draws.std(axis=0, ddof=1) if len(draws) > 1 else np.full(len(names), np.nan)
+    spread = draws.std(axis=0, ddof=1) if len(draws) > 1 else np.full(len(fit.names), np.nan)
     deviation = np.sqrt(np.diag(uncertainty.covariance))
-    for i, name in enumerate(names):
+    for i, name in enumerate(fit.names):
         interval = uncertainty.intervals[name]
         parameters[name] = {
             "value": found.values[name],
-            "unit": box.named(name).unit or "1",
+            "unit": patient.box.named(name).unit or "1",
             "interval": None if interval.low is None else [interval.low, interval.high],
             "note": interval.reason,
             "at_bound": found.active[name],
@@ -278,10 +389,27 @@ def _report(
             "resampled_deviation_unit_box": float(spread[i]),
             "model_bias_unit_box": float(interval.bias),
         }
-    residual = found.residual
+    views, start = [], 0
+    for view in fit.views:
+        rows = slice(start, start + view.rows)
+        reduced, full = found.residual[rows], full_residual[rows]
+        views.append(
+            {
+                "pair": view.name,
+                "fixed": dict(view.fixed),
+                "surface_rms": float(np.sqrt(np.mean(reduced[:-1] ** 2))),
+                "surface_max": float(np.abs(reduced[:-1]).max()),
+                "volume_offset": float(reduced[-1]),
+                "full_order_surface_rms": float(np.sqrt(np.mean(full[:-1] ** 2))),
+                "full_order_volume_offset": float(full[-1]),
+            }
+        )
+        start += view.rows
+    surfaces = np.concatenate([found.residual[rows] for rows in fit.surface_rows()])
+    full_surfaces = np.concatenate([full_residual[rows] for rows in fit.surface_rows()])
     return {
         "parameters": parameters,
-        "fixed": dict(fixed),
+        "fixed": {view.name: dict(view.fixed) for view in fit.views},
         "level": uncertainty.level,
         "noise_sigma": uncertainty.sigma,
         "correlation": np.asarray(uncertainty.correlation).tolist(),
@@ -290,17 +418,16 @@ def _report(
             for d in uncertainty.directions
         ],
         "fit": {
-            "surface_rms": float(np.sqrt(np.mean(residual[:-1] ** 2))),
-            "surface_max": float(np.abs(residual[:-1]).max()),
-            "volume_offset": float(residual[-1]),
-            "full_order_surface_rms": float(np.sqrt(np.mean(full_residual[:-1] ** 2))),
-            "full_order_volume_offset": float(full_residual[-1]),
+            "surface_rms": float(np.sqrt(np.mean(surfaces**2))),
+            "surface_max": float(np.abs(surfaces).max()),
+            "full_order_surface_rms": float(np.sqrt(np.mean(full_surfaces**2))),
+            "pairs": views,
             "evaluations": found.evaluations,
             "message": found.message,
             "history": found.history,
         },
-        "model_check": checked,
-        "registration": registered,
+        "model_check": list(patient.checked),
+        "registration": list(patient.registered),
         "seconds": seconds,
         "units": UNITS,
     }

@@ -1,14 +1,24 @@
-"""``lungmech personalise --expiration EXP --inspiration INSP [--scene SCENE] -o OUT``: a
-patient's lung parameters from a pair of segmentations (:func:`lungmech.app.personalise.personalise`),
-written to ``OUT/report.json`` and summarised in a few lines."""
+"""``lungmech personalise --expiration EXP --inspiration INSP [--position P] [--scene SCENE] -o OUT``:
+a patient's lung parameters from a pair of segmentations, or from several pairs in other
+positions (the options repeated, in order: supine and prone together, say)
+(:func:`lungmech.app.personalise.personalise`), written to ``OUT/report.json`` and summarised
+in a few lines; ``--cohort FILE.csv``: many patients, one task of an ensemble each
+(:mod:`lungmech.app.cohort`)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from lungmech.app.arguments import setup
+from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, setup
 from lungmech.errors import ParameterError
+
+if TYPE_CHECKING:
+    from mpi4py import MPI
+
+    from lungmech.app.personalise import Setting
+    from lungmech.app.scene import Scene
 
 COMMANDS = ("personalise",)
 DEFAULT_SCENE = "lung_personalise"
@@ -20,9 +30,23 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "personalise", help="estimate a lung's parameters from its end-expiration and end-inspiration segmentations"
     )
     command.add_argument(
-        "--expiration", required=True, help="end-expiration segmentation (.nii, .nii.gz, .mha, .nrrd, .npz)"
+        "--expiration",
+        action="append",
+        help="end-expiration segmentation (.nii, .nii.gz, .mha, .nrrd, .npz, or a folder of one DICOM series); "
+        "repeated with --inspiration and --position for a pair in another position",
     )
-    command.add_argument("--inspiration", required=True, help="end-inspiration segmentation, same formats")
+    command.add_argument("--inspiration", action="append", help="end-inspiration segmentation, same formats")
+    command.add_argument(
+        "--position",
+        action="append",
+        choices=("supine", "upright", "prone"),
+        help="the patient's position in each pair, in order (default supine)",
+    )
+    command.add_argument(
+        "--cohort",
+        help="a CSV file of many patients (columns patient, expiration, inspiration[, position]; a patient's rows "
+        "are its pairs), instead of --expiration and --inspiration",
+    )
     command.add_argument(
         "--scene",
         default=DEFAULT_SCENE,
@@ -30,12 +54,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     command.add_argument(
         "--estimate", help="the parameters to estimate, comma-separated (default: every one the position does not fix)"
-    )
-    command.add_argument(
-        "--position",
-        default="supine",
-        choices=("supine", "upright", "prone"),
-        help="the patient's position in both images",
     )
     command.add_argument(
         "--at", type=float, help="end-inspiration's time on the scene's load path, s (default: its end)"
@@ -68,19 +86,19 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="output folder (default results/personalised); replaced only on success",
     )
     command.add_argument("-q", "--quiet", action="store_true", help="no progress")
+    ensemble_options(command, "a cohort's patients")
 
 
 def run(args: argparse.Namespace) -> int:
     from lungmech import checks
-    from lungmech.app.personalise import Setting, personalise
-    from lungmech.registration import image
+    from lungmech.app.personalise import Setting
 
     args.scene = args.scene or DEFAULT_SCENE
-    comm, scene, _, _ = setup(args)
+    comm, scene, _, scene_path = setup(args)
+    check_ensemble(args, comm)
     tau = None if str(args.tau).lower() == "none" else checks.real("--tau", _number("--tau", args.tau), positive=True)
     setting = Setting(
         estimate=tuple(name.strip() for name in args.estimate.split(",") if name.strip()) if args.estimate else (),
-        position=args.position,
         inspiration=args.at,
         training=checks.integer("--training", args.training, minimum=2),
         size=checks.integer("--size", args.size, minimum=1),
@@ -89,34 +107,84 @@ def run(args: argparse.Namespace) -> int:
         resamples=checks.integer("--resamples", args.resamples, minimum=0),
         mesh_check=not args.no_mesh_check,
     )
-    expiration = image.read(args.expiration, label=args.label, unit=args.unit)
-    inspiration = image.read(args.inspiration, label=args.label, unit=args.unit)
-    report = personalise(scene, expiration, inspiration, args.output, setting, comm)
+    if args.cohort is not None:
+        return _cohort(args, comm, scene_path, setting)
+    if args.group_size is not None or args.engine is not None:
+        raise ParameterError("--group-size and --engine share out a cohort's patients: give --cohort")
+    report = _one(args, comm, scene, setting)
     if comm.rank == 0:
-        for name, found in report["parameters"].items():
-            unit = "" if found["unit"] in ("", "1") else f" {found['unit']}"
-            interval = found["interval"]
-            said = (
-                f"{100 * report['level']:.0f} % interval [{interval[0]:.4g}, {interval[1]:.4g}]{unit}"
-                + (f" ({found['note']})" if found["note"] else "")
-                if interval
-                else found["note"]
-            )
-            print(f"lungmech: {name} = {found['value']:.4g}{unit}, {said}")
-        for direction in report["directions"]:
-            if direction["weak"]:
-                print(
-                    f"lungmech: the images cannot determine {direction['text']} (standard deviation "
-                    f"{direction['deviation_unit_box']:.2f} of the range)"
-                )
-        fit, seconds = report["fit"], report["seconds"]
-        print(
-            f"lungmech: surface fitted to {1e3 * fit['surface_rms']:.2f} mm RMS (full order at the estimate: "
-            f"{1e3 * fit['full_order_surface_rms']:.2f} mm); estimate {seconds['estimate']:.1f} s after an offline "
-            f"step of {seconds['offline']:.0f} s and a registration of {seconds['registration']:.0f} s; "
-            f"report in {Path(args.output).resolve() / 'report.json'}"
-        )
+        _say(report, args.output)
     return 0
+
+
+def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Setting) -> dict:
+    """One patient, from --expiration, --inspiration and --position (repeated, in order)."""
+    from lungmech.app.personalise import Pair, personalise
+    from lungmech.registration import image
+
+    expirations, inspirations = args.expiration or [], args.inspiration or []
+    if not expirations or len(expirations) != len(inspirations):
+        raise ParameterError(
+            f"give --expiration and --inspiration once for each pair of images (got {len(expirations)} and "
+            f"{len(inspirations)}), or --cohort"
+        )
+    positions = args.position or ["supine"] * len(expirations)
+    if len(positions) != len(expirations):
+        raise ParameterError(f"give --position once for each pair of images ({len(expirations)}; got {len(positions)})")
+    pairs = [
+        Pair(image.read(e, label=args.label, unit=args.unit), image.read(i, label=args.label, unit=args.unit), p)
+        for e, i, p in zip(expirations, inspirations, positions)
+    ]
+    return personalise(scene, pairs, args.output, setting, comm)
+
+
+def _cohort(args: argparse.Namespace, comm: MPI.Comm, scene_path: Path, setting: Setting) -> int:
+    """Every patient of --cohort, on the ensemble the options say; a line per patient."""
+    from lungmech.app.cohort import cohort
+
+    if args.expiration or args.inspiration or args.position:
+        raise ParameterError("--cohort names every patient's images: leave out --expiration, --inspiration, --position")
+    with ensemble_of(args, comm) as ensemble:
+        found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, args.label, args.unit)
+    if comm.rank == 0:
+        for row in found:
+            if row.get("failed"):
+                print(f"lungmech: {row['patient']}: failed: {row['failed']}")
+                continue
+            values = ", ".join(
+                f"{name} = {p['value']:.4g}{'' if p['unit'] in ('', '1') else ' ' + p['unit']}"
+                for name, p in row["parameters"].items()
+            )
+            print(f"lungmech: {row['patient']}: {values} ({row['seconds']:.0f} s)")
+        print(f"lungmech: cohort of {len(found)} in {Path(args.output).resolve() / 'cohort.csv'}")
+    return 1 if any(row.get("failed") for row in found) else 0
+
+
+def _say(report: dict, output: str) -> None:
+    """The estimate in a few lines."""
+    for name, found in report["parameters"].items():
+        unit = "" if found["unit"] in ("", "1") else f" {found['unit']}"
+        interval = found["interval"]
+        said = (
+            f"{100 * report['level']:.0f} % interval [{interval[0]:.4g}, {interval[1]:.4g}]{unit}"
+            + (f" ({found['note']})" if found["note"] else "")
+            if interval
+            else found["note"]
+        )
+        print(f"lungmech: {name} = {found['value']:.4g}{unit}, {said}")
+    for direction in report["directions"]:
+        if direction["weak"]:
+            print(
+                f"lungmech: the images cannot determine {direction['text']} (standard deviation "
+                f"{direction['deviation_unit_box']:.2f} of the range)"
+            )
+    fit, seconds = report["fit"], report["seconds"]
+    print(
+        f"lungmech: surface fitted to {1e3 * fit['surface_rms']:.2f} mm RMS (full order at the estimate: "
+        f"{1e3 * fit['full_order_surface_rms']:.2f} mm); estimate {seconds['estimate']:.1f} s after an offline "
+        f"step of {seconds['offline']:.0f} s and a registration of {seconds['registration']:.0f} s; "
+        f"report in {Path(output).resolve() / 'report.json'}"
+    )
 
 
 def _number(key: str, text: str) -> float:

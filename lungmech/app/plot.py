@@ -17,10 +17,10 @@ if TYPE_CHECKING:
 
     from lungmech.fem.model import Model
 
-__all__ = ["deformed_body", "drawn", "pareto", "pressure_volume", "sweep_volumes"]
+__all__ = ["deformed_body", "drawn", "pareto", "pressure_volume", "pyplot", "sweep_volumes"]
 
 
-def _pyplot() -> ModuleType:
+def pyplot() -> ModuleType:
     """matplotlib's pyplot, off-screen, imported when a picture is drawn (0.3–0.4 s of every
     process's start-up otherwise, with or without a picture)."""
     import matplotlib
@@ -64,7 +64,7 @@ def pressure_volume(
     shown = np.asarray(volume, dtype=float) * (1.0 if planar else 1e3)
     unit = "m³/m" if planar else "L"
     rising = np.diff(shown) >= 0
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4.4))
     branches = (
         (rising, dict(color="tab:blue", ls="-", marker="o", ms=4, lw=2.5), "inspiration (volume rising)"),
@@ -108,7 +108,7 @@ def sweep_volumes(
     vary instead, ``against`` = [(label with its unit, the points' values), …]: the first on
     the axis, the second (if any) as the points' colour."""
     scale, unit = (1.0, "m³/m") if planar else (1e3, "L")
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     if len(times) == 1 and against:
         final = np.asarray(volumes)[:, 0] * scale
@@ -249,7 +249,7 @@ def pareto(
     with its offline cost (names beside markers overlap where models are close)."""
     tolerances = [float(tolerance)] if isinstance(tolerance, int | float) else [float(t) for t in tolerance]
     ringed = [chosen] if isinstance(chosen, str) else list(chosen or ())
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8.6, 4.8))
     shown = [
         (m[0], m[1], float(m[2]), float(m[3]), m[4], m[5]) for m in models if m[2] is not None and m[3] is not None

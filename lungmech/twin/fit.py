@@ -167,7 +167,8 @@ class Estimate:
     """A least-squares estimate: the ``values`` (physical units) and ``unit`` coordinates θ̂ of
     the estimated parameters, the ``residual`` (m) and ``jacobian`` (∂r/∂θ) there, which bound
     each is at (``active``: "lower", "upper" or None), the optimiser's ``history`` (each
-    evaluation's values and cost ½‖r‖² in m²), its ``message``, and its time (s)."""
+    evaluation's values and cost ½‖r‖² in m²), its ``message``, its time (s), and the
+    ``offset`` that was added to the residual (m)."""
 
     names: tuple[str, ...]
     values: dict[str, float]
@@ -179,6 +180,7 @@ class Estimate:
     evaluations: int
     message: str
     seconds: float
+    offset: np.ndarray
 
     @property
     def cost(self) -> float:
@@ -239,4 +241,5 @@ def estimate(
         int(result.nfev),
         str(result.message),
         perf_counter() - tic,
+        shift,
     )

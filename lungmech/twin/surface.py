@@ -19,7 +19,7 @@ weighing it by the variance that sum would have (σ (Σ a_i²)^½) would count t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import dolfinx
 import numpy as np
@@ -52,11 +52,13 @@ def surface_data(image: Image, smoothing: float = 1.0) -> Surface:
 
 @dataclass(frozen=True)
 class SurfaceNodes:
-    """The boundary vertices of a mesh, the same on every rank: ``points`` (n, 3) in m and
-    their lumped ``areas`` (n,) in m²."""
+    """The boundary vertices of a mesh, the same on every rank: ``points`` (n, 3) in m, their
+    lumped ``areas`` (n,) in m², and the boundary's ``triangles`` (m, 3), indices into
+    ``points`` (for pictures; none for a cloud of points)."""
 
     points: np.ndarray
     areas: np.ndarray
+    triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
 
     @property
     def area(self) -> float:
@@ -87,4 +89,5 @@ def surface_nodes(mesh: dolfinx.mesh.Mesh) -> SurfaceNodes:
     key = np.round(corners, 12)
     unique, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     lumped = np.bincount(inverse.reshape(-1), weights=shares, minlength=len(unique))
-    return SurfaceNodes(np.ascontiguousarray(corners[first]), lumped)  # the nodes as they are (unique sorts)
+    triangles = inverse.reshape(-1, 3)
+    return SurfaceNodes(np.ascontiguousarray(corners[first]), lumped, triangles)  # the nodes as they are (unique sorts)

@@ -7,7 +7,9 @@ back as images only, they test the whole pipeline without an inverse crime: the 
 model never sees the mesh, the nodes or the motion that made them.
 
 Noise where it arises on segmentations: :func:`flip_boundary` flips a fraction of the voxels on
-the segmentation's surface (either side), seeded.
+the segmentation's surface (either side), seeded. Noise on the data themselves, as the published
+twin protocol adds it to displacements: :func:`surface_noise`, Gaussian on each surface datum,
+its standard deviation a fraction of the RMS of the surface's observed motion.
 """
 
 from __future__ import annotations
@@ -22,8 +24,9 @@ from lungmech.fem.parametric import ParametricModel
 from lungmech.mesh import nodes
 from lungmech.registration.image import Image, from_array
 from lungmech.registration.metrics import voxelise
+from lungmech.twin.fit import Fit
 
-__all__ = ["flip_boundary", "image_pair"]
+__all__ = ["flip_boundary", "image_pair", "surface_noise"]
 
 
 def image_pair(
@@ -68,3 +71,20 @@ def flip_boundary(image: Image, fraction: float, seed: int = 0) -> Image:
     flipped = mask.copy().reshape(-1)
     flipped[chosen] = ~flipped[chosen]
     return image.with_mask(flipped.reshape(mask.shape))
+
+
+def surface_noise(fit: Fit, fraction: float, seed: int = 0) -> np.ndarray:
+    """An offset for ``fit``'s residual (m, one per row): on each view's surface rows, Gaussian
+    noise of standard deviation ``fraction`` × the RMS of the surface's observed normal motion,
+    U_n,i = d(x_i) − d₀(x_i) (the end-inspiration segmentation's signed distance at the imaged
+    nodes, against end-expiration's); zero on the volume rows. Seeded: the same on every rank."""
+    if not 0 <= fraction:
+        raise ParameterError(f"the noise must be a non-negative fraction of the surface's motion (got {fraction})")
+    rng = np.random.default_rng(seed)
+    offset = np.zeros(fit.rows)
+    for view, rows in zip(fit.views, fit.surface_rows()):
+        motion, _ = view.surface.distance(view.nodes.points)
+        if view.baseline is not None:
+            motion = motion - view.baseline.distance(view.nodes.points)[0]
+        offset[rows] = rng.normal(0.0, fraction * float(np.sqrt(np.mean(motion**2))), size=len(rows))
+    return offset

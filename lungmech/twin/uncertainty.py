@@ -145,6 +145,7 @@ def resampled(fit: Fit, result: Estimate, count: int = 20, seed: int = 0) -> np.
         for rows in surfaces:
             centred = r[rows] - r[rows].mean()
             noise[rows] = rng.choice(centred, size=len(rows), replace=True)
-        again = estimate(fit, start=result.values, offset=noise - r)
+        # the data again: the prediction at θ̂ plus this noise (r̂ held the offset already added)
+        again = estimate(fit, start=result.values, offset=result.offset + noise - r)
         estimates.append(again.unit)
     return np.array(estimates)

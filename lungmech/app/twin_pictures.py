@@ -1,0 +1,202 @@
+"""The personalised lung's pictures, as a clinician reads them (off-screen; units on every axis).
+
+* :func:`fitted_surface` — the fitted lung at end-inspiration, its surface coloured by what is
+  left of the fit: each node's signed distance to the segmented end-inspiration surface, less
+  the node's own offset at end-expiration (mm; + outside), from the front and from the side;
+* :func:`pressure_volume_band` — the personalised P–V curve from end-expiration to
+  end-inspiration, the band of the curves the parameters' intervals allow, and the segmented
+  volumes at both ends;
+* :func:`pictures` — both, for each pair of images of an estimate, into a folder (the models
+  solved on every rank, the pictures drawn on the first).
+
+Axes as the lung meshes': x towards the patient's right, y anterior, z superior.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+
+from lungmech import lung
+from lungmech.app.console import CMH2O
+from lungmech.app.plot import drawn, pyplot
+from lungmech.parallel import on_root
+from lungmech.twin.fit import Estimate, Fit, View
+from lungmech.twin.uncertainty import Interval
+
+__all__ = ["fitted_surface", "pictures", "pressure_volume_band"]
+
+STEPS = 12  # points of a P–V curve from end-expiration to end-inspiration
+
+
+def pictures(fit: Fit, found: Estimate, intervals: dict[str, Interval], folder: Path, comm: MPI.Comm) -> list[str]:
+    """``fit-<pair>.png`` and ``pressure_volume-<pair>.png`` for each pair of ``fit`` at the
+    estimate ``found``, the band from the corners of the ``intervals`` (a parameter without
+    one at its value); the names of those drawn. Collective."""
+    made = []
+    for view, prediction in zip(fit.views, fit.predictions(found.unit)):
+        surface = folder / f"fit-{view.name}.png"
+        draw = partial(
+            fitted_surface,
+            prediction.positions,
+            view.nodes.triangles,
+            prediction.residual[:-1],
+            surface,
+            f"{view.name}: the fitted end-inspiration lung",
+        )
+        if drawn(comm, surface, partial(on_root, comm, draw)):
+            made.append(surface.name)
+        curves = _curves(view, fit, found, intervals)
+        if curves is None:  # no pressure load: no P–V curve
+            continue
+        label, estimate, band = curves
+        base = view.baseline.volume if view.baseline is not None else float("nan")
+        path = folder / f"pressure_volume-{view.name}.png"
+        title = f"{view.name}: the personalised P–V curve"
+        draw = partial(pressure_volume_band, *estimate, band, (base, view.surface.volume), path, label, title)
+        if drawn(comm, path, partial(on_root, comm, draw)):
+            made.append(path.name)
+    return made
+
+
+Curve = tuple[np.ndarray, np.ndarray]  # (pressure in Pa, volume in m³) along the breath
+
+
+def _curves(
+    view: View, fit: Fit, found: Estimate, intervals: dict[str, Interval]
+) -> tuple[str, Curve, list[Curve]] | None:
+    """The view's P–V curve at the estimate and at each corner of the intervals, with the
+    pressure's label (None without a pressure load). Collective."""
+    model = view.model.model
+    axis = lung.pressure_axis(model.loads, model.formulation)
+    if axis is None:
+        return None
+    times = np.linspace(view.model.stepping.start, view.time, STEPS).tolist()
+
+    def curve(values: dict[str, float]) -> Curve:
+        outputs = view.model.solve(dict(view.fixed) | values, times=times).outputs
+        labels = [name.removeprefix("loads/") for name in outputs if name.startswith("loads/")]
+        pressure = [axis({label: float(outputs[f"loads/{label}"][i]) for label in labels}) for i in range(len(times))]
+        return np.array(pressure), np.asarray(outputs["volume"], dtype=float)
+
+    ends: list[tuple[float, ...]] = []
+    for parameter in fit.parameters:
+        interval, value = intervals[parameter.name], found.values[parameter.name]
+        if interval.low is None or interval.high is None:
+            ends.append((value,))
+        else:  # (cut at the range's edges)
+            ends.append(
+                tuple(
+                    parameter.from_unit(float(np.clip(parameter.to_unit(v), 0, 1)))
+                    for v in (interval.low, interval.high)
+                )
+            )
+    band = [curve(dict(zip(fit.names, corner))) for corner in itertools.product(*ends)]
+    return axis.label, curve(dict(found.values)), band
+
+
+def fitted_surface(
+    points: np.ndarray, triangles: np.ndarray, residual: np.ndarray, path: Path, title: str = ""
+) -> None:
+    """The surface of ``triangles`` on the fitted nodes ``points`` (m), coloured by
+    ``residual`` (m, drawn in mm, a diverging scale centred at 0), seen from the front (the
+    patient's anterior) and from the patient's side of the lung."""
+    import pyvista
+    import vtk
+
+    vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server" noise: rendering is off-screen
+    faces = np.hstack([np.full((len(triangles), 1), 3), triangles]).astype(np.int64).ravel()
+    surface = pyvista.PolyData(np.asarray(points, dtype=float), faces)
+    surface.point_data["residual [mm]"] = 1e3 * np.asarray(residual, dtype=float)
+    limit = float(np.max(np.abs(surface.point_data["residual [mm]"]))) or 1.0
+    centre = surface.center
+    size = float(np.linalg.norm(np.ptp(np.asarray(points), axis=0)))
+    side = 1.0 if centre[0] >= 0 else -1.0  # a right lung is seen from the right
+    plotter = pyvista.Plotter(off_screen=True, shape=(1, 2), window_size=[1400, 720], border=False)
+    for column, (view, name) in enumerate(
+        ((np.array([0.0, 1.0, 0.0]), "anterior"), (np.array([side, 0.0, 0.0]), "lateral"))
+    ):
+        plotter.subplot(0, column)
+        plotter.add_mesh(
+            surface.copy(),
+            scalars="residual [mm]",
+            cmap="coolwarm",
+            clim=(-limit, limit),
+            smooth_shading=True,
+            show_scalar_bar=column == 1,
+            scalar_bar_args={
+                "title": "distance left [mm]",
+                "vertical": True,
+                "fmt": "%.2f",
+                "position_x": 0.8,
+                "position_y": 0.15,
+                "width": 0.08,
+                "height": 0.7,
+            },
+        )
+        said = f"{title}\n{name} view" if column == 0 else f"{name} view (+: outside the segmented surface)"
+        plotter.add_text(said, font_size=10)
+        plotter.camera.focal_point = centre
+        plotter.camera.position = np.asarray(centre) + 2.6 * size * view
+        plotter.camera.up = (0.0, 0.0, 1.0)
+        plotter.camera.view_angle = 30.0
+    plotter.screenshot(str(path))
+    plotter.close()
+
+
+def pressure_volume_band(
+    pressure: np.ndarray,
+    volume: np.ndarray,
+    band: Sequence[tuple[np.ndarray, np.ndarray]],
+    segmented: tuple[float, float],
+    path: Path,
+    label: str,
+    title: str = "",
+) -> None:
+    """The personalised P–V curve (``pressure`` in Pa, drawn in kPa and cmH2O; ``volume`` in
+    m³, drawn in L), the envelope of the ``band``'s curves (each its own (pressure, volume): a
+    parameter changes the pressure as well as the volume), and the ``segmented`` volumes of
+    end-expiration and end-inspiration (m³): the curve rises by their difference (what was
+    fitted), from the registered mesh's own volume, which the note compares with the first."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.2, 4.4))
+    kpa = np.asarray(pressure) / 1e3
+    if band:
+        low = max(float(np.min(p)) for p, _ in band)
+        high = min(float(np.max(p)) for p, _ in band)
+        if high > low:  # the pressures every curve of the band reaches
+            grid = np.linspace(low, high, 60)
+            curves = np.array([np.interp(grid, *_rising(p, v)) for p, v in band])
+            ax.fill_between(
+                grid / 1e3, 1e3 * curves.min(axis=0), 1e3 * curves.max(axis=0), color="tab:blue", alpha=0.2,
+                label="band: the parameters' intervals",
+            )  # fmt: skip
+    ax.plot(kpa, 1e3 * np.asarray(volume), "o-", color="tab:blue", ms=3, lw=2, label="personalised (the estimate)")
+    for value, name, style in zip(segmented, ("end-expiration", "end-inspiration"), (":", "--")):
+        ax.axhline(1e3 * value, color="0.3", ls=style, lw=1, label=f"segmented volume, {name}")
+    offset = 1e3 * (float(volume[0]) - segmented[0])
+    note = f"the registered mesh holds {offset:+.3f} L against the segmentation at end-expiration (chords)"
+    ax.text(0.98, 0.02, note, transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.35")
+    ax.set_xlabel(f"{label} [kPa]")
+    ax.set_ylabel("lung volume [L]")
+    top = ax.secondary_xaxis("top", functions=(lambda p: 1e3 * p / CMH2O, lambda c: c * CMH2O / 1e3))
+    top.set_xlabel("[cmH$_2$O]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _rising(pressure: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A curve's points in increasing pressure (np.interp's order)."""
+    order = np.argsort(pressure)
+    return np.asarray(pressure)[order], np.asarray(volume)[order]
