@@ -204,6 +204,43 @@ def _cohort(patient, folder, extra=()):
         assert {"fit-supine.png", "pressure_volume-supine.png"} <= set(report["pictures"])
 
 
+@pytest.mark.slow
+def test_a_model_files_recipe_is_rebuilt_for_the_patient(patient, tmp_path, capsys):
+    """--model: the patient's model is made by the file's recipe (a POD of 6 vectors from 4
+    breaths, ECSW at 1e-3) on the file's own scene, registered onto the patient; a scene of
+    other physics beside it, or a recipe given twice, is refused in one line."""
+    from lungmech.app.cli import main
+    from lungmech.registration.image import write
+
+    own, images = patient
+    scene = own / "lung-0.035.toml"
+    scene_of(own, 0.035)
+    model = tmp_path / "lung.npz"
+    built = ["rom", "build", str(scene), "-o", str(model), "--size", "6", "--samples", "4", "-q"]
+    assert main([*built, "--hyper", "ecsw", "--ecsw-tolerance", "1e-3"]) == 0
+    for phase, image in zip(("exp", "insp"), images["supine"]):
+        write(image, tmp_path / f"{phase}.npz")
+    pair = ["--expiration", str(tmp_path / "exp.npz"), "--inspiration", str(tmp_path / "insp.npz")]
+    quick = ["--estimate", "breath", "--resamples", "0", "--no-mesh-check", "-q"]
+    assert main(["personalise", *pair, "--model", str(model), *quick, "-o", str(tmp_path / "out")]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["model"]["recipe_from"] == str(model)
+    assert report["model"]["training"] == 4 and report["model"]["tau"] == 1e-3
+    assert report["model"]["basis_sizes"][0] <= 6
+    assert report["parameters"]["breath"]["value"] == pytest.approx(TRUTH["breath"], rel=0.03)
+    capsys.readouterr()
+    other = tmp_path / "other.toml"
+    other.write_text(SCENE.format(h=0.035).replace("c2 = 400.0", "c2 = 500.0"))
+    for extra, said in (
+        (["--scene", str(other)], "was built for other physics than this scene's: material.c2"),
+        (["--size", "6"], "leave out --size, --training, --tau"),
+    ):
+        assert main(["personalise", *pair, "--model", str(model), *quick, *extra, "-o", str(tmp_path / "no")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and said in err, err
+    assert not (tmp_path / "no").exists()
+
+
 def test_positions_and_estimated_names_are_checked_in_one_line(tmp_path):
     scene = scene_of(tmp_path, 0.035)
     assert position_values(scene, "prone") == {"posture": 90.0}
@@ -252,6 +289,7 @@ def _cube(path, low: int, size: int, shift=(0.0, 0.0, 0.0)):
         ("cohort-name", "must be a plain name"),
         ("cohort-image", "inspiration image 'gone.npz' not found"),
         ("cohort-position", "position must be one of"),
+        ("model", "model file"),
     ],
 )
 def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, capsys):
@@ -278,6 +316,7 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
         "positions": ["--expiration", small, "--inspiration", large, "--position", "supine"],
         "groups": ["--group-size", "1"],
         "both": cohort,
+        "model": ["--model", str(tmp_path / "none.npz")],
     }
     out = tmp_path / "out"
     argv = ["personalise", "-o", str(out), "-q"]

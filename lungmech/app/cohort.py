@@ -16,6 +16,7 @@ patient's folder, so it must be a plain name (letters, digits, ``-``, ``_``, ``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import re
@@ -27,6 +28,7 @@ from mpi4py import MPI
 from lungmech.app import scene as scenes
 from lungmech.app.output import write_json
 from lungmech.app.personalise import POSITIONS, Pair, Setting, personalise
+from lungmech.app.recipe import recipe_scene
 from lungmech.errors import SceneError
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
@@ -54,13 +56,14 @@ class Task:
     """A patient's personalisation, as data an ensemble's worker can receive: the scene file,
     the patient's pairs, the setting, how to read its images, and its output folder."""
 
-    scene: str
+    scene: str | None
     patient: str
     pairs: tuple[Row, ...]
     setting: Setting
     out: str
     label: int | None = None
     unit: str | None = None
+    model: str | None = None
 
 
 def read_cohort(path: str | Path) -> dict[str, list[Row]]:
@@ -117,7 +120,10 @@ def personalised(task: Task, comm: MPI.Comm) -> dict:
         return image.read(file, label=task.label, unit=task.unit)
 
     pairs = [Pair(read(row.expiration), read(row.inspiration), row.position) for row in task.pairs]
-    report = personalise(scenes.load(task.scene), pairs, task.out, task.setting, comm)
+    scene = None if task.scene is None else scenes.load(task.scene)
+    with recipe_scene(task.model, scene, comm) if task.model else contextlib.nullcontext((None, scene)) as (_, used):
+        assert used is not None  # (a scene, or a model file's own)
+        report = personalise(used, pairs, task.out, task.setting, comm)
     return {
         "parameters": {
             name: {key: found[key] for key in ("value", "unit", "interval", "note")}
@@ -129,7 +135,7 @@ def personalised(task: Task, comm: MPI.Comm) -> dict:
 
 
 def cohort(
-    scene: str | Path,
+    scene: str | Path | None,
     path: str | Path,
     out: str | Path,
     setting: Setting,
@@ -137,17 +143,29 @@ def cohort(
     comm: MPI.Comm = MPI.COMM_WORLD,
     label: int | None = None,
     unit: str | None = None,
+    model: str | None = None,
 ) -> list[dict]:
-    """Personalise every patient of the cohort file ``path`` with the scene file ``scene`` and
-    ``setting`` on ``ensemble`` (see the module's doc); write ``out`` and return a row per
-    patient (its summary, or ``failed``). Collective over the ensemble's ranks."""
+    """Personalise every patient of the cohort file ``path`` with the scene file ``scene`` (or
+    the ``model`` file's own scene, when None) and ``setting`` on ``ensemble`` (see the
+    module's doc); write ``out`` and return a row per patient (its summary, or ``failed``).
+    Collective over the ensemble's ranks."""
     path = Path(path).resolve()
     patients = read_cohort(path)
     images = sorted({file for rows in patients.values() for row in rows for file in (row.expiration, row.inspiration)})
     command = f"lungmech personalise --cohort {path}"
-    with output_folder(out, comm, inputs=[path, scene, *images], command=command) as staging:
+    inputs = [path, *(file for file in (scene, model) if file is not None), *images]
+    with output_folder(out, comm, inputs=inputs, command=command) as staging:
         tasks = [
-            Task(str(scene), patient, tuple(rows), setting, str(staging / patient), label, unit)
+            Task(
+                None if scene is None else str(scene),
+                patient,
+                tuple(rows),
+                setting,
+                str(staging / patient),
+                label,
+                unit,
+                model,
+            )
             for patient, rows in patients.items()
         ]
         say = logging.getLogger("lungmech").info

@@ -88,7 +88,8 @@ class Setting:
     model on the same mesh to the same images (from the estimate), whose distance from the
     truth is the discretisation's gap (twin experiments; minutes, not seconds); ``noise``
     (twin experiments): Gaussian noise added to every surface datum, its standard deviation
-    this fraction of the RMS of the surface's observed motion (seeded by ``seed``)."""
+    this fraction of the RMS of the surface's observed motion (seeded by ``seed``); ``recipe``:
+    the model file whose recipe ``training``, ``size`` and ``tau`` are (for the report)."""
 
     estimate: tuple[str, ...] = ()
     inspiration: float | None = None
@@ -101,6 +102,7 @@ class Setting:
     full_fit: bool = False
     mesh_check: bool = True
     noise: float = 0.0
+    recipe: str | None = None
 
 
 @dataclass(frozen=True)
@@ -243,7 +245,12 @@ def estimated(
     full_values = estimate(confirm, start=found.values, offset=offset).values if setting.full_fit else None
 
     report = _report(patient, fit, found, uncertainty, draws, full_residual, seconds)
-    report["model"] = {"basis_sizes": list(patient.basis_sizes), "tau": setting.tau, "training": setting.training}
+    report["model"] = {
+        "basis_sizes": list(patient.basis_sizes),
+        "tau": setting.tau,
+        "training": setting.training,
+        "recipe_from": setting.recipe,
+    }
     report["data_noise"] = setting.noise
     report["full_order_estimate"] = full_values
     if pictures is not None:

@@ -8,6 +8,8 @@ in a few lines; ``--cohort FILE.csv``: many patients, one task of an ensemble ea
 from __future__ import annotations
 
 import argparse
+import contextlib
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -49,8 +51,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     command.add_argument(
         "--scene",
-        default=DEFAULT_SCENE,
-        help=f"the lung's physics and parameter box (default: the bundled {DEFAULT_SCENE})",
+        help=f"the lung's physics and parameter box (default: --model's own, else the bundled {DEFAULT_SCENE})",
     )
     command.add_argument(
         "--estimate", help="the parameters to estimate, comma-separated (default: every one the position does not fix)"
@@ -58,12 +59,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     command.add_argument(
         "--at", type=float, help="end-inspiration's time on the scene's load path, s (default: its end)"
     )
-    command.add_argument("--size", type=int, default=10, help="basis size of the patient's reduced model (default 10)")
-    command.add_argument("--training", type=int, default=8, help="full breaths it is trained on (default 8)")
     command.add_argument(
-        "--tau",
-        default="1e-4",
-        help="its ECSW tolerance, or 'none' for a Galerkin model on the whole mesh (default 1e-4)",
+        "--model",
+        help="a reduced model file (lungmech trade's model.npz, or lungmech rom build's): the patient's model is "
+        "built by its recipe (basis size, training breaths, ECSW τ) on its scene (or on --scene, of the same physics)",
+    )
+    command.add_argument("--size", type=int, help="basis size of the patient's reduced model (default 10)")
+    command.add_argument("--training", type=int, help="full breaths it is trained on (default 8)")
+    command.add_argument(
+        "--tau", help="its ECSW tolerance, or 'none' for a Galerkin model on the whole mesh (default 1e-4)"
     )
     command.add_argument("--level", type=float, default=0.95, help="the intervals' level (default 0.95)")
     command.add_argument(
@@ -92,26 +96,44 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from lungmech import checks
     from lungmech.app.personalise import Setting
+    from lungmech.app.recipe import recipe_scene
 
+    given = args.scene is not None
     args.scene = args.scene or DEFAULT_SCENE
     comm, scene, _, scene_path = setup(args)
     check_ensemble(args, comm)
-    tau = None if str(args.tau).lower() == "none" else checks.real("--tau", _number("--tau", args.tau), positive=True)
+    if args.model is not None and any(v is not None for v in (args.size, args.training, args.tau)):
+        raise ParameterError(
+            "--model gives the patient's model its recipe (basis size, training, τ): leave out --size, --training, --tau"
+        )
+    recipe: dict = {}
+    if args.training is not None:
+        recipe["training"] = checks.integer("--training", args.training, minimum=2)
+    if args.size is not None:
+        recipe["size"] = checks.integer("--size", args.size, minimum=1)
+    if args.tau is not None:
+        tau = None if str(args.tau).lower() == "none" else _number("--tau", args.tau)
+        recipe["tau"] = None if tau is None else checks.real("--tau", tau, positive=True)
     setting = Setting(
         estimate=tuple(name.strip() for name in args.estimate.split(",") if name.strip()) if args.estimate else (),
         inspiration=args.at,
-        training=checks.integer("--training", args.training, minimum=2),
-        size=checks.integer("--size", args.size, minimum=1),
-        tau=tau,
         level=args.level,
         resamples=checks.integer("--resamples", args.resamples, minimum=0),
         mesh_check=not args.no_mesh_check,
+        **recipe,
     )
-    if args.cohort is not None:
-        return _cohort(args, comm, scene_path, setting)
-    if args.group_size is not None or args.engine is not None:
+    if args.cohort is None and (args.group_size is not None or args.engine is not None):
         raise ParameterError("--group-size and --engine share out a cohort's patients: give --cohort")
-    report = _one(args, comm, scene, setting)
+    with (
+        recipe_scene(args.model, scene if given else None, comm)
+        if args.model
+        else contextlib.nullcontext((None, scene))
+    ) as (read, scene):
+        if read is not None:
+            setting = replace(setting, size=read.size, training=read.training, tau=read.tau, recipe=read.source)
+        if args.cohort is not None:
+            return _cohort(args, comm, scene_path if given or not args.model else None, setting)
+        report = _one(args, comm, scene, setting)
     if comm.rank == 0:
         _say(report, args.output)
     return 0
@@ -138,14 +160,14 @@ def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Settin
     return personalise(scene, pairs, args.output, setting, comm)
 
 
-def _cohort(args: argparse.Namespace, comm: MPI.Comm, scene_path: Path, setting: Setting) -> int:
+def _cohort(args: argparse.Namespace, comm: MPI.Comm, scene_path: Path | None, setting: Setting) -> int:
     """Every patient of --cohort, on the ensemble the options say; a line per patient."""
     from lungmech.app.cohort import cohort
 
     if args.expiration or args.inspiration or args.position:
         raise ParameterError("--cohort names every patient's images: leave out --expiration, --inspiration, --position")
     with ensemble_of(args, comm) as ensemble:
-        found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, args.label, args.unit)
+        found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, args.label, args.unit, args.model)
     if comm.rank == 0:
         for row in found:
             if row.get("failed"):
