@@ -31,6 +31,7 @@ QUICK = {
     "trade": (["--quick"], "trade_quick"),
     "threads": (["--quick"], "threads_quick"),
     "greedy_batch": (["--quick"], "greedy_batch_quick"),
+    "twin": (["--quick"], "twin_quick"),
 }
 
 

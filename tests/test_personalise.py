@@ -201,7 +201,7 @@ def _cohort(patient, folder, extra=()):
         assert float(row["breath [1]"]) == pytest.approx(breaths[row["patient"]], rel=0.03)
         report = json.loads((out / row["patient"] / "report.json").read_text())
         assert report["parameters"]["breath"]["value"] == pytest.approx(float(row["breath [1]"]))
-        assert {"fit-supine.png", "pressure_volume-supine.png"} <= set(report["pictures"])
+        assert {"fit-supine.png", "pressure_volume-supine.png", "ventilation-supine.png"} <= set(report["pictures"])
 
 
 @pytest.mark.slow
@@ -290,6 +290,10 @@ def _cube(path, low: int, size: int, shift=(0.0, 0.0, 0.0)):
         ("cohort-image", "inspiration image 'gone.npz' not found"),
         ("cohort-position", "position must be one of"),
         ("model", "model file"),
+        ("unoriented", "has no orientation in its header"),
+        ("tolerance", "no reduced model of the bundled lung's trade"),
+        ("tolerance-size", "--tolerance gives the patient's model its recipe"),
+        ("model-tolerance", "give one"),
     ],
 )
 def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, capsys):
@@ -299,6 +303,16 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
     small, large = _cube(tmp_path / "small.npz", 6, 6), _cube(tmp_path / "large.npz", 5, 9)
     far = _cube(tmp_path / "far.npz", 5, 9, shift=(1.0, 0.0, 0.0))
     pair = {"apart": (small, far), "swapped": (large, small), "missing": (small, str(tmp_path / "nowhere.npz"))}
+    if case == "unoriented":  # a NIfTI file without sform or qform: in no patient frame
+        import nibabel as nib
+
+        data = np.zeros((20, 20, 20), dtype=np.uint8)
+        data[5:14, 5:14, 5:14] = 1
+        image = nib.Nifti1Image(data, np.diag([2.0, 2.0, 2.0, 1.0]))
+        image.set_sform(None, code=0)
+        image.set_qform(None, code=0)
+        nib.save(image, tmp_path / "plain.nii.gz")
+        pair["unoriented"] = (small, str(tmp_path / "plain.nii.gz"))
     expiration, inspiration = pair.get(case, (small, large))
     cohorts = {
         "cohort-column": "patient,expiration\nA,small.npz\n",
@@ -317,6 +331,9 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
         "groups": ["--group-size", "1"],
         "both": cohort,
         "model": ["--model", str(tmp_path / "none.npz")],
+        "tolerance": ["--tolerance", "1e-9"],
+        "tolerance-size": ["--tolerance", "1e-2", "--size", "4"],
+        "model-tolerance": ["--tolerance", "1e-2", "--model", str(tmp_path / "none.npz")],
     }
     out = tmp_path / "out"
     argv = ["personalise", "-o", str(out), "-q"]

@@ -268,6 +268,34 @@ def test_an_interval_beside_a_parameter_at_its_bound_says_so(data):
     assert interval.low is not None and "swell at a bound" in interval.reason
 
 
+def test_surface_noise_is_its_fraction_of_the_motion_and_correlated_as_asked(data):
+    """Twin experiments' data noise: standard deviation 10 % of the surface's RMS observed
+    motion, none on the volume row, seeded; independent between neighbours, or correlated
+    over ℓ (near nodes alike, opposite ones not)."""
+    from lungmech.twin.synthetic import surface_noise
+
+    fit = fit_of(data)
+    view = fit.views[0]
+    rms = np.sqrt(np.mean(view.surface.distance(view.nodes.points)[0] ** 2))
+    white = np.array([surface_noise(fit, 0.1, seed) for seed in range(300)])
+    coloured = np.array([surface_noise(fit, 0.1, seed, correlation=0.3 * R0) for seed in range(300)])
+    assert np.all(white[:, -1] == 0) and np.all(coloured[:, -1] == 0)
+    assert white[:, :-1].std() == pytest.approx(0.1 * rms, rel=0.02)
+    assert coloured[:, :-1].std() == pytest.approx(0.1 * rms, rel=0.1)
+    assert np.array_equal(surface_noise(fit, 0.1, 7), surface_noise(fit, 0.1, 7))
+    points = view.nodes.points
+    near = int(np.argsort(np.linalg.norm(points - points[0], axis=1))[1])
+    far = int(np.argmax(np.linalg.norm(points - points[0], axis=1)))
+
+    def correlation(draws: np.ndarray, j: int) -> float:  # between node 0 and node j
+        return float(np.corrcoef(draws[:, 0], draws[:, j])[0, 1])
+
+    assert abs(correlation(white, near)) < 0.2
+    assert correlation(coloured, near) > 0.8 and abs(correlation(coloured, far)) < 0.2
+    with pytest.raises(ParameterError, match="correlation length"):
+        surface_noise(fit, 0.1, correlation=-1.0)
+
+
 def test_a_segmentations_boundary_noise_flips_surface_voxels_only():
     """A fraction of the voxels with a neighbour across the surface, and no others, flipped."""
     from lungmech.twin.synthetic import flip_boundary

@@ -89,7 +89,8 @@ class Setting:
     truth is the discretisation's gap (twin experiments; minutes, not seconds); ``noise``
     (twin experiments): Gaussian noise added to every surface datum, its standard deviation
     this fraction of the RMS of the surface's observed motion (seeded by ``seed``); ``recipe``:
-    the model file whose recipe ``training``, ``size`` and ``tau`` are (for the report)."""
+    where the recipe ``training``, ``size`` and ``tau`` came from (a model file, a trade's
+    measured recipe for a tolerance), for the report."""
 
     estimate: tuple[str, ...] = ()
     inspiration: float | None = None
@@ -110,8 +111,9 @@ class Patient:
     """A patient made ready for estimates (:func:`prepare`): per pair, the ``views`` of its
     reduced model and of its full model on the same mesh (``full_views``), ε per datum
     (``error``, m), each check point's numbers (``checked``) and registration summary
-    (``registered``); the ``estimated`` parameters' names, the ``box`` and the offline
-    ``seconds``."""
+    (``registered``); the ``estimated`` parameters' names, the ``box``, the offline
+    ``seconds``, each reduced model's basis size and each pair's end-inspiration segmentation
+    (``inspirations``, for the pictures)."""
 
     box: Parameters
     estimated: tuple[str, ...]
@@ -122,6 +124,7 @@ class Patient:
     registered: tuple[dict, ...]
     seconds: dict[str, float]
     basis_sizes: tuple[int, ...]
+    inspirations: tuple[Image, ...] = ()
 
     def fit(self, full: bool = False) -> Fit:
         """The least-squares problem of every pair, on the reduced models (or the full ones)."""
@@ -216,6 +219,7 @@ def prepare(
         tuple(registered),
         seconds,
         tuple(sizes),
+        tuple(pair.inspiration for pair in pairs),
     )
 
 
@@ -255,7 +259,9 @@ def estimated(
     report["full_order_estimate"] = full_values
     if pictures is not None:
         tic = time.perf_counter()
-        report["pictures"] = twin_pictures.pictures(fit, found, uncertainty.intervals, Path(pictures), comm)
+        report["pictures"] = twin_pictures.pictures(
+            fit, found, uncertainty.intervals, Path(pictures), comm, patient.full_views, patient.inspirations
+        )
         seconds["pictures"] = time.perf_counter() - tic
     return report
 
@@ -291,14 +297,21 @@ def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) ->
 
 
 def check_pair(expiration: Image, inspiration: Image, side: str | None) -> None:
-    """Refuse, in one line naming the image, a pair that cannot be one lung breathing in: images
-    whose physical extents do not overlap, an end-inspiration lung smaller than the
-    end-expiration one, a lung of the other side than the scene's (where the image's header
-    tells its side)."""
+    """Refuse, in one line naming the image, a pair that cannot be one lung breathing in: an
+    image whose header does not orient it in the patient, images whose physical extents do not
+    overlap, an end-inspiration lung smaller than the end-expiration one, a lung of the other
+    side than the scene's (where the image's header tells its side)."""
     names = {
         "expiration": _name(expiration, "the end-expiration image"),
         "inspiration": _name(inspiration, "the end-inspiration image"),
     }
+    images = {"expiration": expiration, "inspiration": inspiration}
+    for which, image in images.items():
+        if not image.oriented:
+            raise ImageError(
+                f"{names[which]} has no orientation in its header (NIfTI sform and qform codes 0): where the lung "
+                "lies in the patient, and so the weight's direction, cannot be read"
+            )
     (low, high), (other_low, other_high) = expiration.bounds(), inspiration.bounds()
     if np.any(high < other_low) or np.any(other_high < low):
         raise ImageError(
@@ -314,7 +327,7 @@ def check_pair(expiration: Image, inspiration: Image, side: str | None) -> None:
             f"{names['inspiration']} holds {1e3 * volumes[1]:.3f} L, no more than {names['expiration']}'s "
             f"{1e3 * volumes[0]:.3f} L: the images are swapped, or not one lung breathing in"
         )
-    for which, image in (("expiration", expiration), ("inspiration", inspiration)):
+    for which, image in images.items():
         found = sides.of_image(image).side
         if side is not None and found is not None and found != side:
             raise ImageError(f"{names[which]} holds a {found} lung; the scene's lung is a {side} one")

@@ -64,6 +64,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="a reduced model file (lungmech trade's model.npz, or lungmech rom build's): the patient's model is "
         "built by its recipe (basis size, training breaths, ECSW τ) on its scene (or on --scene, of the same physics)",
     )
+    command.add_argument(
+        "--tolerance",
+        type=float,
+        help="the patient's model by the recipe lungmech trade measured on the bundled lung as the cheapest to meet "
+        "this worst error on the volume (of the breath's volume change)",
+    )
     command.add_argument("--size", type=int, help="basis size of the patient's reduced model (default 10)")
     command.add_argument("--training", type=int, help="full breaths it is trained on (default 8)")
     command.add_argument(
@@ -96,16 +102,20 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from lungmech import checks
     from lungmech.app.personalise import Setting
-    from lungmech.app.recipe import recipe_scene
+    from lungmech.app.recipe import recipe_for, recipe_scene
 
     given = args.scene is not None
     args.scene = args.scene or DEFAULT_SCENE
     comm, scene, _, scene_path = setup(args)
     check_ensemble(args, comm)
-    if args.model is not None and any(v is not None for v in (args.size, args.training, args.tau)):
-        raise ParameterError(
-            "--model gives the patient's model its recipe (basis size, training, τ): leave out --size, --training, --tau"
-        )
+    if args.model is not None and args.tolerance is not None:
+        raise ParameterError("--model and --tolerance each give the patient's model its recipe: give one")
+    for option, value in (("--model", args.model), ("--tolerance", args.tolerance)):
+        if value is not None and any(v is not None for v in (args.size, args.training, args.tau)):
+            raise ParameterError(
+                f"{option} gives the patient's model its recipe (basis size, training, τ): leave out --size, "
+                "--training, --tau"
+            )
     recipe: dict = {}
     if args.training is not None:
         recipe["training"] = checks.integer("--training", args.training, minimum=2)
@@ -122,6 +132,9 @@ def run(args: argparse.Namespace) -> int:
         mesh_check=not args.no_mesh_check,
         **recipe,
     )
+    if args.tolerance is not None:
+        chosen = recipe_for(checks.real("--tolerance", args.tolerance, positive=True))
+        setting = replace(setting, size=chosen.size, training=chosen.training, tau=chosen.tau, recipe=chosen.source)
     if args.cohort is None and (args.group_size is not None or args.engine is not None):
         raise ParameterError("--group-size and --engine share out a cohort's patients: give --cohort")
     with (

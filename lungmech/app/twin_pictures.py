@@ -6,7 +6,10 @@
 * :func:`pressure_volume_band` — the personalised P–V curve from end-expiration to
   end-inspiration, the band of the curves the parameters' intervals allow, and the segmented
   volumes at both ends;
-* :func:`pictures` — both, for each pair of images of an estimate, into a folder (the models
+* :func:`ventilation_picture` — regional ventilation, the volume change J − 1 (%) from
+  end-expiration to end-inspiration, observed (a registration of the two segmentations) beside
+  fitted (the full model at the estimate), on a coronal cut (:mod:`lungmech.twin.ventilation`);
+* :func:`pictures` — these, for each pair of images of an estimate, into a folder (the models
   solved on every rank, the pictures drawn on the first).
 
 Axes as the lung meshes': x towards the patient's right, y anterior, z superior.
@@ -27,19 +30,35 @@ from lungmech import lung
 from lungmech.app.console import CMH2O
 from lungmech.app.plot import drawn, pyplot
 from lungmech.parallel import on_root
+from lungmech.registration.image import Image
 from lungmech.twin.fit import Estimate, Fit, View
 from lungmech.twin.uncertainty import Interval
+from lungmech.twin.ventilation import Ventilation, ventilation
 
-__all__ = ["fitted_surface", "pictures", "pressure_volume_band"]
+__all__ = ["fitted_surface", "pictures", "pressure_volume_band", "ventilation_picture"]
 
 STEPS = 12  # points of a P–V curve from end-expiration to end-inspiration
 
 
-def pictures(fit: Fit, found: Estimate, intervals: dict[str, Interval], folder: Path, comm: MPI.Comm) -> list[str]:
+def pictures(
+    fit: Fit,
+    found: Estimate,
+    intervals: dict[str, Interval],
+    folder: Path,
+    comm: MPI.Comm,
+    full: Sequence[View] = (),
+    inspirations: Sequence[Image] = (),
+) -> list[str]:
     """``fit-<pair>.png`` and ``pressure_volume-<pair>.png`` for each pair of ``fit`` at the
     estimate ``found``, the band from the corners of the ``intervals`` (a parameter without
-    one at its value); the names of those drawn. Collective."""
+    one at its value); with each pair's ``full`` model view and ``inspirations`` segmentation,
+    ``ventilation-<pair>.png`` too. The names of those drawn. Collective."""
     made = []
+    for view, full_view, image in zip(fit.views, full, inspirations):
+        lungs = ventilation(full_view.model, dict(view.fixed) | found.values, view.time, image)
+        path = folder / f"ventilation-{view.name}.png"
+        if drawn(comm, path, partial(ventilation_picture, lungs, path, f"{view.name}: regional ventilation")):
+            made.append(path.name)
     for view, prediction in zip(fit.views, fit.predictions(found.unit)):
         surface = folder / f"fit-{view.name}.png"
         draw = partial(
@@ -194,6 +213,69 @@ def pressure_volume_band(
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def ventilation_picture(lungs: Ventilation, path: Path, title: str = "") -> None:
+    """J − 1 (%) on a coronal cut through the lung imaged at end-expiration, observed beside
+    fitted, on one colour scale, seen from the front. Collective; the first rank draws."""
+    from dolfinx import plot
+
+    mesh = lungs.mesh
+    owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    topology, types, x = plot.vtk_mesh(mesh, mesh.topology.dim, np.arange(owned, dtype=np.int32))
+    pieces = mesh.comm.gather((topology, types, x, lungs.fitted, lungs.observed), root=0)
+    on_root(mesh.comm, lambda: _cut(pieces, path, title))
+
+
+def _cut(pieces: Sequence[tuple[np.ndarray, ...]], path: Path, title: str) -> None:
+    import pyvista
+    import vtk
+
+    vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server" noise: rendering is off-screen
+    grids = []
+    for topology, types, x, fitted, observed in pieces:
+        grid = pyvista.UnstructuredGrid(topology, types, x)
+        grid.cell_data["fitted"], grid.cell_data["observed"] = 100 * fitted, 100 * observed
+        grids.append(grid)
+    lung = pyvista.merge(grids) if len(grids) > 1 else grids[0]
+    centre = np.asarray(lung.center)
+    cut = lung.clip(normal=(0.0, 1.0, 0.0), origin=centre)  # the posterior half, its cut face to the front
+    values = np.concatenate([lung.cell_data["fitted"], lung.cell_data["observed"]])
+    limits = (float(np.percentile(values, 1)), float(np.percentile(values, 99)))
+    size = float(np.linalg.norm(np.ptp(np.asarray(lung.points), axis=0)))
+    plotter = pyvista.Plotter(off_screen=True, shape=(1, 2), window_size=[1400, 720], border=False)
+    for column, (name, said) in enumerate(
+        (
+            ("observed", "observed: a registration of the two segmentations (inside: its regulariser's)"),
+            ("fitted", "fitted: the model at the estimate"),
+        )
+    ):
+        plotter.subplot(0, column)
+        plotter.add_mesh(
+            cut.copy(),
+            scalars=name,
+            cmap="viridis",
+            clim=limits,
+            show_scalar_bar=column == 1,
+            scalar_bar_args={
+                "title": "J - 1 [%]",
+                "vertical": True,
+                "fmt": "%.0f",
+                "position_x": 0.8,
+                "position_y": 0.15,
+                "width": 0.08,
+                "height": 0.7,
+            },
+        )
+        plotter.add_text(
+            (f"{title}\n" if column == 0 and title else "") + said + "\ncoronal cut, seen from the front", font_size=9
+        )
+        plotter.camera.focal_point = centre
+        plotter.camera.position = centre + 2.6 * size * np.array([0.0, 1.0, 0.0])
+        plotter.camera.up = (0.0, 0.0, 1.0)
+        plotter.camera.view_angle = 30.0
+    plotter.screenshot(str(path))
+    plotter.close()
 
 
 def _rising(pressure: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,8 @@ model never sees the mesh, the nodes or the motion that made them.
 Noise where it arises on segmentations: :func:`flip_boundary` flips a fraction of the voxels on
 the segmentation's surface (either side), seeded. Noise on the data themselves, as the published
 twin protocol adds it to displacements: :func:`surface_noise`, Gaussian on each surface datum,
-its standard deviation a fraction of the RMS of the surface's observed motion.
+its standard deviation a fraction of the RMS of the surface's observed motion, independent or
+correlated over a length.
 """
 
 from __future__ import annotations
@@ -73,18 +74,28 @@ def flip_boundary(image: Image, fraction: float, seed: int = 0) -> Image:
     return image.with_mask(flipped.reshape(mask.shape))
 
 
-def surface_noise(fit: Fit, fraction: float, seed: int = 0) -> np.ndarray:
+def surface_noise(fit: Fit, fraction: float, seed: int = 0, correlation: float = 0.0) -> np.ndarray:
     """An offset for ``fit``'s residual (m, one per row): on each view's surface rows, Gaussian
     noise of standard deviation ``fraction`` × the RMS of the surface's observed normal motion,
     U_n,i = d(x_i) − d₀(x_i) (the end-inspiration segmentation's signed distance at the imaged
-    nodes, against end-expiration's); zero on the volume rows. Seeded: the same on every rank."""
+    nodes, against end-expiration's); zero on the volume rows. ``correlation`` (m): a length
+    over which the noise is correlated, exp(−|x_i − x_j|² / (2 ℓ²)) between nodes (0: none).
+    Seeded: the same on every rank."""
     if not 0 <= fraction:
         raise ParameterError(f"the noise must be a non-negative fraction of the surface's motion (got {fraction})")
+    if not 0 <= correlation:
+        raise ParameterError(f"the noise's correlation length must be a length ≥ 0 in m (got {correlation})")
     rng = np.random.default_rng(seed)
     offset = np.zeros(fit.rows)
     for view, rows in zip(fit.views, fit.surface_rows()):
         motion, _ = view.surface.distance(view.nodes.points)
         if view.baseline is not None:
             motion = motion - view.baseline.distance(view.nodes.points)[0]
-        offset[rows] = rng.normal(0.0, fraction * float(np.sqrt(np.mean(motion**2))), size=len(rows))
+        draw = rng.normal(0.0, 1.0, size=len(rows))
+        if correlation > 0:  # a Gaussian field on the nodes: L z, L L^T the correlation
+            points = view.nodes.points
+            squared = np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=-1)
+            kernel = np.exp(-squared / (2 * correlation**2)) + 1e-9 * np.eye(len(points))
+            draw = np.linalg.cholesky(kernel) @ draw
+        offset[rows] = fraction * float(np.sqrt(np.mean(motion**2))) * draw
     return offset
