@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -120,6 +120,10 @@ bench-threads: $(STAMP)
 
 bench-layout: $(STAMP)
 	$(PY) benchmarks/layout.py
+
+# Twin experiments: 3 synthetic patients, supine/prone/both, noise 0–40 %, against Nelder–Mead (about an hour).
+bench-twin: $(STAMP)
+	$(PY) benchmarks/twin.py
 
 clean:
 	rm -rf results benchmarks/results

@@ -21,7 +21,7 @@ from lungmech.app.personalise import Pair, Setting, estimated, personalise, posi
 from lungmech.app.run import full_order_model
 from lungmech.errors import ParameterError
 from lungmech.twin.fit import Fit, estimate
-from lungmech.twin.synthetic import image_pair, surface_noise
+from lungmech.twin.synthetic import displacement_field, image_pair, surface_noise
 from lungmech.twin.uncertainty import laplace
 
 SCENE = """
@@ -83,12 +83,15 @@ def scene_of(folder, size: float):
 
 @pytest.fixture(scope="module")
 def patient(tmp_path_factory):
-    """The synthetic patient's segmentations (its mesh: 0.02 m cells), supine and prone."""
+    """The synthetic patient's segmentations (its mesh: 0.02 m cells), supine and prone, and
+    its supine displacement field as an intensity registration would give it."""
     folder = tmp_path_factory.mktemp(f"patient-rank{MPI.COMM_WORLD.rank}")
     truth = full_order_model(scene_of(folder, 0.02), start="inverse_motion")
+    supine = image_pair(truth, TRUTH, 1.0, 0.004)
     return folder, {
-        "supine": image_pair(truth, TRUTH, 1.0, 0.004),
+        "supine": supine,
         "prone": image_pair(truth, TRUTH | {"posture": 90.0}, 1.0, 0.004),
+        "field": displacement_field(truth, TRUTH, 1.0, supine[0], smoothing=1.0),  # supine, smoothed by a voxel
     }
 
 
@@ -142,7 +145,7 @@ def test_a_second_position_separates_the_stiffness_from_the_breath(patient):
     stiffness's deviation, which supine alone leaves wide (a stiffer lung under a deeper
     breath looks alike)."""
     folder, images = patient
-    setting = Setting(estimate=("stiffness", "breath"), training=6, size=8, resamples=0, mesh_check=False)
+    setting = Setting(estimate=("stiffness", "breath"), training=4, size=6, resamples=0, mesh_check=False)
     both = prepare(scene_of(folder, 0.035), [Pair(*images[p], p) for p in ("supine", "prone")], setting)
     report = estimated(both, setting)
     assert report["fixed"] == {"supine": {"posture": -90.0}, "prone": {"posture": 90.0}}
@@ -153,6 +156,33 @@ def test_a_second_position_separates_the_stiffness_from_the_breath(patient):
     together = laplace(estimate(both.fit()), both.fit())
     assert np.sqrt(together.covariance[0, 0]) < np.sqrt(alone.covariance[0, 0])
     assert abs(report["parameters"]["breath"]["value"] - TRUTH["breath"]) < 0.05 * TRUTH["breath"]
+
+
+@pytest.mark.slow
+def test_a_displacement_field_inside_the_lung_joins_the_data(patient):
+    """The supine pair with its displacement field (smoothed by a 4 mm voxel, taken one per
+    8 mm): the field's rows weighed by its noise against the surface's, the stiffness's
+    deviation narrower than the surface alone leaves it, and the report says so."""
+    from lungmech.twin.displacement import Displacement
+
+    folder, images = patient
+    setting = Setting(estimate=("stiffness", "breath"), training=4, size=6, resamples=0, mesh_check=False)
+    pair = Pair(*images["supine"], "supine", Displacement(images["field"], 0.008))
+    ready = prepare(scene_of(folder, 0.035), [pair], setting)
+    first = estimate(ready.fit())
+    weighed = ready.weighed(first.residual)
+    found = estimate(weighed.fit(), start=first.values)
+    (inside,) = weighed.fit().interior_rows()
+    surface = np.setdiff1d(np.arange(len(found.residual)), inside)
+    alone = np.linalg.inv(found.jacobian[surface].T @ found.jacobian[surface])
+    joined = np.linalg.inv(found.jacobian.T @ found.jacobian)
+    assert joined[0, 0] < 0.5 * alone[0, 0]  # the field tells the stiffness apart
+    report = estimated(ready, setting)
+    interior = report["fit"]["pairs"][0]["interior"]
+    assert interior["points"] >= 10 and interior["smoothing"] == 0.008
+    assert interior["weight"] == pytest.approx(weighed.views[0].interior.weight)
+    assert interior["rms"] < 0.002  # m
+    assert report["parameters"]["breath"]["value"] == pytest.approx(TRUTH["breath"], rel=0.05)
 
 
 @pytest.mark.slow
@@ -167,6 +197,24 @@ def test_a_cohort_runs_a_patient_a_task_through_the_ensemble(patient, tmp_path):
 def test_a_cohort_on_two_ranks_runs_a_patient_a_group(patient, tmp_path):
     """The same cohort under mpiexec with --group-size 1: a patient on each rank at once."""
     _cohort(patient, tmp_path, ["--group-size", "1"])
+
+
+@pytest.mark.slow
+@pytest.mark.mpi
+def test_a_patient_on_two_ranks_is_estimated_as_on_one(patient):
+    """The whole estimate on a distributed mesh (registration, reduced model, fit) equals the
+    one each rank makes alone on COMM_SELF: the same surface nodes, the same breath."""
+    folder, images = patient
+    setting = Setting(estimate=("breath",), training=4, size=6, resamples=0, mesh_check=False)
+    found = {}
+    for name, comm in (("alone", MPI.COMM_SELF), ("together", MPI.COMM_WORLD)):
+        scene = scene_of(folder, 0.035)
+        ready = prepare(scene, [Pair(*images["supine"], "supine")], setting, comm)
+        found[name] = (estimated(ready, setting, comm=comm), ready.views[0].nodes.points)
+    (alone, nodes), (together, spread) = found["alone"], found["together"]
+    assert np.array_equal(nodes, spread)
+    assert together["parameters"]["breath"]["value"] == pytest.approx(alone["parameters"]["breath"]["value"], rel=1e-6)
+    assert together["noise_sigma"] == pytest.approx(alone["noise_sigma"], rel=1e-5)
 
 
 def _cohort(patient, folder, extra=()):

@@ -1,21 +1,26 @@
-"""A patient's lung parameters from a pair of segmentations: what ``lungmech personalise`` does.
+"""A patient's lung parameters from pairs of segmentations: what ``lungmech personalise`` does.
 
-scene (its lung, physics and parameter box) + the end-expiration and end-inspiration
-segmentations →
+scene (its lung, physics and parameter box) + one or more pairs of end-expiration and
+end-inspiration segmentations, each in a position (supine, prone, …) → for each pair
+(:func:`prepare`, the offline step, timed apart):
 
 1. **registration**: the scene's reference lung mapped onto the end-expiration segmentation
    (:func:`lungmech.registration.sobolev.register`); that mesh is the lung as imaged, posed as
    an imaged body (its unloaded reference found at every μ: the inverse motion);
-2. **the patient's reduced model** (the offline step, timed apart): POD of ``training`` full
-   breaths over the box (the position's parameters fixed), Galerkin or ECSW at τ, its probes the
-   registered lung's surface nodes; checked at 3 further points against the full model, and
-   that against the full model on the lung refined once (the mesh's own error): their sum is
-   ε, the model's error on each datum;
+2. **the pair's reduced model**: POD of ``training`` full breaths over the box (the
+   position's parameters fixed), Galerkin or ECSW at τ, its probes the registered lung's
+   surface nodes; checked at 3 further points against the full model, and that against the
+   full model on the lung refined once (the mesh's own error): their sum is ε, the model's
+   error on each datum;
+
+then, every pair at once (:func:`estimated`):
+
 3. **the estimate** (:mod:`lungmech.twin`): bounded least squares on the surface distances to
-   the end-inspiration segmentation and its volume, with the reduced model's exact
-   sensitivities; the Laplace intervals widened by ε as a bias; the identifiability; a check
-   by resampling;
-4. **confirmation**: one full-order solve at the estimate, its residual beside the reduced one's.
+   the end-inspiration segmentations and their volumes, with the reduced models' exact
+   sensitivities, the estimated parameters shared; the Laplace intervals widened by ε as a
+   bias; the identifiability; a check by resampling;
+4. **confirmation**: one full-order solve per pair at the estimate, its residual beside the
+   reduced one's; the pictures (:mod:`lungmech.app.twin_pictures`).
 
 The application talks to the models through ``solve(μ)`` only.
 """
@@ -24,11 +29,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from mpi4py import MPI
 
+import dolfinx
 import numpy as np
 
 from lungmech.app import twin_pictures
@@ -47,7 +53,8 @@ from lungmech.registration import side as sides
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
-from lungmech.twin.fit import Estimate, Fit, View, estimate
+from lungmech.twin.displacement import Displacement, interior_points
+from lungmech.twin.fit import Estimate, Fit, Interior, View, estimate
 from lungmech.twin.surface import surface_data, surface_nodes
 from lungmech.twin.synthetic import surface_noise
 from lungmech.twin.uncertainty import Uncertainty, laplace, resampled
@@ -70,11 +77,13 @@ POSITIONS = {"supine": -90.0, "upright": 0.0, "prone": 90.0}  # the weight's pit
 @dataclass(frozen=True)
 class Pair:
     """One pair of a patient's segmentations, end-expiration and end-inspiration, taken in one
-    ``position`` (supine, upright or prone)."""
+    ``position`` (supine, upright or prone); with a ``displacement`` field between them,
+    computed elsewhere from the intensity images (:mod:`lungmech.twin.displacement`)."""
 
     expiration: Image
     inspiration: Image
     position: str = "supine"
+    displacement: Displacement | None = None
 
 
 @dataclass(frozen=True)
@@ -129,6 +138,25 @@ class Patient:
     def fit(self, full: bool = False) -> Fit:
         """The least-squares problem of every pair, on the reduced models (or the full ones)."""
         return Fit(self.full_views if full else self.views, self.estimated)
+
+    def weighed(self, residual: np.ndarray) -> Patient:
+        """The patient with each pair's interior data weighed by ω = σ_surface / σ_interior, the
+        noise of each as ``residual`` (this patient's, at an estimate) shows it; its ε too."""
+        fit = self.fit()
+        surface = np.concatenate([np.append(residual[rows], residual[rows[-1] + 1]) for rows in fit.surface_rows()])
+        noise = float(np.sqrt(np.mean(surface**2)))
+        views, full_views, error = [], [], self.error.copy()
+        for view, full, rows in zip(self.views, self.full_views, fit.interior_rows()):
+            if view.interior is None:
+                views.append(view)
+                full_views.append(full)
+                continue
+            own = float(np.sqrt(np.mean((residual[rows] / view.interior.weight) ** 2)))
+            weight = noise / own if own > 0 else 1.0
+            error[rows] *= weight / view.interior.weight
+            views.append(replace(view, interior=replace(view.interior, weight=weight)))
+            full_views.append(replace(full, interior=replace(view.interior, weight=weight)))
+        return replace(self, views=tuple(views), full_views=tuple(full_views), error=error)
 
 
 def personalise(
@@ -185,7 +213,9 @@ def prepare(
         tic = time.perf_counter()
         model = build_model(scene, comm, geometry=geometry, image=Placement.motion(scene.stepping.start))
         surface = surface_nodes(geometry.mesh)
-        probes = surface.points.tolist()
+        interior = _interior(pair.displacement, geometry.mesh)
+        inside = np.zeros((0, 3)) if interior is None else interior.points
+        probes = np.vstack([surface.points, inside]).tolist()
         full = full_order_model(scene, comm, start="inverse_motion", model=model, probes=probes)
         training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
         with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
@@ -202,13 +232,14 @@ def prepare(
             chain.append(full_order_model(scene, comm, start="inverse_motion", model=finer, probes=probes))
         checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
         error, points = model_error(chain, checks, end, surface.area)
-        errors.append(error)
+        n = len(surface.points)  # the check's rows, in the view's order: surface, volume, interior (3 a point)
+        errors.append(np.concatenate([error[:n], error[-1:], np.repeat(error[n:-1], 3)]))
         checked.extend({"pair": name} | point for point in points)
         seconds["check"] += time.perf_counter() - tic
 
         data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
-        views.append(View(reduced, surface, data, end, fixed, name, baseline))
-        full_views.append(View(full, surface, data, end, fixed, name, baseline))
+        views.append(View(reduced, surface, data, end, fixed, name, baseline, interior))
+        full_views.append(View(full, surface, data, end, fixed, name, baseline, interior))
     return Patient(
         box,
         tuple(estimated),
@@ -235,6 +266,11 @@ def estimated(
     offset = surface_noise(fit, setting.noise, setting.seed) if setting.noise else None
     found = estimate(fit, offset=offset)
     seconds["estimate"] = found.seconds
+    if any(view.interior is not None for view in patient.views):  # again, each datum weighed by its noise
+        patient = patient.weighed(found.residual)
+        fit = patient.fit()
+        found = estimate(fit, start=found.values, offset=offset)
+        seconds["estimate"] += found.seconds
     tic = time.perf_counter()
     uncertainty = laplace(found, fit, patient.error, setting.level)
     draws = (
@@ -264,6 +300,20 @@ def estimated(
         )
         seconds["pictures"] = time.perf_counter() - tic
     return report
+
+
+def _interior(displacement: Displacement | None, mesh: dolfinx.mesh.Mesh) -> Interior | None:
+    """A displacement field's data on the lung as imaged: at its interior vertices, one per
+    smoothing length (weighed later, by its noise)."""
+    if displacement is None:
+        return None
+    points = interior_points(mesh, displacement.smoothing)
+    if len(points) == 0:
+        raise ParameterError(
+            f"the displacement field's smoothing, {1e3 * displacement.smoothing:g} mm, leaves no interior point of the "
+            "lung as meshed: it is as coarse as the lung"
+        )
+    return Interior(points, displacement.field.at(points), smoothing=displacement.smoothing)
 
 
 def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) -> tuple[tuple[str, ...], float]:
@@ -409,22 +459,30 @@ def _report(
             "resampled_deviation_unit_box": float(spread[i]),
             "model_bias_unit_box": float(interval.bias),
         }
-    views, start = [], 0
-    for view in fit.views:
-        rows = slice(start, start + view.rows)
-        reduced, full = found.residual[rows], full_residual[rows]
+    views = []
+    for view, rows, inside in zip(fit.views, fit.surface_rows(), fit.interior_rows()):
+        surface, full = found.residual[rows], full_residual[rows]
+        volume = rows[-1] + 1
         views.append(
             {
                 "pair": view.name,
                 "fixed": dict(view.fixed),
-                "surface_rms": float(np.sqrt(np.mean(reduced[:-1] ** 2))),
-                "surface_max": float(np.abs(reduced[:-1]).max()),
-                "volume_offset": float(reduced[-1]),
-                "full_order_surface_rms": float(np.sqrt(np.mean(full[:-1] ** 2))),
-                "full_order_volume_offset": float(full[-1]),
+                "surface_rms": float(np.sqrt(np.mean(surface**2))),
+                "surface_max": float(np.abs(surface).max()),
+                "volume_offset": float(found.residual[volume]),
+                "full_order_surface_rms": float(np.sqrt(np.mean(full**2))),
+                "full_order_volume_offset": float(full_residual[volume]),
             }
         )
-        start += view.rows
+        if view.interior is not None:  # the field's misfit, in m (unweighed), and its weight
+            misfit = found.residual[inside] / view.interior.weight
+            views[-1]["interior"] = {
+                "points": len(view.interior.points),
+                "smoothing": view.interior.smoothing,
+                "weight": view.interior.weight,
+                "rms": float(np.sqrt(np.mean(misfit**2))),
+                "full_order_rms": float(np.sqrt(np.mean((full_residual[inside] / view.interior.weight) ** 2))),
+            }
     surfaces = np.concatenate([found.residual[rows] for rows in fit.surface_rows()])
     full_surfaces = np.concatenate([full_residual[rows] for rows in fit.surface_rows()])
     return {
@@ -464,4 +522,7 @@ UNITS = {
     "motion_error_max": "m",
     "cost": "m^2",
     "seconds": "s",
+    "interior.rms": "m (the displacement field's misfit per component)",
+    "interior.weight": "1 (the surface's noise over the field's)",
+    "smoothing": "m",
 }

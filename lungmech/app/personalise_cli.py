@@ -21,6 +21,7 @@ if TYPE_CHECKING:
 
     from lungmech.app.personalise import Setting
     from lungmech.app.scene import Scene
+    from lungmech.twin.displacement import Displacement
 
 COMMANDS = ("personalise",)
 DEFAULT_SCENE = "lung_personalise"
@@ -43,6 +44,19 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         action="append",
         choices=("supine", "upright", "prone"),
         help="the patient's position in each pair, in order (default supine)",
+    )
+    command.add_argument(
+        "--displacement",
+        action="append",
+        help="a displacement field from end-expiration to end-inspiration computed elsewhere from the intensity "
+        "images (a vector image: .nii, .nii.gz, .mha, .nrrd in ITK's LPS millimetres, or .npz), once per pair, as "
+        "extra data inside the lung",
+    )
+    command.add_argument(
+        "--displacement-smoothing",
+        type=float,
+        help="with --displacement: the length over which the field was smoothed, mm (its data are taken one per "
+        "such length)",
     )
     command.add_argument(
         "--cohort",
@@ -166,19 +180,47 @@ def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Settin
     positions = args.position or ["supine"] * len(expirations)
     if len(positions) != len(expirations):
         raise ParameterError(f"give --position once for each pair of images ({len(expirations)}; got {len(positions)})")
+    fields = _displacements(args, len(expirations))
     pairs = [
-        Pair(image.read(e, label=args.label, unit=args.unit), image.read(i, label=args.label, unit=args.unit), p)
-        for e, i, p in zip(expirations, inspirations, positions)
+        Pair(image.read(e, label=args.label, unit=args.unit), image.read(i, label=args.label, unit=args.unit), p, f)
+        for e, i, p, f in zip(expirations, inspirations, positions, fields)
     ]
     return personalise(scene, pairs, args.output, setting, comm)
+
+
+def _displacements(args: argparse.Namespace, pairs: int) -> list[Displacement | None]:
+    """The pairs' displacement fields (--displacement, once per pair, or none), with the
+    smoothing --displacement-smoothing states (mm)."""
+    from lungmech import checks
+    from lungmech.registration.vectors import read_vectors
+    from lungmech.twin.displacement import Displacement
+
+    given = args.displacement or []
+    if not given:
+        if args.displacement_smoothing is not None:
+            raise ParameterError(
+                "--displacement-smoothing states a displacement field's smoothing: give --displacement"
+            )
+        return [None] * pairs
+    if len(given) != pairs:
+        raise ParameterError(f"give --displacement once for each pair of images ({pairs}; got {len(given)})")
+    if args.displacement_smoothing is None:
+        raise ParameterError(
+            "--displacement needs --displacement-smoothing: the length (mm) over which the field was smoothed, "
+            "over which its errors are alike"
+        )
+    smoothing = 1e-3 * checks.real("--displacement-smoothing", args.displacement_smoothing, positive=True)
+    return [Displacement(read_vectors(path, unit=args.unit), smoothing) for path in given]
 
 
 def _cohort(args: argparse.Namespace, comm: MPI.Comm, scene_path: Path | None, setting: Setting) -> int:
     """Every patient of --cohort, on the ensemble the options say; a line per patient."""
     from lungmech.app.cohort import cohort
 
-    if args.expiration or args.inspiration or args.position:
-        raise ParameterError("--cohort names every patient's images: leave out --expiration, --inspiration, --position")
+    if args.expiration or args.inspiration or args.position or args.displacement:
+        raise ParameterError(
+            "--cohort names every patient's images: leave out --expiration, --inspiration, --position, --displacement"
+        )
     with ensemble_of(args, comm) as ensemble:
         found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, args.label, args.unit, args.model)
     if comm.rank == 0:

@@ -8,7 +8,7 @@
   volumes at both ends;
 * :func:`ventilation_picture` — regional ventilation, the volume change J − 1 (%) from
   end-expiration to end-inspiration, observed (a registration of the two segmentations) beside
-  fitted (the full model at the estimate), on a coronal cut (:mod:`lungmech.twin.ventilation`);
+  fitted (the full model at the estimate), on a sagittal cut (:mod:`lungmech.twin.ventilation`);
 * :func:`pictures` — these, for each pair of images of an estimate, into a folder (the models
   solved on every rank, the pictures drawn on the first).
 
@@ -65,7 +65,7 @@ def pictures(
             fitted_surface,
             prediction.positions,
             view.nodes.triangles,
-            prediction.residual[:-1],
+            prediction.residual[: len(view.nodes.points)],
             surface,
             f"{view.name}: the fitted end-inspiration lung",
         )
@@ -216,8 +216,9 @@ def pressure_volume_band(
 
 
 def ventilation_picture(lungs: Ventilation, path: Path, title: str = "") -> None:
-    """J − 1 (%) on a coronal cut through the lung imaged at end-expiration, observed beside
-    fitted, on one colour scale, seen from the front. Collective; the first rank draws."""
+    """J − 1 (%) on a sagittal cut through the lung imaged at end-expiration (where the
+    weight's front-to-back gradient shows, lying down), observed beside fitted, on one colour
+    scale, seen from the lung's side. Collective; the first rank draws."""
     from dolfinx import plot
 
     mesh = lungs.mesh
@@ -239,7 +240,10 @@ def _cut(pieces: Sequence[tuple[np.ndarray, ...]], path: Path, title: str) -> No
         grids.append(grid)
     lung = pyvista.merge(grids) if len(grids) > 1 else grids[0]
     centre = np.asarray(lung.center)
-    cut = lung.clip(normal=(0.0, 1.0, 0.0), origin=centre)  # the posterior half, its cut face to the front
+    side = 1.0 if centre[0] >= 0 else -1.0  # a right lung (x > 0) is seen from the right
+    # a sagittal cut: the weight's gradient, front to back when lying down, lies in it
+    cut = lung.clip(normal=(side, 0.0, 0.0), origin=centre)  # the medial half, its cut face to the viewer
+    where = f"sagittal cut, seen from the lung's side: anterior to the {'right' if side > 0 else 'left'}"
     values = np.concatenate([lung.cell_data["fitted"], lung.cell_data["observed"]])
     limits = (float(np.percentile(values, 1)), float(np.percentile(values, 99)))
     size = float(np.linalg.norm(np.ptp(np.asarray(lung.points), axis=0)))
@@ -267,11 +271,9 @@ def _cut(pieces: Sequence[tuple[np.ndarray, ...]], path: Path, title: str) -> No
                 "height": 0.7,
             },
         )
-        plotter.add_text(
-            (f"{title}\n" if column == 0 and title else "") + said + "\ncoronal cut, seen from the front", font_size=9
-        )
+        plotter.add_text((f"{title}\n" if column == 0 and title else "") + f"{said}\n{where}", font_size=9)
         plotter.camera.focal_point = centre
-        plotter.camera.position = centre + 2.6 * size * np.array([0.0, 1.0, 0.0])
+        plotter.camera.position = centre + 2.6 * size * np.array([side, 0.0, 0.0])
         plotter.camera.up = (0.0, 0.0, 1.0)
         plotter.camera.view_angle = 30.0
     plotter.screenshot(str(path))

@@ -32,7 +32,21 @@ import numpy.typing as npt
 
 from lungmech.errors import ImageError
 
-__all__ = ["SUFFIXES", "Image", "companions", "from_array", "kind", "read", "stem", "write", "written_by_lungmech"]
+__all__ = [
+    "LPS",
+    "SUFFIXES",
+    "Image",
+    "companions",
+    "from_array",
+    "itk_affine",
+    "kind",
+    "one_line",
+    "read",
+    "simpleitk",
+    "stem",
+    "write",
+    "written_by_lungmech",
+]
 
 # Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
 _NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
@@ -46,7 +60,7 @@ SUFFIXES = {
     ".nrrd": "itk",
     ".nhdr": "itk",
 }
-_LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
+LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
 _SIGNATURE = "lungmech image"  # in the header of the images lungmech writes, with a digest of the voxels
 
 
@@ -233,7 +247,7 @@ def write(image: Image, path: str | Path) -> None:
     path = Path(path)
     format_ = kind(path)
     nib = _nibabel(path) if format_ == "nifti" else None  # imported first, to fail before touching the disk
-    sitk = _simpleitk(path) if format_ == "itk" else None
+    sitk = simpleitk(path) if format_ == "itk" else None
     data = image.mask.astype(np.uint8)
     signature = _signature(data)
     try:
@@ -262,7 +276,7 @@ def write(image: Image, path: str | Path) -> None:
     except ImageError:
         raise
     except Exception as e:
-        raise ImageError(f"cannot write image '{path}': {_one_line(e)}") from e
+        raise ImageError(f"cannot write image '{path}': {one_line(e)}") from e
 
 
 def written_by_lungmech(path: str | Path) -> bool:
@@ -341,17 +355,17 @@ def _read_nifti(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.
         unit = nifti.header.get_xyzt_units()[0]
         oriented = int(nifti.header["sform_code"]) > 0 or int(nifti.header["qform_code"]) > 0
     except Exception as e:  # nibabel raises many kinds (ImageFileError, OSError, EOFError, zlib.error...)
-        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+        raise ImageError(f"cannot read image '{path}': {one_line(e)}") from e
     data = _spatial(data, f"image '{path}'")
     return data, _scaled(affine, _NIFTI_UNITS.get(unit, 1e-3) if scale is None else scale), oriented
 
 
 def _read_itk(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
-    sitk = _simpleitk(path)
+    sitk = simpleitk(path)
     try:
         itk = sitk.ReadImage(str(path))
     except Exception as e:
-        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+        raise ImageError(f"cannot read image '{path}': {one_line(e)}") from e
     return _from_itk(itk, path, scale)
 
 
@@ -359,11 +373,11 @@ def _read_dicom(folder: Path, scale: float | None) -> tuple[npt.NDArray[Any], np
     """The one DICOM series in ``folder`` (its slices ordered by position, the geometry from
     their orientation and positions, by ITK's GDCM reader). Only the pixels and their geometry
     are read: none of the headers' other tags (the patient's name, say) is loaded."""
-    sitk = _simpleitk(folder)
+    sitk = simpleitk(folder)
     try:
         series = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)))
     except Exception as e:
-        raise ImageError(f"cannot read the DICOM folder '{folder}': {_one_line(e)}") from e
+        raise ImageError(f"cannot read the DICOM folder '{folder}': {one_line(e)}") from e
     if len(series) != 1:
         held = "no DICOM series" if not series else f"{len(series)} DICOM series"
         raise ImageError(f"image folder '{folder}' holds {held}: give a folder of one segmentation's series")
@@ -373,27 +387,32 @@ def _read_dicom(folder: Path, scale: float | None) -> tuple[npt.NDArray[Any], np
     try:
         itk = reader.Execute()
     except Exception as e:
-        raise ImageError(f"cannot read the DICOM series in '{folder}': {_one_line(e)}") from e
+        raise ImageError(f"cannot read the DICOM series in '{folder}': {one_line(e)}") from e
     return _from_itk(itk, folder, scale)
 
 
 def _from_itk(itk: Any, path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
     """An ITK image's voxels, indexed [i, j, k], and its affine in lungmech's metres."""
-    sitk = _simpleitk(path)
+    sitk = simpleitk(path)
     try:
         components = itk.GetNumberOfComponentsPerPixel()
-        dim = itk.GetDimension()
         data = sitk.GetArrayFromImage(itk).transpose()  # ITK arrays are [k, j, i]
-        origin = np.array(itk.GetOrigin())[:3]
-        spacing = np.array(itk.GetSpacing())[:3]
-        direction = np.array(itk.GetDirection()).reshape(dim, dim)[:3, :3]
+        affine = itk_affine(itk, 1e-3 if scale is None else scale)
     except Exception as e:
-        raise ImageError(f"cannot read image '{path}': {_one_line(e)}") from e
+        raise ImageError(f"cannot read image '{path}': {one_line(e)}") from e
     if components != 1:
         raise ImageError(f"image '{path}' has {components} values per voxel; a segmentation has one")
-    data = _spatial(data, f"image '{path}'")
-    scale = 1e-3 if scale is None else scale
-    return data, _affine(_LPS @ direction * spacing * scale, _LPS @ origin * scale)
+    return _spatial(data, f"image '{path}'"), affine
+
+
+def itk_affine(itk: Any, scale: float) -> npt.NDArray[np.float64]:
+    """The affine (voxel index → lungmech's RAS position) of an ITK image, whose geometry is
+    LPS in units of 1/``scale`` m (ITK's millimetres: 1e-3)."""
+    dim = itk.GetDimension()
+    origin = np.array(itk.GetOrigin())[:3]
+    spacing = np.array(itk.GetSpacing())[:3]
+    direction = np.array(itk.GetDirection()).reshape(dim, dim)[:3, :3]
+    return _affine(LPS @ direction * spacing * scale, LPS @ origin * scale)
 
 
 def _read_npz(path: Path) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
@@ -404,7 +423,7 @@ def _read_npz(path: Path) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
         with np.load(path, allow_pickle=False) as npz:
             data, affine = npz["mask"], npz["affine"]
     except Exception as e:
-        reason = f"{_one_line(e)} (expected arrays 'mask' and 'affine')"
+        reason = f"{one_line(e)} (expected arrays 'mask' and 'affine')"
         raise ImageError(f"cannot read image '{path}': {reason}") from e
     return _spatial(data, f"image '{path}'"), affine
 
@@ -417,7 +436,8 @@ def _nibabel(path: Path) -> Any:
     return nib
 
 
-def _simpleitk(path: Path) -> Any:
+def simpleitk(path: Path) -> Any:
+    """SimpleITK, or one line on how to install it for the file ``path``."""
     try:
         import SimpleITK as sitk
     except ImportError:
@@ -427,12 +447,12 @@ def _simpleitk(path: Path) -> Any:
 
 def _itk_geometry(affine: npt.NDArray[np.float64], path: Path) -> tuple[npt.NDArray[np.float64], ...]:
     """Origin, spacing and direction of an affine, in ITK's LPS millimetres."""
-    axes = _LPS @ affine[:3, :3] * 1e3
+    axes = LPS @ affine[:3, :3] * 1e3
     spacing = np.linalg.norm(axes, axis=0)
     direction = axes / spacing
     if not np.allclose(direction.T @ direction, np.eye(3), atol=1e-6):
         raise ImageError(f"cannot write image '{path}': its affine is sheared, which ITK cannot store")
-    return _LPS @ affine[:3, 3] * 1e3, spacing, direction
+    return LPS @ affine[:3, 3] * 1e3, spacing, direction
 
 
 def _spatial(data: npt.NDArray[Any], what: str) -> npt.NDArray[Any]:
@@ -483,7 +503,8 @@ def _scaled(affine: npt.NDArray[np.float64], factor: float) -> npt.NDArray[np.fl
     return np.diag([factor, factor, factor, 1.0]) @ affine
 
 
-def _one_line(error: Exception) -> str:
+def one_line(error: Exception) -> str:
+    """An error's message on one line (SimpleITK's span lines and end with the useful part)."""
     # SimpleITK's messages span lines and end with the useful part.
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
     return lines[-1].removeprefix("sitk::ERROR: ") if lines else type(error).__name__

@@ -36,12 +36,25 @@ from lungmech.fem.parameters import Parameter
 from lungmech.fem.parametric import ParametricModel
 from lungmech.twin.surface import Surface, SurfaceNodes
 
-__all__ = ["Estimate", "Fit", "View", "estimate"]
+__all__ = ["Estimate", "Fit", "Interior", "View", "estimate"]
+
+
+@dataclass(frozen=True)
+class Interior:
+    """Interior motion as data (:mod:`lungmech.twin.displacement`): at ``points`` (m, 3; the
+    model probes them after the surface nodes), the ``observed`` displacement from
+    end-expiration to end-inspiration (m, 3; m), its rows weighed by ``weight``."""
+
+    points: np.ndarray
+    observed: np.ndarray
+    weight: float = 1.0
+    smoothing: float | None = None  # m: the field's, for the record
 
 
 @dataclass(frozen=True)
 class View:
-    """One image pair's data and the model that predicts it (see the module's doc)."""
+    """One image pair's data and the model that predicts it (see the module's doc); with
+    ``interior`` data, three rows more a point, after the volume's."""
 
     model: ParametricModel
     nodes: SurfaceNodes
@@ -50,11 +63,16 @@ class View:
     fixed: Mapping[str, float] = field(default_factory=dict)
     name: str = "view"
     baseline: Surface | None = None
+    interior: Interior | None = None
 
     @property
     def rows(self) -> int:
-        """Its residual's length: one per surface node, and the volume."""
-        return len(self.nodes.points) + 1
+        """Its residual's length: one per surface node, the volume, three per interior point."""
+        return len(self.nodes.points) + 1 + 3 * self.interior_count
+
+    @property
+    def interior_count(self) -> int:
+        return 0 if self.interior is None else len(self.interior.points)
 
 
 @dataclass(frozen=True)
@@ -74,13 +92,15 @@ def predict(view: View, values: Mapping[str, float]) -> Prediction:
     solution = view.model.solve(values, sensitivities=True, times=[view.model.stepping.start, view.time])
     outputs, derivatives = solution.outputs, solution.sensitivities or {}
     probes = np.asarray(outputs["probes"])
-    if probes.shape[1] != len(view.nodes.points):
+    n, m = len(view.nodes.points), view.interior_count
+    if probes.shape[1] != n + m:
         raise ParameterError(
             f"view {view.name}: the model probes {probes.shape[1]} points, not the {len(view.nodes.points)} surface "
-            "nodes of its image"
+            f"nodes of its image" + (f" and its {m} interior points" if m else "")
         )
-    motion = probes[1] - probes[0]  # w(T) = u(T) − u(t₀)
-    motion_derivative = np.asarray(derivatives["probes"])[1] - np.asarray(derivatives["probes"])[0]
+    moved = probes[1] - probes[0]  # w(T) = u(T) − u(t₀)
+    moved_derivative = np.asarray(derivatives["probes"])[1] - np.asarray(derivatives["probes"])[0]
+    motion, motion_derivative = moved[:n], moved_derivative[:n]
     positions = view.nodes.points + motion
     distance, gradient = view.surface.distance(positions)
     scale = view.nodes.area
@@ -95,6 +115,10 @@ def predict(view: View, values: Mapping[str, float]) -> Prediction:
     jacobian = np.vstack(
         [np.einsum("nc,ncp->np", gradient, motion_derivative), np.asarray(derivatives["volume"])[1][None, :] / scale]
     )
+    if view.interior is not None:  # ω (w_j − u_obs,j), three rows a point
+        weight = view.interior.weight
+        residual = np.append(residual, weight * (moved[n:] - view.interior.observed).ravel())
+        jacobian = np.vstack([jacobian, weight * moved_derivative[n:].reshape(3 * m, -1)])
     return Prediction(residual, jacobian, positions, volume)
 
 
@@ -157,7 +181,16 @@ class Fit:
         """The row indices of each view's surface distances (its volume row follows them)."""
         rows, start = [], 0
         for view in self.views:
-            rows.append(np.arange(start, start + view.rows - 1))
+            rows.append(np.arange(start, start + len(view.nodes.points)))
+            start += view.rows
+        return rows
+
+    def interior_rows(self) -> list[np.ndarray]:
+        """The row indices of each view's interior data (none without), after its volume row."""
+        rows, start = [], 0
+        for view in self.views:
+            first = start + len(view.nodes.points) + 1
+            rows.append(np.arange(first, first + 3 * view.interior_count))
             start += view.rows
         return rows
 

@@ -25,9 +25,10 @@ from lungmech.fem.parametric import ParametricModel
 from lungmech.mesh import nodes
 from lungmech.registration.image import Image, from_array
 from lungmech.registration.metrics import voxelise
+from lungmech.registration.vectors import VectorImage
 from lungmech.twin.fit import Fit
 
-__all__ = ["flip_boundary", "image_pair", "surface_noise"]
+__all__ = ["displacement_field", "flip_boundary", "image_pair", "surface_noise"]
 
 
 def image_pair(
@@ -58,6 +59,31 @@ def image_pair(
         from_array(expiration, spacing=(spacing,) * 3, origin=low + spacing / 2),
         from_array(inspiration, spacing=(spacing,) * 3, origin=low + spacing / 2),
     )
+
+
+def displacement_field(
+    model: ParametricModel, mu: Mapping[str, float], time: float, grid: Image, smoothing: float = 1.0
+) -> VectorImage:
+    """The motion from end-expiration to end-inspiration of the lung ``model`` (as
+    :func:`image_pair`'s) at ``mu``, as an intensity registration would give it on the voxels
+    of ``grid`` (its end-expiration segmentation): the model's w at the centres of the voxels
+    inside, carried outward to the others from the nearest inside, then smoothed by a Gaussian
+    of ``smoothing`` voxels (standard deviation). Collective."""
+    from scipy import ndimage
+
+    from lungmech.fem.quantities import Probe
+
+    solution = model.solve(mu, times=[model.stepping.start, time])
+    model.fields(solution.states[-1], time)
+    inside = grid.mask
+    centres = grid.points(np.argwhere(inside))
+    values = np.zeros((*grid.shape, 3))
+    values[inside] = Probe(model.model.geometry.mesh, centres.tolist())(model.model.motion())
+    nearest = ndimage.distance_transform_edt(~inside, return_distances=False, return_indices=True)
+    values = values[tuple(nearest)]  # every voxel: its nearest inside voxel's motion
+    if smoothing > 0:
+        values = np.stack([ndimage.gaussian_filter(values[..., c], smoothing) for c in range(3)], axis=-1)
+    return VectorImage(values, grid.affine)
 
 
 def flip_boundary(image: Image, fraction: float, seed: int = 0) -> Image:
