@@ -339,3 +339,32 @@ def test_a_registered_meshs_own_offset_is_not_taken_for_motion(exact):
 
     assert abs(swell(None) - TRUTH["swell"]) * A == pytest.approx(5e-4, rel=0.1)  # the offset, taken for motion
     assert abs(swell(at_rest) - TRUTH["swell"]) * A < 5e-5
+
+
+def test_the_model_error_sums_the_chains_steps_at_its_worst_point():
+    """ε per datum: each step's difference in each node's motion (norm) and in the volume's
+    change (over the area), summed along the chain, the largest over the points."""
+    from types import SimpleNamespace
+
+    from lungmech.twin.model_error import model_error
+
+    class Answers:  # a model whose motion and volume change are given per point
+        stepping = SimpleNamespace(start=0.0)
+
+        def __init__(self, motion, change):
+            self.motion, self.change = motion, change
+
+        def solve(self, point, times):
+            motion = np.asarray(self.motion(point["a"]))
+            probes = np.stack([np.zeros_like(motion), motion])
+            return SimpleNamespace(
+                outputs={"probes": probes, "volume": np.array([1.0, 1.0 + self.change * point["a"]])}
+            )
+
+    truth = Answers(lambda a: [[a, 0, 0], [0, a, 0]], 2.0)
+    reduced = Answers(lambda a: [[a + 0.001, 0, 0], [0, a, 0]], 2.0)  # 1 mm off at the first node
+    finer = Answers(lambda a: [[a, 0, 0], [0, a, 0.002 * a]], 2.5)  # the mesh: 2a mm at the second, and ΔV
+    error, checked = model_error([reduced, truth, finer], [{"a": 1.0}, {"a": 2.0}], 1.0, area=10.0)
+    assert error == pytest.approx([0.001, 0.004, 0.5 * 2.0 / 10.0])
+    assert [len(point["steps"]) for point in checked] == [2, 2]
+    assert checked[1]["steps"][1]["motion_error_max"] == pytest.approx(0.004)

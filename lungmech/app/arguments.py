@@ -123,9 +123,9 @@ def setup(args: argparse.Namespace) -> tuple[MPI.Comm, Scene, str, Path]:
     return comm, scenes.load(args.scene), args.scene, Path(args.scene)
 
 
-def ensemble_options(command: argparse.ArgumentParser, what: str) -> None:
+def ensemble_options(command: argparse.ArgumentParser, what: str, cache: bool = True) -> None:
     """Where ``what`` (many independent solves) run: --group-size, --engine, --workers,
-    --worker-ranks, and --cache, where their answers are kept."""
+    --worker-ranks, and (``cache``) --cache, where their answers are kept."""
     command.add_argument(
         "--group-size",
         type=int,
@@ -143,6 +143,8 @@ def ensemble_options(command: argparse.ArgumentParser, what: str) -> None:
     )
     command.add_argument("--workers", type=int, default=2, help="with --engine: solves at once (default 2)")
     command.add_argument("--worker-ranks", type=int, default=1, help="with --engine: MPI ranks of each (default 1)")
+    if not cache:
+        return
     command.add_argument(
         "--cache",
         default=None,

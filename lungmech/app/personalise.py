@@ -28,7 +28,7 @@ The application talks to the models through ``solve(μ)`` only.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -37,7 +37,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from lungmech.app import twin_pictures
+from lungmech.app import personalise_report, twin_pictures
 from lungmech.app.output import write_json
 from lungmech.app.run import build_model, full_order_model
 from lungmech.app.scene import Scene, build_geometry
@@ -54,10 +54,11 @@ from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
 from lungmech.twin.displacement import Displacement, interior_points
-from lungmech.twin.fit import Estimate, Fit, Interior, View, estimate
+from lungmech.twin.fit import Fit, Interior, View, estimate
+from lungmech.twin.model_error import model_error
 from lungmech.twin.surface import surface_data, surface_nodes
 from lungmech.twin.synthetic import surface_noise
-from lungmech.twin.uncertainty import Uncertainty, laplace, resampled
+from lungmech.twin.uncertainty import laplace, resampled
 
 __all__ = [
     "POSITIONS",
@@ -284,7 +285,7 @@ def estimated(
     seconds["confirmation"] = time.perf_counter() - tic
     full_values = estimate(confirm, start=found.values, offset=offset).values if setting.full_fit else None
 
-    report = _report(patient, fit, found, uncertainty, draws, full_residual, seconds)
+    report = personalise_report.report(patient, fit, found, uncertainty, draws, full_residual, seconds)
     report["model"] = {
         "basis_sizes": list(patient.basis_sizes),
         "tau": setting.tau,
@@ -404,125 +405,3 @@ def position_values(scene: Scene, position: str) -> dict[str, float]:
     for p in pitched:
         p.check(angle, f"its pitch in position {position}")
     return {p.name: angle for p in pitched}
-
-
-def model_error(
-    chain: Sequence[ParametricModel], points: Sequence[Mapping[str, float]], end: float, area: float
-) -> tuple[np.ndarray, list[dict]]:
-    """ε per datum (m) of the first model of ``chain`` against the truth, bounded by the chain's
-    steps (the reduced model against the full one on its mesh, that against the full model on
-    a finer mesh: the error of reduction and the mesh's own): over ``points``, the largest sum
-    of each step's difference in each surface node's motion to ``end`` and in the volume
-    change's mean offset (ΔV / ``area``); and each point's worst numbers per step."""
-    start = chain[0].stepping.start
-    worst: np.ndarray | None = None
-    checked = []
-    for point in points:
-        answers = [model.solve(point, times=[start, end]) for model in chain]
-        motions = [np.asarray(a.outputs["probes"])[1] - np.asarray(a.outputs["probes"])[0] for a in answers]
-        changes = [float(a.outputs["volume"][1] - a.outputs["volume"][0]) for a in answers]
-        row = np.zeros(len(motions[0]) + 1)
-        steps = []
-        for k in range(len(chain) - 1):
-            node = np.linalg.norm(motions[k] - motions[k + 1], axis=1)
-            volume = abs(changes[k] - changes[k + 1]) / area
-            row += np.append(node, volume)
-            steps.append({"motion_error_max": float(node.max()), "volume_offset": volume})
-        worst = row if worst is None else np.maximum(worst, row)
-        checked.append({"parameters": dict(point), "steps": steps})
-    assert worst is not None  # (three points)
-    return worst, checked
-
-
-def _report(
-    patient: Patient,
-    fit: Fit,
-    found: Estimate,
-    uncertainty: Uncertainty,
-    draws: np.ndarray,
-    full_residual: np.ndarray,
-    seconds: dict[str, float],
-) -> dict:
-    """The report's plain values, each with its unit."""
-    parameters = {}
-    spread = draws.std(axis=0, ddof=1) if len(draws) > 1 else np.full(len(fit.names), np.nan)
-    deviation = np.sqrt(np.diag(uncertainty.covariance))
-    for i, name in enumerate(fit.names):
-        interval = uncertainty.intervals[name]
-        parameters[name] = {
-            "value": found.values[name],
-            "unit": patient.box.named(name).unit or "1",
-            "interval": None if interval.low is None else [interval.low, interval.high],
-            "note": interval.reason,
-            "at_bound": found.active[name],
-            "deviation_unit_box": float(deviation[i]),
-            "resampled_deviation_unit_box": float(spread[i]),
-            "model_bias_unit_box": float(interval.bias),
-        }
-    views = []
-    for view, rows, inside in zip(fit.views, fit.surface_rows(), fit.interior_rows()):
-        surface, full = found.residual[rows], full_residual[rows]
-        volume = rows[-1] + 1
-        views.append(
-            {
-                "pair": view.name,
-                "fixed": dict(view.fixed),
-                "surface_rms": float(np.sqrt(np.mean(surface**2))),
-                "surface_max": float(np.abs(surface).max()),
-                "volume_offset": float(found.residual[volume]),
-                "full_order_surface_rms": float(np.sqrt(np.mean(full**2))),
-                "full_order_volume_offset": float(full_residual[volume]),
-            }
-        )
-        if view.interior is not None:  # the field's misfit, in m (unweighed), and its weight
-            misfit = found.residual[inside] / view.interior.weight
-            views[-1]["interior"] = {
-                "points": len(view.interior.points),
-                "smoothing": view.interior.smoothing,
-                "weight": view.interior.weight,
-                "rms": float(np.sqrt(np.mean(misfit**2))),
-                "full_order_rms": float(np.sqrt(np.mean((full_residual[inside] / view.interior.weight) ** 2))),
-            }
-    surfaces = np.concatenate([found.residual[rows] for rows in fit.surface_rows()])
-    full_surfaces = np.concatenate([full_residual[rows] for rows in fit.surface_rows()])
-    return {
-        "parameters": parameters,
-        "fixed": {view.name: dict(view.fixed) for view in fit.views},
-        "level": uncertainty.level,
-        "noise_sigma": uncertainty.sigma,
-        "correlation": np.asarray(uncertainty.correlation).tolist(),
-        "directions": [
-            {"combination": d.combination, "deviation_unit_box": d.deviation, "weak": d.weak, "text": d.text()}
-            for d in uncertainty.directions
-        ],
-        "fit": {
-            "surface_rms": float(np.sqrt(np.mean(surfaces**2))),
-            "surface_max": float(np.abs(surfaces).max()),
-            "full_order_surface_rms": float(np.sqrt(np.mean(full_surfaces**2))),
-            "pairs": views,
-            "evaluations": found.evaluations,
-            "message": found.message,
-            "history": found.history,
-        },
-        "model_check": list(patient.checked),
-        "registration": list(patient.registered),
-        "seconds": seconds,
-        "units": UNITS,
-    }
-
-
-UNITS = {
-    "value": "the parameter's unit",
-    "interval": "the parameter's unit",
-    "deviation_unit_box": "1 (fraction of the parameter's range, log range on a log scale)",
-    "noise_sigma": "m",
-    "surface_rms": "m",
-    "surface_max": "m",
-    "volume_offset": "m (volume mismatch over the surface area)",
-    "motion_error_max": "m",
-    "cost": "m^2",
-    "seconds": "s",
-    "interior.rms": "m (the displacement field's misfit per component)",
-    "interior.weight": "1 (the surface's noise over the field's)",
-    "smoothing": "m",
-}

@@ -110,7 +110,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="output folder (default results/personalised); replaced only on success",
     )
     command.add_argument("-q", "--quiet", action="store_true", help="no progress")
-    ensemble_options(command, "a cohort's patients")
+    ensemble_options(command, "a cohort's patients", cache=False)  # (a patient's solves are not kept)
 
 
 def run(args: argparse.Namespace) -> int:

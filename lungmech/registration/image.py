@@ -31,22 +31,9 @@ import numpy as np
 import numpy.typing as npt
 
 from lungmech.errors import ImageError
+from lungmech.registration.itk import itk_affine, itk_geometry, one_line, read_series, simpleitk
 
-__all__ = [
-    "LPS",
-    "SUFFIXES",
-    "Image",
-    "companions",
-    "from_array",
-    "itk_affine",
-    "kind",
-    "one_line",
-    "read",
-    "simpleitk",
-    "stem",
-    "write",
-    "written_by_lungmech",
-]
+__all__ = ["SUFFIXES", "Image", "companions", "from_array", "kind", "read", "stem", "write", "written_by_lungmech"]
 
 # Metres per file unit. NIfTI files that leave the unit unset are nearly always millimetres.
 _NIFTI_UNITS = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6, "unknown": 1e-3}
@@ -60,7 +47,6 @@ SUFFIXES = {
     ".nrrd": "itk",
     ".nhdr": "itk",
 }
-LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS; its own inverse
 _SIGNATURE = "lungmech image"  # in the header of the images lungmech writes, with a digest of the voxels
 
 
@@ -221,7 +207,7 @@ def read(path: str | Path, *, label: int | None = None, unit: str | None = None)
     scale = None if unit is None else _UNITS[unit]
     oriented = True
     if format_ == "dicom":
-        data, affine = _read_dicom(path, scale)
+        data, affine = _from_itk(read_series(path), path, scale)
     elif format_ == "nifti":
         data, affine, oriented = _read_nifti(path, scale)
     elif format_ == "itk":
@@ -263,7 +249,7 @@ def write(image: Image, path: str | Path) -> None:
             nib.save(nifti, path)
         elif format_ == "itk":
             assert sitk is not None  # imported above for this format
-            origin, spacing, direction = _itk_geometry(image.affine, path)
+            origin, spacing, direction = itk_geometry(image.affine, path)
             # ITK arrays are indexed [k, j, i].
             itk = sitk.GetImageFromArray(np.ascontiguousarray(data.transpose(2, 1, 0)))
             itk.SetOrigin(origin.tolist())
@@ -369,28 +355,6 @@ def _read_itk(path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.ND
     return _from_itk(itk, path, scale)
 
 
-def _read_dicom(folder: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
-    """The one DICOM series in ``folder`` (its slices ordered by position, the geometry from
-    their orientation and positions, by ITK's GDCM reader). Only the pixels and their geometry
-    are read: none of the headers' other tags (the patient's name, say) is loaded."""
-    sitk = simpleitk(folder)
-    try:
-        series = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)))
-    except Exception as e:
-        raise ImageError(f"cannot read the DICOM folder '{folder}': {one_line(e)}") from e
-    if len(series) != 1:
-        held = "no DICOM series" if not series else f"{len(series)} DICOM series"
-        raise ImageError(f"image folder '{folder}' holds {held}: give a folder of one segmentation's series")
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), series[0]))
-    reader.MetaDataDictionaryArrayUpdateOff()  # (ITK's default: the tags stay unread)
-    try:
-        itk = reader.Execute()
-    except Exception as e:
-        raise ImageError(f"cannot read the DICOM series in '{folder}': {one_line(e)}") from e
-    return _from_itk(itk, folder, scale)
-
-
 def _from_itk(itk: Any, path: Path, scale: float | None) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
     """An ITK image's voxels, indexed [i, j, k], and its affine in lungmech's metres."""
     sitk = simpleitk(path)
@@ -403,16 +367,6 @@ def _from_itk(itk: Any, path: Path, scale: float | None) -> tuple[npt.NDArray[An
     if components != 1:
         raise ImageError(f"image '{path}' has {components} values per voxel; a segmentation has one")
     return _spatial(data, f"image '{path}'"), affine
-
-
-def itk_affine(itk: Any, scale: float) -> npt.NDArray[np.float64]:
-    """The affine (voxel index → lungmech's RAS position) of an ITK image, whose geometry is
-    LPS in units of 1/``scale`` m (ITK's millimetres: 1e-3)."""
-    dim = itk.GetDimension()
-    origin = np.array(itk.GetOrigin())[:3]
-    spacing = np.array(itk.GetSpacing())[:3]
-    direction = np.array(itk.GetDirection()).reshape(dim, dim)[:3, :3]
-    return _affine(LPS @ direction * spacing * scale, LPS @ origin * scale)
 
 
 def _read_npz(path: Path) -> tuple[npt.NDArray[Any], npt.NDArray[np.float64]]:
@@ -434,25 +388,6 @@ def _nibabel(path: Path) -> Any:
     except ImportError:
         raise ImageError(f"image '{path}' needs nibabel for its format: pip install nibabel") from None
     return nib
-
-
-def simpleitk(path: Path) -> Any:
-    """SimpleITK, or one line on how to install it for the file ``path``."""
-    try:
-        import SimpleITK as sitk
-    except ImportError:
-        raise ImageError(f"image '{path}' needs SimpleITK for its format: pip install SimpleITK") from None
-    return sitk
-
-
-def _itk_geometry(affine: npt.NDArray[np.float64], path: Path) -> tuple[npt.NDArray[np.float64], ...]:
-    """Origin, spacing and direction of an affine, in ITK's LPS millimetres."""
-    axes = LPS @ affine[:3, :3] * 1e3
-    spacing = np.linalg.norm(axes, axis=0)
-    direction = axes / spacing
-    if not np.allclose(direction.T @ direction, np.eye(3), atol=1e-6):
-        raise ImageError(f"cannot write image '{path}': its affine is sheared, which ITK cannot store")
-    return LPS @ affine[:3, 3] * 1e3, spacing, direction
 
 
 def _spatial(data: npt.NDArray[Any], what: str) -> npt.NDArray[Any]:
@@ -501,10 +436,3 @@ def _affine(axes: npt.NDArray[np.float64], origin: npt.NDArray[np.float64]) -> n
 def _scaled(affine: npt.NDArray[np.float64], factor: float) -> npt.NDArray[np.float64]:
     """The affine with positions multiplied by ``factor`` (a change of length unit)."""
     return np.diag([factor, factor, factor, 1.0]) @ affine
-
-
-def one_line(error: Exception) -> str:
-    """An error's message on one line (SimpleITK's span lines and end with the useful part)."""
-    # SimpleITK's messages span lines and end with the useful part.
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-    return lines[-1].removeprefix("sitk::ERROR: ") if lines else type(error).__name__

@@ -19,7 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from lungmech.errors import ImageError
-from lungmech.registration.image import LPS, itk_affine, kind, one_line, simpleitk
+from lungmech.registration.image import kind
+from lungmech.registration.itk import LPS, itk_affine, one_line, simpleitk
 
 __all__ = ["VectorImage", "read_vectors", "write_vectors"]
 
