@@ -34,7 +34,7 @@ from pathlib import Path
 
 import machine
 import numpy as np
-from machine import provenance, say, write_results  # benchmarks/ is the script folder, first on sys.path
+from machine import provenance, read_results, say, write_results  # benchmarks/ is the script folder, first on sys.path
 
 BUNDLED = "lung_personalise.toml"  # the physics of every patient and estimate: the bundled scene's
 ZONE = {  # a stiffer base: the skeleton's stiffness below a third of the lung's height (a smooth step)
@@ -176,8 +176,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="1 phantom, supine, noise 0 and 10 %%, 2 replicates")
     parser.add_argument("--replicates", type=int, default=None, help="per (phantom, positions, noise) (default 12)")
     parser.add_argument("--zones", type=int, choices=(1, 2), default=None, help="stiffness zones (default 2)")
+    parser.add_argument("--replot", action="store_true", help="draw the plot again from the results' CSV")
     args = parser.parse_args()
     plan = Plan.of(args.quick, args.zones, args.replicates)
+    if args.replot:  # (the markdown needs the timings, which the CSV does not hold)
+        stem = "twin_quick" if plan.quick else "twin"
+        rows = [_typed(row) for row in read_results(machine.RESULTS / f"{stem}.csv")]
+        plot(rows, plan.names, machine.RESULTS / f"{stem}.png")
+        return
     rows, timings = [], []
     for index, phantom in enumerate(plan.phantoms):
         rows += phantom_rows(plan, phantom, first=index == 0, timings=timings)
@@ -269,6 +275,17 @@ def protocol(plan: Plan, fit, full, error, gaps: dict, beside: bool) -> list[dic
                 common | {"correlation [mm]": 1e3 * plan.correlated} | one_estimate(fit, error, offset, plan.truth)
             )
     return rows  # fmt: skip
+
+
+def _typed(row: dict) -> dict:
+    """A CSV row as the run made it: "True"/"False" back to booleans, an empty "covered" cell
+    None (no interval), other empty cells dropped (the columns of other rows)."""
+    booleans = {"True": True, "False": False}
+    return {
+        key: booleans.get(value, value) if isinstance(value, str) else value
+        for key, value in row.items()
+        if value is not None or key.endswith(" covered")
+    }
 
 
 def _held(covered: bool | None) -> str:
@@ -455,9 +472,10 @@ def _times(rows: list[dict], timings: list[dict]) -> list[str]:
 
 
 def plot(rows: list[dict], names, path: Path) -> None:
-    """Left: each parameter's error against noise, this pipeline and Nelder–Mead (reduced
-    models; median and the 10–90 % band over replicates, phantoms and positions). Right: the
-    intervals' coverage per noise level, against the nominal level."""
+    """Left: each parameter's error against noise on the first phantom, supine, this pipeline
+    beside Nelder–Mead on the same replicates (reduced models; median and, for this pipeline,
+    the 10–90 % band). Right: the intervals' coverage per noise level over every phantom,
+    position set and parameter, against the nominal level."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -466,32 +484,40 @@ def plot(rows: list[dict], names, path: Path) -> None:
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.4))
     levels = sorted({r["noise [%]"] for r in rows})
     colours = plt.cm.tab10(np.arange(len(names)))
+    first = rows[0]["phantom"]
+    beside = [r for r in rows if r["phantom"] == first and r["positions"] == "supine" and not SPECIAL & set(r)]
     for method, style in (("trf, reduced", "-"), ("Nelder–Mead, reduced", "--")):
         for name, colour in zip(names, colours):
             stats = []
             for level in levels:
-                errors = [
-                    abs(r[f"{name} [%]"]) for r in rows
-                    if r["method"] == method and r["noise [%]"] == level and not SPECIAL & set(r)
-                ]  # fmt: skip
+                same = {
+                    r["replicate"] for r in beside if r["method"] == "Nelder–Mead, reduced" and r["noise [%]"] == level
+                }
+                errors = [abs(r[f"{name} [%]"]) for r in beside
+                          if r["method"] == method and r["noise [%]"] == level and r["replicate"] in same]  # fmt: skip
                 stats.append(np.percentile(errors, [10, 50, 90]) if errors else [np.nan] * 3)
             stats = np.array(stats)
             left.plot(levels, stats[:, 1], style, marker="o", color=colour, label=f"{name}, {method}")
             if method.startswith("trf"):
                 left.fill_between(levels, stats[:, 0], stats[:, 2], color=colour, alpha=0.15)
+    left.set_title(f"{first}, supine: the same replicates for both", fontsize=9)
     left.set_xlabel("noise [% of the surface's RMS motion]")
-    left.set_ylabel("error [% of the truth]")
+    left.set_ylabel("abs error [% of the truth]")
     left.grid(alpha=0.3)
     left.legend(fontsize=7)
     noisy = [level for level in levels if level > 0]
-    shown = [coverage(rows, names, level / 100)[0] for level in noisy]
-    right.bar([str(level) for level in noisy], shown, color="tab:blue", alpha=0.7)
+    counted = [coverage(rows, names, level / 100) for level in noisy]
+    bars = right.bar([f"{level:g}" for level in noisy], [c[0] for c in counted], color="tab:blue", alpha=0.7)
+    for bar, (_, count, none) in zip(bars, counted):
+        x = bar.get_x() + bar.get_width() / 2
+        right.text(x, 0.53, f"{count} intervals\n{none} at a bound", ha="center", fontsize=7, color="white")
     right.axhspan(0.93, 0.97, color="tab:green", alpha=0.2, label="93–97 %")
     right.axhline(LEVEL, color="k", lw=1, label=f"nominal {100 * LEVEL:.0f} %")
     right.set_ylim(0.5, 1.02)
+    right.set_title("every phantom, position set and parameter", fontsize=9)
     right.set_xlabel("noise [% of the surface's RMS motion]")
     right.set_ylabel("coverage of the truth [-]")
-    right.legend(fontsize=8, loc="lower left")
+    right.legend(fontsize=8, loc="upper right")
     fig.suptitle("Twin experiments: error and coverage against noise (synthetic patients)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
