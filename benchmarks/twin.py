@@ -153,7 +153,7 @@ class Plan:
             return cls(False, zones or 2, replicates or 12)
         return cls(
             True, zones or 1, replicates or 2, 0.025, 0.04, 0.004, tuple(PHANTOMS)[:1], ("supine",), (0.0, 0.1), (),
-            (0.25,), 0.0, (20, 4), 1, (0.0,),
+            (), 0.0, (20, 4), 1, (0.0,),
         )  # fmt: skip
 
     @property
@@ -173,7 +173,9 @@ class Plan:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="1 phantom, supine, noise 0 and 10 %%, 2 replicates")
+    parser.add_argument(
+        "--quick", action="store_true", help="1 phantom, supine, noise 0 and 10 %%, 2 replicates, no flips or bias"
+    )
     parser.add_argument("--replicates", type=int, default=None, help="per (phantom, positions, noise) (default 12)")
     parser.add_argument("--zones", type=int, choices=(1, 2), default=None, help="stiffness zones (default 2)")
     parser.add_argument("--replot", action="store_true", help="draw the plot again from the results' CSV")
