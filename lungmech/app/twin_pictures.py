@@ -21,6 +21,7 @@ import itertools
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from mpi4py import MPI
 
@@ -34,6 +35,9 @@ from lungmech.registration.image import Image
 from lungmech.twin.fit import Estimate, Fit, View
 from lungmech.twin.uncertainty import Interval
 from lungmech.twin.ventilation import Ventilation, ventilation
+
+if TYPE_CHECKING:
+    from pyvista.plotting._typing import ScalarBarArgs
 
 __all__ = ["fitted_surface", "pictures", "pressure_volume_band", "ventilation_picture"]
 
@@ -149,22 +153,11 @@ def fitted_surface(
             clim=(-limit, limit),
             smooth_shading=True,
             show_scalar_bar=column == 1,
-            scalar_bar_args={
-                "title": "distance left [mm]",
-                "vertical": True,
-                "fmt": "%.2f",
-                "position_x": 0.8,
-                "position_y": 0.15,
-                "width": 0.08,
-                "height": 0.7,
-            },
+            scalar_bar_args=_scalar_bar("distance left [mm]", "%.2f"),
         )
         said = f"{title}\n{name} view" if column == 0 else f"{name} view (+: outside the segmented surface)"
         plotter.add_text(said, font_size=10)
-        plotter.camera.focal_point = centre
-        plotter.camera.position = np.asarray(centre) + 2.6 * size * view
-        plotter.camera.up = (0.0, 0.0, 1.0)
-        plotter.camera.view_angle = 30.0
+        _look(plotter, centre, size, view)
     plotter.screenshot(str(path))
     plotter.close()
 
@@ -261,23 +254,34 @@ def _cut(pieces: Sequence[tuple[np.ndarray, ...]], path: Path, title: str) -> No
             cmap="viridis",
             clim=limits,
             show_scalar_bar=column == 1,
-            scalar_bar_args={
-                "title": "J - 1 [%]",
-                "vertical": True,
-                "fmt": "%.0f",
-                "position_x": 0.8,
-                "position_y": 0.15,
-                "width": 0.08,
-                "height": 0.7,
-            },
+            scalar_bar_args=_scalar_bar("J - 1 [%]", "%.0f"),
         )
         plotter.add_text((f"{title}\n" if column == 0 and title else "") + f"{said}\n{where}", font_size=9)
-        plotter.camera.focal_point = centre
-        plotter.camera.position = centre + 2.6 * size * np.array([side, 0.0, 0.0])
-        plotter.camera.up = (0.0, 0.0, 1.0)
-        plotter.camera.view_angle = 30.0
+        _look(plotter, centre, size, np.array([side, 0.0, 0.0]))
     plotter.screenshot(str(path))
     plotter.close()
+
+
+def _scalar_bar(title: str, fmt: str) -> ScalarBarArgs:
+    """A vertical colour bar at the right of the second panel."""
+    return {
+        "title": title,
+        "vertical": True,
+        "fmt": fmt,
+        "position_x": 0.8,
+        "position_y": 0.15,
+        "width": 0.08,
+        "height": 0.7,
+    }
+
+
+def _look(plotter: Any, centre: Sequence[float] | np.ndarray, size: float, direction: np.ndarray) -> None:
+    """The current panel's camera: at ``direction`` from ``centre``, far enough for a body of
+    ``size`` (m), the patient's head up."""
+    plotter.camera.focal_point = centre
+    plotter.camera.position = np.asarray(centre) + 2.6 * size * direction
+    plotter.camera.up = (0.0, 0.0, 1.0)
+    plotter.camera.view_angle = 30.0
 
 
 def _rising(pressure: np.ndarray, volume: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
