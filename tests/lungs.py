@@ -79,3 +79,19 @@ LEFT = Lung(
     hilum=(-0.014, -0.01, 0.025, 0.017),
     notch=(-0.02, 0.06, -0.06, 0.045),
 )
+
+
+def chest(spacing: float, margin: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Both lungs on one axis-aligned grid at ``spacing`` (m): a label array (0 outside, 1 the
+    right lung, 2 the left) and its affine (voxel indices to metres)."""
+    low = np.min([np.array(lung.centre) - lung.half_axes for lung in (RIGHT, LEFT)], axis=0) - margin
+    high = np.max([np.array(lung.centre) + lung.half_axes for lung in (RIGHT, LEFT)], axis=0) + margin
+    axes = [np.arange(low[d], high[d], spacing) for d in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    labels = np.zeros(len(grid), dtype=np.uint8)
+    labels[RIGHT.inside(grid)] = 1
+    labels[LEFT.inside(grid)] = 2
+    affine = np.eye(4)
+    affine[:3, :3] *= spacing
+    affine[:3, 3] = low
+    return labels.reshape([len(t) for t in axes]), affine

@@ -16,10 +16,12 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
+from lungmech import meshes
 from lungmech.app import scene as scenes
 from lungmech.app.personalise import Pair, Setting, estimated, personalise, position_values, prepare
 from lungmech.app.run import full_order_model
 from lungmech.errors import ParameterError
+from lungmech.registration.image import from_array
 from lungmech.twin.fit import Fit, estimate
 from lungmech.twin.synthetic import displacement_field, image_pair, surface_noise
 from lungmech.twin.uncertainty import laplace
@@ -185,6 +187,41 @@ def test_a_displacement_field_inside_the_lung_joins_the_data(patient):
     assert report["parameters"]["breath"]["value"] == pytest.approx(TRUTH["breath"], rel=0.05)
 
 
+def chest(image, gap: int = 10):
+    """A segmentation of both lungs: ``image``'s right lung and its mirror image across a
+    mediastinum ``gap`` voxels wide (a left lung breathing alike: the weight's pitch turns about
+    the left-right axis, which the mirror keeps), on one grid whose x axis is ``image``'s."""
+    assert np.allclose(image.affine[:3, :3], np.diag(image.spacing))  # (axis-aligned, as image_pair makes it)
+    mask = image.mask
+    both = np.concatenate([mask[::-1], np.zeros((gap, *mask.shape[1:]), dtype=bool), mask], axis=0)
+    origin = image.affine[:3, 3] - np.array([(len(mask) + gap) * image.spacing[0], 0.0, 0.0])
+    return from_array(both, spacing=image.spacing, origin=origin)
+
+
+@pytest.mark.slow
+def test_both_lungs_of_one_segmentation_share_their_parameters(patient, tmp_path, capsys):
+    """One pair of segmentations holding both lungs (--lung both): each lung registered from
+    the scene's lung of its side and given its model, the breath shared, found near the truth."""
+    from lungmech.app.cli import main
+    from lungmech.registration.image import write
+
+    folder, images = patient
+    for name, image in zip(("exp", "insp"), images["supine"]):
+        write(chest(image), tmp_path / f"chest-{name}.npz")
+    scene = folder / "lung-0.035.toml"
+    scene.write_text(SCENE.format(h=0.035))
+    code = main(
+        ["personalise", "--expiration", str(tmp_path / "chest-exp.npz"), "--inspiration",
+         str(tmp_path / "chest-insp.npz"), "--lung", "both", "--scene", str(scene), "--estimate", "breath",
+         "--size", "6", "--training", "4", "--no-mesh-check", "--resamples", "0", "-o", str(tmp_path / "out"), "-q"]
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [pair["pair"] for pair in report["fit"]["pairs"]] == ["supine-right", "supine-left"]
+    assert all(pair["surface_rms"] < 0.001 for pair in report["fit"]["pairs"])
+    assert report["parameters"]["breath"]["value"] == pytest.approx(TRUTH["breath"], rel=0.03)
+
+
 @pytest.mark.slow
 def test_a_cohort_runs_a_patient_a_task_through_the_ensemble(patient, tmp_path, capsys):
     """A 2-row cohort CSV (two patients of other breaths), each patient's model made by a model
@@ -335,6 +372,9 @@ def _cube(path, low: int, size: int, shift=(0.0, 0.0, 0.0)):
         ("tolerance", "no reduced model of the bundled lung's trade"),
         ("tolerance-size", "--tolerance gives the patient's model its recipe"),
         ("model-tolerance", "give one"),
+        ("label", "--label takes integers, comma-separated (got '1,x')"),
+        ("lung-side", "holds one body, a lung of no clear side"),
+        ("lung-file", "the right and the left lung each need a reference lung of their side"),
     ],
 )
 def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, capsys):
@@ -354,6 +394,19 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
         image.set_qform(None, code=0)
         nib.save(image, tmp_path / "plain.nii.gz")
         pair["unoriented"] = (small, str(tmp_path / "plain.nii.gz"))
+    if case == "lung-file":  # two cubes side by side: a right and a left "lung"
+        from lungmech.registration.image import from_array, write
+
+        for name, size in (("two-small", 4), ("two-large", 6)):
+            mask = np.zeros((40, 20, 20), dtype=bool)
+            mask[2 : 2 + size, 5 : 5 + size, 5 : 5 + size] = mask[30 : 30 + size, 5 : 5 + size, 5 : 5 + size] = True
+            write(from_array(mask, spacing=(0.002,) * 3), tmp_path / f"{name}.npz")
+        pair["lung-file"] = (str(tmp_path / "two-small.npz"), str(tmp_path / "two-large.npz"))
+        (tmp_path / "file.toml").write_text(
+            SCENE.format(h=0.035).replace(
+                'builder = "lung_phantom"\nside = "right"', f'file = "{meshes.reference("lung_phantom_right")}"'
+            ).replace("mesh_size = 0.035\n", "")
+        )
     expiration, inspiration = pair.get(case, (small, large))
     cohorts = {
         "cohort-column": "patient,expiration\nA,small.npz\n",
@@ -375,6 +428,9 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
         "tolerance": ["--tolerance", "1e-9"],
         "tolerance-size": ["--tolerance", "1e-2", "--size", "4"],
         "model-tolerance": ["--tolerance", "1e-2", "--model", str(tmp_path / "none.npz")],
+        "label": ["--label", "1,x"],
+        "lung-side": ["--lung", "left"],
+        "lung-file": ["--lung", "both", "--scene", str(tmp_path / "file.toml")],
     }
     out = tmp_path / "out"
     argv = ["personalise", "-o", str(out), "-q"]

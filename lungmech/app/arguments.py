@@ -76,6 +76,26 @@ def assignment(text: str) -> tuple[str, float]:
     return name.strip(), number
 
 
+def labels(text: str) -> tuple[int, ...]:
+    """'3' -> (3,); '12,13,14' -> (12, 13, 14): the labels of an organ in a label image (a
+    lung's lobes, say)."""
+    try:
+        values = tuple(int(item) for item in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--label takes integers, comma-separated (got {text!r})") from None
+    return values
+
+
+def image_label(command: argparse.ArgumentParser, what: str) -> None:
+    """The --label option: which values of a label image are the ``what``."""
+    command.add_argument(
+        "--label",
+        type=labels,
+        help=f"label of the {what} in a multi-label segmentation; several comma-separated (a lung's lobes) are "
+        "taken together",
+    )
+
+
 def scales(text: str) -> list:
     """'0.5,1' -> [0.5, 1.0]; '0.5:1,1.5:1' -> [(0.5, 1.0), (1.5, 1.0)]; finite numbers only."""
     import math

@@ -27,13 +27,13 @@ from mpi4py import MPI
 
 from lungmech.app import scene as scenes
 from lungmech.app.output import write_json
-from lungmech.app.personalise import POSITIONS, Pair, Setting, personalise
+from lungmech.app.patient_images import Reading
+from lungmech.app.personalise import POSITIONS, Setting, personalise
 from lungmech.app.recipe import recipe_scene
 from lungmech.errors import SceneError
 from lungmech.parallel import on_root
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
 from lungmech.parallel.ensemble import Ensemble
-from lungmech.registration import image
 
 __all__ = ["Row", "Task", "cohort", "personalised", "read_cohort"]
 
@@ -61,8 +61,7 @@ class Task:
     pairs: tuple[Row, ...]
     setting: Setting
     out: str
-    label: int | None = None
-    unit: str | None = None
+    reading: Reading = Reading()
     model: str | None = None
 
 
@@ -116,10 +115,7 @@ def read_cohort(path: str | Path) -> dict[str, list[Row]]:
 def personalised(task: Task, comm: MPI.Comm) -> dict:
     """One patient of a cohort on ``comm`` (the work of an ensemble): its report's summary."""
 
-    def read(file: str) -> image.Image:
-        return image.read(file, label=task.label, unit=task.unit)
-
-    pairs = [Pair(read(row.expiration), read(row.inspiration), row.position) for row in task.pairs]
+    pairs = [pair for row in task.pairs for pair in task.reading.pairs(row.expiration, row.inspiration, row.position)]
     scene = None if task.scene is None else scenes.load(task.scene)
     with recipe_scene(task.model, scene, comm) if task.model else contextlib.nullcontext((None, scene)) as (_, used):
         assert used is not None  # (a scene, or a model file's own)
@@ -141,8 +137,7 @@ def cohort(
     setting: Setting,
     ensemble: Ensemble,
     comm: MPI.Comm = MPI.COMM_WORLD,
-    label: int | None = None,
-    unit: str | None = None,
+    reading: Reading = Reading(),
     model: str | None = None,
 ) -> list[dict]:
     """Personalise every patient of the cohort file ``path`` with the scene file ``scene`` (or
@@ -162,8 +157,7 @@ def cohort(
                 tuple(rows),
                 setting,
                 str(staging / patient),
-                label,
-                unit,
+                reading,
                 model,
             )
             for patient, rows in patients.items()

@@ -79,12 +79,21 @@ POSITIONS = {"supine": -90.0, "upright": 0.0, "prone": 90.0}  # the weight's pit
 class Pair:
     """One pair of a patient's segmentations, end-expiration and end-inspiration, taken in one
     ``position`` (supine, upright or prone); with a ``displacement`` field between them,
-    computed elsewhere from the intensity images (:mod:`lungmech.twin.displacement`)."""
+    computed elsewhere from the intensity images (:mod:`lungmech.twin.displacement`); ``side``:
+    the lung they hold, "right" or "left" (its reference, the scene's lung of that side), or
+    None for the scene's own lung."""
 
     expiration: Image
     inspiration: Image
     position: str = "supine"
     displacement: Displacement | None = None
+    side: str | None = None
+
+    def name(self, pairs: Sequence[Pair]) -> str:
+        """Its name among ``pairs``: the position (and the side), numbered when not unique."""
+        base = self.position if self.side is None else f"{self.position}-{self.side}"
+        alike = [p for p in pairs if (p.position, p.side) == (self.position, self.side)]
+        return base if len(alike) == 1 else f"{base}-{next(k for k, p in enumerate(alike) if p is self) + 1}"
 
 
 @dataclass(frozen=True)
@@ -135,6 +144,7 @@ class Patient:
     seconds: dict[str, float]
     basis_sizes: tuple[int, ...]
     inspirations: tuple[Image, ...] = ()
+    refined_views: tuple[View, ...] = ()
 
     def fit(self, full: bool = False) -> Fit:
         """The least-squares problem of every pair, on the reduced models (or the full ones)."""
@@ -146,18 +156,30 @@ class Patient:
         fit = self.fit()
         surface = np.concatenate([np.append(residual[rows], residual[rows[-1] + 1]) for rows in fit.surface_rows()])
         noise = float(np.sqrt(np.mean(surface**2)))
-        views, full_views, error = [], [], self.error.copy()
-        for view, full, rows in zip(self.views, self.full_views, fit.interior_rows()):
+        weights: list[float | None] = []
+        error = self.error.copy()
+        for view, rows in zip(self.views, fit.interior_rows()):
             if view.interior is None:
-                views.append(view)
-                full_views.append(full)
+                weights.append(None)
                 continue
             own = float(np.sqrt(np.mean((residual[rows] / view.interior.weight) ** 2)))
             weight = noise / own if own > 0 else 1.0
+            weights.append(weight)
             error[rows] *= weight / view.interior.weight
-            views.append(replace(view, interior=replace(view.interior, weight=weight)))
-            full_views.append(replace(full, interior=replace(view.interior, weight=weight)))
-        return replace(self, views=tuple(views), full_views=tuple(full_views), error=error)
+
+        def weigh(views: tuple[View, ...]) -> tuple[View, ...]:
+            return tuple(
+                view if w is None or view.interior is None else replace(view, interior=replace(view.interior, weight=w))
+                for view, w in zip(views, weights)
+            )
+
+        return replace(
+            self,
+            views=weigh(self.views),
+            full_views=weigh(self.full_views),
+            refined_views=weigh(self.refined_views),
+            error=error,
+        )
 
 
 def personalise(
@@ -197,15 +219,20 @@ def prepare(
     seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
     views: list[View] = []
     full_views: list[View] = []
+    refined_views: list[View] = []
     errors: list[np.ndarray] = []
     checked: list[dict] = []
     registered: list[dict] = []
     sizes: list[int] = []
-    for index, pair in enumerate(pairs):
-        name = pair.position if sum(p.position == pair.position for p in pairs) == 1 else f"{pair.position}-{index + 1}"
+    for pair in pairs:
+        name = pair.name(pairs)
         fixed = position_values(scene, pair.position)
         tic = time.perf_counter()
-        geometry = build_geometry(scene.geometry, comm)
+        geometry = build_geometry(lung_geometry(scene, pair.side), comm)
+        if pair.side is not None and (found := sides.of_mesh(geometry.mesh).side) not in (None, pair.side):
+            raise ParameterError(
+                f"personalise: pair {name} holds a {pair.side} lung; the scene's lung is a {found} one"
+            )
         registration = register(geometry.mesh, pair.expiration, Options())
         nodes.move_nodes(registration.displacement)  # the lung as imaged at end-expiration
         registered.append({"pair": name} | metrics.report(geometry.mesh, pair.expiration) | registration.summary())
@@ -241,6 +268,8 @@ def prepare(
         data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
         views.append(View(reduced, surface, data, end, fixed, name, baseline, interior))
         full_views.append(View(full, surface, data, end, fixed, name, baseline, interior))
+        if setting.mesh_check:
+            refined_views.append(View(chain[2], surface, data, end, fixed, name, baseline, interior))
     return Patient(
         box,
         tuple(estimated),
@@ -252,6 +281,7 @@ def prepare(
         seconds,
         tuple(sizes),
         tuple(pair.inspiration for pair in pairs),
+        tuple(refined_views),
     )
 
 
@@ -332,6 +362,11 @@ def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) ->
         raise ParameterError(
             "personalise: the scene must pose the imaged lung ([inverse]): the image is its loaded state"
         )
+    if len({pair.side for pair in pairs} - {None}) > 1 and scene.geometry.get("builder") != "lung_phantom":
+        raise ParameterError(
+            "personalise: the right and the left lung each need a reference lung of their side, and the scene's "
+            "lung comes from a file: give --lung right or --lung left, with a scene of that lung"
+        )
     end = float(scene.stepping.end) if setting.inspiration is None else float(setting.inspiration)
     if not scene.stepping.start < end <= scene.stepping.end:
         raise ParameterError(
@@ -343,7 +378,7 @@ def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) ->
             f"personalise: the data noise is a fraction of the surface's motion in [0, 10) (got {setting.noise})"
         )
     for pair in pairs:
-        check_pair(pair.expiration, pair.inspiration, scene.geometry.get("side"))
+        check_pair(pair.expiration, pair.inspiration, pair.side or scene.geometry.get("side"))
     return tuple(names), end
 
 
@@ -382,6 +417,14 @@ def check_pair(expiration: Image, inspiration: Image, side: str | None) -> None:
         found = sides.of_image(image).side
         if side is not None and found is not None and found != side:
             raise ImageError(f"{names[which]} holds a {found} lung; the scene's lung is a {side} one")
+
+
+def lung_geometry(scene: Scene, side: str | None) -> dict:
+    """The scene's geometry table for the lung of ``side`` (None: the scene's own): a
+    generated lung (builder "lung_phantom") of that side; a lung from a file as it is (its
+    side is checked on its mesh)."""
+    table = dict(scene.geometry)
+    return table | {"side": side} if side is not None and table.get("builder") == "lung_phantom" else table
 
 
 def _name(image: Image, default: str) -> str:

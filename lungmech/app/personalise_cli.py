@@ -13,12 +13,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, setup
+from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, image_label, setup
 from lungmech.errors import ParameterError
 
 if TYPE_CHECKING:
     from mpi4py import MPI
 
+    from lungmech.app.patient_images import Reading
     from lungmech.app.personalise import Setting
     from lungmech.app.scene import Scene
     from lungmech.twin.displacement import Displacement
@@ -99,7 +100,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="leave the mesh's own error out of the intervals (checked by default: the full model against the "
         "lung refined once at 3 points, 8 times the unknowns)",
     )
-    command.add_argument("--label", type=int, help="label of the lung in multi-label segmentations")
+    image_label(command, "lung")
+    command.add_argument(
+        "--lung",
+        choices=("right", "left", "both"),
+        help="the lung of segmentations that hold both (each lung a body, or by --label): one, or both with their "
+        "parameters shared, each registered from the scene's lung of its side",
+    )
     command.add_argument(
         "--unit", choices=("mm", "m"), help="length unit of the images' headers (default: from the header)"
     )
@@ -168,8 +175,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Setting) -> dict:
     """One patient, from --expiration, --inspiration and --position (repeated, in order)."""
-    from lungmech.app.personalise import Pair, personalise
-    from lungmech.registration import image
+    from lungmech.app.personalise import personalise
 
     expirations, inspirations = args.expiration or [], args.inspiration or []
     if not expirations or len(expirations) != len(inspirations):
@@ -181,11 +187,17 @@ def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Settin
     if len(positions) != len(expirations):
         raise ParameterError(f"give --position once for each pair of images ({len(expirations)}; got {len(positions)})")
     fields = _displacements(args, len(expirations))
+    reading = _reading(args)
     pairs = [
-        Pair(image.read(e, label=args.label, unit=args.unit), image.read(i, label=args.label, unit=args.unit), p, f)
-        for e, i, p, f in zip(expirations, inspirations, positions, fields)
+        pair for e, i, p, f in zip(expirations, inspirations, positions, fields) for pair in reading.pairs(e, i, p, f)
     ]
     return personalise(scene, pairs, args.output, setting, comm)
+
+
+def _reading(args: argparse.Namespace) -> Reading:
+    from lungmech.app.patient_images import Reading
+
+    return Reading(args.label, args.unit, args.lung)
 
 
 def _displacements(args: argparse.Namespace, pairs: int) -> list[Displacement | None]:
@@ -222,7 +234,7 @@ def _cohort(args: argparse.Namespace, comm: MPI.Comm, scene_path: Path | None, s
             "--cohort names every patient's images: leave out --expiration, --inspiration, --position, --displacement"
         )
     with ensemble_of(args, comm) as ensemble:
-        found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, args.label, args.unit, args.model)
+        found = cohort(scene_path, args.cohort, args.output, setting, ensemble, comm, _reading(args), args.model)
     if comm.rank == 0:
         for row in found:
             if row.get("failed"):

@@ -300,7 +300,9 @@ def _shape_modes(
     return report
 
 
-def read_images(paths: list[str | Path], label: int | None = None, unit: str | None = None) -> dict[str, Image]:
+def read_images(
+    paths: list[str | Path], label: int | Sequence[int] | None = None, unit: str | None = None
+) -> dict[str, Image]:
     """Images by name from files and folders (every image file in a folder, sorted)."""
     files: list[Path] = []
     for path in map(Path, paths):

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lungmech.app.arguments import image_label
 from lungmech.app.console import litres
 from lungmech.errors import ParameterError
 from lungmech.parallel import on_root
@@ -114,7 +115,7 @@ def _mesh(text: str) -> str:
 
 
 def _image_options(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--label", type=int, help="label of the organ in a multi-label segmentation")
+    image_label(command, "organ")
     command.add_argument(
         "--unit", choices=("mm", "m"), help="length unit of the image header (default: from the header)"
     )

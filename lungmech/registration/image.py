@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -180,7 +181,7 @@ def from_array(
     return Image(_binary(data, None, "the array"), _affine(direction * spacing, origin))
 
 
-def read(path: str | Path, *, label: int | None = None, unit: str | None = None) -> Image:
+def read(path: str | Path, *, label: int | Sequence[int] | None = None, unit: str | None = None) -> Image:
     """Read a segmentation from a file, or from a folder of one DICOM series.
 
     Args:
@@ -188,8 +189,9 @@ def read(path: str | Path, *, label: int | None = None, unit: str | None = None)
             sform and qform), a ``.mha``, ``.mhd``, ``.nrrd`` or ``.nhdr`` file (needs
             SimpleITK), a ``.npz`` file from :func:`write`, or a folder holding one DICOM
             series (needs SimpleITK; only its pixels and geometry are read, no other tag).
-        label: Select the voxels with this value. Without it, the image must be binary
-            (boolean, or values 0 and 1 only).
+        label: Select the voxels with this value, or with any of these values (a lung as its
+            lobes' labels). Without it, the image must be binary (boolean, or values 0 and 1
+            only).
         unit: Length unit of the file's geometry, ``"m"`` or ``"mm"``, overriding what the file
             says. By default, NIfTI's header unit is used (millimetres when it is unset), and
             ITK formats and DICOM are taken as millimetres. Ignored for ``.npz``, which is always in metres.
@@ -400,13 +402,15 @@ def _spatial(data: npt.NDArray[Any], what: str) -> npt.NDArray[Any]:
     return data
 
 
-def _binary(data: npt.NDArray[Any], label: int | None, what: str) -> npt.NDArray[np.bool_]:
-    """The boolean mask of ``data``: the voxels equal to ``label``, or of a 0/1 image."""
+def _binary(data: npt.NDArray[Any], label: int | Sequence[int] | None, what: str) -> npt.NDArray[np.bool_]:
+    """The boolean mask of ``data``: the voxels equal to ``label`` (or to any of several), or
+    of a 0/1 image."""
     if label is not None:
-        mask = data == label
-        if not mask.any():
-            raise ImageError(f"{what} has no voxel labelled {label}; its labels are {_labels(data)}")
-        return mask
+        wanted = [label] if isinstance(label, int | np.integer) else list(label)
+        if missing := [value for value in wanted if not np.any(data == value)]:
+            shown = ", ".join(str(value) for value in missing)
+            raise ImageError(f"{what} has no voxel labelled {shown}; its labels are {_labels(data)}")
+        return np.isin(data, wanted)
     if data.dtype == np.bool_:
         mask = data
     else:
