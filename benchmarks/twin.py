@@ -13,7 +13,8 @@ the patient's shape), builds that pair's hyper-reduced model and checks it again
 model and the lung refined once (:func:`lungmech.app.personalise.prepare`), then fits:
 
 * **this pipeline**: bounded least squares ('trf') with the reduced model's exact
-  sensitivities, the Laplace intervals widened by the model's error as a bias;
+  sensitivities, the Laplace intervals in the parameters' box widened by the model's error as a
+  bias;
 * **the published approach**: Nelder–Mead on the same misfit (≤ 150 evaluations), on the full
   model (full solves and wall time) and, for the error-against-noise bands, on the reduced one.
 
@@ -101,6 +102,7 @@ def one_estimate(fit, error, offset, truth: dict) -> dict:
         interval = intervals[name]
         row[f"{name} [%]"] = 100 * (found.values[name] - truth[name]) / truth[name]
         row[f"{name} covered"] = None if interval.low is None else bool(interval.low <= truth[name] <= interval.high)
+        row[f"{name} noise [unit]"], row[f"{name} bias [unit]"] = interval.noise, interval.bias  # (half-widths)
     return row
 
 
@@ -221,24 +223,24 @@ def phantom_rows(plan: Plan, phantom: str, first: bool, timings: list[dict]) -> 
         used = POSITIONS[label]
         fit = Fit([view for p in used for view in patients[p].views], plan.names)
         full = Fit([view for p in used for view in patients[p].full_views], plan.names)
-        error = np.concatenate([patients[p].error for p in used])
+        errors = np.hstack([patients[p].errors for p in used])
         gap = estimate(full)  # the full model on the estimate's mesh, fitted to the same images
         gaps = {f"{n} gap [%]": 100 * (gap.values[n] - plan.truth[n]) / plan.truth[n] for n in plan.names}
         common = {"phantom": phantom, "positions": label}
-        rows += [common | row for row in protocol(plan, fit, full, error, gaps, first and label == "supine")]
+        rows += [common | row for row in protocol(plan, fit, full, errors, gaps, first and label == "supine")]
     alike = {"phantom": phantom, "positions": "supine", "noise [%]": 0.0, "replicate": 0, "method": "trf, reduced"}
     for fraction in plan.flips if first else ():  # noise on the segmentations themselves
         say(phantom, f"{100 * fraction:.0f} % of the surface voxels flipped")
         noisy = [flip_boundary(image, fraction, seed=k) for k, image in enumerate(images["supine"])]
         flipped = prepare(scene_of(generic, plan.estimate_h, plan.zones), [Pair(*noisy, "supine")], plan.setting())
         rows.append(
-            alike | {"flipped [%]": 100 * fraction} | one_estimate(flipped.fit(), flipped.error, None, plan.truth)
+            alike | {"flipped [%]": 100 * fraction} | one_estimate(flipped.fit(), flipped.errors, None, plan.truth)
         )
     for bias in plan.biases if first else ():  # the density assumed wrong in the estimating model
         say(phantom, f"density at {100 * bias:.0f} %")
         scene = scene_of(generic, plan.estimate_h, plan.zones, DENSITY * bias)
         biased = prepare(scene, [Pair(*images["supine"], "supine")], plan.setting())
-        rows.append(alike | {"density [%]": 100 * bias} | one_estimate(biased.fit(), biased.error, None, plan.truth))
+        rows.append(alike | {"density [%]": 100 * bias} | one_estimate(biased.fit(), biased.errors, None, plan.truth))
     return rows
 
 

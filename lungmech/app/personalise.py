@@ -10,15 +10,16 @@ end-inspiration segmentations, each in a position (supine, prone, …) → for e
 2. **the pair's reduced model**: POD of ``training`` full breaths over the box (the
    position's parameters fixed), Galerkin or ECSW at τ, its probes the registered lung's
    surface nodes; checked at 3 further points against the full model, and that against the
-   full model on the lung refined once (the mesh's own error): their sum is ε, the model's
-   error on each datum;
+   full model on the lung refined once (the mesh's own error): the model's error δr on each
+   datum, signed, is the refined model's residual less the reduced one's;
 
 then, every pair at once (:func:`estimated`):
 
 3. **the estimate** (:mod:`lungmech.twin`): bounded least squares on the surface distances to
    the end-inspiration segmentations and their volumes, with the reduced models' exact
-   sensitivities, the estimated parameters shared; the Laplace intervals widened by ε as a
-   bias; the identifiability; a check by resampling;
+   sensitivities, the estimated parameters shared; the Laplace intervals in the parameters'
+   box, widened by the model's error carried through the fit as a bias; the
+   identifiability; a check by resampling;
 4. **confirmation**: one full-order solve per pair at the estimate, its residual beside the
    reduced one's; the pictures (:mod:`lungmech.app.twin_pictures`).
 
@@ -43,7 +44,6 @@ from lungmech.app.run import build_model, full_order_model
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ImageError, ParameterError
 from lungmech.fem.parameters import Parameters
-from lungmech.fem.parametric import ParametricModel
 from lungmech.fem.placement import Image as Placement
 from lungmech.mesh import nodes
 from lungmech.mesh.refine import refined
@@ -102,7 +102,7 @@ class Setting:
     position fixes), ``inspiration`` (s, the path's time of end-inspiration; default: the
     path's end), ``training`` breaths and basis ``size`` of each pair's reduced model, ``tau``
     (ECSW; None: Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
-    ``mesh_check``: ε also holds the mesh's own error, the full model's against the same lung
+    ``mesh_check``: the model error also holds the mesh's own, the full model's against the same lung
     refined once at the 3 check points (8 times the unknowns); ``full_fit``: also fit the full
     model on the same mesh to the same images (from the estimate), whose distance from the
     truth is the discretisation's gap (twin experiments; minutes, not seconds); ``noise``
@@ -128,8 +128,9 @@ class Setting:
 @dataclass(frozen=True)
 class Patient:
     """A patient made ready for estimates (:func:`prepare`): per pair, the ``views`` of its
-    reduced model and of its full model on the same mesh (``full_views``), ε per datum
-    (``error``, m), each check point's numbers (``checked``) and registration summary
+    reduced model and of its full model on the same mesh (``full_views``), the model's error
+    on each datum at each check point (``errors``: points × rows, m; every pair at the same
+    points), each check point's numbers (``checked``) and registration summary
     (``registered``); the ``estimated`` parameters' names, the ``box``, the offline
     ``seconds``, each reduced model's basis size and each pair's end-inspiration segmentation
     (``inspirations``, for the pictures)."""
@@ -138,13 +139,12 @@ class Patient:
     estimated: tuple[str, ...]
     views: tuple[View, ...]
     full_views: tuple[View, ...]
-    error: np.ndarray
+    errors: np.ndarray
     checked: tuple[dict, ...]
     registered: tuple[dict, ...]
     seconds: dict[str, float]
     basis_sizes: tuple[int, ...]
     inspirations: tuple[Image, ...] = ()
-    refined_views: tuple[View, ...] = ()
 
     def fit(self, full: bool = False) -> Fit:
         """The least-squares problem of every pair, on the reduced models (or the full ones)."""
@@ -152,12 +152,13 @@ class Patient:
 
     def weighed(self, residual: np.ndarray) -> Patient:
         """The patient with each pair's interior data weighed by ω = σ_surface / σ_interior, the
-        noise of each as ``residual`` (this patient's, at an estimate) shows it; its ε too."""
+        noise of each as ``residual`` (this patient's, at an estimate) shows it; its model
+        errors too."""
         fit = self.fit()
         surface = np.concatenate([np.append(residual[rows], residual[rows[-1] + 1]) for rows in fit.surface_rows()])
         noise = float(np.sqrt(np.mean(surface**2)))
         weights: list[float | None] = []
-        error = self.error.copy()
+        errors = self.errors.copy()
         for view, rows in zip(self.views, fit.interior_rows()):
             if view.interior is None:
                 weights.append(None)
@@ -165,7 +166,7 @@ class Patient:
             own = float(np.sqrt(np.mean((residual[rows] / view.interior.weight) ** 2)))
             weight = noise / own if own > 0 else 1.0
             weights.append(weight)
-            error[rows] *= weight / view.interior.weight
+            errors[:, rows] *= weight / view.interior.weight
 
         def weigh(views: tuple[View, ...]) -> tuple[View, ...]:
             return tuple(
@@ -177,8 +178,7 @@ class Patient:
             self,
             views=weigh(self.views),
             full_views=weigh(self.full_views),
-            refined_views=weigh(self.refined_views),
-            error=error,
+            errors=errors,
         )
 
 
@@ -217,9 +217,11 @@ def prepare(
         estimated, end = _checked_request(scene, tuple(pairs), setting)
     box = Parameters(scene.parameters)
     seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
+    # the check points: the estimated parameters drawn in their box (the others at their
+    # defaults, as the estimate leaves them), the same for every pair
+    checks = [{name: point[name] for name in estimated} for point in box.sample(3, setting.seed + 1)]
     views: list[View] = []
     full_views: list[View] = []
-    refined_views: list[View] = []
     errors: list[np.ndarray] = []
     checked: list[dict] = []
     registered: list[dict] = []
@@ -251,37 +253,33 @@ def prepare(
         sizes.append(reduced.size)
         seconds["offline"] += time.perf_counter() - tic
 
+        data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
+        views.append(View(reduced, surface, data, end, fixed, name, baseline, interior))
+        full_views.append(View(full, surface, data, end, fixed, name, baseline, interior))
+
         tic = time.perf_counter()
-        chain: list[ParametricModel] = [reduced, full]
+        chain = [views[-1], full_views[-1]]
         if setting.mesh_check:  # the mesh's own error: the same lung refined once
             finer = build_model(
                 scene, comm, geometry=refined(geometry).geometry, image=Placement.motion(scene.stepping.start)
             )
-            chain.append(full_order_model(scene, comm, start="inverse_motion", model=finer, probes=probes))
-        checks = [box.values(dict(point) | fixed) for point in box.sample(3, setting.seed + 1)]
-        error, points = model_error(chain, checks, end, surface.area)
-        n = len(surface.points)  # the check's rows, in the view's order: surface, volume, interior (3 a point)
-        errors.append(np.concatenate([error[:n], error[-1:], np.repeat(error[n:-1], 3)]))
+            finest = full_order_model(scene, comm, start="inverse_motion", model=finer, probes=probes)
+            chain.append(View(finest, surface, data, end, fixed, name, baseline, interior))
+        error, points = model_error(chain, [point | fixed for point in checks])
+        errors.append(error)
         checked.extend({"pair": name} | point for point in points)
         seconds["check"] += time.perf_counter() - tic
-
-        data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
-        views.append(View(reduced, surface, data, end, fixed, name, baseline, interior))
-        full_views.append(View(full, surface, data, end, fixed, name, baseline, interior))
-        if setting.mesh_check:
-            refined_views.append(View(chain[2], surface, data, end, fixed, name, baseline, interior))
     return Patient(
         box,
         tuple(estimated),
         tuple(views),
         tuple(full_views),
-        np.concatenate(errors),
+        np.hstack(errors),
         tuple(checked),
         tuple(registered),
         seconds,
         tuple(sizes),
         tuple(pair.inspiration for pair in pairs),
-        tuple(refined_views),
     )
 
 
@@ -303,7 +301,7 @@ def estimated(
         found = estimate(fit, start=found.values, offset=offset)
         seconds["estimate"] += found.seconds
     tic = time.perf_counter()
-    uncertainty = laplace(found, fit, patient.error, setting.level)
+    uncertainty = laplace(found, fit, patient.errors, setting.level, setting.seed)
     draws = (
         resampled(fit, found, setting.resamples, setting.seed) if setting.resamples else np.zeros((0, len(fit.names)))
     )

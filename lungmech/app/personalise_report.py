@@ -42,6 +42,7 @@ def report(
             "at_bound": found.active[name],
             "deviation_unit_box": float(deviation[i]),
             "resampled_deviation_unit_box": float(spread[i]),
+            "noise_half_width_unit_box": float(interval.noise),
             "model_bias_unit_box": float(interval.bias),
         }
     views = []
@@ -104,7 +105,9 @@ UNITS = {
     "surface_rms": "m",
     "surface_max": "m",
     "volume_offset": "m (volume mismatch over the surface area)",
-    "motion_error_max": "m",
+    "surface_error_max": "m (the largest change of a surface datum over a check's step)",
+    "model_bias_unit_box": "1 (fraction of the parameter's range: the model error's shift, each side)",
+    "noise_half_width_unit_box": "1 (fraction of the parameter's range: the interval's half-width from noise)",
     "cost": "m^2",
     "seconds": "s",
     "interior.rms": "m (the displacement field's misfit per component)",

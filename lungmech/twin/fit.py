@@ -36,7 +36,7 @@ from lungmech.fem.parameters import Parameter
 from lungmech.fem.parametric import ParametricModel
 from lungmech.twin.surface import Surface, SurfaceNodes
 
-__all__ = ["Estimate", "Fit", "Interior", "View", "estimate"]
+__all__ = ["Estimate", "Fit", "Interior", "View", "estimate", "predict"]
 
 
 @dataclass(frozen=True)
@@ -86,11 +86,11 @@ class Prediction:
     volume: float
 
 
-def predict(view: View, values: Mapping[str, float]) -> Prediction:
+def predict(view: View, values: Mapping[str, float], sensitivities: bool = True) -> Prediction:
     """The view's residual and Jacobian at the parameter ``values`` (one solve with
-    sensitivities from t₀ to T)."""
-    solution = view.model.solve(values, sensitivities=True, times=[view.model.stepping.start, view.time])
-    outputs, derivatives = solution.outputs, solution.sensitivities or {}
+    sensitivities from t₀ to T; without ``sensitivities``, the Jacobian has no columns)."""
+    solution = view.model.solve(values, sensitivities=sensitivities, times=[view.model.stepping.start, view.time])
+    outputs = solution.outputs
     probes = np.asarray(outputs["probes"])
     n, m = len(view.nodes.points), view.interior_count
     if probes.shape[1] != n + m:
@@ -99,8 +99,7 @@ def predict(view: View, values: Mapping[str, float]) -> Prediction:
             f"nodes of its image" + (f" and its {m} interior points" if m else "")
         )
     moved = probes[1] - probes[0]  # w(T) = u(T) − u(t₀)
-    moved_derivative = np.asarray(derivatives["probes"])[1] - np.asarray(derivatives["probes"])[0]
-    motion, motion_derivative = moved[:n], moved_derivative[:n]
+    motion = moved[:n]
     positions = view.nodes.points + motion
     distance, gradient = view.surface.distance(positions)
     scale = view.nodes.area
@@ -112,12 +111,20 @@ def predict(view: View, values: Mapping[str, float]) -> Prediction:
         offset, _ = view.baseline.distance(view.nodes.points)
         change = (volume - float(volumes[0])) - (view.surface.volume - view.baseline.volume)
         residual = np.append(distance - offset, change / scale)
-    jacobian = np.vstack(
-        [np.einsum("nc,ncp->np", gradient, motion_derivative), np.asarray(derivatives["volume"])[1][None, :] / scale]
-    )
+    weight = 1.0 if view.interior is None else view.interior.weight
     if view.interior is not None:  # ω (w_j − u_obs,j), three rows a point
-        weight = view.interior.weight
         residual = np.append(residual, weight * (moved[n:] - view.interior.observed).ravel())
+    if not sensitivities:
+        return Prediction(residual, np.zeros((len(residual), 0)), positions, volume)
+    derivatives = solution.sensitivities or {}
+    moved_derivative = np.asarray(derivatives["probes"])[1] - np.asarray(derivatives["probes"])[0]
+    jacobian = np.vstack(
+        [
+            np.einsum("nc,ncp->np", gradient, moved_derivative[:n]),
+            np.asarray(derivatives["volume"])[1][None, :] / scale,
+        ]
+    )
+    if view.interior is not None:
         jacobian = np.vstack([jacobian, weight * moved_derivative[n:].reshape(3 * m, -1)])
     return Prediction(residual, jacobian, positions, volume)
 
