@@ -403,9 +403,9 @@ def test_bad_inputs_get_one_line_and_leave_nothing(case, expected, tmp_path, cap
             write(from_array(mask, spacing=(0.002,) * 3), tmp_path / f"{name}.npz")
         pair["lung-file"] = (str(tmp_path / "two-small.npz"), str(tmp_path / "two-large.npz"))
         (tmp_path / "file.toml").write_text(
-            SCENE.format(h=0.035).replace(
-                'builder = "lung_phantom"\nside = "right"', f'file = "{meshes.reference("lung_phantom_right")}"'
-            ).replace("mesh_size = 0.035\n", "")
+            SCENE.format(h=0.035)
+            .replace('builder = "lung_phantom"\nside = "right"', f'file = "{meshes.reference("lung_phantom_right")}"')
+            .replace("mesh_size = 0.035\n", "")
         )
     expiration, inspiration = pair.get(case, (small, large))
     cohorts = {
