@@ -305,10 +305,24 @@ def test_a_meshs_surface_nodes_and_areas_are_the_same_on_any_partition():
 
 
 def test_an_interval_beside_a_parameter_at_its_bound_says_so(data):
-    """With swell stopped at its bound, tilt's interval is conditional on it: the note says so."""
+    """With swell stopped at its bound, tilt's interval is conditional on it: the note says so.
+    Its posterior cut to the box (the Gaussian's centre far beyond the bound: drawn by Gibbs
+    sampling) has the quantiles of an independent weighing of uniform points in the box."""
     fit = fit_of(data, swell=(0.2, 0.7))
-    interval = laplace(estimate(fit), fit).intervals["tilt"]
+    result = estimate(fit)
+    interval = laplace(result, fit).intervals["tilt"]
     assert interval.low is not None and "swell at a bound" in interval.reason
+    J, r = result.jacobian, result.residual
+    precision = J.T @ J / (r @ r / (len(r) - 2))
+    centre = result.unit - np.linalg.solve(J.T @ J, J.T @ r)
+    assert centre[0] > 1.0 + 5 / np.sqrt(precision[0, 0])  # (beyond the box's reach of plain draws)
+    points = np.random.default_rng(3).random((400_000, 2))
+    log = -0.5 * np.einsum("ni,ij,nj->n", points - centre, precision, points - centre)
+    order = np.argsort(points[:, 1])
+    weights = np.cumsum(np.exp(log - log.max())[order])
+    expected = points[order, 1][np.searchsorted(weights / weights[-1], [0.025, 0.975])]
+    tilt = fit.parameters[1]
+    assert [tilt.to_unit(interval.low), tilt.to_unit(interval.high)] == pytest.approx(expected, abs=0.01)
 
 
 def test_surface_noise_is_its_fraction_of_the_motion_and_correlated_as_asked(data):

@@ -32,7 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
+from scipy.stats import truncnorm
 
 from lungmech.errors import ParameterError
 from lungmech.twin.fit import Estimate, Fit, estimate
@@ -122,7 +122,7 @@ def laplace(
     bias = np.abs(errors @ shifts.T).max(axis=0)
     centre = result.unit - shifts @ result.residual
     spreads = np.minimum(sigma / np.sqrt(np.maximum(values, floor)), FLAT)
-    quantiles = _in_box(centre, vectors * spreads, level, seed)
+    quantiles = _in_box(centre, vectors * spreads, result.unit, level, seed)
     intervals: dict[str, Interval] = {}
     bounded = [name for name, side in result.active.items() if side is not None]
     held = f"{', '.join(bounded)} at a bound of {'its' if len(bounded) == 1 else 'their'} range" if bounded else ""
@@ -153,25 +153,34 @@ def laplace(
     return Uncertainty(sigma, covariance, intervals, correlation, directions, bias, level)
 
 
-def _in_box(centre: np.ndarray, root: np.ndarray, level: float, seed: int) -> np.ndarray:
+def _in_box(centre: np.ndarray, root: np.ndarray, start: np.ndarray, level: float, seed: int) -> np.ndarray:
     """The (1 − level)/2 and (1 + level)/2 quantiles (2 × p) of each marginal of N(centre,
-    root rootᵀ) cut to the unit box, from draws (batches of 20,000, until 4,000 fall in it);
-    a box the Gaussian hardly reaches (under 1 draw in 10⁴) gives the Gaussian's own quantiles,
-    clipped."""
+    root rootᵀ) cut to the unit box: from plain draws, kept when in the box (batches of 20,000,
+    until 4,000 are in it); when the box holds too little of the Gaussian for that (its centre
+    far outside, beyond a bound an estimate stopped at), from a Gibbs sampler started at
+    ``start`` (in the box): 100 chains, each coordinate drawn in turn from its conditional
+    normal cut to [0, 1], 100 sweeps to forget the start and 100 kept."""
     rng = np.random.default_rng(seed)
     p = len(centre)
     kept: list[np.ndarray] = []
-    drawn = 0
-    while sum(len(k) for k in kept) < 4000 and drawn < 2_000_000:
+    for _ in range(10):
         draws = centre + rng.standard_normal((20_000, p)) @ root.T
-        drawn += len(draws)
         kept.append(draws[np.all((draws >= 0.0) & (draws <= 1.0), axis=1)])
-    inside = np.vstack(kept)
-    if len(inside) < 200:
-        z = float(norm.ppf(0.5 + level / 2))
-        half = z * np.sqrt(np.sum(root**2, axis=1))
-        return np.clip(np.vstack([centre - half, centre + half]), 0.0, 1.0)
-    return np.quantile(inside, [(1 - level) / 2, (1 + level) / 2], axis=0)
+        if sum(len(k) for k in kept) >= 4000:
+            return np.quantile(np.vstack(kept), [(1 - level) / 2, (1 + level) / 2], axis=0)
+    precision = np.linalg.inv(root @ root.T)
+    chains = np.tile(np.clip(start, 0.0, 1.0), (100, 1))
+    sampled = []
+    for sweep in range(200):
+        for i in range(p):
+            others = np.delete(np.arange(p), i)
+            spread = 1.0 / np.sqrt(precision[i, i])
+            mean = centre[i] - (chains[:, others] - centre[others]) @ precision[i, others] / precision[i, i]
+            low, high = (0.0 - mean) / spread, (1.0 - mean) / spread
+            chains[:, i] = mean + spread * truncnorm.rvs(low, high, random_state=rng)
+        if sweep >= 100:
+            sampled.append(chains.copy())
+    return np.quantile(np.vstack(sampled), [(1 - level) / 2, (1 + level) / 2], axis=0)
 
 
 def resampled(fit: Fit, result: Estimate, count: int = 20, seed: int = 0) -> np.ndarray:
