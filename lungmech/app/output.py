@@ -23,6 +23,7 @@ import numpy as np
 import ufl
 from dolfinx import fem, plot
 
+from lungmech.fem import jit
 from lungmech.mesh import nodes
 from lungmech.mesh import write as write_geometry
 from lungmech.parallel import on_root, together
@@ -69,13 +70,13 @@ class FieldWriter:
         # The formulation's scalar fields at the displacement's nodes (the mixed pressure, say).
         nodal = fem.functionspace(mesh, ("Lagrange", model.degree))
         self._nodal = [
-            (fem.Function(nodal, name=name), fem.Expression(expr, nodal.element.interpolation_points))
+            (fem.Function(nodal, name=name), jit.expression(expr, nodal.element.interpolation_points))
             for name, expr in getattr(model.formulation, "point_fields", lambda model: {})(model).items()
         ]
         self._point += [function for function, _ in self._nodal]
         dg0 = fem.functionspace(mesh, ("DG", 0))
         self._cells = [
-            (fem.Function(dg0, name=name), fem.Expression(expr, dg0.element.interpolation_points))
+            (fem.Function(dg0, name=name), jit.expression(expr, dg0.element.interpolation_points))
             for name, expr in cell_fields(model).items()
         ]
         owned = mesh.topology.index_map(mesh.topology.dim).size_local

@@ -146,6 +146,7 @@ def deformed_body(model: Model, path: Path, title: str = "") -> None:
     import ufl
     from dolfinx import fem, plot
 
+    from lungmech.fem import jit
     from lungmech.parallel import on_root
 
     mesh = model.geometry.mesh
@@ -154,7 +155,7 @@ def deformed_body(model: Model, path: Path, title: str = "") -> None:
     topology, types, x = plot.vtk_mesh(u.function_space, np.arange(cells_owned, dtype=np.int32))  # type: ignore[arg-type]  # the FunctionSpace overload (singledispatch) is not in the hints
     dg0 = fem.functionspace(mesh, ("DG", 0))
     J = fem.Function(dg0)
-    J.interpolate(fem.Expression(ufl.det(model.F), dg0.element.interpolation_points))
+    J.interpolate(jit.expression(ufl.det(model.F), dg0.element.interpolation_points))
     J_cells = J.x.array[dg0.dofmap.list[:cells_owned, 0]]
     gdim = mesh.geometry.dim
     displacement = np.zeros((len(x), 3))  # VTK's points are 3-D; a plane body's z stays 0

@@ -40,6 +40,7 @@ import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError, SolverError
+from lungmech.fem import jit
 from lungmech.fem.solver import (
     NewtonOptions,
     NewtonResult,
@@ -238,7 +239,7 @@ class ImplicitEuler:
             residual += b / h * (ufl.action(stiffness, model.state) - ufl.action(stiffness, self.previous))
         self.residual = residual
         self.jacobian = ufl.derivative(residual, model.state, ufl.TrialFunction(model.space))
-        self._kinetic = fem.form(0.5 * rho * ufl.inner(self.velocity, self.velocity) * dx)
+        self._kinetic = jit.form(0.5 * rho * ufl.inner(self.velocity, self.velocity) * dx)
 
     def advance(self, solver: Solver) -> NewtonResult:
         """One step from t to t + h with ``solver`` (built on ``residual`` and ``jacobian``).

@@ -30,6 +30,7 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
+from lungmech.fem import jit
 from lungmech.fem.linear import factorised, use_lu
 
 if TYPE_CHECKING:
@@ -70,7 +71,7 @@ def at_quadrature_points(
     shape; ``entity_maps`` reach coefficients of a parent mesh (a submesh's)."""
     points, _ = basix.make_quadrature(basix.CellType[mesh.topology.cell_name()], max(degree, 1))
     points = np.asarray(points)  # an array already: basix's hint says any array-like
-    compiled = fem.Expression(expression, points, entity_maps=entity_maps)
+    compiled = jit.expression(expression, points, entity_maps=entity_maps)
     if cells is None:
         cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
     shape = (len(cells), len(points), *expression.ufl_shape)

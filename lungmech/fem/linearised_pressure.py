@@ -37,6 +37,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from lungmech.fem import jit
 from lungmech.fem.formulations import PlaneStress, PureDisplacement, incompressible
 from lungmech.fem.materials import VolumetricSplit
 
@@ -68,7 +69,7 @@ class LinearisedPressure:
         self._iterate, self._step = fem.Function(model.space), fem.Function(model.space)
         at_iterate = ufl.replace(G, {state: self._iterate})
         linearised = material.bulk * (at_iterate + ufl.derivative(at_iterate, self._iterate, self._step))
-        self._linearised = fem.Expression(linearised, element.custom_quadrature()[0])
+        self._linearised = jit.expression(linearised, element.custom_quadrature()[0])
         self._state = state
 
     @staticmethod

@@ -26,7 +26,7 @@ from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
-from lungmech.fem import expressions
+from lungmech.fem import expressions, jit
 from lungmech.fem.kinematics import current_area_normal
 from lungmech.fem.ramp import Ramp
 
@@ -265,7 +265,7 @@ class Force(Named):
 
         ds = model.geometry.ds(self.boundary)
         mesh = model.geometry.mesh
-        area = mesh.comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ds)), op=MPI.SUM)  # the mesh's
+        area = mesh.comm.allreduce(fem.assemble_scalar(jit.form(1.0 * ds)), op=MPI.SUM)  # the mesh's
         per_area = fem.Constant(mesh, 1.0 / area)  # not a literal: another mesh compiles nothing
         return -per_area * ufl.dot(value, model.u) * model.kinematics.reference_area(ds)
 

@@ -22,6 +22,7 @@ from dolfinx.fem.petsc import assemble_matrix
 from slepc4py import SLEPc
 
 from lungmech.errors import ParameterError, SolverError
+from lungmech.fem import jit
 from lungmech.fem.linear import use_lu
 
 if TYPE_CHECKING:
@@ -50,7 +51,7 @@ class Modes:
 def mass_matrix(model: Model, density: float) -> PETSc.Mat:
     """M = ∫ ρ u·v dX, with 0 on the diagonal of constrained rows."""
     u, v = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
-    M = assemble_matrix(fem.form(density * ufl.inner(u, v) * ufl.dx), bcs=model.bcs, diag=0.0)
+    M = assemble_matrix(jit.form(density * ufl.inner(u, v) * ufl.dx), bcs=model.bcs, diag=0.0)
     M.assemble()
     return M
 
@@ -72,7 +73,7 @@ def modal_analysis(
         raise ParameterError(f"modal analysis: density must be > 0 (got {density})")
     if shift == 0.0 and not model.bcs:
         raise ParameterError("a free-floating body has rigid modes at 0: give a negative shift")
-    K = assemble_matrix(fem.form(model.jacobian), bcs=model.bcs, diag=1.0)
+    K = assemble_matrix(jit.form(model.jacobian), bcs=model.bcs, diag=1.0)
     K.assemble()
     M = mass_matrix(model, density)
     scale = _largest_diagonal(K) / _largest_diagonal(M)

@@ -19,7 +19,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem, assemble_matrix, assign
 
 from lungmech.errors import Interrupted, SolverError
-from lungmech.fem import convergence, limits, linear
+from lungmech.fem import convergence, jit, limits, linear
 from lungmech.fem.linearised_pressure import LinearisedPressure
 from lungmech.fem.preconditioners import available_layout, iterative_layout
 from lungmech.fem.solver_interface import NewtonResult, StepsModelState
@@ -98,6 +98,7 @@ class NewtonSolver(StepsModelState):
             bcs=model.bcs,
             J=tangent if self._pressure is None else self._pressure.tangent,
             petsc_options_prefix=prefix,
+            jit_options=jit.OPTIONS,
         )
         self._exact_tangent = tangent
         chosen = self.options.linear_solver
@@ -346,7 +347,7 @@ class NewtonSolver(StepsModelState):
         may differ from away from an equilibrium (:mod:`lungmech.fem.linearised_pressure`)."""
         if self._pressure is None:
             return cast(fem.Form, self.problem.J)  # one form: not a block problem
-        return fem.form(self._exact_tangent)  # compiled when first asked for (collective)
+        return jit.form(self._exact_tangent)  # compiled when first asked for (collective)
 
     def destroy(self) -> None:
         self.problem.solver.destroy()

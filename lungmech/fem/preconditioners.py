@@ -12,10 +12,10 @@ from petsc4py import PETSc
 
 import numpy as np
 import ufl
-from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.formulations import incompressible
 from lungmech.fem.materials import VolumetricSplit, shear_modulus
 from lungmech.fem.nullspace import rigid_body_modes
@@ -121,7 +121,7 @@ def _taylor_hood_layout(model: Model) -> tuple[dict, Callable[[PETSc.KSP, PETSc.
         compliance = 1 / shear_modulus(model.material, model.geometry.mesh)
         if not incompressible(model.material):
             compliance += 1 / cast(VolumetricSplit, model.material).bulk  # Taylor–Hood took a split law only
-        mass = fem.form(-compliance * p * q * model.dx)
+        mass = jit.form(-compliance * p * q * model.dx)
         sets = _field_index_sets(model)
         sets["u"].compose("nearnullspace", rigid_body_modes(model.space.sub(0).collapse()[0]))
         S_p = assemble_matrix(mass)

@@ -14,6 +14,7 @@ from dolfinx import fem, la
 from dolfinx import geometry as dgeometry
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 
 if TYPE_CHECKING:
     import dolfinx.mesh
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
 
 def integral(form: ufl.Form, comm: MPI.Comm) -> Callable[[], float]:
     """A function returning the global value of a scalar form (compiled once, summed over ranks)."""
-    compiled = fem.form(form)
+    compiled = jit.form(form)
     return lambda: comm.allreduce(fem.assemble_scalar(compiled), op=MPI.SUM)
 
 
@@ -48,7 +49,7 @@ def vector_integral(
     flat = ufl.as_vector([expr[index] for index in np.ndindex(shape)]) if len(shape) != 1 else expr
     size = flat.ufl_shape[0]
     space = fem.functionspace(mesh, basix.ufl.element("DG", mesh.basix_cell(), 0, shape=(size,)))
-    compiled = fem.form(ufl.inner(flat, ufl.TestFunction(space)) * measure)
+    compiled = jit.form(ufl.inner(flat, ufl.TestFunction(space)) * measure)
     vector = fem.Function(space).x
     owned = space.dofmap.index_map.size_local * size
 
@@ -158,7 +159,7 @@ def reaction(model: Model, boundary: str) -> Callable[[], Reaction]:
     blocks = blocks[blocks < collapsed.dofmap.index_map.size_local]  # each node counted once, by its owner
     dofs = np.asarray(parent)[blocks[:, None] * bs + np.arange(bs)]  # (nodes, components) in the state
     nodes = collapsed.tabulate_dof_coordinates()[blocks, :bs]
-    residual = fem.form(model.residual)
+    residual = jit.form(model.residual)
     vector = fem.Function(model.space).x
 
     def evaluate() -> Reaction:

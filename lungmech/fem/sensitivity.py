@@ -60,6 +60,7 @@ from ufl.algorithms import expand_derivatives
 from ufl.algorithms.map_integrands import map_integrands
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.quantities import assemble_owned
 from lungmech.fem.state_dependent import StateDependent
@@ -168,7 +169,7 @@ class DerivativeForms:
         self._compile = compile
         self.residual = self._explicit(residual)  # None: no parameter acts
         self.energy = self._explicit(energy) if with_energy else None
-        self.volume_gradient = None if like else fem.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
+        self.volume_gradient = None if like else jit.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
         self.energy_gradient = compile(ufl.derivative(energy, model.state)) if with_energy else None
         self.comm = mesh.comm
 

@@ -24,6 +24,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from lungmech.fem import jit
 from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.parallel.linalg import gram
 from lungmech.parallel.owned import owned_size
@@ -88,7 +89,7 @@ class FullIntegration:
         return vector_integral(expr, measure, self.mesh)
 
     def column(self, name: str, form: ufl.Form) -> Callable[[], np.ndarray]:
-        compiled = fem.form(form)
+        compiled = jit.form(form)
         return lambda: assemble_owned(compiled, self._vector, self._owned)
 
     def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:

@@ -38,6 +38,7 @@ from ufl.core.expr import Expr
 
 from lungmech import checks
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.averages import Average
 from lungmech.fem.loads import Named
 from lungmech.fem.materials import CiarletGeymonat, ExponentialCiarletGeymonat, Material, Sum
@@ -405,7 +406,7 @@ class ImagedPorosity:
         self.owned = space.dofmap.index_map.size_local
         self.comm = model.geometry.mesh.comm
         v = ufl.TestFunction(space)
-        self._volumes = [fem.form(v * model.dx), fem.form(ufl.det(model.F) * v * model.dx)]  # V, v
+        self._volumes = [jit.form(v * model.dx), jit.form(ufl.det(model.F) * v * model.dx)]  # V, v
         self._solid = model.state.sub(1)
         self._phi_s = fem.Function(space)  # Φs in Φs0's numbering
 

@@ -26,6 +26,7 @@ import numpy.typing as npt
 import ufl
 
 from lungmech.errors import GeometryError
+from lungmech.fem import jit
 
 __all__ = ["Geometry", "diameter", "from_meshdata"]
 
@@ -110,7 +111,7 @@ def diameter(mesh: dolfinx.mesh.Mesh) -> float:
 def _integrate(mesh: dolfinx.mesh.Mesh, measure: ufl.Measure) -> float:
     """Global integral of 1 over ``measure``."""
     one = dolfinx.fem.Constant(mesh, dolfinx.default_scalar_type(1.0))
-    local = dolfinx.fem.assemble_scalar(dolfinx.fem.form(one * measure))
+    local = dolfinx.fem.assemble_scalar(jit.form(one * measure))
     return float(mesh.comm.allreduce(float(np.real(local)), op=MPI.SUM))
 
 

@@ -24,6 +24,7 @@ import ufl
 from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 
+from lungmech.fem import jit
 from lungmech.parallel.layout import Layout, layout
 from lungmech.parallel.owned import owned_size
 
@@ -91,7 +92,7 @@ def masses(space: fem.FunctionSpace, where: Layout) -> np.ndarray | None:
     """Collective: lumped nodal masses (row sums of the mass matrix) in canonical order, summing
     to 1, on rank 0; None elsewhere."""
     v = ufl.TestFunction(space)
-    lumped = fem.assemble_vector(fem.form(v[0] * ufl.dx(domain=space.mesh)))
+    lumped = fem.assemble_vector(jit.form(v[0] * ufl.dx(domain=space.mesh)))
     lumped.scatter_reverse(la.InsertMode.add)
     bs = space.dofmap.index_map_bs
     owned = space.dofmap.index_map.size_local * bs

@@ -55,6 +55,7 @@ from dolfinx import mesh as dmesh
 from dolfinx.fem import petsc as fem_petsc
 
 from lungmech.errors import ParameterError, RegistrationError
+from lungmech.fem import jit
 from lungmech.mesh import diameter
 from lungmech.registration import field as image_field
 from lungmech.registration.align import Similarity, moments_fit
@@ -333,8 +334,8 @@ class ShapeEnergy:
         X = ufl.SpatialCoordinate(mesh)
         F = ufl.Identity(3) + ufl.grad(u)
         J = ufl.det(F)
-        self.positions = fem.Expression(X + u, points)
-        self.jacobian = fem.Expression(J, points)
+        self.positions = jit.expression(X + u, points)
+        self.jacobian = jit.expression(J, points)
         dx = ufl.Measure("dx", mesh, metadata={"quadrature_degree": degree, "quadrature_scheme": "default"})
         v = ufl.TestFunction(u.function_space)
         g = ufl.TrialFunction(u.function_space)
@@ -350,8 +351,8 @@ class ShapeEnergy:
         low, on = options.min_jacobian, options.min_jacobian + (1.0 - options.min_jacobian) / 6.0
         distortion += ufl.conditional(ufl.lt(J, on), (on - J) ** 2 / ((J - low) * (on - low)), 0.0)
         exact = ufl.dx(domain=mesh)
-        self.psi = fem.form(I * J * dx + self.weight * distortion * exact)
-        self.derivative_form = fem.form(
+        self.psi = jit.form(I * J * dx + self.weight * distortion * exact)
+        self.derivative_form = jit.form(
             (ufl.dot(dI, v) + I * ufl.inner(ufl.inv(F).T, ufl.grad(v))) * J * dx
             + self.weight * ufl.derivative(distortion, u, v) * exact
         )
@@ -359,7 +360,7 @@ class ShapeEnergy:
         def eps(w: ufl.Argument) -> ufl.core.expr.Expr:  # the symmetric gradient on the current configuration
             return ufl.sym(ufl.grad(w) * ufl.inv(F))
 
-        self.inner = fem.form((2.0 * ufl.inner(eps(g), eps(v)) + alpha * ufl.inner(g, v)) * J * exact)
+        self.inner = jit.form((2.0 * ufl.inner(eps(g), eps(v)) + alpha * ufl.inner(g, v)) * J * exact)
         self.matrix = fem_petsc.create_matrix(self.inner)
         self.rhs = fem_petsc.create_vector(u.function_space)
         self.gradient = self.rhs.duplicate()
@@ -371,7 +372,7 @@ class ShapeEnergy:
         self.relaxed = fem.Function(u.function_space)
         w = ufl.TrialFunction(u.function_space)
         # The reference never moves: one matrix, factorised once.
-        self.elastic = fem.form(
+        self.elastic = jit.form(
             (2.0 * ufl.inner(ufl.sym(ufl.grad(w)), ufl.sym(ufl.grad(v))) + ufl.div(w) * ufl.div(v)) * exact
         )
         self.boundary = [fem.dirichletbc(u, boundary)]  # the current boundary displacement

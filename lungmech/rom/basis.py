@@ -18,10 +18,10 @@ from petsc4py import PETSc
 
 import numpy as np
 import ufl
-from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.model import Model
 from lungmech.parallel.linalg import NotPositive, apply, gram_schmidt
 from lungmech.parallel.owned import owned_size
@@ -99,7 +99,7 @@ def inner_product(model: Model, kind: str) -> PETSc.Mat | None:
             reference_map.x.array[:] = 0.0
         model.reset()
         try:
-            W = assemble_matrix(fem.form(form), bcs=model.bcs, diag=1.0)
+            W = assemble_matrix(jit.form(form), bcs=model.bcs, diag=1.0)
             W.assemble()
         finally:
             model.set_parameters(current)

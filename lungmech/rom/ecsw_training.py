@@ -24,6 +24,7 @@ from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from ufl.algorithms import expand_derivatives
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.model import Model
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.state_dependent import StateDependent
@@ -94,9 +95,9 @@ class Training:
         self._integrals: dict[str, tuple[fem.Form, la.Vector, int]] = {}
         for name in self.forms.integrals:
             form, space = self.forms.cell_values(name)
-            self._integrals[name] = (fem.form(form), fem.Function(space).x, space.dofmap.index_map_bs)
+            self._integrals[name] = (jit.form(form), fem.Function(space).x, space.dofmap.index_map_bs)
         names = (*self.forms.families, *functionals)
-        self._compiled = {name: fem.form(self.forms.contribution(name)) for name in names}
+        self._compiled = {name: jit.form(self.forms.contribution(name)) for name in names}
         self._matrices = {family: create_matrix(self._compiled[family]) for family in self.forms.families}
         # ∂/∂x of each family's columns along a direction V_j: column e is K_e V_j
         self._direction = fem.Function(model.space)
@@ -104,7 +105,7 @@ class Training:
         for family in self.forms.families:
             form = ufl.derivative(self.forms.contribution(family), model.state, self._direction)
             if not expand_derivatives(form).empty():  # a load independent of the state has none
-                compiled = fem.form(form)
+                compiled = jit.form(form)
                 self._tangents[family] = (compiled, create_matrix(compiled))
         self.cells = self.forms.space.dofmap.index_map.size_local
         names = (*self.sampled, *(family + TANGENT for family in self._tangents))

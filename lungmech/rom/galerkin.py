@@ -23,6 +23,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.convergence import Fields
 from lungmech.fem.dynamics import ImplicitEuler
 from lungmech.fem.limits import Inversion, displacement_gradient
@@ -64,8 +65,8 @@ class ReducedSolver(StepsModelState):  # the model holds x₀ + V q after every 
         self.W = None if enrichment is None else np.ascontiguousarray(enrichment)
         self.dual = dual(model, basis)
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
-        self._residual = fem.form(model.residual if residual is None else residual)
-        self._jacobian = fem.form(model.jacobian if jacobian is None else jacobian)
+        self._residual = jit.form(model.residual if residual is None else residual)
+        self._jacobian = jit.form(model.jacobian if jacobian is None else jacobian)
         self._vector = fem.Function(model.space).x
         self._matrix = create_matrix(self._jacobian)
         self._fields = Fields(model)

@@ -22,6 +22,7 @@ import ufl
 from dolfinx import common, fem, la
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
 from lungmech.fem.model import Model
@@ -328,12 +329,12 @@ class HyperReducedSolver:
     @functools.cached_property
     def residual_form(self) -> fem.Form:
         """The full model's compiled residual (for a diagnosis of a failed load path)."""
-        return fem.form(self.model.residual)
+        return jit.form(self.model.residual)
 
     @functools.cached_property
     def jacobian_form(self) -> fem.Form:
         """The full model's compiled tangent."""
-        return fem.form(self.model.jacobian)
+        return jit.form(self.model.jacobian)
 
     def destroy(self) -> None:
         """Nothing PETSc holds: the reduced mesh's vectors and matrices are DOLFINx's."""

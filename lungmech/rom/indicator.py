@@ -35,6 +35,7 @@ import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
+from lungmech.fem import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import Solution
@@ -72,7 +73,7 @@ class ResidualIndicator:
         self.model = model
         self.comm = model.geometry.mesh.comm
         self._energy = inner_product(model, "energy")
-        self._residual, self._jacobian = fem.form(model.residual), fem.form(model.jacobian)
+        self._residual, self._jacobian = jit.form(model.residual), jit.form(model.jacobian)
         self._tangent = create_matrix(self._jacobian)
         self._solver = factorised(self._tangent)
         self._work = fem.Function(model.space).x  # ghosted: assembly adds into ghost rows

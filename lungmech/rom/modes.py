@@ -8,6 +8,7 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.modal import modal_analysis
 from lungmech.fem.model import Model
@@ -37,8 +38,8 @@ def modal_derivatives(model: Model, basis: Basis) -> np.ndarray:
     if model.state_dependent:
         raise ParameterError("modal derivatives: state-dependent loads are not supported")
     phi_i, phi_j = fem.Function(model.space), fem.Function(model.space)
-    third = fem.form(ufl.derivative(ufl.action(model.jacobian, phi_i), model.state, phi_j))
-    K = assemble_matrix(fem.form(model.jacobian), bcs=model.bcs, diag=1.0)
+    third = jit.form(ufl.derivative(ufl.action(model.jacobian, phi_i), model.state, phi_j))
+    K = assemble_matrix(jit.form(model.jacobian), bcs=model.bcs, diag=1.0)
     K.assemble()
     ksp = factorised(K)
     owned = basis.vectors.shape[0]

@@ -40,6 +40,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech.errors import ParameterError
+from lungmech.fem import jit
 from lungmech.fem.averages import averages
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS
@@ -104,8 +105,8 @@ def cubic(model: Model, functional: ufl.Form, start: np.ndarray, directions: np.
     state, comm = model.state, model.geometry.mesh.comm
     owned, size = directions.shape
     gradient = ufl.derivative(functional, state, ufl.TestFunction(model.space))
-    compiled = fem.form(functional), fem.form(gradient)
-    hessian = fem.form(ufl.derivative(gradient, state, ufl.TrialFunction(model.space)))
+    compiled = jit.form(functional), jit.form(gradient)
+    hessian = jit.form(ufl.derivative(gradient, state, ufl.TrialFunction(model.space)))
     scratch = fem.Function(model.space).x
 
     def at(z: np.ndarray) -> None:

@@ -20,6 +20,7 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 from ufl.algorithms import expand_derivatives
 
+from lungmech.fem import jit
 from lungmech.fem.model import Model
 
 __all__ = ["ReducedMesh"]
@@ -84,10 +85,10 @@ class ReducedMesh:
         cells) compiled with them on the submesh. Arguments of other spaces (already on the
         submesh) stay."""
         if self.entity_map is None:
-            return fem.form(form)
+            return jit.form(form)
         expanded = expand_derivatives(form)
         mapping: dict[ufl.core.expr.Expr, ufl.core.expr.Expr] = {self.model.state: self.state}
         for argument in expanded.arguments():
             if argument.ufl_function_space() == self.model.space:
                 mapping[argument] = ufl.Argument(self.space, argument.number(), argument.part())
-        return fem.form(ufl.replace(expanded, mapping), entity_maps=[self.entity_map])
+        return jit.form(ufl.replace(expanded, mapping), entity_maps=[self.entity_map])

@@ -23,6 +23,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from lungmech.fem import jit
 from lungmech.fem.parametric import ParametricModel
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
@@ -47,7 +48,7 @@ def volume_ratio(w: fem.Function) -> np.ndarray:
     cells = fem.functionspace(mesh, ("DG", 0))
     J = fem.Function(cells)
     F = ufl.Identity(mesh.geometry.dim) + ufl.grad(w)
-    J.interpolate(fem.Expression(ufl.det(F), cells.element.interpolation_points))
+    J.interpolate(jit.expression(ufl.det(F), cells.element.interpolation_points))
     owned = mesh.topology.index_map(mesh.topology.dim).size_local
     return J.x.array[cells.dofmap.list[:owned, 0]].copy()
 
