@@ -19,7 +19,7 @@ import pytest
 import lungmech
 
 PACKAGE = Path(lungmech.__file__).parent
-BASE = {"errors", "checks", "_moved", "scenes", ""}
+BASE = {"errors", "checks", "jit", "_moved", "scenes", ""}
 LAYERS = {  # part -> the parts it may import (besides the base modules and itself)
     "parallel": set(),
     "mesh": {"parallel"},

@@ -23,7 +23,7 @@ import numpy as np
 import ufl
 from dolfinx import fem, plot
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.mesh import nodes
 from lungmech.mesh import write as write_geometry
 from lungmech.parallel import on_root, together

@@ -146,7 +146,7 @@ def deformed_body(model: Model, path: Path, title: str = "") -> None:
     import ufl
     from dolfinx import fem, plot
 
-    from lungmech.fem import jit
+    from lungmech import jit
     from lungmech.parallel import on_root
 
     mesh = model.geometry.mesh

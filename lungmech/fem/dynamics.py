@@ -39,8 +39,8 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from lungmech import jit
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem import jit
 from lungmech.fem.solver import (
     NewtonOptions,
     NewtonResult,

@@ -30,7 +30,7 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.linear import factorised, use_lu
 
 if TYPE_CHECKING:

@@ -37,7 +37,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.formulations import PlaneStress, PureDisplacement, incompressible
 from lungmech.fem.materials import VolumetricSplit
 

@@ -24,9 +24,9 @@ import ufl
 from dolfinx import mesh as dmesh
 from ufl.core.expr import Expr
 
-from lungmech import checks
+from lungmech import checks, jit
 from lungmech.errors import ParameterError
-from lungmech.fem import expressions, jit
+from lungmech.fem import expressions
 from lungmech.fem.kinematics import current_area_normal
 from lungmech.fem.ramp import Ramp
 

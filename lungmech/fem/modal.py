@@ -21,8 +21,8 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 from slepc4py import SLEPc
 
+from lungmech import jit
 from lungmech.errors import ParameterError, SolverError
-from lungmech.fem import jit
 from lungmech.fem.linear import use_lu
 
 if TYPE_CHECKING:

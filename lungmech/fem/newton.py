@@ -18,8 +18,9 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem, assemble_matrix, assign
 
+from lungmech import jit
 from lungmech.errors import Interrupted, SolverError
-from lungmech.fem import convergence, jit, limits, linear
+from lungmech.fem import convergence, limits, linear
 from lungmech.fem.linearised_pressure import LinearisedPressure
 from lungmech.fem.preconditioners import available_layout, iterative_layout
 from lungmech.fem.solver_interface import NewtonResult, StepsModelState

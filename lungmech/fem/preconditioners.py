@@ -14,8 +14,8 @@ import numpy as np
 import ufl
 from dolfinx.fem.petsc import assemble_matrix
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.formulations import incompressible
 from lungmech.fem.materials import VolumetricSplit, shear_modulus
 from lungmech.fem.nullspace import rigid_body_modes

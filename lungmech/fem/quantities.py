@@ -13,8 +13,8 @@ import ufl
 from dolfinx import fem, la
 from dolfinx import geometry as dgeometry
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 
 if TYPE_CHECKING:
     import dolfinx.mesh

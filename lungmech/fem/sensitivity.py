@@ -59,8 +59,8 @@ from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from ufl.algorithms import expand_derivatives
 from ufl.algorithms.map_integrands import map_integrands
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.quantities import assemble_owned
 from lungmech.fem.state_dependent import StateDependent

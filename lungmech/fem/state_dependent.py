@@ -24,7 +24,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.quantities import assemble_owned, vector_integral
 from lungmech.parallel.linalg import gram
 from lungmech.parallel.owned import owned_size

@@ -36,9 +36,8 @@ import ufl
 from dolfinx import fem
 from ufl.core.expr import Expr
 
-from lungmech import checks
+from lungmech import checks, jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.averages import Average
 from lungmech.fem.loads import Named
 from lungmech.fem.materials import CiarletGeymonat, ExponentialCiarletGeymonat, Material, Sum

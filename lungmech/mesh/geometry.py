@@ -25,8 +25,8 @@ import numpy as np
 import numpy.typing as npt
 import ufl
 
+from lungmech import jit
 from lungmech.errors import GeometryError
-from lungmech.fem import jit
 
 __all__ = ["Geometry", "diameter", "from_meshdata"]
 

@@ -24,7 +24,7 @@ import ufl
 from dolfinx import fem, la
 from dolfinx import mesh as dmesh
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.parallel.layout import Layout, layout
 from lungmech.parallel.owned import owned_size
 

@@ -54,8 +54,8 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 from dolfinx.fem import petsc as fem_petsc
 
+from lungmech import jit
 from lungmech.errors import ParameterError, RegistrationError
-from lungmech.fem import jit
 from lungmech.mesh import diameter
 from lungmech.registration import field as image_field
 from lungmech.registration.align import Similarity, moments_fit

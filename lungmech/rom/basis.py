@@ -20,8 +20,8 @@ import numpy as np
 import ufl
 from dolfinx.fem.petsc import assemble_matrix
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.model import Model
 from lungmech.parallel.linalg import NotPositive, apply, gram_schmidt
 from lungmech.parallel.owned import owned_size

@@ -23,8 +23,8 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 from ufl.algorithms import expand_derivatives
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.model import Model
 from lungmech.fem.solver import NewtonSolver
 from lungmech.fem.state_dependent import StateDependent

@@ -22,8 +22,8 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.convergence import Fields
 from lungmech.fem.dynamics import ImplicitEuler
 from lungmech.fem.limits import Inversion, displacement_gradient

@@ -21,8 +21,8 @@ import numpy as np
 import ufl
 from dolfinx import common, fem, la
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.convergence import EPS, Fields
 from lungmech.fem.limits import Inversion, at_quadrature_points, quadrature_degree, smallest
 from lungmech.fem.model import Model

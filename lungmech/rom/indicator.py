@@ -35,7 +35,7 @@ import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix, create_matrix
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import Solution

@@ -7,8 +7,8 @@ import ufl
 from dolfinx import fem, la
 from dolfinx.fem.petsc import assemble_matrix
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.modal import modal_analysis
 from lungmech.fem.model import Model

@@ -39,8 +39,8 @@ import ufl
 from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
+from lungmech import jit
 from lungmech.errors import ParameterError
-from lungmech.fem import jit
 from lungmech.fem.averages import averages
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS

@@ -20,7 +20,7 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 from ufl.algorithms import expand_derivatives
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.model import Model
 
 __all__ = ["ReducedMesh"]

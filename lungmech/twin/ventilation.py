@@ -23,7 +23,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from lungmech.fem import jit
+from lungmech import jit
 from lungmech.fem.parametric import ParametricModel
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
