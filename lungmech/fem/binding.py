@@ -17,7 +17,9 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
+import ufl
 from dolfinx import fem
+from ufl.core.expr import Expr
 
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import is_pressure
@@ -57,9 +59,14 @@ def _path(parameter: Parameter, paths: list[str]) -> str:
 
 
 def material(
-    law_at: LawAt, parameters: Parameters, geometry: Geometry, interfaces: Mapping[str, fem.Constant]
+    law_at: LawAt,
+    parameters: Parameters,
+    geometry: Geometry,
+    interfaces: Mapping[str, fem.Constant],
+    shape: Expr | None = None,
 ) -> tuple[Material, Assign]:
-    """The law the forms use, and ``assign(values)`` that sets its constants for new values."""
+    """The law the forms use, and ``assign(values)`` that sets its constants for new values.
+    ``shape``: the template map's displacement (regions by position move with it), or None."""
     mesh = geometry.mesh
     values = parameters.defaults
     base = law_at(outside_keys(parameters, values))
@@ -77,7 +84,9 @@ def material(
             )
         if isinstance(region, HalfSpace):
             _holds_cells(region, geometry, parameters, names)
-        chi = region.indicator(geometry, interfaces)
+        chi = region.indicator(
+            geometry, interfaces, None if shape is None else ufl.SpatialCoordinate(geometry.mesh) + shape
+        )
         inside = {path: fem.Constant(mesh, finite[path]) for path in moved}
         for path, c in inside.items():
             fields[path] = fields[path] + chi * (c - constants[path])

@@ -10,7 +10,7 @@ or a parameter recompiles nothing.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import basix.ufl
@@ -19,7 +19,7 @@ import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError
-from lungmech.fem import binding
+from lungmech.fem import binding, limits
 from lungmech.fem import constraints as _constraints
 from lungmech.fem.constraints import Displacement
 from lungmech.fem.formulations import Formulation, PlaneStress, PureDisplacement, TaylorHood
@@ -28,6 +28,8 @@ from lungmech.fem.loads import Load, StateDependentWork, is_pressure
 from lungmech.fem.materials import Material
 from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.placement import Image, kinematics
+from lungmech.fem.shape import KIND as SHAPE
+from lungmech.fem.shape import ShapeMap
 from lungmech.parallel.owned import owned_size
 
 if TYPE_CHECKING:
@@ -77,21 +79,29 @@ class Model:
         parameters: Sequence[Parameter] = (),
         plane: str | None = None,
         image: Image | None = None,
+        shape: Sequence[fem.Function] = (),
     ) -> None:
         self._arguments = dict(
             geometry=geometry, material=material, degree=degree, mixed=mixed, formulation=formulation, loads=loads,
             constraints=constraints, quadrature_degree=quadrature_degree, parameters=parameters, plane=plane,
+            shape=shape,
         )  # fmt: skip
         mesh = geometry.mesh
         self.plane = _plane(mesh, plane)
         self.geometry = geometry
         self.parameters = Parameters(parameters)
+        self.shape = ShapeMap.of(shape) if len(shape) else None  # the template's map χ_a, or None
+        self._shape_jacobian: Callable[[], float] | None = None  # min det G, compiled when first asked
+        _check_shape_parameters(self.parameters, self.shape)
+        shape_displacement = self.shape.displacement if self.shape else None
         self._interfaces: dict[str, fem.Constant] = {
             p.name: fem.Constant(mesh, p.default) for p in self.parameters if p.kind == "interface"
         }
         law_at = binding.law_function(material, self.parameters)
         material = law_at(binding.outside_keys(self.parameters, self.parameters.defaults))
-        self.material, assign_material = binding.material(law_at, self.parameters, geometry, self._interfaces)
+        self.material, assign_material = binding.material(
+            law_at, self.parameters, geometry, self._interfaces, shape_displacement
+        )
         unbound = formulation or (TaylorHood() if mixed else PureDisplacement())
         if self.plane == "stress":
             if not isinstance(unbound, PureDisplacement):
@@ -146,7 +156,13 @@ class Model:
         )
         self._motion = fem.Function(vectors, name="motion") if image and image.unknown == "inverse" else None
         self.kinematics = kinematics(
-            mesh, self.fields["u"], image, self.reference_map, self._motion, self.fields.get("thickness_stretch")
+            mesh,
+            self.fields["u"],
+            image,
+            self.reference_map,
+            self._motion,
+            self.fields.get("thickness_stretch"),
+            shape_displacement,
         )
         self.reset()
         self.fields["u"] = self.u = self.kinematics.u  # the displacement from the reference
@@ -211,8 +227,31 @@ class Model:
             imposed.amplitude = amplitude
         for name, constant in self._interfaces.items():
             constant.value = np.asarray(current[name])
+        if self.shape is not None:
+            self._set_shape(current)
         self.parameter_values = current
         self.set_time(self.time, *self._scaling)
+
+    def _set_shape(self, values: Mapping[str, float]) -> None:
+        """The shape coefficients a from the parameter ``values``, refused where the map folds a
+        cell (det G ≤ 0 at a quadrature point; checked when a changes)."""
+        assert self.shape is not None
+        before = self.shape.values()
+        acting = [p for p in self.parameters if p.kind == SHAPE]
+        self.shape.assign({p.key: values[p.name] for p in acting})
+        if np.array_equal(before, self.shape.values()) and self._shape_jacobian is not None:
+            return
+        if self._shape_jacobian is None:  # compiled when first needed
+            mesh = self.geometry.mesh
+            degree = limits.quadrature_degree(self)
+            self._shape_jacobian = limits.smallest(
+                limits.at_quadrature_points(ufl.det(self.shape.gradient), mesh, degree), mesh.comm
+            )
+        try:
+            self.shape.check(self._shape_jacobian, {p.name: values[p.name] for p in acting})
+        except ParameterError:
+            self.shape.assign(dict(zip((t.partition(".")[2] for t in self.shape.targets), before)))
+            raise
 
     def _variation(self, form: ufl.Form, v: ufl.Argument) -> ufl.Form:
         """δ``form`` along the test function ``v``: its derivative in the state — on an image's
@@ -387,6 +426,19 @@ class Model:
         gradient_degree = self.degree - 1 if affine else self.degree
         gradient_degree += mesh.geometry.cmaps[0].degree - 1  # curved cells: non-constant Jacobian
         return self.material.quadrature_degree(gradient_degree)
+
+
+def _check_shape_parameters(parameters: Parameters, shape: ShapeMap | None) -> None:
+    """Each shape parameter names one of the model's modes (``shape.mode_<i>``), each once."""
+    acting = [p for p in parameters if p.kind == SHAPE]
+    targets = shape.targets if shape is not None else ()
+    for p in acting:
+        if p.target not in targets:
+            has = f"its modes are {', '.join(targets)}" if targets else "the model has no shape modes"
+            raise ParameterError(f"parameter '{p.name}': target {p.target} is not a shape mode ({has})")
+    named = [p.target for p in acting]
+    if len(set(named)) != len(named):
+        raise ParameterError(f"shape parameters: each mode takes one parameter (got {', '.join(sorted(named))})")
 
 
 def _plane(mesh: dolfinx.mesh.Mesh, plane: str | None) -> str | None:

@@ -11,6 +11,8 @@ A :class:`Parameter` is a named scalar with a default, a range [low, high] and a
 ``loads.<name>.pitch`` / ``.roll``        the posture: gravity turned about x / y (degrees)
 ``constraints.<name>.amplitude``          a factor on an imposed displacement
 ``interface``                             the position (m) of a :class:`HalfSpace` region
+``shape.mode_<i>``                        the coefficient aᵢ of the i-th shape mode (1, 2, …;
+                                          :mod:`lungmech.fem.shape`): the body's shape
 ========================================  ====================================================
 
 A material parameter may act on a :attr:`Parameter.region` only — a set of cells (:class:`Cells`:
@@ -41,7 +43,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Cells", "HalfSpace", "Parameter", "Parameters", "Region"]
 
-KINDS = ("material", "formulation", "loads", "constraints", "interface")
+KINDS = ("material", "formulation", "loads", "constraints", "interface", "shape")
 LOAD_ATTRIBUTES = ("value", "amplitude", "pitch", "roll")
 
 
@@ -64,8 +66,11 @@ class Cells:
     def describe(self) -> dict:
         return {"cells": self.tag if self.tag is not None else self.label}
 
-    def indicator(self, geometry: Geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
-        """χ as a DG0 field: 1 on the region's cells, 0 elsewhere."""
+    def indicator(
+        self, geometry: Geometry, constants: Mapping[str, object], position: ufl.core.expr.Expr | None = None
+    ) -> ufl.core.expr.Expr:
+        """χ as a DG0 field: 1 on the region's cells, 0 elsewhere (cells move with the mesh:
+        ``position`` is not needed)."""
         from dolfinx import fem
 
         mesh = geometry.mesh
@@ -123,8 +128,12 @@ class HalfSpace:
         n[: len(self.normal)] = self.normal
         return mesh.comm.allreduce(int(np.count_nonzero(midpoints @ n < position)))
 
-    def indicator(self, geometry: Geometry, constants: Mapping[str, object]) -> ufl.core.expr.Expr:
-        x = ufl.SpatialCoordinate(geometry.mesh)
+    def indicator(
+        self, geometry: Geometry, constants: Mapping[str, object], position: ufl.core.expr.Expr | None = None
+    ) -> ufl.core.expr.Expr:
+        """χ = ½(1 − tanh((n·x − s)/w)) at the mesh's points x, or at ``position`` (the body's
+        points on a template mesh moved by its shape map)."""
+        x = ufl.SpatialCoordinate(geometry.mesh) if position is None else position
         n = ufl.as_vector(self.normal)
         s = constants[self.position] if isinstance(self.position, str) else self.position
         return 0.5 * (1 - ufl.tanh((ufl.dot(n, x) - s) / self.width))
@@ -177,7 +186,7 @@ class Parameter:
 
     @property
     def kind(self) -> str:
-        """What it acts on: material, formulation, loads, constraints or interface."""
+        """What it acts on: material, formulation, loads, constraints, interface or shape."""
         return self.target.split(".")[0]
 
     @property

@@ -145,27 +145,43 @@ def kinematics(
     reference_map: Expr | None = None,
     motion: Expr | None = None,
     thickness_stretch: Expr | None = None,
+    shape: Expr | None = None,
 ) -> Kinematics:
     """The kinematics of a state whose vector field is ``vector``: u on a reference mesh
     (``image`` None); on an image, w (``image.unknown`` "motion", with ξ = ``reference_map``) or
     ξ (``image.unknown`` "inverse", with w = ``motion``, a zero Function the residual is the
-    derivative along)."""
+    derivative along). ``shape``: the template map's displacement Σ aᵢ mᵢ (the mesh is a
+    template x̂, the body's mesh x = x̂ + ``shape``, :mod:`lungmech.fem.shape`), or None."""
     x = ufl.SpatialCoordinate(mesh)
     N = ufl.FacetNormal(mesh)
-    if image is None:
+    d = len(vector)
+    if shape is None and image is None:  # the forms of a plain reference mesh, as they always were
         return Kinematics(x, vector, deformation_gradient(vector, thickness_stretch), vector, N)
+    if shape is None:
+        g_inv, ratio_g = ufl.Identity(d), None
+    else:  # ∇ₓ = ∇_x̂ (·) g⁻¹, dx = det g dx̂, n da = det g g⁻ᵀ n̂ dâ
+        g = ufl.Identity(d) + ufl.grad(shape)
+        g_inv, ratio_g = ufl.inv(g), ufl.det(g)
+        x = x + shape
+        N = ratio_g * g_inv.T * N
+
+    def grad(field: Expr) -> Expr:
+        return ufl.grad(field) if shape is None else ufl.grad(field) * g_inv
+
+    if image is None:
+        F = ufl.Identity(d) + grad(vector)
+        return Kinematics(x, vector, _embedded(F, thickness_stretch), vector, N, ratio_g)
     if image.unknown == "motion":
         assert reference_map is not None  # the model made it
         xi, w = reference_map, vector
     else:
         assert motion is not None  # the model made it
         xi, w = vector, motion
-    d = len(vector)
-    f = ufl.Identity(d) + ufl.grad(xi)
+    f = ufl.Identity(d) + grad(xi)
     f_inv = ufl.inv(f)
-    ratio = ufl.det(f)
-    F = (ufl.Identity(d) + ufl.grad(w)) * f_inv  # ∂(current)/∂x · ∂x/∂X
-    return Kinematics(x + xi, w - xi, _embedded(F, thickness_stretch), w, ratio * f_inv.T * N, ratio)
+    ratio = ufl.det(f) if ratio_g is None else ufl.det(f) * ratio_g
+    F = (ufl.Identity(d) + grad(w)) * f_inv  # ∂(current)/∂x · ∂x/∂X
+    return Kinematics(x + xi, w - xi, _embedded(F, thickness_stretch), w, ufl.det(f) * f_inv.T * N, ratio)
 
 
 def _embedded(F: Expr, thickness_stretch: Expr | None) -> Expr:

@@ -178,6 +178,25 @@ class ShapeModes:
             raise RegistrationError(f"shape {list(coefficients)} inverts cells of the mesh: too far from the library")
         return reference
 
+    def template(self, reference: Geometry, count: int) -> tuple[Geometry, list[fem.Function]]:
+        """The population's template and its first ``count`` modes as a model's shape modes.
+
+        ``reference`` (freshly read) is moved in place by the mean shape and returned with the
+        vector fields σ_k mode_k (m) on it: a model on the template whose shape coefficients
+        (:mod:`lungmech.fem.shape`) are c, in standard deviations, is the model on
+        :meth:`geometry` (reference, c) — without a new mesh.
+        """
+        if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= len(self.modes):
+            raise RegistrationError(f"a template takes 1 to {len(self.modes)} shape modes, got {count!r}")
+        moved = self.geometry(reference, [])
+        space, where = nodes.displacement_space(moved.mesh)
+        fields = []
+        for k in range(count):
+            field = fem.Function(space, name=f"shape_mode_{k + 1}")
+            nodes.scatter(self.deviations[k] * self.modes[k], field, where)
+            fields.append(field)
+        return moved, fields
+
     def save(self, path: str | Path) -> None:
         """Write to ``.npz`` (arrays plus JSON metadata); call on one rank."""
         path = Path(path)
