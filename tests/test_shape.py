@@ -23,10 +23,12 @@ from lungmech.fem.loads import BodyForce, FollowerPressure
 from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
 from lungmech.fem.parameters import HalfSpace, Parameter
+from lungmech.fem.placement import Image
 from lungmech.fem.quantities import deformed_volume, integral
 from lungmech.fem.solver import solve
 from lungmech.mesh import box, from_file, nodes
 from lungmech.mesh.nodes import move_nodes
+from lungmech.parallel.owned import owned_size
 from lungmech.registration.library import shape_modes
 
 A = {"a1": 0.6, "a2": -0.8}
@@ -128,6 +130,17 @@ def test_a_rubber_cube_on_its_template_is_the_cube_on_the_moved_mesh():
     u1, u2 = on_template.state.x.array, on_moved.state.x.array
     assert np.abs(u1 - u2).max() <= 1e-8 * np.abs(u2).max()
     assert deformed_volume(on_template)() == pytest.approx(deformed_volume(on_moved)(), rel=1e-10)
+
+
+@pytest.mark.parametrize("image", [Image.motion(), Image.inverse()], ids=["motion", "inverse"])
+def test_an_imaged_cube_on_its_template_is_the_imaged_cube_on_the_moved_mesh(image):
+    """The template's map composed with an image's inverse motion: the breath from the image
+    (with a reference map ξ) and the image's own equilibrium (ξ the unknown)."""
+    on_template, on_moved = pair(cube, box_modes(1.0), lambda geometry, **k: rubber(geometry, image=image, **k))
+    if image.unknown == "motion":
+        xi = smooth_state(on_moved, -0.03)[: owned_size(on_moved.space)]
+        on_template.set_reference_map(xi), on_moved.set_reference_map(xi)
+    agree(on_template, on_moved, smooth_state(on_moved, 0.04))
 
 
 def test_zones_by_height_move_with_the_shape():
