@@ -399,6 +399,10 @@ SCENES = {
         TINY + '[parameters.front]\ntarget = "interface"\ndefault = 0.5\nrange = [0.0, 1.0]\n',
         "parameter 'front' moves an interface that no region's position names: it would act on nothing",
     ),
+    "a shape mode in a scene": (
+        TINY + '[parameters.a1]\ntarget = "shape.mode_1"\nrange = [-2.0, 2.0]\n',
+        "parameters.a1.target: shape.mode_1 needs a model on a library's template with its shape modes",
+    ),
     "a boundary named twice": (
         swap(
             'type = "traction"\nboundary = "x1"\nvalue = [0.0, 0.0, -10.0]',

@@ -64,6 +64,11 @@ def parameters(table: dict[str, Any], folder: Path) -> tuple[Parameter, ...]:
             if required not in entry:
                 raise SceneError(f"{where}: missing key '{required}'")
         target = typed(entry["target"], str, f"{where}.target")
+        if target.partition(".")[0] == "shape":
+            raise SceneError(
+                f"{where}.target: {target} needs a model on a library's template with its shape modes, made in "
+                "Python (ShapeModes.template, Model(..., shape=...)); a scene does not take shape modes"
+            )
         scale = entry.get("scale", "linear")
         if scale not in ("linear", "log"):
             raise SceneError(f"{where}.scale: must be 'linear' or 'log' (got {scale!r})")
