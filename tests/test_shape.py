@@ -247,3 +247,32 @@ def test_a_template_takes_one_to_all_of_the_librarys_modes():
     for count in (0, len(modes.modes) + 1, 1.5):
         with pytest.raises(RegistrationError, match=f"a template takes 1 to {len(modes.modes)} shape modes"):
             modes.template(lung(), count)
+
+
+@pytest.mark.slow
+def test_the_shape_parameters_sensitivities_are_the_finite_differences():
+    """d(output)/da by the model's direct sensitivities against central differences of solves:
+    a shape coefficient moves the volume explicitly (dx = det G dX₀), the state implicitly."""
+    from lungmech.fem.parametric import FullOrderModel
+    from lungmech.fem.solver import Stepping
+
+    template = cube()
+    stiffness = Parameter("mu", "material.mu", 400.0, (200.0, 800.0))
+    model = Model(
+        template,
+        NeoHookean.from_young(1e3, 0.3),
+        loads=[FollowerPressure("x1", 40.0), BodyForce([0.0, 0.0, -30.0])],
+        constraints=[clamp("x0")],
+        shape=modes_of(template.mesh, box_modes(1.0)),
+        parameters=[*parameters(2), stiffness],
+    )
+    full = FullOrderModel(model, Stepping(), probes=[[1.0, 0.5, 0.5]])
+    mu = {"a1": 0.4, "a2": -0.3, "mu": 400.0}
+    solution = full.solve(mu, sensitivities=True)
+    for i, name in enumerate(solution.parameter_names):
+        h = 1e-4 * np.diff(model.parameters.named(name).range)[0]
+        up, down = (full.solve(mu | {name: mu[name] + s * h}).outputs for s in (1.0, -1.0))
+        for key in ("volume", "strain_energy", "probes"):
+            exact, approximate = solution.sensitivities[key][..., i], (up[key] - down[key]) / (2 * h)
+            scale = max(np.abs(exact).max(), np.abs(approximate).max())
+            assert np.abs(exact - approximate).max() <= 1e-5 * scale, (name, key)

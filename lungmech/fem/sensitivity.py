@@ -14,7 +14,8 @@ vanishes on imposed dofs and x₀ holds the imposed values, gives instead
     dq/dμ = −(Vᵀ K V)⁻¹ Vᵀ (∂R/∂μ + K dx₀/dμ),   dx/dμ = V dq/dμ + dx₀/dμ,
 
 the exact derivative of the reduced model's own answer. An output J(x, c) then has
-dJ/dμ = ∂J/∂x · dx/dμ + ∂J/∂c · ∂c/∂μ: the deformed volume ∫ det F dX has no explicit part, the
+dJ/dμ = ∂J/∂x · dx/dμ + ∂J/∂c · ∂c/∂μ: the deformed volume ∫ det F dX has no explicit part
+but through a shape map's coefficients (dX = det G dX₀, :mod:`lungmech.fem.shape`), the
 strain energy ∫ ψ dX has ∂ψ/∂c (ψ depends on the law's constants), a probe is the displacement
 part of dx/dμ at its point, and a scalar load's value is itself one of the c.
 
@@ -136,7 +137,8 @@ class DerivativeForms:
     ``constants`` and ``functions`` are every ``Constant`` and (non-state) ``Function`` of the
     residual and of the strain energy: whatever a parameter may set. ``weights`` are their
     directions (w_k, δf_j); ``residual`` = Σ_k w_k · ∂R/∂c_k + Σ_j ∂R/∂f_j [δf_j], ``energy`` the
-    same of ∫ ψ dX, ``volume_gradient`` = ∂(∫ det F dX)/∂x, ``energy_gradient`` = ∂(∫ ψ dX)/∂x.
+    same of ∫ ψ dX, ``volume`` the same of ∫ det F dX (a shape map's model only: None otherwise),
+    ``volume_gradient`` = ∂(∫ det F dX)/∂x, ``energy_gradient`` = ∂(∫ ψ dX)/∂x.
 
     A hyper-reduced model gives its own ``residual`` and ``energy`` (weighted, over sampled
     cells), ``compile`` (onto its reduced mesh) and ``like``, the full model's forms, whose
@@ -169,7 +171,11 @@ class DerivativeForms:
         self._compile = compile
         self.residual = self._explicit(residual)  # None: no parameter acts
         self.energy = self._explicit(energy) if with_energy else None
-        self.volume_gradient = None if like else jit.form(ufl.derivative(ufl.det(model.F) * model.dx, model.state))
+        volume = ufl.det(model.F) * model.dx
+        self.volume_gradient = None if like else jit.form(ufl.derivative(volume, model.state))
+        # ∫ det F dX depends on the values at fixed state only through a shape map (dX = det G dX₀):
+        # on an image, det F dX = det(I + ∇w) dx holds no ξ
+        self.volume = self._explicit(volume) if like is None and model.shape is not None else None
         self.energy_gradient = compile(ufl.derivative(energy, model.state)) if with_energy else None
         self.comm = mesh.comm
 
@@ -432,7 +438,8 @@ def output_derivatives(
     :class:`lungmech.fem.parametric.Outputs` with the parameters on a last axis: volume and
     strain_energy (n,), probes (points, 3, n), loads {label: (n,)}.
 
-    dV/dμ = ∂V/∂x · dx/dμ; dE/dμ = ∂E/∂x · dx/dμ + Σ_k ∂E/∂c_k ∂c_k/∂μ; probes: the displacement
+    dV/dμ = ∂V/∂x · dx/dμ (+ Σ_k ∂V/∂c_k ∂c_k/∂μ on a shape map: dX = det G dX₀);
+    dE/dμ = ∂E/∂x · dx/dμ + Σ_k ∂E/∂c_k ∂c_k/∂μ; probes: the displacement
     part of dx/dμ at the points (on an image, u = w − ξ: less dξ/dμ there); loads: ∂(load value)/∂μ. ``state_derivative`` (owned rows,
     parameters) is dx/dμ if known (a reduced model's V dq/dμ + dx₀/dμ); otherwise the direct
     sensitivities with ``solver.jacobian_form``, which must be the exact Jacobian of
@@ -454,9 +461,10 @@ def output_derivatives(
 
     volume = gram(gradient(cast(fem.Form, forms.volume_gradient)), dx, comm)[0]  # the full model's forms have it
     energy = gram(gradient(cast(fem.Form, forms.energy_gradient)), dx, comm)[0]  # the full model's forms have it
-    for i in range(n if forms.energy is not None else 0):
-        forms.set_weights(derivatives, i)
-        energy[i] += comm.allreduce(fem.assemble_scalar(cast(fem.Form, forms.energy)), op=MPI.SUM)  # there is one
+    for total, explicit in ((volume, forms.volume), (energy, forms.energy)):
+        for i in range(n if explicit is not None else 0):
+            forms.set_weights(derivatives, i)
+            total[i] += comm.allreduce(fem.assemble_scalar(cast(fem.Form, explicit)), op=MPI.SUM)
     result: dict[str, object] = {"volume": volume, "strain_energy": energy}
     probe = getattr(outputs, "probe", None)
     if probe is not None:
