@@ -314,6 +314,7 @@ def _cohort(patient, folder, extra=()):
     return model
 
 
+@pytest.mark.serial  # writes its scenes into the one folder every rank shares: each rank would truncate the other's
 def test_positions_and_estimated_names_are_checked_in_one_line(tmp_path):
     scene = scene_of(tmp_path, 0.035)
     assert position_values(scene, "prone") == {"posture": 90.0}
