@@ -6,7 +6,7 @@ modes mᵢ on Ω₀ (vector fields, m: the SVD of a library of such maps), a pat
 
     χ_a(x̂) = x̂ + Σᵢ aᵢ mᵢ(x̂),   G = ∇χ_a = I + Σᵢ aᵢ ∇mᵢ,
 
-and the coefficients aᵢ (the parameters ``shape.mode_<i>``, 1, 2, …) are ``fem.Constant``s: the
+and the coefficients aᵢ (the parameters ``shape.mode_<i>``, 1, 2, …) are Constants (``fem.Constant``): the
 model's forms, written on Ω₀ (:mod:`lungmech.fem.placement` puts G into every kinematic
 quantity: ∇ₓ = ∇_x̂ (·) G⁻¹, dx = det G dx̂, n da = det G G⁻ᵀ n̂ dâ), answer for any shape
 without a new mesh or a new compile. The map must not fold a cell: det G > 0 at every quadrature
