@@ -250,7 +250,7 @@ class Model:
         try:
             self.shape.check(self._shape_jacobian, {p.name: values[p.name] for p in acting})
         except ParameterError:
-            self.shape.assign(dict(zip((t.partition(".")[2] for t in self.shape.targets), before)))
+            self.shape.set(before)  # the model keeps the shape it had
             raise
 
     def _variation(self, form: ufl.Form, v: ufl.Argument) -> ufl.Form:

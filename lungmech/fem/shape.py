@@ -79,8 +79,12 @@ class ShapeMap:
 
     def assign(self, values: Mapping[str, float]) -> None:
         """Set a from ``values`` by target key (``mode_1`` …); the modes not named are a = 0."""
-        for number, coefficient in enumerate(self.coefficients, start=1):
-            coefficient.value = np.asarray(float(values.get(f"mode_{number}", 0.0)))
+        self.set([float(values.get(f"mode_{number}", 0.0)) for number in range(1, len(self.modes) + 1)])
+
+    def set(self, a: Sequence[float] | np.ndarray) -> None:
+        """Set the coefficients to ``a``, mode by mode."""
+        for coefficient, value in zip(self.coefficients, a, strict=True):
+            coefficient.value = np.asarray(float(value))
 
     def values(self) -> np.ndarray:
         """The current coefficients a."""
