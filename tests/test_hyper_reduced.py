@@ -25,7 +25,8 @@ from lungmech.mesh import box, rectangle
 from lungmech.parallel.owned import owned_size
 from lungmech.rom.basis import origin, reference_state
 from lungmech.rom.ecsw import Training
-from lungmech.rom.outputs import cubic, imposed_directions
+from lungmech.rom.exact import cubic
+from lungmech.rom.outputs import imposed_directions
 from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reduced_mesh import ReducedMesh
 

@@ -10,6 +10,7 @@ or a parameter recompiles nothing.
 from __future__ import annotations
 
 import contextlib
+import itertools
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -212,6 +213,7 @@ class Model:
         self.loading = 0  # changes whenever the loads are set (what was assembled at one holds)
         self._scaling: tuple = (1.0, None)  # set_time's load factor and ``about``, kept for set_parameters
         self.set_parameters()
+        self._check_shape_box()
 
     def set_parameters(self, values: Mapping[str, float] | None = None, **named: float) -> None:
         """Set parameters by name (``model.set_parameters(stiffness=2e3)`` or a mapping); the others
@@ -252,6 +254,16 @@ class Model:
         except ParameterError:
             self.shape.set(before)  # the model keeps the shape it had
             raise
+
+    def _check_shape_box(self) -> None:
+        """Every corner of the shape parameters' box keeps every cell unfolded (det G > 0 at
+        every quadrature point), or the model is refused, naming the corner."""
+        acting = [p for p in self.parameters if p.kind == SHAPE]
+        if not acting:
+            return
+        for corner in itertools.product(*(p.range for p in acting)):
+            self._set_shape(self.parameter_values | {p.name: value for p, value in zip(acting, corner)})
+        self._set_shape(self.parameter_values)
 
     def _variation(self, form: ufl.Form, v: ufl.Argument) -> ufl.Form:
         """δ``form`` along the test function ``v``: its derivative in the state — on an image's

@@ -148,8 +148,11 @@ class _BalancingPressure:
         )
         self.integrals = {
             # affine in the state on a reference mesh; on an image dX = det(I + ∇ξ) dx, and ξ
-            # moves with μ (the inverse problem's unknown; a reduced breath's coefficient)
-            "moments": Integral(gravity.density * ufl.as_vector([1, *x]), model.dx, affine=model.image is None),
+            # moves with μ (the inverse problem's unknown; a reduced breath's coefficient); on a
+            # shape map x and dX = det G dx̂ move with a (parameters): sampled, not affine
+            "moments": Integral(
+                gravity.density * ufl.as_vector([1, *x]), model.dx, affine=model.image is None and model.shape is None
+            ),
             "response": Integral(response, surface),
         }
         w = ufl.TestFunction(model.space)

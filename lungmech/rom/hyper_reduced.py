@@ -37,19 +37,7 @@ from lungmech.rom.reduced_mesh import ReducedMesh
 from lungmech.rom.sampled_forms import SampledForms, SampledIntegration
 from lungmech.rom.whole import OnMesh, Whole
 
-__all__ = ["HyperReducedSolver", "Sensitivities", "refuse_shape"]
-
-
-def refuse_shape(model: Model) -> None:
-    """A hyper-reduced model of a body whose shape is a parameter is refused (before any work):
-    its reduced outputs are precomputed on one shape (the volume as a polynomial of the reduced
-    coordinates holds the template's dX), so at another shape they would be wrong. A Galerkin
-    reduced model evaluates its outputs on the full mesh and serves every shape."""
-    if model.shape is not None:
-        raise ParameterError(
-            "a hyper-reduced (ECSW) model of a body whose shape is a parameter is not built: its reduced "
-            "outputs hold one shape; reduce it without ECSW (a Galerkin reduced model serves every shape)"
-        )
+__all__ = ["HyperReducedSolver", "Sensitivities"]
 
 
 class HyperReducedSolver:
@@ -79,7 +67,6 @@ class HyperReducedSolver:
         whole: Whole | None = None,
     ) -> None:
         check_basis(model, basis)
-        refuse_shape(model)
         self.model, self.basis, self.sample = model, basis, sample
         self.options = options or NewtonOptions()
         self.comm = model.geometry.mesh.comm

@@ -42,15 +42,16 @@ from lungmech.fem.start import Progress, StartReport, approach
 from lungmech.parallel.layout import layout
 from lungmech.parallel.linalg import gram
 from lungmech.parallel.owned import owned_size
-from lungmech.rom import body, load_paths
+from lungmech.rom import body, load_paths, shaped
 from lungmech.rom.basis import Basis, dual, origin
 from lungmech.rom.body import cells_of
 from lungmech.rom.ecsw import Sample
 from lungmech.rom.ecsw_training import Training
+from lungmech.rom.exact import Cubic, cubic
 from lungmech.rom.galerkin import ReducedSolver
 from lungmech.rom.hyper_reduced import HyperReducedSolver
 from lungmech.rom.load_paths import LoadPath, Paths
-from lungmech.rom.outputs import Cubic, OnPoints, cubic, imposed_directions
+from lungmech.rom.outputs import OnPoints, imposed_directions
 from lungmech.rom.pod import pod
 from lungmech.rom.whole import OnMesh, Stored, Whole
 
@@ -213,18 +214,26 @@ class ReducedImage:
             if sample is None
             else HyperReducedSolver(inverse, basis, sample, newton, self.start, whole=self.whole)
         )
-        self.volume = model.geometry.volume()  # the image's, m³ (m³/m in 2-D): of the whole body on a body
-        # x_ξ = r + Z z, z = (a, the imposed factors): the reference volume is a cubic in z
+        # x_ξ = r + Z z, z = (a, the imposed factors): the reference volume is a cubic in z (and
+        # in the shape coefficients with them, on a template: lungmech.rom.shaped)
         self._r, imposed, self._constraints = self.whole.imposed()
         self._directions = np.hstack([basis.vectors, imposed[: basis.vectors.shape[0]]])
 
         def volume() -> tuple[np.ndarray, ...]:
-            mesh = model.geometry.mesh
-            found = cubic(inverse, fem.Constant(mesh, 1.0) * inverse.dx, self._r, self._directions)
-            return np.array(found.c0), found.c1, found.c2, found.c3
+            at_rest = fem.Constant(model.geometry.mesh, 1.0) * inverse.dx
+            if inverse.shape is None:
+                return cubic(inverse, at_rest, self._r, self._directions).arrays()
+            return shaped.volume(inverse, at_rest, self._r, self._directions).arrays()
 
-        c0, c1, c2, c3 = self.whole.get("reference_volume", volume)
-        self._volume = Cubic(float(c0), c1, c2, c3)
+        self._volume = Cubic.of(self.whole.get("reference_volume", volume))
+        # the image's volume (m³, m³/m in 2-D; the whole body's on a body): on a template, a cubic in a
+        self._imaged_volume: Callable[[], float]
+        if model.shape is None:
+            fixed = model.geometry.volume()
+            self._imaged_volume = lambda: fixed
+        else:
+            imaged = Cubic.of(self.whole.get("imaged_volume", lambda: shaped.mesh_volume(model).arrays()))
+            self._imaged_volume = lambda: imaged(self._shape())
         self._a = np.zeros(basis.size)  # the reduced inverse problem's solution now
         self.placed_at: dict[str, float] | None = None  # the parameters of the last placement
         box = inverse.parameters
@@ -293,9 +302,18 @@ class ReducedImage:
         description = f"the imaged {self.body} (its unloaded reference from the reduced inverse motion at μ)"
         return StartReport("imaged", description, iterations, details)
 
+    @property
+    def volume(self) -> float:
+        """The image's volume (m³; m³/m in 2-D): on a template, at the shape a now."""
+        return self._imaged_volume()
+
     def reference_volume(self) -> float:
         """∫ det(I + ∇ξ) dx of the reference now (m³; m³/m in 2-D), from its cubic."""
-        return self._volume(self._coordinates())
+        return self._volume(np.concatenate([self._coordinates(), self._shape()]))
+
+    def _shape(self) -> np.ndarray:
+        """The inverse problem's shape coefficients a now (none without a shape map)."""
+        return np.zeros(0) if self.inverse.shape is None else self.inverse.shape.values()
 
     def moved(self, model: Model) -> Moved:
         """dξ/dμ and the image's other fields' d/dμ at the last placement, from the reduced

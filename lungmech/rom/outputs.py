@@ -13,7 +13,7 @@ imposed dofs at 0. The outputs of :class:`~lungmech.fem.parametric.Outputs` foll
   a quadratic in 2-D), so exactly
   f(z) = c₀ + c₁·z + ½ zᵀC₂z + ⅙ C₃[z, z, z] with c₁ = Zᵀ∇f(r), C₂ = Zᵀ∇²f(r)Z and
   C₃[i] = Zᵀ(∇²f(r + Z_i) − ∇²f(r))Z: k + 2 assemblies offline (:func:`cubic`), checked at a
-  random z;
+  random z (:mod:`lungmech.rom.exact`; over a shape map, in (z, a): :mod:`lungmech.rom.shaped`);
 * **the strain energy** ∫ ψ dX is not polynomial: it is sampled as an ECSW functional
   (:attr:`lungmech.rom.ecsw.WeightedForms.functionals`) and summed on the reduced mesh;
 * **the formulation's averages** (:mod:`lungmech.fem.averages`) are ratios: their numerators
@@ -36,25 +36,22 @@ from mpi4py import MPI
 
 import numpy as np
 import ufl
-from dolfinx import fem
-from dolfinx.fem.petsc import assemble_matrix
 
-from lungmech import jit
-from lungmech.errors import ParameterError
 from lungmech.fem.averages import averages
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS
-from lungmech.fem.quantities import Probe, assemble_owned
+from lungmech.fem.quantities import Probe
 from lungmech.fem.sensitivity import ValueDerivatives
-from lungmech.parallel.linalg import apply, gram
+from lungmech.rom import shaped
 from lungmech.rom.basis import origin
 from lungmech.rom.ecsw import AVERAGE
+from lungmech.rom.exact import Cubic, cubic
 from lungmech.rom.whole import Arrays
 
 if TYPE_CHECKING:  # (it imports this module)
     from lungmech.rom.hyper_reduced import HyperReducedSolver
 
-__all__ = ["Cubic", "OnPoints", "ReducedOutputs", "Reference", "affine", "cubic", "imposed_directions"]
+__all__ = ["OnPoints", "ReducedOutputs", "Reference", "imposed_directions"]
 
 
 class Reference(Protocol):
@@ -77,105 +74,6 @@ class OnPoints:
 
     value: Callable[[], np.ndarray]
     derivative: Callable[[], np.ndarray]
-
-
-@dataclass(frozen=True)
-class Cubic:
-    """f(z) = c₀ + c₁·z + ½ zᵀC₂z + ⅙ C₃[z, z, z], C₂ and C₃ symmetric."""
-
-    c0: float
-    c1: np.ndarray
-    c2: np.ndarray
-    c3: np.ndarray
-
-    def __call__(self, z: np.ndarray) -> float:
-        return float(self.c0 + self.c1 @ z + 0.5 * z @ self.c2 @ z + np.einsum("ijk,i,j,k", self.c3, z, z, z) / 6)
-
-    def gradient(self, z: np.ndarray) -> np.ndarray:
-        """∂f/∂z = c₁ + C₂z + ½ C₃[·, z, z]."""
-        return self.c1 + self.c2 @ z + 0.5 * np.einsum("ijk,j,k->i", self.c3, z, z)
-
-
-def cubic(model: Model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray, check: float = 1e-9) -> Cubic:
-    """The functional f(start + Z z) (a 0-form of ``model.state``, a polynomial of degree ≤ 3 in
-    it) as a :class:`Cubic` in z, from its derivatives: ``start`` a full local state array,
-    ``directions`` Z the owned rows of the directions (columns). Collective; the model's state is
-    kept. A functional that is not a cubic of the state (off by more than ``check`` relative at
-    a random z) is an error."""
-    state, comm = model.state, model.geometry.mesh.comm
-    owned, size = directions.shape
-    gradient = ufl.derivative(functional, state, ufl.TestFunction(model.space))
-    compiled = jit.form(functional), jit.form(gradient)
-    hessian = jit.form(ufl.derivative(gradient, state, ufl.TrialFunction(model.space)))
-    scratch = fem.Function(model.space).x
-
-    def at(z: np.ndarray) -> None:
-        state.x.array[:] = start
-        state.x.array[:owned] += directions @ z
-        state.x.scatter_forward()
-
-    def value() -> float:
-        return comm.allreduce(fem.assemble_scalar(compiled[0]), op=MPI.SUM)
-
-    def projected_hessian() -> np.ndarray:
-        H = assemble_matrix(hessian)
-        H.assemble()
-        reduced = gram(directions, apply(H, directions, comm), comm)
-        H.destroy()
-        return reduced
-
-    with model.kept_state():
-        at(np.zeros(size))
-        c0 = value()
-        c1 = gram(directions, assemble_owned(compiled[1], scratch, owned)[:, None], comm)[:, 0]
-        c2 = projected_hessian()
-        c3 = np.empty((size, size, size))
-        for i in range(size):
-            at(np.eye(size)[i])
-            c3[i] = projected_hessian() - c2
-        result = Cubic(c0, c1, c2, c3)
-        z = _test_point(directions, comm)
-        at(z)
-        exact = value()
-    off = comm.allreduce(abs(result(z) - exact), op=MPI.MAX)  # one decision for all ranks
-    if off > check * max(abs(exact), abs(c0), np.finfo(float).tiny):
-        raise ParameterError(
-            f"this functional is not a cubic polynomial of the state (off by {off:.2e} at a test "
-            "point): it cannot be reduced exactly"
-        )
-    return result
-
-
-def affine(
-    model: Model, evaluate: Callable[[], np.ndarray], start: np.ndarray, directions: np.ndarray, check: float = 1e-9
-) -> tuple[np.ndarray, np.ndarray]:
-    """(f₀, F₁) with f(start + Z z) = f₀ + F₁ z for a vector functional ``evaluate()`` of the
-    model's state that is affine in it (e.g. ∫ρ₀ x dX): k + 2 evaluations, the last a check at
-    a random z (a functional that is not affine is an error). Collective; the state is kept."""
-    state, comm = model.state, model.geometry.mesh.comm
-    owned, size = directions.shape
-
-    def at(z: np.ndarray) -> np.ndarray:
-        state.x.array[:] = start
-        state.x.array[:owned] += directions @ z
-        state.x.scatter_forward()
-        return np.asarray(evaluate(), dtype=float).reshape(-1)
-
-    with model.kept_state():
-        f0 = at(np.zeros(size))
-        F1 = np.column_stack([at(unit) - f0 for unit in np.eye(size)]) if size else np.zeros((f0.size, 0))
-        z = _test_point(directions, comm)
-        off = np.abs(at(z) - (f0 + F1 @ z)).max(initial=0.0)
-    if off > check * max(np.abs(f0).max(initial=0.0), np.finfo(float).tiny):
-        raise ParameterError(f"this functional is not affine in the state (off by {off:.2e} at a test point)")
-    return f0, F1
-
-
-def _test_point(directions: np.ndarray, comm: MPI.Comm) -> np.ndarray:
-    """A random z of moderate size, the same on every rank: each direction moves the body ~10 %."""
-    largest = np.empty(directions.shape[1])
-    comm.Allreduce(np.abs(directions).max(axis=0, initial=0.0), largest, op=MPI.MAX)
-    return np.random.default_rng(0).uniform(-0.1, 0.1, directions.shape[1]) / np.where(largest > 0, largest, 1.0)
 
 
 def imposed_directions(model: Model, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -232,11 +130,14 @@ class ReducedOutputs:
         directions = np.hstack([solver.basis.vectors, imposed[:owned]])
 
         def volume() -> Arrays:
-            found = cubic(model, ufl.det(model.F) * model.dx, start, directions)
-            return np.array(found.c0), found.c1, found.c2, found.c3
+            if model.shape is None:
+                return cubic(model, ufl.det(model.F) * model.dx, start, directions).arrays()
+            return shaped.volume(model, ufl.det(model.F) * model.dx, start, directions).arrays()  # in (z, a)
 
-        c0, c1, c2, c3 = solver.whole.get("volume", volume)
-        self._volume = Cubic(float(c0), c1, c2, c3)
+        self._volume = Cubic.of(solver.whole.get("volume", volume))
+        if model.shape is not None and reference is None:  # ∫ det G dx̂, a cubic in a
+            at_rest = Cubic.of(solver.whole.get("reference_volume", lambda: shaped.mesh_volume(model).arrays()))
+            self._reference_volume = lambda: at_rest(self._shape())
 
         def located() -> Arrays:
             probe = (
@@ -271,12 +172,13 @@ class ReducedOutputs:
     def derivatives(self, dq: np.ndarray, derivatives: ValueDerivatives) -> dict[str, object]:
         """d(outputs)/dμ from dq/dμ (k, parameters) and the model's value derivatives
         (:class:`~lungmech.fem.sensitivity.ValueDerivatives`), in the structure of
-        :func:`~lungmech.fem.sensitivity.output_derivatives`: with dz/dμ = (dq/dμ, da/dμ), the
-        volume's ∇f(z) · dz/dμ, the probes' P dz/dμ, the sampled energy's derivative and the loads'.
+        :func:`~lungmech.fem.sensitivity.output_derivatives`: with dz/dμ = (dq/dμ, dc/dμ), the
+        volume's ∇f(z, a) · d(z, a)/dμ, the probes' P dz/dμ, the sampled energy's derivative and the loads'.
         Collective."""
         dz = np.vstack([dq, derivatives.amplitudes[self._constraints]])
+        on_shape = np.vstack([dz, self._shape_derivatives(derivatives)])  # the volume's (z, a)
         result: dict[str, object] = {
-            "volume": self._volume.gradient(self.coordinates()) @ dz,
+            "volume": self._volume.gradient(self._with_shape(self.coordinates())) @ on_shape,
             "strain_energy": self.solver.sensitivities.energy(dq, derivatives),
         }
         if self._probes is not None:  # on an image u = w − ξ: du/dμ = dw/dμ − dξ/dμ
@@ -286,12 +188,27 @@ class ReducedOutputs:
         return result
 
     def coordinates(self) -> np.ndarray:
-        """z = (q, a): the solver's q and the imposed displacements' factors now."""
+        """z = (q, c): the solver's q and the imposed displacements' factors c now."""
         return np.concatenate([self.solver.state, self.model.imposed_amplitudes()[self._constraints]])
+
+    def _with_shape(self, z: np.ndarray) -> np.ndarray:
+        """(z, a): the volume's variables, a the shape coefficients now (none without a shape map)."""
+        return np.concatenate([z, self._shape()])
+
+    def _shape(self) -> np.ndarray:
+        """The shape coefficients a now (none without a shape map)."""
+        return np.zeros(0) if self.model.shape is None else self.model.shape.values()
+
+    def _shape_derivatives(self, derivatives: ValueDerivatives) -> np.ndarray:
+        """da/dμ (modes, parameters): each coefficient's row from the values' derivatives."""
+        count = len(derivatives.names)
+        if self.model.shape is None:
+            return np.zeros((0, count))
+        return np.array([derivatives.constants.get(c, np.zeros(count)) for c in self.model.shape.coefficients])
 
     def __call__(self) -> dict[str, object]:
         z = self.coordinates()
-        volume, sampled = self._volume(z), self.solver.functionals(self.solver.state)
+        volume, sampled = self._volume(self._with_shape(z)), self.solver.functionals(self.solver.state)
         values: dict[str, object] = {"volume": volume, "strain_energy": sampled["strain_energy"]}
         if self._probes is not None:
             moved = self._probes[0] + self._probes[1] @ z

@@ -50,7 +50,6 @@ from lungmech.rom import ecsw, imaged, indicator, load_paths
 from lungmech.rom.accuracy import Errors, errors
 from lungmech.rom.basis import INNER_PRODUCTS, Basis, enrich, require_positive_definite
 from lungmech.rom.greedy import Greedy, greedy
-from lungmech.rom.hyper_reduced import refuse_shape
 from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.load_paths import Paths
 from lungmech.rom.modes import modal_basis, with_modal_derivatives
@@ -226,7 +225,6 @@ class Reductor:
             )
         if judge is not None:
             ECSW(judge)  # its checks
-            refuse_shape(full.model)
         self.full, self.training, self.inner, self.judge = full, training, inner, judge
         self.kind = "pod" if isinstance(basis, Greedy) else basis.kind
         model = full.model
@@ -331,8 +329,6 @@ class Reductor:
         enrichment): the model a smaller POD would give, its indicator's enrichment made anew.
         Collective."""
         vectors, enrichment = self.basis, self.enrichment
-        if hyper is not None:
-            refuse_shape(self.full.model)  # before the ECSW training
         sample, seconds = self.sample(hyper.tolerance) if hyper is not None else (None, None)
         size = hyper.size if hyper is not None else (None if size is None else _size(size))
         if size is not None and size < vectors.size:

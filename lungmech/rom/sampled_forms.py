@@ -28,7 +28,7 @@ from lungmech.fem.quantities import vector_integral
 from lungmech.fem.state_dependent import Bilinear, FullIntegration, Integral, each_unit
 from lungmech.parallel.linalg import gram
 from lungmech.rom.ecsw import NO_CELLS, Sample, flattened, over_cells
-from lungmech.rom.outputs import affine
+from lungmech.rom.exact import affine
 from lungmech.rom.reduced_mesh import ReducedMesh
 from lungmech.rom.whole import Arrays, Whole
 
