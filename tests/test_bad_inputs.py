@@ -399,9 +399,9 @@ SCENES = {
         TINY + '[parameters.front]\ntarget = "interface"\ndefault = 0.5\nrange = [0.0, 1.0]\n',
         "parameter 'front' moves an interface that no region's position names: it would act on nothing",
     ),
-    "a shape mode in a scene": (
+    "a shape mode in a scene without shape modes": (
         TINY + '[parameters.a1]\ntarget = "shape.mode_1"\nrange = [-2.0, 2.0]\n',
-        "parameters.a1.target: shape.mode_1 needs a model on a library's template with its shape modes",
+        "parameters.a1.target: shape.mode_1 is a shape mode's coefficient: name the library's shape modes in",
     ),
     "a boundary named twice": (
         swap(

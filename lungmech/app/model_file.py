@@ -36,12 +36,15 @@ __all__ = ["embedded_name", "embedded_names", "embedded_scene", "file_bytes"]
 
 def embedded_names(scene: Scene) -> dict[str, str]:
     """Where each file the scene reads goes inside the model file: the mesh (with its companions)
-    under mesh/, a file of cell values (Φs0, κ, …) under data/<key>/."""
+    under mesh/, a library's shape modes under shape/, a file of cell values (Φs0, κ, …) under
+    data/<key>/."""
     names = {}
     if "file" in scene.geometry:
         mesh = Path(scene.geometry["file"])
         for part in [mesh, *(p for p in companions(mesh) if p.exists())]:
             names[f"mesh/{part.name}"] = str(part)
+    if "shape_modes" in scene.geometry:
+        names[f"shape/{Path(scene.geometry['shape_modes']).name}"] = scene.geometry["shape_modes"]
     for key, path in scenes.cell_data(scene.formulation).items():
         names[f"data/{key}/{path.name}"] = str(path)
     for parameter in scene.parameters:  # label images of regions, with their data files
@@ -101,6 +104,8 @@ def embedded_scene(
             unpacked = str(Path(folder, *name.split("/")))
             if name.startswith("mesh/") and Path(str(source)).name == Path(table["geometry"].get("file", "")).name:
                 table["geometry"]["file"] = unpacked
+            if name.startswith("shape/"):  # a library's shape modes
+                table["geometry"]["shape_modes"] = unpacked
             if name.startswith("data/"):  # data/<key>/<file>: a file of cell values (Φs0, κ, …)
                 table["formulation"][name.split("/")[1]] = unpacked
             for entry in table.get("parameters", {}).values():
@@ -119,19 +124,24 @@ def embedded_scene(
         shutil.rmtree(folder, ignore_errors=True)
 
 
-_PLACES = {"mesh": 2, "regions": 2, "data": 3}  # where lungmech puts a scene's files, and the parts of their names
+_PLACES = {
+    "mesh": 2,
+    "regions": 2,
+    "shape": 2,
+    "data": 3,
+}  # where lungmech puts a scene's files, and the parts of their names
 
 
 def embedded_name(path: str | Path, name: object, arrays: dict) -> None:
     """Refuse, in one line, a model file whose embedded file ``name`` is not one lungmech writes —
-    ``mesh/<file>``, ``regions/<file>`` or ``data/<key>/<file>``, with plain names: relative, no ``..``, no empty part, no backslash or NUL — or has no bytes."""
+    ``mesh/<file>``, ``regions/<file>``, ``shape/<file>`` or ``data/<key>/<file>``, with plain names: relative, no ``..``, no empty part, no backslash or NUL — or has no bytes."""
     parts = name.split("/") if isinstance(name, str) else []
     plain = all(part not in ("", ".", "..") and "\\" not in part and "\0" not in part for part in parts)
     expected = _PLACES.get(parts[0]) if parts else None
     if not (plain and len(parts) == expected and (expected == 2 or parts[1].isidentifier())):
         raise ModelFileError(
             f"'{path}' is refused: it names an embedded file {name!r}, which is not a name lungmech writes "
-            "(mesh/<file>, regions/<file>, data/<key>/<file>); a model file never writes outside its own folder"
+            "(mesh/<file>, regions/<file>, shape/<file>, data/<key>/<file>); a model file never writes outside its own folder"
         )
     if f"file:{name}" not in arrays:
         raise ModelFileError(f"'{path}' is damaged: it lists the embedded file '{name}' but holds no bytes for it")

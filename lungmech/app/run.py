@@ -44,7 +44,8 @@ from lungmech.app.console import Progress, volume_text
 from lungmech.app.console import pressure as show_pressure
 from lungmech.app.output import FieldWriter, write_json, write_reference
 from lungmech.app.plot import deformed_body, drawn, pressure_volume
-from lungmech.app.scene import Scene, build_geometry
+from lungmech.app.scene import Scene
+from lungmech.app.template import body_modes, build_template
 from lungmech.errors import ParameterError
 from lungmech.fem.inverse_motion import InverseMotion
 from lungmech.fem.model import Model
@@ -111,10 +112,10 @@ def build_model(
     scene: Scene, comm: MPI.Comm = MPI.COMM_WORLD, geometry: Geometry | None = None, image: Image | None = None
 ) -> Model:
     """The model a scene declares, and nothing else, at the scene's parameter values; on
-    ``geometry`` when given (a hyper-reduced model's body: :func:`lungmech.rom.store.load_body`),
-    else on the scene's; ``image``: its mesh placed as an image says (:mod:`lungmech.fem.placement`:
-    a scene with [inverse] solved on its fixed imaged mesh)."""
-    geometry = build_geometry(scene.geometry, comm) if geometry is None else geometry
+    ``geometry`` when given (a hyper-reduced model's body: :func:`lungmech.rom.store.load_body`
+    places its values, shape modes too), else on the scene's (:mod:`lungmech.app.template`);
+    ``image``: its mesh placed as an image says (:mod:`lungmech.fem.placement`)."""
+    geometry, shape = build_template(scene, comm) if geometry is None else (geometry, body_modes(scene, geometry))
     material_parameters = any(p.kind == "material" for p in scene.parameters)
     model = Model(
         geometry,
@@ -126,6 +127,7 @@ def build_model(
         constraints=scene.constraints,
         parameters=scene.parameters,
         image=image,
+        shape=shape,
     )
     model.set_parameters(scene.values)
     return model

@@ -131,6 +131,8 @@ class Scene:
         if "file" in self.geometry:
             mesh = Path(self.geometry["file"])
             files += [mesh] + [p for p in _geometry.companions(mesh) if p.exists()]
+        if "shape_modes" in self.geometry:
+            files.append(Path(self.geometry["shape_modes"]))
         files += list(cell_data(self.formulation).values())
         files += [
             Path(marker.path)
@@ -228,6 +230,8 @@ def physics(scene: Scene) -> dict[str, Any]:
         if key in table
     }
     described["geometry"] = {k: v for k, v in table.get("geometry", {}).items() if k != "file"}
+    if "shape_modes" in scene.geometry:  # the library by its content, not its path
+        described["geometry"]["shape_modes"] = file_sha256(Path(scene.geometry["shape_modes"]))
     described["stepping.start"] = scene.stepping.start
     if files := cell_data(scene.formulation):
         described["formulation"] = described["formulation"] | {key: file_sha256(path) for key, path in files.items()}
@@ -308,8 +312,10 @@ def material(table: dict[str, Any], where: str = "material") -> Material:
 
 
 def build_geometry(spec: dict[str, Any], comm: MPI.Comm) -> _geometry.Geometry:
-    """The mesh a scene's [geometry] section describes."""
+    """The mesh a scene's [geometry] section describes (with ``shape_modes``: the modes'
+    reference mesh, which :mod:`lungmech.app.template` moves to the library's mean shape)."""
     spec = dict(spec)
+    spec.pop("shape_modes", None)
     if "file" in spec:
         return _geometry.from_file(spec.pop("file"), comm, spec.pop("boundaries", None))
     builder = BUILDERS[spec.pop("builder")]
@@ -322,6 +328,13 @@ def build_geometry(spec: dict[str, Any], comm: MPI.Comm) -> _geometry.Geometry:
 def _geometry_spec(table: dict[str, Any], folder: Path) -> dict[str, Any]:
     if ("file" in table) == ("builder" in table):
         raise SceneError("geometry: give exactly one of 'builder' (a generated mesh) or 'file' (a mesh file)")
+    if "shape_modes" in table:  # a library's shape modes (lungmech shape-modes) of this mesh
+        modes = Path(typed(table["shape_modes"], str, "geometry.shape_modes"))
+        modes = modes if modes.is_absolute() else folder / modes
+        if not modes.is_file():
+            raise SceneError(f"geometry.shape_modes: shape modes file '{modes}' not found")
+        shape = {"shape_modes": str(modes)}
+        return _geometry_spec({k: v for k, v in table.items() if k != "shape_modes"}, folder) | shape
     if "file" in table:
         no_unknown_keys(table, ("file", "boundaries"), "geometry")
         typed(table["file"], str, "geometry.file")

@@ -64,17 +64,17 @@ def parameters(table: dict[str, Any], folder: Path) -> tuple[Parameter, ...]:
             if required not in entry:
                 raise SceneError(f"{where}: missing key '{required}'")
         target = typed(entry["target"], str, f"{where}.target")
-        if target.partition(".")[0] == "shape":
+        if target.partition(".")[0] == "shape" and "shape_modes" not in table.get("geometry", {}):
             raise SceneError(
-                f"{where}.target: {target} needs a model on a library's template with its shape modes, made in "
-                "Python (ShapeModes.template, Model(..., shape=...)); a scene does not take shape modes"
+                f"{where}.target: {target} is a shape mode's coefficient: name the library's shape modes in "
+                "[geometry] (shape_modes = \"modes.npz\", from 'lungmech shape-modes' on this mesh)"
             )
         scale = entry.get("scale", "linear")
         if scale not in ("linear", "log"):
             raise SceneError(f"{where}.scale: must be 'linear' or 'log' (got {scale!r})")
         default = entry["default"] if "default" in entry else _value_at(table, target, where)
         kind, _, key = target.partition(".")
-        unit = "m" if kind == "interface" else _UNITS.get(key.rpartition(".")[2], "")
+        unit = {"interface": "m", "shape": "sd"}.get(kind, _UNITS.get(key.rpartition(".")[2], ""))
         built.append(
             call(
                 Parameter,
@@ -155,6 +155,8 @@ def _value_at(table: dict[str, Any], target: str, where: str) -> object:
         return 1.0 if attribute == "amplitude" else 0.0
     if kind == "constraints" and attribute == "amplitude":
         return 1.0
+    if kind == "shape":  # the library's mean shape
+        return 0.0
     if kind == "loads" and attribute == "value":
         for entry in table.get("loads", []):
             if isinstance(entry, dict) and entry.get("name") == name:
