@@ -68,6 +68,48 @@ def test_removing_similarities_makes_the_library_independent_of_pose_and_size(re
     assert np.allclose(a.singular_values, b.singular_values, rtol=1e-9)
 
 
+def test_a_rigid_pose_keeps_the_size_as_a_change_of_shape(reference):
+    """Without position and orientation only, a library that differs by size alone has one mode,
+    uniform dilation, whose spread is the sizes' (independent: the scales drawn)."""
+    X, weights, _ = reference
+    scales = np.random.default_rng(2).uniform(0.85, 1.15, 6)
+    rigid = [align.Similarity(1.0, s.rotation, s.translation) for s in _similarities(6, 3)]
+    placed = [align.Similarity(scale * r.scale, r.rotation, r.translation) for scale, r in zip(scales, rigid)]
+    library = _library(reference, np.zeros((6, 1)), placed)
+    assert np.abs(library.shape_changes("similarity")).max() < 1e-12  # size removed: nothing left
+    modes = library.modes("rigid")
+    assert modes.pose == "rigid" and len(modes.modes) == 1  # the POD keeps no round-off modes
+    centred = X - weights @ X / weights.sum()
+    radius = np.sqrt(weights @ np.sum(centred**2, axis=1) / weights.sum())  # RMS distance from the centroid
+    assert modes.deviations[0] == pytest.approx(np.std(scales, ddof=1) * radius, rel=1e-6)
+    for j in range(6):  # each member is the mean plus its size change
+        assert np.allclose(modes.displacement(modes.coefficients[j, :1]), (scales[j] - 1) * centred, atol=1e-10)
+
+
+def test_a_new_mapping_projects_on_the_modes_as_the_library_members_do(reference):
+    """A member's own mapping (its pose included) projects to its coefficients with nothing left
+    out; a shape change outside the library's span is left out, in metres."""
+    latent = np.random.default_rng(4).normal(size=(7, 2))
+    similarities = _similarities(7, 8)
+    library = _library(reference, latent, similarities)
+    for pose in ("similarity", "rigid"):
+        modes = library.modes(pose)
+        for j in (0, 3):
+            found = modes.project(library.displacements[j], len(modes.modes))
+            metres = modes.deviations  # (the last modes' spreads are round-off: compare in metres)
+            assert np.allclose(found.coefficients * metres, modes.coefficients[j] * metres, atol=1e-12)
+            assert found.rms < 1e-12 and found.largest < 1e-11
+    X, weights, _ = reference
+    bumps = 0.002 * np.cos(60 * X[:, 0]) * np.cos(60 * X[:, 1]) * np.cos(60 * X[:, 2])  # no rigid motion, no mode
+    outside = np.column_stack([np.zeros(len(X)), np.zeros(len(X)), bumps])
+    modes = library.modes("rigid")
+    found = modes.project(library.displacements[1] + outside, len(modes.modes))
+    assert found.rms == pytest.approx(np.sqrt(weights @ bumps**2 / weights.sum()), rel=0.05)
+    assert found.largest == pytest.approx(np.abs(bumps).max(), rel=0.1)
+    with pytest.raises(RegistrationError, match="project on 0 to"):
+        modes.project(library.displacements[1], 9)
+
+
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_k_latent_parameters_give_k_modes_and_a_falling_leave_one_out_error(reference, k):
     latent = np.random.default_rng(k).normal(size=(9, k))
@@ -104,7 +146,7 @@ def test_shape_modes_round_trip_and_refuse_another_mesh(reference, tmp_path):
     again = ShapeModes.load(path)
     for name in ("reference", "weights", "mean", "modes", "singular_values", "coefficients"):
         assert np.array_equal(getattr(modes, name), getattr(again, name))
-    assert again.names == modes.names and again.fingerprint == modes.fingerprint
+    assert again.names == modes.names and again.fingerprint == modes.fingerprint and again.pose == "similarity"
     other = geometry.from_file(meshes.reference("lung_phantom_left"), MPI.COMM_SELF)
     with pytest.raises(RegistrationError, match="not the reference"):
         modes.geometry(other, [1.0])

@@ -167,6 +167,7 @@ MODES_UNITS = {
     "leave_one_out_rms": "m (RMS)",
     "members": "as in a registration report",
     "seconds": "s",
+    "pose": "1 (what each mapping was taken without: similarity, or rigid with the size kept)",
 }
 
 # A target must span this many voxels along each axis, and be within this factor of the
@@ -229,8 +230,10 @@ def build_shape_modes(
     options: Options = Options(),
     comm: MPI.Comm = MPI.COMM_WORLD,
     accept: Sequence[str] = (),
+    pose: str = "similarity",
 ) -> dict:
-    """Register the mesh file ``reference`` onto every image and reduce the mappings to shape
+    """Register the mesh file ``reference`` onto every image and reduce the mappings, each
+    without its ``pose`` ("similarity", or "rigid": the size kept, for a population's model), to shape
     modes; write ``shape_modes.npz``, ``report.json`` (per-image metrics, singular values,
     compactness, leave-one-out error) and ``singular_values.png`` into the folder ``out``.
     Every image is checked as in :func:`register_image` (``accept`` as there, and
@@ -257,17 +260,18 @@ def build_shape_modes(
                 check_converged(member, "unconverged" in accept)
             except RegistrationError as e:
                 raise RegistrationError(f"{member['name']}: {e}") from None
-        return _shape_modes(library, reference, len(sources), start, staging, comm)
+        return _shape_modes(library, reference, len(sources), start, staging, comm, pose)
 
 
 def _shape_modes(
-    library: Library, reference: str | Path, count: int, start: float, staging: Path, comm: MPI.Comm
+    library: Library, reference: str | Path, count: int, start: float, staging: Path, comm: MPI.Comm, pose: str
 ) -> dict:
-    modes = library.modes()
-    loo = library.leave_one_out() if count >= 3 else None
+    modes = library.modes(pose)
+    loo = library.leave_one_out(pose) if count >= 3 else None
     report = {
         "reference": str(reference),
         "images": count,
+        "pose": pose,
         "singular_values": modes.singular_values,
         "deviations": modes.deviations,
         "compactness": modes.compactness(),

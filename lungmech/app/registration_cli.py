@@ -63,6 +63,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="output folder (default "
         "results/shape_modes); replaced only on success, and only if it is empty or lungmech's own",
     )
+    modes.add_argument(
+        "--keep-size",
+        action="store_true",
+        help="keep each lung's size as a change of shape (remove only its position and orientation): modes for a "
+        "model over a population ([geometry] shape_modes)",
+    )
     modes.add_argument("--synthetic", type=int, metavar="N", help="use N synthetic patients instead of images")
     modes.add_argument("--latent", type=int, default=2, help="latent shape parameters of the synthetic cohort (1-5)")
     modes.add_argument("--seed", type=int, default=0, help="random seed of the synthetic cohort")
@@ -219,7 +225,10 @@ def _shape_modes(args: argparse.Namespace, comm: MPI.Comm) -> int:
         first = next(iter(sources.values()))
         side = args.side if args.synthetic is not None else None
         reference, _ = workflow.choose_reference(first, None, side, "other side" in _accepted(args), comm)
-    report = workflow.build_shape_modes(reference, sources, args.output, options, comm, accept=_accepted(args))
+    pose = "rigid" if args.keep_size else "similarity"
+    report = workflow.build_shape_modes(
+        reference, sources, args.output, options, comm, accept=_accepted(args), pose=pose
+    )
     if comm.rank == 0:
         worst = report["worst"]
         compact = report["compactness"]

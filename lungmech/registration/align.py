@@ -120,8 +120,11 @@ def _principal_rotation(source: np.ndarray, target: np.ndarray, gap: float = 0.0
     return max(candidates, key=np.trace)
 
 
-def procrustes(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> Similarity:
-    """The similarity S minimising Σ w_i |S(source_i) − target_i|² (no reflections)."""
+def procrustes(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None, scaling: bool = True
+) -> Similarity:
+    """The similarity S minimising Σ w_i |S(source_i) − target_i|² (no reflections); without
+    ``scaling``, the rigid motion (scale 1) minimising it."""
     source, target = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
     if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3:
         raise RegistrationError(f"procrustes needs two (n, 3) point sets, got {source.shape} and {target.shape}")
@@ -133,5 +136,5 @@ def procrustes(source: np.ndarray, target: np.ndarray, weights: np.ndarray | Non
     flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
     rotation = u @ flip @ vt
     variance = w @ np.sum(cs**2, axis=1)
-    scale = float(np.trace(np.diag(singular) @ flip) / variance)
+    scale = float(np.trace(np.diag(singular) @ flip) / variance) if scaling else 1.0
     return Similarity(scale, rotation, mean_t - scale * rotation @ mean_s)

@@ -32,7 +32,16 @@ from lungmech.registration.align import procrustes
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
 
-__all__ = ["Library", "ShapeModes", "leave_one_out", "mapping_library", "shape_modes", "without_similarity"]
+__all__ = [
+    "POSES",
+    "Library",
+    "Projection",
+    "ShapeModes",
+    "leave_one_out",
+    "mapping_library",
+    "shape_modes",
+    "without_similarity",
+]
 
 FORMAT = "lungmech-shape-modes/1"
 
@@ -59,15 +68,18 @@ class Library:
     fingerprint: str
     reports: tuple[dict, ...]
 
-    def shape_changes(self) -> np.ndarray:
-        """The displacements with each mapping's similarity removed (N, n, 3)."""
-        return np.array([without_similarity(self.reference, u, self.weights) for u in self.displacements])
+    def shape_changes(self, pose: str = "similarity") -> np.ndarray:
+        """The displacements with each mapping's ``pose`` removed (N, n, 3): "similarity"
+        (position, orientation and size) or "rigid" (position and orientation: the size stays a
+        change of shape, as a population's mechanics needs)."""
+        return np.array([without_similarity(self.reference, u, self.weights, pose) for u in self.displacements])
 
-    def modes(self) -> ShapeModes:
-        return shape_modes(self.reference, self.shape_changes(), self.weights, self.fingerprint, self.names)
+    def modes(self, pose: str = "similarity") -> ShapeModes:
+        changes = self.shape_changes(pose)
+        return shape_modes(self.reference, changes, self.weights, self.fingerprint, self.names, pose)
 
-    def leave_one_out(self) -> np.ndarray:
-        return leave_one_out(self.shape_changes(), self.weights)
+    def leave_one_out(self, pose: str = "similarity") -> np.ndarray:
+        return leave_one_out(self.shape_changes(pose), self.weights)
 
 
 def mapping_library(mesh: dmesh.Mesh, images: Mapping[str, Image], options: Options = Options()) -> Library:
@@ -97,11 +109,29 @@ def mapping_library(mesh: dmesh.Mesh, images: Mapping[str, Image], options: Opti
     return Library(tuple(images), reference, weights, np.array(displacements), where.fingerprint, tuple(reports))
 
 
-def without_similarity(reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The displacement of S⁻¹ ∘ φ, φ = Id + displacement, S the best similarity fit of φ."""
+POSES = ("similarity", "rigid")  # what a library's shape changes are taken without
+
+
+def without_similarity(
+    reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray, pose: str = "similarity"
+) -> np.ndarray:
+    """The displacement of S⁻¹ ∘ φ, φ = Id + displacement, S the best fit of φ among the
+    similarities (``pose`` "similarity") or the rigid motions ("rigid": the size is kept)."""
+    if pose not in POSES:
+        raise RegistrationError(f"a pose is removed as 'similarity' or 'rigid', not {pose!r}")
     mapped = reference + displacement
-    fit = procrustes(reference, mapped, weights)
+    fit = procrustes(reference, mapped, weights, scaling=pose == "similarity")
     return fit.inverse()(mapped) - reference
+
+
+@dataclass(frozen=True)
+class Projection:
+    """A mapping on a library's modes: ``coefficients`` (standard deviations of the library),
+    what the modes leave out, ``rms`` over the body (mass-weighted) and ``largest`` at a node (m)."""
+
+    coefficients: np.ndarray
+    rms: float
+    largest: float
 
 
 @dataclass(frozen=True)
@@ -117,6 +147,8 @@ class ShapeModes:
         coefficients: Of each library member on the modes (N, m), in standard deviations.
         fingerprint: Of the reference mesh's layout; a mesh with another refuses the modes.
         names: Library members.
+        pose: What each mapping was taken without: "similarity" (position, orientation and
+            size: shape alone) or "rigid" (the size kept, as a population's model needs).
     """
 
     reference: np.ndarray
@@ -127,8 +159,11 @@ class ShapeModes:
     coefficients: np.ndarray
     fingerprint: str
     names: tuple[str, ...]
+    pose: str = "similarity"
 
     def __post_init__(self) -> None:
+        if self.pose not in POSES:
+            raise RegistrationError(f"shape modes: pose must be one of {', '.join(POSES)}, not {self.pose!r}")
         n, m = len(self.reference), len(self.singular_values)
         shapes = {"weights": (n,), "mean": (n, 3), "modes": (m, n, 3), "coefficients": (len(self.names), m)}
         for name, shape in shapes.items():
@@ -155,6 +190,27 @@ class ShapeModes:
         if c.ndim != 1 or len(c) > len(self.modes):
             raise RegistrationError(f"give at most {len(self.modes)} shape coefficients, got {c.size}")
         return self.mean + np.einsum("k,knd->nd", c * self.deviations[: len(c)], self.modes[: len(c)])
+
+    def project(self, displacement: np.ndarray, count: int) -> Projection:
+        """A new mapping's displacement (n, 3, canonical order, its pose included) on the mean
+        and the first ``count`` modes: its pose removed as the library's was, the coefficients
+        c (standard deviations) of (u − mean) along each mode in the mass inner product, and
+        what the modes leave out, RMS and largest over the nodes (m)."""
+        if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= len(self.modes):
+            raise RegistrationError(f"project on 0 to {len(self.modes)} shape modes, got {count!r}")
+        u = np.asarray(displacement, dtype=float)
+        if u.shape != self.reference.shape:
+            raise RegistrationError(
+                f"a mapping of these modes' reference has shape {self.reference.shape}, got {u.shape}"
+            )
+        residual = without_similarity(self.reference, u, self.weights, self.pose) - self.mean
+        coefficients = np.empty(count)
+        for k in range(count):
+            along = _inner(residual, self.modes[k], self.weights)
+            coefficients[k] = along / self.deviations[k]
+            residual = residual - along * self.modes[k]
+        left = np.linalg.norm(residual, axis=1)
+        return Projection(coefficients, _norm(residual, self.weights), float(left.max(initial=0.0)))
 
     def geometry(self, reference: Geometry, coefficients: Sequence[float]) -> Geometry:
         """``reference`` mapped by a shape: its nodes are moved in place, and it is returned.
@@ -203,7 +259,7 @@ class ShapeModes:
         if path.suffix != ".npz":
             raise RegistrationError(f"shape modes are saved as .npz, not {path.suffix!r}")
         path.parent.mkdir(parents=True, exist_ok=True)
-        metadata = {"format": FORMAT, "fingerprint": self.fingerprint, "names": list(self.names)}
+        metadata = {"format": FORMAT, "fingerprint": self.fingerprint, "names": list(self.names), "pose": self.pose}
         np.savez(
             path,
             reference=self.reference,
@@ -228,7 +284,12 @@ class ShapeModes:
                 }
             if metadata["format"] != FORMAT:
                 raise ValueError(f"format {metadata['format']!r}")
-            modes = cls(**arrays, fingerprint=str(metadata["fingerprint"]), names=tuple(metadata["names"]))
+            modes = cls(
+                **arrays,
+                fingerprint=str(metadata["fingerprint"]),
+                names=tuple(metadata["names"]),
+                pose=str(metadata.get("pose", "similarity")),  # (files before the pose was kept)
+            )
         except Exception as error:  # numpy, zipfile and json raise many kinds
             raise RegistrationError(f"'{path}' is not a shape-modes file ({type(error).__name__}: {error})") from None
         return modes
@@ -240,8 +301,10 @@ def shape_modes(
     weights: np.ndarray,
     fingerprint: str,
     names: Sequence[str] | None = None,
+    pose: str = "similarity",
 ) -> ShapeModes:
-    """Mass-weighted POD, centred on the mean, of similarity-free displacements (n, 3) each."""
+    """Mass-weighted POD, centred on the mean, of displacements (n, 3) each, taken without
+    their ``pose`` (see :func:`without_similarity`) already."""
     data = np.asarray(displacements, dtype=float)
     if data.ndim != 3 or data.shape[1:] != reference.shape or len(data) < 2:
         raise RegistrationError(f"need at least 2 displacements of shape {reference.shape}, got {data.shape}")
@@ -249,7 +312,8 @@ def shape_modes(
     modes, singular, coefficients = _pod(data - mean, weights)
     names = tuple(names) if names is not None else tuple(f"shape_{j}" for j in range(len(data)))
     deviations = singular / np.sqrt(len(data) - 1)
-    return ShapeModes(reference, weights, mean, modes, singular, coefficients / deviations, fingerprint, names)
+    scaled = coefficients / deviations
+    return ShapeModes(reference, weights, mean, modes, singular, scaled, fingerprint, names, pose)
 
 
 def _pod(centred: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
