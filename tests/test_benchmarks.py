@@ -32,6 +32,7 @@ QUICK = {
     "threads": (["--quick"], "threads_quick"),
     "greedy_batch": (["--quick"], "greedy_batch_quick"),
     "twin": (["--quick"], "twin_quick"),
+    "population": (["--quick"], "population_quick"),
 }
 
 

@@ -143,6 +143,30 @@ def test_an_imaged_cube_on_its_template_is_the_imaged_cube_on_the_moved_mesh(ima
     agree(on_template, on_moved, smooth_state(on_moved, 0.04))
 
 
+@pytest.mark.parametrize("start", ["inverse_motion", "fixed_point"])
+def test_an_imaged_cube_s_image_and_reference_on_its_template_are_the_moved_mesh_s(start):
+    """The imaged cube's volumes as its start reports them — the image's, and the unloaded
+    reference's found at μ, on the fixed image (InverseMotion) or by moving the mesh's nodes
+    (Imaged, whose shape modes ride on the nodes) — at the template's shape."""
+    from lungmech.fem.inverse_motion import InverseMotion
+    from lungmech.fem.parametric import FullOrderModel
+    from lungmech.fem.solver import Stepping
+    from lungmech.lung.inverse import Imaged, InverseOptions
+
+    motion = start == "inverse_motion"
+    build = lambda geometry, **k: rubber(geometry, image=Image.motion(1.0) if motion else None, **k)  # noqa: E731
+    on_template, on_moved = pair(cube, box_modes(1.0), build)
+    found = []
+    for model, mu in ((on_template, A), (on_moved, {})):
+        first = InverseMotion(model) if motion else Imaged(model, InverseOptions(tolerance=1e-10))
+        stepping = Stepping(start=1.0, end=1.05)  # the image, loaded at t = 1 s, then a little more
+        found.append(FullOrderModel(model, stepping, start=first).solve(mu).start.details)
+    template, exact = found
+    assert template["imaged_volume"] == pytest.approx(exact["imaged_volume"], rel=1e-12)
+    assert template["reference_volume"] == pytest.approx(exact["reference_volume"], rel=1e-8)
+    assert abs(exact["reference_volume"] - exact["imaged_volume"]) > 1e-3 * exact["imaged_volume"]  # loaded
+
+
 def test_zones_by_height_move_with_the_shape():
     zone = HalfSpace(normal=(0.0, 0.0, 1.0), position=0.4, width=0.05)
 

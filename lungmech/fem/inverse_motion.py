@@ -22,7 +22,6 @@ from time import perf_counter
 from typing import TYPE_CHECKING
 
 import numpy as np
-import ufl
 from dolfinx import fem
 
 from lungmech.errors import ParameterError, SolverError
@@ -73,9 +72,8 @@ class InverseMotion:
         self.solver = NewtonSolver(self.inverse, options, self.inverse.residual, self.inverse.jacobian)
         self.stepping = stepping or Stepping(initial_step=1.0)  # cut back where Newton fails
         mesh = model.geometry.mesh
-        self.volume = integral(
-            fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm
-        )()  # m³ (m³/m in 2-D), the image's
+        self._volume = integral(model.mesh_volume(), mesh.comm)  # the image's (on a template, at its shape)
+        self.volume = self._volume()  # m³ (m³/m in 2-D), at the current parameters
         self._reference_volume = integral(fem.Constant(mesh, 1.0) * self.inverse.dx, mesh.comm)
         self._handover = Handover(model, self.inverse)
         self._derivative: np.ndarray | None = None  # dx_ξ/dμ at the last placement, once asked
@@ -118,6 +116,7 @@ class InverseMotion:
         model.set_parameters(values)
         self._handover.hand_over(inverse, model)
         model.set_time(time)
+        self.volume = self._volume()
         details = {
             "newton_iterations": report.newton_iterations,
             "seconds": perf_counter() - tic,

@@ -398,6 +398,13 @@ class Model:
             return self.first_piola()
         return self.first_piola() * self.F.T / ufl.det(self.F)
 
+    def mesh_volume(self) -> ufl.Form:
+        """∫ dx over the body the mesh holds, as it stands (m³; m³/m in 2-D): the mesh's own
+        volume, or on a template χ_a(Ω₀)'s, ∫ det G dx̂ (the image, on an imaged template)."""
+        dx = ufl.dx(domain=self.geometry.mesh)
+        one = fem.Constant(self.geometry.mesh, 1.0)
+        return (one * dx) if self.shape is None else one * ufl.det(self.shape.gradient) * dx
+
     def displacement(self) -> fem.Function:
         """The displacement u from the reference as a Function of its own (collapsed) space: a
         copy (on an image, w − ξ)."""

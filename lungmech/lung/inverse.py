@@ -19,8 +19,6 @@ from typing import TYPE_CHECKING
 from mpi4py import MPI
 
 import numpy as np
-import ufl
-from dolfinx import fem
 
 from lungmech import checks
 from lungmech.errors import ParameterError, SolverError
@@ -192,8 +190,8 @@ class Imaged:
     def __init__(self, model: Model, options: InverseOptions = InverseOptions(), body: str = "body") -> None:
         mesh = model.geometry.mesh
         self.nodes = mesh.geometry.x[:, : mesh.geometry.dim].copy()
-        self._volume = integral(fem.Constant(mesh, 1.0) * ufl.dx(domain=mesh), mesh.comm)  # compiled once
-        self.volume = self._volume()  # m³ (m³/m in 2-D), of the image
+        self._volume = integral(model.mesh_volume(), mesh.comm)  # compiled once (on a template, at its shape)
+        self.volume = self._volume()  # m³ (m³/m in 2-D), of the image at the current parameters
         self.options, self.body = options, body
         self._data = getattr(model.formulation, "imaged", lambda model: None)(model)  # beside the geometry
 
@@ -217,6 +215,7 @@ class Imaged:
         """The unloaded reference at ``values`` and the imaged state on it (collective)."""
         self.reset(model)
         model.set_parameters(values)
+        self.volume = self._volume()  # the image's (at these parameters' shape, on a template)
         tolerance, most = self.options.tolerance, self.options.max_iterations
 
         def show(report: InverseReport) -> None:
