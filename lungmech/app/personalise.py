@@ -66,6 +66,7 @@ __all__ = [
     "Patient",
     "Setting",
     "check_pair",
+    "checked_request",
     "estimated",
     "personalise",
     "position_values",
@@ -193,7 +194,7 @@ def personalise(
     doc); write ``report.json`` into the folder ``out`` (replaced only on success) and return
     the report. Collective."""
     pairs = tuple(pairs)
-    names, end = _checked_request(scene, pairs, setting)
+    names, end = checked_request(scene, pairs, setting)
     inputs = [image.source for p in pairs for image in (p.expiration, p.inspiration) if image.source is not None]
     with output_folder(out, comm, inputs=inputs, command="lungmech personalise") as staging:
         patient = prepare(scene, pairs, setting, comm, names, end)
@@ -214,7 +215,7 @@ def prepare(
     """Each pair's registration, reduced model and its check (the steps 1–2 of the module's
     doc). Collective."""
     if estimated is None or end is None:
-        estimated, end = _checked_request(scene, tuple(pairs), setting)
+        estimated, end = checked_request(scene, tuple(pairs), setting)
     box = Parameters(scene.parameters)
     seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
     # the check points: the estimated parameters drawn in their box (the others at their
@@ -345,7 +346,7 @@ def _interior(displacement: Displacement | None, mesh: dolfinx.mesh.Mesh) -> Int
     return Interior(points, displacement.field.at(points), smoothing=displacement.smoothing)
 
 
-def _checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) -> tuple[tuple[str, ...], float]:
+def checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) -> tuple[tuple[str, ...], float]:
     """The estimated names and end-inspiration's time, or one line on what cannot be asked."""
     if not pairs:
         raise ParameterError("personalise: give at least one pair of segmentations")

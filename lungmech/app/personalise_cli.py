@@ -77,7 +77,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     command.add_argument(
         "--model",
         help="a reduced model file (lungmech trade's model.npz, or lungmech rom build's): the patient's model is "
-        "built by its recipe (basis size, training breaths, ECSW τ) on its scene (or on --scene, of the same physics)",
+        "built by its recipe (basis size, training breaths, ECSW τ) on its scene (or on --scene, of the same physics); "
+        "a population's model (its scene names shape modes; rom build --probes surface) is used as it is, no model "
+        "of the patient's own built: the patient's shape from the registration, projected on its modes",
     )
     command.add_argument(
         "--tolerance",
@@ -123,6 +125,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from lungmech import checks
     from lungmech.app.personalise import Setting
+    from lungmech.app.population import is_population
     from lungmech.app.recipe import recipe_for, recipe_scene
 
     given = args.scene is not None
@@ -163,18 +166,26 @@ def run(args: argparse.Namespace) -> int:
         if args.model
         else contextlib.nullcontext((None, scene))
     ) as (read, scene):
+        population = read is not None and is_population(scene)
         if read is not None:
             setting = replace(setting, size=read.size, training=read.training, tau=read.tau, recipe=read.source)
         if args.cohort is not None:
+            if population:
+                raise ParameterError(
+                    "--cohort with a population's model is not supported yet: give each patient's images with "
+                    "--expiration and --inspiration"
+                )
             return _cohort(args, comm, scene_path if given or not args.model else None, setting)
-        report = _one(args, comm, scene, setting)
+        report = _one(args, comm, scene, setting, args.model if population else None)
     if comm.rank == 0:
         _say(report, args.output)
     return 0
 
 
-def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Setting) -> dict:
-    """One patient, from --expiration, --inspiration and --position (repeated, in order)."""
+def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Setting, population: str | None) -> dict:
+    """One patient, from --expiration, --inspiration and --position (repeated, in order); on the
+    ``population``'s model file as it is, if one is given, else on a model of the patient's own."""
+    from lungmech.app import population as populations
     from lungmech.app.personalise import personalise
 
     expirations, inspirations = args.expiration or [], args.inspiration or []
@@ -191,6 +202,8 @@ def _one(args: argparse.Namespace, comm: MPI.Comm, scene: Scene, setting: Settin
     pairs = [
         pair for e, i, p, f in zip(expirations, inspirations, positions, fields) for pair in reading.pairs(e, i, p, f)
     ]
+    if population is not None:
+        return populations.personalise(population, scene, pairs, args.output, setting, comm)
     return personalise(scene, pairs, args.output, setting, comm)
 
 

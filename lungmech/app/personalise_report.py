@@ -113,4 +113,10 @@ UNITS = {
     "interior.rms": "m (the displacement field's misfit per component)",
     "interior.weight": "1 (the surface's noise over the field's)",
     "smoothing": "m",
+    "registration[].shape_coefficients": "1 (standard deviations of the population's library: the fit to the surface)",
+    "registration[].shape_projected": "1 (standard deviations: the registration's mapping projected on the modes)",
+    "registration[].shape_surface_rms": "m (the segmentation's surface from the template's at the patient's shape, RMS)",
+    "registration[].shape_surface_largest": "m (the same at the worst node)",
+    "registration[].shape_left_out_rms": "m (what the population's modes leave out of the patient's shape, RMS)",
+    "registration[].shape_left_out_largest": "m (the same at the worst node)",
 }

@@ -10,20 +10,23 @@ represent. The model holds as many modes as the highest one a parameter names.
 
 from __future__ import annotations
 
+import copy
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from mpi4py import MPI
 
 from dolfinx import fem
 
+from lungmech.app import scene as scenes
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import SceneError
 from lungmech.fem.shape import KIND
 from lungmech.mesh.geometry import Geometry
 from lungmech.registration.library import ShapeModes
 
-__all__ = ["body_modes", "build_template", "mode_count"]
+__all__ = ["body_modes", "build_template", "mode_count", "with_surface_probes"]
 
 
 def mode_count(scene: Scene) -> int:
@@ -64,3 +67,18 @@ def body_modes(scene: Scene, geometry: Geometry) -> list[fem.Function]:
     mesh = geometry.mesh
     space = fem.functionspace(mesh, ("Lagrange", mesh.geometry.cmaps[0].degree, (mesh.geometry.dim,)))
     return [fem.Function(space, name=f"shape_mode_{k + 1}") for k in range(mode_count(scene))]
+
+
+def with_surface_probes(scene: Scene, comm: MPI.Comm) -> Scene:
+    """``scene`` whose probes are its mesh's surface nodes (on a population's scene, its
+    template's: the same material points for every patient), in the order
+    :func:`lungmech.twin.surface.surface_nodes` gives them: a model a patient's surface data are
+    fitted with (``lungmech personalise --model``)."""
+    from lungmech.twin.surface import surface_nodes
+
+    geometry, _ = build_template(scene, comm)
+    points = surface_nodes(geometry.mesh).points
+    table = copy.deepcopy(scene.table)
+    table.setdefault("output", {})["probes"] = points.tolist()
+    found = scenes.parse(table, folder=scene.folder, source=scene.source)
+    return replace(found, values=dict(scene.values))

@@ -28,7 +28,7 @@ from lungmech.mesh import nodes
 from lungmech.mesh.geometry import Geometry
 from lungmech.parallel import linalg
 from lungmech.registration import align, metrics
-from lungmech.registration.align import procrustes
+from lungmech.registration.align import Similarity, procrustes
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
 
@@ -39,6 +39,7 @@ __all__ = [
     "ShapeModes",
     "leave_one_out",
     "mapping_library",
+    "pose_of",
     "shape_modes",
     "without_similarity",
 ]
@@ -112,26 +113,35 @@ def mapping_library(mesh: dmesh.Mesh, images: Mapping[str, Image], options: Opti
 POSES = ("similarity", "rigid")  # what a library's shape changes are taken without
 
 
+def pose_of(
+    reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray, pose: str = "similarity"
+) -> Similarity:
+    """S, the best fit of φ = Id + displacement among the similarities (``pose`` "similarity")
+    or the rigid motions ("rigid")."""
+    if pose not in POSES:
+        raise RegistrationError(f"a pose is removed as 'similarity' or 'rigid', not {pose!r}")
+    return procrustes(reference, reference + displacement, weights, scaling=pose == "similarity")
+
+
 def without_similarity(
     reference: np.ndarray, displacement: np.ndarray, weights: np.ndarray, pose: str = "similarity"
 ) -> np.ndarray:
-    """The displacement of S⁻¹ ∘ φ, φ = Id + displacement, S the best fit of φ among the
-    similarities (``pose`` "similarity") or the rigid motions ("rigid": the size is kept)."""
-    if pose not in POSES:
-        raise RegistrationError(f"a pose is removed as 'similarity' or 'rigid', not {pose!r}")
-    mapped = reference + displacement
-    fit = procrustes(reference, mapped, weights, scaling=pose == "similarity")
-    return fit.inverse()(mapped) - reference
+    """The displacement of S⁻¹ ∘ φ, φ = Id + displacement, S its :func:`pose_of` (``pose``
+    "similarity", or "rigid": the size is kept)."""
+    fit = pose_of(reference, displacement, weights, pose)
+    return fit.inverse()(reference + displacement) - reference
 
 
 @dataclass(frozen=True)
 class Projection:
     """A mapping on a library's modes: ``coefficients`` (standard deviations of the library),
-    what the modes leave out, ``rms`` over the body (mass-weighted) and ``largest`` at a node (m)."""
+    what the modes leave out, ``rms`` over the body (mass-weighted) and ``largest`` at a node
+    (m), and its ``pose`` S, the fit it was taken without: the mapped body is S(χ(X))."""
 
     coefficients: np.ndarray
     rms: float
     largest: float
+    pose: Similarity
 
 
 @dataclass(frozen=True)
@@ -203,14 +213,15 @@ class ShapeModes:
             raise RegistrationError(
                 f"a mapping of these modes' reference has shape {self.reference.shape}, got {u.shape}"
             )
-        residual = without_similarity(self.reference, u, self.weights, self.pose) - self.mean
+        fit = pose_of(self.reference, u, self.weights, self.pose)
+        residual = fit.inverse()(self.reference + u) - self.reference - self.mean
         coefficients = np.empty(count)
         for k in range(count):
             along = _inner(residual, self.modes[k], self.weights)
             coefficients[k] = along / self.deviations[k]
             residual = residual - along * self.modes[k]
         left = np.linalg.norm(residual, axis=1)
-        return Projection(coefficients, _norm(residual, self.weights), float(left.max(initial=0.0)))
+        return Projection(coefficients, _norm(residual, self.weights), float(left.max(initial=0.0)), fit)
 
     def geometry(self, reference: Geometry, coefficients: Sequence[float]) -> Geometry:
         """``reference`` mapped by a shape: its nodes are moved in place, and it is returned.

@@ -19,7 +19,8 @@ weighing it by the variance that sum would have (σ (Σ a_i²)^½) would count t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import dolfinx
 import numpy as np
@@ -36,9 +37,20 @@ class Surface:
     """A segmented state as data: ``distance``, the signed distance to its surface (m, < 0
     inside, with its gradient), ``volume`` (m³) and ``voxel``, its largest spacing (m)."""
 
-    distance: ImageFunction
+    distance: ImageFunction | Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
     volume: float
     voxel: float
+
+    def seen_from(self, rotation: np.ndarray, translation: np.ndarray) -> Surface:
+        """The same surface in the frame that x ↦ R x + t maps into the image's (a rigid
+        motion): its distance d(R x + t), whose gradient is Rᵀ ∇d; its volume is unchanged."""
+        R, t, image = np.asarray(rotation, dtype=float), np.asarray(translation, dtype=float), self.distance
+
+        def distance(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            values, gradients = image(np.asarray(points, dtype=float) @ R.T + t)
+            return values, gradients @ R
+
+        return replace(self, distance=distance)
 
 
 def surface_data(image: Image, smoothing: float = 1.0) -> Surface:
@@ -64,6 +76,15 @@ class SurfaceNodes:
     def area(self) -> float:
         """Σ a_i in m²: a volume change over it is the surface's mean normal offset."""
         return float(np.sum(self.areas))
+
+    def moved(self, displacement: np.ndarray) -> SurfaceNodes:
+        """The same nodes moved by ``displacement`` (n, 3; m), their areas those of the moved
+        triangles (a template's surface at a patient's shape)."""
+        points = self.points + np.asarray(displacement, dtype=float)
+        corners = points[self.triangles]
+        shares = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        areas = np.bincount(self.triangles.reshape(-1), weights=np.repeat(shares / 3.0, 3), minlength=len(points))
+        return SurfaceNodes(points, areas, self.triangles)
 
 
 def surface_nodes(mesh: dolfinx.mesh.Mesh) -> SurfaceNodes:
