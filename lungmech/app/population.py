@@ -53,7 +53,7 @@ from lungmech.twin.model_error import model_error
 from lungmech.twin.shape import fit_shape
 from lungmech.twin.surface import SurfaceNodes, surface_data, surface_nodes
 
-__all__ = ["is_population", "personalise", "prepare", "shape_names"]
+__all__ = ["check_probes", "is_population", "personalise", "prepare", "shape_names"]
 
 
 def is_population(scene: Scene) -> bool:
@@ -114,7 +114,7 @@ def prepare(
     box = Parameters(scene.parameters)
     template, fields = build_template(scene, comm)
     surface = surface_nodes(template.mesh)
-    _check_probes(reduced, surface, source)
+    check_probes(reduced, surface, source)
     full = full_order_model(scene, comm, start="inverse_motion", probes=surface.points.tolist())
     at_nodes = np.array([_at(template, field, surface.points) for field in fields])  # each mode at the nodes
     seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
@@ -197,7 +197,7 @@ def _at(template: Geometry, field: fem.Function, points: np.ndarray) -> np.ndarr
     return Probe(template.mesh, points.tolist())(field)
 
 
-def _check_probes(reduced: ReducedModel, surface: SurfaceNodes, source: str | Path) -> None:
+def check_probes(reduced: ReducedModel, surface: SurfaceNodes, source: str | Path) -> None:
     """The model's probes must be its template's surface nodes, in their order."""
     probes = np.asarray(reduced.outputs.probe_points, dtype=float).reshape(-1, 3)
     if probes.shape != surface.points.shape or not np.allclose(probes, surface.points, rtol=0, atol=1e-9):
