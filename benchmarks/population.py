@@ -1,7 +1,7 @@
 """One reduced model for a population: the lung's shape as a parameter, against per-patient models.
 
     python benchmarks/population.py            # 26 synthetic patients (20 in the library, 6 held out), 3 modes
-    python benchmarks/population.py --quick    # 5 patients (4 + 1), 2 modes, h = 40 mm: the suite's smoke run
+    python benchmarks/population.py --quick    # 4 patients (3 + 1), 2 modes, h = 40 mm: the suite's smoke run
 
 Synthetic patients of three kinds, each a segmentation at CT spacing: lungmech's phantoms of
 varied height, width, depth, dome and apex and size (``phantom.cohort``), phantoms warped by a
@@ -456,10 +456,10 @@ def command_line(args) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="5 patients, 2 modes, h = 40 mm: a smoke run")
+    parser.add_argument("--quick", action="store_true", help="4 patients, 2 modes, h = 40 mm: a smoke run")
     args = parser.parse_args()
     full_run = dict(size="default", spacing=2.5, library=20, held=6, modes=3, train=32, points=2, size_k=30, tau=1e-4)
-    quick = dict(size="40", spacing=4.0, library=4, held=1, modes=2, train=5, points=1, size_k=8, tau=1e-3)
+    quick = dict(size="40", spacing=5.0, library=3, held=1, modes=2, train=4, points=1, size_k=6, tau=1e-2)
     for key, value in (quick if args.quick else full_run).items():
         setattr(args, key, value)
     started = time.perf_counter()
