@@ -131,7 +131,7 @@ def prepare(
         tic = time.perf_counter()
         reference = build_geometry(scene.geometry, comm)  # the modes' own mesh, unmoved
         registration = register(reference.mesh, pair.expiration, Options())
-        space, where = nodes.displacement_space(reference.mesh)
+        _, where = nodes.displacement_space(reference.mesh)
         mapping = comm.bcast(nodes.gather(registration.displacement, where))
         projection = modes.project(mapping, count)
         expiration = surface_data(pair.expiration)
@@ -156,7 +156,9 @@ def prepare(
             | registration.summary()
             | {
                 "shape_coefficients": fit.coefficients.tolist(),
-                "shape_at_a_bound": bool(np.any((fit.coefficients <= low) | (fit.coefficients >= high))),
+                "shape_at_a_bound": bool(
+                    np.any(np.minimum(fit.coefficients - low, high - fit.coefficients) <= 1e-6 * (high - low))
+                ),
                 "shape_surface_rms": fit.rms,
                 "shape_surface_largest": fit.largest,
                 "shape_projected": projection.coefficients.tolist(),
