@@ -163,6 +163,10 @@ def own_model(base: scenes.Scene, reference, displacement: np.ndarray):
 
 def case(args) -> tuple[list[dict], dict]:
     base = lung_scene(args.size, [round(0.1 * i, 1) for i in range(1, 21)])  # 20 outputs over the breath
+    if args.quick:  # the smoke run: the breath in, in 4 steps (its outputs at each)
+        table = copy.deepcopy(base.table)
+        table["stepping"] |= {"end": 1.0, "max_step": 0.25, "times": [0.25, 0.5, 0.75, 1.0]}
+        base = scenes.parse(table)
     physical = Parameters(base.parameters)
     images, kinds = patients(args.library, args.held, 1e-3 * args.spacing)
     names = list(images)

@@ -71,7 +71,7 @@ def population(tmp_path_factory):
     )
     scene = write_once(folder / "population.toml", text)
     model = folder / "population.npz"
-    build = ["rom", "build", str(scene), "-o", str(model), "--probes", "surface", "--samples", "8", "--size", "10"]
+    build = ["rom", "build", str(scene), "-o", str(model), "--probes", "surface", "--samples", "6", "--size", "8"]
     assert main([*build, "--hyper", "ecsw", "--ecsw-tolerance", "1e-3", "-q"]) == 0
 
     # the patient: the library's lung at SHAPE, turned and moved in its scanner, the plain model on it
