@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mpi4py import MPI
@@ -64,6 +64,7 @@ __all__ = [
     "POSITIONS",
     "Pair",
     "Patient",
+    "Preparation",
     "Setting",
     "check_pair",
     "checked_request",
@@ -204,6 +205,48 @@ def personalise(
     return report
 
 
+@dataclass
+class Preparation:
+    """What :func:`prepare` gathers pair by pair, made a :class:`Patient` at the end: each
+    pair's views and its model's error at the check points, and the offline seconds."""
+
+    box: Parameters
+    estimated: tuple[str, ...]
+    views: list[View] = field(default_factory=list)
+    full_views: list[View] = field(default_factory=list)
+    errors: list[np.ndarray] = field(default_factory=list)
+    checked: list[dict] = field(default_factory=list)
+    registered: list[dict] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=lambda: {"registration": 0.0, "offline": 0.0, "check": 0.0})
+
+    def check(self, name: str, chain: Sequence[View], points: Sequence[dict], started: float) -> None:
+        """Pair ``name``'s ``chain`` of views (its reduced model, its full model, then any
+        finer) kept, and the model's error at ``points`` (:func:`lungmech.twin.model_error`);
+        the check's time counted from ``started`` (``time.perf_counter``). Collective."""
+        error, found = model_error(list(chain), list(points))
+        self.views.append(chain[0])
+        self.full_views.append(chain[1])
+        self.errors.append(error)
+        self.checked.extend({"pair": name} | point for point in found)
+        self.seconds["check"] += time.perf_counter() - started
+
+    def patient(self, basis_sizes: Sequence[int], inspirations: Sequence[Image]) -> Patient:
+        """The patient these pairs make (their reduced models' ``basis_sizes``, their
+        end-inspiration segmentations)."""
+        return Patient(
+            self.box,
+            self.estimated,
+            tuple(self.views),
+            tuple(self.full_views),
+            np.hstack(self.errors),
+            tuple(self.checked),
+            tuple(self.registered),
+            self.seconds,
+            tuple(basis_sizes),
+            tuple(inspirations),
+        )
+
+
 def prepare(
     scene: Scene,
     pairs: Sequence[Pair],
@@ -217,15 +260,11 @@ def prepare(
     if estimated is None or end is None:
         estimated, end = checked_request(scene, tuple(pairs), setting)
     box = Parameters(scene.parameters)
-    seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
+    gathered = Preparation(box, tuple(estimated))
+    seconds = gathered.seconds
     # the check points: the estimated parameters drawn in their box (the others at their
     # defaults, as the estimate leaves them), the same for every pair
     checks = [{name: point[name] for name in estimated} for point in box.sample(3, setting.seed + 1)]
-    views: list[View] = []
-    full_views: list[View] = []
-    errors: list[np.ndarray] = []
-    checked: list[dict] = []
-    registered: list[dict] = []
     sizes: list[int] = []
     for pair in pairs:
         name = pair.name(pairs)
@@ -238,7 +277,9 @@ def prepare(
             )
         registration = register(geometry.mesh, pair.expiration, Options())
         nodes.move_nodes(registration.displacement)  # the lung as imaged at end-expiration
-        registered.append({"pair": name} | metrics.report(geometry.mesh, pair.expiration) | registration.summary())
+        gathered.registered.append(
+            {"pair": name} | metrics.report(geometry.mesh, pair.expiration) | registration.summary()
+        )
         seconds["registration"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
@@ -255,33 +296,19 @@ def prepare(
         seconds["offline"] += time.perf_counter() - tic
 
         data, baseline = surface_data(pair.inspiration), surface_data(pair.expiration)
-        views.append(View(reduced, surface, data, end, fixed, name, baseline, interior))
-        full_views.append(View(full, surface, data, end, fixed, name, baseline, interior))
-
         tic = time.perf_counter()
-        chain = [views[-1], full_views[-1]]
+        chain = [
+            View(reduced, surface, data, end, fixed, name, baseline, interior),
+            View(full, surface, data, end, fixed, name, baseline, interior),
+        ]
         if setting.mesh_check:  # the mesh's own error: the same lung refined once
             finer = build_model(
                 scene, comm, geometry=refined(geometry).geometry, image=Placement.motion(scene.stepping.start)
             )
             finest = full_order_model(scene, comm, start="inverse_motion", model=finer, probes=probes)
             chain.append(View(finest, surface, data, end, fixed, name, baseline, interior))
-        error, points = model_error(chain, [point | fixed for point in checks])
-        errors.append(error)
-        checked.extend({"pair": name} | point for point in points)
-        seconds["check"] += time.perf_counter() - tic
-    return Patient(
-        box,
-        tuple(estimated),
-        tuple(views),
-        tuple(full_views),
-        np.hstack(errors),
-        tuple(checked),
-        tuple(registered),
-        seconds,
-        tuple(sizes),
-        tuple(pair.inspiration for pair in pairs),
-    )
+        gathered.check(name, chain, [point | fixed for point in checks], tic)
+    return gathered.patient(sizes, [pair.inspiration for pair in pairs])
 
 
 def estimated(

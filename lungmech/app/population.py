@@ -34,7 +34,15 @@ import numpy as np
 from dolfinx import fem
 
 from lungmech.app.output import write_json
-from lungmech.app.personalise import Pair, Patient, Setting, checked_request, estimated, position_values
+from lungmech.app.personalise import (
+    Pair,
+    Patient,
+    Preparation,
+    Setting,
+    checked_request,
+    estimated,
+    position_values,
+)
 from lungmech.app.run import full_order_model
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.app.template import build_template, mode_count
@@ -49,7 +57,6 @@ from lungmech.registration.library import ShapeModes
 from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reduced import ReducedModel
 from lungmech.twin.fit import View
-from lungmech.twin.model_error import model_error
 from lungmech.twin.shape import fit_shape
 from lungmech.twin.surface import SurfaceNodes, surface_data, surface_nodes
 
@@ -117,15 +124,10 @@ def prepare(
     check_probes(reduced, surface, source)
     full = full_order_model(scene, comm, start="inverse_motion", probes=surface.points.tolist())
     at_nodes = np.array([_at(template, field, surface.points) for field in fields])  # each mode at the nodes
-    seconds = {"registration": 0.0, "offline": 0.0, "check": 0.0}
+    gathered = Preparation(box, tuple(estimated))
     checks = [
         {name: point[name] for name in estimated if name not in names} for point in box.sample(3, setting.seed + 1)
     ]
-    views: list[View] = []
-    full_views: list[View] = []
-    errors: list[np.ndarray] = []
-    checked: list[dict] = []
-    registered: list[dict] = []
     for pair in pairs:
         name = pair.name(pairs)
         tic = time.perf_counter()
@@ -150,7 +152,7 @@ def prepare(
         with nodes.deformed(registration.displacement) as mapped:
             quality = metrics.report(mapped, pair.expiration)
         shape = {n: float(v) for n, v in zip(names, fit.coefficients) if n not in estimated}
-        registered.append(
+        gathered.registered.append(
             {"pair": name}
             | quality
             | registration.summary()
@@ -166,32 +168,16 @@ def prepare(
                 "shape_left_out_largest": projection.largest,
             }
         )
-        seconds["registration"] += time.perf_counter() - tic
+        gathered.seconds["registration"] += time.perf_counter() - tic
 
         fixed = position_values(scene, pair.position) | shape
         patient = surface.moved(np.einsum("k,knd->nd", fit.coefficients, at_nodes))
         data = surface_data(pair.inspiration).seen_from(fit.rotation, fit.translation)
         baseline = expiration.seen_from(fit.rotation, fit.translation)
-        views.append(View(reduced, patient, data, end, fixed, name, baseline))
-        full_views.append(View(full, patient, data, end, fixed, name, baseline))
-
         tic = time.perf_counter()
-        error, points = model_error([views[-1], full_views[-1]], [point | fixed for point in checks])
-        errors.append(error)
-        checked.extend({"pair": name} | point for point in points)
-        seconds["check"] += time.perf_counter() - tic
-    return Patient(
-        box,
-        tuple(estimated),
-        tuple(views),
-        tuple(full_views),
-        np.hstack(errors),
-        tuple(checked),
-        tuple(registered),
-        seconds,
-        tuple(reduced.size for _ in pairs),
-        tuple(pair.inspiration for pair in pairs),
-    )
+        chain = [View(model, patient, data, end, fixed, name, baseline) for model in (reduced, full)]
+        gathered.check(name, chain, [point | fixed for point in checks], tic)
+    return gathered.patient([reduced.size] * len(pairs), [pair.inspiration for pair in pairs])
 
 
 def _at(template: Geometry, field: fem.Function, points: np.ndarray) -> np.ndarray:
