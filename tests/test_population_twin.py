@@ -128,3 +128,60 @@ def test_a_population_model_without_surface_probes_is_refused():
         with pytest.raises(ModelFileError, match="'p.npz' is a population's model, but its probes are not its lung's"):
             check_probes(reduced, surface, "p.npz")
     check_probes(SimpleNamespace(outputs=SimpleNamespace(probe_points=((0, 0, 0), (0.1, 0, 0)))), surface, "p.npz")
+
+
+@pytest.mark.slow
+@pytest.mark.mpi
+def test_a_new_patient_on_two_ranks_is_estimated_as_on_one(population, tmp_path):
+    """``personalise --model`` on a distributed template (registration, projection, surface fit,
+    check, estimate) agrees with the one each rank makes alone on COMM_SELF: the shape
+    coefficients and the breath."""
+    from lungmech.app import population as populations
+    from lungmech.app.patient_images import Reading
+    from lungmech.app.personalise import Setting
+    from lungmech.app.recipe import recipe_scene
+
+    _, model, (expiration, inspiration) = population
+    setting = Setting(estimate=("breath",), resamples=0)
+    found = {}
+    for name, comm in (("alone", MPI.COMM_SELF), ("together", MPI.COMM_WORLD)):
+        out = comm.bcast(tmp_path / (f"{name}-{MPI.COMM_WORLD.rank}" if comm.size == 1 else name))
+        pairs = Reading().pairs(str(expiration), str(inspiration), "supine")
+        with recipe_scene(model, None, comm) as (_, scene):
+            found[name] = populations.personalise(model, scene, pairs, out, setting, comm)
+    alone, together = (found[name] for name in ("alone", "together"))
+    # The registration stops at its tolerance and sums in another order on a distributed mesh
+    # (its nodes agree to a fraction of a millimetre): the shape within 0.05 sd, the breath 5e-3.
+    shapes = [np.array(report["registration"][0]["shape_coefficients"]) for report in (alone, together)]
+    assert np.abs(shapes[1] - shapes[0]).max() < 0.05, shapes
+    breaths = [report["parameters"]["breath"]["value"] for report in (alone, together)]
+    assert breaths[1] == pytest.approx(breaths[0], rel=5e-3), breaths
+
+
+@pytest.mark.slow
+@pytest.mark.mpi
+def test_a_cohort_on_a_populations_model_runs_a_patient_a_group(population, tmp_path):
+    """A cohort of two patients on the population's model, under mpiexec with --group-size 1 (a
+    patient on each rank at once): each row its estimate near the truth and its shape
+    coefficients, no model of its own built."""
+    import csv
+
+    comm = MPI.COMM_WORLD
+    _, model, (expiration, inspiration) = population
+    folder = comm.bcast(tmp_path)
+    if comm.rank == 0:
+        lines = ["patient,expiration,inspiration", *(f"{name},{expiration},{inspiration}" for name in ("p1", "p2"))]
+        (folder / "cohort.csv").write_text("\n".join(lines) + "\n")
+    comm.barrier()
+    out = folder / "cohort-out"
+    argv = ["personalise", "--cohort", str(folder / "cohort.csv"), "--model", str(model), "--group-size", "1"]
+    assert main([*argv, "--estimate", "breath", "--resamples", "0", "-o", str(out), "-q"]) == 0
+    rows = list(csv.DictReader((out / "cohort.csv").open()))
+    assert [row["patient"] for row in rows] == ["p1", "p2"]
+    for row in rows:
+        assert row["failed"] == "", row["failed"]
+        assert float(row["breath [1]"]) == pytest.approx(TRUTH["breath"], rel=0.05)
+        shape = np.array(row["shape [sd]"].split(), dtype=float)
+        report = json.loads((out / row["patient"] / "report.json").read_text())
+        assert shape == pytest.approx(report["registration"][0]["shape_coefficients"], abs=1e-3)
+        assert report["seconds"]["offline"] == 0.0

@@ -5,7 +5,9 @@ The cohort is a CSV file, one row per pair of segmentations, its header naming t
 A patient's rows are its pairs (supine and prone together, say). Image paths are read relative
 to the CSV file's folder. Each patient is one task of :mod:`lungmech.parallel.ensemble`
 (:func:`personalised`): :func:`lungmech.app.personalise.personalise` on the task's
-communicator, into ``OUT/<patient>/``; ``OUT/cohort.csv`` then holds a row per patient (each
+communicator, into ``OUT/<patient>/`` (with a population's model file,
+:func:`lungmech.app.population.personalise`: no model of the patient's own, its shape
+coefficients in its row); ``OUT/cohort.csv`` then holds a row per patient (each
 estimate with its interval and unit, the fit, the times, or why it failed, in one line), and
 ``OUT/cohort.json`` the same with the ensemble's description. A patient that fails never stops
 the others.
@@ -25,6 +27,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
+from lungmech.app import population
 from lungmech.app import scene as scenes
 from lungmech.app.output import write_json
 from lungmech.app.patient_images import Reading
@@ -119,7 +122,11 @@ def personalised(task: Task, comm: MPI.Comm) -> dict:
     scene = None if task.scene is None else scenes.load(task.scene)
     with recipe_scene(task.model, scene, comm) if task.model else contextlib.nullcontext((None, scene)) as (_, used):
         assert used is not None  # (a scene, or a model file's own)
-        report = personalise(used, pairs, task.out, task.setting, comm)
+        if task.model is not None and population.is_population(used):
+            report = population.personalise(task.model, used, pairs, task.out, task.setting, comm)
+        else:
+            report = personalise(used, pairs, task.out, task.setting, comm)
+    shapes = [pair["shape_coefficients"] for pair in report["registration"] if "shape_coefficients" in pair]
     return {
         "parameters": {
             name: {key: found[key] for key in ("value", "unit", "interval", "note")}
@@ -127,7 +134,7 @@ def personalised(task: Task, comm: MPI.Comm) -> dict:
         },
         "surface_rms": report["fit"]["surface_rms"],
         "seconds": sum(report["seconds"].values()),
-    }
+    } | ({"shape": shapes} if shapes else {})
 
 
 def cohort(
@@ -177,7 +184,8 @@ def cohort(
 
 def _write_table(found: list[dict], target: Path) -> None:
     """cohort.csv: a row per patient, a value, low and high column per parameter (with its
-    unit in the header), the fit's surface RMS (mm), the time (s), and why a patient failed."""
+    unit in the header), the fit's surface RMS (mm), the time (s), and why a patient failed; on a
+    population's model, each pair's shape coefficients (sd of the library; pairs apart by ";")."""
     names: dict[str, str] = {}
     for row in found:
         for name, value in row.get("parameters", {}).items():
@@ -185,6 +193,8 @@ def _write_table(found: list[dict], target: Path) -> None:
     header = ["patient", "pairs"]
     for name, unit in names.items():
         header += [f"{name} [{unit}]", f"{name} low [{unit}]", f"{name} high [{unit}]", f"{name} note"]
+    shaped = any("shape" in row for row in found)
+    header += ["shape [sd]"] if shaped else []
     header += ["surface rms [mm]", "seconds [s]", "failed"]
     with open(target, "w", newline="", encoding="utf-8") as stream:
         writer = csv.writer(stream)
@@ -195,6 +205,8 @@ def _write_table(found: list[dict], target: Path) -> None:
                 value = row.get("parameters", {}).get(name)
                 interval = (value or {}).get("interval") or ["", ""]
                 cells += [value["value"] if value else "", *interval, (value or {}).get("note") or ""]
+            if shaped:
+                cells.append("; ".join(" ".join(f"{a:+.3f}" for a in pair) for pair in row.get("shape", [])))
             rms = row.get("surface_rms")
             cells += ["" if rms is None else f"{1e3 * rms:.4g}", row.get("seconds", ""), row.get("failed") or ""]
             writer.writerow(cells)

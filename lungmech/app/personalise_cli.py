@@ -170,11 +170,6 @@ def run(args: argparse.Namespace) -> int:
         if read is not None:
             setting = replace(setting, size=read.size, training=read.training, tau=read.tau, recipe=read.source)
         if args.cohort is not None:
-            if population:
-                raise ParameterError(
-                    "--cohort with a population's model is not supported yet: give each patient's images with "
-                    "--expiration and --inspiration"
-                )
             return _cohort(args, comm, scene_path if given or not args.model else None, setting)
         report = _one(args, comm, scene, setting, args.model if population else None)
     if comm.rank == 0:
