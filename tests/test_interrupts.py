@@ -179,21 +179,21 @@ def _interrupt_before_the_swap(workspace: Path, sig: int, ranks: int) -> tuple[s
 
 
 @pytest.mark.parametrize(
-    "sig, code, ranks",
+    "sig, code, ranks, attempts",
     [
-        # each signal and each rank count in the default suite; the other two pairings (a minute
-        # each) with make test-long
-        (signal.SIGTERM, 143, 1),
-        (signal.SIGINT, 130, 2),
-        pytest.param(signal.SIGINT, 130, 1, marks=pytest.mark.long),
-        pytest.param(signal.SIGTERM, 143, 2, marks=pytest.mark.long),
+        # each signal and each rank count in the default suite, 5 times each; the other two
+        # pairings, 10 times each (a minute each), with make test-long
+        (signal.SIGTERM, 143, 1, 5),
+        (signal.SIGINT, 130, 2, 5),
+        pytest.param(signal.SIGINT, 130, 1, 10, marks=pytest.mark.long),
+        pytest.param(signal.SIGTERM, 143, 2, 10, marks=pytest.mark.long),
     ],
 )
-def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks):
-    """Ten times: one lungmech line, exit 130/143 within 10 s, the earlier result byte-identical,
-    no staging folder left (serial and on two ranks; the launcher's own lines aside). Each run
-    has a copy of the workspace; they go one after another (together they would only slow the
-    rest of the suite: each is CPU-bound)."""
+def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, sig, code, ranks, attempts):
+    """``attempts`` times: one lungmech line, exit 130/143 within 10 s, the earlier result
+    byte-identical, no staging folder left (serial and on two ranks; the launcher's own lines
+    aside). Each run has a copy of the workspace; they go one after another (together they would
+    only slow the rest of the suite: each is CPU-bound)."""
     import shutil
 
     before = _contents(earlier / "out")
@@ -201,7 +201,7 @@ def test_a_signal_between_the_solve_and_the_swap_ends_every_run_alike(earlier, s
         f"lungmech: interrupted by {signal.Signals(sig).name}; nothing was written and earlier results are unchanged"
     )
     spaces = []
-    for attempt in range(10):
+    for attempt in range(attempts):
         spaces.append(earlier.parent / f"{earlier.name}-{attempt}")
         shutil.copytree(earlier, spaces[-1])
     results = [_interrupt_before_the_swap(space, sig, ranks) for space in spaces]

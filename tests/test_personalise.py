@@ -10,6 +10,7 @@ same images (the discretisation's gap) to 1 % of the range.
 
 import csv
 import json
+from pathlib import Path
 
 from mpi4py import MPI
 
@@ -218,15 +219,13 @@ def test_both_lungs_of_one_segmentation_share_their_parameters(patient, tmp_path
 
 
 @pytest.mark.slow
-def test_a_cohort_runs_a_patient_a_task_through_the_ensemble(patient, tmp_path, capsys):
-    """A 2-row cohort CSV (two patients, one imaged lying on its back, one on its front), each
-    patient's model made by a model file's recipe (--model: a POD of 4 vectors from 3 breaths,
-    ECSW at 1e-3, on the file's own scene): a folder and report per patient, its own position
-    fixed, and a row of cohort.csv each with its estimate, near the truth. A scene of other physics beside the file, or a recipe given twice, is
-    refused in one line."""
+def test_a_model_files_recipe_is_refused_beside_other_physics_or_another_recipe(patient, tmp_path, capsys):
+    """A model file's recipe (--model: the cohort's below, which the 2-rank cohort test runs)
+    beside a scene of other physics, or beside a recipe given again, is refused in one line,
+    nothing written."""
     from lungmech.app.cli import main
 
-    model = _cohort(patient, tmp_path)
+    model = _cohort_files(patient, tmp_path)
     capsys.readouterr()
     other = tmp_path / "other.toml"
     other.write_text(SCENE.format(h=0.035).replace("c2 = 400.0", "c2 = 500.0"))
@@ -244,7 +243,12 @@ def test_a_cohort_runs_a_patient_a_task_through_the_ensemble(patient, tmp_path, 
 @pytest.mark.slow
 @pytest.mark.mpi
 def test_a_cohort_on_two_ranks_runs_a_patient_a_group(patient, tmp_path):
-    """The same cohort under mpiexec with --group-size 1: a patient on each rank at once."""
+    """A 2-row cohort CSV (two patients, one imaged lying on its back, one on its front), each
+    patient's model made by a model file's recipe (--model: a POD of 4 vectors from 3 breaths,
+    ECSW at 1e-3, on the file's own scene), under mpiexec with --group-size 1 (a patient on each
+    rank at once): a folder and report per patient, its own position fixed, and a row of
+    cohort.csv each with its estimate, near the truth. (One rank runs the same tasks one after
+    the other, on the same ensemble layer: tests/test_ensemble.py.)"""
     _cohort(patient, tmp_path, ["--group-size", "1"])
 
 
@@ -273,15 +277,18 @@ def test_a_patient_on_two_ranks_is_estimated_as_on_one(patient):
     assert together["noise_sigma"] == pytest.approx(alone["noise_sigma"], rel=5e-2)
 
 
-def _cohort(patient, folder, extra=()):
+COHORT = {"first": "supine", "second": "prone"}  # two patients: the one lung in each position
+
+
+def _cohort_files(patient, folder) -> Path:
+    """The cohort's images and CSV in ``folder`` (every rank's), and its model file (built)."""
     from lungmech.app.cli import main
     from lungmech.registration.image import write
 
     own, images = patient  # (own: this rank's folder; ``folder`` is every rank's)
     comm = MPI.COMM_WORLD
-    positions = {"first": "supine", "second": "prone"}  # (two patients: the one lung in each position)
     lines = ["patient,expiration,inspiration,position"]
-    for name, position in positions.items():
+    for name, position in COHORT.items():
         for phase, image in zip(("exp", "insp"), images[position]):
             if comm.rank == 0:
                 write(image, folder / f"{name}-{phase}.npz")
@@ -289,21 +296,28 @@ def _cohort(patient, folder, extra=()):
     if comm.rank == 0:
         (folder / "cohort.csv").write_text("\n".join(lines) + "\n")
     comm.barrier()
-    out, model = folder / "cohort-out", folder / "lung.npz"
+    model = folder / "lung.npz"
     scene_of(own, 0.035)
     built = ["rom", "build", str(own / "lung-0.035.toml"), "-o", str(model), "--size", "4", "--samples", "3"]
     assert main([*built, "--hyper", "ecsw", "--ecsw-tolerance", "1e-3", "-q"]) == 0
+    return model
+
+
+def _cohort(patient, folder, extra=()):
+    from lungmech.app.cli import main
+
+    model, out = _cohort_files(patient, folder), folder / "cohort-out"
     argv = ["personalise", "--cohort", str(folder / "cohort.csv"), "--model", str(model)]
     argv += ["--estimate", "breath", "--resamples", "0", "--no-mesh-check"]
     assert main([*argv, "-o", str(out), "-q", *extra]) == 0
     rows = list(csv.DictReader((out / "cohort.csv").open()))
-    assert [row["patient"] for row in rows] == list(positions)
+    assert [row["patient"] for row in rows] == list(COHORT)
     for row in rows:
         assert row["failed"] == ""
         assert float(row["breath [1]"]) == pytest.approx(TRUTH["breath"], rel=0.03)
         report = json.loads((out / row["patient"] / "report.json").read_text())
         assert report["parameters"]["breath"]["value"] == pytest.approx(float(row["breath [1]"]))
-        position = positions[row["patient"]]
+        position = COHORT[row["patient"]]
         assert report["fixed"] == {position: {"posture": -90.0 if position == "supine" else 90.0}}
         assert {f"{kind}-{position}.png" for kind in ("fit", "pressure_volume", "ventilation")} <= set(
             report["pictures"]
