@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin bench-population bench-twin-population clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -124,6 +124,14 @@ bench-layout: $(STAMP)
 # Twin experiments: 3 synthetic patients, supine/prone/both, noise 0–40 %, against Nelder–Mead (about an hour).
 bench-twin: $(STAMP)
 	$(PY) benchmarks/twin.py
+
+# One reduced model for 26 synthetic patients' shapes, against the full model at 6 held out (about 1.5 h).
+bench-population: $(STAMP)
+	$(PY) benchmarks/population.py
+
+# The twin experiments' right lungs personalised on a population's model and on models of their own.
+bench-twin-population: $(STAMP)
+	$(PY) benchmarks/twin_population.py
 
 clean:
 	rm -rf results benchmarks/results

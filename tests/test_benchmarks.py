@@ -33,6 +33,7 @@ QUICK = {
     "greedy_batch": (["--quick"], "greedy_batch_quick"),
     "twin": (["--quick"], "twin_quick"),
     "population": (["--quick"], "population_quick"),
+    "twin_population": (["--quick"], "twin_population_quick"),
 }
 
 
