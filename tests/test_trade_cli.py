@@ -1,6 +1,6 @@
 """``lungmech trade`` from the command line (lungmech.app.trade_cli): --build makes the Galerkin
 and hyper-reduced models by the one reductor into the cache; a loose tolerance chooses a
-hyper-reduced model, one that only a finer full model meets chooses that; OUT holds the table
+hyper-reduced model, one that only a finer full model meets chooses that (make test-long); OUT holds the table
 (md, csv, json), the Pareto plot and choice.json with the chosen model file, which rom solve
 answers with; bad requests are one line; the same table on 1 rank, 2 ranks and 2 groups."""
 
@@ -41,7 +41,38 @@ def traded(scene: Path, out: Path, cache: Path, tolerance: float, *extra: str) -
 
 @pytest.mark.serial
 @pytest.mark.slow
-def test_a_loose_tolerance_chooses_a_hyper_reduced_model_and_a_tight_one_a_full_model(tmp_path, capsys):
+def test_a_loose_tolerance_chooses_a_hyper_reduced_model(tmp_path, capsys):
+    loosely(tmp_path, capsys)
+
+
+@pytest.mark.serial
+@pytest.mark.long  # (the loose trade again first: 100 s in all) the choice: tests/test_trade_choice.py; solves kept: tests/test_training_paths.py
+def test_a_tight_tolerance_chooses_a_full_model_from_the_solves_and_models_kept(tmp_path, capsys):
+    scene, cache, loose, errors = loosely(tmp_path, capsys)
+    # a tolerance only the finer full models meet: a full model, every solve and model kept
+    tight = 0.5 * (errors["full P1 h/2"] + errors["full P2 h"])
+    assert tight < min(errors[name] for name in errors if not name.startswith("full P"))
+    code, again, table = traded(scene, tmp_path / "tight", cache, tight, *BUILD)
+    assert code == 0, capsys.readouterr().err
+    chosen = json.loads((tmp_path / "tight" / "choice.json").read_text())
+    assert chosen["model"]["family"] == "full" and chosen["model"]["worst_error"] <= tight
+    rows = {row["model"]: row for row in table if row["family"] != "reference"}
+    meeting = {
+        name: float(row["online [ms]"]) for name, row in rows.items() if float(row["volume error max [-]"]) <= tight
+    }
+    assert chosen["model"]["name"] == min(meeting, key=meeting.get)  # the fastest of those, as timed in this run
+    assert not any(name.startswith("POD") for name in meeting)
+    assert not (tmp_path / "tight" / "model.npz").exists()
+    assert len(list((cache / "models").iterdir())) == 1  # built once
+    assert [m["errors"] for m in again["models"]] == [m["errors"] for m in loose["models"]]
+    assert again["full_solves"] == {"solved": 0, "kept": 24}
+    out = capsys.readouterr().out
+    assert f"* {chosen['model']['name']}" in out and f"choice: {chosen['model']['name']}" in out
+
+
+def loosely(tmp_path: Path, capsys) -> tuple[Path, Path, dict, dict[str, float]]:
+    """The trade at a loose tolerance (5e-2) with --build, checked: a hyper-reduced model
+    chosen, the cheapest that meets it; its scene, cache, trade.json and each model's error."""
     scene, cache = written(tmp_path), tmp_path / "cache"
     code, loose, table = traded(scene, tmp_path / "loose", cache, 5e-2, *BUILD)
     assert code == 0, capsys.readouterr().err
@@ -89,25 +120,7 @@ def test_a_loose_tolerance_chooses_a_hyper_reduced_model_and_a_tight_one_a_full_
         )
         == 0
     )
-    # a tolerance only the finer full models meet: a full model, every solve and model kept
-    tight = 0.5 * (errors["full P1 h/2"] + errors["full P2 h"])
-    assert tight < min(errors[name] for name in errors if not name.startswith("full P"))
-    code, again, table = traded(scene, tmp_path / "tight", cache, tight, *BUILD)
-    assert code == 0, capsys.readouterr().err
-    chosen = json.loads((tmp_path / "tight" / "choice.json").read_text())
-    assert chosen["model"]["family"] == "full" and chosen["model"]["worst_error"] <= tight
-    rows = {row["model"]: row for row in table if row["family"] != "reference"}
-    meeting = {
-        name: float(row["online [ms]"]) for name, row in rows.items() if float(row["volume error max [-]"]) <= tight
-    }
-    assert chosen["model"]["name"] == min(meeting, key=meeting.get)  # the fastest of those, as timed in this run
-    assert not any(name.startswith("POD") for name in meeting)
-    assert not (tmp_path / "tight" / "model.npz").exists()
-    assert len(list((cache / "models").iterdir())) == 1  # built once
-    assert [m["errors"] for m in again["models"]] == [m["errors"] for m in loose["models"]]
-    assert again["full_solves"] == {"solved": 0, "kept": 24}
-    out = capsys.readouterr().out
-    assert f"* {chosen['model']['name']}" in out and f"choice: {chosen['model']['name']}" in out
+    return scene, cache, loose, errors
 
 
 def reduced_against(found: dict, by_name: dict, chosen: Path, scene: Path) -> None:
