@@ -136,7 +136,7 @@ def phantom_rows(setup: Setup, phantom: str, scene, reduced, source: Path, timin
     images = patient_images(shape, plan, needed)
     own_scene = scene_of({"side": shape["side"]} | GENERIC, plan.estimate_h, plan.zones)
     shapes = tuple(population.shape_names(scene))
-    prepared: dict[str, dict] = {how: {} for how in (*HOWS, "joint")}
+    prepared: dict[str, dict] = {how: {} for how in HOWS}
     for position in needed:
         pairs = [Pair(*images[position], position)]
         say(phantom, position, ": its own model (registration, build, check)")
@@ -144,10 +144,6 @@ def phantom_rows(setup: Setup, phantom: str, scene, reduced, source: Path, timin
         say(phantom, position, ": the population's model (registration, shape, check)")
         names, end = checked_request(scene, tuple(pairs), plan.setting())
         prepared["population"][position] = population.prepare(scene, reduced, pairs, plan.setting(), names, end, source)
-        if setup.joint:
-            prepared["joint"][position] = population.prepare(
-                scene, reduced, pairs, plan.setting(), (*names, *shapes), end, source
-            )
         for how in HOWS:
             patient = prepared[how][position]
             timings.append({"phantom": phantom, "position": position, "how": how} | patient.seconds)
@@ -173,9 +169,14 @@ def phantom_rows(setup: Setup, phantom: str, scene, reduced, source: Path, timin
                         | one_estimate(fit, errors, offset, plan.truth)
                     )
         if setup.joint:  # without noise: the shape coefficients fitted with the rest
-            fit = Fit([view for p in used for view in prepared["joint"][p].views], (*plan.names, *shapes))
-            found = estimate(fit)
-            registered = prepared["joint"][used[0]].registered[0]["shape_coefficients"]
+            # the population's views, their shape no longer fixed at the registration's
+            views = [
+                replace(view, fixed={n: v for n, v in view.fixed.items() if n not in shapes})
+                for p in used
+                for view in prepared["population"][p].views
+            ]
+            found = estimate(Fit(views, (*plan.names, *shapes)))
+            registered = prepared["population"][used[0]].registered[0]["shape_coefficients"]
             rows.append(
                 {"phantom": phantom, "positions": label, "how": "joint", "noise [%]": 0.0, "replicate": 0}
                 | {"evaluations": found.evaluations, "seconds": found.seconds}
