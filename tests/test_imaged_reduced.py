@@ -19,6 +19,7 @@ from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image
 from lungmech.fem.quantities import Probe, deformed_volume
 from lungmech.fem.solver import Stepping
+from lungmech.rom import body
 from lungmech.rom.imaged import ReducedImage
 from lungmech.rom.indicator import enrichment
 from lungmech.rom.reduced import ReducedModel
@@ -117,6 +118,11 @@ def test_a_model_file_answers_as_the_model_it_was_written_from(built, tmp_path_f
     on_body = load_body(
         path, lambda geometry: inflated_block(Image.motion(STEPPING.start), plane, geometry=geometry), STEPPING
     )
+    # the body holds both samples; each solver works on its own sample's cells alone (a
+    # submesh), the inverse motion's not on the breath's cells too
+    for solver in (on_body.solver, on_body.image.solver):
+        cells = solver.mesh.mesh.topology.index_map(solver.mesh.mesh.topology.dim).size_local
+        assert cells == len(body.cells_of(solver.sample))
     for mu in ({"E": 6.5, "p": 1.2}, {"E": 17.0, "p": 0.7}):
         expected = models["hyper"].solve(mu)
         for loaded in (on_mesh, on_body):
