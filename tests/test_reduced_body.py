@@ -61,6 +61,14 @@ def test_the_body_answers_as_the_model_on_its_full_mesh(built):
     full = on_mesh.model.geometry.mesh.topology.index_map(3).size_global
     sampled = mesh.comm.allreduce(len(body.cells_of(on_mesh.sample)), op=MPI.SUM)
     assert cells == sampled < full
+    # the sampled cells' nodes, shared as on the full mesh: as many as they touch there
+    full_mesh = on_mesh.model.geometry.mesh
+    touched = np.unique(
+        full_mesh.geometry.input_global_indices[full_mesh.geometry.dofmaps[0][body.cells_of(on_mesh.sample)]]
+    )
+    every = np.unique(np.concatenate(mesh.comm.allgather(touched)))
+    nodes = mesh.geometry.index_map().size_global
+    assert nodes == len(every) < 4 * cells
     assert on_body.describe()["cells"] == full and on_body.describe()["dofs"] == 3 * 7 * 3 * 3
     a, b = on_body.solve(POINT), on_mesh.solve(POINT)
     for name, value in _outputs(b).items():
@@ -145,3 +153,27 @@ def test_a_plane_body_of_quadratic_elements_answers_as_its_full_mesh(tmp_path):
     a, b = on_body.solve({"pull": 3.0}), on_mesh.solve({"pull": 3.0})
     for name, value in _outputs(b).items():
         assert _outputs(a)[name] == pytest.approx(value, rel=1e-10, abs=1e-14), name
+
+
+def test_a_file_that_kept_its_cells_apart_answers_the_same(built, tmp_path_factory):
+    """A model file written before bodies shared nodes (each cell with nodes of its own:
+    ``body/order`` alone) loads, cells apart, and answers as one with shared nodes."""
+    comm = MPI.COMM_WORLD
+    path = comm.bcast(str(tmp_path_factory.mktemp("apart") / "m.npz") if comm.rank == 0 else None)
+    if comm.rank == 0:
+        metadata, arrays = store.read(built / "m.npz")
+        del arrays[body.PREFIX + "node_numbers"]
+        metadata.pop("sha256")
+        metadata["sha256"] = store.digest(metadata, arrays)
+        np.savez(path, metadata=json.dumps(metadata), **arrays)
+    comm.barrier()
+    apart, shared = reduce_app.load(path), reduce_app.load(built / "m.npz")
+    mesh = apart.model.geometry.mesh
+    cells = mesh.comm.allreduce(mesh.topology.index_map(3).size_local, op=MPI.SUM)
+    assert (
+        mesh.geometry.index_map().size_global == 4 * cells > shared.model.geometry.mesh.geometry.index_map().size_global
+    )
+    a, b = apart.solve(POINT), shared.solve(POINT)
+    for name, value in _outputs(b).items():
+        assert _outputs(a)[name] == pytest.approx(value, rel=1e-10, abs=1e-14), name
+    assert a.indicator == pytest.approx(b.indicator, rel=1e-8)

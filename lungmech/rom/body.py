@@ -7,13 +7,16 @@ displacements. :func:`export` takes them from the full model (offline); :func:`g
 the cells a mesh of their own and :func:`place` puts the values back (online, with no full mesh:
 the load is flat in the mesh size).
 
-The cells are kept apart: no two share a node. Every integral a hyper-reduced model evaluates is
-a sum of cell integrals and tagged exterior-facet integrals, each a function of its own cell's
-dofs, so cells apart give the sums cells joined give, and a dof the full mesh shares sits, with
-its value, in every cell that holds it. A cell keeps its nodes in the full mesh's local order, and
-their input numbers in the same relative order, so that DOLFINx lays out its dofs as on the full
-mesh (by the input order of the vertices: :mod:`lungmech.parallel.layout`) and numbers its facets
-alike: values are copied position by position, and a facet's tag goes with its local number.
+Sampled cells that share a node in the full mesh share it in the body (a model file written
+before they did keeps its cells apart, each with nodes of its own: the answers are the same, the
+body's vectors longer). Every integral a hyper-reduced model evaluates is a sum of cell integrals
+and tagged exterior-facet integrals, each a function of its own cell's dofs, so cells joined or
+apart give the same sums, and a dof sits, with its value, in every cell that holds it. A cell
+keeps its nodes in the full mesh's local order, and their input numbers in the same relative
+order, so that DOLFINx lays out its dofs as on the full mesh (by the input order of the vertices:
+:mod:`lungmech.parallel.layout`) and numbers its facets alike: values are copied position by
+position, and a facet's tag goes with its local number. A facet two sampled cells share is
+interior to the body as to the full mesh, and carries no exterior-facet integral in either.
 """
 
 from __future__ import annotations
@@ -41,7 +44,8 @@ PREFIX = "body/"
 def export(model: Model, cells: np.ndarray, columns: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     """The owned ``cells`` (local indices) of ``model``'s mesh as arrays, on rank 0 (None on the
     others), in the order of their input indices: ``body/nodes`` (cells, nodes, gdim) at the
-    mesh's current nodes, ``body/order`` the relative input order of each cell's nodes, the cell
+    mesh's current nodes, ``body/node_numbers`` their input numbers (``body/order`` their relative
+    order in each cell, for a reader that keeps cells apart), the cell
     tags and each local facet's tag (``body/facet_tags``, where ``body/facet_tagged``), the
     cell-local values of every column of ``columns`` (name → owned rows of the model's space,
     ``body/<name>``: (cells, cell dofs, columns)) and of each :func:`material_functions` field
@@ -57,6 +61,8 @@ def export(model: Model, cells: np.ndarray, columns: Mapping[str, np.ndarray]) -
     local: dict[str, np.ndarray] = {
         "cells": np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[cells],
         "nodes": mesh.geometry.x[geometry_dofs][:, :, : mesh.geometry.dim],
+        "node_numbers": np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[geometry_dofs],
+        # and their relative order alone: what a lungmech that kept cells apart reads
         "order": np.argsort(np.argsort(mesh.geometry.input_global_indices[geometry_dofs], axis=1), axis=1),
     }
     mesh.topology.create_connectivity(tdim, tdim - 1)
@@ -134,9 +140,9 @@ def geometry(
     count, per_cell, gdim = comm.bcast(_held(arrays, "nodes").shape if on_root else None)
     element = basix.ufl.element("Lagrange", {3: "triangle", 4: "tetrahedron"}[per_cell], 1, shape=(gdim,))
     connectivity, x = np.zeros((0, per_cell), np.int64), np.zeros((0, gdim))
-    if on_root:  # node k of cell i is input node per_cell i + (its rank among the cell's input numbers)
-        connectivity = (per_cell * np.arange(count)[:, None] + _held(arrays, "order")).astype(np.int64)
-        x = np.empty((count * per_cell, gdim))
+    if on_root:
+        connectivity = _input_nodes(arrays, count, per_cell)
+        x = np.empty((int(connectivity.max()) + 1 if count else 0, gdim))
         x[connectivity.reshape(-1)] = _held(arrays, "nodes").reshape(-1, gdim)
     mesh = dmesh.create_mesh(comm, connectivity, element, x)  # type: ignore[arg-type]  # the hint omits UFL elements
     tdim = mesh.topology.dim
@@ -158,6 +164,17 @@ def geometry(
         marked = rows["cell_tagged"].astype(bool)
         cell_tags = dmesh.meshtags(mesh, tdim, cells[marked], rows["cell_tags"][marked].astype(np.int32))
     return Geometry(mesh, facet_tags, boundaries, cell_tags, source=source, whole=dict(whole))
+
+
+def _input_nodes(arrays: Mapping[str, np.ndarray | None], count: int, per_cell: int) -> np.ndarray:
+    """(cells, nodes): each cell's nodes as input numbers of the body, in the relative order of
+    the full mesh's: the rank of a node's full input number among the body's (nodes shared as
+    there), or, for a file that kept cells apart (``body/order``, their relative order alone),
+    per_cell i + its rank among cell i's."""
+    if PREFIX + "node_numbers" in arrays:
+        _, numbers = np.unique(_held(arrays, "node_numbers"), return_inverse=True)
+        return numbers.reshape(count, per_cell).astype(np.int64)
+    return (per_cell * np.arange(count)[:, None] + _held(arrays, "order")).astype(np.int64)
 
 
 def _rows(mesh: dmesh.Mesh, arrays: Mapping[str, np.ndarray | None], names: Sequence[str]) -> dict[str, np.ndarray]:
