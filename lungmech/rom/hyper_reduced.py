@@ -88,8 +88,8 @@ class HyperReducedSolver:
         self._weights = forms  # the forms reach the weights' Functions: keep them alive
         self.reference = reference_state(model) if start is None else np.array(start, dtype=float)
         self.whole = whole if whole is not None else OnMesh(imposed_directions(model, self.reference))
-        cells = np.unique(np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)]))
-        self.mesh = reduced = ReducedMesh(model, cells, whole=_covers(model, cells))
+        cells = np.concatenate([*sample.cells.values(), np.zeros(0, np.int32)])
+        self.mesh = reduced = ReducedMesh(model, cells)
         self.residual_on_sample = self._residual = reduced.form(restricted)  # (cells_visited counts it)
         self._jacobian = reduced.form(ufl.derivative(restricted, model.state, ufl.TrialFunction(model.space)))
         self._vector = fem.assemble_vector(self._residual)
@@ -476,16 +476,3 @@ def _projection(model: Model, basis: Basis, reference: np.ndarray) -> np.ndarray
     owned = basis.vectors.shape[0]
     x = model.state.x.array[:owned] - origin(model, reference)[:owned]
     return gram(dual(model, basis), x[:, None], model.geometry.mesh.comm)[:, 0]
-
-
-def _covers(model: Model, cells: np.ndarray) -> bool:
-    """Whether ``cells`` (unique local indices) are every cell of a body of sampled cells
-    (:mod:`lungmech.rom.body`) on every rank: the body is then its own reduced mesh. A sample
-    that covers part of one (an imaged body's inverse motion, whose sample shares the body
-    with the breath's) gets a submesh of its cells: its vectors, products with the basis and
-    tangent hold its own cells' dofs, not the whole body's."""
-    if model.geometry.whole is None:
-        return False
-    mesh = model.geometry.mesh
-    everything = len(cells) == mesh.topology.index_map(mesh.topology.dim).size_local
-    return bool(mesh.comm.allreduce(everything, op=MPI.LAND))

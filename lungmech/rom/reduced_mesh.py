@@ -14,6 +14,8 @@ same local order): :attr:`ReducedMesh.parent_dofs` restricts any full state arra
 
 from __future__ import annotations
 
+from mpi4py import MPI
+
 import numpy as np
 import ufl
 from dolfinx import fem
@@ -28,16 +30,19 @@ __all__ = ["ReducedMesh"]
 
 class ReducedMesh:
     """The owned ``cells`` (local indices) of ``model``'s mesh as a submesh, with the model's
-    space and a state on it (collective). ``whole``: the model's mesh is the reduced mesh (its
-    cells are all sampled: :mod:`lungmech.rom.body`), its space and state the model's own."""
+    space and a state on it (collective). On a body of sampled cells (:mod:`lungmech.rom.body`)
+    that ``cells`` cover on every rank, the body is the reduced mesh, its space and state the
+    model's own; a sample covering part of one (an imaged body's inverse motion, whose sample
+    shares the body with the breath's) gets a submesh of its cells, so that its vectors and
+    products with the basis hold its own cells' dofs, not the whole body's."""
 
-    def __init__(self, model: Model, cells: np.ndarray, whole: bool = False) -> None:
+    def __init__(self, model: Model, cells: np.ndarray) -> None:
         parent = model.geometry.mesh
         tdim = parent.topology.dim
         self.model = model
         self.cells = np.unique(np.asarray(cells, dtype=np.int32))
         index_map, bs = model.space.dofmap.index_map, model.space.dofmap.index_map_bs
-        if whole:  # the model's own mesh (a body of sampled cells only, rom.body): nothing to move
+        if self._covers_a_body():  # the model's own mesh: nothing to move
             self.mesh, self.entity_map, self.space, self.state = parent, None, model.space, model.state
             self.owned = index_map.size_local * bs
             self.parent_dofs = np.arange((index_map.size_local + index_map.num_ghosts) * bs)
@@ -48,6 +53,15 @@ class ReducedMesh:
         index_map, bs = self.space.dofmap.index_map, self.space.dofmap.index_map_bs
         self.owned = index_map.size_local * bs  # owned sub dofs, unrolled
         self.parent_dofs = self._parent_dofs(bs)
+
+    def _covers_a_body(self) -> bool:
+        """Whether the model's mesh is a body of sampled cells and :attr:`cells` are all of its
+        cells, on every rank (collective)."""
+        if self.model.geometry.whole is None:
+            return False
+        mesh = self.model.geometry.mesh
+        everything = len(self.cells) == mesh.topology.index_map(mesh.topology.dim).size_local
+        return bool(mesh.comm.allreduce(everything, op=MPI.LAND))
 
     def _parent_dofs(self, bs: int) -> np.ndarray:
         """For every local sub dof (owned, then ghost; unrolled), the full space's local dof."""
