@@ -1,0 +1,15 @@
+"""Proper Generalised Decomposition: a model's solution over its whole parameter box, built a
+priori (no full-order snapshot), as u(x, μ) ≈ Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ).
+
+``separated_terms`` reads a linear model's residual as separated terms from its own forms and
+parameter assignment (:mod:`lungmech.pgd.terms`); ``pgd`` builds the terms greedily with an
+update of all of them (:mod:`lungmech.pgd.greedy`) over each parameter's :class:`Axis` of
+cubic splines; the :class:`Decomposition` evaluates u(μ) and its derivatives in μ.
+"""
+
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.greedy import Options, Round, pgd
+from lungmech.pgd.terms import Terms, separated_terms
+
+__all__ = ["Axis", "Decomposition", "Options", "Round", "Terms", "pgd", "separated_terms"]

@@ -1,0 +1,87 @@
+"""A separated representation of a model's solution over its parameter box:
+
+    u(x, μ) = Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ),   ūₖ = Q Rₖ,
+
+its space modes the columns of Q (owned entries of the model's state, orthonormal in the energy
+inner product), each separated term's space part ūₖ = Q Rₖ (terms may share modes) and its
+parameter modes λₖʲ cubic splines on each parameter's axis (:mod:`lungmech.pgd.axes`).
+Evaluation is a product of spline values and two small matrix–vector products; the
+derivatives in μ come from the splines' own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from lungmech.errors import ParameterError
+from lungmech.pgd.axes import Axis
+
+__all__ = ["Decomposition"]
+
+
+@dataclass
+class Decomposition:
+    """Σₖ Q Rₖ Πⱼ λₖʲ(μⱼ): ``modes`` Q (owned entries × m), ``reduced`` R (m × terms) and
+    ``coefficients[j]`` (terms × axis j's size) the splines of axis j, one row per term."""
+
+    axes: tuple[Axis, ...]
+    modes: np.ndarray
+    reduced: np.ndarray
+    coefficients: list[np.ndarray]
+
+    @property
+    def size(self) -> int:
+        """The number of space modes m."""
+        return self.modes.shape[1]
+
+    @property
+    def terms(self) -> int:
+        """The number of separated terms."""
+        return self.reduced.shape[1]
+
+    def units(self, mu: Mapping[str, float]) -> np.ndarray:
+        """The point's unit coordinates s_j, one per axis (a parameter not given: its default);
+        refused outside the box."""
+        s = []
+        for axis in self.axes:
+            parameter = axis.parameter
+            value = float(mu.get(parameter.name, parameter.default))
+            low, high = parameter.range
+            if not low - 1e-12 * abs(high - low) <= value <= high + 1e-12 * abs(high - low):
+                raise ParameterError(f"{parameter.name} = {value:g} is outside the PGD's box [{low:g}, {high:g}]")
+            s.append(parameter.to_unit(value))
+        return np.array(s)
+
+    def products(self, mu: Mapping[str, float]) -> np.ndarray:
+        """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term."""
+        q = np.ones(self.terms)
+        for axis, X, s in zip(self.axes, self.coefficients, self.units(mu)):
+            q *= axis.spline(X.T)(axis.unit(s))[0]
+        return q
+
+    def factors(self, mu: Mapping[str, float]) -> np.ndarray:
+        """The space modes' coefficients at ``mu``: R q(μ) (m)."""
+        return self.reduced @ self.products(mu)
+
+    def factor_derivatives(self, mu: Mapping[str, float]) -> np.ndarray:
+        """∂(R q)/∂μⱼ at ``mu`` (m × parameters): R (λₖʲ'(sⱼ) dsⱼ/dμⱼ Π_{i≠j} λₖⁱ(sᵢ))."""
+        s = self.units(mu)
+        values = [axis.spline(X.T)(axis.unit(sj))[0] for axis, X, sj in zip(self.axes, self.coefficients, s)]
+        slopes = [axis.spline(X.T, 1)(axis.unit(sj))[0] for axis, X, sj in zip(self.axes, self.coefficients, s)]
+        columns = []
+        for j, axis in enumerate(self.axes):
+            others = np.prod([v for i, v in enumerate(values) if i != j], axis=0) if len(values) > 1 else 1.0
+            value = axis.parameter.from_unit(float(s[j]))
+            columns.append(slopes[j] * others / axis.parameter.unit_derivative(value))  # ds/dμ = 1/(dμ/ds)
+        return self.reduced @ np.column_stack(columns)
+
+    def state(self, mu: Mapping[str, float]) -> np.ndarray:
+        """u(μ) on the owned entries of the model's state."""
+        return self.modes @ self.factors(mu)
+
+    def at_nodes(self, j: int) -> np.ndarray:
+        """λₖʲ at axis j's nodes (terms × nodes)."""
+        return self.coefficients[j] @ self.axes[j].basis.T

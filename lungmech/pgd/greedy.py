@@ -1,0 +1,342 @@
+"""The a priori PGD of a separated linear problem: its terms, greedily, with no snapshot.
+
+The problem is the Galerkin one over space and the box B together: find u(x, μ) with
+
+    ∫_B ⟨R(u(μ); μ), δu(μ)⟩ dμ = 0   for every δu,   R(u; μ) = Σ_T κ_T(μ) K_T u − Σ_S φ_S(μ) f_S
+
+(:mod:`lungmech.pgd.terms`; for a symmetric K, the minimum of the potential integrated over
+B). Every integral over B is a product of integrals over the axes, so no point of the box is
+ever solved for. The answer is kept as u(μ) = Q R q(μ), qₖ(μ) = Πⱼ λₖʲ(μⱼ): Q the space modes,
+orthonormal in the energy inner product W, and the k-th separated term's space part Q Rₖ (its
+coefficients folded into R). A new term ū Πⱼ λʲ is found by alternating directions, the others
+fixed:
+
+- **space**: (Σ_T α_T K_T) ū = Σ_S β_S f_S − Σ_T K_T U γ_T, U = Q R, with α_T = Πⱼ ⟨κ_Tʲ λʲ, λʲ⟩,
+  β_S = Πⱼ ⟨φ_Sʲ, λʲ⟩, γ_Tₖ = Πⱼ ⟨κ_Tʲ λʲ, λₖʲ⟩ (⟨·,·⟩ the axis's mean);
+- **axis j**: the Galerkin equations of λʲ on its splines, ū and the other axes fixed,
+
+until ū Πⱼ λʲ changes by less than ``fixed_point`` of itself (from a random start, the same on
+every rank). Its part outside span Q becomes a new space mode; a term (nearly) in the span
+adds none, only its coefficients. Then **every term is updated**, ``sweeps`` times: all
+terms' space coefficients R at once (a Galerkin system of terms × modes), then for each axis
+all terms' splines at once (terms × the axis's size). The greedy stops when a new term's
+amplitude ‖ū Πⱼ λʲ‖ (W, and the box's mean square) falls below ``tolerance`` of the whole's,
+or at ``max_terms``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import cast
+
+from petsc4py import PETSc
+
+import numpy as np
+
+from lungmech import checks
+from lungmech.errors import ParameterError
+from lungmech.fem.linear import factorised
+from lungmech.parallel.linalg import apply, gram, norms
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.terms import Terms
+
+__all__ = ["Options", "Round", "pgd"]
+
+SPAN = 1e-8  # a new term's space part outside span Q below this fraction of it: no new space mode
+
+
+@dataclass(frozen=True)
+class Options:
+    """``max_terms``: the separated terms at most; ``tolerance``: a new term's amplitude,
+    relative to the whole's, at which the greedy stops; ``fixed_point``: the alternating
+    directions' relative change at which a term has converged (at most ``iterations``);
+    ``sweeps``: the update's passes after each new term."""
+
+    max_terms: int = 20
+    tolerance: float = 1e-6
+    fixed_point: float = 1e-5
+    iterations: int = 30
+    sweeps: int = 5
+
+    def __post_init__(self) -> None:
+        checks.integer("PGD max_terms", self.max_terms, minimum=1)
+        checks.real("PGD tolerance", self.tolerance, positive=True)
+        checks.real("PGD fixed_point", self.fixed_point, positive=True)
+        checks.integer("PGD iterations", self.iterations, minimum=1)
+        checks.integer("PGD sweeps", self.sweeps, minimum=0)
+
+
+@dataclass(frozen=True)
+class Round:
+    """One enrichment: the new term's ``amplitude`` relative to the whole's, its alternating
+    directions' ``iterations`` and whether they ``converged``, whether it was ``added`` (not
+    below the tolerance) and added a space mode (``new_mode``), and after the update the
+    box-integrated potential ``potential`` (J: the mean of ½ ⟨K u, u⟩ − ⟨f, u⟩; meaningful
+    for a symmetric K)."""
+
+    amplitude: float
+    iterations: int
+    converged: bool
+    added: bool
+    new_mode: bool
+    potential: float
+
+
+class _Terms:
+    """The terms so far: Q (owned entries × m, W-orthonormal), R (m × n), X[j] (n × axis j's
+    size), and KQ[T] = K_T Q, with the reduced operators and loads Qᵀ K_T Q, Qᵀ f_S."""
+
+    def __init__(self, problem: Terms, owned: int) -> None:
+        self.problem, self.comm = problem, problem.comm
+        self.Q = np.zeros((owned, 0))
+        self.R = np.zeros((0, 0))
+        self.X = [np.zeros((0, axis.size)) for axis in problem.axes]
+        self.KQ = [np.zeros((owned, 0)) for _ in problem.operator]
+
+    @property
+    def count(self) -> int:
+        return self.R.shape[1]
+
+    def values(self) -> list[np.ndarray]:
+        """Each axis's splines at its nodes (terms × nodes)."""
+        return [Xj @ axis.basis.T for axis, Xj in zip(self.problem.axes, self.X)]
+
+    def reduced_operators(self) -> list[np.ndarray]:
+        return [gram(self.Q, KQ, self.comm) for KQ in self.KQ]
+
+    def reduced_loads(self) -> list[np.ndarray]:
+        return [gram(self.Q, load.vector[:, None], self.comm)[:, 0] for load in self.problem.load]
+
+    def add(self, u: np.ndarray, x: list[np.ndarray], W: PETSc.Mat) -> bool:
+        """Add the term ū Πⱼ λʲ (splines ``x``); True if its space part brought a new mode."""
+        r = gram(self.Q, apply(W, u[:, None], self.comm), self.comm)[:, 0]
+        remainder = u - self.Q @ r
+        length = float(norms(remainder[:, None], W, self.comm)[0])
+        new = length > SPAN * float(norms(u[:, None], W, self.comm)[0])
+        if new:
+            q = remainder - self.Q @ gram(self.Q, apply(W, remainder[:, None], self.comm), self.comm)[:, 0]
+            q /= float(norms(q[:, None], W, self.comm)[0])  # twice is enough
+            self.Q = np.column_stack([self.Q, q])
+            self.KQ = [
+                np.column_stack([KQ, apply(t.matrix, q[:, None], self.comm)])
+                for KQ, t in zip(self.KQ, self.problem.operator)
+            ]
+            r = np.append(r, float(gram(q[:, None], apply(W, u[:, None], self.comm), self.comm)[0, 0]))
+            self.R = np.vstack([self.R, np.zeros((1, self.count))])
+        self.R = np.column_stack([self.R, r])
+        self.X = [np.vstack([Xj, xj]) for Xj, xj in zip(self.X, x)]
+        return new
+
+
+def pgd(terms: Terms, W: PETSc.Mat, options: Options = Options()) -> tuple[Decomposition, list[Round]]:
+    """The PGD of ``terms`` (module docstring), its space modes orthonormal in ``W``: the
+    decomposition and one :class:`Round` per enrichment tried. Collective."""
+    owned = len(terms.load[0].vector)
+    found = _Terms(terms, owned)
+    rounds: list[Round] = []
+    while found.count < options.max_terms:
+        u, x, iterations, converged = _new_term(found, options)
+        amplitude = float(norms(u[:, None], W, terms.comm)[0]) * float(
+            np.prod([_rms(a, xj) for a, xj in zip(terms.axes, x)])
+        )
+        whole = float(np.sqrt(_mean_square(found) + amplitude**2))
+        if amplitude <= options.tolerance * whole or whole == 0.0:
+            rounds.append(
+                Round(amplitude / whole if whole else 0.0, iterations, converged, False, False, _potential(found))
+            )
+            break
+        new = found.add(u, x, W)
+        for _ in range(options.sweeps):
+            found.R = _update_space(found)
+            for j in range(len(terms.axes)):
+                found.X[j] = _update_axis(found, j)
+        rounds.append(Round(amplitude / whole, iterations, converged, True, new, _potential(found)))
+    return Decomposition(terms.axes, found.Q, found.R, found.X), rounds
+
+
+def _rms(axis: Axis, x: np.ndarray) -> float:
+    values = axis.basis @ x
+    return float(np.sqrt(axis.weights @ values**2))
+
+
+def _new_term(found: _Terms, options: Options) -> tuple[np.ndarray, list[np.ndarray], int, bool]:
+    """(ū, its splines per axis, iterations, converged): alternating directions for one term,
+    the others fixed."""
+    problem, comm = found.problem, found.comm
+    axes = problem.axes
+    old = found.values()
+    KU = [KQ @ found.R for KQ in found.KQ]  # K_T U, U = Q R
+    # a random start (the same on every rank): from λʲ = 1, a load whose factor has mean 0
+    # over an axis (the sine of a roll over ±30°) would be missed by every iteration
+    rng = np.random.default_rng(found.count)
+    x = [rng.uniform(0.5, 1.5, axis.size) for axis in axes]
+    before = None
+    for iteration in range(1, options.iterations + 1):
+        lam = [axis.basis @ xj for axis, xj in zip(axes, x)]
+        u = _space(problem, KU, lam, old)
+        uKU = [gram(u[:, None], KUT, comm)[0] for KUT in KU]  # ūᵀ K_T Uₖ
+        uKu = [float(gram(u[:, None], apply(t.matrix, u[:, None], comm), comm)[0, 0]) for t in problem.operator]
+        uf = [float(gram(u[:, None], load.vector[:, None], comm)[0, 0]) for load in problem.load]
+        for j, axis in enumerate(axes):
+            x[j] = _axis(problem, j, lam, old, uKu, uKU, uf)
+            if j < len(axes) - 1:  # unit mean square: the amplitude is the space part's and the last axis's
+                x[j] /= max(_rms(axis, x[j]), 1e-300)
+            lam[j] = axis.basis @ x[j]
+        now = (u, [xj.copy() for xj in x])
+        if before is not None and _change(problem, before, now) <= options.fixed_point:
+            return u, x, iteration, True
+        before = now
+    return u, x, options.iterations, False
+
+
+def _space(problem: Terms, KU: list[np.ndarray], lam: list[np.ndarray], old: list[np.ndarray]) -> np.ndarray:
+    """The space step: (Σ_T α_T K_T) ū = Σ_S β_S f_S − Σ_T K_T U γ_T."""
+    axes = problem.axes
+    A = problem.operator[0].matrix.duplicate()
+    A.zeroEntries()
+    rhs = np.zeros(len(problem.load[0].vector))
+    for term, KUT in zip(problem.operator, KU):
+        alpha = np.prod([a.weights @ (k * l * l) for a, k, l in zip(axes, term.factors, lam)])
+        A.axpy(float(alpha), term.matrix, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
+        if KUT.shape[1]:
+            gamma = np.prod(
+                [(o * (a.weights * k * l)).sum(axis=1) for a, k, l, o in zip(axes, term.factors, lam, old)], axis=0
+            )
+            rhs -= KUT @ gamma
+    for load in problem.load:
+        rhs += float(np.prod([a.weights @ (f * l) for a, f, l in zip(axes, load.factors, lam)])) * load.vector
+    solver = factorised(A)
+    u, b = cast(tuple[PETSc.Vec, PETSc.Vec], A.createVecs())  # (right, left)
+    b.array[:] = rhs
+    solver.solve(b, u)
+    reason = int(solver.getConvergedReason())  # type: ignore[call-overload]  # an int at run time; the stubs say a class
+    solution = u.array.copy()
+    for thing in (solver, A, b, u):
+        thing.destroy()
+    if reason < 0:
+        raise ParameterError(f"PGD: the space step's linear solve failed (PETSc reason {reason})")
+    return solution
+
+
+def _axis(
+    problem: Terms,
+    j: int,
+    lam: list[np.ndarray],
+    old: list[np.ndarray],
+    uKu: list[float],
+    uKU: list[np.ndarray],
+    uf: list[float],
+) -> np.ndarray:
+    """Axis j's step: the Galerkin equations of λʲ's splines, ū and the other axes fixed."""
+    axes = problem.axes
+    B, w = axes[j].basis, axes[j].weights
+    others = [i for i in range(len(axes)) if i != j]
+    M = np.zeros((axes[j].size, axes[j].size))
+    r = np.zeros(axes[j].size)
+    for term, s, sU in zip(problem.operator, uKu, uKU):
+        a = s * np.prod([axes[i].weights @ (term.factors[i] * lam[i] ** 2) for i in others])
+        M += a * B.T @ ((w * term.factors[j])[:, None] * B)
+        if len(sU):
+            c = sU * np.prod(
+                [(old[i] * (axes[i].weights * term.factors[i] * lam[i])).sum(axis=1) for i in others], axis=0
+            )
+            r -= B.T @ (w * term.factors[j] * (c @ old[j]))
+    for load, f in zip(problem.load, uf):
+        b = f * np.prod([axes[i].weights @ (load.factors[i] * lam[i]) for i in others])
+        r += b * B.T @ (w * load.factors[j])
+    return np.linalg.solve(M, r)
+
+
+def _products(
+    found: _Terms, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None
+) -> np.ndarray:
+    """P[k, l] = Πⱼ ⟨κʲ λₖʲ, λₗʲ⟩ over the axes (but ``skip``), for the factors κʲ of one term."""
+    P = np.ones((found.count, found.count))
+    for j, (axis, k, l) in enumerate(zip(found.problem.axes, factors, lam)):
+        if j != skip:
+            P = P * ((l * (axis.weights * k)) @ l.T)
+    return P
+
+
+def _loads(
+    found: _Terms, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None
+) -> np.ndarray:
+    """p[k] = Πⱼ ⟨φʲ, λₖʲ⟩ over the axes (but ``skip``), for the factors φʲ of one load."""
+    p = np.ones(found.count)
+    for j, (axis, f, l) in enumerate(zip(found.problem.axes, factors, lam)):
+        if j != skip:
+            p = p * (l @ (axis.weights * f))
+    return p
+
+
+def _update_space(found: _Terms) -> np.ndarray:
+    """Every term's space coefficients R at once, the splines fixed:
+    Σ_T Σₗ P_T[k, l] (Qᵀ K_T Q) Rₗ = Σ_S p_S[k] Qᵀ f_S for each term k (m × n)."""
+    lam, m, n = found.values(), found.Q.shape[1], found.count
+    M = np.zeros((n * m, n * m))
+    rhs = np.zeros(n * m)
+    for term, A in zip(found.problem.operator, found.reduced_operators()):
+        M += np.kron(_products(found, term.factors, lam), A)
+    for load, F in zip(found.problem.load, found.reduced_loads()):
+        rhs += np.kron(_loads(found, load.factors, lam), F)
+    return _solve(M, rhs).reshape(n, m).T
+
+
+def _update_axis(found: _Terms, j: int) -> np.ndarray:
+    """Every term's splines on axis j at once (n × size), R and the other axes fixed:
+    Σ_T Σₗ (Rₖᵀ Qᵀ K_T Q Rₗ) Π_{i≠j} ⟨κ_Tⁱ λₖⁱ, λₗⁱ⟩ M_Tʲ xₗ = Σ_S (Rₖᵀ Qᵀ f_S) Π_{i≠j} ⟨φ_Sⁱ, λₖⁱ⟩ m_Sʲ."""
+    axis, lam, R = found.problem.axes[j], found.values(), found.R
+    B, w = axis.basis, axis.weights
+    M = np.zeros((found.count * axis.size,) * 2)
+    rhs = np.zeros(found.count * axis.size)
+    for term, A in zip(found.problem.operator, found.reduced_operators()):
+        G = (R.T @ A @ R) * _products(found, term.factors, lam, skip=j)
+        M += np.kron(G, B.T @ ((w * term.factors[j])[:, None] * B))
+    for load, F in zip(found.problem.load, found.reduced_loads()):
+        g = (R.T @ F) * _loads(found, load.factors, lam, skip=j)
+        rhs += np.kron(g, B.T @ (w * load.factors[j]))
+    return _solve(M, rhs).reshape(found.count, axis.size)
+
+
+def _solve(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """M x = rhs; in the least-squares sense where terms share a space part and M is singular."""
+    try:
+        return np.linalg.solve(M, rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(M, rhs, rcond=None)[0]
+
+
+def _change(problem: Terms, before: tuple, now: tuple) -> float:
+    """‖a − b‖ / ‖b‖ of two rank-one terms a = ū Πⱼ λʲ (l² in space, the axes' means)."""
+    (ua, xa), (ub, xb) = before, now
+
+    def product(u: np.ndarray, x: list, v: np.ndarray, y: list) -> float:
+        space = float(gram(u[:, None], v[:, None], problem.comm)[0, 0])
+        return space * float(
+            np.prod([a.weights @ ((a.basis @ p) * (a.basis @ q)) for a, p, q in zip(problem.axes, x, y)])
+        )
+
+    aa, bb, ab = product(ua, xa, ua, xa), product(ub, xb, ub, xb), product(ua, xa, ub, xb)
+    return float(np.sqrt(max(aa + bb - 2 * ab, 0.0) / bb)) if bb > 0 else 0.0
+
+
+def _mean_square(found: _Terms) -> float:
+    """The box's mean of ‖Q R q(μ)‖²_W = Σₖₗ (Rₖᵀ Rₗ) Πⱼ ⟨λₖʲ, λₗʲ⟩."""
+    if not found.count:
+        return 0.0
+    ones = tuple(np.ones(len(axis.nodes)) for axis in found.problem.axes)
+    return float(np.sum((found.R.T @ found.R) * _products(found, ones, found.values())))
+
+
+def _potential(found: _Terms) -> float:
+    """The box's mean of ½ ⟨K u, u⟩ − ⟨f, u⟩ of the terms so far."""
+    if not found.count:
+        return 0.0
+    lam, R = found.values(), found.R
+    total = 0.0
+    for term, A in zip(found.problem.operator, found.reduced_operators()):
+        total += 0.5 * float(np.sum((R.T @ A @ R) * _products(found, term.factors, lam)))
+    for load, F in zip(found.problem.load, found.reduced_loads()):
+        total -= float((R.T @ F) @ _loads(found, load.factors, lam))
+    return total
