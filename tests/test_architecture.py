@@ -1,8 +1,9 @@
 """The house rules, read from the source: which part of lungmech may import which.
 
 Layers, lowest first: the base modules (errors, checks), ``parallel``, ``mesh``, ``fem``, ``lung``,
-then ``rom`` and ``registration`` side by side, ``trade`` (which measures every model of a scene)
-above ``rom``, ``twin`` (parameters from images: models and registration meet there) above both,
+then ``rom`` and ``registration`` side by side, ``pgd`` (the a priori surrogate, which will answer
+through ``rom``'s model files and outputs) above ``rom``, ``trade`` (which measures every model of a
+scene) above both, ``twin`` (parameters from images: models and registration meet there) above both,
 and the application ``app`` on top. A module
 imports its own layer and those below, never above; ``rom`` and ``registration`` never import each
 other; generic output code (``app/output.py``) knows no physics. Imports inside functions count.
@@ -27,9 +28,10 @@ LAYERS = {  # part -> the parts it may import (besides the base modules and itse
     "lung": {"parallel", "mesh", "fem"},
     "rom": {"parallel", "mesh", "fem"},
     "registration": {"parallel", "mesh", "fem"},
-    "trade": {"parallel", "mesh", "fem", "lung", "rom"},
-    "twin": {"parallel", "mesh", "fem", "lung", "rom", "registration"},
-    "app": {"parallel", "mesh", "fem", "lung", "rom", "registration", "meshes", "trade", "twin"},
+    "pgd": {"parallel", "mesh", "fem", "lung", "rom"},
+    "trade": {"parallel", "mesh", "fem", "lung", "rom", "pgd"},
+    "twin": {"parallel", "mesh", "fem", "lung", "rom", "pgd", "registration"},
+    "app": {"parallel", "mesh", "fem", "lung", "rom", "pgd", "registration", "meshes", "trade", "twin"},
     "meshes": {"parallel", "mesh"},  # the bundled meshes and the script that makes them
 }
 
