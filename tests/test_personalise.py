@@ -225,7 +225,7 @@ def test_a_model_files_recipe_is_refused_beside_other_physics_or_another_recipe(
     nothing written."""
     from lungmech.app.cli import main
 
-    model = _cohort_files(patient, tmp_path)
+    model = _cohort_files(patient, tmp_path, hyper=False)
     capsys.readouterr()
     other = tmp_path / "other.toml"
     other.write_text(SCENE.format(h=0.035).replace("c2 = 400.0", "c2 = 500.0"))
@@ -280,8 +280,10 @@ def test_a_patient_on_two_ranks_is_estimated_as_on_one(patient):
 COHORT = {"first": "supine", "second": "prone"}  # two patients: the one lung in each position
 
 
-def _cohort_files(patient, folder) -> Path:
-    """The cohort's images and CSV in ``folder`` (every rank's), and its model file (built)."""
+def _cohort_files(patient, folder, hyper: bool = True) -> Path:
+    """The cohort's images and CSV in ``folder`` (every rank's), and its model file (built:
+    hyper-reduced, or without ``hyper`` a Galerkin model of 2 vectors from 2 breaths, what a
+    refusal needs)."""
     from lungmech.app.cli import main
     from lungmech.registration.image import write
 
@@ -298,8 +300,13 @@ def _cohort_files(patient, folder) -> Path:
     comm.barrier()
     model = folder / "lung.npz"
     scene_of(own, 0.035)
-    built = ["rom", "build", str(own / "lung-0.035.toml"), "-o", str(model), "--size", "4", "--samples", "3"]
-    assert main([*built, "--hyper", "ecsw", "--ecsw-tolerance", "1e-3", "-q"]) == 0
+    built = ["rom", "build", str(own / "lung-0.035.toml"), "-o", str(model)]
+    recipe = (
+        ["--size", "4", "--samples", "3", "--hyper", "ecsw", "--ecsw-tolerance", "1e-3"]
+        if hyper
+        else ["--size", "2", "--samples", "2"]
+    )
+    assert main([*built, *recipe, "-q"]) == 0
     return model
 
 

@@ -13,6 +13,7 @@ from lungmech.fem.constraints import Displacement, clamp
 from lungmech.fem.laws import LinearElastic
 from lungmech.fem.materials import NeoHookean
 from lungmech.fem.model import Model
+from lungmech.fem.newton import NewtonSolver
 from lungmech.fem.parameters import Parameter, Parameters
 from lungmech.fem.ramp import Ramp
 from lungmech.fem.solver_options import NewtonOptions
@@ -43,13 +44,11 @@ def beam(parameters, comm=MPI.COMM_WORLD, cells=(8, 3, 3), law=None, constraints
     return model
 
 
-def full_solution(model: Model, point: dict) -> np.ndarray:
+def full_solution(model: Model, point: dict, solver: NewtonSolver) -> np.ndarray:
     """The full model's own answer at ``point`` (its Newton solver, to round-off)."""
     model.set_parameters(point)
     model.reset()
-    solve(
-        model, Stepping(start=0.0, end=1.0, max_step=1.0), NewtonOptions(rtol=1e-13, atol=1e-16), monitor=lambda r: None
-    )
+    solve(model, Stepping(start=0.0, end=1.0, max_step=1.0), solver=solver, monitor=lambda r: None)
     return model.state.x.array[: owned_size(model.space)].copy()
 
 
@@ -57,8 +56,9 @@ def worst_error(model: Model, decomposition, points: list[dict]) -> float:
     """max over ``points`` of ‖u_PGD − u‖_E / ‖u‖_E."""
     comm, worst = model.geometry.mesh.comm, 0.0
     W = inner_product(model, "energy")  # at the defaults: E(μ) scales both norms alike
+    solver = NewtonSolver(model, NewtonOptions(rtol=1e-13, atol=1e-16))
     for point in points:
-        u = full_solution(model, point)
+        u = full_solution(model, point, solver)
         e = decomposition.state(point) - u
         worst = max(worst, float(norms(e[:, None], W, comm)[0] / norms(u[:, None], W, comm)[0]))
     W.destroy()
