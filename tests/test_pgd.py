@@ -23,6 +23,7 @@ from lungmech.mesh import box
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd import Axis, Options, pgd, separated_terms
+from lungmech.pgd.axes import horner
 from lungmech.rom.basis import inner_product
 
 STIFFNESS = Parameter("E", "material.E", 3.0, (1.0, 10.0), log=True)  # Pa, a factor 10
@@ -93,6 +94,19 @@ def test_a_full_turn_is_periodic_and_its_modes_close_smoothly():
     s = np.linspace(0.0, 1.0, 97)
     assert np.abs(curve(s) - (np.cos(2 * np.pi * s) + 0.3 * np.sin(4 * np.pi * s))).max() < 2e-3
     assert not Axis(Parameter("tilt", "loads.gravity.pitch", 0.0, (-90.0, 0.0)), 4).periodic
+
+
+def test_the_online_cubics_are_the_splines():
+    """Axis.polynomials read by horner: the splines' values and slopes, on a clamped and a
+    periodic axis, at random points, the ends and the seam."""
+    rng = np.random.default_rng(3)
+    for axis in (Axis(STIFFNESS, 5), Axis(PITCH, 8)):
+        X = rng.standard_normal((axis.size, 3))  # three curves at once
+        P = axis.polynomials(X)
+        for s in (0.0, 1.0, 0.5, *rng.uniform(0.0, 1.0, 20)):
+            at = axis.unit(np.array([s]))
+            for d in (0, 1):
+                assert np.allclose(horner(P, float(at[0]), d), axis.spline(X, d)(at)[0], rtol=1e-12, atol=1e-12)
 
 
 def test_bad_axes_are_refused_in_one_line():

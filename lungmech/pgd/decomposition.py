@@ -11,13 +11,14 @@ derivatives in μ come from the splines' own.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.pgd.axes import Axis
+from lungmech.pgd.axes import Axis, horner
 
 __all__ = ["Decomposition"]
 
@@ -55,12 +56,21 @@ class Decomposition:
             s.append(parameter.to_unit(value))
         return np.array(s)
 
+    @functools.cached_property
+    def _polynomials(self) -> list[np.ndarray]:
+        """Each axis's splines as cubics per interval (intervals × 4 × terms)."""
+        return [axis.polynomials(X.T) for axis, X in zip(self.axes, self.coefficients)]
+
+    def _at(self, mu: Mapping[str, float], derivative: int = 0) -> list[np.ndarray]:
+        """λₖʲ(sⱼ) (or its ``derivative`` in s), one array of the terms per axis."""
+        return [
+            horner(P, float(axis.unit(s)[0]), derivative)
+            for axis, P, s in zip(self.axes, self._polynomials, self.units(mu))
+        ]
+
     def products(self, mu: Mapping[str, float]) -> np.ndarray:
         """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term."""
-        q = np.ones(self.terms)
-        for axis, X, s in zip(self.axes, self.coefficients, self.units(mu)):
-            q *= axis.spline(X.T)(axis.unit(s))[0]
-        return q
+        return np.prod(self._at(mu), axis=0) if self.axes else np.ones(self.terms)
 
     def factors(self, mu: Mapping[str, float]) -> np.ndarray:
         """The space modes' coefficients at ``mu``: R q(μ) (m)."""
@@ -68,9 +78,7 @@ class Decomposition:
 
     def factor_derivatives(self, mu: Mapping[str, float]) -> np.ndarray:
         """∂(R q)/∂μⱼ at ``mu`` (m × parameters): R (λₖʲ'(sⱼ) dsⱼ/dμⱼ Π_{i≠j} λₖⁱ(sᵢ))."""
-        s = self.units(mu)
-        values = [axis.spline(X.T)(axis.unit(sj))[0] for axis, X, sj in zip(self.axes, self.coefficients, s)]
-        slopes = [axis.spline(X.T, 1)(axis.unit(sj))[0] for axis, X, sj in zip(self.axes, self.coefficients, s)]
+        s, values, slopes = self.units(mu), self._at(mu), self._at(mu, 1)
         columns = []
         for j, axis in enumerate(self.axes):
             others = np.prod([v for i, v in enumerate(values) if i != j], axis=0) if len(values) > 1 else 1.0
