@@ -24,6 +24,7 @@ from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd import Axis, Options, pgd, separated_terms
 from lungmech.pgd.axes import horner
+from lungmech.pgd.indicator import effectivity, indicator
 from lungmech.rom.basis import inner_product
 
 STIFFNESS = Parameter("E", "material.E", 3.0, (1.0, 10.0), log=True)  # Pa, a factor 10
@@ -53,17 +54,18 @@ def full_solution(model: Model, point: dict, solver: NewtonSolver) -> np.ndarray
     return model.state.x.array[: owned_size(model.space)].copy()
 
 
-def worst_error(model: Model, decomposition, points: list[dict]) -> float:
-    """max over ``points`` of ‖u_PGD − u‖_E / ‖u‖_E."""
-    comm, worst = model.geometry.mesh.comm, 0.0
-    W = inner_product(model, "energy")  # at the defaults: E(μ) scales both norms alike
+def relative_errors(model: Model, decomposition, points: list[dict]) -> np.ndarray:
+    """‖u_PGD − u‖_E / ‖u‖_E at each of ``points``, E the energy product at the defaults (E(μ)
+    scales both norms alike)."""
+    comm, found = model.geometry.mesh.comm, []
+    W = inner_product(model, "energy")
     solver = NewtonSolver(model, NewtonOptions(rtol=1e-13, atol=1e-16))
     for point in points:
         u = full_solution(model, point, solver)
         e = decomposition.state(point) - u
-        worst = max(worst, float(norms(e[:, None], W, comm)[0] / norms(u[:, None], W, comm)[0]))
+        found.append(float(norms(e[:, None], W, comm)[0] / norms(u[:, None], W, comm)[0]))
     W.destroy()
-    return worst
+    return np.array(found)
 
 
 # --- Axes -------------------------------------------------------------------------------------
@@ -186,7 +188,7 @@ def test_the_pgd_of_a_beam_under_its_turned_weight_is_the_full_model_everywhere(
     assert not rounds[-1].added  # the greedy stopped on its own: the last term below the tolerance
     potentials = [r.potential for r in rounds]
     assert all(b <= a + 1e-12 * abs(a) for a, b in zip(potentials, potentials[1:]))  # the loss never rises
-    assert worst_error(model, decomposition, Parameters(list(parameters)).sample(50, seed=2)) < 1e-4
+    assert relative_errors(model, decomposition, Parameters(list(parameters)).sample(50, seed=2)).max() < 1e-4
     W.destroy()
     terms.destroy()
 
@@ -208,6 +210,32 @@ def test_the_derivatives_in_mu_are_the_decompositions_own():
         assert np.allclose(found[:, j], difference, rtol=1e-6, atol=1e-8 * np.abs(difference).max())
     with pytest.raises(ParameterError, match="outside the PGD's box"):
         decomposition.factors({"E": 20.0})
+    W.destroy()
+    terms.destroy()
+
+
+@pytest.mark.slow
+def test_the_indicator_is_the_error_times_the_stiffness_ratio():
+    """η = ‖R(u_PGD)‖_{W⁻¹}/‖u_PGD‖_W, W the energy product at E₀ = 3 Pa: with K(μ) = (E/E₀) W on
+    the free dofs, K e = R gives η = (E/E₀) ‖e‖_W / ‖u_PGD‖_W, so η over the true relative
+    error is E/E₀ (to the PGD's own error in the denominator)."""
+    model = beam([STIFFNESS, PITCH], cells=(4, 2, 2))
+    terms = separated_terms(model, (Axis(STIFFNESS, 3), Axis(PITCH, 4)))  # coarse: errors to measure
+    W = inner_product(model, "energy")
+    decomposition, _ = pgd(terms, W, Options(max_terms=1))  # one term of two: a large error
+    points = Parameters([STIFFNESS, PITCH]).sample(8, seed=5)
+    before = dict(model.parameter_values)
+    estimates = indicator(model, decomposition, W, points)
+    assert model.parameter_values == before  # left as it was
+    errors = relative_errors(model, decomposition, points)
+    sizes = [float(norms(decomposition.state(p)[:, None], W, MPI.COMM_WORLD)[0]) for p in points]
+    solver = NewtonSolver(model, NewtonOptions(rtol=1e-13, atol=1e-16))
+    full = [float(norms(full_solution(model, p, solver)[:, None], W, MPI.COMM_WORLD)[0]) for p in points]
+    ratio = np.array([p["E"] / STIFFNESS.default for p in points]) * np.array(full) / np.array(sizes)
+    assert np.all(errors > 1e-3)
+    assert np.allclose(estimates / errors, ratio, rtol=1e-8)
+    low, high = effectivity(estimates, errors)
+    assert low == pytest.approx(ratio.min(), rel=1e-8) and high == pytest.approx(ratio.max(), rel=1e-8)
     W.destroy()
     terms.destroy()
 
