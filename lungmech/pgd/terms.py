@@ -116,9 +116,7 @@ def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
         entries = _factors(model, constants, axes, default)
         _check_separated(model, constants, axes, default, entries)
         varying = sorted({e for e, _ in entries})
-        terms = _assembled(model, constants, default, varying, entries, axes)
-        _check_affine(model, constants, terms, varying)
-    return terms
+        return _assembled(model, constants, default, varying, entries, axes)
 
 
 @contextlib.contextmanager
@@ -278,6 +276,7 @@ def _assembled(
         K.axpy(-1.0, bare)
         unit[e] = (K, f - f0)
     bare.destroy()
+    _check_affine(model, constants, free, K0, f0, unit)
     largest = max([_frobenius(K0), *(_frobenius(K) for K, _ in unit.values())])
     loudest = max([_norm(f0, model), *(_norm(f, model) for _, f in unit.values())])
     used = set()
@@ -302,56 +301,34 @@ def _norm(vector: np.ndarray, model: Model) -> float:
     return float(np.sqrt(model.geometry.mesh.comm.allreduce(float(vector @ vector), op=MPI.SUM)))
 
 
-def _check_affine(model: Model, constants: list[fem.Constant], terms: Terms, varying: list[int]) -> None:
-    """The assembled residual at a random point and state against the terms' (raw values)."""
-    point = model.parameters.sample(1, seed=7)[0]
-    values = _values(model, constants, point)
+def _check_affine(
+    model: Model,
+    constants: list[fem.Constant],
+    free: np.ndarray,
+    K0: PETSc.Mat,
+    f0: np.ndarray,
+    unit: dict[int, tuple[PETSc.Mat, np.ndarray]],
+) -> None:
+    """The residual the model assembles at a random point and state against the affine formula
+    (K₀ + Σ c_e K_e) u − (f₀ + Σ c_e f_e) of the unit assemblies, on the free rows (u is 0 on
+    the imposed ones): a nonlinear R(u), or one not affine in c, differs."""
+    comm = model.geometry.mesh.comm
+    values = _values(model, constants, model.parameters.sample(1, seed=7)[0])
     owned = owned_size(model.space)
-    rng = np.random.default_rng(11 + model.geometry.mesh.comm.rank)
+    rng = np.random.default_rng(11 + comm.rank)
     u = np.zeros(owned)
-    u[terms.free] = rng.standard_normal(len(terms.free))
+    u[free] = rng.standard_normal(len(free))
     model.state.x.array[:owned] = u
     model.state.x.scatter_forward()
-    work = fem.Function(model.space).x
-    found = assemble_owned(jit.form(model.residual), work, owned)[terms.free]
-    expected = _raw_residual(model, constants, values, u, varying, owned)[terms.free]
-    size = np.sqrt(model.geometry.mesh.comm.allreduce(float(expected @ expected), op=MPI.SUM))
-    mismatch = np.sqrt(model.geometry.mesh.comm.allreduce(float((found - expected) @ (found - expected)), op=MPI.SUM))
+    found = assemble_owned(jit.form(model.residual), fem.Function(model.space).x, owned)[free]
+    expected = apply(K0, u[:, None], comm)[:, 0] - f0
+    for e, (K, f) in unit.items():
+        expected += values[e] * (apply(K, u[:, None], comm)[:, 0] - f)
+    expected = expected[free]
+    size = np.sqrt(comm.allreduce(float(expected @ expected), op=MPI.SUM))
+    mismatch = np.sqrt(comm.allreduce(float((found - expected) @ (found - expected)), op=MPI.SUM))
     if not mismatch <= AFFINE * size:
         raise ParameterError(
             f"PGD: the residual is not affine in the state and the parameters' values (mismatch {mismatch / size:.1e} "
             "of its size at a random point): this PGD separates linear models"
         )
-
-
-def _raw_residual(
-    model: Model, constants: list[fem.Constant], values: np.ndarray, u: np.ndarray, varying: list[int], owned: int
-) -> np.ndarray:
-    """K(c) u − f(c) by the affine formula, from assemblies at c's varying entries 0 and 1."""
-    jacobian, residual = jit.form(model.jacobian), jit.form(model.residual)
-    work = fem.Function(model.space).x
-    state = model.state.x.array.copy()
-
-    def product(at: np.ndarray) -> np.ndarray:
-        _set(constants, at)
-        model.state.x.array[:] = 0.0  # K and f at u = 0, as the terms: a nonlinear R(u) differs
-        model.state.x.scatter_forward()
-        K = assemble_matrix(jacobian)
-        K.assemble()
-        f = -assemble_owned(residual, work, owned)
-        model.state.x.array[:] = state
-        model.state.x.scatter_forward()
-        Ku = apply(K, u[:, None], model.geometry.mesh.comm)[:, 0]
-        K.destroy()
-        return Ku - f
-
-    base = values.copy()
-    base[varying] = 0.0
-    r0 = product(base)
-    total = r0.copy()
-    for e in varying:
-        unit = base.copy()
-        unit[e] = 1.0
-        total += values[e] * (product(unit) - r0)
-    _set(constants, values)
-    return total
