@@ -22,7 +22,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, NoReturn
 
 from lungmech._threads import cap_threads
-from lungmech.app import personalise_cli, rom_cli, trade_cli
+from lungmech.app import personalise_cli, pgd_cli, rom_cli, trade_cli
 from lungmech.app import registration_cli as registration
 from lungmech.app.arguments import RESULTS, check_ensemble, common, ensemble_of, ensemble_options, logging_comm, setup
 from lungmech.errors import Interrupted, LungmechError, ParameterError
@@ -60,6 +60,7 @@ def parser() -> argparse.ArgumentParser:
     )
     ensemble_options(run, "with --sweep, the points' solves")
     rom_cli.add_commands(commands)
+    pgd_cli.add_commands(commands)
     trade_cli.add_commands(commands)
     personalise_cli.add_commands(commands)
     registration.add_commands(commands)
@@ -139,6 +140,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         return trade_cli.run(args)
     if args.command in personalise_cli.COMMANDS:
         return personalise_cli.run(args)
+    if args.command in pgd_cli.COMMANDS:
+        return pgd_cli.run(args)
     if args.command == "rom" and args.action == "build":
         return rom_cli.build(args)
     return _run(args)

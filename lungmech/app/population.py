@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mpi4py import MPI
 
@@ -56,6 +57,9 @@ from lungmech.registration import metrics
 from lungmech.registration.library import ShapeModes
 from lungmech.registration.sobolev import Options, register
 from lungmech.rom.reduced import ReducedModel
+
+if TYPE_CHECKING:
+    from lungmech.pgd.model import PGDModel
 from lungmech.twin.fit import View
 from lungmech.twin.shape import fit_shape
 from lungmech.twin.surface import SurfaceNodes, surface_data, surface_nodes
@@ -106,7 +110,7 @@ def personalise(
 
 def prepare(
     scene: Scene,
-    reduced: ReducedModel,
+    reduced: ReducedModel | PGDModel,
     pairs: Sequence[Pair],
     setting: Setting,
     estimated: Sequence[str],
@@ -185,9 +189,9 @@ def _at(template: Geometry, field: fem.Function, points: np.ndarray) -> np.ndarr
     return Probe(template.mesh, points.tolist())(field)
 
 
-def check_probes(reduced: ReducedModel, surface: SurfaceNodes, source: str | Path) -> None:
+def check_probes(reduced: ReducedModel | PGDModel, surface: SurfaceNodes, source: str | Path) -> None:
     """The model's probes must be its template's surface nodes, in their order."""
-    probes = np.asarray(reduced.outputs.probe_points, dtype=float).reshape(-1, 3)
+    probes = np.asarray(reduced.probe_points, dtype=float).reshape(-1, 3)
     if probes.shape != surface.points.shape or not np.allclose(probes, surface.points, rtol=0, atol=1e-9):
         raise ModelFileError(
             f"'{source}' is a population's model, but its probes are not its lung's surface nodes: build it with "

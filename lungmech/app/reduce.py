@@ -45,6 +45,7 @@ from lungmech.rom.reduced import ReducedModel
 
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
+    from lungmech.pgd.model import PGDModel
 
 __all__ = [
     "build",
@@ -146,7 +147,7 @@ def build(
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], tuple(scales), tolerance, batch)
     ecsw = reductor.ECSW(hyper_tolerance, judge, hyper_size) if hyper else None
     where = _training_solves(scene, ensemble, cache, comm)
-    path = store._suffix(path)
+    path = store.suffixed(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
         return _build(scene, [(staging, ecsw, None)], recipe, training, inner, comm, solves=where)
 
@@ -313,7 +314,7 @@ def _build(
 
 def reduced_order(
     path: str | Path, inside: bool = False, fields: bool = True, content: tuple[dict, dict] | None = None
-) -> Callable[[Scene, MPI.Comm], ReducedModel]:
+) -> Callable[[Scene, MPI.Comm], ReducedModel | PGDModel]:
     """The ``model`` of :func:`lungmech.app.run.run` for the reduced model stored at ``path``: a
     function of the run's scene and communicator. ``inside``: the run's scene is the one the
     file holds (:func:`embedded_scene`), else it is checked to model the same physics. Without
@@ -323,8 +324,8 @@ def reduced_order(
     return lambda scene, comm: _loaded(Path(path), scene, comm, inside, fields, content)
 
 
-def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False) -> ReducedModel:
-    """The reduced model stored at ``path``, self-contained: its scene and mesh come from the file;
+def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False) -> ReducedModel | PGDModel:
+    """The reduced (or PGD) model stored at ``path``, self-contained: its scene and mesh come from the file;
     a hyper-reduced one on its body alone unless ``fields`` (a full field) are wanted. Collective."""
     content = store.read_on_root(path, comm)
     with embedded_scene(path, comm, content=content) as scene:
@@ -333,7 +334,7 @@ def load(path: str | Path, comm: MPI.Comm = MPI.COMM_WORLD, fields: bool = False
 
 def _loaded(
     path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content: tuple[dict, dict] | None
-) -> ReducedModel:
+) -> ReducedModel | PGDModel:
     content = content if content is not None else store.read_on_root(path, comm)
     record = content[0]["extra"].get("reduced", {})
     image = image_of(scene) if record.get("image") is not None else None  # (a file of 0.2 moved the reference)
@@ -343,7 +344,9 @@ def _loaded(
     return _reduced(path, build_model(scene, comm, image=image), scene, inside, content)
 
 
-def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]) -> ReducedModel:
+def _reduced(
+    path: Path, model: Model, scene: Scene, inside: bool, content: tuple[dict, dict]
+) -> ReducedModel | PGDModel:
     """The reduced model of ``path`` on ``model`` (the scene's, just built on its mesh).
     ``inside``: ``scene`` is the file's own; otherwise it must model the physics of the file's
     scene. Probe points are located on the mesh as built (for an imaged body: in the image)."""
@@ -354,6 +357,13 @@ def _reduced(path: Path, model: Model, scene: Scene, inside: bool, content: tupl
             check_physics(path, physics(built), scene)
     if layout(model.space).fingerprint != metadata["extra"]["imaged_fingerprint"]:
         raise ModelFileError(f"{path} was built for another mesh or discretisation than this scene's")
+    if metadata["kind"] == "pgd":  # its probes' map was made at the build's points
+        from lungmech.pgd.store import load_pgd  # (SciPy's splines: only for a PGD model)
+
+        points = metadata["extra"]["pgd"]["probes"]
+        if [[float(c) for c in p] for p in scene.output.probes] != points:
+            raise ModelFileError(f"{path} was built with other probe points than this scene's [output] probes")
+        return load_pgd(path, model, scene.stepping, content)
     probes = Probe(model.geometry.mesh, scene.output.probes) if scene.output.probes else ()
     return store.load_reduced(path, model, scene.stepping, scene.newton, probes, content=(metadata, arrays))
 

@@ -55,6 +55,7 @@ __all__ = [
     "Solution",
     "Step",
     "approach",
+    "checked_times",
     "output_times",
     "trajectory",
 ]
@@ -197,7 +198,7 @@ def trajectory(
     ``observe()`` is called at every output time, after its outputs (a reduced model's error
     estimate); ``on_step`` sees every state (:class:`Step`, with ``indicator``). Collective."""
     model, stepping = owner.model, owner.stepping
-    wanted = owner.times if times is None else _checked_times(times, stepping)
+    wanted = owner.times if times is None else checked_times(times, stepping)
     tic = time.perf_counter()
     rows, states, derived = [], [], []
 
@@ -256,7 +257,7 @@ def trajectory(
     )
 
 
-def _checked_times(times: Sequence[float], stepping: Stepping) -> np.ndarray:
+def checked_times(times: Sequence[float], stepping: Stepping) -> np.ndarray:
     """The output times asked for, sorted, each a number in [start, end] of the load path."""
     try:
         asked = np.unique(np.asarray(times, dtype=float).reshape(-1))

@@ -42,7 +42,7 @@ from lungmech.parallel.linalg import apply
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.axes import Axis
 
-__all__ = ["LoadTerm", "Term", "Terms", "separated_terms"]
+__all__ = ["LoadTerm", "Term", "Terms", "constants", "separated_terms", "values"]
 
 AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the terms'
 RANK = 1e-13  # singular values of a two-parameter value below this fraction of the largest are round-off
@@ -51,10 +51,12 @@ RANK = 1e-13  # singular values of a two-parameter value below this fraction of 
 @dataclass(frozen=True)
 class Term:
     """One separated operator term: ``factors[j]`` its function of axis j at that axis's
-    nodes, ``matrix`` its K_T."""
+    nodes, ``matrix`` its K_T, ``entry`` the value c_e it comes from (the index into
+    :func:`values`; None for K₀, the fixed values'). Terms of one entry share its matrix."""
 
     factors: tuple[np.ndarray, ...]
     matrix: PETSc.Mat
+    entry: int | None = None
 
 
 @dataclass(frozen=True)
@@ -109,14 +111,26 @@ def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
     for imposed in model.imposed:
         if np.any(imposed.base != 0.0):
             raise ParameterError("PGD: an imposed displacement is not zero; only zero ones are separated")
-    constants = list(dict.fromkeys([*model.residual.constants(), *model.jacobian.constants()]))
-    with _kept(model, constants):
-        default = _values(model, constants, model.parameter_values)
+    held = constants(model)
+    with _kept(model, held):
+        default = _values(model, held, model.parameter_values)
         _no_field_moves(model, axes)
-        entries = _factors(model, constants, axes, default)
-        _check_separated(model, constants, axes, default, entries)
+        entries = _factors(model, held, axes, default)
+        _check_separated(model, held, axes, default, entries)
         varying = sorted({e for e, _ in entries})
-        return _assembled(model, constants, default, varying, entries, axes)
+        return _assembled(model, held, default, varying, entries, axes)
+
+
+def constants(model: Model) -> list[fem.Constant]:
+    """The Constants of the model's residual and Jacobian, in one order: the values c."""
+    return list(dict.fromkeys([*model.residual.constants(), *model.jacobian.constants()]))
+
+
+def values(model: Model) -> np.ndarray:
+    """The values c the model's parameters set now: every entry of :func:`constants`, flattened
+    and concatenated (a term's ``entry`` indexes it)."""
+    held = constants(model)
+    return np.concatenate([np.ravel(c.value) for c in held]) if held else np.zeros(0)
 
 
 @contextlib.contextmanager
@@ -283,7 +297,7 @@ def _assembled(
     for e, factors in parts:
         K, f = unit[e]
         if _frobenius(K) > 1e-13 * largest:
-            operator.append(Term(factors, K))
+            operator.append(Term(factors, K, e))
             used.add(e)
         if _norm(f, model) > 1e-13 * loudest:
             load.append(LoadTerm(factors, f))
@@ -328,7 +342,8 @@ def _check_affine(
     size = np.sqrt(comm.allreduce(float(expected @ expected), op=MPI.SUM))
     mismatch = np.sqrt(comm.allreduce(float((found - expected) @ (found - expected)), op=MPI.SUM))
     if not mismatch <= AFFINE * size:
+        how = f"mismatch {mismatch / size:.1e} of its size" if np.isfinite(mismatch) else "not a finite number"
         raise ParameterError(
-            f"PGD: the residual is not affine in the state and the parameters' values (mismatch {mismatch / size:.1e} "
-            "of its size at a random point): this PGD separates linear models"
+            f"PGD: the residual is not affine in the state and the parameters' values ({how} at a random point): "
+            "this PGD separates linear models"
         )

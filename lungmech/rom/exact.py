@@ -130,8 +130,10 @@ def affine(
         f0 = at(np.zeros(size))
         F1 = np.column_stack([at(unit) - f0 for unit in np.eye(size)]) if size else np.zeros((f0.size, 0))
         z = _test_point(directions, comm)
-        off = np.abs(at(z) - (f0 + F1 @ z)).max(initial=0.0)
-    if off > check * max(np.abs(f0).max(initial=0.0), np.finfo(float).tiny):
+        found = at(z)
+        off = np.abs(found - (f0 + F1 @ z)).max(initial=0.0)
+    size = max(np.abs(f0).max(initial=0.0), np.abs(found).max(initial=0.0), np.finfo(float).tiny)  # f₀ = 0 at rest
+    if off > check * size:
         raise ParameterError(f"this functional is not affine in the state (off by {off:.2e} at a test point)")
     return f0, F1
 

@@ -163,6 +163,11 @@ class ReducedModel:
         """The number of reduced unknowns k."""
         return self.basis.size
 
+    @property
+    def probe_points(self) -> tuple[tuple[float, ...], ...]:
+        """The points whose displacement is an output (m)."""
+        return self.outputs.probe_points
+
     def solve(
         self,
         mu: Mapping[str, float] | None = None,

@@ -66,7 +66,7 @@ def save(
     Collective. The file is written to a staging name and moved into place; an existing file is
     replaced only if it is a lungmech reduced model (see :mod:`lungmech.parallel.destination`).
     """
-    path = _suffix(path)
+    path = suffixed(path)
     with output_file(path, model.geometry.mesh.comm, inputs=inputs, ours=is_model) as staging:
         write(staging, model, basis, extra, arrays)
     return path
@@ -123,10 +123,11 @@ def digest(metadata: dict, arrays: dict[str, np.ndarray]) -> str:
     return sha.hexdigest()
 
 
-def _suffix(path: str | Path) -> Path:
+def suffixed(path: str | Path) -> Path:
+    """``path`` as a model file's name (.npz), or refused in one line."""
     path = Path(path)
     if path.suffix != ".npz":
-        raise ParameterError(f"reduced models are saved as .npz (got {path.name or path})")
+        raise ParameterError(f"model files are saved as .npz (got {path.name or path})")
     return path
 
 
@@ -317,7 +318,7 @@ def load_reduced(
         raise ModelFileError(f"'{path}' is damaged: it holds no record of its reduced model; rebuild it")
     nodes.place_canonical(*nodes.displacement_space(model.geometry.mesh), arrays["reference_nodes"])
     basis, _, arrays = load(path, model, content=(metadata, arrays))  # checked on the mesh as placed
-    _check_orthonormal(path, model, basis)
+    check_orthonormal(path, model, basis)
     where = layout(model.space)
     owned = basis.vectors.shape[0]
     model.reset()
@@ -336,7 +337,7 @@ def load_reduced(
     image = None
     if record.get("image") is not None:
         image = imaged.placed(model, record["image"], arrays, newton, str(path))
-        _check_orthonormal(path, image.inverse, image.basis)
+        check_orthonormal(path, image.inverse, image.basis)
     reduced = ReducedModel(
         model,
         basis,
@@ -461,7 +462,7 @@ def _sample_on_body(arrays: dict) -> dict[str, np.ndarray]:
     return {name: np.searchsorted(cells, a) if name.endswith("_cells") else a for name, a in data.items()}
 
 
-def _check_orthonormal(path: str | Path, model: Model, basis: Basis) -> None:
+def check_orthonormal(path: str | Path, model: Model, basis: Basis) -> None:
     """Refuse a basis that is not orthonormal in its inner product: |VᵀWV − I| > ORTHONORMAL."""
     comm = model.geometry.mesh.comm
     W = inner_product(model, basis.inner_product)

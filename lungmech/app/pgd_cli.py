@@ -1,0 +1,57 @@
+"""The PGD command of the CLI: ``pgd build`` (its models are solved with ``rom solve``, the one
+online path of every model file)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lungmech.app.arguments import setup
+
+COMMANDS = ("pgd",)
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """``pgd build`` under ``commands``."""
+    pgd = commands.add_parser("pgd", help="a PGD model: the solution over the whole [parameters] box, no full solve")
+    actions = pgd.add_subparsers(dest="action", required=True)
+    build = actions.add_parser(
+        "build", help="build a scene's PGD model a priori; solve it with 'lungmech rom solve FILE --set/--sweep'"
+    )
+    build.add_argument("scene", nargs="?", help="scene file (.toml) with [parameters], or a bundled scene by name")
+    build.add_argument("-o", "--output", required=True, help="PGD model file (.npz)")
+    build.add_argument("--modes", type=int, default=20, help="separated terms at most (default 20)")
+    build.add_argument(
+        "--intervals", type=int, default=32, help="cubic-spline intervals on each parameter's axis (default 32)"
+    )
+    build.add_argument(
+        "--tolerance",
+        type=float,
+        default=1e-6,
+        help="stop when a new term's amplitude is below this fraction of the whole's, in the box's mean energy "
+        "norm (default 1e-6)",
+    )
+    build.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``lungmech pgd build``: the model file, and its summary in a few lines."""
+    from lungmech.app.pgd import build
+
+    comm, scene, name, _ = setup(args)
+    if comm.rank == 0:
+        print(f"lungmech: building the PGD model of {name}", flush=True)
+    summary = build(scene, args.output, args.modes, args.intervals, args.tolerance, comm)
+    if comm.rank == 0:
+        seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
+        stopped = (
+            f"the last term's amplitude {summary['last_amplitude']:.1e} below the tolerance"
+            if summary["converged"]
+            else f"at --modes {args.modes} (the last term's amplitude {summary['last_amplitude']:.1e}, relative)"
+        )
+        print(
+            f"lungmech: {summary['terms']} separated terms on {summary['modes']} space modes over "
+            f"{', '.join(summary['parameters'])} ({summary['dofs']} dofs; stopped {stopped}; {seconds}); "
+            f"saved to {Path(args.output).resolve()}"
+        )
+    return 0

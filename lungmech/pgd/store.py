@@ -1,0 +1,94 @@
+"""PGD models in model files: the same ``.npz`` files as reduced models (:mod:`lungmech.rom.store`:
+plain arrays, a digest, the canonical dof order, the mesh's fingerprint checked on loading).
+
+The space modes Q are the file's basis (kind "pgd", orthonormal in the energy inner product,
+checked on loading); beside them the terms' coefficients R, each axis's spline coefficients and
+the online outputs (:class:`~lungmech.pgd.model.Online`), and a record under ``extra["pgd"]``:
+each axis's parameter and intervals, how the model was built, its probe points. The axes are
+made again on loading from the model's own parameters, which must be the record's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from lungmech.errors import ModelFileError
+from lungmech.fem.model import Model
+from lungmech.fem.solver import Stepping
+from lungmech.parallel.layout import layout
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.model import Online, PGDModel
+from lungmech.rom import store
+from lungmech.rom.basis import Basis
+
+__all__ = ["is_pgd", "load_pgd", "write_pgd"]
+
+KIND = "pgd"
+
+
+def is_pgd(metadata: Mapping) -> bool:
+    """Whether a model file's metadata (:func:`lungmech.rom.store.read`) is a PGD model's."""
+    return metadata.get("kind") == KIND and isinstance(metadata.get("extra", {}).get("pgd"), dict)
+
+
+def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arrays: dict | None = None) -> None:
+    """Collective: ``found`` as a model file at ``path`` (no checks: the caller stages the file,
+    :mod:`lungmech.parallel.destination`), with the caller's ``extra`` metadata and canonical
+    ``arrays`` beside it."""
+    model, d = found.model, found.decomposition
+    weights = np.linalg.norm(d.reduced, axis=1)  # each space mode's share of the terms
+    basis = Basis(d.modes, weights, KIND, "energy", layout(model.space).fingerprint, {"method": "a priori PGD"})
+    record = {
+        "axes": [{"parameter": axis.parameter.name, "intervals": axis.intervals} for axis in d.axes],
+        "probes": [list(p) for p in found.probe_points],
+        "built": found.built,
+    }
+    content = {"pgd/reduced": d.reduced} | {f"pgd/axis/{j}": X for j, X in enumerate(d.coefficients)}
+    content |= {f"pgd/online/{name}": a for name, a in found.online.arrays().items()}
+    store.write(path, model, basis, extra=(extra or {}) | {"pgd": record}, arrays=content | (arrays or {}))
+
+
+def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[dict, dict]) -> PGDModel:
+    """Collective: the PGD model of the file at ``path`` (``content``, as
+    :func:`lungmech.rom.store.read_on_root` gave it) on ``model``, the scene's, with the load
+    path ``stepping``. Refused in one line where the file is not one, was built on another mesh,
+    over other parameters, or its modes are not orthonormal."""
+    metadata, _ = content
+    if not is_pgd(metadata):
+        raise ModelFileError(f"'{path}' is not a PGD model file (its basis is {metadata.get('kind')!r})")
+    record = metadata["extra"]["pgd"]
+    basis, _, arrays = store.load(path, model, content=content)
+    store.check_orthonormal(path, model, basis)
+    comm = model.geometry.mesh.comm
+    held = comm.bcast({name: a for name, a in arrays.items() if name.startswith("pgd/")} if comm.rank == 0 else None)
+    names = [axis["parameter"] for axis in record["axes"]]
+    if names != list(model.parameters.names):
+        raise ModelFileError(
+            f"'{path}' was built over the parameters {', '.join(names) or 'none'}; this scene's are "
+            f"{', '.join(model.parameters.names) or 'none'}"
+        )
+    try:
+        axes = tuple(Axis(p, int(a["intervals"])) for p, a in zip(model.parameters, record["axes"]))
+        coefficients = [held[f"pgd/axis/{j}"] for j in range(len(axes))]
+        decomposition = Decomposition(axes, basis.vectors, held["pgd/reduced"], coefficients)
+        online = Online.of(
+            {name[len("pgd/online/") :]: a for name, a in held.items() if name.startswith("pgd/online/")}
+        )
+        _check_shapes(decomposition, online)
+    except (KeyError, ValueError) as error:
+        raise ModelFileError(f"'{path}' is damaged: its PGD arrays are incomplete ({error}); rebuild it") from None
+    return PGDModel(model, decomposition, online, stepping, record["probes"], record["built"])
+
+
+def _check_shapes(d: Decomposition, online: Online) -> None:
+    """The arrays agree in their sizes (m modes, n terms, each axis's splines), else ValueError."""
+    m, n = d.modes.shape[1], d.reduced.shape[1]
+    if d.reduced.shape[0] != m or online.energy.shape[1:] != (m, m) or online.probes.shape[1:] != (m,):
+        raise ValueError(f"{m} modes, R {d.reduced.shape}, energy {online.energy.shape}, probes {online.probes.shape}")
+    for axis, X in zip(d.axes, d.coefficients):
+        if X.shape != (n, axis.size):
+            raise ValueError(f"axis {axis.parameter.name}: {X.shape}, expected {(n, axis.size)}")

@@ -1,0 +1,210 @@
+"""A PGD model answers solve(μ) like every model (lungmech.pgd.model): against the scene's full
+model at random points of its box, along its load path, with its load factor and its
+sensitivities; saved and loaded through the model files, refused on another mesh or
+physics; `lungmech pgd build` and `lungmech rom solve --set/--sweep` on it (one online path)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+
+from lungmech.app import reduce
+from lungmech.app import scene as scenes
+from lungmech.app.cli import main
+from lungmech.app.pgd import build as build_file
+from lungmech.app.run import build_model, full_order_model
+from lungmech.errors import ModelFileError, ParameterError
+from lungmech.fem.solver import Stepping
+from lungmech.pgd.model import build
+
+# A steel-like beam 2 × 0.5 × 0.5 m clamped at x = 0, under its weight (turned by the pitch, over
+# a full turn) and a dead pressure on its free end; E over a factor 10: displacements of mm.
+SCENE = """
+title = "a linear elastic beam under its own weight and an end pressure"
+[geometry]
+builder = "box"
+cells = [{cells}, 3, 3]
+lengths = [2.0, 0.5, 0.5]
+[material]
+law = "linear"
+E = 3e6
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "x0"
+[[loads]]
+type = "gravity"
+name = "gravity"
+density = 1000.0
+acceleration = [0.0, 0.0, -9.81]
+[[loads]]
+type = "normal_pressure"
+name = "tip"
+boundary = "x1"
+value = {tip}
+[stepping]
+end = 1.0
+max_step = 0.5
+times = [0.5]
+[parameters.E]
+target = "material.E"
+range = [1e6, 1e7]
+scale = "log"
+[parameters.pitch]
+target = "loads.gravity.pitch"
+range = [-180.0, 180.0]
+[parameters.tip]
+target = "loads.tip.value"
+range = [-2e3, 2e3]
+[output]
+probes = [[2.0, 0.25, 0.25], [1.0, 0.5, 0.5]]
+"""
+# the splines' error, relative, on 32 intervals (the default): in the values 1.8e-6 at these points
+# (16: 2.9e-5; 64: 1.3e-7), in their derivatives 7.9e-3 (16: 5.2e-2; 64: 4.4e-4)
+CLOSE, SLOPES = 2e-5, 2e-2
+
+
+def written(folder: Path, cells: int = 8, tip: float = 500.0, name: str = "beam.toml") -> Path:
+    path = folder / name
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(SCENE.format(cells=cells, tip=tip))
+    MPI.COMM_WORLD.barrier()
+    return path
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory):
+    """The scene, its PGD model (built in Python) and its full model."""
+    folder = tmp_path_factory.mktemp(f"pgd-model-{MPI.COMM_WORLD.size}")
+    folder = Path(MPI.COMM_WORLD.bcast(str(folder)))
+    scene = scenes.load(written(folder))
+    model, _ = build(build_model(scene), scene.stepping, scene.output.probes)
+    return folder, scene, model, full_order_model(scene)
+
+
+def relative(found: np.ndarray, exact: np.ndarray, denominator: float) -> float:
+    return float(np.abs(np.asarray(found) - np.asarray(exact)).max() / denominator)
+
+
+def test_a_pgd_model_answers_as_the_full_model_at_random_points_of_its_box(beam):
+    """At 6 Sobol' points: the volume (over its change), the strain energy, the probes (over
+    their motion) and the end pressure as applied, at both output times; and their derivatives
+    in μ (over the largest of each), the splines' own."""
+    _, scene, pgd, full = beam
+    assert pgd.describe()["solver"].startswith("PGD evaluation")
+    for point in pgd.parameters.sample(6, seed=4):
+        a, b = pgd.solve(point, sensitivities=True), full.solve(point, sensitivities=True)
+        assert np.array_equal(a.times, b.times) and list(a.times) == [0.5, 1.0]
+        change = np.abs(b.outputs["volume"] - a.start.details["volume"]).max()
+        assert relative(a.outputs["volume"], b.outputs["volume"], change) < CLOSE
+        assert (
+            relative(a.outputs["strain_energy"], b.outputs["strain_energy"], b.outputs["strain_energy"].max()) < CLOSE
+        )
+        assert relative(a.outputs["probes"], b.outputs["probes"], np.abs(b.outputs["probes"]).max()) < CLOSE
+        assert np.allclose(a.outputs["loads/tip"], b.outputs["loads/tip"], rtol=1e-14)
+        for name in ("volume", "strain_energy", "probes", "loads/tip"):
+            exact = b.sensitivities[name]
+            assert relative(a.sensitivities[name], exact, np.abs(exact).max()) < SLOPES, name
+        assert a.newton_iterations == 0 and a.start.kind == "rest"
+
+
+def test_its_path_and_load_factor_are_the_linear_models(beam):
+    """Any time of the path and a load factor: the full model's answer there (linear, from rest,
+    one ramp); several factors for the loads are refused in one line."""
+    _, _, pgd, full = beam
+    point = {"E": 2e6, "pitch": 75.0, "tip": -800.0}
+    a = pgd.solve(point, times=[0.3], scale=0.5)
+    b = full.solve(point, times=[0.3], scale=0.5)
+    assert relative(a.outputs["probes"], b.outputs["probes"], np.abs(b.outputs["probes"]).max()) < CLOSE
+    assert a.outputs["loads/tip"][0] == pytest.approx(0.3 * 0.5 * -800.0)
+    with pytest.raises(ParameterError, match="one finite load factor for every load"):
+        pgd.solve(point, scale=[1.0, 2.0])
+    with pytest.raises(ParameterError, match=r"'E' = 2e\+07 Pa is outside its range"):
+        pgd.solve({"E": 2e7})
+    steps = []
+    pgd.solve(point, on_step=steps.append)
+    assert [s.phase for s in steps] == ["start", "path", "path"] and steps[0].state().sum() == 0.0
+
+
+def test_a_model_it_cannot_answer_is_refused_in_one_line_before_any_work(beam, tmp_path):
+    """Loads not at rest at the path's start, no parameter, no interval."""
+    _, scene, _, _ = beam
+    model = build_model(scene)
+    with pytest.raises(ParameterError, match="ramp is 0.5, not 0, at the path's start"):
+        build(model, Stepping(start=0.5, end=1.0))
+    with pytest.raises(ParameterError, match="intervals"):
+        build(model, scene.stepping, intervals=0)
+    bare = tmp_path / "bare.toml"
+    bare.write_text(SCENE.format(cells=4, tip=1.0).split("[parameters.E]")[0])
+    plain = scenes.load(bare)
+    with pytest.raises(ParameterError, match="no parameters to separate"):
+        build(build_model(plain), plain.stepping)
+
+
+def test_a_pgd_file_is_built_and_solved_through_the_cli_like_the_full_model(beam, tmp_path, capsys):
+    """`pgd build` writes a model file; `rom solve --set` answers as `run --set` does (the
+    summary's volume, energy and probes), and `rom solve --sweep` at each row; a second build
+    of the file replaces it, another file is not replaced."""
+    folder, scene, _, _ = beam
+    tmp = Path(MPI.COMM_WORLD.bcast(str(tmp_path)))
+    model = tmp / "pgd.npz"
+    assert main(["pgd", "build", str(scene.source), "-o", str(model), "--modes", "6"]) == 0
+    assert "separated terms on" in capsys.readouterr().out
+    given = ["--set", "E=4e6", "--set", "pitch=-120", "--set", "tip=300"]
+    assert main(["rom", "solve", str(model), *given, "-o", str(tmp / "pgd-run")]) == 0
+    assert main(["run", str(scene.source), *given, "-o", str(tmp / "full-run")]) == 0
+    a, b = (json.loads((tmp / name / "summary.json").read_text()) for name in ("pgd-run", "full-run"))
+    motion = np.abs(b["probes"]["displacement"]).max()
+    assert relative(a["probes"]["displacement"], b["probes"]["displacement"], motion) < CLOSE
+    assert abs(a["deformed_volume"] - b["deformed_volume"]) < CLOSE * abs(b["deformed_volume"] - b["start_volume"])
+    assert a["strain_energy"] == pytest.approx(b["strain_energy"], rel=CLOSE)
+    points = tmp / "points.csv"
+    if MPI.COMM_WORLD.rank == 0:
+        points.write_text("E,pitch,tip\n4e6,-120,300\n1e6,180,-2000\n")
+    MPI.COMM_WORLD.barrier()
+    assert main(["rom", "solve", str(model), "--sweep", str(points), "-o", str(tmp / "sweep")]) == 0
+    rows = list(csv.DictReader((tmp / "sweep" / "sweep.csv").read_text().splitlines()))
+    assert [(row["point [1]"], row["time [s]"]) for row in rows] == [(p, t) for p in "01" for t in ("0.5", "1.0")]
+    assert float(rows[1]["volume [m^3]"]) == a["deformed_volume"]  # the same solve(μ)
+    assert main(["pgd", "build", str(scene.source), "-o", str(model), "--modes", "6"]) == 0  # its own file
+    assert main(["pgd", "build", str(scene.source), "-o", str(scene.source)]) == 2
+    assert "saved as .npz" in capsys.readouterr().err
+
+
+def test_a_pgd_file_is_refused_on_another_mesh_or_physics(beam, tmp_path):
+    folder, scene, pgd, _ = beam
+    tmp = Path(MPI.COMM_WORLD.bcast(str(tmp_path)))
+    path = tmp / "beam.npz"
+    build_file(scene, path, modes=4)
+    loaded = reduce.load(path)
+    point = {"E": 5e6, "pitch": 10.0, "tip": 0.0}
+    assert np.allclose(loaded.solve(point).outputs["probes"], pgd.solve(point).outputs["probes"], rtol=1e-12, atol=0)
+    finer = scenes.load(written(tmp, cells=10, name="finer.toml"))
+    with pytest.raises(ModelFileError, match=r"other physics than this scene's: geometry.cells: \[8.0, 3.0, 3.0\]"):
+        reduce.reduced_order(path)(finer, MPI.COMM_WORLD)
+    with pytest.raises(ModelFileError, match="another mesh"):  # (given as its own scene: the mesh is checked)
+        reduce.reduced_order(path, inside=True)(finer, MPI.COMM_WORLD)
+    other = scenes.load(written(tmp, tip=900.0, name="other.toml"))
+    with pytest.raises(ModelFileError, match="other physics"):
+        reduce.reduced_order(path)(other, MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_a_build_on_every_rank_equals_the_serial_one(beam):
+    """The scene's PGD model distributed and on each rank alone (COMM_SELF): the same outputs
+    and derivatives at random points, to 1e-9."""
+    _, scene, pgd, _ = beam
+    alone, _ = build(build_model(scene, MPI.COMM_SELF), scene.stepping, scene.output.probes)
+    assert alone.decomposition.terms == pgd.decomposition.terms
+    for point in pgd.parameters.sample(4, seed=9):
+        a, b = pgd.solve(point, sensitivities=True), alone.solve(point, sensitivities=True)
+        for name in ("volume", "strain_energy", "probes"):
+            assert relative(a.outputs[name], b.outputs[name], np.abs(b.outputs[name]).max()) < 1e-9, name
+            exact = b.sensitivities[name]
+            assert relative(a.sensitivities[name], exact, np.abs(exact).max()) < 1e-9, name
