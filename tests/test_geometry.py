@@ -12,7 +12,7 @@ from fem import MESHES
 
 import lungmech  # noqa: F401  (orders MPI before the DOLFINx bindings)
 from lungmech.errors import GeometryError
-from lungmech.mesh import Geometry, box, ellipsoid, from_file, lung_phantom, sphere, write
+from lungmech.mesh import Geometry, box, ellipsoid, from_file, lung_phantom, plate_with_holes, sphere, write
 
 LUNG_NAMES = {"pleura", "diaphragm", "mediastinum", "hilum"}
 OCTANT_1_2 = 4 / 3 * math.pi * (2**3 - 1**3) / 8  # an eighth of the shell 1 < r < 2
@@ -99,6 +99,27 @@ def test_ball_and_ellipsoids():
     assert set(shell.boundaries) == {"inner", "outer", "x0", "y0", "z0"}
     assert shell.volume() == pytest.approx(4 / 3 * math.pi * (0.48 - 0.06) / 8, rel=1e-4)
     assert shell.area("z0") == pytest.approx(math.pi * (1.0 * 0.8 - 0.5 * 0.4) / 4, rel=1e-3)
+
+
+def test_a_plate_with_holes_has_its_area_edges_and_holes():
+    """NeuROM's anchor plate (10 × 10, three holes): the area and the holes' perimeter (a 2-D
+    facet's "area" is its length) converge on the exact ones, curved cells faster; the edges
+    are named; a hole outside the plate or two that overlap are refused in one line."""
+    holes = ((2.5, 2.5, 1.0), (5.0, 7.5, 5.0 / 3.0), (7.5, 2.5, 0.5))
+    area = 100.0 - math.pi * sum(r**2 for _, _, r in holes)
+    perimeter = 2 * math.pi * sum(r for _, _, r in holes)
+    errors = {}
+    for order in (1, 2):
+        plate = plate_with_holes(MPI.COMM_WORLD, mesh_size=0.5, order=order)
+        assert set(plate.boundaries) == {"x0", "x1", "y0", "y1", "holes"}
+        assert plate.mesh.geometry.dim == 2 and plate.area("y1") == pytest.approx(10.0, rel=1e-12)
+        errors[order] = abs(plate.volume() / area - 1)
+        assert plate.area("holes") == pytest.approx(perimeter, rel=2e-2 if order == 1 else 1e-3)
+    assert errors[1] < 1e-2 and errors[2] < errors[1] / 100  # measured: 4.0e-3
+    with pytest.raises(GeometryError, match=r"hole 1 \(9, 5, r = 2\) is not inside the plate"):
+        plate_with_holes(MPI.COMM_WORLD, holes=((9.0, 5.0, 2.0),))
+    with pytest.raises(GeometryError, match="holes 1 and 2 overlap"):
+        plate_with_holes(MPI.COMM_WORLD, holes=((3.0, 3.0, 1.0), (4.5, 3.0, 1.0)))
 
 
 def test_gmsh_meshes_are_reproducible_and_leave_gmsh_alone(tmp_path):

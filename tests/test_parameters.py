@@ -131,6 +131,44 @@ def test_posture_turns_gravity():
     assert posture(0.0, 90.0) @ g == pytest.approx([-9.81, 0.0, 0.0], abs=1e-12)  # on the left side
 
 
+def test_a_plane_problems_gravity_turns_in_its_plane_by_its_angle():
+    """``loads.<name>.angle``: g = (0, −g) turned counter-clockwise by θ is g (sin θ, −cos θ), the
+    weight's constant as the model sets it; pitch and roll are refused in a plane problem, and
+    the angle in 3-D, in one line each."""
+    from lungmech.lung.gravity import Gravity
+    from lungmech.mesh.structured import rectangle
+
+    weight = Gravity(2.0, (0.0, -9.81), name="g")
+    plate = Model(
+        rectangle(MPI.COMM_SELF, cells=(2, 2)),
+        NeoHookean.from_young(10.0, 0.3),
+        constraints=[clamp("y0")],
+        loads=[weight],
+        parameters=[Parameter("theta", "loads.g.angle", 0.0, (0.0, 360.0))],
+        plane="strain",
+    )
+    for theta in (0.0, 30.0, 90.0, 215.0):
+        plate.set_parameters(theta=theta)
+        plate.set_time(1.0)
+        expected = 9.81 * np.array([np.sin(np.radians(theta)), -np.cos(np.radians(theta))])
+        assert plate.loads[0].acceleration == pytest.approx(expected, abs=1e-12)
+    with pytest.raises(ParameterError, match="pitch turns a 3-D problem's gravity, and load 'g' has 2 components"):
+        Model(
+            rectangle(MPI.COMM_SELF, cells=(1, 1)),
+            NeoHookean.from_young(10.0, 0.3),
+            loads=[weight],
+            parameters=[Parameter("p", "loads.g.pitch", 0.0, (0.0, 90.0))],
+            plane="strain",
+        )
+    with pytest.raises(ParameterError, match="angle turns a plane problem's gravity, and load 'g' has 3"):
+        Model(
+            box(MPI.COMM_SELF, cells=(1, 1, 1)),
+            NeoHookean.from_young(10.0, 0.3),
+            loads=[Gravity(2.0, (0.0, 0.0, -9.81), name="g")],
+            parameters=[Parameter("p", "loads.g.angle", 0.0, (0.0, 90.0))],
+        )
+
+
 def test_an_imposed_displacement_has_an_amplitude():
     pulled = Model(
         box(MPI.COMM_SELF, cells=(2, 2, 2)),

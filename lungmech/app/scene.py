@@ -58,6 +58,7 @@ BUILDERS: dict[str, Callable] = {
     "rectangle": _geometry.rectangle,
     "cook_membrane": _geometry.cook_membrane,
     "quarter_annulus": _geometry.quarter_annulus,
+    "plate_with_holes": _geometry.plate_with_holes,
 }
 LOADS = {
     "body_force": BodyForce,

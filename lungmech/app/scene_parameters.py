@@ -44,6 +44,7 @@ _UNITS = {
     "amplitude": "1",
     "pitch": "deg",
     "roll": "deg",
+    "angle": "deg",
 }
 _PARAMETER_KEYS = ("target", "default", "range", "scale", "region", "outside")
 
@@ -151,7 +152,7 @@ def _value_at(table: dict[str, Any], target: str, where: str) -> object:
     value as written, a number or not: :class:`~lungmech.fem.parameters.Parameter` checks it)."""
     kind, _, key = target.partition(".")
     name, _, attribute = key.rpartition(".")
-    if kind == "loads" and attribute in ("amplitude", "pitch", "roll"):
+    if kind == "loads" and attribute in ("amplitude", "pitch", "roll", "angle"):
         return 1.0 if attribute == "amplitude" else 0.0
     if kind == "constraints" and attribute == "amplitude":
         return 1.0

@@ -24,7 +24,7 @@ from ufl.core.expr import Expr
 from lungmech.errors import ParameterError
 from lungmech.fem.loads import is_pressure
 from lungmech.fem.materials import Material, numbers_of, with_values
-from lungmech.fem.parameters import LOAD_ATTRIBUTES, HalfSpace, Parameter, Parameters
+from lungmech.fem.parameters import ANGLES, LOAD_ATTRIBUTES, HalfSpace, Parameter, Parameters
 
 if TYPE_CHECKING:
     from lungmech.fem.constraints import Displacement
@@ -177,8 +177,15 @@ def loads(
             raise ParameterError(
                 f"parameter '{p.name}': load '{name}' has a vector value or a formula; use {name}.amplitude"
             )
-        if attribute in ("pitch", "roll") and not hasattr(load, "acceleration"):
+        if attribute in ANGLES and not hasattr(load, "acceleration"):
             raise ParameterError(f"parameter '{p.name}': only gravity has a posture ({attribute})")
+        components = len(getattr(load, "acceleration", ()))
+        if attribute in ANGLES and (attribute == "angle") != (components == 2):
+            raise ParameterError(
+                f"parameter '{p.name}': {attribute} turns a {'plane' if attribute == 'angle' else '3-D'} problem's "
+                f"gravity, and load '{name}' has {components} components; "
+                + ("use pitch and roll in 3-D" if attribute == "angle" else "use angle in a plane problem")
+            )
 
     def at(values: Mapping[str, float]) -> tuple[tuple[Load, ...], np.ndarray]:
         current, amplitudes = list(base), np.ones(len(base))
@@ -190,10 +197,15 @@ def loads(
             elif attribute == "amplitude":
                 amplitudes[i] = values[p.name]
         for i, load in enumerate(base):
-            angles = {a: values[p.name] for p in acting for a in ("pitch", "roll") if p.key == f"{load.name}.{a}"}
+            angles = {a: values[p.name] for p in acting for a in ANGLES if p.key == f"{load.name}.{a}"}
             if angles:
                 assert hasattr(load, "acceleration")  # checked above: only gravity has a posture
-                turned = posture(angles.get("pitch", 0.0), angles.get("roll", 0.0)) @ np.asarray(load.acceleration)
+                turn = (
+                    in_plane(angles["angle"])
+                    if "angle" in angles
+                    else posture(angles.get("pitch", 0.0), angles.get("roll", 0.0))
+                )
+                turned = turn @ np.asarray(load.acceleration)
                 current[i] = dataclasses.replace(current[i], acceleration=tuple(turned))
         return tuple(current), amplitudes
 
@@ -230,6 +242,13 @@ def posture(pitch: float, roll: float) -> np.ndarray:
     about_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
     about_y = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
     return about_y @ about_x
+
+
+def in_plane(angle: float) -> np.ndarray:
+    """The rotation of a plane problem's gravity by ``angle`` degrees, counter-clockwise about
+    the out-of-plane axis: g = (0, −g) turns to g (sin θ, −cos θ)."""
+    a = np.radians(angle)
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
 
 
 def formulation(unbound: Formulation, bound: Formulation, parameters: Parameters) -> Assign:

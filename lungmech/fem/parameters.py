@@ -9,6 +9,8 @@ A :class:`Parameter` is a named scalar with a default, a range [low, high] and a
 ``loads.<name>.value``                    the value of the scalar load named ``name`` (Pa)
 ``loads.<name>.amplitude``                a factor on that load's value (any load)
 ``loads.<name>.pitch`` / ``.roll``        the posture: gravity turned about x / y (degrees)
+``loads.<name>.angle``                    a plane problem's gravity turned in its plane,
+                                          counter-clockwise (degrees)
 ``constraints.<name>.amplitude``          a factor on an imposed displacement
 ``interface``                             the position (m) of a :class:`HalfSpace` region
 ``shape.mode_<i>``                        the coefficient aᵢ of the i-th shape mode (1, 2, …;
@@ -44,7 +46,8 @@ if TYPE_CHECKING:
 __all__ = ["Cells", "HalfSpace", "Parameter", "Parameters", "Region"]
 
 KINDS = ("material", "formulation", "loads", "constraints", "interface", "shape")
-LOAD_ATTRIBUTES = ("value", "amplitude", "pitch", "roll")
+LOAD_ATTRIBUTES = ("value", "amplitude", "pitch", "roll", "angle")
+ANGLES = ("pitch", "roll", "angle")  # the load attributes that turn gravity (degrees)
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,19 @@
 """Meshes with named boundaries: the :class:`Geometry`, its builders, mesh files, and its nodes.
 
-``geometry`` (the class and its measures) · ``builders`` (box, rectangle, Cook's membrane, quarter annulus, sphere, ellipsoid, lung phantom) ·
+``geometry`` (the class and its measures) · ``builders`` (box, rectangle, Cook's membrane, quarter annulus, plate with holes, sphere, ellipsoid, lung phantom) ·
 ``files`` (.msh in; .vtu and .xdmf in and out), ``vtu`` (the mesh file every tool opens) · ``nodes`` (the one owner of node moves) · ``lung_shape``.
 """
 
-from lungmech.mesh.builders import box, cook_membrane, ellipsoid, lung_phantom, quarter_annulus, rectangle, sphere
+from lungmech.mesh.builders import (
+    box,
+    cook_membrane,
+    ellipsoid,
+    lung_phantom,
+    plate_with_holes,
+    quarter_annulus,
+    rectangle,
+    sphere,
+)
 from lungmech.mesh.files import companions, from_file, is_lungmech_mesh, write
 from lungmech.mesh.geometry import Geometry, diameter
 from lungmech.mesh.lung_shape import LungShape
@@ -22,6 +31,7 @@ __all__ = [
     "is_lungmech_mesh",
     "lung_phantom",
     "node_dofs",
+    "plate_with_holes",
     "quarter_annulus",
     "rectangle",
     "sphere",

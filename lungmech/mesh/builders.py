@@ -36,6 +36,7 @@ __all__ = [
     "ellipsoid",
     "gmsh_session",
     "lung_phantom",
+    "plate_with_holes",
     "quarter_annulus",
     "rectangle",
     "sphere",
@@ -112,8 +113,10 @@ def _gmsh_geometry(
     order: int,
     msh_file: str | Path | None = None,
     options: Mapping[str, float] | None = None,
+    dim: int = 3,
 ) -> Geometry:
-    """Mesh the OCC volume made by ``build`` on rank 0, name its faces, distribute the mesh.
+    """Mesh the OCC volume (a surface when ``dim`` is 2) made by ``build`` on rank 0, name its
+    faces (curves), distribute the mesh.
 
     ``build(occ)`` adds one volume and returns ``(volume_tag, rules, cell_name)``; boundary
     tags are numbered 1, 2, ... in the order of ``rules``.
@@ -122,18 +125,18 @@ def _gmsh_geometry(
     if comm.rank != root:
         if failure := comm.bcast(None, root=root):
             raise GeometryError(failure)
-        return from_meshdata(dolfinx.io.gmsh.model_to_mesh(None, comm, root, gdim=3))
+        return from_meshdata(dolfinx.io.gmsh.model_to_mesh(None, comm, root, gdim=dim))
 
     with gmsh_session({"Mesh.MeshSizeMax": mesh_size, **(options or {})}) as gmsh:
         try:
             volume, rules, cell_name = build(gmsh.model.occ)
             gmsh.model.occ.synchronize()
-            gmsh.model.mesh.generate(3)
-            faces = [face for _, face in gmsh.model.getBoundary([(3, volume)], oriented=False)]
-            named = _name_faces(gmsh.model, faces, rules)
+            gmsh.model.mesh.generate(dim)
+            faces = [face for _, face in gmsh.model.getBoundary([(dim, volume)], oriented=False)]
+            named = _name_faces(gmsh.model, faces, rules, dim - 1)
             for tag, (name, group) in enumerate(named.items(), start=1):
-                gmsh.model.addPhysicalGroup(2, group, tag, name)
-            gmsh.model.addPhysicalGroup(3, [volume], 1, cell_name)
+                gmsh.model.addPhysicalGroup(dim - 1, group, tag, name)
+            gmsh.model.addPhysicalGroup(dim, [volume], 1, cell_name)
             if order > 1:
                 gmsh.model.mesh.setOrder(order)
             if msh_file is not None:
@@ -144,10 +147,10 @@ def _gmsh_geometry(
             comm.bcast(message, root=root)
             raise GeometryError(message) from e
         comm.bcast(None, root=root)
-        return from_meshdata(dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, root, gdim=3))
+        return from_meshdata(dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, root, gdim=dim))
 
 
-def _name_faces(model: Any, faces: list[int], rules: Mapping[str, _Rule]) -> dict[str, list[int]]:
+def _name_faces(model: Any, faces: list[int], rules: Mapping[str, _Rule], fdim: int = 2) -> dict[str, list[int]]:
     """Group faces by the one rule that their mesh nodes satisfy.
 
     Going by where the meshed faces actually are, not by the order OCC returns them, keeps the
@@ -155,7 +158,7 @@ def _name_faces(model: Any, faces: list[int], rules: Mapping[str, _Rule]) -> dic
     """
     named: dict[str, list[int]] = {name: [] for name in rules}
     for face in faces:
-        _, coords, _ = model.mesh.getNodes(2, face, includeBoundary=True)
+        _, coords, _ = model.mesh.getNodes(fdim, face, includeBoundary=True)
         x = np.reshape(coords, (-1, 3))
         matches = [name for name, rule in rules.items() if rule(x)]
         if len(matches) != 1:
@@ -368,6 +371,57 @@ def lung_phantom(
 
     # Curvature-based sizing resolves the small hilum ellipse without refining the rest.
     return _gmsh_geometry(comm, build, h, order, msh_file, {"Mesh.MeshSizeFromCurvature": 12})
+
+
+def plate_with_holes(
+    comm: MPI.Comm,
+    lengths: tuple[float, float] = (10.0, 10.0),
+    holes: tuple[tuple[float, float, float], ...] = ((2.5, 2.5, 1.0), (5.0, 7.5, 5.0 / 3.0), (7.5, 2.5, 0.5)),
+    mesh_size: float | None = None,
+    order: int = 1,
+    *,
+    msh_file: str | Path | None = None,
+) -> Geometry:
+    """A plate [0, Lx] × [0, Ly] (2-D) with circular holes, each (x, y, r), inside it and apart.
+
+    Boundaries ``x0``, ``x1``, ``y0``, ``y1`` (its edges) and ``holes`` (every hole's edge);
+    cells tagged 1, named ``plate``. The default is the anchor plate of NeuROM's NN-PGD (a
+    10 × 10 square with three holes); the default mesh size is a fiftieth of its shorter side.
+    """
+    _check_order(order)
+    width, height = (float(v) for v in lengths)
+    if not (width > 0 and height > 0):
+        raise GeometryError(f"plate_with_holes: lengths must be positive, got {lengths}")
+    circles = [tuple(float(v) for v in hole) for hole in holes]
+    for i, (x, y, r) in enumerate(circles):
+        if not (r > 0 and r < x < width - r and r < y < height - r):
+            raise GeometryError(f"plate_with_holes: hole {i + 1} ({x:g}, {y:g}, r = {r:g}) is not inside the plate")
+        for j, (a, b, q) in enumerate(circles[:i]):
+            if math.hypot(x - a, y - b) <= r + q:
+                raise GeometryError(f"plate_with_holes: holes {j + 1} and {i + 1} overlap")
+    h = _check_mesh_size(mesh_size, min(width, height) / 50)
+
+    def build(occ: Any) -> tuple[int, dict[str, _Rule], str]:
+        plate = occ.addRectangle(0.0, 0.0, 0.0, width, height)
+        if circles:
+            disks = [(2, occ.addDisk(x, y, 0.0, r, r)) for x, y, r in circles]
+            [(_, plate)], _ = occ.cut([(2, plate)], disks)
+        tol = 1e-6 * max(width, height)
+
+        def on_a_hole(x: npt.NDArray[np.float64]) -> bool:
+            return any(bool(np.all(np.abs(np.hypot(x[:, 0] - a, x[:, 1] - b) - r) < tol)) for a, b, r in circles)
+
+        rules: dict[str, _Rule] = {
+            "x0": _all_on(_plane(0, 0.0, tol)),
+            "x1": _all_on(_plane(0, width, tol)),
+            "y0": _all_on(_plane(1, 0.0, tol)),
+            "y1": _all_on(_plane(1, height, tol)),
+        }
+        if circles:
+            rules["holes"] = on_a_hole
+        return plate, rules, "plate"
+
+    return _gmsh_geometry(comm, build, h, order, msh_file, dim=2)
 
 
 def default_mesh_size(builder: Callable[..., Geometry], given: Mapping[str, Any]) -> float | None:

@@ -19,7 +19,7 @@ from scipy.interpolate import BSpline
 
 from lungmech import checks
 from lungmech.errors import ParameterError
-from lungmech.fem.parameters import Parameter
+from lungmech.fem.parameters import ANGLES, Parameter
 
 __all__ = ["Axis", "full_turn", "horner"]
 
@@ -28,10 +28,10 @@ POINTS = 4  # Gauss points per interval
 
 
 def full_turn(parameter: Parameter) -> bool:
-    """Whether ``parameter`` is an angle over a full turn (a posture pitch or roll spanning 360°):
-    its axis is periodic."""
+    """Whether ``parameter`` is an angle over a full turn (gravity's pitch, roll or in-plane angle
+    spanning 360°): its axis is periodic."""
     low, high = parameter.range
-    return parameter.target.rsplit(".", 1)[-1] in ("pitch", "roll") and bool(np.isclose(high - low, 360.0))
+    return parameter.target.rsplit(".", 1)[-1] in ANGLES and bool(np.isclose(high - low, 360.0))
 
 
 @dataclass(frozen=True)
