@@ -124,10 +124,10 @@ def test_a_population_model_without_surface_probes_is_refused():
 
     surface = SurfaceNodes(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]), np.ones(2))
     for probes in ([[0.05, 0.05, 0.05]], [[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]):  # others; the same, reordered
-        reduced = SimpleNamespace(outputs=SimpleNamespace(probe_points=tuple(map(tuple, probes))))
+        reduced = SimpleNamespace(probe_points=tuple(map(tuple, probes)))
         with pytest.raises(ModelFileError, match="'p.npz' is a population's model, but its probes are not its lung's"):
             check_probes(reduced, surface, "p.npz")
-    check_probes(SimpleNamespace(outputs=SimpleNamespace(probe_points=((0, 0, 0), (0.1, 0, 0)))), surface, "p.npz")
+    check_probes(SimpleNamespace(probe_points=((0, 0, 0), (0.1, 0, 0))), surface, "p.npz")
 
 
 @pytest.mark.slow

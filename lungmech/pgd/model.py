@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 import ufl
@@ -30,7 +31,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS, Solution, Step, checked_times, output_times, stack
 from lungmech.fem.quantities import Probe, strain_energy
-from lungmech.fem.sensitivity import value_derivatives
+from lungmech.fem.sensitivity import ValueDerivatives, value_derivatives
 from lungmech.fem.solver import Stepping, StepReport
 from lungmech.fem.start import StartReport
 from lungmech.parallel.linalg import apply, gram
@@ -50,8 +51,8 @@ ENERGY_CHECK = 1e-9  # the quadratic form's strain energy against the model's ow
 
 @dataclass(frozen=True)
 class Online:
-    """The outputs of u = Q z as functions of z: ``volume`` (m³), ``probes`` (m: 3 rows per
-    point, x y z, × m), ``energy`` (J: A₀ then each entry's Aₑ, (1 + entries) × m × m) for
+    """The outputs of u = Q z as functions of z: ``volume`` (m³), ``probes`` (m: a row per
+    point and component, × m), ``energy`` (J: A₀ then each entry's Aₑ, (1 + entries) × m × m) for
     the values ``entries`` (indices into :func:`lungmech.pgd.terms.values`)."""
 
     volume: Cubic
@@ -75,8 +76,8 @@ class Online:
         return cls(volume, arrays["probes"], arrays["energy"], arrays["entries"].astype(int))
 
     def operator(self, c: np.ndarray) -> np.ndarray:
-        """A(c) = A₀ + Σₑ cₑ Aₑ (m × m)."""
-        return self.energy[0] + np.tensordot(c[self.entries], self.energy[1:], axes=1)
+        """A(c) = A₀ + Σₑ cₑ Aₑ (m × m), ``c`` the values of :attr:`entries`."""
+        return self.energy[0] + np.tensordot(c, self.energy[1:], axes=1)
 
 
 def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
@@ -142,7 +143,7 @@ def _check_energy(model: Model, found: Online, modes: np.ndarray) -> None:
             model.state.x.array[: modes.shape[0]] += modes @ z
             model.state.x.scatter_forward()
             exact = strain_energy(model)()
-            reduced = 0.5 * z @ found.operator(separated.values(model)) @ z
+            reduced = 0.5 * z @ found.operator(separated.values(model)[found.entries]) @ z
     finally:
         model.set_parameters(values)
     if not abs(reduced - exact) <= ENERGY_CHECK * max(abs(exact), np.finfo(float).tiny):
@@ -177,6 +178,8 @@ class PGDModel:
         self.probe_points = tuple(tuple(float(c) for c in p) for p in probe_points)
         self.built = dict(built or {})
         self._owned = owned_size(model.space)
+        self._start = StartReport("rest", "the unloaded state").measured(online.volume.c0)  # its volume
+        self._values = _Entries(model, online.entries)
 
     @property
     def size(self) -> int:
@@ -200,27 +203,26 @@ class PGDModel:
         values = self.parameters.values(mu)
         factor = _one_factor(scale, len(self.model.loads))
         wanted = self.times if times is None else checked_times(times, self.stepping)
-        model, stepping = self.model, self.stepping
-        model.set_parameters(values)
-        base = self.decomposition.factors(values)
-        slopes = self.decomposition.factor_derivatives(values) if sensitivities else None
-        c = separated.values(model)
-        start = StartReport("rest", "the unloaded state")
+        model, stepping, start = self.model, self.stepping, self._start
+        if model.time != stepping.end or model.scaling != (factor, None):
+            model.set_time(stepping.end, load_factor=factor)  # the loads at t are r(t)/r(T) of these
+        model.set_parameters(values)  # (at that time)
+        point = _Point(self, values, value_derivatives(model) if sensitivities else None)
         if on_step is not None:  # the start, as every model shows it first
-            model.set_time(stepping.start, load_factor=factor)
-            self._show(on_step, "start", stepping.start, np.zeros(self.size), c, None, start)
+            on_step(
+                Step("start", stepping.start, None, lambda: point.outputs(0.0), lambda: point.state(0.0), start=start)
+            )
         rows, states, derived = [], [], []
         previous = stepping.start
         for t in wanted:
-            z = self._rho(t, factor) * base
-            model.set_time(float(t), load_factor=factor)
-            rows.append(self._outputs(z, c))
-            states.append(z)
-            if slopes is not None:
-                derived.append(self._derivatives(z, self._rho(t, factor) * slopes, c))
+            fraction = self.ramp(t) / self.ramp(stepping.end)
+            rows.append(point.outputs(fraction, factor))
+            states.append(point.state(fraction * factor))
+            if sensitivities:
+                derived.append(point.derivatives(fraction, factor))
             if on_step is not None and t > stepping.start:
                 report = StepReport(float(t), float(t - previous), 0, (), "evaluated", 0.0, True)
-                self._show(on_step, "path", float(t), z, c, report, None)
+                on_step(Step("path", float(t), report, _returning(rows[-1]), _returning(states[-1].copy())))
             previous = float(t)
         return Solution(
             parameters=values,
@@ -229,61 +231,12 @@ class PGDModel:
             states=np.array(states),
             newton_iterations=0,
             seconds=time.perf_counter() - tic,
-            sensitivities=stack(derived) if slopes is not None else None,
+            sensitivities=stack(derived) if sensitivities else None,
             parameter_names=self.parameters.names,
             units=dict(UNITS),
-            start=start.measured(self.online.volume.c0),  # the rest state's volume
+            start=start,
             scale=np.asarray(scale, dtype=float).tolist(),
         )
-
-    def _show(
-        self,
-        on_step: Callable[[Step], None],
-        phase: str,
-        t: float,
-        z: np.ndarray,
-        c: np.ndarray,
-        report: StepReport | None,
-        start: StartReport | None,
-    ) -> None:
-        """``on_step`` of the state Q z at ``t`` (the model's loads set at t)."""
-        shown = self._outputs(z, c)
-        on_step(Step(phase, t, report, lambda: shown, lambda: z.copy(), start=start))
-
-    def _rho(self, t: float, factor: float) -> float:
-        """ρ(t) = s r(t) / r(T): the state at t over the decomposition's."""
-        return factor * self.ramp(t) / self.ramp(self.stepping.end)
-
-    def _outputs(self, z: np.ndarray, c: np.ndarray) -> dict[str, object]:
-        """The outputs of the state Q z, the values c (module docstring)."""
-        found: dict[str, object] = {
-            "volume": self.online.volume(z),
-            "strain_energy": 0.5 * float(z @ self.online.operator(c) @ z),
-        }
-        if self.probe_points:
-            found["probes"] = (self.online.probes @ z).reshape(-1, 3)
-        found["loads"] = self.model.scalar_loads()
-        return found
-
-    def _derivatives(self, z: np.ndarray, dz: np.ndarray, c: np.ndarray) -> dict[str, object]:
-        """d(outputs)/dμ at Q z, dz/dμ = ``dz`` (m × parameters)."""
-        derivatives = value_derivatives(self.model)
-        dc = np.concatenate(
-            [np.reshape(derivatives.constants[k], (-1, dz.shape[1])) for k in separated.constants(self.model)]
-        )
-        A = self.online.operator(c)
-        explicit = [
-            0.5 * z @ np.tensordot(dc[self.online.entries, i], self.online.energy[1:], axes=1) @ z
-            for i in range(dz.shape[1])
-        ]
-        found: dict[str, object] = {
-            "volume": self.online.volume.gradient(z) @ dz,
-            "strain_energy": z @ A @ dz + np.array(explicit),
-        }
-        if self.probe_points:
-            found["probes"] = (self.online.probes @ dz).reshape(-1, 3, dz.shape[1])
-        found["loads"] = {label: d.copy() for label, d in derivatives.loads.items()}
-        return found
 
     def fields(self, state: np.ndarray, time: float) -> None:
         """The fem model's state Q ``state`` at ``time`` (collective)."""
@@ -297,6 +250,83 @@ class PGDModel:
         """What answers: the decomposition's size; no solver."""
         d = self.decomposition
         return {"solver": f"PGD evaluation ({d.size} space modes, {d.terms} separated terms)", "linear_solver": None}
+
+
+class _Entries:
+    """Reads the values c_e of ``entries`` (indices into :func:`lungmech.pgd.terms.values`)
+    from the few Constants that hold them, as the model's parameters set them now."""
+
+    def __init__(self, model: Model, entries: np.ndarray) -> None:
+        constants = separated.constants(model)
+        ends = np.cumsum([np.size(c.value) for c in constants])
+        holder = np.searchsorted(ends, entries, side="right")  # the constant holding each entry
+        self._held = [constants[i] for i in sorted(set(holder.tolist()))]
+        starts = {i: int(ends[i] - np.size(constants[i].value)) for i in set(holder.tolist())}
+        order = {i: k for k, i in enumerate(sorted(starts))}
+        offsets = np.cumsum([0] + [np.size(c.value) for c in self._held])
+        self._where = np.array([offsets[order[h]] + e - starts[h] for e, h in zip(entries, holder)], dtype=int)
+
+    def read(self) -> np.ndarray:
+        """c_e for each entry, now."""
+        if not self._held:
+            return np.zeros(0)
+        return np.concatenate([np.ravel(c.value) for c in self._held])[self._where]
+
+
+class _Point:
+    """One solve's evaluation at μ, the model's parameters and loads set at μ and the path's
+    end T: the state there z_T = R q(μ), the strain energy's A(c(μ)), the scalar loads at T and,
+    with ``derivatives`` (the model's value derivatives), dz_T/dμ and ∂A/∂μ. At a time whose
+    ramp is the ``fraction`` r(t)/r(T) of its end's, with the load factor s, the state is
+    s·fraction·z_T and the loads fraction times theirs at T."""
+
+    def __init__(self, owner: PGDModel, values: Mapping[str, float], derivatives: ValueDerivatives | None) -> None:
+        model, d, self.online = owner.model, owner.decomposition, owner.online
+        self.base = d.factors(values)
+        self.operator = self.online.operator(owner._values.read())
+        self.loads = model.scalar_loads()
+        self.points = len(owner.probe_points)
+        self.derivatives_at_end = derivatives
+        if derivatives is not None:
+            self.slopes = d.factor_derivatives(values)
+            n = self.slopes.shape[1]
+            dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
+            self.operator_slopes = np.einsum("ei,emn->imn", dc[self.online.entries], self.online.energy[1:])
+
+    def state(self, rho: float) -> np.ndarray:
+        """z = ρ z_T."""
+        return rho * self.base
+
+    def outputs(self, fraction: float, factor: float = 1.0) -> dict[str, object]:
+        """The outputs at the ramp's ``fraction`` of its end's, with the load ``factor``."""
+        z = self.state(fraction * factor)
+        found: dict[str, object] = {
+            "volume": self.online.volume(z),
+            "strain_energy": 0.5 * float(z @ self.operator @ z),
+        }
+        if self.points:
+            found["probes"] = (self.online.probes @ z).reshape(self.points, -1)
+        found["loads"] = {label: fraction * value for label, value in self.loads.items()}
+        return found
+
+    def derivatives(self, fraction: float, factor: float) -> dict[str, object]:
+        """d(outputs)/dμ there: dz/dμ = ρ dz_T/dμ, and the strain energy's explicit ½ zᵀ (∂A/∂μ) z."""
+        assert self.derivatives_at_end is not None  # (made with derivatives)
+        rho = fraction * factor
+        z, dz = self.state(rho), rho * self.slopes
+        found: dict[str, object] = {
+            "volume": self.online.volume.gradient(z) @ dz,
+            "strain_energy": z @ self.operator @ dz + 0.5 * np.einsum("m,imn,n->i", z, self.operator_slopes, z),
+        }
+        if self.points:
+            found["probes"] = (self.online.probes @ dz).reshape(self.points, -1, dz.shape[1])
+        found["loads"] = {label: fraction * d for label, d in self.derivatives_at_end.loads.items()}
+        return found
+
+
+def _returning(value: object) -> Callable[[], Any]:
+    """A function that returns ``value`` (a step's outputs or state, already evaluated)."""
+    return lambda: value
 
 
 def _one_factor(scale: float | Sequence[float], loads: int) -> float:

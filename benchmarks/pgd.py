@@ -1,0 +1,336 @@
+"""The a priori PGD beside the full model and a hyper-reduced model of the same scene.
+
+    python benchmarks/pgd.py                 # both cases at full size (a few minutes)
+    python benchmarks/pgd.py --ranks 2       # the same on two ranks (rows kept beside one rank's)
+    python benchmarks/pgd.py --quick         # coarse meshes, few points (the suite's case)
+
+Two linear cases, each a scene built here:
+
+* **anchor**: the configuration of NeuROM's NN-PGD (Daby-Seesaram, Škardová, Genet): a 10 × 10
+  plate with three holes, clamped on its top and bottom edges, plane strain, ν = 0.3, under its
+  own weight ρg = 9.81e-6 turned in the plane by θ ∈ [0°, 360°), its stiffness E ∈ [1e-3, 1e-2]
+  (log). Published: 8.7e-4 to 9.3e-3 relative nodal error at 8 test points on 14,230 dofs, after
+  ≈ 58 s of training on a CPU.
+* **lung**: a linear elastic lung phantom clamped on its mediastinal face under its own weight,
+  E over a factor 10 (log), the pitch over a full turn and the roll over ±90°.
+
+For each: the PGD built a priori (no full solve; seconds for its terms, greedy and outputs),
+and a POD–ECSW hyper-reduced model (τ = 1e-4) trained on 8 full solves, both measured at the
+same random points against the full model: the relative nodal error ‖u − u_FE‖₂/‖u_FE‖₂ (NeuROM's
+measure) and the relative energy-norm error (the energy product at the defaults), max and
+median; online milliseconds per point (``solve(μ, times=[T])``: volume, strain energy, probes),
+median. Also the anchor's error over its whole box, on a grid (the plot's map).
+
+Writes results/pgd.md, results/pgd.csv and results/pgd.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+import machine
+import matplotlib
+import numpy as np
+
+from lungmech.app import reduce
+from lungmech.app import scene as scenes
+from lungmech.app.pgd import build as build_pgd
+from lungmech.app.run import full_order_model
+from lungmech.parallel.linalg import norms
+from lungmech.rom.basis import inner_product
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from machine import provenance, read_results, say, write_results  # noqa: E402
+
+RESULTS = machine.RESULTS
+COMMAND = "LUNGMECH_PGD_COMMAND"
+PUBLISHED = {"error": (8.7e-4, 9.3e-3), "seconds": 58.0, "dofs": 14230}  # NeuROM's anchor
+
+ANCHOR = """
+title = "NeuROM's plate with three holes under its own weight, turned in its plane"
+[geometry]
+builder = "plate_with_holes"
+mesh_size = {h}
+[material]
+law = "linear"
+E = 3e-3
+nu = 0.3
+[formulation]
+plane = "strain"
+[[constraints]]
+type = "clamp"
+boundary = "y0"
+[[constraints]]
+type = "clamp"
+boundary = "y1"
+[[loads]]
+type = "gravity"
+name = "gravity"
+density = 1.0
+acceleration = [0.0, -9.81e-6]
+[stepping]
+end = 1.0
+initial_step = 1.0
+[parameters.E]
+target = "material.E"
+range = [1e-3, 1e-2]
+scale = "log"
+[parameters.theta]
+target = "loads.gravity.angle"
+range = [0.0, 360.0]
+[output]
+probes = [[5.0, 5.0], [9.0, 5.0]]
+"""
+
+LUNG = """
+title = "a linear elastic lung phantom under its own weight, turned"
+[geometry]
+builder = "lung_phantom"
+mesh_size = {h}
+[material]
+law = "linear"
+E = 3e3
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "mediastinum"
+[[loads]]
+type = "gravity"
+name = "gravity"
+density = 300.0
+acceleration = [0.0, 0.0, -9.81]
+[stepping]
+end = 1.0
+initial_step = 1.0
+[parameters.E]
+target = "material.E"
+range = [1e3, 1e4]
+scale = "log"
+[parameters.pitch]
+target = "loads.gravity.pitch"
+range = [-180.0, 180.0]
+[parameters.roll]
+target = "loads.gravity.roll"
+range = [-90.0, 90.0]
+[output]
+probes = [[0.06, 0.0, 0.12]]
+"""
+
+CASES = {"anchor": (ANCHOR, 0.12, 0.5), "lung": (LUNG, 0.012, 0.03)}  # scene, mesh size, --quick's
+
+
+def scene_of(folder: Path, name: str, quick: bool) -> scenes.Scene:
+    text, h, coarse = CASES[name]
+    path = folder / f"{name}.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        path.write_text(text.format(h=coarse if quick else h))
+    MPI.COMM_WORLD.barrier()
+    return scenes.load(path)
+
+
+def errors(model, states: list[np.ndarray], exact: list[np.ndarray], W) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's relative nodal (ℓ2) and energy-norm error."""
+    comm = MPI.COMM_WORLD
+    nodal, energy = [], []
+    for u, e in zip(states, exact):
+        d = u - e
+        nodal.append(np.sqrt(comm.allreduce(float(d @ d)) / comm.allreduce(float(e @ e))))
+        energy.append(float(norms(d[:, None], W, comm)[0] / norms(e[:, None], W, comm)[0]))
+    return np.array(nodal), np.array(energy)
+
+
+def answers(model, points: list[dict]) -> tuple[list[np.ndarray], float]:
+    """Each point's full state (owned entries) and the median online milliseconds."""
+    states, seconds = [], []
+    for point in points:
+        tic = time.perf_counter()
+        solution = model.solve(point, times=[model.stepping.end])
+        seconds.append(time.perf_counter() - tic)
+        states.append(model_state(model, solution))
+    return states, 1e3 * float(np.median(seconds))
+
+
+def model_state(model, solution) -> np.ndarray:
+    """The full owned state of a solution's last row: a full model's own, a reduced one's made."""
+    row = solution.states[-1]
+    if hasattr(model, "decomposition"):
+        return model.decomposition.modes @ row
+    if hasattr(model, "reconstruct"):
+        return model.reconstruct(solution, -1)
+    return row
+
+
+def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) -> tuple[list[dict], dict | None]:
+    comm = MPI.COMM_WORLD
+    scene = scene_of(folder, name, quick)
+    full = full_order_model(scene, comm)
+    box = full.parameters
+    points = box.sample(8 if quick else 50, seed=11)
+    say(f"{name}: {len(points)} full solves at the test points")
+    exact, full_ms = answers(full, points)
+    W = inner_product(full.model, "energy")
+    dofs = full.model.space.dofmap.index_map.size_global * full.model.space.dofmap.index_map_bs
+    base = {"case": name, "dofs": dofs, "ranks": comm.size, "points": len(points)}
+    rows = [base | {"model": "full", "offline [s]": 0.0, "online [ms]": full_ms, "full solves offline": 0}]
+
+    say(f"{name}: the PGD")
+    tic = time.perf_counter()
+    summary = build_pgd(scene, folder / f"{name}-pgd.npz", modes=10, comm=comm)
+    offline = time.perf_counter() - tic
+    pgd = reduce.load(folder / f"{name}-pgd.npz", comm, fields=True)
+    states, online = answers(pgd, points)
+    nodal, energy = errors(full.model, states, exact, W)
+    rows.append(
+        base
+        | {
+            "model": f"PGD ({summary['terms']} terms, {summary['modes']} modes)",
+            "offline [s]": offline,
+            "offline terms+greedy [s]": summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"],
+            "online [ms]": online,
+            "full solves offline": 0,
+            "nodal error max": nodal.max(),
+            "nodal error median": float(np.median(nodal)),
+            "energy error max": energy.max(),
+            "energy error median": float(np.median(energy)),
+        }
+    )
+
+    say(f"{name}: the hyper-reduced model (8 full solves)")
+    tic = time.perf_counter()
+    reduce.build(
+        scene, folder / f"{name}-ecsw.npz", size=10, samples=8, hyper="ecsw", comm=comm, cache=folder / "cache"
+    )
+    offline = time.perf_counter() - tic
+    hyper = reduce.load(folder / f"{name}-ecsw.npz", comm, fields=True)
+    states, online = answers(hyper, points)
+    nodal, energy = errors(full.model, states, exact, W)
+    rows.append(
+        base
+        | {
+            "model": f"POD ECSW τ=1e-4 ({hyper.size} vectors)",
+            "offline [s]": offline,
+            "online [ms]": online,
+            "full solves offline": 8,
+            "nodal error max": nodal.max(),
+            "nodal error median": float(np.median(nodal)),
+            "energy error max": energy.max(),
+            "energy error median": float(np.median(energy)),
+        }
+    )
+    mapped = None
+    if grid is not None:
+        say(f"{name}: the error map, {grid[0]} × {grid[1]} points")
+        names = box.names
+        first, second = box.named(names[0]), box.named(names[1])
+        a = [first.from_unit(s) for s in (np.arange(grid[0]) + 0.5) / grid[0]]
+        b = [second.from_unit(s) for s in (np.arange(grid[1]) + 0.5) / grid[1]]
+        at = [{names[0]: x, names[1]: y} for x in a for y in b]
+        truth, _ = answers(full, at)
+        found, _ = answers(pgd, at)
+        _, map_errors = errors(full.model, found, truth, W)
+        mapped = {"x": a, "y": b, "errors": map_errors.reshape(grid), "names": (names[0], names[1])}
+    W.destroy()
+    return rows, mapped
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    lines = [
+        "# The a priori PGD beside the full model and a hyper-reduced model",
+        "",
+        f"{provenance(command)} Errors at random points of each box against the full model: relative nodal "
+        "(ℓ2 over every dof, NeuROM's measure) and relative energy norm (the energy product at the defaults). "
+        "Online: median milliseconds of `solve(μ, times=[T])` (volume, strain energy, probes). Offline: the "
+        "whole build, in seconds (the PGD's terms and greedy alone in brackets).",
+        "",
+        "| case | ranks | dofs | model | full solves offline | offline [s] | online [ms] | nodal error max (median) "
+        "| energy error max (median) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        inner = r.get("offline terms+greedy [s]")
+        offline = f"{r['offline [s]']:.1f}" + (f" ({inner:.1f})" if isinstance(inner, float) else "")
+        nodal = (
+            "—"
+            if not isinstance(r.get("nodal error max"), float)
+            else (f"{r['nodal error max']:.1e} ({r['nodal error median']:.1e})")
+        )
+        energy = (
+            "—"
+            if not isinstance(r.get("energy error max"), float)
+            else (f"{r['energy error max']:.1e} ({r['energy error median']:.1e})")
+        )
+        lines.append(
+            f"| {r['case']} | {r['ranks']} | {r['dofs']} | {r['model']} | {r['full solves offline']} | {offline} | "
+            f"{r['online [ms]']:.2f} | {nodal} | {energy} |"
+        )
+    low, high = PUBLISHED["error"]
+    lines += [
+        "",
+        f"NeuROM's NN-PGD on the anchor plate (published): {low:g} to {high:g} relative nodal error at 8 test "
+        f"points on {PUBLISHED['dofs']} dofs after ≈ {PUBLISHED['seconds']:g} s of training on a CPU, no MPI.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], mapped: dict | None, path: Path) -> None:
+    """Left: the anchor PGD's energy-norm error over its box. Right: error against online time."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.4))
+    if mapped is not None:
+        image = left.pcolormesh(
+            mapped["y"], mapped["x"], np.log10(np.maximum(mapped["errors"], 1e-16)), shading="nearest"
+        )
+        fig.colorbar(image, ax=left, label="log₁₀ relative energy-norm error [-]")
+        left.set_yscale("log")
+        left.set_xlabel(f"{mapped['names'][1]} [deg]")
+        left.set_ylabel(f"{mapped['names'][0]} [Pa]")
+        left.set_title("the anchor plate's PGD over its box", fontsize=10)
+    for r, marker in zip(rows, "os^vD<>ph*"):
+        if isinstance(r.get("energy error max"), float):
+            right.loglog(
+                r["online [ms]"],
+                r["energy error max"],
+                marker,
+                label=f"{r['case']}, {r['ranks']} rank(s): {r['model']}",
+            )
+    right.set_xlabel("online time per point [ms]")
+    right.set_ylabel("largest relative energy-norm error [-]")
+    right.grid(alpha=0.3, which="both")
+    right.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="coarse meshes, 8 points, a 4 × 6 map")
+    parser.add_argument("--ranks", type=int, default=1, help="run on this many ranks (mpiexec)")
+    args = parser.parse_args()
+    machine.relaunch(args.ranks, __file__, COMMAND)
+    comm = MPI.COMM_WORLD
+    command = "python benchmarks/pgd.py " + os.environ.get(COMMAND, " ".join(sys.argv[1:]))
+    stem = "pgd_quick" if args.quick else "pgd"
+    with tempfile.TemporaryDirectory() as work:
+        folder = Path(comm.bcast(work if comm.rank == 0 else None))
+        rows, mapped = measure("anchor", args.quick, folder, (4, 6) if args.quick else (12, 24))
+        more, _ = measure("lung", args.quick, folder, None)
+    rows += more
+    if comm.rank == 0:
+        path = RESULTS / f"{stem}.csv"
+        kept = [r for r in (read_results(path) if path.exists() else []) if r.get("ranks") != comm.size]
+        rows = kept + [r | {"command": command.strip()} for r in rows]
+        write_results(RESULTS, stem, rows, markdown(rows, command.strip()))
+        plot(rows, mapped, RESULTS / f"{stem}.png")
+        print((RESULTS / f"{stem}.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
