@@ -34,6 +34,7 @@ QUICK = {
     "twin": (["--quick"], "twin_quick"),
     "population": (["--quick"], "population_quick"),
     "twin_population": (["--quick"], "twin_population_quick"),
+    "pgd": (["--quick"], "pgd_quick"),
 }
 
 

@@ -195,6 +195,7 @@ def _factors(
         along.append(sweeps[0])
         moved.append(np.any([_varies(sweep) for sweep in sweeps], axis=0))
     ones = [np.ones(len(axis.nodes)) for axis in axes]
+    grids: dict[tuple[int, int], np.ndarray] = {}  # every value on two axes' node grid, made once a pair
     parts = []
     for e in range(len(default)):
         by = [j for j in range(len(axes)) if moved[j][e]]
@@ -208,20 +209,18 @@ def _factors(
             parts.append((e, tuple(along[j][:, e] if i == j else ones[i] for i in range(len(axes)))))
         elif len(by) == 2:
             j, k = by
-            grid = np.array(
-                [
+            if (j, k) not in grids:
+                names = axes[j].parameter.name, axes[k].parameter.name
+                grids[j, k] = np.array(
                     [
-                        _values(
-                            model,
-                            constants,
-                            defaults | {axes[j].parameter.name: float(a), axes[k].parameter.name: float(b)},
-                        )[e]
-                        for b in axes[k].values
+                        [
+                            _values(model, constants, defaults | dict(zip(names, (float(a), float(b)))))
+                            for b in axes[k].values
+                        ]
+                        for a in axes[j].values
                     ]
-                    for a in axes[j].values
-                ]
-            )
-            left, sigma, right = np.linalg.svd(grid, full_matrices=False)
+                )
+            left, sigma, right = np.linalg.svd(grids[j, k][:, :, e], full_matrices=False)
             for r in np.flatnonzero(sigma > RANK * sigma[0]):
                 factors = list(ones)
                 factors[j], factors[k] = sigma[r] * left[:, r], right[r]
