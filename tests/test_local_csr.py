@@ -48,3 +48,20 @@ def _dense(matrix: la.MatrixCSR) -> np.ndarray:
     columns = matrix.index_map(1)
     local = np.arange(columns.size_local + columns.num_ghosts, dtype=np.int32)
     return matrix.to_dense()[:, columns.local_to_global(local)]
+
+
+def test_a_rank_holding_none_of_the_entries_has_an_empty_product():
+    """A form over no cell of this rank (a hyper-reduced model's sample, all on other ranks):
+    no value to share, and the product is zero (it was refused as a copy)."""
+    from dolfinx.mesh import meshtags
+
+    mesh = box(MPI.COMM_SELF, cells=(2, 1, 1)).mesh
+    space = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u, v = ufl.TrialFunction(space), ufl.TestFunction(space)
+    none = meshtags(mesh, mesh.topology.dim, np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32))
+    form = fem.form(ufl.inner(u, v) * ufl.dx(domain=mesh, subdomain_data=none, subdomain_id=1))
+    matrix = fem.create_matrix(form, block_mode=la.BlockMode.expanded)
+    fem.assemble_matrix(matrix, form)
+    local = LocalCSR(matrix)
+    assert local.data.size == 0
+    assert np.all(local @ np.ones((matrix.index_map(1).size_local, 2)) == 0.0)

@@ -147,7 +147,8 @@ class LocalCSR:
         shape = (len(matrix.indptr) - 1, columns.size_local + columns.num_ghosts)
         self.data = matrix.data
         self._matrix = scipy.sparse.csr_array((self.data, matrix.indices, matrix.indptr), shape=shape, copy=False)
-        if not np.shares_memory(self._matrix.data, self.data):  # (a dtype SciPy converts would copy)
+        # (a dtype SciPy converts would copy; a rank holding none of the entries has nothing to share)
+        if self.data.size and not np.shares_memory(self._matrix.data, self.data):
             raise TypeError("LocalCSR: SciPy copied the matrix's values; they would not follow its assemblies")
 
     def __abs__(self) -> LocalCSR:
