@@ -11,7 +11,7 @@ MPIEXEC  = $$([ -x $(VENV)/bin/mpiexec ] && echo $(VENV)/bin/mpiexec || echo mpi
 STAMP   := $(VENV)/.lungmech-installed
 LOCK    ?= requirements/lock.txt
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin bench-population bench-twin-population clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin bench-population bench-twin-population bench-pgd clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -132,6 +132,10 @@ bench-population: $(STAMP)
 # The twin experiments' right lungs personalised on a population's model and on models of their own.
 bench-twin-population: $(STAMP)
 	$(PY) benchmarks/twin_population.py
+
+# The a priori PGD beside the full and a hyper-reduced model: NeuROM's anchor plate and a lung phantom.
+bench-pgd: $(STAMP)
+	$(PY) benchmarks/pgd.py
 
 clean:
 	rm -rf results benchmarks/results

@@ -244,10 +244,12 @@ def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) 
 
 
 def markdown(rows: list[dict], command: str) -> str:
+    ranks = sorted({int(r["ranks"]) for r in rows})
+    runs = " and ".join(str(n) for n in ranks)
     lines = [
         "# The a priori PGD beside the full model and a hyper-reduced model",
         "",
-        f"{provenance(command)} Errors at random points of each box against the full model: relative nodal "
+        f"{provenance(command, f'{runs} rank(s), each from its own run (this command: the last)')} Errors at random points of each box against the full model: relative nodal "
         "(ℓ2 over every dof, NeuROM's measure) and relative energy norm (the energy product at the defaults). "
         "Online: median milliseconds of `solve(μ, times=[T])` (volume, strain energy, probes). Offline: the "
         "whole build, in seconds (the PGD's terms and greedy alone in brackets).",

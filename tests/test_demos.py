@@ -198,6 +198,16 @@ def test_register_lung(monkeypatch):
     assert numbers["worst_dice"] > 0.98 and 0 < numbers["new_volume"] < 5
 
 
+@pytest.mark.slow
+def test_pgd_lung(monkeypatch):
+    page = executed("pgd_lung", monkeypatch)
+    numbers = glued(page)
+    assert pictures(page) == 3
+    assert numbers["worst"] < 1e-4 and numbers["modes"] <= 5  # the issue's target: ≤ 1e-4 with ≤ 5 modes
+    for k in (1, 2):
+        assert sum(numbers[f"mode{k}_{axis}"] for axis in "xyz") == pytest.approx(1.0)
+
+
 def test_a_demo_leaves_a_users_folder_alone(tmp_path):
     """-o naming a folder of the user's: one line, exit code 2, and the folder as it was."""
     (tmp_path / "mine").mkdir()
