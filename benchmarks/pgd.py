@@ -27,6 +27,7 @@ Writes results/pgd.md, results/pgd.csv and results/pgd.png.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import sys
 import tempfile
@@ -37,6 +38,7 @@ from mpi4py import MPI
 
 import machine
 import matplotlib
+import matplotlib.ticker
 import numpy as np
 
 from lungmech.app import reduce
@@ -296,14 +298,11 @@ def plot(rows: list[dict], mapped: dict | None, path: Path) -> None:
         left.set_xlabel(f"{mapped['names'][1]} [deg]")
         left.set_ylabel(f"{mapped['names'][0]} [Pa]")
         left.set_title("the anchor plate's PGD over its box", fontsize=10)
-    for r, marker in zip(rows, "os^vD<>ph*"):
-        if isinstance(r.get("energy error max"), float):
-            right.loglog(
-                r["online [ms]"],
-                r["energy error max"],
-                marker,
-                label=f"{r['case']}, {r['ranks']} rank(s): {r['model']}",
-            )
+    measured = [r for r in rows if isinstance(r.get("energy error max"), float)]
+    for r, marker in zip(measured, itertools.cycle("os^vD<>ph*")):
+        label = f"{r['case']}, {r['ranks']} rank(s): {r['model']}"
+        right.loglog(r["online [ms]"], r["energy error max"], marker, label=label)
+    right.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     right.set_xlabel("online time per point [ms]")
     right.set_ylabel("largest relative energy-norm error [-]")
     right.grid(alpha=0.3, which="both")
