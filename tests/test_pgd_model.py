@@ -21,7 +21,10 @@ from lungmech.app.pgd import build as build_file
 from lungmech.app.run import build_model, full_order_model
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.solver import Stepping
+from lungmech.pgd.axes import Axis
 from lungmech.pgd.model import build
+from lungmech.pgd.terms import constants
+from lungmech.pgd.values import closed_form
 
 # A steel-like beam 2 × 0.5 × 0.5 m clamped at x = 0, under its weight (turned by the pitch, over
 # a full turn) and a dead pressure on its free end; E over a factor 10: displacements of mm.
@@ -208,3 +211,29 @@ def test_a_build_on_every_rank_equals_the_serial_one(beam):
             assert relative(a.outputs[name], b.outputs[name], np.abs(b.outputs[name]).max()) < 1e-9, name
             exact = b.sensitivities[name]
             assert relative(a.sensitivities[name], exact, np.abs(exact).max()) < 1e-9, name
+
+
+def test_the_values_in_closed_form_are_the_models_and_refused_where_none_holds(beam):
+    """The moduli (linear in E) and the end pressure (its value) in closed form equal the model's
+    own at random points, so an answer need not set the fem model (the same answer as with its
+    sensitivities, which does); gravity turned by the pitch has one, by pitch and roll none."""
+    _, scene, pgd, _ = beam
+    assert pgd._energy is not None and pgd._loads is not None
+    for point in pgd.parameters.sample(5, seed=31):
+        quick, set_model = pgd.solve(point), pgd.solve(point, sensitivities=True)
+        for name in ("strain_energy", "loads/tip", "volume"):
+            assert np.allclose(quick.outputs[name], set_model.outputs[name], rtol=1e-12, atol=0), name
+    for model, held in ((build_model(scene), True), (beam_model_with_roll(scene), False)):
+        model.set_time(1.0)  # the loads at the path's end (0 at its start)
+        weight = [c for c in constants(model) if np.size(c.value) == 3]  # ρg, turned by the posture
+        axes = tuple(Axis(p, 8) for p in model.parameters)
+        form = closed_form(model, axes, lambda: np.concatenate([np.ravel(c.value) for c in weight]))  # noqa: B023
+        assert (form is not None) == held  # the pitch alone: cos and sin; with the roll: their products
+
+
+def beam_model_with_roll(scene):
+    """The scene's model with the roll a parameter too (gravity turned by pitch and roll)."""
+    table = dict(scene.table) | {
+        "parameters": dict(scene.table["parameters"]) | {"roll": {"target": "loads.gravity.roll", "range": [-30, 30]}}
+    }
+    return build_model(scenes.parse(table, folder=Path(scene.source).parent))

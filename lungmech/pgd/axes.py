@@ -103,6 +103,11 @@ class Axis:
             axis=1,
         )
 
+    def coordinate(self, s: float) -> float:
+        """One unit coordinate, already checked inside the box, as the splines read it (modulo 1
+        on a periodic axis): :meth:`unit` for one point, without NumPy's per-call cost."""
+        return s % 1.0 if self.periodic else min(max(s, 0.0), 1.0)
+
     def unit(self, s: np.ndarray) -> np.ndarray:
         """Unit coordinates as the splines read them: modulo 1 on a periodic axis; refused
         outside [0, 1] otherwise."""

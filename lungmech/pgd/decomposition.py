@@ -64,7 +64,7 @@ class Decomposition:
     def _at(self, mu: Mapping[str, float], derivative: int = 0) -> list[np.ndarray]:
         """λₖʲ(sⱼ) (or its ``derivative`` in s), one array of the terms per axis."""
         return [
-            horner(P, float(axis.unit(s)[0]), derivative)
+            horner(P, axis.coordinate(float(s)), derivative)
             for axis, P, s in zip(self.axes, self._polynomials, self.units(mu))
         ]
 

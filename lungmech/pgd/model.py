@@ -19,6 +19,7 @@ explicit part ½ zᵀ (Σₑ ∂cₑ/∂μ Aₑ) z from the model's own value de
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -41,6 +42,7 @@ from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.greedy import Options, Round, pgd
 from lungmech.pgd.terms import separated_terms
+from lungmech.pgd.values import closed_form
 from lungmech.rom.basis import inner_product
 from lungmech.rom.exact import Cubic, affine, cubic
 
@@ -180,6 +182,12 @@ class PGDModel:
         self._owned = owned_size(model.space)
         self._start = StartReport("rest", "the unloaded state").measured(online.volume.c0)  # its volume
         self._values = _Entries(model, online.entries)
+        self._last = dict(model.parameter_values)  # the parameters of the last answer
+        with model.kept_state():
+            model.set_time(stepping.end)  # the scalar loads at the path's end, the load factor 1
+            self._labels = tuple(model.scalar_loads())
+            self._energy = closed_form(model, decomposition.axes, self._values.read)
+            self._loads = closed_form(model, decomposition.axes, lambda: np.array(list(model.scalar_loads().values())))
 
     @property
     def size(self) -> int:
@@ -204,10 +212,16 @@ class PGDModel:
         factor = _one_factor(scale, len(self.model.loads))
         wanted = self.times if times is None else checked_times(times, self.stepping)
         model, stepping, start = self.model, self.stepping, self._start
-        if model.time != stepping.end or model.scaling != (factor, None):
-            model.set_time(stepping.end, load_factor=factor)  # the loads at t are r(t)/r(T) of these
-        model.set_parameters(values)  # (at that time)
-        point = _Point(self, values, value_derivatives(model) if sensitivities else None)
+        self._last = values
+        if self._energy is not None and self._loads is not None and not sensitivities:
+            c, loads = self._energy(values), dict(zip(self._labels, factor * self._loads(values)))
+            point = _Point(self, values, c, loads, None)  # the fem model is not set: see fields
+        else:
+            if model.time != stepping.end or model.scaling != (factor, None):
+                model.set_time(stepping.end, load_factor=factor)  # the loads at t are r(t)/r(T) of these
+            model.set_parameters(values)  # (at that time)
+            derivatives = value_derivatives(model) if sensitivities else None
+            point = _Point(self, values, self._values.read(), model.scalar_loads(), derivatives)
         if on_step is not None:  # the start, as every model shows it first
             on_step(
                 Step("start", stepping.start, None, lambda: point.outputs(0.0), lambda: point.state(0.0), start=start)
@@ -239,8 +253,11 @@ class PGDModel:
         )
 
     def fields(self, state: np.ndarray, time: float) -> None:
-        """The fem model's state Q ``state`` at ``time`` (collective)."""
+        """The fem model's state Q ``state`` at ``time``, its parameters the last answer's
+        (collective)."""
         model = self.model
+        if model.parameter_values != self._last:
+            model.set_parameters(self._last)
         model.set_time(time, *model.scaling)
         model.reset()
         model.state.x.array[: self._owned] += self.decomposition.modes @ state
@@ -274,17 +291,24 @@ class _Entries:
 
 
 class _Point:
-    """One solve's evaluation at μ, the model's parameters and loads set at μ and the path's
-    end T: the state there z_T = R q(μ), the strain energy's A(c(μ)), the scalar loads at T and,
-    with ``derivatives`` (the model's value derivatives), dz_T/dμ and ∂A/∂μ. At a time whose
-    ramp is the ``fraction`` r(t)/r(T) of its end's, with the load factor s, the state is
-    s·fraction·z_T and the loads fraction times theirs at T."""
+    """One solve's evaluation at μ: the state at the path's end T, z_T = R q(μ), the strain
+    energy's A(c) for the values ``c`` of its entries, the scalar ``loads`` at T and, with
+    ``derivatives`` (the model's value derivatives, its parameters set at μ), dz_T/dμ and ∂A/∂μ.
+    At a time whose ramp is the ``fraction`` r(t)/r(T) of its end's, with the load factor s,
+    the state is s·fraction·z_T and the loads fraction times theirs at T."""
 
-    def __init__(self, owner: PGDModel, values: Mapping[str, float], derivatives: ValueDerivatives | None) -> None:
+    def __init__(
+        self,
+        owner: PGDModel,
+        values: Mapping[str, float],
+        c: np.ndarray,
+        loads: dict[str, float],
+        derivatives: ValueDerivatives | None,
+    ) -> None:
         model, d, self.online = owner.model, owner.decomposition, owner.online
         self.base = d.factors(values)
-        self.operator = self.online.operator(owner._values.read())
-        self.loads = model.scalar_loads()
+        self.operator = self.online.operator(c)
+        self.loads = loads
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
         if derivatives is not None:
@@ -331,6 +355,8 @@ def _returning(value: object) -> Callable[[], Any]:
 
 def _one_factor(scale: float | Sequence[float], loads: int) -> float:
     """The one load factor a PGD model takes (the same for every load)."""
+    if isinstance(scale, int | float) and math.isfinite(scale):
+        return float(scale)
     factors = np.broadcast_to(np.asarray(scale, dtype=float), (max(loads, 1),))
     if not (np.all(factors == factors[0]) and np.isfinite(factors[0])):
         raise ParameterError(

@@ -210,11 +210,11 @@ def _factors(
         elif len(by) == 2:
             j, k = by
             if (j, k) not in grids:
-                names = axes[j].parameter.name, axes[k].parameter.name
+                pair = axes[j].parameter.name, axes[k].parameter.name
                 grids[j, k] = np.array(
                     [
                         [
-                            _values(model, constants, defaults | dict(zip(names, (float(a), float(b)))))
+                            _values(model, constants, defaults | dict(zip(pair, (float(a), float(b)))))
                             for b in axes[k].values
                         ]
                         for a in axes[j].values
