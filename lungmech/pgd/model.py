@@ -19,6 +19,7 @@ explicit part ½ zᵀ (Σₑ ∂cₑ/∂μ Aₑ) z from the model's own value de
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -210,7 +211,7 @@ class PGDModel:
         tic = time.perf_counter()
         values = self.parameters.values(mu)
         factor = _one_factor(scale, len(self.model.loads))
-        wanted = self.times if times is None else checked_times(times, self.stepping)
+        wanted = self.times if times is None else self._times(tuple(times))
         model, stepping, start = self.model, self.stepping, self._start
         self._last = values
         if self._energy is not None and self._loads is not None and not sensitivities:
@@ -249,8 +250,13 @@ class PGDModel:
             parameter_names=self.parameters.names,
             units=dict(UNITS),
             start=start,
-            scale=np.asarray(scale, dtype=float).tolist(),
+            scale=factor if isinstance(scale, int | float) else np.asarray(scale, dtype=float).tolist(),
         )
+
+    @functools.lru_cache(maxsize=8)  # noqa: B019  (the model lives as long as its answers are asked for)
+    def _times(self, times: tuple[float, ...]) -> np.ndarray:
+        """The output times asked for, checked (:func:`~lungmech.fem.parametric.checked_times`)."""
+        return checked_times(times, self.stepping)
 
     def fields(self, state: np.ndarray, time: float) -> None:
         """The fem model's state Q ``state`` at ``time``, its parameters the last answer's
