@@ -154,7 +154,8 @@ with model.kept_state():
         mode = pgd.decomposition.modes[:, k]
         largest = comm.allreduce(float(np.abs(mode).max()), op=MPI.MAX)
         pgd.fields(np.eye(pgd.size)[k] * 0.02 / largest, end)  # the state Q z, z its k-th coordinate
-        motion = np.abs(model.motion().x.array.reshape(-1, 3)[: pgd.model.geometry.mesh.geometry.index_map().size_local])
+        u = model.motion()
+        motion = np.abs(u.x.array.reshape(-1, 3)[: u.function_space.dofmap.index_map.size_local])  # owned nodes
         along = np.array([comm.allreduce(float(c), op=MPI.SUM) for c in motion.sum(axis=0)])
         for axis, share in zip("xyz", along / along.sum()):
             demo.report(f"mode{k + 1}_{axis}", share, f"mode {k + 1}: {share:.2f} of its motion along {axis}")
