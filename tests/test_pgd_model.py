@@ -126,6 +126,9 @@ def test_its_path_and_load_factor_are_the_linear_models(beam):
     b = full.solve(point, times=[0.3], scale=0.5)
     assert relative(a.outputs["probes"], b.outputs["probes"], np.abs(b.outputs["probes"]).max()) < CLOSE
     assert a.outputs["loads/tip"][0] == pytest.approx(0.3 * 0.5 * -800.0)
+    pgd.fields(a.states[-1], 0.3)  # the field of that answer: the fem model at its parameters and loads
+    assert pgd.model.parameter_values == pgd.parameters.values(point)
+    assert pgd.model.scalar_loads()["tip"] == pytest.approx(0.3 * 0.5 * -800.0)
     with pytest.raises(ParameterError, match="one finite load factor for every load"):
         pgd.solve(point, scale=[1.0, 2.0])
     with pytest.raises(ParameterError, match=r"'E' = 2e\+07 Pa is outside its range"):

@@ -183,7 +183,7 @@ class PGDModel:
         self._owned = owned_size(model.space)
         self._start = StartReport("rest", "the unloaded state").measured(online.volume.c0)  # its volume
         self._values = _Entries(model, online.entries)
-        self._last = dict(model.parameter_values)  # the parameters of the last answer
+        self._last = dict(model.parameter_values), 1.0  # the parameters and load factor of the last answer
         with model.kept_state():
             model.set_time(stepping.end)  # the scalar loads at the path's end, the load factor 1
             self._labels = tuple(model.scalar_loads())
@@ -213,7 +213,7 @@ class PGDModel:
         factor = _one_factor(scale, len(self.model.loads))
         wanted = self.times if times is None else self._times(tuple(times))
         model, stepping, start = self.model, self.stepping, self._start
-        self._last = values
+        self._last = values, factor
         if self._energy is not None and self._loads is not None and not sensitivities:
             c, loads = self._energy(values), dict(zip(self._labels, factor * self._loads(values)))
             point = _Point(self, values, c, loads, None)  # the fem model is not set: see fields
@@ -259,12 +259,12 @@ class PGDModel:
         return checked_times(times, self.stepping)
 
     def fields(self, state: np.ndarray, time: float) -> None:
-        """The fem model's state Q ``state`` at ``time``, its parameters the last answer's
-        (collective)."""
-        model = self.model
-        if model.parameter_values != self._last:
-            model.set_parameters(self._last)
-        model.set_time(time, *model.scaling)
+        """The fem model's state Q ``state`` at ``time``, its parameters and load factor the last
+        answer's (collective)."""
+        model, (values, factor) = self.model, self._last
+        model.set_time(time, load_factor=factor)
+        if model.parameter_values != values:
+            model.set_parameters(values)
         model.reset()
         model.state.x.array[: self._owned] += self.decomposition.modes @ state
         model.state.x.scatter_forward()
