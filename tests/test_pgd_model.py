@@ -146,8 +146,10 @@ def test_a_model_it_cannot_answer_is_refused_in_one_line_before_any_work(beam, t
         build(model, Stepping(start=0.5, end=1.0))
     with pytest.raises(ParameterError, match="intervals"):
         build(model, scene.stepping, intervals=0)
-    bare = tmp_path / "bare.toml"
-    bare.write_text(SCENE.format(cells=4, tip=1.0).split("[parameters.E]")[0])
+    bare = tmp_path / "bare.toml"  # (one folder for every rank: rank 0 writes)
+    if MPI.COMM_WORLD.rank == 0:
+        bare.write_text(SCENE.format(cells=4, tip=1.0).split("[parameters.E]")[0])
+    MPI.COMM_WORLD.barrier()
     plain = scenes.load(bare)
     with pytest.raises(ParameterError, match="no parameters to separate"):
         build(build_model(plain), plain.stepping)
