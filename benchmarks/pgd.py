@@ -163,13 +163,24 @@ def answers(model, points: list[dict]) -> tuple[list[np.ndarray], float]:
 
 
 def model_state(model, solution) -> np.ndarray:
-    """The full owned state of a solution's last row: a full model's own, a reduced one's made."""
-    row = solution.states[-1]
-    if hasattr(model, "decomposition"):
-        return model.decomposition.modes @ row
-    if hasattr(model, "reconstruct"):
-        return model.reconstruct(solution, -1)
-    return row
+    """The full owned state of a solution's last row: a full model's own, a reduced or PGD one's made."""
+    return model.reconstruct(solution, -1) if hasattr(model, "reconstruct") else solution.states[-1]
+
+
+def measured(base: dict, model: str, offline: float, online: float, solves: int, errors: tuple) -> dict:
+    """A table row: a model's offline seconds, online milliseconds, full solves offline and its
+    (nodal, energy) errors at the points, max and median."""
+    nodal, energy = errors
+    return base | {
+        "model": model,
+        "offline [s]": offline,
+        "online [ms]": online,
+        "full solves offline": solves,
+        "nodal error max": nodal.max(),
+        "nodal error median": float(np.median(nodal)),
+        "energy error max": energy.max(),
+        "energy error median": float(np.median(energy)),
+    }
 
 
 def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) -> tuple[list[dict], dict | None]:
@@ -191,21 +202,9 @@ def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) 
     offline = time.perf_counter() - tic
     pgd = reduce.load(folder / f"{name}-pgd.npz", comm, fields=True)
     states, online = answers(pgd, points)
-    nodal, energy = errors(full.model, states, exact, W)
-    rows.append(
-        base
-        | {
-            "model": f"PGD ({summary['terms']} terms, {summary['modes']} modes)",
-            "offline [s]": offline,
-            "offline terms+greedy [s]": summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"],
-            "online [ms]": online,
-            "full solves offline": 0,
-            "nodal error max": nodal.max(),
-            "nodal error median": float(np.median(nodal)),
-            "energy error max": energy.max(),
-            "energy error median": float(np.median(energy)),
-        }
-    )
+    named = f"PGD ({summary['terms']} terms, {summary['modes']} modes)"
+    rows.append(measured(base, named, offline, online, 0, errors(full.model, states, exact, W)))
+    rows[-1]["offline terms+greedy [s]"] = summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"]
 
     say(f"{name}: the hyper-reduced model (8 full solves)")
     tic = time.perf_counter()
@@ -215,20 +214,8 @@ def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) 
     offline = time.perf_counter() - tic
     hyper = reduce.load(folder / f"{name}-ecsw.npz", comm, fields=True)
     states, online = answers(hyper, points)
-    nodal, energy = errors(full.model, states, exact, W)
-    rows.append(
-        base
-        | {
-            "model": f"POD ECSW τ=1e-4 ({hyper.size} vectors)",
-            "offline [s]": offline,
-            "online [ms]": online,
-            "full solves offline": 8,
-            "nodal error max": nodal.max(),
-            "nodal error median": float(np.median(nodal)),
-            "energy error max": energy.max(),
-            "energy error median": float(np.median(energy)),
-        }
-    )
+    named = f"POD ECSW τ=1e-4 ({hyper.size} vectors)"
+    rows.append(measured(base, named, offline, online, 8, errors(full.model, states, exact, W)))
     mapped = None
     if grid is not None:
         say(f"{name}: the error map, {grid[0]} × {grid[1]} points")

@@ -109,7 +109,7 @@ end = scene.stepping.end
 def error(point: dict) -> float:
     """‖u_PGD − u‖_W / ‖u‖_W at ``point``."""
     exact = full.solve(point, times=[end]).states[-1]
-    found = pgd.decomposition.modes @ pgd.solve(point, times=[end]).states[-1]
+    found = pgd.reconstruct(pgd.solve(point, times=[end]), -1)
     return float(norms((found - exact)[:, None], W, comm)[0] / norms(exact[:, None], W, comm)[0])
 
 

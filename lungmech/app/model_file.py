@@ -31,7 +31,7 @@ from lungmech.parallel import on_root
 from lungmech.registration.image import companions as image_companions
 from lungmech.rom import store
 
-__all__ = ["embedded_name", "embedded_names", "embedded_scene", "file_bytes"]
+__all__ = ["embedded_name", "embedded_names", "embedded_scene", "file_bytes", "scene_record"]
 
 
 def embedded_names(scene: Scene) -> dict[str, str]:
@@ -54,6 +54,21 @@ def embedded_names(scene: Scene) -> dict[str, str]:
             for file in [marker.path, *(str(d) for d in data if d.exists())]:
                 names[f"regions/{Path(file).name}"] = str(file)
     return names
+
+
+def scene_record(scene: Scene, fingerprint: str, parameters: list[dict]) -> dict:
+    """What a model file's metadata says of its scene: its file and title, the fingerprint of
+    the mesh the model was built on (an imaged body's: the image's), its loads' count, its
+    parameters (described), its table and the embedded names of the files it reads."""
+    return {
+        "scene": str(Path(scene.source).resolve()) if scene.source else None,
+        "title": scene.title,
+        "imaged_fingerprint": fingerprint,
+        "loads": len(scene.loads),
+        "parameters": parameters,
+        "scene_table": scene.table,
+        "files": embedded_names(scene),
+    }
 
 
 def file_bytes(scene: Scene, comm: MPI.Comm) -> dict[str, np.ndarray | None]:

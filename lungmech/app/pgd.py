@@ -15,7 +15,7 @@ from pathlib import Path
 from mpi4py import MPI
 
 from lungmech import checks
-from lungmech.app.model_file import embedded_names, file_bytes
+from lungmech.app.model_file import file_bytes, scene_record
 from lungmech.app.run import build_model
 from lungmech.app.scene import Scene
 from lungmech.errors import ParameterError
@@ -58,16 +58,9 @@ def build(
         model = build_model(scene, comm)
         built = time.perf_counter() - tic
         found, rounds = pgd_build(model, scene.stepping, scene.output.probes, intervals, options)
-        extra = {
-            "scene": str(Path(scene.source).resolve()) if scene.source else None,
-            "title": scene.title,
-            "imaged_fingerprint": layout(model.space).fingerprint,
-            "loads": len(scene.loads),
+        extra = scene_record(scene, layout(model.space).fingerprint, model.parameters.describe()) | {
             "scales": None,
-            "parameters": model.parameters.describe(),
             "offline_seconds": {"build": built, **found.built["seconds"]},
-            "scene_table": scene.table,
-            "files": embedded_names(scene),
         }
         arrays = {f"file:{name}": data for name, data in file_bytes(scene, comm).items()}
         hold_signals_until_swap()  # the model file is a collective write

@@ -30,7 +30,7 @@ import numpy as np
 
 from lungmech import checks
 from lungmech.app.cache import Cache, default_folder
-from lungmech.app.model_file import embedded_name, embedded_names, embedded_scene, file_bytes
+from lungmech.app.model_file import embedded_name, embedded_scene, file_bytes, scene_record
 from lungmech.app.run import Scale, build_model, check_scale
 from lungmech.app.scene import Scene, differences, physics
 from lungmech.app.training_paths import EnsemblePaths, forget, image_of, training_model
@@ -282,16 +282,9 @@ def _build(
         for path, hyper, size in models:
             reduced = made.reduce(hyper, size)
             spent = timings | reduced.built["timings"]
-            extra = {
-                "scene": str(Path(scene.source).resolve()) if scene.source else None,
-                "title": scene.title,
-                "imaged_fingerprint": where.fingerprint,
-                "loads": len(scene.loads),
+            extra = scene_record(scene, where.fingerprint, full.parameters.describe()) | {
                 "scales": reduced.built["scales"],
-                "parameters": full.parameters.describe(),
                 "offline_seconds": spent,
-                "scene_table": scene.table,
-                "files": embedded_names(scene),
                 "training_paths": None if paths is None else {"solved": paths.solved, "kept": paths.kept},
             }
             hyper_summary = store.hyper_record(reduced)

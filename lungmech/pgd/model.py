@@ -269,6 +269,11 @@ class PGDModel:
         model.state.x.array[: self._owned] += self.decomposition.modes @ state
         model.state.x.scatter_forward()
 
+    def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
+        """The full state Q z of output ``index`` of ``solution`` (owned entries), as
+        :meth:`lungmech.rom.reduced.ReducedModel.reconstruct` gives a reduced one's."""
+        return self.decomposition.modes @ solution.states[index]
+
     def describe(self) -> dict[str, object]:
         """What answers: the decomposition's size; no solver."""
         d = self.decomposition
@@ -281,19 +286,13 @@ class _Entries:
 
     def __init__(self, model: Model, entries: np.ndarray) -> None:
         constants = separated.constants(model)
-        ends = np.cumsum([np.size(c.value) for c in constants])
-        holder = np.searchsorted(ends, entries, side="right")  # the constant holding each entry
-        self._held = [constants[i] for i in sorted(set(holder.tolist()))]
-        starts = {i: int(ends[i] - np.size(constants[i].value)) for i in set(holder.tolist())}
-        order = {i: k for k, i in enumerate(sorted(starts))}
-        offsets = np.cumsum([0] + [np.size(c.value) for c in self._held])
-        self._where = np.array([offsets[order[h]] + e - starts[h] for e, h in zip(entries, holder)], dtype=int)
+        starts = np.cumsum([0] + [np.size(c.value) for c in constants])
+        holder = np.searchsorted(starts, entries, side="right") - 1  # the constant holding each entry
+        self._picks = [(constants[h], int(e - starts[h])) for e, h in zip(entries, holder)]
 
     def read(self) -> np.ndarray:
         """c_e for each entry, now."""
-        if not self._held:
-            return np.zeros(0)
-        return np.concatenate([np.ravel(c.value) for c in self._held])[self._where]
+        return np.array([np.ravel(c.value)[i] for c, i in self._picks], dtype=float)
 
 
 class _Point:
