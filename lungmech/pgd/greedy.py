@@ -26,9 +26,11 @@ or at ``max_terms``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import cast
 
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
@@ -39,11 +41,10 @@ from lungmech.fem.linear import factorised
 from lungmech.parallel.linalg import apply, gram, norms
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.modes import Modes, rms, solve_small
 from lungmech.pgd.terms import Terms
 
-__all__ = ["Options", "Round", "pgd"]
-
-SPAN = 1e-8  # a new term's space part outside span Q below this fraction of it: no new space mode
+__all__ = ["Options", "Round", "change", "pgd"]
 
 
 @dataclass(frozen=True)
@@ -83,87 +84,37 @@ class Round:
     potential: float
 
 
-class _Terms:
-    """The terms so far: Q (owned entries × m, W-orthonormal), R (m × n), X[j] (n × axis j's
-    size), and KQ[T] = K_T Q, with the reduced operators and loads Qᵀ K_T Q, Qᵀ f_S."""
-
-    def __init__(self, problem: Terms, owned: int) -> None:
-        self.problem, self.comm = problem, problem.comm
-        self.Q = np.zeros((owned, 0))
-        self.R = np.zeros((0, 0))
-        self.X = [np.zeros((0, axis.size)) for axis in problem.axes]
-        self.KQ = [np.zeros((owned, 0)) for _ in problem.operator]
-
-    @property
-    def count(self) -> int:
-        return self.R.shape[1]
-
-    def values(self) -> list[np.ndarray]:
-        """Each axis's splines at its nodes (terms × nodes)."""
-        return [Xj @ axis.basis.T for axis, Xj in zip(self.problem.axes, self.X)]
-
-    def reduced_operators(self) -> list[np.ndarray]:
-        return [gram(self.Q, KQ, self.comm) for KQ in self.KQ]
-
-    def reduced_loads(self) -> list[np.ndarray]:
-        return [gram(self.Q, load.vector[:, None], self.comm)[:, 0] for load in self.problem.load]
-
-    def add(self, u: np.ndarray, x: list[np.ndarray], W: PETSc.Mat) -> bool:
-        """Add the term ū Πⱼ λʲ (splines ``x``); True if its space part brought a new mode."""
-        r = gram(self.Q, apply(W, u[:, None], self.comm), self.comm)[:, 0]
-        remainder = u - self.Q @ r
-        length = float(norms(remainder[:, None], W, self.comm)[0])
-        new = length > SPAN * float(norms(u[:, None], W, self.comm)[0])
-        if new:
-            q = remainder - self.Q @ gram(self.Q, apply(W, remainder[:, None], self.comm), self.comm)[:, 0]
-            q /= float(norms(q[:, None], W, self.comm)[0])  # twice is enough
-            self.Q = np.column_stack([self.Q, q])
-            self.KQ = [
-                np.column_stack([KQ, apply(t.matrix, q[:, None], self.comm)])
-                for KQ, t in zip(self.KQ, self.problem.operator)
-            ]
-            r = np.append(r, float(gram(q[:, None], apply(W, u[:, None], self.comm), self.comm)[0, 0]))
-            self.R = np.vstack([self.R, np.zeros((1, self.count))])
-        self.R = np.column_stack([self.R, r])
-        self.X = [np.vstack([Xj, xj]) for Xj, xj in zip(self.X, x)]
-        return new
-
-
 def pgd(terms: Terms, W: PETSc.Mat, options: Options = Options()) -> tuple[Decomposition, list[Round]]:
     """The PGD of ``terms`` (module docstring), its space modes orthonormal in ``W``: the
     decomposition and one :class:`Round` per enrichment tried. Collective."""
-    owned = len(terms.load[0].vector)
-    found = _Terms(terms, owned)
+    found = Modes(terms.axes, [t.matrix for t in terms.operator], len(terms.load[0].vector), terms.comm)
     rounds: list[Round] = []
     while found.count < options.max_terms:
-        u, x, iterations, converged = _new_term(found, options)
+        u, x, iterations, converged = _new_term(terms, found, options)
         amplitude = float(norms(u[:, None], W, terms.comm)[0]) * float(
-            np.prod([_rms(a, xj) for a, xj in zip(terms.axes, x)])
+            np.prod([rms(a, xj) for a, xj in zip(terms.axes, x)])
         )
         whole = float(np.sqrt(_mean_square(found) + amplitude**2))
         if amplitude <= options.tolerance * whole or whole == 0.0:
             rounds.append(
-                Round(amplitude / whole if whole else 0.0, iterations, converged, False, False, _potential(found))
+                Round(
+                    amplitude / whole if whole else 0.0, iterations, converged, False, False, _potential(terms, found)
+                )
             )
             break
         new = found.add(u, x, W)
         for _ in range(options.sweeps):
-            found.R = _update_space(found)
+            found.R = _update_space(terms, found)
             for j in range(len(terms.axes)):
-                found.X[j] = _update_axis(found, j)
-        rounds.append(Round(amplitude / whole, iterations, converged, True, new, _potential(found)))
-    return Decomposition(terms.axes, found.Q, found.R, found.X), rounds
+                found.X[j] = _update_axis(terms, found, j)
+        rounds.append(Round(amplitude / whole, iterations, converged, True, new, _potential(terms, found)))
+    return found.decomposition(), rounds
 
 
-def _rms(axis: Axis, x: np.ndarray) -> float:
-    values = axis.basis @ x
-    return float(np.sqrt(axis.weights @ values**2))
-
-
-def _new_term(found: _Terms, options: Options) -> tuple[np.ndarray, list[np.ndarray], int, bool]:
+def _new_term(problem: Terms, found: Modes, options: Options) -> tuple[np.ndarray, list[np.ndarray], int, bool]:
     """(ū, its splines per axis, iterations, converged): alternating directions for one term,
     the others fixed."""
-    problem, comm = found.problem, found.comm
+    comm = found.comm
     axes = problem.axes
     old = found.values()
     KU = [KQ @ found.R for KQ in found.KQ]  # K_T U, U = Q R
@@ -181,10 +132,10 @@ def _new_term(found: _Terms, options: Options) -> tuple[np.ndarray, list[np.ndar
         for j, axis in enumerate(axes):
             x[j] = _axis(problem, j, lam, old, uKu, uKU, uf)
             if j < len(axes) - 1:  # unit mean square: the amplitude is the space part's and the last axis's
-                x[j] /= max(_rms(axis, x[j]), 1e-300)
+                x[j] /= max(rms(axis, x[j]), 1e-300)
             lam[j] = axis.basis @ x[j]
         now = (u, [xj.copy() for xj in x])
-        if before is not None and _change(problem, before, now) <= options.fixed_point:
+        if before is not None and change(axes, comm, before, now) <= options.fixed_point:
             return u, x, iteration, True
         before = now
     return u, x, options.iterations, False
@@ -249,94 +200,87 @@ def _axis(
 
 
 def _products(
-    found: _Terms, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None
+    found: Modes, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None
 ) -> np.ndarray:
     """P[k, l] = Πⱼ ⟨κʲ λₖʲ, λₗʲ⟩ over the axes (but ``skip``), for the factors κʲ of one term."""
     P = np.ones((found.count, found.count))
-    for j, (axis, k, l) in enumerate(zip(found.problem.axes, factors, lam)):
+    for j, (axis, k, l) in enumerate(zip(found.axes, factors, lam)):
         if j != skip:
             P = P * ((l * (axis.weights * k)) @ l.T)
     return P
 
 
-def _loads(
-    found: _Terms, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None
-) -> np.ndarray:
+def _loads(found: Modes, factors: tuple[np.ndarray, ...], lam: list[np.ndarray], skip: int | None = None) -> np.ndarray:
     """p[k] = Πⱼ ⟨φʲ, λₖʲ⟩ over the axes (but ``skip``), for the factors φʲ of one load."""
     p = np.ones(found.count)
-    for j, (axis, f, l) in enumerate(zip(found.problem.axes, factors, lam)):
+    for j, (axis, f, l) in enumerate(zip(found.axes, factors, lam)):
         if j != skip:
             p = p * (l @ (axis.weights * f))
     return p
 
 
-def _update_space(found: _Terms) -> np.ndarray:
+def _update_space(problem: Terms, found: Modes) -> np.ndarray:
     """Every term's space coefficients R at once, the splines fixed:
     Σ_T Σₗ P_T[k, l] (Qᵀ K_T Q) Rₗ = Σ_S p_S[k] Qᵀ f_S for each term k (m × n)."""
     lam, m, n = found.values(), found.Q.shape[1], found.count
     M = np.zeros((n * m, n * m))
     rhs = np.zeros(n * m)
-    for term, A in zip(found.problem.operator, found.reduced_operators()):
+    for term, A in zip(problem.operator, found.reduced_operators()):
         M += np.kron(_products(found, term.factors, lam), A)
-    for load, F in zip(found.problem.load, found.reduced_loads()):
+    for load, F in zip(problem.load, _reduced_loads(problem, found)):
         rhs += np.kron(_loads(found, load.factors, lam), F)
-    return _solve(M, rhs).reshape(n, m).T
+    return solve_small(M, rhs).reshape(n, m).T
 
 
-def _update_axis(found: _Terms, j: int) -> np.ndarray:
+def _update_axis(problem: Terms, found: Modes, j: int) -> np.ndarray:
     """Every term's splines on axis j at once (n × size), R and the other axes fixed:
     Σ_T Σₗ (Rₖᵀ Qᵀ K_T Q Rₗ) Π_{i≠j} ⟨κ_Tⁱ λₖⁱ, λₗⁱ⟩ M_Tʲ xₗ = Σ_S (Rₖᵀ Qᵀ f_S) Π_{i≠j} ⟨φ_Sⁱ, λₖⁱ⟩ m_Sʲ."""
-    axis, lam, R = found.problem.axes[j], found.values(), found.R
+    axis, lam, R = found.axes[j], found.values(), found.R
     B, w = axis.basis, axis.weights
     M = np.zeros((found.count * axis.size,) * 2)
     rhs = np.zeros(found.count * axis.size)
-    for term, A in zip(found.problem.operator, found.reduced_operators()):
+    for term, A in zip(problem.operator, found.reduced_operators()):
         G = (R.T @ A @ R) * _products(found, term.factors, lam, skip=j)
         M += np.kron(G, B.T @ ((w * term.factors[j])[:, None] * B))
-    for load, F in zip(found.problem.load, found.reduced_loads()):
+    for load, F in zip(problem.load, _reduced_loads(problem, found)):
         g = (R.T @ F) * _loads(found, load.factors, lam, skip=j)
         rhs += np.kron(g, B.T @ (w * load.factors[j]))
-    return _solve(M, rhs).reshape(found.count, axis.size)
+    return solve_small(M, rhs).reshape(found.count, axis.size)
 
 
-def _solve(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """M x = rhs; in the least-squares sense where terms share a space part and M is singular."""
-    try:
-        return np.linalg.solve(M, rhs)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(M, rhs, rcond=None)[0]
-
-
-def _change(problem: Terms, before: tuple, now: tuple) -> float:
+def change(axes: Sequence[Axis], comm: MPI.Comm, before: tuple, now: tuple) -> float:
     """‖a − b‖ / ‖b‖ of two rank-one terms a = ū Πⱼ λʲ (l² in space, the axes' means)."""
     (ua, xa), (ub, xb) = before, now
 
     def product(u: np.ndarray, x: list, v: np.ndarray, y: list) -> float:
-        space = float(gram(u[:, None], v[:, None], problem.comm)[0, 0])
-        return space * float(
-            np.prod([a.weights @ ((a.basis @ p) * (a.basis @ q)) for a, p, q in zip(problem.axes, x, y)])
-        )
+        space = float(gram(u[:, None], v[:, None], comm)[0, 0])
+        return space * float(np.prod([a.weights @ ((a.basis @ p) * (a.basis @ q)) for a, p, q in zip(axes, x, y)]))
 
     aa, bb, ab = product(ua, xa, ua, xa), product(ub, xb, ub, xb), product(ua, xa, ub, xb)
     return float(np.sqrt(max(aa + bb - 2 * ab, 0.0) / bb)) if bb > 0 else 0.0
 
 
-def _mean_square(found: _Terms) -> float:
+def _reduced_loads(problem: Terms, found: Modes) -> np.ndarray:
+    """Qᵀ f_S, one row per load term."""
+    return found.reduced(np.column_stack([load.vector for load in problem.load])).T
+
+
+def _mean_square(found: Modes) -> float:
     """The box's mean of ‖Q R q(μ)‖²_W = Σₖₗ (Rₖᵀ Rₗ) Πⱼ ⟨λₖʲ, λₗʲ⟩."""
     if not found.count:
         return 0.0
-    ones = tuple(np.ones(len(axis.nodes)) for axis in found.problem.axes)
+    ones = tuple(np.ones(len(axis.nodes)) for axis in found.axes)
     return float(np.sum((found.R.T @ found.R) * _products(found, ones, found.values())))
 
 
-def _potential(found: _Terms) -> float:
+def _potential(problem: Terms, found: Modes) -> float:
     """The box's mean of ½ ⟨K u, u⟩ − ⟨f, u⟩ of the terms so far."""
     if not found.count:
         return 0.0
     lam, R = found.values(), found.R
     total = 0.0
-    for term, A in zip(found.problem.operator, found.reduced_operators()):
+    for term, A in zip(problem.operator, found.reduced_operators()):
         total += 0.5 * float(np.sum((R.T @ A @ R) * _products(found, term.factors, lam)))
-    for load, F in zip(found.problem.load, found.reduced_loads()):
+    for load, F in zip(problem.load, _reduced_loads(problem, found)):
         total -= float((R.T @ F) @ _loads(found, load.factors, lam))
     return total

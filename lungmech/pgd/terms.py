@@ -42,7 +42,7 @@ from lungmech.parallel.linalg import apply
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.axes import Axis
 
-__all__ = ["LoadTerm", "Term", "Terms", "constants", "separated_terms", "values"]
+__all__ = ["LoadTerm", "Term", "Terms", "constants", "kept", "separated_terms", "set_values", "values", "values_at"]
 
 AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the terms'
 RANK = 1e-13  # singular values of a two-parameter value below this fraction of the largest are round-off
@@ -112,8 +112,8 @@ def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
         if np.any(imposed.base != 0.0):
             raise ParameterError("PGD: an imposed displacement is not zero; only zero ones are separated")
     held = constants(model)
-    with _kept(model, held):
-        default = _values(model, held, model.parameter_values)
+    with kept(model, held):
+        default = values_at(model, held, model.parameter_values)
         _no_field_moves(model, axes)
         entries = _factors(model, held, axes, default)
         _check_separated(model, held, axes, default, entries)
@@ -134,7 +134,7 @@ def values(model: Model) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _kept(model: Model, constants: list[fem.Constant]) -> Iterator[None]:
+def kept(model: Model, constants: list[fem.Constant]) -> Iterator[None]:
     """The model's parameters, constants and state as they were, after the block."""
     values = dict(model.parameter_values)
     saved = [np.array(c.value, copy=True) for c in constants]
@@ -147,13 +147,13 @@ def _kept(model: Model, constants: list[fem.Constant]) -> Iterator[None]:
             c.value = value
 
 
-def _values(model: Model, constants: list[fem.Constant], at: dict[str, float]) -> np.ndarray:
+def values_at(model: Model, constants: list[fem.Constant], at: dict[str, float]) -> np.ndarray:
     """Every constant's entries, flattened and concatenated, with the parameters at ``at``."""
     model.set_parameters(at)
     return np.concatenate([np.ravel(c.value) for c in constants]) if constants else np.zeros(0)
 
 
-def _set(constants: list[fem.Constant], flat: np.ndarray) -> None:
+def set_values(constants: list[fem.Constant], flat: np.ndarray) -> None:
     """The constants' entries from the flattened ``flat``."""
     start = 0
     for c in constants:
@@ -190,7 +190,7 @@ def _factors(
         name = axis.parameter.name
         bases = [defaults, *model.parameters.sample(2, seed=3)]
         sweeps = [
-            np.array([_values(model, constants, base | {name: float(mu)}) for mu in axis.values]) for base in bases
+            np.array([values_at(model, constants, base | {name: float(mu)}) for mu in axis.values]) for base in bases
         ]
         along.append(sweeps[0])
         moved.append(np.any([_varies(sweep) for sweep in sweeps], axis=0))
@@ -214,7 +214,7 @@ def _factors(
                 grids[j, k] = np.array(
                     [
                         [
-                            _values(model, constants, defaults | dict(zip(pair, (float(a), float(b)))))
+                            values_at(model, constants, defaults | dict(zip(pair, (float(a), float(b)))))
                             for b in axes[k].values
                         ]
                         for a in axes[j].values
@@ -241,7 +241,7 @@ def _check_separated(
     varying = {e for e, _ in parts}
     for _ in range(4):
         index = [int(rng.integers(len(axis.nodes))) for axis in axes]
-        values = _values(model, constants, {a.parameter.name: float(a.values[i]) for a, i in zip(axes, index)})
+        values = values_at(model, constants, {a.parameter.name: float(a.values[i]) for a, i in zip(axes, index)})
         expected = default.copy()
         expected[list(varying)] = 0.0
         for e, factors in parts:
@@ -268,7 +268,7 @@ def _assembled(
     model.state.x.scatter_forward()
 
     def at(values: np.ndarray, diagonal: float) -> tuple[PETSc.Mat, np.ndarray]:
-        _set(constants, values)
+        set_values(constants, values)
         K = assemble_matrix(jacobian, bcs=model.bcs, diag=diagonal)
         K.assemble()
         f = -assemble_owned(residual, work, owned)
@@ -326,7 +326,7 @@ def _check_affine(
     (K₀ + Σ c_e K_e) u − (f₀ + Σ c_e f_e) of the unit assemblies, on the free rows (u is 0 on
     the imposed ones): a nonlinear R(u), or one not affine in c, differs."""
     comm = model.geometry.mesh.comm
-    values = _values(model, constants, model.parameters.sample(1, seed=7)[0])
+    values = values_at(model, constants, model.parameters.sample(1, seed=7)[0])
     owned = owned_size(model.space)
     rng = np.random.default_rng(11 + comm.rank)
     u = np.zeros(owned)

@@ -1,0 +1,100 @@
+"""The separated terms a PGD has found so far, as both of its greedy algorithms keep them:
+
+    u(μ) = Q R q(μ),   qₖ(μ) = Πⱼ λₖʲ(μⱼ),
+
+Q the space modes (owned entries × m, orthonormal in the energy inner product W), R the terms'
+space coefficients (m × n) and X[j] the terms' splines on axis j (n × its size), with K Q kept
+for each operator matrix K of the problem. A new term's space part enters Q only by its part
+outside span Q (:data:`SPAN`); its coefficients go to R either way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import numpy as np
+
+from lungmech.parallel.linalg import apply, gram, norms
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.decomposition import Decomposition
+
+__all__ = ["SPAN", "Modes", "rms", "solve_small"]
+
+SPAN = 1e-8  # a new term's space part outside span Q below this fraction of it: no new space mode
+
+
+class Modes:
+    """Q, R, X[j] (module docstring) and KQ[i] = K_i Q for the ``matrices`` K_i; empty, or
+    from a ``start`` decomposition over the same axes."""
+
+    def __init__(
+        self,
+        axes: Sequence[Axis],
+        matrices: Sequence[PETSc.Mat],
+        owned: int,
+        comm: MPI.Comm,
+        start: Decomposition | None = None,
+    ) -> None:
+        self.axes, self.matrices, self.comm = tuple(axes), list(matrices), comm
+        self.Q = np.zeros((owned, 0)) if start is None else start.modes.copy()
+        self.R = np.zeros((self.Q.shape[1], 0)) if start is None else start.reduced.copy()
+        self.X = (
+            [np.zeros((0, axis.size)) for axis in self.axes]
+            if start is None
+            else [X.copy() for X in start.coefficients]
+        )
+        self.KQ = [apply(K, self.Q, comm) for K in self.matrices]
+
+    @property
+    def count(self) -> int:
+        """The number of separated terms n."""
+        return self.R.shape[1]
+
+    def decomposition(self) -> Decomposition:
+        return Decomposition(self.axes, self.Q.copy(), self.R.copy(), [X.copy() for X in self.X])
+
+    def values(self) -> list[np.ndarray]:
+        """Each axis's splines at its nodes (terms × nodes)."""
+        return [Xj @ axis.basis.T for axis, Xj in zip(self.axes, self.X)]
+
+    def reduced_operators(self) -> list[np.ndarray]:
+        """Qᵀ K_i Q for each matrix."""
+        return [gram(self.Q, KQ, self.comm) for KQ in self.KQ]
+
+    def reduced(self, vectors: np.ndarray) -> np.ndarray:
+        """Qᵀ V for owned ``vectors`` (owned entries × k)."""
+        return gram(self.Q, vectors, self.comm)
+
+    def add(self, u: np.ndarray, x: Sequence[np.ndarray], W: PETSc.Mat) -> bool:
+        """Add the term ū Πⱼ λʲ (splines ``x``); True if its space part brought a new mode."""
+        r = gram(self.Q, apply(W, u[:, None], self.comm), self.comm)[:, 0]
+        remainder = u - self.Q @ r
+        length = float(norms(remainder[:, None], W, self.comm)[0])
+        new = length > SPAN * float(norms(u[:, None], W, self.comm)[0])
+        if new:
+            q = remainder - self.Q @ gram(self.Q, apply(W, remainder[:, None], self.comm), self.comm)[:, 0]
+            q /= float(norms(q[:, None], W, self.comm)[0])  # twice is enough
+            self.Q = np.column_stack([self.Q, q])
+            self.KQ = [np.column_stack([KQ, apply(K, q[:, None], self.comm)]) for KQ, K in zip(self.KQ, self.matrices)]
+            r = np.append(r, float(gram(q[:, None], apply(W, u[:, None], self.comm), self.comm)[0, 0]))
+            self.R = np.vstack([self.R, np.zeros((1, self.count))])
+        self.R = np.column_stack([self.R, r])
+        self.X = [np.vstack([Xj, xj]) for Xj, xj in zip(self.X, x)]
+        return new
+
+
+def rms(axis: Axis, x: np.ndarray) -> float:
+    """The root mean square over ``axis`` of the spline of coefficients ``x``."""
+    values = axis.basis @ x
+    return float(np.sqrt(axis.weights @ values**2))
+
+
+def solve_small(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """M x = rhs; in the least-squares sense where terms share a space part and M is singular."""
+    try:
+        return np.linalg.solve(M, rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(M, rhs, rcond=None)[0]
