@@ -43,7 +43,7 @@ def _scripts() -> list[str]:
 
 
 def test_every_benchmark_has_a_quick_case_in_the_suite():
-    assert sorted(QUICK) == _scripts()  # each ≤ 60 s, ≤ 3 min in all
+    assert sorted(QUICK) == _scripts()  # each ≤ 60 s (in all about 7 min of the one-rank run)
     for name in QUICK:
         tree = ast.parse((BENCHMARKS / f"{name}.py").read_text())
         options = {
