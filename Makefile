@@ -67,7 +67,8 @@ test-long: $(STAMP)
 # The mpi tests on two ranks (each compares a 2-rank result with one rank's), in groups of
 # files (.ci/test-mpi says why). make test runs these; test-mpi-all adds every test not slow
 # (the cheap part of the suite on two ranks, about 5 minutes more: outside make test's budget),
-# the tests marked serial left out (tests/conftest.py).
+# the tests marked serial left out (tests/conftest.py). test-mpi starts only the files that name
+# the marker (mark.mpi): a file without an mpi test would start ranks for nothing.
 test-mpi: $(STAMP)
 	bash .ci/test-mpi $(MPIEXEC) $(PY) "not long and mpi" $$(grep -l 'mark\.mpi' tests/test_*.py)
 

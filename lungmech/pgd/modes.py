@@ -27,26 +27,14 @@ SPAN = 1e-8  # a new term's space part outside span Q below this fraction of it:
 
 
 class Modes:
-    """Q, R, X[j] (module docstring) and KQ[i] = K_i Q for the ``matrices`` K_i; empty, or
-    from a ``start`` decomposition over the same axes."""
+    """Q, R, X[j] (module docstring) and KQ[i] = K_i Q for the ``matrices`` K_i, none yet."""
 
-    def __init__(
-        self,
-        axes: Sequence[Axis],
-        matrices: Sequence[PETSc.Mat],
-        owned: int,
-        comm: MPI.Comm,
-        start: Decomposition | None = None,
-    ) -> None:
+    def __init__(self, axes: Sequence[Axis], matrices: Sequence[PETSc.Mat], owned: int, comm: MPI.Comm) -> None:
         self.axes, self.matrices, self.comm = tuple(axes), list(matrices), comm
-        self.Q = np.zeros((owned, 0)) if start is None else start.modes.copy()
-        self.R = np.zeros((self.Q.shape[1], 0)) if start is None else start.reduced.copy()
-        self.X = (
-            [np.zeros((0, axis.size)) for axis in self.axes]
-            if start is None
-            else [X.copy() for X in start.coefficients]
-        )
-        self.KQ = [apply(K, self.Q, comm) for K in self.matrices]
+        self.Q = np.zeros((owned, 0))
+        self.R = np.zeros((0, 0))
+        self.X = [np.zeros((0, axis.size)) for axis in self.axes]
+        self.KQ = [np.zeros((owned, 0)) for _ in self.matrices]
 
     @property
     def count(self) -> int:
