@@ -7,6 +7,12 @@ an ensemble's groups or a cohort's workers on a cold cache, pytest-xdist's worke
 hyper-reduced lung's forms run to megabytes of C, minutes to compile on a busy core, so
 every form lungmech compiles waits up to :data:`TIMEOUT` instead. The wait is no part of a
 form's signature: the cache is shared with forms compiled without it.
+
+An expression is compiled without its ``ufl.variable`` labels. FFCx names an expression's
+compiled module by a signature that numbers its coefficients and constants canonically but its
+labels by their count in the process, so an expression holding a variable (a stress
+P = ∂ψ/∂F) got a new name, and a new compile, in every process, and the cache grew by one
+module each time. A form's signature numbers its labels too: forms are compiled as they are.
 """
 
 from __future__ import annotations
@@ -15,6 +21,9 @@ from typing import Any
 
 import ufl
 from dolfinx import fem
+from ufl.algorithms import expand_derivatives
+from ufl.corealg.map_dag import map_expr_dag
+from ufl.corealg.multifunction import MultiFunction
 
 TIMEOUT = 3600  # s: a compile that takes an hour has failed
 OPTIONS: dict[str, Any] = {"timeout": TIMEOUT}  # DOLFINx's jit_options
@@ -26,5 +35,22 @@ def form(expression: ufl.Form, **keywords: Any) -> Any:  # a fem.Form; Any as DO
 
 
 def expression(expression: ufl.core.expr.Expr, points: Any, **keywords: Any) -> fem.Expression:
-    """``dolfinx.fem.Expression(expression, points)``, waiting for another process's compile."""
-    return fem.Expression(expression, points, jit_options=OPTIONS, **keywords)
+    """``dolfinx.fem.Expression(expression, points)``, its derivatives applied and its variables
+    replaced by what they stand for (the same values, a signature the same in every process),
+    waiting for another process's compile."""
+    return fem.Expression(unlabelled(expression), points, jit_options=OPTIONS, **keywords)
+
+
+class _Unlabelled(MultiFunction):
+    """Each ``Variable`` node replaced by the expression it labels; the rest kept."""
+
+    expr = MultiFunction.reuse_if_untouched
+
+    def variable(self, o: ufl.core.expr.Expr, labelled: ufl.core.expr.Expr, label: Any) -> ufl.core.expr.Expr:
+        return labelled
+
+
+def unlabelled(expression: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
+    """``expression`` with its derivatives applied (d/dv of a variable v needs the label) and then
+    without labels: v = variable(e) becomes e."""
+    return map_expr_dag(_Unlabelled(), expand_derivatives(expression))
