@@ -6,7 +6,14 @@ compiled by another (the C file there, the library not yet), it waits for it, by
 an ensemble's groups or a cohort's workers on a cold cache, pytest-xdist's workers. A
 hyper-reduced lung's forms run to megabytes of C, minutes to compile on a busy core, so
 every form lungmech compiles waits up to :data:`TIMEOUT` instead. The wait is no part of a
-form's signature: the cache is shared with forms compiled without it.
+form's signature.
+
+lungmech's modules are kept in a folder of their own within DOLFINx's cache
+(``<cache_dir>/lungmech``), spread over 256 subfolders by the first two hex digits of their
+signature. FFCx looks a compiled module up by listing its folder (a new
+``importlib.machinery.FileFinder`` for every form): in one folder of some ten thousand modules
+that listing was a quarter of a personalisation's time (38 s of 162 s in
+tests/test_personalise.py, 997 lookups). A subfolder holds a 256th of them.
 
 An expression is compiled without its ``ufl.variable`` labels. FFCx names an expression's
 compiled module by a signature that numbers its coefficients and constants canonically but its
@@ -17,10 +24,15 @@ module each time. A form's signature numbers its labels too: forms are compiled 
 
 from __future__ import annotations
 
+import errno
+import functools
+from pathlib import Path
 from typing import Any
 
+import ffcx.naming
 import ufl
 from dolfinx import fem
+from dolfinx import jit as dolfinx_jit
 from ufl.algorithms import expand_derivatives
 from ufl.corealg.map_dag import map_expr_dag
 from ufl.corealg.multifunction import MultiFunction
@@ -29,16 +41,35 @@ TIMEOUT = 3600  # s: a compile that takes an hour has failed
 OPTIONS: dict[str, Any] = {"timeout": TIMEOUT}  # DOLFINx's jit_options
 
 
+@functools.cache
+def _root() -> Path:
+    """lungmech's folder in DOLFINx's JIT cache (its ``cache_dir``: the user's JIT options, or
+    ``$XDG_CACHE_HOME/fenics``)."""
+    cache = Path(dolfinx_jit.get_options()["cache_dir"])
+    if cache.exists() and not cache.is_dir():  # named as the user set it, not as lungmech's folder in it
+        raise NotADirectoryError(errno.ENOTDIR, "DOLFINx's JIT cache_dir is not a folder", str(cache))
+    return cache / "lungmech"
+
+
+def options(signature: str) -> dict[str, Any]:
+    """The JIT options of a form or an expression of UFL signature ``signature``: the wait,
+    and the cache subfolder its first two hex digits name."""
+    return OPTIONS | {"cache_dir": _root() / signature[:2]}
+
+
 def form(expression: ufl.Form, **keywords: Any) -> Any:  # a fem.Form; Any as DOLFINx's own is unannotated
-    """``dolfinx.fem.form(expression)``, waiting for another process's compile of it."""
-    return fem.form(expression, jit_options=OPTIONS, **keywords)
+    """``dolfinx.fem.form(expression)``, in lungmech's cache, waiting for another process's
+    compile of it."""
+    return fem.form(expression, jit_options=options(expression.signature()), **keywords)
 
 
 def expression(expression: ufl.core.expr.Expr, points: Any, **keywords: Any) -> fem.Expression:
     """``dolfinx.fem.Expression(expression, points)``, its derivatives applied and its variables
     replaced by what they stand for (the same values, a signature the same in every process),
     waiting for another process's compile."""
-    return fem.Expression(unlabelled(expression), points, jit_options=OPTIONS, **keywords)
+    plain = unlabelled(expression)
+    signature = ffcx.naming.compute_signature([(plain, points)], "")  # FFCx's own, as it names the module
+    return fem.Expression(plain, points, jit_options=options(signature), **keywords)
 
 
 class _Unlabelled(MultiFunction):

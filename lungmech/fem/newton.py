@@ -93,13 +93,12 @@ class NewtonSolver(StepsModelState):
         PETSc.garbage_cleanup(model.geometry.mesh.comm)  # collective: free the solvers gone before
         self._pressure = LinearisedPressure.of(model) if residual is None and jacobian is None else None
         tangent = jacobian if jacobian is not None else model.jacobian
-        self.problem = _Problem(
-            model.residual if residual is None else residual,
+        self.problem = _Problem(  # compiled forms: DOLFINx takes them as they are
+            jit.form(model.residual if residual is None else residual),
             model.state,
             bcs=model.bcs,
-            J=tangent if self._pressure is None else self._pressure.tangent,
+            J=jit.form(tangent if self._pressure is None else self._pressure.tangent),
             petsc_options_prefix=prefix,
-            jit_options=jit.OPTIONS,
         )
         self._exact_tangent = tangent
         chosen = self.options.linear_solver
