@@ -1,7 +1,10 @@
-"""A scene's PGD model, built a priori (no full solve) and written as a model file.
+"""A scene's PGD model, built a priori (no full solve) or fitted to full solves, and written as a
+model file.
 
 :func:`build` makes the scene's model, its PGD over the scene's [parameters] box along its load
-path (:func:`lungmech.pgd.model.build`) and writes it with the scene and every file it reads
+path — a priori (:func:`lungmech.pgd.model.build`: a linear model), or with ``samples``
+fitted to that many full solves (:func:`lungmech.pgd.fitted.fitted`: any model; the solves run
+on an ensemble and are kept in lungmech's cache, as ``rom build``'s training) — and writes it with the scene and every file it reads
 (:mod:`lungmech.app.model_file`), like ``rom build``'s files, so that ``lungmech rom solve
 pgd.npz --set name=value`` and ``--sweep`` answer from it through the same ``solve(μ)``
 (:func:`lungmech.app.reduce.reduced_order` loads either kind).
@@ -10,17 +13,23 @@ pgd.npz --set name=value`` and ``--sweep`` answer from it through the same ``sol
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from mpi4py import MPI
 
 from lungmech import checks
 from lungmech.app.model_file import file_bytes, scene_record
+from lungmech.app.reduce import training_solves
 from lungmech.app.run import build_model
 from lungmech.app.scene import Scene
+from lungmech.app.training_paths import EnsemblePaths, forget, training_model
 from lungmech.errors import ParameterError
 from lungmech.parallel.destination import hold_signals_until_swap, output_file
+from lungmech.parallel.ensemble import Ensemble
 from lungmech.parallel.layout import layout
+from lungmech.pgd.fitted import fitted
+from lungmech.pgd.fitting import FIT
 from lungmech.pgd.greedy import Options
 from lungmech.pgd.model import build as pgd_build
 from lungmech.pgd.store import write_pgd
@@ -36,28 +45,51 @@ def build(
     intervals: int = 32,
     tolerance: float = 1e-6,
     comm: MPI.Comm = MPI.COMM_WORLD,
+    samples: int | None = None,
+    seed: int = 0,
+    ensemble: Ensemble | None = None,
+    cache: str | Path | None = None,
 ) -> dict:
     """Build the PGD model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
     At most ``modes`` separated terms u ≈ Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ), the greedy stopping when a new
     term's amplitude falls below ``tolerance`` of the whole's; each parameter's modes are cubic
-    splines on ``intervals`` intervals. Refused in one line before any work for a scene the PGD
-    does not yet separate (an imaged body's [inverse], a nonlinear law, …) and where ``path`` is
+    splines on ``intervals`` intervals. With ``samples``, the terms are fitted to the full
+    model's solves at that many Sobol' points (``seed``) of the box, run on ``ensemble`` and kept
+    in ``cache`` (:func:`lungmech.app.reduce.training_solves`), their number chosen on held-out
+    samples up to ``modes``. Refused in one line before any work for a scene the PGD does not
+    yet answer (an imaged body's [inverse]; a priori, a nonlinear law) and where ``path`` is
     not the user's to replace (:mod:`lungmech.parallel.destination`). Collective."""
     checks.integer("PGD modes", modes, minimum=1)
     checks.integer("PGD intervals", intervals, minimum=1)
+    if samples is not None:
+        checks.integer("PGD samples", samples, minimum=8)
+        checks.integer("PGD seed", seed, minimum=0)
+    elif ensemble is not None or cache is not None:
+        raise ParameterError("PGD: an ensemble or a cache runs full solves: give --samples for a PGD fitted to them")
     options = Options(max_terms=modes, tolerance=tolerance)
     if scene.inverse is not None:
         raise ParameterError(
             "PGD: the scene's [inverse] (an imaged body, its reference found at every μ) is not yet separated; "
             "use 'lungmech rom build' for it"
         )
+    solves = training_solves(scene, ensemble, cache, comm) if samples is not None else None
     path = store.suffixed(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
         tic = time.perf_counter()
-        model = build_model(scene, comm)
-        built = time.perf_counter() - tic
-        found, rounds = pgd_build(model, scene.stepping, scene.output.probes, intervals, options)
+        if samples is None:
+            model = build_model(scene, comm)
+            built = time.perf_counter() - tic
+            found, rounds = pgd_build(model, scene.stepping, scene.output.probes, intervals, options)
+        else:
+            full, where = training_model(scene, comm)
+            model, built, rounds = full.model, time.perf_counter() - tic, []
+            paths = None if solves is None else EnsemblePaths(scene, full, where, *solves)
+            fit_options = replace(FIT, max_terms=modes, tolerance=tolerance)
+            try:
+                found, _ = fitted(full, samples, intervals, fit_options, scene.output.probes, seed, paths)
+            finally:
+                forget()
         extra = scene_record(scene, layout(model.space).fingerprint, model.parameters.describe()) | {
             "scales": None,
             "offline_seconds": {"build": built, **found.built["seconds"]},
@@ -66,6 +98,7 @@ def build(
         hold_signals_until_swap()  # the model file is a collective write
         write_pgd(staging, found, extra, arrays)
     last = rounds[-1] if rounds else None
+    held_out = found.built.get("held_out")
     return {
         "modes": found.size,
         "terms": found.decomposition.terms,
@@ -75,5 +108,7 @@ def build(
         "offline_seconds": extra["offline_seconds"],
         "last_amplitude": None if last is None else last.amplitude,
         "converged": bool(last is not None and not last.added),
+        "samples": samples,
+        "held_out": None if held_out is None else min(held_out),
         "path": str(Path(path).resolve()),
     }

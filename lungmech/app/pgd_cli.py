@@ -4,9 +4,10 @@ online path of every model file)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
-from lungmech.app.arguments import setup
+from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, setup
 
 COMMANDS = ("pgd",)
 
@@ -16,7 +17,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     pgd = commands.add_parser("pgd", help="a PGD model: the solution over the whole [parameters] box, no full solve")
     actions = pgd.add_subparsers(dest="action", required=True)
     build = actions.add_parser(
-        "build", help="build a scene's PGD model a priori; solve it with 'lungmech rom solve FILE --set/--sweep'"
+        "build",
+        help="build a scene's PGD model, a priori or (--samples) fitted to full solves; solve it with "
+        "'lungmech rom solve FILE --set/--sweep'",
     )
     build.add_argument("scene", nargs="?", help="scene file (.toml) with [parameters], or a bundled scene by name")
     build.add_argument("-o", "--output", required=True, help="PGD model file (.npz)")
@@ -31,6 +34,16 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="stop when a new term's amplitude is below this fraction of the whole's, in the box's mean energy "
         "norm (default 1e-6)",
     )
+    build.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        help="fit the terms to the full model's solves at this many Sobol' points of the box (any model: "
+        "nonlinear laws, follower pressures); the number of terms, up to --modes, is chosen on a held-out "
+        "quarter of them (default: a priori, no full solve, for a linear model)",
+    )
+    build.add_argument("--seed", type=int, default=0, help="the Sobol' sample's seed, with --samples (default 0)")
+    ensemble_options(build, "the full solves of --samples")
     build.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
@@ -39,10 +52,32 @@ def run(args: argparse.Namespace) -> int:
     from lungmech.app.pgd import build
 
     comm, scene, name, _ = setup(args)
+    check_ensemble(args, comm)
     if comm.rank == 0:
         print(f"lungmech: building the PGD model of {name}", flush=True)
-    summary = build(scene, args.output, args.modes, args.intervals, args.tolerance, comm)
-    if comm.rank == 0:
+    given = args.engine is not None or args.group_size is not None
+    with ensemble_of(args, comm) if given else contextlib.nullcontext(None) as ensemble:
+        summary = build(
+            scene,
+            args.output,
+            args.modes,
+            args.intervals,
+            args.tolerance,
+            comm,
+            samples=args.samples,
+            seed=args.seed,
+            ensemble=ensemble,
+            cache=args.cache,
+        )
+    if comm.rank == 0 and summary["samples"] is not None:
+        seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
+        print(
+            f"lungmech: {summary['terms']} separated terms on {summary['modes']} space modes over "
+            f"{', '.join(summary['parameters'])} ({summary['dofs']} dofs), fitted to {summary['samples']} full "
+            f"solves; held-out error {summary['held_out']:.1e} (relative, energy norm, the largest over a quarter "
+            f"of the solves held out); {seconds}; saved to {Path(args.output).resolve()}"
+        )
+    elif comm.rank == 0:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
         stopped = (
             f"the last term's amplitude {summary['last_amplitude']:.1e} below the tolerance"

@@ -57,6 +57,7 @@ __all__ = [
     "load",
     "reduced_order",
     "trained_range",
+    "training_solves",
 ]
 
 KINDS = ("pod", "modal", "modal+derivatives", "polynomial", "pod+modal")
@@ -146,7 +147,7 @@ def build(
     recipe = _recipe(kind, size, order, density)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], tuple(scales), tolerance, batch)
     ecsw = reductor.ECSW(hyper_tolerance, judge, hyper_size) if hyper else None
-    where = _training_solves(scene, ensemble, cache, comm)
+    where = training_solves(scene, ensemble, cache, comm)
     path = store.suffixed(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
         return _build(scene, [(staging, ecsw, None)], recipe, training, inner, comm, solves=where)
@@ -162,7 +163,7 @@ def _forgetting() -> Iterator[None]:
         forget()
 
 
-def _training_solves(
+def training_solves(
     scene: Scene, ensemble: Ensemble | None, cache: str | Path | None, comm: MPI.Comm
 ) -> tuple[Ensemble, str] | None:
     """Where the training's full solves run and are kept: ``ensemble`` (default: serial on
@@ -223,7 +224,7 @@ def build_family(
     scales = (1.0,) if box else (0.5, 1.0, 1.5)
     training = reductor.TrainingSet(box.sample(samples, seed) if box else [{}], scales)
     models = [(Path(folder) / file, *how) for file, how in zip(files.values(), made, strict=True)]
-    solves = _training_solves(scene, ensemble, cache, comm)
+    solves = training_solves(scene, ensemble, cache, comm)
     recipe = reductor.POD(max(sizes))
     _build(scene, models, recipe, training, "energy", comm, hold_signals=False, judged=False, solves=solves)
     return {name: Path(folder) / file for name, file in files.items()}

@@ -72,19 +72,24 @@ class Decomposition:
         """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term."""
         return np.prod(self._at(mu), axis=0) if self.axes else np.ones(self.terms)
 
-    def factors(self, mu: Mapping[str, float]) -> np.ndarray:
-        """The space modes' coefficients at ``mu``: R q(μ) (m)."""
-        return self.reduced @ self.products(mu)
+    def factors(self, mu: Mapping[str, float], tau: float | np.ndarray = 1.0) -> np.ndarray:
+        """The space modes' coefficients at ``mu``: R (q(μ) ∘ τ) (m), ``tau`` the terms' factors
+        at a time of the load path (:mod:`lungmech.pgd.timeline`; 1: the decomposition's own)."""
+        return self.reduced @ (self.products(mu) * tau)
 
-    def factor_derivatives(self, mu: Mapping[str, float]) -> np.ndarray:
-        """∂(R q)/∂μⱼ at ``mu`` (m × parameters): R (λₖʲ'(sⱼ) dsⱼ/dμⱼ Π_{i≠j} λₖⁱ(sᵢ))."""
+    def product_derivatives(self, mu: Mapping[str, float]) -> np.ndarray:
+        """∂qₖ/∂μⱼ at ``mu`` (terms × parameters): λₖʲ'(sⱼ) dsⱼ/dμⱼ Π_{i≠j} λₖⁱ(sᵢ)."""
         s, values, slopes = self.units(mu), self._at(mu), self._at(mu, 1)
         columns = []
         for j, axis in enumerate(self.axes):
             others = np.prod([v for i, v in enumerate(values) if i != j], axis=0) if len(values) > 1 else 1.0
             value = axis.parameter.from_unit(float(s[j]))
             columns.append(slopes[j] * others / axis.parameter.unit_derivative(value))  # ds/dμ = 1/(dμ/ds)
-        return self.reduced @ np.column_stack(columns)
+        return np.column_stack(columns) if columns else np.zeros((self.terms, 0))
+
+    def factor_derivatives(self, mu: Mapping[str, float], tau: float | np.ndarray = 1.0) -> np.ndarray:
+        """∂(R (q ∘ τ))/∂μⱼ at ``mu`` (m × parameters)."""
+        return self.reduced @ (self.product_derivatives(mu) * np.reshape(tau, (-1, 1)))
 
     def state(self, mu: Mapping[str, float]) -> np.ndarray:
         """u(μ) on the owned entries of the model's state."""

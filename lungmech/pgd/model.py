@@ -43,6 +43,7 @@ from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.greedy import Options, Round, pgd
 from lungmech.pgd.terms import separated_terms
+from lungmech.pgd.timeline import Ramp, Sampled
 from lungmech.pgd.values import closed_form
 from lungmech.rom.basis import inner_product
 from lungmech.rom.exact import Cubic, affine, cubic
@@ -108,11 +109,12 @@ def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
     return first
 
 
-def online(model: Model, problem: separated.Terms, modes: np.ndarray, probe: Probe | None) -> Online:
+def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, probe: Probe | None) -> Online:
     """The :class:`Online` outputs of ``model``'s states Q z (``modes`` Q, owned rows) from the
-    rest state, with the terms' operators of ``problem``; the strain energy's form checked
-    against the model's own at a random point. Collective; the model's state and parameters are
-    kept."""
+    rest state, with the terms' operators of ``problem`` (None: a nonlinear model, whose strain
+    energy is no quadratic form; a fitted PGD fits it, :mod:`lungmech.pgd.fitted`); the strain
+    energy's form checked against the model's own at a random point. Collective; the model's
+    state and parameters are kept."""
     comm = model.geometry.mesh.comm
     m = modes.shape[1]
     with model.kept_state():
@@ -123,6 +125,8 @@ def online(model: Model, problem: separated.Terms, modes: np.ndarray, probe: Pro
         _, probes = affine(model, lambda: probe(model.displacement()), rest, modes)
     else:
         probes = np.zeros((0, m))
+    if problem is None:
+        return Online(volume, probes, np.zeros((0, m, m)), np.zeros(0, dtype=int))
     fixed = [t for t in problem.operator if t.entry is None]
     by_entry = {t.entry: t.matrix for t in problem.operator if t.entry is not None}
     entries = np.array(sorted(by_entry), dtype=int)
@@ -159,8 +163,12 @@ def _check_energy(model: Model, found: Online, modes: np.ndarray) -> None:
 class PGDModel:
     """The model whose answers are ``decomposition`` evaluated (module docstring): the fem
     ``model`` (for fields, and the values its parameters set), the load path ``stepping``,
-    the ``online`` outputs and ``built``, how it was built (for its record). Collective for
-    :meth:`fields` only; a solve is evaluation on every rank."""
+    the ``online`` outputs and ``built``, how it was built (for its record). Its terms move
+    along the path as ``timeline`` says (default: the loads' one ramp,
+    :class:`~lungmech.pgd.timeline.Ramp`); a PGD fitted to full solves gives its own
+    (:class:`~lungmech.pgd.timeline.Sampled`) and its strain energy's fit ``energy`` (a
+    one-row decomposition and its timeline), and answers at the loads' own scale only.
+    Collective for :meth:`fields` only; a solve is evaluation on every rank."""
 
     def __init__(
         self,
@@ -170,13 +178,19 @@ class PGDModel:
         stepping: Stepping,
         probe_points: Sequence[Sequence[float]] = (),
         built: dict | None = None,
+        timeline: Sampled | None = None,
+        energy: tuple[Decomposition, Sampled] | None = None,
     ) -> None:
+        if (timeline is None) != (energy is None):
+            raise ParameterError("PGD: a fitted PGD has both a timeline and its strain energy's fit, or neither")
         self.model = model
         self.parameters = model.parameters
         self.stepping = stepping
         self.decomposition = decomposition
         self.online = online
         self.ramp = ramp_of(model, stepping)
+        self.timeline: Ramp | Sampled = timeline if timeline is not None else Ramp(self.ramp, stepping.end)
+        self.energy = energy
         self.times = output_times(model, stepping)
         self.probe_points = tuple(tuple(float(c) for c in p) for p in probe_points)
         self.built = dict(built or {})
@@ -211,6 +225,11 @@ class PGDModel:
         tic = time.perf_counter()
         values = self.parameters.values(mu)
         factor = _one_factor(scale, len(self.model.loads))
+        if self.energy is not None and factor != 1.0:
+            raise ParameterError(
+                f"a PGD fitted to full solves answers the loads at the scene's own scale (got a load factor {factor:g}): "
+                "put the loads' amplitude in [parameters] to vary it"
+            )
         wanted = self.times if times is None else self._times(tuple(times))
         model, stepping, start = self.model, self.stepping, self._start
         self._last = values, factor
@@ -224,17 +243,24 @@ class PGDModel:
             derivatives = value_derivatives(model) if sensitivities else None
             point = _Point(self, values, self._values.read(), model.scalar_loads(), derivatives)
         if on_step is not None:  # the start, as every model shows it first
+            at_start = float(stepping.start)
             on_step(
-                Step("start", stepping.start, None, lambda: point.outputs(0.0), lambda: point.state(0.0), start=start)
+                Step(
+                    "start",
+                    stepping.start,
+                    None,
+                    lambda: point.outputs(at_start, factor),
+                    lambda: point.state(at_start, factor),
+                    start=start,
+                )
             )
         rows, states, derived = [], [], []
         previous = stepping.start
         for t in wanted:
-            fraction = self.ramp(t) / self.ramp(stepping.end)
-            rows.append(point.outputs(fraction, factor))
-            states.append(point.state(fraction * factor))
+            rows.append(point.outputs(float(t), factor))
+            states.append(point.state(float(t), factor))
             if sensitivities:
-                derived.append(point.derivatives(fraction, factor))
+                derived.append(point.derivatives(float(t), factor))
             if on_step is not None and t > stepping.start:
                 report = StepReport(float(t), float(t - previous), 0, (), "evaluated", 0.0, True)
                 on_step(Step("path", float(t), report, _returning(rows[-1]), _returning(states[-1].copy())))
@@ -277,7 +303,11 @@ class PGDModel:
     def describe(self) -> dict[str, object]:
         """What answers: the decomposition's size; no solver."""
         d = self.decomposition
-        return {"solver": f"PGD evaluation ({d.size} space modes, {d.terms} separated terms)", "linear_solver": None}
+        how = "fitted to full solves" if self.energy is not None else "a priori"
+        return {
+            "solver": f"PGD evaluation ({d.size} space modes, {d.terms} separated terms, {how})",
+            "linear_solver": None,
+        }
 
 
 class _Entries:
@@ -296,11 +326,11 @@ class _Entries:
 
 
 class _Point:
-    """One solve's evaluation at μ: the state at the path's end T, z_T = R q(μ), the strain
-    energy's A(c) for the values ``c`` of its entries, the scalar ``loads`` at T and, with
-    ``derivatives`` (the model's value derivatives, its parameters set at μ), dz_T/dμ and ∂A/∂μ.
-    At a time whose ramp is the ``fraction`` r(t)/r(T) of its end's, with the load factor s,
-    the state is s·fraction·z_T and the loads fraction times theirs at T."""
+    """One solve's evaluation at μ: q(μ), the terms' products, so that the state at time t is
+    z = s R (q ∘ τ(t)) (s the load factor, τ the owner's timeline); the strain energy's A(c) for
+    the values ``c`` of its entries (a linear model) or the owner's fit of it; the scalar
+    ``loads`` at the path's end T, at t r(t)/r(T) of them; with ``derivatives`` (the model's
+    value derivatives, its parameters set at μ), ∂q/∂μ and ∂A/∂μ."""
 
     def __init__(
         self,
@@ -311,44 +341,56 @@ class _Point:
         derivatives: ValueDerivatives | None,
     ) -> None:
         model, d, self.online = owner.model, owner.decomposition, owner.online
-        self.base = d.factors(values)
-        self.operator = self.online.operator(c)
+        self.reduced, self.q = d.reduced, d.products(values)
+        self.timeline, self.energy, self.values = owner.timeline, owner.energy, values
+        self.fraction = lambda t: owner.ramp(t) / owner.ramp(owner.stepping.end)
+        self.operator = self.online.operator(c) if self.energy is None else None
         self.loads = loads
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
         if derivatives is not None:
-            self.slopes = d.factor_derivatives(values)
+            self.slopes = d.product_derivatives(values)
             n = self.slopes.shape[1]
             dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
             self.operator_slopes = np.einsum("ei,emn->imn", dc[self.online.entries], self.online.energy[1:])
 
-    def state(self, rho: float) -> np.ndarray:
-        """z = ρ z_T."""
-        return rho * self.base
+    def state(self, t: float, factor: float = 1.0) -> np.ndarray:
+        """z = s R (q ∘ τ(t))."""
+        return factor * (self.reduced @ (self.q * self.timeline.at(t)))
 
-    def outputs(self, fraction: float, factor: float = 1.0) -> dict[str, object]:
-        """The outputs at the ramp's ``fraction`` of its end's, with the load ``factor``."""
-        z = self.state(fraction * factor)
-        found: dict[str, object] = {
-            "volume": self.online.volume(z),
-            "strain_energy": 0.5 * float(z @ self.operator @ z),
-        }
+    def _strain_energy(self, t: float, z: np.ndarray) -> float:
+        if self.energy is None:
+            assert self.operator is not None  # (a linear model's)
+            return 0.5 * float(z @ self.operator @ z)
+        fitted, timeline = self.energy
+        return float(fitted.factors(self.values, timeline.at(t))[0])
+
+    def outputs(self, t: float, factor: float = 1.0) -> dict[str, object]:
+        """The outputs at time ``t``, with the load ``factor``."""
+        z = self.state(t, factor)
+        found: dict[str, object] = {"volume": self.online.volume(z), "strain_energy": self._strain_energy(t, z)}
         if self.points:
             found["probes"] = (self.online.probes @ z).reshape(self.points, -1)
+        fraction = self.fraction(t)
         found["loads"] = {label: fraction * value for label, value in self.loads.items()}
         return found
 
-    def derivatives(self, fraction: float, factor: float) -> dict[str, object]:
-        """d(outputs)/dμ there: dz/dμ = ρ dz_T/dμ, and the strain energy's explicit ½ zᵀ (∂A/∂μ) z."""
+    def derivatives(self, t: float, factor: float) -> dict[str, object]:
+        """d(outputs)/dμ at time ``t``: dz/dμ = s R (∂q/∂μ ∘ τ(t)); the strain energy's, of a
+        linear model, zᵀ A dz/dμ + ½ zᵀ (∂A/∂μ) z, else its fit's."""
         assert self.derivatives_at_end is not None  # (made with derivatives)
-        rho = fraction * factor
-        z, dz = self.state(rho), rho * self.slopes
-        found: dict[str, object] = {
-            "volume": self.online.volume.gradient(z) @ dz,
-            "strain_energy": z @ self.operator @ dz + 0.5 * np.einsum("m,imn,n->i", z, self.operator_slopes, z),
-        }
+        tau = self.timeline.at(t)
+        z, dz = self.state(t, factor), factor * (self.reduced @ (self.slopes * np.reshape(tau, (-1, 1))))
+        if self.energy is None:
+            assert self.operator is not None  # (a linear model's)
+            energy = z @ self.operator @ dz + 0.5 * np.einsum("m,imn,n->i", z, self.operator_slopes, z)
+        else:
+            fitted, timeline = self.energy
+            energy = fitted.factor_derivatives(self.values, timeline.at(t))[0]
+        found: dict[str, object] = {"volume": self.online.volume.gradient(z) @ dz, "strain_energy": energy}
         if self.points:
             found["probes"] = (self.online.probes @ dz).reshape(self.points, -1, dz.shape[1])
+        fraction = self.fraction(t)
         found["loads"] = {label: fraction * d for label, d in self.derivatives_at_end.loads.items()}
         return found
 

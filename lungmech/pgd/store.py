@@ -17,11 +17,13 @@ import numpy as np
 
 from lungmech.errors import ModelFileError
 from lungmech.fem.model import Model
+from lungmech.fem.parametric import output_times
 from lungmech.fem.solver import Stepping
 from lungmech.parallel.layout import layout
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.model import Online, PGDModel
+from lungmech.pgd.timeline import Sampled
 from lungmech.rom import store
 from lungmech.rom.basis import Basis
 
@@ -41,7 +43,8 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
     ``arrays`` beside it."""
     model, d = found.model, found.decomposition
     weights = np.linalg.norm(d.reduced, axis=1)  # each space mode's share of the terms
-    basis = Basis(d.modes, weights, KIND, "energy", layout(model.space).fingerprint, {"method": "a priori PGD"})
+    method = "a posteriori PGD" if found.energy is not None else "a priori PGD"
+    basis = Basis(d.modes, weights, KIND, "energy", layout(model.space).fingerprint, {"method": method})
     record = {
         "axes": [{"parameter": axis.parameter.name, "intervals": axis.intervals} for axis in d.axes],
         "probes": [list(p) for p in found.probe_points],
@@ -49,6 +52,12 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
     }
     content = {"pgd/reduced": d.reduced} | {f"pgd/axis/{j}": X for j, X in enumerate(d.coefficients)}
     content |= {f"pgd/online/{name}": a for name, a in found.online.arrays().items()}
+    if found.energy is not None:  # fitted to full solves: the terms' timeline, the strain energy's fit
+        assert isinstance(found.timeline, Sampled)  # (a fitted PGD's)
+        energy, its_timeline = found.energy
+        content |= {"pgd/timeline/times": found.timeline.times, "pgd/timeline/values": found.timeline.values}
+        content |= {"pgd/energy/reduced": energy.reduced, "pgd/energy/timeline": its_timeline.values}
+        content |= {f"pgd/energy/axis/{j}": X for j, X in enumerate(energy.coefficients)}
     store.write(path, model, basis, extra=(extra or {}) | {"pgd": record}, arrays=content | (arrays or {}))
 
 
@@ -79,9 +88,35 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
             {name[len("pgd/online/") :]: a for name, a in held.items() if name.startswith("pgd/online/")}
         )
         _check_shapes(decomposition, online)
+        timeline, energy = _fitted(held, axes, stepping, decomposition.terms)
     except (KeyError, ValueError) as error:
         raise ModelFileError(f"'{path}' is damaged: its PGD arrays are incomplete ({error}); rebuild it") from None
-    return PGDModel(model, decomposition, online, stepping, record["probes"], record["built"])
+    if timeline is not None and not np.allclose(timeline.times, output_times(model, stepping), rtol=1e-12, atol=0.0):
+        raise ModelFileError(
+            f"'{path}' was fitted at the output times {', '.join(f'{t:g}' for t in timeline.times)} s; this scene's are "
+            f"{', '.join(f'{t:g}' for t in output_times(model, stepping))} s: build it again for them"
+        )
+    return PGDModel(model, decomposition, online, stepping, record["probes"], record["built"], timeline, energy)
+
+
+def _fitted(
+    held: Mapping[str, np.ndarray], axes: tuple[Axis, ...], stepping: Stepping, terms: int
+) -> tuple[Sampled | None, tuple[Decomposition, Sampled] | None]:
+    """A fitted PGD's timeline and strain energy's fit from its arrays (None, None: an a priori
+    one's), their sizes checked (else ValueError)."""
+    if "pgd/timeline/values" not in held:
+        return None, None
+    times = held["pgd/timeline/times"]
+    timeline = Sampled(stepping.start, times, held["pgd/timeline/values"])
+    reduced = held["pgd/energy/reduced"]
+    energy = Decomposition(axes, np.ones((1, 1)), reduced, [held[f"pgd/energy/axis/{j}"] for j in range(len(axes))])
+    its_timeline = Sampled(stepping.start, times, held["pgd/energy/timeline"])
+    if timeline.values.shape != (terms, len(times)) or its_timeline.values.shape != (reduced.shape[1], len(times)):
+        raise ValueError(f"timelines {timeline.values.shape} and {its_timeline.values.shape} for {len(times)} times")
+    for axis, X in zip(axes, energy.coefficients):
+        if X.shape != (reduced.shape[1], axis.size):
+            raise ValueError(f"energy axis {axis.parameter.name}: {X.shape}")
+    return timeline, (energy, its_timeline)
 
 
 def _check_shapes(d: Decomposition, online: Online) -> None:

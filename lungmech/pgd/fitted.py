@@ -1,0 +1,135 @@
+"""The a posteriori PGD: a PGD model fitted to full solves, for any model a full solve answers —
+nonlinear laws, follower pressures, loads that depend on the state.
+
+The seminar's PGD is a priori (:mod:`lungmech.pgd.greedy`): no full solve, but its separated
+forms need a residual affine in the state. Here the full model is solved at N points μₛ of the
+box (a Sobol' sample, on any ensemble: :mod:`lungmech.parallel.ensemble`), and its states
+uₛ(tᵢ) − u_rest at the nt output times are fitted by separated terms:
+
+    u(μ, tᵢ) ≈ Σₖ ūₖ qₖ(μ) τₖ(tᵢ),   qₖ(μ) = Πⱼ λₖʲ(μⱼ),
+
+closest in the energy norm of W (:func:`lungmech.rom.basis.inner_product`) summed over the
+samples (:mod:`lungmech.pgd.fitting`). The states are first written in their POD basis Φ
+(W-orthonormal, :func:`lungmech.parallel.linalg.pod`): the best ūₖ lie in the span of the
+data, so the whole fit is a dense problem of the POD coordinates, solved alike on every rank
+(rank 0's, broadcast). The terms' space parts a ∈ ℝʳ become space modes by an SVD, A = U S Vᵀ:
+Q = Φ U (W-orthonormal), R = S Vᵀ. The strain energy, no quadratic form of a nonlinear
+model's state, is fitted the same way from the full solves' own (J).
+
+A :class:`~lungmech.pgd.model.PGDModel` then answers ``solve(μ)`` as the a priori one does, its
+terms moving along the path by their fitted τₖ (:class:`~lungmech.pgd.timeline.Sampled`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import asdict
+
+import numpy as np
+
+from lungmech import checks
+from lungmech.errors import ParameterError
+from lungmech.fem.inverse_motion import InverseMotion
+from lungmech.fem.parametric import FullOrderModel, output_times
+from lungmech.fem.quantities import Probe
+from lungmech.parallel import linalg
+from lungmech.parallel.owned import owned_size
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.fitting import FIT, Fit, fit
+from lungmech.pgd.greedy import Options
+from lungmech.pgd.model import PGDModel, online, ramp_of
+from lungmech.pgd.timeline import Sampled
+from lungmech.rom.basis import inner_product, zero_imposed
+from lungmech.rom.load_paths import Paths, relative_to, serial
+
+__all__ = ["SINGULAR", "fitted"]
+
+SINGULAR = 1e-12  # the terms' space parts: directions below this fraction of the largest are dropped
+
+
+def fitted(
+    full: FullOrderModel,
+    samples: int,
+    intervals: int = 4,
+    options: Options | None = None,
+    probe_points: Sequence[Sequence[float]] = (),
+    seed: int = 0,
+    paths: Paths | None = None,
+) -> tuple[PGDModel, dict[str, Fit]]:
+    """The PGD model of ``full`` fitted to its solves at ``samples`` Sobol' points of the box
+    (``seed``), each parameter's modes cubic splines on ``intervals`` intervals (module
+    docstring); with the fits of the state and of the strain energy (their held-out errors
+    against the number of terms). ``paths`` solves the full load paths (default: one after
+    another on ``full``). Refused in one line before any solve where it cannot answer: no
+    parameter, an imaged body, loads on several ramps or not at rest at the start.
+    Collective."""
+    model, stepping = full.model, full.stepping
+    if not model.parameters.names:
+        raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
+    if isinstance(full.start, InverseMotion):
+        raise ParameterError("PGD: an imaged body (its reference found at every μ) is not yet fitted")
+    ramp_of(model, stepping)
+    checks.integer("PGD samples", samples, minimum=8)
+    axes = tuple(Axis(parameter, intervals) for parameter in model.parameters)
+    options = options or FIT
+    comm = model.geometry.mesh.comm
+    tic = time.perf_counter()
+    points = model.parameters.sample(samples, seed)
+    start = relative_to(full)
+    solved = (paths or serial(full, start))([(point, 1.0) for point in points], False)
+    full.reset()
+    seconds = {"full_solves": time.perf_counter() - tic}
+    tic = time.perf_counter()
+    times = output_times(model, stepping)
+    owned = owned_size(model.space)
+    for path in solved:
+        if not np.allclose(path.solution.times, times, rtol=0.0, atol=1e-12 * max(1.0, abs(stepping.end))):
+            raise ParameterError("PGD: a full solve reported other output times than the model's (a lungmech error)")
+    data = np.column_stack([state[:owned] - start[:owned] for path in solved for state in path.solution.states])
+    W = inner_product(model, "energy")
+    try:
+        basis = linalg.pod(zero_imposed(model, data), W, comm)
+    finally:
+        W.destroy()
+    r, nt = basis.modes.shape[1], len(times)
+    coordinates = comm.bcast(basis.coefficients.T.reshape(r, samples, nt) if comm.rank == 0 else None)
+    units = np.array([model.parameters.to_unit(point) for point in points])
+    state = fit(coordinates, units, axes, options, seed)
+    energies = np.array([path.solution.outputs["strain_energy"] for path in solved])[None]  # J: 1 × N × nt
+    energy = fit(comm.bcast(energies if comm.rank == 0 else None), units, axes, options, seed)
+    seconds["fit"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    U, S, Vt = np.linalg.svd(state.separated.amplitudes, full_matrices=False)
+    keep = S > SINGULAR * S[0] if S.size and S[0] > 0 else np.zeros(len(S), bool)
+    decomposition = Decomposition(
+        axes, basis.modes @ U[:, keep], S[keep, None] * Vt[keep], state.separated.coefficients
+    )
+    probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
+    outputs = online(model, None, decomposition.modes, probe)
+    seconds["outputs"] = time.perf_counter() - tic
+    separated_energy = Decomposition(axes, np.ones((1, 1)), energy.separated.amplitudes, energy.separated.coefficients)
+    built = {
+        "method": "fitted to full solves",
+        "samples": samples,
+        "seed": seed,
+        "intervals": intervals,
+        "options": asdict(options),
+        "held_out": state.held_out,
+        "training": state.training,
+        "energy_held_out": energy.held_out,
+        "pod_modes": r,
+        "seconds": seconds,
+    }
+    found = PGDModel(
+        model,
+        decomposition,
+        outputs,
+        stepping,
+        probe_points,
+        built,
+        timeline=Sampled(stepping.start, times, state.separated.timeline),
+        energy=(separated_energy, Sampled(stepping.start, times, energy.separated.timeline)),
+    )
+    return found, {"state": state, "strain_energy": energy}

@@ -1,0 +1,60 @@
+"""How a PGD's separated terms move along the load path: τₖ(t), so that the state at μ and t is
+
+    u(μ, t) = Q R (q(μ) ∘ τ(t)),   qₖ(μ) = Πⱼ λₖʲ(μⱼ)
+
+(:class:`~lungmech.pgd.decomposition.Decomposition`). A linear model whose loads follow one
+ramp r(t) from rest is at r(t)/r(T) of its end state T at every t, every term alike
+(:class:`Ramp`). A PGD fitted to full solves knows each term's value at the output times
+(:class:`Sampled`): exact there, and between them the monotone cubic through them and the rest
+at the path's start (SciPy's PCHIP: no overshoot where the ramp has a kink).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Ramp", "Sampled", "Timeline"]
+
+
+@dataclass(frozen=True)
+class Ramp:
+    """τₖ(t) = r(t) / r(``end``) for every term: ``ramp`` r."""
+
+    ramp: Callable[[float], float]
+    end: float
+
+    def at(self, t: float) -> float:
+        return self.ramp(t) / self.ramp(self.end)
+
+
+@dataclass(frozen=True)
+class Sampled:
+    """τₖ at the output ``times`` (s) as ``values`` (terms × times), 0 at ``start``."""
+
+    start: float
+    times: np.ndarray
+    values: np.ndarray
+
+    @functools.cached_property
+    def _curve(self) -> Callable[[float], np.ndarray]:
+        from scipy.interpolate import PchipInterpolator
+
+        times = np.concatenate([[self.start], self.times])
+        values = np.column_stack([np.zeros(len(self.values)), self.values])
+        return PchipInterpolator(times, values, axis=1, extrapolate=False)
+
+    def at(self, t: float) -> np.ndarray:
+        """τ(t), one value per term (exact at an output time)."""
+        i = int(np.searchsorted(self.times, t))
+        if i < len(self.times) and abs(self.times[i] - t) <= 1e-12 * max(abs(t), 1.0):
+            return self.values[:, i]
+        if i > 0 and abs(self.times[i - 1] - t) <= 1e-12 * max(abs(t), 1.0):
+            return self.values[:, i - 1]
+        return np.asarray(self._curve(t), dtype=float)
+
+
+Timeline = Ramp | Sampled
