@@ -1,8 +1,9 @@
-"""The a priori PGD beside the full model and a hyper-reduced model of the same scene.
+"""The PGD, a priori and fitted to full solves, beside the full model and a hyper-reduced model
+of the same scene.
 
     python benchmarks/pgd.py                 # both cases at full size (a few minutes)
     python benchmarks/pgd.py --ranks 2       # the same on two ranks (rows kept beside one rank's)
-    python benchmarks/pgd.py --quick         # coarse meshes, few points (the suite's case)
+    python benchmarks/pgd.py --quick         # coarse meshes, few points, no hyper-reduced breath (the suite's case)
 
 Two linear cases, each a scene built here:
 
@@ -13,8 +14,13 @@ Two linear cases, each a scene built here:
   ≈ 58 s of training on a CPU.
 * **lung**: a linear elastic lung phantom clamped on its mediastinal face under its own weight,
   E over a factor 10 (log), the pitch over a full turn and the roll over ±90°.
+* **breath**: the nonlinear lung, which the a priori PGD does not separate: the lung phantom's
+  poromechanics with the lung skeleton's law, a follower pleural pressure ramped from rest, α
+  and c1 over log ranges and the breath's depth. Its PGD is fitted to full solves
+  (:mod:`lungmech.pgd.fitted`) at several sample sizes; the held-out error against the number
+  of terms is the plot's third panel.
 
-For each: the PGD built a priori (no full solve; seconds for its terms, greedy and outputs),
+For the linear cases: the PGD built a priori (no full solve; seconds for its terms, greedy and outputs),
 and a POD–ECSW hyper-reduced model (τ = 1e-4) trained on 8 full solves, both measured at the
 same random points against the full model: the relative nodal error ‖u − u_FE‖₂/‖u_FE‖₂ (NeuROM's
 measure) and the relative energy-norm error (the energy product at the defaults), max and
@@ -126,7 +132,56 @@ range = [-90.0, 90.0]
 probes = [[0.06, 0.0, 0.12]]
 """
 
-CASES = {"anchor": (ANCHOR, 0.12, 0.5), "lung": (LUNG, 0.012, 0.04)}  # scene, mesh size, --quick's
+BREATH = """
+title = "a gentle breath of the lung phantom over three parameters (poromechanics)"
+[geometry]
+builder = "lung_phantom"
+side = "right"
+mesh_size = {h}
+[material]
+law = "lung_skeleton"
+alpha = 160.0
+gamma = 0.5
+c1 = 200.0
+c2 = 400.0
+[formulation]
+type = "poromechanics"
+kappa = 1.0e4
+phi_s0 = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "hilum"
+[[loads]]
+type = "follower_pressure"
+name = "pleural"
+boundary = ["pleura", "diaphragm", "mediastinum"]
+value = -300.0
+ramp = {{ times = [0.0, 1.0], values = [0.0, 1.0] }}
+[stepping]
+end = 1.0
+max_step = 0.25
+times = [0.5]
+[output]
+probes = [[0.05, 0.0, 0.1]]
+[parameters.alpha]
+target = "material.alpha"
+range = [100.0, 300.0]
+scale = "log"
+[parameters.c1]
+target = "material.c1"
+range = [100.0, 400.0]
+scale = "log"
+[parameters.breath]
+target = "loads.pleural.amplitude"
+range = [0.6, 1.4]
+"""
+
+CASES = {  # scene, mesh size, --quick's
+    "anchor": (ANCHOR, 0.12, 0.5),
+    "lung": (LUNG, 0.012, 0.04),
+    "breath": (BREATH, 0.02, 0.04),
+}
+FITTED = {"breath": ((32, 64, 128), (16,))}  # the fitted PGD's sample sizes: full size, --quick
 
 
 def scene_of(folder: Path, name: str, quick: bool) -> scenes.Scene:
@@ -183,7 +238,9 @@ def measured(base: dict, model: str, offline: float, online: float, solves: int,
     }
 
 
-def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) -> tuple[list[dict], dict | None]:
+def measure(
+    name: str, quick: bool, folder: Path, grid: tuple[int, int] | None, curves: dict
+) -> tuple[list[dict], dict | None]:
     comm = MPI.COMM_WORLD
     scene = scene_of(folder, name, quick)
     full = full_order_model(scene, comm)
@@ -196,26 +253,43 @@ def measure(name: str, quick: bool, folder: Path, grid: tuple[int, int] | None) 
     base = {"case": name, "dofs": dofs, "ranks": comm.size, "points": len(points)}
     rows = [base | {"model": "full", "offline [s]": 0.0, "online [ms]": full_ms, "full solves offline": 0}]
 
-    say(f"{name}: the PGD")
-    tic = time.perf_counter()
-    summary = build_pgd(scene, folder / f"{name}-pgd.npz", modes=10, comm=comm)
-    offline = time.perf_counter() - tic
-    pgd = reduce.load(folder / f"{name}-pgd.npz", comm, fields=True)
-    states, online = answers(pgd, points)
-    named = f"PGD ({summary['terms']} terms, {summary['modes']} modes)"
-    rows.append(measured(base, named, offline, online, 0, errors(full.model, states, exact, W)))
-    rows[-1]["offline terms+greedy [s]"] = summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"]
+    if name in FITTED:
+        for samples in FITTED[name][quick]:
+            say(f"{name}: the PGD fitted to {samples} full solves")
+            file = folder / f"{name}-pgd-{samples}.npz"
+            tic = time.perf_counter()  # its own cache: every solve is made and timed
+            summary = build_pgd(scene, file, modes=40, comm=comm, samples=samples, cache=folder / str(samples))
+            offline = time.perf_counter() - tic
+            pgd = reduce.load(file, comm, fields=True)
+            states, online = answers(pgd, points)
+            named = f"PGD fitted ({summary['terms']} terms, {summary['modes']} modes)"
+            rows.append(measured(base, named, offline, online, samples, errors(full.model, states, exact, W)))
+            for intervals, curve in pgd.built["held_out_by_intervals"].items():
+                curves[f"{name}, {samples} solves, intervals {intervals}, {comm.size} rank(s)"] = curve
+    else:
+        say(f"{name}: the PGD")
+        tic = time.perf_counter()
+        summary = build_pgd(scene, folder / f"{name}-pgd.npz", modes=10, comm=comm)
+        offline = time.perf_counter() - tic
+        pgd = reduce.load(folder / f"{name}-pgd.npz", comm, fields=True)
+        states, online = answers(pgd, points)
+        named = f"PGD ({summary['terms']} terms, {summary['modes']} modes)"
+        rows.append(measured(base, named, offline, online, 0, errors(full.model, states, exact, W)))
+        rows[-1]["offline terms+greedy [s]"] = (
+            summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"]
+        )
 
-    say(f"{name}: the hyper-reduced model (8 full solves)")
-    tic = time.perf_counter()
-    reduce.build(
-        scene, folder / f"{name}-ecsw.npz", size=10, samples=8, hyper="ecsw", comm=comm, cache=folder / "cache"
-    )
-    offline = time.perf_counter() - tic
-    hyper = reduce.load(folder / f"{name}-ecsw.npz", comm, fields=True)
-    states, online = answers(hyper, points)
-    named = f"POD ECSW τ=1e-4 ({hyper.size} vectors)"
-    rows.append(measured(base, named, offline, online, 8, errors(full.model, states, exact, W)))
+    if not (quick and name in FITTED):  # (a nonlinear hyper-reduction's build: 47 s even on --quick's mesh)
+        say(f"{name}: the hyper-reduced model (8 full solves)")
+        tic = time.perf_counter()
+        reduce.build(
+            scene, folder / f"{name}-ecsw.npz", size=10, samples=8, hyper="ecsw", comm=comm, cache=folder / "cache"
+        )
+        offline = time.perf_counter() - tic
+        hyper = reduce.load(folder / f"{name}-ecsw.npz", comm, fields=True)
+        states, online = answers(hyper, points)
+        named = f"POD ECSW τ=1e-4 ({hyper.size} vectors)"
+        rows.append(measured(base, named, offline, online, 8, errors(full.model, states, exact, W)))
     mapped = None
     if grid is not None:
         say(f"{name}: the error map, {grid[0]} × {grid[1]} points")
@@ -236,12 +310,14 @@ def markdown(rows: list[dict], command: str) -> str:
     ranks = sorted({int(r["ranks"]) for r in rows})
     runs = " and ".join(str(n) for n in ranks)
     lines = [
-        "# The a priori PGD beside the full model and a hyper-reduced model",
+        "# The PGD, a priori and fitted, beside the full model and a hyper-reduced model",
         "",
         f"{provenance(command, f'{runs} rank(s), each from its own run (this command: the last)')} Errors at random points of each box against the full model: relative nodal "
         "(ℓ2 over every dof, NeuROM's measure) and relative energy norm (the energy product at the defaults). "
         "Online: median milliseconds of `solve(μ, times=[T])` (volume, strain energy, probes). Offline: the "
-        "whole build, in seconds (the PGD's terms and greedy alone in brackets).",
+        "whole build, in seconds (the a priori PGD's terms and greedy alone in brackets), its full solves "
+        "included. The breath's PGD is fitted to its full solves (at most 40 terms; their number and the splines' "
+        "intervals chosen on a held-out quarter of the solves).",
         "",
         "| case | ranks | dofs | model | full solves offline | offline [s] | online [ms] | nodal error max (median) "
         "| energy error max (median) |",
@@ -273,9 +349,10 @@ def markdown(rows: list[dict], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], mapped: dict | None, path: Path) -> None:
-    """Left: the anchor PGD's energy-norm error over its box. Right: error against online time."""
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.4))
+def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> None:
+    """Left: the anchor PGD's energy-norm error over its box. Middle: error against online time.
+    Right: the fitted PGD's held-out error against its number of terms."""
+    fig, (left, right, third) = plt.subplots(1, 3, figsize=(16, 4.4))
     if mapped is not None:
         image = left.pcolormesh(
             mapped["y"], mapped["x"], np.log10(np.maximum(mapped["errors"], 1e-16)), shading="nearest"
@@ -294,6 +371,14 @@ def plot(rows: list[dict], mapped: dict | None, path: Path) -> None:
     right.set_ylabel("largest relative energy-norm error [-]")
     right.grid(alpha=0.3, which="both")
     right.legend(fontsize=7, loc="best")
+    for label, curve in curves.items():
+        third.semilogy(np.arange(1, len(curve) + 1), curve, ".-", label=label)
+    third.set_xlabel("separated terms [-]")
+    third.set_ylabel("held-out relative energy-norm error, max [-]")
+    third.set_title("the fitted PGD: choosing its terms and intervals", fontsize=10)
+    third.grid(alpha=0.3, which="both")
+    if curves:
+        third.legend(fontsize=7, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -310,15 +395,16 @@ def main() -> None:
     stem = "pgd_quick" if args.quick else "pgd"
     with tempfile.TemporaryDirectory() as work:
         folder = Path(comm.bcast(work if comm.rank == 0 else None))
-        rows, mapped = measure("anchor", args.quick, folder, (3, 4) if args.quick else (12, 24))
-        more, _ = measure("lung", args.quick, folder, None)
-    rows += more
+        curves: dict = {}
+        rows, mapped = measure("anchor", args.quick, folder, (3, 4) if args.quick else (12, 24), curves)
+        for name in ("lung", "breath"):
+            rows += measure(name, args.quick, folder, None, curves)[0]
     if comm.rank == 0:
         path = RESULTS / f"{stem}.csv"
         kept = [r for r in (read_results(path) if path.exists() else []) if r.get("ranks") != comm.size]
         rows = kept + [r | {"command": command.strip()} for r in rows]
         write_results(RESULTS, stem, rows, markdown(rows, command.strip()))
-        plot(rows, mapped, RESULTS / f"{stem}.png")
+        plot(rows, mapped, curves, RESULTS / f"{stem}.png")
         print((RESULTS / f"{stem}.md").read_text())
 
 

@@ -12,11 +12,14 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
+from trades import written as sphere
 
 from lungmech.app import reduce
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
+from lungmech.app.ladder import Discretisation
 from lungmech.app.run import full_order_model
+from lungmech.app.trade import Candidate, trade
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.parameters import Parameter
 from lungmech.parallel.linalg import norms
@@ -89,7 +92,7 @@ def lung(tmp_path_factory):
     folder = Path(MPI.COMM_WORLD.bcast(str(tmp_path_factory.mktemp("pgd-fitted"))))
     scene_file = written(folder)
     out = folder / "lung-pgd.npz"
-    args = ["pgd", "build", str(scene_file), "--samples", "48", "--intervals", "2", "--cache", str(folder / "cache")]
+    args = ["pgd", "build", str(scene_file), "--samples", "48", "--cache", str(folder / "cache")]
     assert main([*args, "-o", str(out), "-q"]) == 0
     return folder, reduce.load(out, fields=True), full_order_model(scenes.load(scene_file))
 
@@ -97,7 +100,7 @@ def lung(tmp_path_factory):
 def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
     """The issue's measure: the relative energy-norm error of the state against the full model's,
     the largest over 50 random points of the box (not the sample's) and both output times,
-    ≤ 1e-2 (measured here: 5e-5); the volume's over its change, the probe's over its motion and
+    ≤ 1e-2 (measured here: 7e-5); the volume's over its change, the probe's over its motion and
     the strain energy's within 1e-3."""
     _, pgd, full = lung
     model = full.model
@@ -114,7 +117,7 @@ def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
         assert np.array_equal(a.times, b.times)
         for i in range(len(a.times)):
             exact = b.states[i][:owned] - rest
-            error = exact - pgd.reconstruct(a, i)
+            error = b.states[i][:owned] - pgd.reconstruct(a, i)  # both hold the rest state's porosity
             errors.append(
                 float(
                     norms(error[:, None], W, model.geometry.mesh.comm)[0]
@@ -182,7 +185,7 @@ def test_the_fit_recovers_a_separated_function_and_holds_out_samples():
     found, errors = separated_fit(data, bases, replace(FIT, max_terms=2))
     assert errors[-1] < 1e-9 and found.terms == 2
     assert np.abs(found.at(bases) - data).max() < 1e-9 * np.abs(data).max()
-    chosen = fit(data, units, axes, replace(FIT, max_terms=4, tolerance=1e-10))
+    chosen = fit(data, units, [axes], replace(FIT, max_terms=4, tolerance=1e-6))  # above the penalty's 2e-7
     assert chosen.separated.terms == 2 and chosen.held_out[1] < 1e-5
 
 
@@ -195,7 +198,7 @@ def test_bad_inputs_of_a_fitted_pgd_get_one_line(tmp_path, capsys):
     assert main(["pgd", "build", str(scene_file), "--cache", str(folder / "c"), "-o", out, "-q"]) != 0
     assert "give --samples for a PGD fitted to them" in capsys.readouterr().err
     with pytest.raises(ParameterError, match="at least 8 samples"):
-        fit(np.ones((1, 6, 1)), np.ones((6, 1)), [Axis(Parameter("a", "material.E", 0.5, (0.0, 1.0)), 2)])
+        fit(np.ones((1, 6, 1)), np.ones((6, 1)), [[Axis(Parameter("a", "material.E", 0.5, (0.0, 1.0)), 2)]])
     assert not Path(out).exists()
 
 
@@ -214,3 +217,21 @@ def test_a_fitted_build_on_two_ranks_answers_as_one_ranks(tmp_path_factory):
         change = np.abs(b.outputs["volume"] - b.start.details["volume"]).max()
         assert np.abs(a.outputs["volume"] - b.outputs["volume"]).max() <= 1e-9 * change
         assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()
+
+
+def test_a_fitted_pgd_takes_part_in_a_trade(tmp_path):
+    """The trade's sphere (neo-Hookean, a follower pressure up and half down again, its
+    stiffness a parameter): its PGD fitted to 16 full solves is measured beside the full model
+    of its mesh, as family "pgd", at points that avoid its sample; its error against the finer
+    reference is the full model's on its mesh, to the fit's own (largest at the box's soft
+    corner, E = 5 Pa near the sphere's limit point: 1.2e-2 of the volume change, measured)."""
+    folder = Path(MPI.COMM_WORLD.bcast(str(tmp_path)))
+    scene, cache, pgd = sphere(folder), folder / "cache", folder / "sphere-pgd.npz"
+    assert main(["pgd", "build", str(scene), "--samples", "16", "--cache", str(cache), "-o", str(pgd), "-q"]) == 0
+    full = [Candidate.full(Discretisation(0, 1))]
+    found = trade(scene, 5e-2, count=2, cache=cache, levels=1, full=full, models=[pgd])
+    assert found.families["sphere-pgd.npz"] == "pgd"
+    errors = {m.name: m.error for m in found.measured}
+    assert abs(errors["sphere-pgd.npz"] - errors["full P1 h"]) <= 1.5e-2
+    trained = reduce.load(pgd).built["training"]
+    assert not [point for point in found.points.points if point in trained]

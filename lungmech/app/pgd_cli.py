@@ -25,14 +25,18 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     build.add_argument("-o", "--output", required=True, help="PGD model file (.npz)")
     build.add_argument("--modes", type=int, default=20, help="separated terms at most (default 20)")
     build.add_argument(
-        "--intervals", type=int, default=32, help="cubic-spline intervals on each parameter's axis (default 32)"
+        "--intervals",
+        type=int,
+        default=None,
+        help="cubic-spline intervals on each parameter's axis (default 32; with --samples, the best of 1, 2, 4 and 8 "
+        "on the held-out solves)",
     )
     build.add_argument(
         "--tolerance",
         type=float,
         default=1e-6,
         help="stop when a new term's amplitude is below this fraction of the whole's, in the box's mean energy "
-        "norm (default 1e-6)",
+        "norm; with --samples, when the fit's relative least-squares error is below it (default 1e-6)",
     )
     build.add_argument(
         "--samples",

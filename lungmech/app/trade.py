@@ -46,6 +46,7 @@ from lungmech.app.run import full_order_model
 from lungmech.errors import LungmechError, ParameterError
 from lungmech.fem.parameters import Parameters
 from lungmech.parallel.ensemble import Ensemble, Serial
+from lungmech.pgd.store import is_pgd
 from lungmech.rom import store
 from lungmech.trade import quantities
 from lungmech.trade.choice import Choice, Measured, check_tolerance, choose
@@ -59,7 +60,7 @@ log = logging.getLogger("lungmech")
 
 @dataclass(frozen=True)
 class Candidate:
-    """A model to measure: its ``name``, ``family`` ("full", "galerkin", "ecsw") and what
+    """A model to measure: its ``name``, ``family`` ("full", "galerkin", "ecsw", "pgd") and what
     :mod:`lungmech.app.measure` builds it from (``request``)."""
 
     name: str
@@ -452,15 +453,24 @@ def _judge_fields(
 
 
 def _family(path: str | Path) -> str:
-    """ "ecsw" for a hyper-reduced model file, else "galerkin"."""
-    return "ecsw" if _record(path).get("hyper") else "galerkin"
+    """ "pgd" for a PGD model file, "ecsw" for a hyper-reduced one, else "galerkin"."""
+    metadata = _metadata(path)
+    if is_pgd(metadata):
+        return "pgd"
+    return "ecsw" if metadata.get("extra", {}).get("reduced", {}).get("hyper") else "galerkin"
 
 
 def _training(path: str | Path) -> list[dict[str, float]]:
-    return [dict(point) for point in _record(path).get("training", [])]
+    """The parameter points a model file was trained on (a fitted PGD: its sample; an a priori
+    one: none), which the trade's points avoid."""
+    extra = _metadata(path).get("extra", {})
+    points = (
+        extra["pgd"]["built"].get("training", []) if "pgd" in extra else extra.get("reduced", {}).get("training", [])
+    )
+    return [dict(point) for point in points]
 
 
-def _record(path: str | Path) -> dict[str, Any]:
-    """A model file's record of how it was made (:mod:`lungmech.rom.store`)."""
+def _metadata(path: str | Path) -> dict[str, Any]:
+    """A model file's metadata, its record of how it was made (:mod:`lungmech.rom.store`)."""
     metadata, _ = store.read_on_root(path, MPI.COMM_SELF, arrays=False)
-    return metadata.get("extra", {}).get("reduced", {})
+    return metadata

@@ -31,11 +31,12 @@ import numpy as np
 from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.inverse_motion import InverseMotion
+from lungmech.fem.parameters import Parameters
 from lungmech.fem.parametric import FullOrderModel, output_times
 from lungmech.fem.quantities import Probe
 from lungmech.parallel import linalg
 from lungmech.parallel.owned import owned_size
-from lungmech.pgd.axes import Axis
+from lungmech.pgd.axes import DEGREE, Axis, full_turn
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.fitting import FIT, Fit, fit
 from lungmech.pgd.greedy import Options
@@ -44,23 +45,25 @@ from lungmech.pgd.timeline import Sampled
 from lungmech.rom.basis import inner_product, zero_imposed
 from lungmech.rom.load_paths import Paths, relative_to, serial
 
-__all__ = ["SINGULAR", "fitted"]
+__all__ = ["INTERVALS", "SINGULAR", "fitted"]
 
 SINGULAR = 1e-12  # the terms' space parts: directions below this fraction of the largest are dropped
+INTERVALS = (1, 2, 4, 8)  # the splines' intervals a fit chooses from, on held-out samples
 
 
 def fitted(
     full: FullOrderModel,
     samples: int,
-    intervals: int = 4,
+    intervals: int | None = None,
     options: Options | None = None,
     probe_points: Sequence[Sequence[float]] = (),
     seed: int = 0,
     paths: Paths | None = None,
 ) -> tuple[PGDModel, dict[str, Fit]]:
     """The PGD model of ``full`` fitted to its solves at ``samples`` Sobol' points of the box
-    (``seed``), each parameter's modes cubic splines on ``intervals`` intervals (module
-    docstring); with the fits of the state and of the strain energy (their held-out errors
+    (``seed``), each parameter's modes cubic splines on ``intervals`` intervals (default: the
+    choice of :data:`INTERVALS` best on held-out samples; a periodic axis takes at least 4)
+    (module docstring); with the fits of the state and of the strain energy (their held-out errors
     against the number of terms). ``paths`` solves the full load paths (default: one after
     another on ``full``). Refused in one line before any solve where it cannot answer: no
     parameter, an imaged body, loads on several ramps or not at rest at the start.
@@ -72,7 +75,7 @@ def fitted(
         raise ParameterError("PGD: an imaged body (its reference found at every μ) is not yet fitted")
     ramp_of(model, stepping)
     checks.integer("PGD samples", samples, minimum=8)
-    axes = tuple(Axis(parameter, intervals) for parameter in model.parameters)
+    choices = _choices(model.parameters, INTERVALS if intervals is None else (intervals,))
     options = options or FIT
     comm = model.geometry.mesh.comm
     tic = time.perf_counter()
@@ -96,28 +99,33 @@ def fitted(
     r, nt = basis.modes.shape[1], len(times)
     coordinates = comm.bcast(basis.coefficients.T.reshape(r, samples, nt) if comm.rank == 0 else None)
     units = np.array([model.parameters.to_unit(point) for point in points])
-    state = fit(coordinates, units, axes, options, seed)
+    state = fit(coordinates, units, choices, options, seed)
     energies = np.array([path.solution.outputs["strain_energy"] for path in solved])[None]  # J: 1 × N × nt
-    energy = fit(comm.bcast(energies if comm.rank == 0 else None), units, axes, options, seed)
+    energy = fit(comm.bcast(energies if comm.rank == 0 else None), units, choices, options, seed)
     seconds["fit"] = time.perf_counter() - tic
     tic = time.perf_counter()
     U, S, Vt = np.linalg.svd(state.separated.amplitudes, full_matrices=False)
     keep = S > SINGULAR * S[0] if S.size and S[0] > 0 else np.zeros(len(S), bool)
     decomposition = Decomposition(
-        axes, basis.modes @ U[:, keep], S[keep, None] * Vt[keep], state.separated.coefficients
+        state.axes, basis.modes @ U[:, keep], S[keep, None] * Vt[keep], state.separated.coefficients
     )
     probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
     outputs = online(model, None, decomposition.modes, probe)
     seconds["outputs"] = time.perf_counter() - tic
-    separated_energy = Decomposition(axes, np.ones((1, 1)), energy.separated.amplitudes, energy.separated.coefficients)
+    separated_energy = Decomposition(
+        energy.axes, np.ones((1, 1)), energy.separated.amplitudes, energy.separated.coefficients
+    )
     built = {
         "method": "fitted to full solves",
         "samples": samples,
         "seed": seed,
-        "intervals": intervals,
+        "training": points,  # the full solves' points (a trade's validation points avoid them)
+        "intervals": [axis.intervals for axis in state.axes],
+        "energy_intervals": [axis.intervals for axis in energy.axes],
         "options": asdict(options),
         "held_out": state.held_out,
-        "training": state.training,
+        "held_out_by_intervals": state.curves,
+        "training_error": state.training,
         "energy_held_out": energy.held_out,
         "pod_modes": r,
         "seconds": seconds,
@@ -133,3 +141,15 @@ def fitted(
         energy=(separated_energy, Sampled(stepping.start, times, energy.separated.timeline)),
     )
     return found, {"state": state, "strain_energy": energy}
+
+
+def _choices(parameters: Parameters, intervals: Sequence[int]) -> list[tuple[Axis, ...]]:
+    """The parameters' axes at each of ``intervals`` (a periodic axis at 4 at least), each
+    choice once, fewest coefficients first."""
+    for k in intervals:
+        checks.integer("PGD intervals", k, minimum=1)
+    found: dict[tuple[int, ...], tuple[Axis, ...]] = {}
+    for k in sorted(intervals):
+        axes = tuple(Axis(p, max(k, DEGREE + 1) if full_turn(p) else k) for p in parameters)
+        found.setdefault(tuple(axis.intervals for axis in axes), axes)
+    return list(found.values())

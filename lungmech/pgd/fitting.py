@@ -26,7 +26,7 @@ smallest (the fewest within 10 % of it), and fits again on every sample to that 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -71,42 +71,71 @@ class Separated:
 
 @dataclass(frozen=True)
 class Fit:
-    """A :func:`fit`: the ``separated`` terms on every sample; the held-out error (relative,
-    the largest over the held-out samples of ‖error‖/‖c‖ along their path) against the number
-    of terms, ``held_out[n - 1]`` with n terms trained on the other samples; the ``training``
-    error (relative, all samples) against the number of terms of the final fit."""
+    """A :func:`fit`: the ``separated`` terms on every sample, on the chosen ``axes``; the
+    held-out error (relative, the largest over the held-out samples of ‖error‖/‖c‖ along their
+    path) against the number of terms, ``held_out[n - 1]`` with n terms trained on the other
+    samples, for the chosen axes and (``curves``) for every choice of axes, by their intervals;
+    the ``training`` error (relative, all samples) against the number of terms of the final
+    fit."""
 
     separated: Separated
+    axes: tuple[Axis, ...]
     held_out: list[float]
+    curves: dict[str, list[float]]
     training: list[float]
 
 
-def fit(data: np.ndarray, units: np.ndarray, axes: Sequence[Axis], options: Options = FIT, seed: int = 0) -> Fit:
+def fit(
+    data: np.ndarray, units: np.ndarray, choices: Sequence[Sequence[Axis]], options: Options = FIT, seed: int = 0
+) -> Fit:
     """The separated fit of ``data`` (r × N × nt) at the samples of unit coordinates ``units``
-    (N × axes), its number of terms chosen on held-out samples (module docstring). Every rank
-    given the same data finds the same fit."""
+    (N × axes) on one of the ``choices`` of axes (the parameters' axes at some intervals,
+    fewest coefficients first), which and how many terms chosen on held-out samples (module
+    docstring): the smallest held-out error, or the fewest coefficients within 10 % of it.
+    Every rank given the same data finds the same fit."""
     data = np.asarray(data, dtype=float)
     units = np.atleast_2d(np.asarray(units, dtype=float))
-    if data.ndim != 3 or units.shape != (data.shape[1], len(axes)):
-        raise ParameterError(f"PGD fit: data {data.shape} and units {units.shape} for {len(axes)} axes do not agree")
+    if not choices:
+        raise ParameterError("PGD fit: give at least one choice of axes")
+    for axes in choices:
+        if data.ndim != 3 or units.shape != (data.shape[1], len(axes)):
+            raise ParameterError(
+                f"PGD fit: data {data.shape} and units {units.shape} for {len(axes)} axes do not agree"
+            )
     count = data.shape[1]
     if count < 2 * HELD_OUT:
         raise ParameterError(f"PGD fit: at least {2 * HELD_OUT} samples are needed to hold some out (got {count})")
     order = np.random.default_rng(seed).permutation(count)
     held = np.sort(order[::HELD_OUT])
     kept = np.setdiff1d(np.arange(count), held)
+    curves: dict[str, list[float]] = {}
+    trials = []  # (held-out error, coefficients, the axes, terms)
+    for axes in choices:
+        bases = [axis.at(units[:, j]) for j, axis in enumerate(axes)]
+        checked = [B[held] for B in bases]
+        curve: list[float] = []  # the fit of n terms (not the first n of more: the update moves them all)
+        rough = [roughness(axis) for axis in axes]
+        separated_fit(
+            data[:, kept],
+            [B[kept] for B in bases],
+            options,
+            rough,
+            lambda found, c=checked, k=curve: k.append(_worst(data[:, held], found.at(c))),  # type: ignore[misc]
+        )
+        curves[_named(axes)] = curve
+        size = sum(axis.size for axis in axes) + data.shape[0] + data.shape[2]  # a term's numbers
+        trials += [(error, n * size, tuple(axes), n) for n, error in enumerate(curve, 1)]
+    best = min(error for error, *_ in trials)
+    _, _, axes, terms = min((t for t in trials if t[0] <= SLACK * best), key=lambda t: (t[1], t[0]))
     bases = [axis.at(units[:, j]) for j, axis in enumerate(axes)]
     rough = [roughness(axis) for axis in axes]
-    trial, _ = separated_fit(data[:, kept], [B[kept] for B in bases], options, rough)
-    checked = [B[held] for B in bases]
-    curve = []
-    for n in range(1, trial.terms + 1):
-        first = Separated(trial.amplitudes[:, :n], [X[:n] for X in trial.coefficients], trial.timeline[:n])
-        curve.append(_worst(data[:, held], first.at(checked)))
-    best = min(curve)
-    chosen = next(n for n, error in enumerate(curve, 1) if error <= SLACK * best)
-    final, training = separated_fit(data, bases, replace(options, max_terms=chosen), rough)
-    return Fit(final, curve, training)
+    final, training = separated_fit(data, bases, replace(options, max_terms=terms), rough)
+    return Fit(final, axes, curves[_named(axes)], curves, training)
+
+
+def _named(axes: Sequence[Axis]) -> str:
+    """A choice of axes by their intervals, "2,2,4"."""
+    return ",".join(str(axis.intervals) for axis in axes)
 
 
 def roughness(axis: Axis) -> np.ndarray:
@@ -117,10 +146,16 @@ def roughness(axis: Axis) -> np.ndarray:
 
 
 def separated_fit(
-    data: np.ndarray, bases: Sequence[np.ndarray], options: Options, roughness: Sequence[np.ndarray] | None = None
+    data: np.ndarray,
+    bases: Sequence[np.ndarray],
+    options: Options,
+    roughness: Sequence[np.ndarray] | None = None,
+    each: Callable[[Separated], None] | None = None,
 ) -> tuple[Separated, list[float]]:
     """The greedy fit of ``data`` (r × N × nt) at the points whose splines' values per axis are
-    ``bases`` (N × size): the terms and the relative error after each. Each sample weighs
+    ``bases`` (N × size): the terms and the relative error after each; ``each`` sees the fit
+    after each new term and its update. ``roughness``: each axis's penalty matrix
+    (:func:`roughness`; default none). Each sample weighs
     wₛ ∝ 1/‖c(μₛ)‖² (its path's), so that J is the mean square of the samples' relative
     errors, the measure the rank is chosen by, and a stiff corner of the box, whose
     displacements are small, is fitted as well as a soft one."""
@@ -149,6 +184,8 @@ def separated_fit(
             if before - error <= STALL * error:
                 break
         errors.append(error)
+        if each is not None:
+            each(found)
         if errors[-1] <= options.tolerance:
             break
     return found, errors

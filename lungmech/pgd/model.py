@@ -195,6 +195,9 @@ class PGDModel:
         self.probe_points = tuple(tuple(float(c) for c in p) for p in probe_points)
         self.built = dict(built or {})
         self._owned = owned_size(model.space)
+        with model.kept_state():
+            model.reset()
+            self._rest = model.state.x.array[: self._owned].copy()  # what the modes add to
         self._start = StartReport("rest", "the unloaded state").measured(online.volume.c0)  # its volume
         self._values = _Entries(model, online.entries)
         self._last = dict(model.parameter_values), 1.0  # the parameters and load factor of the last answer
@@ -296,9 +299,10 @@ class PGDModel:
         model.state.x.scatter_forward()
 
     def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
-        """The full state Q z of output ``index`` of ``solution`` (owned entries), as
-        :meth:`lungmech.rom.reduced.ReducedModel.reconstruct` gives a reduced one's."""
-        return self.decomposition.modes @ solution.states[index]
+        """The full state u_rest + Q z of output ``index`` of ``solution`` (owned entries), as
+        :meth:`lungmech.rom.reduced.ReducedModel.reconstruct` gives a reduced one's (the rest
+        state holds a poromechanical model's porosity, say)."""
+        return self._rest + self.decomposition.modes @ solution.states[index]
 
     def describe(self) -> dict[str, object]:
         """What answers: the decomposition's size; no solver."""

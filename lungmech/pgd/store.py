@@ -58,6 +58,7 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
         content |= {"pgd/timeline/times": found.timeline.times, "pgd/timeline/values": found.timeline.values}
         content |= {"pgd/energy/reduced": energy.reduced, "pgd/energy/timeline": its_timeline.values}
         content |= {f"pgd/energy/axis/{j}": X for j, X in enumerate(energy.coefficients)}
+        record["energy_axes"] = [axis.intervals for axis in energy.axes]
     store.write(path, model, basis, extra=(extra or {}) | {"pgd": record}, arrays=content | (arrays or {}))
 
 
@@ -88,7 +89,7 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
             {name[len("pgd/online/") :]: a for name, a in held.items() if name.startswith("pgd/online/")}
         )
         _check_shapes(decomposition, online)
-        timeline, energy = _fitted(held, axes, stepping, decomposition.terms)
+        timeline, energy = _fitted(held, record, model, stepping, decomposition.terms)
     except (KeyError, ValueError) as error:
         raise ModelFileError(f"'{path}' is damaged: its PGD arrays are incomplete ({error}); rebuild it") from None
     if timeline is not None and not np.allclose(timeline.times, output_times(model, stepping), rtol=1e-12, atol=0.0):
@@ -100,12 +101,13 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
 
 
 def _fitted(
-    held: Mapping[str, np.ndarray], axes: tuple[Axis, ...], stepping: Stepping, terms: int
+    held: Mapping[str, np.ndarray], record: Mapping, model: Model, stepping: Stepping, terms: int
 ) -> tuple[Sampled | None, tuple[Decomposition, Sampled] | None]:
-    """A fitted PGD's timeline and strain energy's fit from its arrays (None, None: an a priori
-    one's), their sizes checked (else ValueError)."""
+    """A fitted PGD's timeline and strain energy's fit from its arrays and ``record`` (None,
+    None: an a priori one's), their sizes checked (else ValueError)."""
     if "pgd/timeline/values" not in held:
         return None, None
+    axes = tuple(Axis(p, int(k)) for p, k in zip(model.parameters, record["energy_axes"], strict=True))
     times = held["pgd/timeline/times"]
     timeline = Sampled(stepping.start, times, held["pgd/timeline/values"])
     reduced = held["pgd/energy/reduced"]
