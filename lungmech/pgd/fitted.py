@@ -17,7 +17,7 @@ Q = Φ U (W-orthonormal), R = S Vᵀ. The strain energy, no quadratic form of a 
 model's state, is fitted the same way from the full solves' own (J).
 
 A :class:`~lungmech.pgd.model.PGDModel` then answers ``solve(μ)`` as the a priori one does, its
-terms moving along the path by their fitted τₖ (:class:`~lungmech.pgd.timeline.Sampled`).
+terms moving along the path by their fitted τₖ (:class:`~lungmech.pgd.timeline.SampledTimeline`).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.fitting import FIT, Fit, fit
 from lungmech.pgd.greedy import Options
 from lungmech.pgd.model import PGDModel, online, ramp_of
-from lungmech.pgd.timeline import Sampled
+from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product, zero_imposed
 from lungmech.rom.load_paths import Paths, relative_to, serial
 
@@ -137,8 +137,8 @@ def fitted(
         stepping,
         probe_points,
         built,
-        timeline=Sampled(stepping.start, times, state.separated.timeline),
-        energy=(separated_energy, Sampled(stepping.start, times, energy.separated.timeline)),
+        timeline=SampledTimeline(stepping.start, times, state.separated.timeline),
+        energy=(separated_energy, SampledTimeline(stepping.start, times, energy.separated.timeline)),
     )
     return found, {"state": state, "strain_energy": energy}
 

@@ -17,11 +17,14 @@ quadratically with the others fixed, so the PGD's greedy is alternating least sq
 - **an update of all terms** after each new one, pass after pass until one gains little: all
   aₖ at once, then every term's splines on each axis at once, then all τₖ.
 
-The greedy stops when J falls below ``tolerance``² of the data's, or at ``max_terms``. How many
-terms to keep is not the training's error, which falls with every term: a spline fitted
-through too few samples oscillates between them. So :func:`fit` trains first on all but a
-held-out quarter of the samples, keeps the number of terms whose error on the held-out ones is
-smallest (the fewest within 10 % of it), and fits again on every sample to that number.
+The splines' roughness ∫ λ'' ² ds is penalised slightly (:data:`SMOOTHING`), so that a spline
+cannot spike where samples are few. The greedy stops when J falls below ``tolerance``² of the
+data's, or at ``max_terms``. How many terms to keep, and on how many intervals, is not read
+from the training's error, which falls with every coefficient: a spline fitted through too few
+samples oscillates between them. So :func:`fit` trains first on all but a held-out quarter of
+the samples, for each choice of axes, measures the fit of each number of terms on the held-out
+ones, keeps the (axes, terms) whose error there is smallest (of those within 10 % of it, the
+fewest numbers), and fits again on every sample.
 """
 
 from __future__ import annotations

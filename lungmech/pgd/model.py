@@ -43,7 +43,7 @@ from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.greedy import Options, Round, pgd
 from lungmech.pgd.terms import separated_terms
-from lungmech.pgd.timeline import Ramp, Sampled
+from lungmech.pgd.timeline import RampTimeline, SampledTimeline
 from lungmech.pgd.values import closed_form
 from lungmech.rom.basis import inner_product
 from lungmech.rom.exact import Cubic, affine, cubic
@@ -165,8 +165,8 @@ class PGDModel:
     ``model`` (for fields, and the values its parameters set), the load path ``stepping``,
     the ``online`` outputs and ``built``, how it was built (for its record). Its terms move
     along the path as ``timeline`` says (default: the loads' one ramp,
-    :class:`~lungmech.pgd.timeline.Ramp`); a PGD fitted to full solves gives its own
-    (:class:`~lungmech.pgd.timeline.Sampled`) and its strain energy's fit ``energy`` (a
+    :class:`~lungmech.pgd.timeline.RampTimeline`); a PGD fitted to full solves gives its own
+    (:class:`~lungmech.pgd.timeline.SampledTimeline`) and its strain energy's fit ``energy`` (a
     one-row decomposition and its timeline), and answers at the loads' own scale only.
     Collective for :meth:`fields` only; a solve is evaluation on every rank."""
 
@@ -178,8 +178,8 @@ class PGDModel:
         stepping: Stepping,
         probe_points: Sequence[Sequence[float]] = (),
         built: dict | None = None,
-        timeline: Sampled | None = None,
-        energy: tuple[Decomposition, Sampled] | None = None,
+        timeline: SampledTimeline | None = None,
+        energy: tuple[Decomposition, SampledTimeline] | None = None,
     ) -> None:
         if (timeline is None) != (energy is None):
             raise ParameterError("PGD: a fitted PGD has both a timeline and its strain energy's fit, or neither")
@@ -189,7 +189,9 @@ class PGDModel:
         self.decomposition = decomposition
         self.online = online
         self.ramp = ramp_of(model, stepping)
-        self.timeline: Ramp | Sampled = timeline if timeline is not None else Ramp(self.ramp, stepping.end)
+        self.timeline: RampTimeline | SampledTimeline = (
+            timeline if timeline is not None else RampTimeline(self.ramp, stepping.end)
+        )
         self.energy = energy
         self.times = output_times(model, stepping)
         self.probe_points = tuple(tuple(float(c) for c in p) for p in probe_points)

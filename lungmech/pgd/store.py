@@ -23,7 +23,7 @@ from lungmech.parallel.layout import layout
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.model import Online, PGDModel
-from lungmech.pgd.timeline import Sampled
+from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom import store
 from lungmech.rom.basis import Basis
 
@@ -53,7 +53,7 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
     content = {"pgd/reduced": d.reduced} | {f"pgd/axis/{j}": X for j, X in enumerate(d.coefficients)}
     content |= {f"pgd/online/{name}": a for name, a in found.online.arrays().items()}
     if found.energy is not None:  # fitted to full solves: the terms' timeline, the strain energy's fit
-        assert isinstance(found.timeline, Sampled)  # (a fitted PGD's)
+        assert isinstance(found.timeline, SampledTimeline)  # (a fitted PGD's)
         energy, its_timeline = found.energy
         content |= {"pgd/timeline/times": found.timeline.times, "pgd/timeline/values": found.timeline.values}
         content |= {"pgd/energy/reduced": energy.reduced, "pgd/energy/timeline": its_timeline.values}
@@ -102,17 +102,17 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
 
 def _fitted(
     held: Mapping[str, np.ndarray], record: Mapping, model: Model, stepping: Stepping, terms: int
-) -> tuple[Sampled | None, tuple[Decomposition, Sampled] | None]:
+) -> tuple[SampledTimeline | None, tuple[Decomposition, SampledTimeline] | None]:
     """A fitted PGD's timeline and strain energy's fit from its arrays and ``record`` (None,
     None: an a priori one's), their sizes checked (else ValueError)."""
     if "pgd/timeline/values" not in held:
         return None, None
     axes = tuple(Axis(p, int(k)) for p, k in zip(model.parameters, record["energy_axes"], strict=True))
     times = held["pgd/timeline/times"]
-    timeline = Sampled(stepping.start, times, held["pgd/timeline/values"])
+    timeline = SampledTimeline(stepping.start, times, held["pgd/timeline/values"])
     reduced = held["pgd/energy/reduced"]
     energy = Decomposition(axes, np.ones((1, 1)), reduced, [held[f"pgd/energy/axis/{j}"] for j in range(len(axes))])
-    its_timeline = Sampled(stepping.start, times, held["pgd/energy/timeline"])
+    its_timeline = SampledTimeline(stepping.start, times, held["pgd/energy/timeline"])
     if timeline.values.shape != (terms, len(times)) or its_timeline.values.shape != (reduced.shape[1], len(times)):
         raise ValueError(f"timelines {timeline.values.shape} and {its_timeline.values.shape} for {len(times)} times")
     for axis, X in zip(axes, energy.coefficients):

@@ -4,9 +4,9 @@
 
 (:class:`~lungmech.pgd.decomposition.Decomposition`). A linear model whose loads follow one
 ramp r(t) from rest is at r(t)/r(T) of its end state T at every t, every term alike
-(:class:`Ramp`). A PGD fitted to full solves knows each term's value at the output times
-(:class:`Sampled`): exact there, and between them the monotone cubic through them and the rest
-at the path's start (SciPy's PCHIP: no overshoot where the ramp has a kink).
+(:class:`RampTimeline`). A PGD fitted to full solves knows each term's value at the output
+times (:class:`SampledTimeline`): exact there, and between them the monotone cubic through
+them and the rest at the path's start (SciPy's PCHIP: no overshoot where the ramp has a kink).
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Ramp", "Sampled", "Timeline"]
+__all__ = ["RampTimeline", "SampledTimeline", "Timeline"]
 
 
 @dataclass(frozen=True)
-class Ramp:
+class RampTimeline:
     """τₖ(t) = r(t) / r(``end``) for every term: ``ramp`` r."""
 
     ramp: Callable[[float], float]
@@ -32,7 +32,7 @@ class Ramp:
 
 
 @dataclass(frozen=True)
-class Sampled:
+class SampledTimeline:
     """τₖ at the output ``times`` (s) as ``values`` (terms × times), 0 at ``start``."""
 
     start: float
@@ -57,4 +57,4 @@ class Sampled:
         return np.asarray(self._curve(t), dtype=float)
 
 
-Timeline = Ramp | Sampled
+Timeline = RampTimeline | SampledTimeline
