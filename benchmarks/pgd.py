@@ -363,16 +363,24 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
         left.set_ylabel(f"{mapped['names'][0]} [Pa]")
         left.set_title("the anchor plate's PGD over its box", fontsize=10)
     measured = [r for r in rows if isinstance(r.get("energy error max"), float)]
-    for r, marker in zip(measured, itertools.cycle("os^vD<>ph*")):
+    colours = plt.get_cmap("tab20").colors  # a colour and a marker of its own for each of up to 20 rows
+    for r, marker, colour in zip(measured, itertools.cycle("os^vD<>ph*"), itertools.cycle(colours)):
         label = f"{r['case']}, {r['ranks']} rank(s): {r['model']}"
-        right.loglog(r["online [ms]"], r["energy error max"], marker, label=label)
+        right.loglog(r["online [ms]"], r["energy error max"], marker, color=colour, label=label)
     right.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     right.set_xlabel("online time per point [ms]")
     right.set_ylabel("largest relative energy-norm error [-]")
     right.grid(alpha=0.3, which="both")
     right.legend(fontsize=7, loc="best")
+    # a colour per sample size, a line style per choice of intervals ("breath, 32 solves, intervals 2,2,2, 1 rank(s)")
+    sizes = sorted({label.split(" solves")[0] for label in curves})
+    choices = sorted(
+        {label.split("intervals ")[1].split(", ")[0] for label in curves}, key=lambda k: [int(x) for x in k.split(",")]
+    )
     for label, curve in curves.items():
-        third.semilogy(np.arange(1, len(curve) + 1), curve, ".-", label=label)
+        colour = plt.get_cmap("tab10").colors[sizes.index(label.split(" solves")[0]) % 10]
+        style = ["-", "--", ":", "-."][choices.index(label.split("intervals ")[1].split(", ")[0]) % 4]
+        third.semilogy(np.arange(1, len(curve) + 1), curve, style, marker=".", color=colour, label=label)
     third.set_xlabel("separated terms [-]")
     third.set_ylabel("held-out relative energy-norm error, max [-]")
     third.set_title("the fitted PGD: choosing its terms and intervals", fontsize=10)
