@@ -117,7 +117,7 @@ def _new_term(problem: Terms, found: Modes, options: Options) -> tuple[np.ndarra
     comm = found.comm
     axes = problem.axes
     old = found.values()
-    KU = [KQ @ found.R for KQ in found.KQ]  # K_T U, U = Q R
+    KU = np.hstack([KQ @ found.R for KQ in found.KQ])  # K_T U, U = Q R, side by side (owned × terms·n)
     # a random start (the same on every rank): from λʲ = 1, a load whose factor has mean 0
     # over an axis (the sine of a roll over ±30°) would be missed by every iteration
     rng = np.random.default_rng(found.count)
@@ -126,9 +126,10 @@ def _new_term(problem: Terms, found: Modes, options: Options) -> tuple[np.ndarra
     for iteration in range(1, options.iterations + 1):
         lam = [axis.basis @ xj for axis, xj in zip(axes, x)]
         u = _space(problem, KU, lam, old)
-        uKU = [gram(u[:, None], KUT, comm)[0] for KUT in KU]  # ūᵀ K_T Uₖ
-        uKu = [float(gram(u[:, None], apply(t.matrix, u[:, None], comm), comm)[0, 0]) for t in problem.operator]
-        uf = [float(gram(u[:, None], load.vector[:, None], comm)[0, 0]) for load in problem.load]
+        uKU = gram(u[:, None], KU, comm)[0].reshape(len(problem.operator), found.count)  # ūᵀ K_T Uₖ
+        Ku = np.column_stack([apply(t.matrix, u[:, None], comm)[:, 0] for t in problem.operator])
+        uKu = gram(u[:, None], Ku, comm)[0]
+        uf = gram(u[:, None], problem.loads, comm)[0]
         for j, axis in enumerate(axes):
             x[j] = _axis(problem, j, lam, old, uKu, uKU, uf)
             if j < len(axes) - 1:  # unit mean square: the amplitude is the space part's and the last axis's
@@ -141,22 +142,44 @@ def _new_term(problem: Terms, found: Modes, options: Options) -> tuple[np.ndarra
     return u, x, options.iterations, False
 
 
-def _space(problem: Terms, KU: list[np.ndarray], lam: list[np.ndarray], old: list[np.ndarray]) -> np.ndarray:
+def _means(
+    axes: Sequence[Axis], factors: Sequence[np.ndarray], lam: Sequence[np.ndarray], skip: int | None = None
+) -> np.ndarray:
+    """Πⱼ ⟨κ_Tʲ, λʲ⟩ for every term T (``factors[j]``: terms × axis j's nodes; ``lam[j]`` any
+    function at the nodes), over the axes but ``skip``."""
+    found = np.ones(len(factors[0]))
+    for j, (axis, k, l) in enumerate(zip(axes, factors, lam)):
+        if j != skip:
+            found = found * (k @ (axis.weights * l))
+    return found
+
+
+def _crossed(
+    axes: Sequence[Axis],
+    factors: Sequence[np.ndarray],
+    lam: Sequence[np.ndarray],
+    old: Sequence[np.ndarray],
+    skip: int | None = None,
+) -> np.ndarray:
+    """Πⱼ ⟨κ_Tʲ λʲ, λₖʲ⟩ for every term T and old term k (terms × k), over the axes but ``skip``."""
+    found = np.ones((len(factors[0]), len(old[0])))
+    for j, (axis, k, l, o) in enumerate(zip(axes, factors, lam, old)):
+        if j != skip:
+            found = found * ((k * (axis.weights * l)) @ o.T)
+    return found
+
+
+def _space(problem: Terms, KU: np.ndarray, lam: list[np.ndarray], old: list[np.ndarray]) -> np.ndarray:
     """The space step: (Σ_T α_T K_T) ū = Σ_S β_S f_S − Σ_T K_T U γ_T."""
-    axes = problem.axes
+    axes, F = problem.axes, problem.operator_factors
+    alpha = _means(axes, F, [l * l for l in lam])
     A = problem.operator[0].matrix.duplicate()
     A.zeroEntries()
-    rhs = np.zeros(len(problem.load[0].vector))
-    for term, KUT in zip(problem.operator, KU):
-        alpha = np.prod([a.weights @ (k * l * l) for a, k, l in zip(axes, term.factors, lam)])
-        A.axpy(float(alpha), term.matrix, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
-        if KUT.shape[1]:
-            gamma = np.prod(
-                [(o * (a.weights * k * l)).sum(axis=1) for a, k, l, o in zip(axes, term.factors, lam, old)], axis=0
-            )
-            rhs -= KUT @ gamma
-    for load in problem.load:
-        rhs += float(np.prod([a.weights @ (f * l) for a, f, l in zip(axes, load.factors, lam)])) * load.vector
+    for term, a in zip(problem.operator, alpha):
+        A.axpy(float(a), term.matrix, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
+    rhs = problem.loads @ _means(axes, problem.load_factors, lam)
+    if KU.shape[1]:
+        rhs -= KU @ _crossed(axes, F, lam, old).ravel()
     solver = factorised(A)
     u, b = cast(tuple[PETSc.Vec, PETSc.Vec], A.createVecs())  # (right, left)
     b.array[:] = rhs
@@ -175,27 +198,17 @@ def _axis(
     j: int,
     lam: list[np.ndarray],
     old: list[np.ndarray],
-    uKu: list[float],
-    uKU: list[np.ndarray],
-    uf: list[float],
+    uKu: np.ndarray,
+    uKU: np.ndarray,
+    uf: np.ndarray,
 ) -> np.ndarray:
     """Axis j's step: the Galerkin equations of λʲ's splines, ū and the other axes fixed."""
-    axes = problem.axes
+    axes, F, G = problem.axes, problem.operator_factors, problem.load_factors
     B, w = axes[j].basis, axes[j].weights
-    others = [i for i in range(len(axes)) if i != j]
-    M = np.zeros((axes[j].size, axes[j].size))
-    r = np.zeros(axes[j].size)
-    for term, s, sU in zip(problem.operator, uKu, uKU):
-        a = s * np.prod([axes[i].weights @ (term.factors[i] * lam[i] ** 2) for i in others])
-        M += a * B.T @ ((w * term.factors[j])[:, None] * B)
-        if len(sU):
-            c = sU * np.prod(
-                [(old[i] * (axes[i].weights * term.factors[i] * lam[i])).sum(axis=1) for i in others], axis=0
-            )
-            r -= B.T @ (w * term.factors[j] * (c @ old[j]))
-    for load, f in zip(problem.load, uf):
-        b = f * np.prod([axes[i].weights @ (load.factors[i] * lam[i]) for i in others])
-        r += b * B.T @ (w * load.factors[j])
+    a = uKu * _means(axes, F, [l * l for l in lam], skip=j)
+    M = B.T @ ((w * (a @ F[j]))[:, None] * B)
+    c = uKU * _crossed(axes, F, lam, old, skip=j)  # terms × old terms
+    r = B.T @ (w * ((uf * _means(axes, G, lam, skip=j)) @ G[j] - np.sum(F[j] * (c @ old[j]), axis=0)))
     return np.linalg.solve(M, r)
 
 
@@ -223,13 +236,11 @@ def _update_space(problem: Terms, found: Modes) -> np.ndarray:
     """Every term's space coefficients R at once, the splines fixed:
     Σ_T Σₗ P_T[k, l] (Qᵀ K_T Q) Rₗ = Σ_S p_S[k] Qᵀ f_S for each term k (m × n)."""
     lam, m, n = found.values(), found.Q.shape[1], found.count
-    M = np.zeros((n * m, n * m))
+    M = _kron_sum([_products(found, term.factors, lam) for term in problem.operator], found.reduced_operators())
     rhs = np.zeros(n * m)
-    for term, A in zip(problem.operator, found.reduced_operators()):
-        M += np.kron(_products(found, term.factors, lam), A)
     for load, F in zip(problem.load, _reduced_loads(problem, found)):
         rhs += np.kron(_loads(found, load.factors, lam), F)
-    return solve_small(M, rhs).reshape(n, m).T
+    return solve_small(M, rhs, problem.symmetric).reshape(n, m).T
 
 
 def _update_axis(problem: Terms, found: Modes, j: int) -> np.ndarray:
@@ -237,15 +248,27 @@ def _update_axis(problem: Terms, found: Modes, j: int) -> np.ndarray:
     Σ_T Σₗ (Rₖᵀ Qᵀ K_T Q Rₗ) Π_{i≠j} ⟨κ_Tⁱ λₖⁱ, λₗⁱ⟩ M_Tʲ xₗ = Σ_S (Rₖᵀ Qᵀ f_S) Π_{i≠j} ⟨φ_Sⁱ, λₖⁱ⟩ m_Sʲ."""
     axis, lam, R = found.axes[j], found.values(), found.R
     B, w = axis.basis, axis.weights
-    M = np.zeros((found.count * axis.size,) * 2)
+    M = _kron_sum(
+        [
+            (R.T @ A @ R) * _products(found, t.factors, lam, skip=j)
+            for t, A in zip(problem.operator, found.reduced_operators())
+        ],
+        [B.T @ ((w * t.factors[j])[:, None] * B) for t in problem.operator],
+    )
     rhs = np.zeros(found.count * axis.size)
-    for term, A in zip(problem.operator, found.reduced_operators()):
-        G = (R.T @ A @ R) * _products(found, term.factors, lam, skip=j)
-        M += np.kron(G, B.T @ ((w * term.factors[j])[:, None] * B))
     for load, F in zip(problem.load, _reduced_loads(problem, found)):
         g = (R.T @ F) * _loads(found, load.factors, lam, skip=j)
         rhs += np.kron(g, B.T @ (w * load.factors[j]))
-    return solve_small(M, rhs).reshape(found.count, axis.size)
+    return solve_small(M, rhs, problem.symmetric).reshape(found.count, axis.size)
+
+
+def _kron_sum(left: Sequence[np.ndarray], right: Sequence[np.ndarray]) -> np.ndarray:
+    """Σ_T left_T ⊗ right_T (:func:`numpy.kron`'s layout) as one matrix product over the terms T:
+    a sum of Kronecker products costs a term's worth of memory traffic each, this one BLAS call."""
+    L, Rt = np.asarray(left), np.asarray(right)
+    (count, n, _), m = L.shape, Rt.shape[1]
+    M = L.reshape(count, n * n).T @ Rt.reshape(count, m * m)  # [k l, a b]
+    return M.reshape(n, n, m, m).transpose(0, 2, 1, 3).reshape(n * m, n * m)
 
 
 def change(axes: Sequence[Axis], comm: MPI.Comm, before: tuple, now: tuple) -> float:

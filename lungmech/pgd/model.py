@@ -38,6 +38,7 @@ from lungmech.fem.solver import Stepping, StepReport
 from lungmech.fem.start import StartReport
 from lungmech.parallel.linalg import apply, gram
 from lungmech.parallel.owned import owned_size
+from lungmech.pgd import chebyshev
 from lungmech.pgd import terms as separated
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
@@ -56,13 +57,16 @@ ENERGY_CHECK = 1e-9  # the quadratic form's strain energy against the model's ow
 @dataclass(frozen=True)
 class Online:
     """The outputs of u = Q z as functions of z: ``volume`` (m³), ``probes`` (m: a row per
-    point and component, × m), ``energy`` (J: A₀ then each entry's Aₑ, (1 + entries) × m × m) for
-    the values ``entries`` (indices into :func:`lungmech.pgd.terms.values`)."""
+    point and component, × m), ``energy`` (J: for each degree k of the curve's series, A₀ₖ then
+    each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices into
+    :func:`lungmech.pgd.terms.values`), ``curve`` the axis of the series
+    (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree)."""
 
     volume: Cubic
     probes: np.ndarray
     energy: np.ndarray
     entries: np.ndarray
+    curve: int = -1
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Its arrays by name, for a model file."""
@@ -71,17 +75,30 @@ class Online:
             "probes": self.probes,
             "energy": self.energy,
             "entries": self.entries,
+            "curve": np.array([self.curve]),
         }
 
     @classmethod
     def of(cls, arrays: Mapping[str, np.ndarray]) -> Online:
-        """The :class:`Online` of its :meth:`arrays`."""
+        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree)."""
         volume = Cubic.of(tuple(arrays[f"volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
-        return cls(volume, arrays["probes"], arrays["energy"], arrays["entries"].astype(int))
+        energy = arrays["energy"]
+        curve = int(arrays["curve"][0]) if "curve" in arrays else -1
+        return cls(
+            volume, arrays["probes"], energy if energy.ndim == 4 else energy[None], arrays["entries"].astype(int), curve
+        )
 
-    def operator(self, c: np.ndarray) -> np.ndarray:
-        """A(c) = A₀ + Σₑ cₑ Aₑ (m × m), ``c`` the values of :attr:`entries`."""
-        return self.energy[0] + np.tensordot(c, self.energy[1:], axes=1)
+    def weights(self, units: np.ndarray, derivative: int = 0) -> np.ndarray:
+        """Tₖ (or its ``derivative`` in the unit coordinate) of the curve's axis at the point of
+        unit coordinates ``units``, one per degree."""
+        if self.curve < 0:
+            return np.full(1, 0.0 if derivative else 1.0)
+        return chebyshev.polynomials(float(units[self.curve]), len(self.energy), derivative)[0]
+
+    def operator(self, c: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """A(c) = Σₖ wₖ (A₀ₖ + Σₑ cₑ Aₑₖ) (m × m), ``c`` the values of :attr:`entries`, ``weights``
+        wₖ from :meth:`weights`."""
+        return np.tensordot(weights, self.energy[:, 0] + np.tensordot(c, self.energy[:, 1:], axes=(0, 1)), axes=1)
 
 
 def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
@@ -126,13 +143,16 @@ def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, pro
     else:
         probes = np.zeros((0, m))
     if problem is None:
-        return Online(volume, probes, np.zeros((0, m, m)), np.zeros(0, dtype=int))
-    fixed = [t for t in problem.operator if t.entry is None]
-    by_entry = {t.entry: t.matrix for t in problem.operator if t.entry is not None}
-    entries = np.array(sorted(by_entry), dtype=int)
-    matrices = [fixed[0].matrix, *(by_entry[e] for e in entries)]
-    energy = np.array([gram(modes, apply(K, modes, comm), comm) for K in matrices])
-    found = Online(volume, probes, energy, entries)
+        return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int))
+    degrees = 1 if problem.curve is None else problem.curve.degrees
+    matrices = {(t.degree, t.entry): t.matrix for t in problem.operator}  # a term dropped as 0: a zero block
+    entries = np.array(sorted({t.entry for t in problem.operator if t.entry is not None}), dtype=int)
+    energy = np.zeros((degrees, 1 + len(entries), m, m))
+    for k in range(degrees):
+        for i, e in enumerate([None, *entries]):
+            if (k, e) in matrices:
+                energy[k, i] = gram(modes, apply(matrices[k, e], modes, comm), comm)
+    found = Online(volume, probes, energy, entries, -1 if problem.curve is None else problem.curve.axis)
     _check_energy(model, found, modes)
     return found
 
@@ -145,12 +165,14 @@ def _check_energy(model: Model, found: Online, modes: np.ndarray) -> None:
     z = model.geometry.mesh.comm.bcast(z)
     try:
         with model.kept_state():
-            model.set_parameters(model.parameters.sample(1, seed=17)[0])
+            point = model.parameters.sample(1, seed=17)[0]
+            model.set_parameters(point)
             model.reset()
             model.state.x.array[: modes.shape[0]] += modes @ z
             model.state.x.scatter_forward()
             exact = strain_energy(model)()
-            reduced = 0.5 * z @ found.operator(separated.values(model)[found.entries]) @ z
+            units = np.array([p.to_unit(point[p.name]) for p in model.parameters])
+            reduced = 0.5 * z @ found.operator(separated.values(model)[found.entries], found.weights(units)) @ z
     finally:
         model.set_parameters(values)
     if not abs(reduced - exact) <= ENERGY_CHECK * max(abs(exact), np.finfo(float).tiny):
@@ -350,7 +372,9 @@ class _Point:
         self.reduced, self.q = d.reduced, d.products(values)
         self.timeline, self.energy, self.values = owner.timeline, owner.energy, values
         self.fraction = lambda t: owner.ramp(t) / owner.ramp(owner.stepping.end)
-        self.operator = self.online.operator(c) if self.energy is None else None
+        units = d.units(values) if self.energy is None else np.zeros(0)
+        weights = self.online.weights(units) if self.energy is None else np.ones(1)
+        self.operator = self.online.operator(c, weights) if self.energy is None else None
         self.loads = loads
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
@@ -358,7 +382,13 @@ class _Point:
             self.slopes = d.product_derivatives(values)
             n = self.slopes.shape[1]
             dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
-            self.operator_slopes = np.einsum("ei,emn->imn", dc[self.online.entries], self.online.energy[1:])
+            energy = self.online.energy
+            self.operator_slopes = np.einsum("k,ei,kemn->imn", weights, dc[self.online.entries], energy[:, 1:])
+            if self.online.curve >= 0:  # the series' own slope, dTₖ/dσ dσ/dμ
+                j = self.online.curve
+                parameter = d.axes[j].parameter
+                dw = self.online.weights(units, 1) / parameter.unit_derivative(values[parameter.name])
+                self.operator_slopes[j] += self.online.operator(c, dw)
 
     def state(self, t: float, factor: float = 1.0) -> np.ndarray:
         """z = s R (q ∘ τ(t))."""
@@ -458,6 +488,13 @@ def build(
         "rounds": [asdict(r) for r in rounds],
         "operator_terms": len(problem.operator),
         "load_terms": len(problem.load),
+        "curve": None
+        if problem.curve is None
+        else {
+            "parameter": axes[problem.curve.axis].parameter.name,
+            "points": problem.curve.points,
+            "degrees": problem.curve.degrees,
+        },
         "seconds": seconds,
     }
     return PGDModel(model, decomposition, outputs, stepping, probe_points, built), rounds

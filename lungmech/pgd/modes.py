@@ -16,6 +16,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
+import scipy.linalg
 
 from lungmech.parallel.linalg import apply, gram, norms
 from lungmech.pgd.axes import Axis
@@ -35,6 +36,7 @@ class Modes:
         self.R = np.zeros((0, 0))
         self.X = [np.zeros((0, axis.size)) for axis in self.axes]
         self.KQ = [np.zeros((owned, 0)) for _ in self.matrices]
+        self._reduced: list[np.ndarray] | None = None  # Qᵀ K_i Q, made when asked for, until Q grows
 
     @property
     def count(self) -> int:
@@ -50,7 +52,9 @@ class Modes:
 
     def reduced_operators(self) -> list[np.ndarray]:
         """Qᵀ K_i Q for each matrix."""
-        return [gram(self.Q, KQ, self.comm) for KQ in self.KQ]
+        if self._reduced is None:
+            self._reduced = [gram(self.Q, KQ, self.comm) for KQ in self.KQ]
+        return self._reduced
 
     def reduced(self, vectors: np.ndarray) -> np.ndarray:
         """Qᵀ V for owned ``vectors`` (owned entries × k)."""
@@ -66,6 +70,7 @@ class Modes:
             q = remainder - self.Q @ gram(self.Q, apply(W, remainder[:, None], self.comm), self.comm)[:, 0]
             q /= float(norms(q[:, None], W, self.comm)[0])  # twice is enough
             self.Q = np.column_stack([self.Q, q])
+            self._reduced = None
             self.KQ = [np.column_stack([KQ, apply(K, q[:, None], self.comm)]) for KQ, K in zip(self.KQ, self.matrices)]
             r = np.append(r, float(gram(q[:, None], apply(W, u[:, None], self.comm), self.comm)[0, 0]))
             self.R = np.vstack([self.R, np.zeros((1, self.count))])
@@ -80,8 +85,15 @@ def rms(axis: Axis, x: np.ndarray) -> float:
     return float(np.sqrt(axis.weights @ values**2))
 
 
-def solve_small(M: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """M x = rhs; in the least-squares sense where terms share a space part and M is singular."""
+def solve_small(M: np.ndarray, rhs: np.ndarray, symmetric: bool = False) -> np.ndarray:
+    """M x = rhs: by Cholesky where M is ``symmetric`` (a symmetric problem's Galerkin matrix:
+    half LU's work) and positive definite, else LU; in the least-squares sense where terms
+    share a space part and M is singular."""
+    if symmetric:
+        try:
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(M, check_finite=False), rhs, check_finite=False)
+        except np.linalg.LinAlgError:
+            pass  # not definite: LU
     try:
         return np.linalg.solve(M, rhs)
     except np.linalg.LinAlgError:

@@ -124,7 +124,7 @@ def _fitted(
 def _check_shapes(d: Decomposition, online: Online) -> None:
     """The arrays agree in their sizes (m modes, n terms, each axis's splines), else ValueError."""
     m, n = d.modes.shape[1], d.reduced.shape[1]
-    if d.reduced.shape[0] != m or online.energy.shape[1:] != (m, m) or online.probes.shape[1:] != (m,):
+    if d.reduced.shape[0] != m or online.energy.shape[2:] != (m, m) or online.probes.shape[1:] != (m,):
         raise ValueError(f"{m} modes, R {d.reduced.shape}, energy {online.energy.shape}, probes {online.probes.shape}")
     for axis, X in zip(d.axes, d.coefficients):
         if X.shape != (n, axis.size):

@@ -19,12 +19,21 @@ each factor known at its axis's nodes (:mod:`lungmech.pgd.axes`), which is all t
 integrals over the box need. Affinity is checked, not assumed: at a random point of the box
 and a random state the assembled residual must equal the terms' to 1e-9 of its size.
 Imposed displacements must be zero (the modes vanish there); K₀ carries 1 on their diagonal.
+
+A value the residual is not affine in — the position s of a stiffness jump, inside a tanh —
+moved by one parameter μⱼ (its **curve**) is taken as it is: every operator above is assembled
+at Chebyshev–Lobatto points of μⱼ's axis and written as a Chebyshev series in it
+(:mod:`lungmech.pgd.chebyshev`, :mod:`lungmech.pgd.assembly`), so each term gains a factor Tₖ
+on axis j:
+
+    K(c; μⱼ) = Σₖ Tₖ(σⱼ) (K₀ₖ + Σ_e c_e K_eₖ),   σⱼ the unit coordinate of μⱼ.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+import functools
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 from mpi4py import MPI
@@ -32,19 +41,27 @@ from petsc4py import PETSc
 
 import numpy as np
 from dolfinx import fem
-from dolfinx.fem.petsc import assemble_matrix
 
-from lungmech import jit
 from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
-from lungmech.fem.quantities import assemble_owned
 from lungmech.parallel.linalg import apply
-from lungmech.parallel.owned import owned_size
+from lungmech.pgd import chebyshev
+from lungmech.pgd.assembly import AFFINE, Assembler, check_affine, series
 from lungmech.pgd.axes import Axis
 
-__all__ = ["LoadTerm", "Term", "Terms", "constants", "kept", "separated_terms", "set_values", "values", "values_at"]
+__all__ = [
+    "Curve",
+    "LoadTerm",
+    "Term",
+    "Terms",
+    "constants",
+    "kept",
+    "separated_terms",
+    "set_values",
+    "values",
+    "values_at",
+]
 
-AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the terms'
 RANK = 1e-13  # singular values of a two-parameter value below this fraction of the largest are round-off
 
 
@@ -52,11 +69,25 @@ RANK = 1e-13  # singular values of a two-parameter value below this fraction of 
 class Term:
     """One separated operator term: ``factors[j]`` its function of axis j at that axis's
     nodes, ``matrix`` its K_T, ``entry`` the value c_e it comes from (the index into
-    :func:`values`; None for K₀, the fixed values'). Terms of one entry share its matrix."""
+    :func:`values`; None for K₀, the fixed values'), ``degree`` k of its Chebyshev factor Tₖ on
+    the curve's axis (0 without a curve). Terms of one entry and degree share its matrix."""
 
     factors: tuple[np.ndarray, ...]
     matrix: PETSc.Mat
     entry: int | None = None
+    degree: int = 0
+
+
+@dataclass(frozen=True)
+class Curve:
+    """The values ``entries`` (indices into :func:`values`) the residual is not affine in, all
+    moved by axis ``axis``: the terms carry Tₖ(σ) on it, k < ``degrees``, from ``points``
+    assemblies (module docstring)."""
+
+    axis: int
+    entries: tuple[int, ...]
+    degrees: int
+    points: int
 
 
 @dataclass(frozen=True)
@@ -71,13 +102,36 @@ class LoadTerm:
 @dataclass
 class Terms:
     """R(u; μ) = Σ_T κ_T(μ) K_T u − Σ_S φ_S(μ) f_S over ``axes``: ``operator`` the K_T terms,
-    ``load`` the f_S terms; ``free`` the owned entries not imposed (the modes live there)."""
+    ``load`` the f_S terms; ``free`` the owned entries not imposed (the modes live there);
+    ``curve`` the values the terms interpolate (None: the residual is affine in every value)."""
 
     axes: tuple[Axis, ...]
     operator: list[Term]
     load: list[LoadTerm]
     free: np.ndarray
     comm: MPI.Comm
+    curve: Curve | None = None
+
+    @functools.cached_property
+    def symmetric(self) -> bool:
+        """Whether every K_T is symmetric, to round-off of the largest: the Galerkin problems are then too."""
+        largest = max(_frobenius(t.matrix) for t in self.operator)
+        return all(_asymmetry(t.matrix) <= 1e-12 * largest for t in self.operator)
+
+    @functools.cached_property
+    def operator_factors(self) -> list[np.ndarray]:
+        """Each axis's operator factors side by side: terms × its nodes."""
+        return [np.array([t.factors[j] for t in self.operator]) for j in range(len(self.axes))]
+
+    @functools.cached_property
+    def load_factors(self) -> list[np.ndarray]:
+        """Each axis's load factors side by side: load terms × its nodes."""
+        return [np.array([t.factors[j] for t in self.load]) for j in range(len(self.axes))]
+
+    @functools.cached_property
+    def loads(self) -> np.ndarray:
+        """The f_S side by side: owned entries × load terms."""
+        return np.column_stack([t.vector for t in self.load])
 
     def residual(self, u: np.ndarray, mu_nodes: Sequence[int]) -> np.ndarray:
         """R(u) at the box point whose j-th coordinate is axis j's node ``mu_nodes[j]`` (owned
@@ -115,10 +169,13 @@ def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
     with kept(model, held):
         default = values_at(model, held, model.parameter_values)
         _no_field_moves(model, axes)
-        entries = _factors(model, held, axes, default)
-        _check_separated(model, held, axes, default, entries)
+        along, moved = _sweeps(model, held, axes)
+        curve = _curved(model, held, axes, default, along, moved)
+        curved = () if curve is None else curve[1]
+        entries = _factors(axes, along, moved, curved, _grids(model, held, axes))
+        _check_separated(model, held, axes, default, entries, curved)
         varying = sorted({e for e, _ in entries})
-        return _assembled(model, held, default, varying, entries, axes)
+        return _assembled(model, held, default, varying, entries, axes, curve)
 
 
 def constants(model: Model) -> list[fem.Constant]:
@@ -178,14 +235,14 @@ def _no_field_moves(model: Model, axes: Sequence[Axis]) -> None:
         model.set_parameters({axis.parameter.name: model.parameters.defaults[axis.parameter.name]})
 
 
-def _factors(
-    model: Model, constants: list[fem.Constant], axes: Sequence[Axis], default: np.ndarray
-) -> list[tuple[int, tuple[np.ndarray, ...]]]:
-    """(entry, its factors on every axis) for each varying entry's separated part: one part for
-    an entry moved by one parameter, one per singular value for two."""
+def _sweeps(
+    model: Model, constants: list[fem.Constant], axes: Sequence[Axis]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Every value at each axis's nodes, the other parameters at their defaults (nodes × values,
+    one array an axis), and which values each axis moves: through the defaults or two random
+    points."""
     defaults = model.parameters.defaults
-    along = []  # the entries' values at each axis's nodes, the others at their defaults
-    moved = []  # whether each entry moves along each axis, through the defaults or two random points
+    along, moved = [], []
     for axis in axes:
         name = axis.parameter.name
         bases = [defaults, *model.parameters.sample(2, seed=3)]
@@ -194,10 +251,66 @@ def _factors(
         ]
         along.append(sweeps[0])
         moved.append(np.any([_varies(sweep) for sweep in sweeps], axis=0))
-    ones = [np.ones(len(axis.nodes)) for axis in axes]
-    grids: dict[tuple[int, int], np.ndarray] = {}  # every value on two axes' node grid, made once a pair
-    parts = []
+    return along, moved
+
+
+def _curved(
+    model: Model,
+    constants: list[fem.Constant],
+    axes: Sequence[Axis],
+    default: np.ndarray,
+    along: list[np.ndarray],
+    moved: list[np.ndarray],
+) -> tuple[int, tuple[int, ...]] | None:
+    """(the axis, the values) of the values the residual is not affine in, each alone, at a
+    random state and point: R at 0.3 of a value's range against 0.7 R(low) + 0.3 R(high). Refused in
+    one line where two parameters, or one value's two, move such values."""
+    assembler = Assembler(model, constants, set_values)
+    u = assembler.random_state(seed=17)
+    generic = values_at(model, constants, model.parameters.sample(1, seed=13)[0])  # (at the defaults a jump may be 0)
+    curved: dict[int, list[int]] = {}
     for e in range(len(default)):
+        by = [j for j in range(len(axes)) if moved[j][e]]
+        if not by:
+            continue
+        low, high = float(along[by[0]][:, e].min()), float(along[by[0]][:, e].max())
+
+        a, b, t = (
+            assembler.residual(np.where(np.arange(len(default)) == e, value, generic), u)
+            for value in (low, high, low + 0.3 * (high - low))
+        )
+        size = max(assembler.norm(a), assembler.norm(b))
+        if assembler.norm(t - (0.7 * a + 0.3 * b)) <= AFFINE * size:
+            continue
+        if len(by) > 1:
+            names = ", ".join(axes[j].parameter.name for j in by)
+            raise ParameterError(
+                f"PGD: the residual is not affine in a value that {names} move together; one parameter's is separated"
+            )
+        curved.setdefault(by[0], []).append(e)
+    if len(curved) > 1:
+        names = ", ".join(axes[j].parameter.name for j in curved)
+        raise ParameterError(
+            f"PGD: the residual is not affine in values of several parameters ({names}); one parameter's is separated"
+        )
+    return next(((j, tuple(entries)) for j, entries in curved.items()), None)
+
+
+def _factors(
+    axes: Sequence[Axis],
+    along: list[np.ndarray],
+    moved: list[np.ndarray],
+    curved: Sequence[int],
+    two: Callable[[int, int], np.ndarray],
+) -> list[tuple[int, tuple[np.ndarray, ...]]]:
+    """(entry, its factors on every axis) for each varying value's separated part, the
+    ``curved`` ones aside: one part for a value moved by one parameter, one per singular value
+    of its values on the two axes' node grid (``two(j, k)``: nodes × nodes × values) for two."""
+    ones = [np.ones(len(axis.nodes)) for axis in axes]
+    parts = []
+    for e in range(len(moved[0]) if moved else 0):
+        if e in curved:
+            continue
         by = [j for j in range(len(axes)) if moved[j][e]]
         if len(by) > 2:
             names = ", ".join(axes[j].parameter.name for j in by)
@@ -209,23 +322,30 @@ def _factors(
             parts.append((e, tuple(along[j][:, e] if i == j else ones[i] for i in range(len(axes)))))
         elif len(by) == 2:
             j, k = by
-            if (j, k) not in grids:
-                pair = axes[j].parameter.name, axes[k].parameter.name
-                grids[j, k] = np.array(
-                    [
-                        [
-                            values_at(model, constants, defaults | dict(zip(pair, (float(a), float(b)))))
-                            for b in axes[k].values
-                        ]
-                        for a in axes[j].values
-                    ]
-                )
-            left, sigma, right = np.linalg.svd(grids[j, k][:, :, e], full_matrices=False)
+            left, sigma, right = np.linalg.svd(two(j, k)[:, :, e], full_matrices=False)
             for r in np.flatnonzero(sigma > RANK * sigma[0]):
                 factors = list(ones)
                 factors[j], factors[k] = sigma[r] * left[:, r], right[r]
                 parts.append((e, tuple(factors)))
     return parts
+
+
+def _grids(model: Model, constants: list[fem.Constant], axes: Sequence[Axis]) -> Callable[[int, int], np.ndarray]:
+    """``two(j, k)``: every value on axes j and k's node grid, the others at their defaults
+    (made once a pair)."""
+    defaults = model.parameters.defaults
+
+    @functools.cache
+    def two(j: int, k: int) -> np.ndarray:
+        pair = axes[j].parameter.name, axes[k].parameter.name
+        return np.array(
+            [
+                [values_at(model, constants, defaults | dict(zip(pair, (float(a), float(b))))) for b in axes[k].values]
+                for a in axes[j].values
+            ]
+        )
+
+    return two
 
 
 def _varies(sweep: np.ndarray) -> np.ndarray:
@@ -234,9 +354,15 @@ def _varies(sweep: np.ndarray) -> np.ndarray:
 
 
 def _check_separated(
-    model: Model, constants: list[fem.Constant], axes: Sequence[Axis], default: np.ndarray, parts: list
+    model: Model,
+    constants: list[fem.Constant],
+    axes: Sequence[Axis],
+    default: np.ndarray,
+    parts: list,
+    curved: Sequence[int],
 ) -> None:
-    """The separated values against the model's own at random points of the axes' node grid."""
+    """The separated values against the model's own at random points of the axes' node grid
+    (the curved ones are the assemblies', not separated)."""
     rng = np.random.default_rng(5)
     varying = {e for e, _ in parts}
     for _ in range(4):
@@ -244,6 +370,7 @@ def _check_separated(
         values = values_at(model, constants, {a.parameter.name: float(a.values[i]) for a, i in zip(axes, index)})
         expected = default.copy()
         expected[list(varying)] = 0.0
+        expected[list(curved)] = values[list(curved)]
         for e, factors in parts:
             expected[e] += np.prod([f[i] for f, i in zip(factors, index)])
         if np.abs(values - expected).max() > 1e-10 * max(np.abs(values).max(), 1e-300):
@@ -257,92 +384,74 @@ def _assembled(
     varying: list[int],
     parts: list[tuple[int, tuple[np.ndarray, ...]]],
     axes: Sequence[Axis],
+    curve: tuple[int, tuple[int, ...]] | None,
 ) -> Terms:
-    """K₀, f₀ (the fixed entries at their values, the varying at 0) and each part's K_e, f_e."""
-    jacobian, residual = jit.form(model.jacobian), jit.form(model.residual)
-    owned = owned_size(model.space)
-    work = fem.Function(model.space).x
-    imposed = model.constrained_dofs()
-    free = np.setdiff1d(np.arange(owned), imposed)
-    model.state.x.array[:] = 0.0
-    model.state.x.scatter_forward()
-
-    def at(values: np.ndarray, diagonal: float) -> tuple[PETSc.Mat, np.ndarray]:
-        set_values(constants, values)
-        K = assemble_matrix(jacobian, bcs=model.bcs, diag=diagonal)
-        K.assemble()
-        f = -assemble_owned(residual, work, owned)
-        f[imposed] = 0.0
-        return K, f
-
+    """K₀, f₀ (the fixed values at theirs, the varying at 0) and each part's K_e, f_e — along
+    the curve, their Chebyshev series, each coefficient k a term with Tₖ on the curve's axis —
+    checked against the model's own residual."""
+    assembler = Assembler(model, constants, set_values)
     base = default.copy()
     base[varying] = 0.0
-    K0, f0 = at(base, 1.0)
-    bare, _ = at(base, 0.0)
+    point = model.parameters.sample(1, seed=7)[0]
+    if curve is None:
+        found, points, weights = [assembler.operators(base, varying)], 1, np.ones(1)
+    else:
+        j, curved = curve
+        parameter = axes[j].parameter
+        defaults = model.parameters.defaults
+
+        def base_at(sigma: float) -> np.ndarray:
+            at = base.copy()
+            at[list(curved)] = values_at(model, constants, defaults | {parameter.name: parameter.from_unit(sigma)})[
+                list(curved)
+            ]
+            return at
+
+        found, points = series(assembler, base_at, varying, parameter.name)
+        weights = chebyshev.polynomials(parameter.to_unit(point[parameter.name]), len(found))[0]
+    check_affine(assembler, values_at(model, constants, point), weights, found)
+
+    def along(factors: tuple[np.ndarray, ...], k: int) -> tuple[np.ndarray, ...]:
+        """A part's factors with Tₖ on the curve's axis."""
+        if curve is None:
+            return factors
+        t = chebyshev.polynomials(axes[curve[0]].nodes, k + 1)[:, k]
+        return tuple(f * t if i == curve[0] else f for i, f in enumerate(factors))
+
     ones = tuple(np.ones(len(axis.nodes)) for axis in axes)
-    operator, load = [Term(ones, K0)], [LoadTerm(ones, f0)]
-    unit: dict[int, tuple[PETSc.Mat, np.ndarray]] = {}
-    for e in varying:
-        values = base.copy()
-        values[e] = 1.0
-        K, f = at(values, 0.0)
-        K.axpy(-1.0, bare)
-        unit[e] = (K, f - f0)
-    bare.destroy()
-    _check_affine(model, constants, free, K0, f0, unit)
-    largest = max([_frobenius(K0), *(_frobenius(K) for K, _ in unit.values())])
-    loudest = max([_norm(f0, model), *(_norm(f, model) for _, f in unit.values())])
-    used = set()
-    for e, factors in parts:
-        K, f = unit[e]
-        if _frobenius(K) > 1e-13 * largest:
-            operator.append(Term(factors, K, e))
-            used.add(e)
-        if _norm(f, model) > 1e-13 * loudest:
-            load.append(LoadTerm(factors, f))
-    for e, (K, _) in unit.items():
-        if e not in used:
-            K.destroy()
-    return Terms(tuple(axes), operator, load, free, model.geometry.mesh.comm)
+    largest = max(_frobenius(K) for ops in found for K in (ops.K0, *(K for K, _ in ops.unit.values())))
+    loudest = max(assembler.norm(f) for ops in found for f in (ops.f0, *(f for _, f in ops.unit.values())))
+    operator, load, used = [], [], set()
+    for k, ops in enumerate(found):
+        if k == 0 or _frobenius(ops.K0) > 1e-13 * largest:  # K₀₀ always: it holds the imposed rows' 1
+            operator.append(Term(along(ones, k), ops.K0, None, k))
+            used.add(id(ops.K0))
+        if k == 0 or assembler.norm(ops.f0) > 1e-13 * loudest:
+            load.append(LoadTerm(along(ones, k), ops.f0))
+        for e, factors in parts:
+            K, f = ops.unit[e]
+            if _frobenius(K) > 1e-13 * largest:
+                operator.append(Term(along(factors, k), K, e, k))
+                used.add(id(K))
+            if assembler.norm(f) > 1e-13 * loudest:
+                load.append(LoadTerm(along(factors, k), f))
+    for ops in found:
+        for K in (ops.K0, *(K for K, _ in ops.unit.values())):
+            if id(K) not in used:
+                K.destroy()
+    axis = None if curve is None else Curve(curve[0], curve[1], len(found), points)
+    return Terms(tuple(axes), operator, load, assembler.free, model.geometry.mesh.comm, axis)
+
+
+def _asymmetry(matrix: PETSc.Mat) -> float:
+    """‖K − Kᵀ‖ (Frobenius; PETSc's isSymmetric with a tolerance misses a difference of
+    assemblies' round-off)."""
+    difference = matrix.copy()
+    difference.axpy(-1.0, matrix.transpose(PETSc.Mat()))
+    found = _frobenius(difference)
+    difference.destroy()
+    return found
 
 
 def _frobenius(matrix: PETSc.Mat) -> float:
     return float(matrix.norm(PETSc.NormType.FROBENIUS))  # type: ignore[arg-type]  # petsc4py's stub: a tuple for NORM_1_AND_2 only
-
-
-def _norm(vector: np.ndarray, model: Model) -> float:
-    return float(np.sqrt(model.geometry.mesh.comm.allreduce(float(vector @ vector), op=MPI.SUM)))
-
-
-def _check_affine(
-    model: Model,
-    constants: list[fem.Constant],
-    free: np.ndarray,
-    K0: PETSc.Mat,
-    f0: np.ndarray,
-    unit: dict[int, tuple[PETSc.Mat, np.ndarray]],
-) -> None:
-    """The residual the model assembles at a random point and state against the affine formula
-    (K₀ + Σ c_e K_e) u − (f₀ + Σ c_e f_e) of the unit assemblies, on the free rows (u is 0 on
-    the imposed ones): a nonlinear R(u), or one not affine in c, differs."""
-    comm = model.geometry.mesh.comm
-    values = values_at(model, constants, model.parameters.sample(1, seed=7)[0])
-    owned = owned_size(model.space)
-    rng = np.random.default_rng(11 + comm.rank)
-    u = np.zeros(owned)
-    u[free] = rng.standard_normal(len(free))
-    model.state.x.array[:owned] = u
-    model.state.x.scatter_forward()
-    found = assemble_owned(jit.form(model.residual), fem.Function(model.space).x, owned)[free]
-    expected = apply(K0, u[:, None], comm)[:, 0] - f0
-    for e, (K, f) in unit.items():
-        expected += values[e] * (apply(K, u[:, None], comm)[:, 0] - f)
-    expected = expected[free]
-    size = np.sqrt(comm.allreduce(float(expected @ expected), op=MPI.SUM))
-    mismatch = np.sqrt(comm.allreduce(float((found - expected) @ (found - expected)), op=MPI.SUM))
-    if not mismatch <= AFFINE * size:
-        how = f"mismatch {mismatch / size:.1e} of its size" if np.isfinite(mismatch) else "not a finite number"
-        raise ParameterError(
-            f"PGD: the residual is not affine in the state and the parameters' values ({how} at a random point): "
-            "this PGD separates linear models"
-        )

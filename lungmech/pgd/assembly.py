@@ -1,0 +1,190 @@
+"""The operators of a linear model's residual, from its own forms: at one point of its values,
+
+    R(u; c) = (K₀ + Σ_e c_e K_e) u − (f₀ + Σ_e c_e f_e),
+
+each K_e, f_e the difference of two assemblies (c_e = 1 and 0, the other varying values 0);
+and along a **curve** — a value the residual is not affine in, moved by one parameter — as the
+Chebyshev series of those operators in that parameter's unit coordinate σ
+(:mod:`lungmech.pgd.chebyshev`): assembled at the Chebyshev–Lobatto points, 9, 17, 33 or 65 of
+them, nested, until the series' last two coefficients fall below :data:`CURVE` of its largest
+(measured on the residual of a random state), and kept to the last coefficient above it.
+
+:func:`check_affine` holds the result to the model's own residual at a random point and state,
+so that a model outside these forms is refused, not approximated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import numpy as np
+from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix
+
+from lungmech import jit
+from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import assemble_owned
+from lungmech.parallel.linalg import apply
+from lungmech.parallel.owned import owned_size
+from lungmech.pgd import chebyshev
+
+__all__ = ["AFFINE", "CURVE", "Assembler", "Operators", "check_affine", "series"]
+
+AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the operators'
+CURVE = 1e-11  # a curve's series: its last two coefficients below this fraction of the largest, and kept above it
+POINTS = (9, 17, 33, 65)  # the Chebyshev-Lobatto points a curve is assembled at, nested, fewest first
+
+
+@dataclass
+class Operators:
+    """K₀, f₀ and ``unit[e]`` = (K_e, f_e) for each varying value e (module docstring): at one
+    point, or one coefficient of a curve's series."""
+
+    K0: PETSc.Mat
+    f0: np.ndarray
+    unit: dict[int, tuple[PETSc.Mat, np.ndarray]]
+
+    def residuals(self, u: np.ndarray, comm: MPI.Comm) -> np.ndarray:
+        """K₀ u − f₀, then each K_e u − f_e: (1 + values) × owned entries."""
+        pairs = [(self.K0, self.f0), *self.unit.values()]
+        return np.array([apply(K, u[:, None], comm)[:, 0] - f for K, f in pairs])
+
+    def destroy(self) -> None:
+        self.K0.destroy()
+        for K, _ in self.unit.values():
+            K.destroy()
+
+
+class Assembler:
+    """Assembles ``model``'s Jacobian and residual with its ``constants`` set to given values
+    (flattened, as :func:`lungmech.pgd.terms.values`); ``free`` the owned entries not imposed."""
+
+    def __init__(self, model: Model, constants: Sequence[fem.Constant], set_values: Callable) -> None:
+        self.model, self.constants, self._set = model, list(constants), set_values
+        self.comm = model.geometry.mesh.comm
+        self._jacobian, self._residual = jit.form(model.jacobian), jit.form(model.residual)
+        self.owned = owned_size(model.space)
+        self._work = fem.Function(model.space).x
+        self.imposed = model.constrained_dofs()
+        self.free = np.setdiff1d(np.arange(self.owned), self.imposed)
+
+    def random_state(self, seed: int) -> np.ndarray:
+        """A random u on the free entries (0 on the imposed), different on each rank."""
+        u = np.zeros(self.owned)
+        u[self.free] = np.random.default_rng(seed + self.comm.rank).standard_normal(len(self.free))
+        return u
+
+    def residual(self, values: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """R(u; c) on the free entries, the constants at ``values``."""
+        self._set(self.constants, values)
+        self.model.state.x.array[: self.owned] = u
+        self.model.state.x.scatter_forward()
+        return assemble_owned(self._residual, self._work, self.owned)[self.free]
+
+    def norm(self, vector: np.ndarray) -> float:
+        """The Euclidean norm of a distributed vector (owned entries)."""
+        return float(np.sqrt(self.comm.allreduce(float(vector @ vector), op=MPI.SUM)))
+
+    def operators(self, base: np.ndarray, varying: Sequence[int]) -> Operators:
+        """K₀, f₀ at ``base`` (the varying values 0 there) and each varying value's K_e, f_e."""
+        self.model.state.x.array[:] = 0.0
+        self.model.state.x.scatter_forward()
+        K0, f0 = self._at(base, 1.0)
+        bare, _ = self._at(base, 0.0)
+        unit = {}
+        for e in varying:
+            values = base.copy()
+            values[e] = 1.0
+            K, f = self._at(values, 0.0)
+            K.axpy(-1.0, bare)
+            unit[e] = (K, f - f0)
+        bare.destroy()
+        return Operators(K0, f0, unit)
+
+    def _at(self, values: np.ndarray, diagonal: float) -> tuple[PETSc.Mat, np.ndarray]:
+        self._set(self.constants, values)
+        K = assemble_matrix(self._jacobian, bcs=self.model.bcs, diag=diagonal)
+        K.assemble()
+        f = -assemble_owned(self._residual, self._work, self.owned)
+        f[self.imposed] = 0.0
+        return K, f
+
+
+def series(
+    assembler: Assembler, base_at: Callable[[float], np.ndarray], varying: Sequence[int], name: str
+) -> tuple[list[Operators], int]:
+    """The operators' Chebyshev coefficients along a curve (module docstring), ``base_at(σ)``
+    the values at the curve's unit coordinate σ (the varying ones 0), and the number of points
+    assembled. Refused in one line where 65 points do not resolve it (a jump narrower than
+    the parameter's range can follow); ``name`` the parameter's."""
+    u = assembler.random_state(seed=19)
+    at: dict[float, Operators] = {}
+    try:
+        for points in POINTS:
+            sigma = chebyshev.lobatto(points)
+            for s in sigma:
+                if float(s) not in at:
+                    at[float(s)] = assembler.operators(base_at(float(s)), varying)
+            samples = np.array([at[float(s)].residuals(u, assembler.comm) for s in sigma])  # P × groups × owned
+            sizes = np.sqrt(assembler.comm.allreduce(np.sum(chebyshev.coefficients(samples) ** 2, axis=2), op=MPI.SUM))
+            if max(chebyshev.tail(column) for column in sizes.T) <= CURVE:
+                return _combined([at[float(s)] for s in sigma], sizes), points
+        raise ParameterError(
+            f"PGD: the residual is not a smooth enough function of parameter {name!r} "
+            f"({POINTS[-1]} Chebyshev points leave {max(chebyshev.tail(c) for c in sizes.T):.1e} of it): "
+            "widen the jump it moves or narrow its range"
+        )
+    finally:
+        for operators in at.values():
+            operators.destroy()
+
+
+def _combined(samples: list[Operators], sizes: np.ndarray) -> list[Operators]:
+    """The coefficients Σₚ Cₖₚ (operators at point p) for every k up to the last whose size
+    (``sizes``: coefficients × groups) is above :data:`CURVE` of its group's largest."""
+    largest = sizes.max(axis=0)
+    kept = 1 + int(np.max(np.flatnonzero(np.any(sizes > CURVE * largest, axis=1)), initial=0))
+    C = chebyshev.coefficients(np.eye(len(samples)))[:kept]  # Cₖₚ
+
+    def mixed(matrices: list[PETSc.Mat], row: np.ndarray) -> PETSc.Mat:
+        A = matrices[0].copy()
+        A.scale(row[0])
+        for c, K in zip(row[1:], matrices[1:]):
+            A.axpy(c, K, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # one form's assemblies: one pattern; the stubs say int
+        return A
+
+    found = []
+    for row in C:
+        unit = {
+            e: (mixed([s.unit[e][0] for s in samples], row), sum(c * s.unit[e][1] for c, s in zip(row, samples)))
+            for e in samples[0].unit
+        }
+        f0 = sum(c * s.f0 for c, s in zip(row, samples))
+        found.append(Operators(mixed([s.K0 for s in samples], row), np.asarray(f0), unit))
+    return found
+
+
+def check_affine(assembler: Assembler, values: np.ndarray, weights: np.ndarray, found: list[Operators]) -> None:
+    """The residual the model assembles at the constants' ``values`` and a random state against
+    Σₖ wₖ [(K₀ₖ + Σ c_e K_eₖ) u − (f₀ₖ + Σ c_e f_eₖ)] (``weights`` wₖ: the curve's Tₖ at the
+    point, or one 1 without a curve), on the free rows: a nonlinear R(u), or one not affine in
+    the values, differs."""
+    u = assembler.random_state(seed=11)
+    found_residual = assembler.residual(values, u)
+    expected = np.zeros(assembler.owned)
+    for w, operators in zip(weights, found):
+        c = np.array([1.0, *(values[e] for e in operators.unit)])
+        expected += w * (c @ operators.residuals(u, assembler.comm))
+    expected = expected[assembler.free]
+    size, mismatch = assembler.norm(expected), assembler.norm(found_residual - expected)
+    if not mismatch <= AFFINE * size:
+        how = f"mismatch {mismatch / size:.1e} of its size" if np.isfinite(mismatch) else "not a finite number"
+        raise ParameterError(
+            f"PGD: the residual is not affine in the state and the parameters' values ({how} at a random point): "
+            "this PGD separates linear models"
+        )
