@@ -5,7 +5,7 @@ of the same scene.
     python benchmarks/pgd.py --ranks 2       # the same on two ranks (rows kept beside one rank's)
     python benchmarks/pgd.py --quick         # coarse meshes, few points, no hyper-reduced breath (the suite's case)
 
-Two linear cases, each a scene built here:
+Four cases, each a scene built here:
 
 * **anchor**: the configuration of NeuROM's NN-PGD (Daby-Seesaram, Škardová, Genet): a 10 × 10
   plate with three holes, clamped on its top and bottom edges, plane strain, ν = 0.3, under its
@@ -14,6 +14,11 @@ Two linear cases, each a scene built here:
   ≈ 58 s of training on a CPU.
 * **lung**: a linear elastic lung phantom clamped on its mediastinal face under its own weight,
   E over a factor 10 (log), the pitch over a full turn and the roll over ±90°.
+* **jump**: the seed's heterogeneous case: the linear lung phantom with E₁ below a plane and E₂
+  above it, joined over two cells by a tanh, E₁, E₂ each over a factor 10 (log), the plane's
+  position α (a value the residual is not affine in: the a priori PGD takes its operators'
+  Chebyshev series in α) and gravity's pitch (±45°) and roll (±30°); its PGD a priori and fitted
+  to 128 full solves.
 * **breath**: the nonlinear lung, which the a priori PGD does not separate: the lung phantom's
   poromechanics with the lung skeleton's law, a follower pleural pressure ramped from rest, α
   and c1 over log ranges and the breath's depth. Its PGD is fitted to full solves
@@ -176,19 +181,69 @@ target = "loads.pleural.amplitude"
 range = [0.6, 1.4]
 """
 
+JUMP = """
+title = "a lung phantom with a stiffness jump that moves, under its weight turned"
+[geometry]
+builder = "lung_phantom"
+mesh_size = {h}
+[material]
+law = "linear"
+E = 3e3
+nu = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "mediastinum"
+[[loads]]
+type = "gravity"
+name = "gravity"
+density = 300.0
+acceleration = [0.0, 0.0, -9.81]
+[stepping]
+end = 1.0
+initial_step = 1.0
+[parameters.E1]
+target = "material.E"
+range = [1e3, 1e4]
+scale = "log"
+[parameters.E2]
+target = "material.E"
+range = [1e3, 1e4]
+scale = "log"
+region = {{ normal = [0, 0, -1], position = "alpha", width = {w} }}
+[parameters.alpha]
+target = "interface"
+default = -0.12
+range = [-0.16, -0.08]
+[parameters.pitch]
+target = "loads.gravity.pitch"
+range = [-45.0, 45.0]
+[parameters.roll]
+target = "loads.gravity.roll"
+range = [-30.0, 30.0]
+[output]
+probes = [[0.06, 0.0, 0.2]]
+"""
+
 CASES = {  # scene, mesh size, --quick's
     "anchor": (ANCHOR, 0.12, 0.5),
     "lung": (LUNG, 0.012, 0.04),
+    "jump": (JUMP, 0.02, 0.04),
     "breath": (BREATH, 0.02, 0.04),
 }
-FITTED = {"breath": ((32, 64, 128), (16,))}  # the fitted PGD's sample sizes: full size, --quick
+A_PRIORI = {  # the a priori PGD's terms at most and splines' intervals (None: lungmech's default): full size, --quick
+    "anchor": ((10, None), (10, None)),
+    "lung": ((10, None), (10, None)),
+    "jump": ((50, 4), (8, 4)),
+}
+FITTED = {"jump": ((128,), ()), "breath": ((32, 64, 128), (16,))}  # the fitted PGD's sample sizes: full size, --quick
 
 
 def scene_of(folder: Path, name: str, quick: bool) -> scenes.Scene:
     text, h, coarse = CASES[name]
     path = folder / f"{name}.toml"
     if MPI.COMM_WORLD.rank == 0:
-        path.write_text(text.format(h=coarse if quick else h))
+        size = coarse if quick else h
+        path.write_text(text.format(h=size, w=2 * size))  # a jump's width: two cells
     MPI.COMM_WORLD.barrier()
     return scenes.load(path)
 
@@ -253,23 +308,23 @@ def measure(
     base = {"case": name, "dofs": dofs, "ranks": comm.size, "points": len(points)}
     rows = [base | {"model": "full", "offline [s]": 0.0, "online [ms]": full_ms, "full solves offline": 0}]
 
-    if name in FITTED:
-        for samples in FITTED[name][quick]:
-            say(f"{name}: the PGD fitted to {samples} full solves")
-            file = folder / f"{name}-pgd-{samples}.npz"
-            tic = time.perf_counter()  # its own cache: every solve is made and timed
-            summary = build_pgd(scene, file, modes=40, comm=comm, samples=samples, cache=folder / str(samples))
-            offline = time.perf_counter() - tic
-            pgd = reduce.load(file, comm, fields=True)
-            states, online = answers(pgd, points)
-            named = f"PGD fitted ({summary['terms']} terms, {summary['modes']} modes)"
-            rows.append(measured(base, named, offline, online, samples, errors(full.model, states, exact, W)))
-            for intervals, curve in pgd.built["held_out_by_intervals"].items():
-                curves[f"{name}, {samples} solves, intervals {intervals}, {comm.size} rank(s)"] = curve
-    else:
-        say(f"{name}: the PGD")
+    for samples in FITTED.get(name, ((), ()))[quick]:
+        say(f"{name}: the PGD fitted to {samples} full solves")
+        file = folder / f"{name}-pgd-{samples}.npz"
+        tic = time.perf_counter()  # its own cache: every solve is made and timed
+        summary = build_pgd(scene, file, modes=40, comm=comm, samples=samples, cache=folder / str(samples))
+        offline = time.perf_counter() - tic
+        pgd = reduce.load(file, comm, fields=True)
+        states, online = answers(pgd, points)
+        named = f"PGD fitted ({summary['terms']} terms, {summary['modes']} modes)"
+        rows.append(measured(base, named, offline, online, samples, errors(full.model, states, exact, W)))
+        for intervals, curve in pgd.built["held_out_by_intervals"].items():
+            curves[f"{name}, {samples} solves, intervals {intervals}, {comm.size} rank(s)"] = curve
+    if name in A_PRIORI:
+        modes, intervals = A_PRIORI[name][quick]
+        say(f"{name}: the PGD built a priori ({modes} terms at most)")
         tic = time.perf_counter()
-        summary = build_pgd(scene, folder / f"{name}-pgd.npz", modes=10, comm=comm)
+        summary = build_pgd(scene, folder / f"{name}-pgd.npz", modes=modes, intervals=intervals, comm=comm)
         offline = time.perf_counter() - tic
         pgd = reduce.load(folder / f"{name}-pgd.npz", comm, fields=True)
         states, online = answers(pgd, points)
@@ -279,7 +334,7 @@ def measure(
             summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"]
         )
 
-    if not (quick and name in FITTED):  # (a nonlinear hyper-reduction's build: 47 s even on --quick's mesh)
+    if not (quick and name not in A_PRIORI):  # (a nonlinear hyper-reduction's build: 47 s even on --quick's mesh)
         say(f"{name}: the hyper-reduced model (8 full solves)")
         tic = time.perf_counter()
         reduce.build(
@@ -316,7 +371,7 @@ def markdown(rows: list[dict], command: str) -> str:
         "(ℓ2 over every dof, NeuROM's measure) and relative energy norm (the energy product at the defaults). "
         "Online: median milliseconds of `solve(μ, times=[T])` (volume, strain energy, probes). Offline: the "
         "whole build, in seconds (the a priori PGD's terms and greedy alone in brackets), its full solves "
-        "included. The breath's PGD is fitted to its full solves (at most 40 terms; their number and the splines' "
+        "included. The jump's and the breath's fitted PGD are fitted to their full solves (at most 40 terms; their number and the splines' "
         "intervals chosen on a held-out quarter of the solves).",
         "",
         "| case | ranks | dofs | model | full solves offline | offline [s] | online [ms] | nodal error max (median) "
@@ -405,7 +460,7 @@ def main() -> None:
         folder = Path(comm.bcast(work if comm.rank == 0 else None))
         curves: dict = {}
         rows, mapped = measure("anchor", args.quick, folder, (3, 4) if args.quick else (12, 24), curves)
-        for name in ("lung", "breath"):
+        for name in ("lung", "jump", "breath"):
             rows += measure(name, args.quick, folder, None, curves)[0]
     if comm.rank == 0:
         path = RESULTS / f"{stem}.csv"

@@ -98,7 +98,9 @@ class Online:
     def operator(self, c: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """A(c) = Σₖ wₖ (A₀ₖ + Σₑ cₑ Aₑₖ) (m × m), ``c`` the values of :attr:`entries`, ``weights``
         wₖ from :meth:`weights`."""
-        return np.tensordot(weights, self.energy[:, 0] + np.tensordot(c, self.energy[:, 1:], axes=(0, 1)), axes=1)
+        k, e, m, _ = self.energy.shape
+        mixed = np.outer(weights, np.concatenate([[1.0], c])).ravel()  # one product: no degrees × m × m temporaries
+        return (mixed @ self.energy.reshape(k * e, m * m)).reshape(m, m)
 
 
 def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:

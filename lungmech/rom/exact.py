@@ -54,11 +54,17 @@ class Cubic:
         return np.array(self.c0), self.c1, self.c2, self.c3
 
     def __call__(self, z: np.ndarray) -> float:
-        return float(self.c0 + self.c1 @ z + 0.5 * z @ self.c2 @ z + np.einsum("ijk,i,j,k", self.c3, z, z, z) / 6)
+        return float(self.c0 + self.c1 @ z + 0.5 * z @ self.c2 @ z + z @ self._contracted(z) @ z / 6)
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
         """∂f/∂z = c₁ + C₂z + ½ C₃[·, z, z]."""
-        return self.c1 + self.c2 @ z + 0.5 * np.einsum("ijk,j,k->i", self.c3, z, z)
+        return self.c1 + self.c2 @ z + 0.5 * self._contracted(z) @ z
+
+    def _contracted(self, z: np.ndarray) -> np.ndarray:
+        """C₃[·, ·, z] (m × m), by one matrix–vector product: a three-operand einsum is ten
+        times slower at fifty modes, the bulk of an answer."""
+        m = len(z)
+        return (self.c3.reshape(m * m, m) @ z).reshape(m, m)
 
 
 def cubic(model: Model, functional: ufl.Form, start: np.ndarray, directions: np.ndarray, check: float = 1e-9) -> Cubic:
