@@ -40,7 +40,8 @@ from lungmech.pgd.axes import DEGREE, Axis, full_turn
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.fitting import FIT, Fit, fit
 from lungmech.pgd.greedy import Options
-from lungmech.pgd.model import PGDModel, online, ramp_of
+from lungmech.pgd.model import PGDModel, ramp_of
+from lungmech.pgd.online import online
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product, zero_imposed
 from lungmech.rom.load_paths import Paths, relative_to, serial

@@ -3,7 +3,7 @@ plain arrays, a digest, the canonical dof order, the mesh's fingerprint checked 
 
 The space modes Q are the file's basis (kind "pgd", orthonormal in the energy inner product,
 checked on loading); beside them the terms' coefficients R, each axis's spline coefficients and
-the online outputs (:class:`~lungmech.pgd.model.Online`), and a record under ``extra["pgd"]``:
+the online outputs (:class:`~lungmech.pgd.online.Online`), and a record under ``extra["pgd"]``:
 each axis's parameter and intervals, how the model was built, its probe points. The axes are
 made again on loading from the model's own parameters, which must be the record's.
 """
@@ -22,7 +22,8 @@ from lungmech.fem.solver import Stepping
 from lungmech.parallel.layout import layout
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
-from lungmech.pgd.model import Online, PGDModel
+from lungmech.pgd.model import PGDModel
+from lungmech.pgd.online import Online
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom import store
 from lungmech.rom.basis import Basis

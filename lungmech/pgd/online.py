@@ -1,0 +1,135 @@
+"""The outputs of a PGD model's state u = u_rest + Q z as exact functions of the modes'
+coefficients z, made once offline (:class:`Online`):
+
+* the volume ∫ det F dX, a cubic of z (:func:`lungmech.rom.exact.cubic`);
+* the probes' displacements, linear in z;
+* the strain energy ½ zᵀ A(μ) z of a linear model, A(μ) = Σₖ wₖ(μ) (A₀ₖ + Σₑ cₑ(μ) Aₑₖ): Aₑₖ = Qᵀ Kₑₖ Q
+  the terms' operators projected, cₑ(μ) the values the model's parameters set and wₖ the
+  Chebyshev polynomials of a curve's parameter (one 1 without a curve,
+  :mod:`lungmech.pgd.terms`); checked against the model's own ∫ψ dX at a random point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import ufl
+
+from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
+from lungmech.fem.quantities import Probe, strain_energy
+from lungmech.parallel.linalg import apply, gram
+from lungmech.pgd import chebyshev
+from lungmech.pgd import terms as separated
+from lungmech.rom.exact import Cubic, affine, cubic
+
+__all__ = ["Online", "online"]
+
+ENERGY_CHECK = 1e-9  # the quadratic form's strain energy against the model's own, relative
+
+
+@dataclass(frozen=True)
+class Online:
+    """The outputs of u = Q z as functions of z: ``volume`` (m³), ``probes`` (m: a row per
+    point and component, × m), ``energy`` (J: for each degree k of the curve's series, A₀ₖ then
+    each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices into
+    :func:`lungmech.pgd.terms.values`), ``curve`` the axis of the series
+    (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree)."""
+
+    volume: Cubic
+    probes: np.ndarray
+    energy: np.ndarray
+    entries: np.ndarray
+    curve: int = -1
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Its arrays by name, for a model file."""
+        c0, c1, c2, c3 = self.volume.arrays()
+        return {"volume/c0": c0, "volume/c1": c1, "volume/c2": c2, "volume/c3": c3} | {
+            "probes": self.probes,
+            "energy": self.energy,
+            "entries": self.entries,
+            "curve": np.array([self.curve]),
+        }
+
+    @classmethod
+    def of(cls, arrays: Mapping[str, np.ndarray]) -> Online:
+        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree)."""
+        volume = Cubic.of(tuple(arrays[f"volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
+        energy = arrays["energy"]
+        curve = int(arrays["curve"][0]) if "curve" in arrays else -1
+        return cls(
+            volume, arrays["probes"], energy if energy.ndim == 4 else energy[None], arrays["entries"].astype(int), curve
+        )
+
+    def weights(self, units: np.ndarray, derivative: int = 0) -> np.ndarray:
+        """Tₖ (or its ``derivative`` in the unit coordinate) of the curve's axis at the point of
+        unit coordinates ``units``, one per degree."""
+        if self.curve < 0:
+            return np.full(1, 0.0 if derivative else 1.0)
+        return chebyshev.polynomials(float(units[self.curve]), len(self.energy), derivative)[0]
+
+    def operator(self, c: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """A(c) = Σₖ wₖ (A₀ₖ + Σₑ cₑ Aₑₖ) (m × m), ``c`` the values of :attr:`entries`, ``weights``
+        wₖ from :meth:`weights`."""
+        k, e, m, _ = self.energy.shape
+        mixed = np.outer(weights, np.concatenate([[1.0], c])).ravel()  # one product: no degrees × m × m temporaries
+        return (mixed @ self.energy.reshape(k * e, m * m)).reshape(m, m)
+
+
+def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, probe: Probe | None) -> Online:
+    """The :class:`Online` outputs of ``model``'s states Q z (``modes`` Q, owned rows) from the
+    rest state, with the terms' operators of ``problem`` (None: a nonlinear model, whose strain
+    energy is no quadratic form; a fitted PGD fits it, :mod:`lungmech.pgd.fitted`); the strain
+    energy's form checked against the model's own at a random point. Collective; the model's
+    state and parameters are kept."""
+    comm = model.geometry.mesh.comm
+    m = modes.shape[1]
+    with model.kept_state():
+        model.reset()
+        rest = model.state.x.array.copy()
+    volume = cubic(model, ufl.det(model.F) * model.dx, rest, modes)
+    if probe is not None:
+        _, probes = affine(model, lambda: probe(model.displacement()), rest, modes)
+    else:
+        probes = np.zeros((0, m))
+    if problem is None:
+        return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int))
+    degrees = 1 if problem.curve is None else problem.curve.degrees
+    matrices = {(t.degree, t.entry): t.matrix for t in problem.operator}  # a term dropped as 0: a zero block
+    entries = np.array(sorted({t.entry for t in problem.operator if t.entry is not None}), dtype=int)
+    energy = np.zeros((degrees, 1 + len(entries), m, m))
+    for k in range(degrees):
+        for i, e in enumerate([None, *entries]):
+            if (k, e) in matrices:
+                energy[k, i] = gram(modes, apply(matrices[k, e], modes, comm), comm)
+    found = Online(volume, probes, energy, entries, -1 if problem.curve is None else problem.curve.axis)
+    _check_energy(model, found, modes)
+    return found
+
+
+def _check_energy(model: Model, found: Online, modes: np.ndarray) -> None:
+    """½ zᵀ A(c) z against the model's own ∫ψ dX at a random point of the box and a random z."""
+    values = dict(model.parameter_values)
+    rng = np.random.default_rng(13)
+    z = rng.uniform(-1.0, 1.0, modes.shape[1])
+    z = model.geometry.mesh.comm.bcast(z)
+    try:
+        with model.kept_state():
+            point = model.parameters.sample(1, seed=17)[0]
+            model.set_parameters(point)
+            model.reset()
+            model.state.x.array[: modes.shape[0]] += modes @ z
+            model.state.x.scatter_forward()
+            exact = strain_energy(model)()
+            units = np.array([p.to_unit(point[p.name]) for p in model.parameters])
+            reduced = 0.5 * z @ found.operator(separated.values(model)[found.entries], found.weights(units)) @ z
+    finally:
+        model.set_parameters(values)
+    if not abs(reduced - exact) <= ENERGY_CHECK * max(abs(exact), np.finfo(float).tiny):
+        raise ParameterError(
+            f"PGD: the strain energy is not the quadratic form of the model's Jacobian (off by "
+            f"{abs(reduced - exact) / max(abs(exact), np.finfo(float).tiny):.1e}, relative): a load depends on the state"
+        )
