@@ -53,12 +53,20 @@ def cap_threads() -> None:
 
 
 def one_blas_thread_per_rank() -> None:
-    """Set the unset BLAS/OpenMP thread counts to 1 in a rank of several, if NumPy is not
-    loaded yet (it reads them when it loads; after, nothing changes)."""
-    if "numpy" in sys.modules or ranks_launched() <= 1:
+    """Set the unset BLAS/OpenMP thread counts to 1 in a rank of several: in the environment,
+    which NumPy reads when it loads, and — where a script loaded NumPy before lungmech — in the
+    pools already started (threadpoolctl). Without the latter, ``import numpy`` on a script's
+    first line left every rank a thread per core: the benchmarks' builds on 2 ranks took ten
+    times one rank's (the moving jump's PGD 641 s against 67 s, 2026-12-07)."""
+    if ranks_launched() <= 1:
         return
+    chosen = any(os.environ.get(name) for name in _THREADS)
     for name in _THREADS:
         os.environ.setdefault(name, "1")
+    if "numpy" in sys.modules and not chosen:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=1)
 
 
 one_blas_thread_per_rank()

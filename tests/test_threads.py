@@ -30,3 +30,14 @@ def test_a_rank_of_several_gets_one_blas_thread_unless_the_user_chose():
     assert _run([str(MPIEXEC), "-n", "2", sys.executable, "-c", SHOW]) == ["1 1", "1 1"]
     assert _run([str(MPIEXEC), "-n", "2", sys.executable, "-c", SHOW], OPENBLAS_NUM_THREADS="2") == ["2 1", "2 1"]
     assert _run([sys.executable, "-c", SHOW]) == ["None None"]
+
+
+@pytest.mark.skipif(not MPIEXEC.exists(), reason="no mpiexec beside this Python")
+def test_a_script_that_loads_numpy_first_gets_one_blas_thread_a_rank_too():
+    """NumPy's pools start before lungmech is imported: lungmech limits them (threadpoolctl)."""
+    show = (
+        "import numpy, threadpoolctl, lungmech; from mpi4py import MPI; "
+        "found = MPI.COMM_WORLD.gather(str(max(p['num_threads'] for p in threadpoolctl.threadpool_info()))); "
+        "MPI.COMM_WORLD.rank == 0 and print('\\n'.join(found))"
+    )
+    assert _run([str(MPIEXEC), "-n", "2", sys.executable, "-c", show]) == ["1", "1"]
