@@ -60,8 +60,9 @@ def build(
     samples, :data:`lungmech.pgd.fitted.INTERVALS`). With ``samples``, the terms are fitted to the full
     model's solves at that many Sobol' points (``seed``) of the box, run on ``ensemble`` and kept
     in ``cache`` (:func:`lungmech.app.reduce.training_solves`), their number chosen on held-out
-    samples up to ``modes``. Refused in one line before any work for a scene the PGD does not
-    yet answer (an imaged body's [inverse]; a priori, a nonlinear law) and where ``path`` is
+    samples up to ``modes`` (an imaged body's [inverse] too: its reference fitted beside the
+    breath). Refused in one line before any work for a scene the PGD does not yet answer (a
+    priori: an imaged body, a nonlinear law) and where ``path`` is
     not the user's to replace (:mod:`lungmech.parallel.destination`). Collective."""
     checks.integer("PGD modes", modes, minimum=1)
     if intervals is not None:
@@ -72,10 +73,10 @@ def build(
     elif ensemble is not None or cache is not None:
         raise ParameterError("PGD: an ensemble or a cache runs full solves: give --samples for a PGD fitted to them")
     options = Options(max_terms=modes, tolerance=tolerance)
-    if scene.inverse is not None:
+    if scene.inverse is not None and samples is None:
         raise ParameterError(
-            "PGD: the scene's [inverse] (an imaged body, its reference found at every μ) is not yet separated; "
-            "use 'lungmech rom build' for it"
+            "PGD: the scene's [inverse] (an imaged body, its reference found at every μ) is not separated a priori; "
+            "give --samples for a PGD fitted to full solves"
         )
     solves = training_solves(scene, ensemble, cache, comm) if samples is not None else None
     path = store.suffixed(path)

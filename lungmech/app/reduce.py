@@ -330,8 +330,10 @@ def _loaded(
     path: Path, scene: Scene, comm: MPI.Comm, inside: bool, fields: bool, content: tuple[dict, dict] | None
 ) -> ReducedModel | PGDModel:
     content = content if content is not None else store.read_on_root(path, comm)
-    record = content[0]["extra"].get("reduced", {})
-    image = image_of(scene) if record.get("image") is not None else None  # (a file of 0.2 moved the reference)
+    extra = content[0]["extra"]
+    imaged = extra.get("reduced", {}).get("image") is not None or extra.get("pgd", {}).get("image") is not None
+    record = extra.get("reduced", {})
+    image = image_of(scene) if imaged else None  # (a file of 0.2 moved the reference)
     if inside and not fields and record.get("body") is not None:
         build = functools.partial(build_model, scene, comm, image=image)  # of the body's geometry
         return store.load_body(path, build, scene.stepping, scene.newton, content, comm)

@@ -35,7 +35,7 @@ from lungmech.parallel.owned import owned_size
 if TYPE_CHECKING:
     from lungmech.fem.model import Model
 
-__all__ = ["Handover", "InverseMotion"]
+__all__ = ["Handover", "InverseMotion", "vector_entries"]
 
 
 class InverseMotion:
@@ -148,11 +148,7 @@ class Handover:
     def __init__(self, motion: Model, inverse: Model) -> None:
         if not np.array_equal(motion.space.dofmap.list, inverse.space.dofmap.list):
             raise SolverError("inverse motion: the inverse problem's dofs are numbered unlike the breath's")
-        self.vector: np.ndarray = (  # the state's entries of its vector field
-            np.asarray(motion.space.sub(0).collapse()[1]).reshape(-1)
-            if motion.multi_field
-            else np.arange(motion.state.x.array.size)
-        )
+        self.vector = vector_entries(motion)
         assert motion.reference_map is not None  # (a model of an image's motion has one)
         self.reference_map = motion.reference_map
         self.owned_vector = owned_size(self.reference_map.function_space)
@@ -178,3 +174,12 @@ class Handover:
         start = local.copy()
         start[self.vector] = 0.0
         return Moved({self.reference_map: local[self.vector]}, start)
+
+
+def vector_entries(model: Model) -> np.ndarray:
+    """The local entries of ``model``'s state that hold its vector field (the displacement, or
+    an inverse problem's ξ): all of them for a displacement-only model. Those of the first
+    owned entries of the field's own space are owned, in its order."""
+    if model.multi_field:
+        return np.asarray(model.space.sub(0).collapse()[1]).reshape(-1)
+    return np.arange(model.state.x.array.size)

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from lungmech.errors import ParameterError
+from lungmech.fem.loads import is_pressure
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS, Solution, Step, checked_times, output_times, stack
 from lungmech.fem.quantities import Probe
@@ -40,13 +41,14 @@ from lungmech.pgd import terms as separated
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.greedy import Options, Round, pgd
+from lungmech.pgd.imaged import Reference
 from lungmech.pgd.online import Online, online
 from lungmech.pgd.terms import separated_terms
 from lungmech.pgd.timeline import RampTimeline, SampledTimeline
 from lungmech.pgd.values import closed_form
 from lungmech.rom.basis import inner_product
 
-__all__ = ["PGDModel", "build", "ramp_of"]
+__all__ = ["PGDModel", "build", "load_fractions", "ramp_of"]
 
 
 def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
@@ -74,6 +76,19 @@ def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
     return first
 
 
+def load_fractions(model: Model, stepping: Stepping) -> Callable[[float], np.ndarray]:
+    """t ↦ r(t)/r(T) of each scalar load (a pressure, in the order of ``model.scalar_loads()``),
+    its value at t that fraction of its value at the path's end T; refused in one line where a
+    scalar load is 0 at T."""
+    ramps = [load.ramp for load in model.loads if is_pressure(load)]
+    for load, ramp in zip([load for load in model.loads if is_pressure(load)], ramps):
+        if ramp(stepping.end) == 0.0:
+            raise ParameterError(
+                f"PGD: load '{load.label}' is 0 at the path's end (t = {stepping.end:g} s): a PGD reads its loads there"
+            )
+    return lambda t: np.array([ramp(t) / ramp(stepping.end) for ramp in ramps])
+
+
 class PGDModel:
     """The model whose answers are ``decomposition`` evaluated (module docstring): the fem
     ``model`` (for fields, and the values its parameters set), the load path ``stepping``,
@@ -81,8 +96,10 @@ class PGDModel:
     along the path as ``timeline`` says (default: the loads' one ramp,
     :class:`~lungmech.pgd.timeline.RampTimeline`); a PGD fitted to full solves gives its own
     (:class:`~lungmech.pgd.timeline.SampledTimeline`) and its strain energy's fit ``energy`` (a
-    one-row decomposition and its timeline), and answers at the loads' own scale only.
-    Collective for :meth:`fields` only; a solve is evaluation on every rank."""
+    one-row decomposition and its timeline), and answers at the loads' own scale only; on an
+    imaged body, its fit of the body's reference ξ(μ) is ``reference``
+    (:mod:`lungmech.pgd.imaged`: its timeline then starts at t₀, where the image's fields move
+    with μ). Collective for :meth:`fields` only; a solve is evaluation on every rank."""
 
     def __init__(
         self,
@@ -94,23 +111,26 @@ class PGDModel:
         built: dict | None = None,
         timeline: SampledTimeline | None = None,
         energy: tuple[Decomposition, SampledTimeline] | None = None,
+        reference: Reference | None = None,
     ) -> None:
-        if (timeline is None) != (energy is None):
+        if (timeline is None) != (energy is None) or (reference is not None and timeline is None):
             raise ParameterError("PGD: a fitted PGD has both a timeline and its strain energy's fit, or neither")
         self.model = model
         self.parameters = model.parameters
         self.stepping = stepping
         self.decomposition = decomposition
         self.online = online
-        self.ramp = ramp_of(model, stepping)
         self.timeline: RampTimeline | SampledTimeline = (
-            timeline if timeline is not None else RampTimeline(self.ramp, stepping.end)
+            timeline if timeline is not None else RampTimeline(ramp_of(model, stepping), stepping.end)
         )
-        self.energy = energy
+        self.fractions = load_fractions(model, stepping)
+        self.energy, self.reference = energy, reference
         self.times = output_times(model, stepping)
         self.probe_points = tuple(tuple(float(c) for c in p) for p in probe_points)
         self.built = dict(built or {})
         self._owned = owned_size(model.space)
+        if model.reference_map is not None:  # an image's motion rests on its reference: w = 0 at ξ = 0
+            model.set_reference_map(np.zeros(owned_size(model.reference_map.function_space)))
         with model.kept_state():
             model.reset()
             self._rest = model.state.x.array[: self._owned].copy()  # what the modes add to
@@ -161,6 +181,9 @@ class PGDModel:
             model.set_parameters(values)  # (at that time)
             derivatives = value_derivatives(model) if sensitivities else None
             point = _Point(self, values, self._values.read(), model.scalar_loads(), derivatives)
+        if self.reference is not None:  # the image on its reference at μ, and its volume there
+            imaged = self.online.volume(point.state(float(stepping.start), factor))
+            start = self.reference.start(values).measured(imaged)
         if on_step is not None:  # the start, as every model shows it first
             at_start = float(stepping.start)
             on_step(
@@ -210,8 +233,9 @@ class PGDModel:
         model.set_time(time, load_factor=factor)
         if model.parameter_values != values:
             model.set_parameters(values)
-        model.reset()
-        model.state.x.array[: self._owned] += self.decomposition.modes @ state
+        if self.reference is not None:
+            self.reference.hand_over(model, values)
+        model.state.x.array[: self._owned] = self._rest + self.decomposition.modes @ state
         model.state.x.scatter_forward()
 
     def reconstruct(self, solution: Solution, index: int) -> np.ndarray:
@@ -263,7 +287,11 @@ class _Point:
         model, d, self.online = owner.model, owner.decomposition, owner.online
         self.reduced, self.q = d.reduced, d.products(values)
         self.timeline, self.energy, self.values = owner.timeline, owner.energy, values
-        self.fraction = lambda t: owner.ramp(t) / owner.ramp(owner.stepping.end)
+        self.fractions = owner.fractions
+        # ξ at the probes on an imaged body, and its slopes: u = w − ξ
+        reference = owner.reference if owner.reference is not None and len(owner.probe_points) else None
+        self.xi = None if reference is None else reference.at_probes(values)
+        self.xi_slopes = None if reference is None or derivatives is None else reference.probe_derivatives(values)
         units = d.units(values) if self.energy is None else np.zeros(0)
         weights = self.online.weights(units) if self.energy is None else np.ones(1)
         self.operator = self.online.operator(c, weights) if self.energy is None else None
@@ -298,9 +326,9 @@ class _Point:
         z = self.state(t, factor)
         found: dict[str, object] = {"volume": self.online.volume(z), "strain_energy": self._strain_energy(t, z)}
         if self.points:
-            found["probes"] = (self.online.probes @ z).reshape(self.points, -1)
-        fraction = self.fraction(t)
-        found["loads"] = {label: fraction * value for label, value in self.loads.items()}
+            moved = self.online.probes @ z
+            found["probes"] = (moved if self.xi is None else moved - self.xi).reshape(self.points, -1)
+        found["loads"] = {label: f * value for (label, value), f in zip(self.loads.items(), self.fractions(t))}
         return found
 
     def derivatives(self, t: float, factor: float) -> dict[str, object]:
@@ -317,9 +345,12 @@ class _Point:
             energy = fitted.factor_derivatives(self.values, timeline.at(t))[0]
         found: dict[str, object] = {"volume": self.online.volume.gradient(z) @ dz, "strain_energy": energy}
         if self.points:
-            found["probes"] = (self.online.probes @ dz).reshape(self.points, -1, dz.shape[1])
-        fraction = self.fraction(t)
-        found["loads"] = {label: fraction * d for label, d in self.derivatives_at_end.loads.items()}
+            moved = self.online.probes @ dz
+            found["probes"] = (moved if self.xi_slopes is None else moved - self.xi_slopes).reshape(
+                self.points, -1, dz.shape[1]
+            )
+        loads = self.derivatives_at_end.loads.items()
+        found["loads"] = {label: f * d for (label, d), f in zip(loads, self.fractions(t))}
         return found
 
 

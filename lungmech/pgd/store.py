@@ -5,7 +5,10 @@ The space modes Q are the file's basis (kind "pgd", orthonormal in the energy in
 checked on loading); beside them the terms' coefficients R, each axis's spline coefficients and
 the online outputs (:class:`~lungmech.pgd.online.Online`), and a record under ``extra["pgd"]``:
 each axis's parameter and intervals, how the model was built, its probe points. The axes are
-made again on loading from the model's own parameters, which must be the record's.
+made again on loading from the model's own parameters, which must be the record's. An imaged
+body's PGD keeps its reference's fit beside (:class:`~lungmech.pgd.imaged.Reference`: its modes
+and the inverse problem's rest state in the canonical order, ``record["image"]``), and is
+loaded on a model of the image's motion.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+from dolfinx import fem
 
 from lungmech.errors import ModelFileError
 from lungmech.fem.model import Model
@@ -22,11 +26,13 @@ from lungmech.fem.solver import Stepping
 from lungmech.parallel.layout import layout
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.imaged import Reference
 from lungmech.pgd.model import PGDModel
 from lungmech.pgd.online import Online
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom import store
 from lungmech.rom.basis import Basis
+from lungmech.rom.exact import Cubic
 
 __all__ = ["is_pgd", "load_pgd", "write_pgd"]
 
@@ -51,7 +57,8 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
         "probes": [list(p) for p in found.probe_points],
         "built": found.built,
     }
-    content = {"pgd/reduced": d.reduced} | {f"pgd/axis/{j}": X for j, X in enumerate(d.coefficients)}
+    content: dict[str, np.ndarray | None] = {"pgd/reduced": d.reduced}  # (rank 0's: the others may hold None)
+    content |= {f"pgd/axis/{j}": X for j, X in enumerate(d.coefficients)}
     content |= {f"pgd/online/{name}": a for name, a in found.online.arrays().items()}
     if found.energy is not None:  # fitted to full solves: the terms' timeline, the strain energy's fit
         assert isinstance(found.timeline, SampledTimeline)  # (a fitted PGD's)
@@ -60,6 +67,19 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
         content |= {"pgd/energy/reduced": energy.reduced, "pgd/energy/timeline": its_timeline.values}
         content |= {f"pgd/energy/axis/{j}": X for j, X in enumerate(energy.coefficients)}
         record["energy_axes"] = [axis.intervals for axis in energy.axes]
+    if found.reference is not None:  # an imaged body's: its reference's fit, modes and rest in canonical order
+        reference, where = found.reference, layout(model.space)
+        content |= {f"pgd/reference/{name}": a for name, a in reference.arrays().items()}
+        content |= {f"pgd/reference/axis/{j}": X for j, X in enumerate(reference.decomposition.coefficients)}
+        content |= {
+            "pgd/reference/modes": where.gather(reference.decomposition.modes),
+            "pgd/reference/rest": where.gather(reference.rest[: reference.decomposition.modes.shape[0]]),
+        }
+        record["image"] = {
+            "axes": [axis.intervals for axis in reference.decomposition.axes],
+            "imaged_volume": reference.imaged_volume,
+            "body": reference.body,
+        }
     store.write(path, model, basis, extra=(extra or {}) | {"pgd": record}, arrays=content | (arrays or {}))
 
 
@@ -75,7 +95,12 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
     basis, _, arrays = store.load(path, model, content=content)
     store.check_orthonormal(path, model, basis)
     comm = model.geometry.mesh.comm
-    held = comm.bcast({name: a for name, a in arrays.items() if name.startswith("pgd/")} if comm.rank == 0 else None)
+    canonical = ("pgd/reference/modes", "pgd/reference/rest")  # scattered, not broadcast
+    held = comm.bcast(
+        {name: a for name, a in arrays.items() if name.startswith("pgd/") and name not in canonical}
+        if comm.rank == 0
+        else None
+    )
     names = [axis["parameter"] for axis in record["axes"]]
     if names != list(model.parameters.names):
         raise ModelFileError(
@@ -91,14 +116,18 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
         )
         _check_shapes(decomposition, online)
         timeline, energy = _fitted(held, record, model, stepping, decomposition.terms)
+        reference = _reference(held, arrays, record, model)
     except (KeyError, ValueError) as error:
         raise ModelFileError(f"'{path}' is damaged: its PGD arrays are incomplete ({error}); rebuild it") from None
-    if timeline is not None and not np.allclose(timeline.times, output_times(model, stepping), rtol=1e-12, atol=0.0):
+    fitted_at = None if timeline is None else timeline.times[timeline.times > stepping.start]
+    if fitted_at is not None and not np.allclose(fitted_at, output_times(model, stepping), rtol=1e-12, atol=0.0):
         raise ModelFileError(
-            f"'{path}' was fitted at the output times {', '.join(f'{t:g}' for t in timeline.times)} s; this scene's are "
+            f"'{path}' was fitted at the output times {', '.join(f'{t:g}' for t in fitted_at)} s; this scene's are "
             f"{', '.join(f'{t:g}' for t in output_times(model, stepping))} s: build it again for them"
         )
-    return PGDModel(model, decomposition, online, stepping, record["probes"], record["built"], timeline, energy)
+    return PGDModel(
+        model, decomposition, online, stepping, record["probes"], record["built"], timeline, energy, reference
+    )
 
 
 def _fitted(
@@ -120,6 +149,34 @@ def _fitted(
         if X.shape != (reduced.shape[1], axis.size):
             raise ValueError(f"energy axis {axis.parameter.name}: {X.shape}")
     return timeline, (energy, its_timeline)
+
+
+def _reference(
+    held: Mapping[str, np.ndarray], arrays: Mapping[str, np.ndarray | None], record: Mapping, model: Model
+) -> Reference | None:
+    """An imaged body's fitted reference from its arrays (``held`` on every rank, ``arrays``
+    rank 0's canonical ones) and ``record`` (None: not an imaged body's), on ``model``, a model
+    of the image's motion (its space the inverse problem's, numbered alike). Collective."""
+    image = record.get("image")
+    if image is None:
+        return None
+    if model.reference_map is None:
+        raise ValueError("an imaged body's PGD on a model that is not of the image's motion")
+    where, space = layout(model.space), model.space
+    modes = where.scatter(arrays.get("pgd/reference/modes"))
+    rest = fem.Function(space)
+    rest.x.array[: modes.shape[0]] = where.scatter(arrays.get("pgd/reference/rest"))
+    rest.x.scatter_forward()
+    axes = tuple(Axis(p, int(k)) for p, k in zip(model.parameters, image["axes"], strict=True))
+    reduced = held["pgd/reference/reduced"]
+    coefficients = [held[f"pgd/reference/axis/{j}"] for j in range(len(axes))]
+    for axis, X in zip(axes, coefficients):
+        if X.shape != (reduced.shape[1], axis.size) or reduced.shape[0] != modes.shape[1]:
+            raise ValueError(f"reference axis {axis.parameter.name}: {X.shape}")
+    volume = Cubic.of(tuple(held[f"pgd/reference/volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
+    probes = (held["pgd/reference/probes0"], held["pgd/reference/probes"])
+    decomposition = Decomposition(axes, modes, reduced, coefficients)
+    return Reference(decomposition, rest.x.array.copy(), probes, volume, float(image["imaged_volume"]), image["body"])
 
 
 def _check_shapes(d: Decomposition, online: Online) -> None:

@@ -33,7 +33,8 @@ class RampTimeline:
 
 @dataclass(frozen=True)
 class SampledTimeline:
-    """τₖ at the output ``times`` (s) as ``values`` (terms × times), 0 at ``start``."""
+    """τₖ at the output ``times`` (s) as ``values`` (terms × times), 0 at ``start`` unless the
+    times begin there (an imaged body's: its start moves with μ)."""
 
     start: float
     times: np.ndarray
@@ -43,8 +44,10 @@ class SampledTimeline:
     def _curve(self) -> Callable[[float], np.ndarray]:
         from scipy.interpolate import PchipInterpolator
 
-        times = np.concatenate([[self.start], self.times])
-        values = np.column_stack([np.zeros(len(self.values)), self.values])
+        times, values = self.times, self.values
+        if times[0] > self.start:  # from rest
+            times = np.concatenate([[self.start], times])
+            values = np.column_stack([np.zeros(len(values)), values])
         return PchipInterpolator(times, values, axis=1, extrapolate=False)
 
     def at(self, t: float) -> np.ndarray:
