@@ -8,8 +8,8 @@ end-inspiration segmentations, each in a position (supine, prone, …) → for e
    (:func:`lungmech.registration.sobolev.register`); that mesh is the lung as imaged, posed as
    an imaged body (its unloaded reference found at every μ: the inverse motion);
 2. **the pair's reduced model**: POD of ``training`` full breaths over the box (the
-   position's parameters fixed), Galerkin or ECSW at τ, its probes the registered lung's
-   surface nodes; checked at 3 further points against the full model, and that against the
+   position's parameters fixed), Galerkin or ECSW at τ — or a PGD fitted to them (the breath
+   and the lung's reference ξ(μ): :mod:`lungmech.pgd.imaged`) —, its probes the surface nodes; checked at 3 further points against the full model, and that against the
    full model on the lung refined once (the mesh's own error): the model's error δr on each
    datum, signed, is the refined model's residual less the reduced one's;
 
@@ -44,14 +44,19 @@ from lungmech.app.run import build_model, full_order_model
 from lungmech.app.scene import Scene, build_geometry
 from lungmech.errors import ImageError, ParameterError
 from lungmech.fem.parameters import Parameters
+from lungmech.fem.parametric import FullOrderModel
 from lungmech.fem.placement import Image as Placement
 from lungmech.mesh import nodes
 from lungmech.mesh.refine import refined
 from lungmech.parallel.destination import hold_signals_until_swap, output_folder
+from lungmech.pgd.fitted import fitted
+from lungmech.pgd.fitting import FIT
+from lungmech.pgd.model import PGDModel
 from lungmech.registration import metrics
 from lungmech.registration import side as sides
 from lungmech.registration.image import Image
 from lungmech.registration.sobolev import Options, register
+from lungmech.rom.reduced import ReducedModel
 from lungmech.rom.reductor import ECSW, POD, Reductor, TrainingSet
 from lungmech.twin.displacement import Displacement, interior_points
 from lungmech.twin.fit import Fit, Interior, View, estimate
@@ -102,10 +107,11 @@ class Pair:
 class Setting:
     """How to personalise: ``estimate`` (parameter names; default: every parameter no pair's
     position fixes), ``inspiration`` (s, the path's time of end-inspiration; default: the
-    path's end), ``training`` breaths and basis ``size`` of each pair's reduced model, ``tau``
-    (ECSW; None: Galerkin), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
-    ``mesh_check``: the model error also holds the mesh's own, the full model's against the same lung
-    refined once at the 3 check points (8 times the unknowns); ``full_fit``: also fit the full
+    path's end), ``training`` breaths and basis ``size`` of each pair's model, ``tau`` (ECSW;
+    None: Galerkin), ``method`` "pod" (those) or "pgd" (a PGD fitted to the breaths, at most
+    ``size`` terms), ``level`` of the intervals, ``resamples`` of the check, ``seed``;
+    ``mesh_check``: the model error also holds the mesh's own, the full model's against the same
+    lung refined once at the 3 check points (8 times the unknowns); ``full_fit``: also fit the full
     model on the same mesh to the same images (from the estimate), whose distance from the
     truth is the discretisation's gap (twin experiments; minutes, not seconds); ``noise``
     (twin experiments): Gaussian noise added to every surface datum, its standard deviation
@@ -125,6 +131,7 @@ class Setting:
     mesh_check: bool = True
     noise: float = 0.0
     recipe: str | None = None
+    method: str = "pod"
 
 
 @dataclass(frozen=True)
@@ -289,9 +296,7 @@ def prepare(
         inside = np.zeros((0, 3)) if interior is None else interior.points
         probes = np.vstack([surface.points, inside]).tolist()
         full = full_order_model(scene, comm, start="inverse_motion", model=model, probes=probes)
-        training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
-        with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
-            reduced = reductor.reduce(None if setting.tau is None else ECSW(setting.tau))
+        reduced = _reduced(full, setting, fixed, probes)
         sizes.append(reduced.size)
         seconds["offline"] += time.perf_counter() - tic
 
@@ -309,6 +314,18 @@ def prepare(
             chain.append(View(finest, surface, data, end, fixed, name, baseline, interior))
         gathered.check(name, chain, [point | fixed for point in checks], tic)
     return gathered.patient(sizes, [pair.inspiration for pair in pairs])
+
+
+def _reduced(full: FullOrderModel, setting: Setting, fixed: dict[str, float], probes: list) -> ReducedModel | PGDModel:
+    """A pair's model of ``full`` by ``setting``, trained on breaths with the position's ``fixed``
+    values, probing ``probes`` (collective)."""
+    if setting.method == "pgd":
+        options = replace(FIT, max_terms=setting.size)
+        return fitted(full, setting.training, None, options, probes, setting.seed, fixed=fixed)[0]
+    box = full.model.parameters
+    training = [box.values(dict(point) | fixed) for point in box.sample(setting.training, setting.seed)]
+    with Reductor(full, POD(setting.size), TrainingSet(training)) as reductor:
+        return reductor.reduce(None if setting.tau is None else ECSW(setting.tau))
 
 
 def estimated(
@@ -343,8 +360,9 @@ def estimated(
 
     report = personalise_report.report(patient, fit, found, uncertainty, draws, full_residual, seconds)
     report["model"] = {
+        "method": setting.method,
         "basis_sizes": list(patient.basis_sizes),
-        "tau": setting.tau,
+        "tau": setting.tau if setting.method == "pod" else None,
         "training": setting.training,
         "recipe_from": setting.recipe,
     }
@@ -402,6 +420,12 @@ def checked_request(scene: Scene, pairs: tuple[Pair, ...], setting: Setting) -> 
     if not 0 <= setting.noise < 10:
         raise ParameterError(
             f"personalise: the data noise is a fraction of the surface's motion in [0, 10) (got {setting.noise})"
+        )
+    if setting.method not in ("pod", "pgd"):
+        raise ParameterError(f"personalise: the patient's model is made by 'pod' or 'pgd' (got {setting.method!r})")
+    if setting.method == "pgd" and setting.training < 8:
+        raise ParameterError(
+            f"personalise: a PGD is fitted to at least 8 training breaths (got {setting.training}): give --training"
         )
     for pair in pairs:
         check_pair(pair.expiration, pair.inspiration, pair.side or scene.geometry.get("side"))

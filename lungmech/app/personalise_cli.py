@@ -87,8 +87,17 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="the patient's model by the recipe lungmech trade measured on the bundled lung as the cheapest to meet "
         "this worst error on the volume (of the breath's volume change)",
     )
-    command.add_argument("--size", type=int, help="basis size of the patient's reduced model (default 10)")
-    command.add_argument("--training", type=int, help="full breaths it is trained on (default 8)")
+    command.add_argument(
+        "--method",
+        choices=("pod", "pgd"),
+        default="pod",
+        help="the patient's model: pod (a POD basis, Galerkin or ECSW at --tau) or pgd (a PGD fitted to the training "
+        "breaths, its breath and the lung's reference answered by evaluation; default pod)",
+    )
+    command.add_argument(
+        "--size", type=int, help="basis size of the patient's reduced model, or a PGD's most terms (default 10; pgd 20)"
+    )
+    command.add_argument("--training", type=int, help="full breaths it is trained on (default 8; pgd 24)")
     command.add_argument(
         "--tau", help="its ECSW tolerance, or 'none' for a Galerkin model on the whole mesh (default 1e-4)"
     )
@@ -148,7 +157,14 @@ def run(args: argparse.Namespace) -> int:
     if args.tau is not None:
         tau = None if str(args.tau).lower() == "none" else _number("--tau", args.tau)
         recipe["tau"] = None if tau is None else checks.real("--tau", tau, positive=True)
+    if args.method == "pgd":
+        if args.tau is not None:
+            raise ParameterError("--tau is the ECSW tolerance of a POD model: a PGD (--method pgd) has none")
+        if args.model is not None or args.tolerance is not None:
+            raise ParameterError("--method pgd fits the patient's own PGD: leave out --model and --tolerance")
+        recipe = {"training": 24, "size": 20, "tau": None} | recipe
     setting = Setting(
+        method=args.method,
         estimate=tuple(name.strip() for name in args.estimate.split(",") if name.strip()) if args.estimate else (),
         inspiration=args.at,
         level=args.level,
