@@ -134,6 +134,8 @@ def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
     W.destroy()
     assert max(errors) <= 1e-2, max(errors)
     assert max(outputs) <= 1e-3, max(outputs)
+    # every answer's indicator: the held-out error, within a factor 3 of the largest here
+    assert a.indicator == pgd.built["estimate"] and max(errors) / 3 <= a.indicator <= 3 * max(errors)
 
 
 def test_the_fitted_lung_between_output_times_and_its_derivatives(lung):

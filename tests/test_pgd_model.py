@@ -172,6 +172,7 @@ def test_a_pgd_file_is_built_and_solved_through_the_cli_like_the_full_model(beam
     assert relative(a["probes"]["displacement"], b["probes"]["displacement"], motion) < CLOSE
     assert abs(a["deformed_volume"] - b["deformed_volume"]) < CLOSE * abs(b["deformed_volume"] - b["start_volume"])
     assert a["strain_energy"] == pytest.approx(b["strain_energy"], rel=CLOSE)
+    assert 0 < a["error_indicator"] < 1e-3 and b["error_indicator"] is None  # the PGD's estimate of itself
     points = tmp / "points.csv"
     if MPI.COMM_WORLD.rank == 0:
         points.write_text("E,pitch,tip\n4e6,-120,300\n1e6,180,-2000\n")

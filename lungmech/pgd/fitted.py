@@ -149,6 +149,7 @@ def fitted(
         "held_out_by_intervals": state.curves,
         "training_error": state.training,
         "energy_held_out": energy.held_out,
+        "estimate": state.held_out[state.separated.terms - 1],  # every answer's indicator
         "seconds": seconds,
     }
     if reference is not None:

@@ -42,13 +42,16 @@ from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.greedy import Options, Round, pgd
 from lungmech.pgd.imaged import Reference
+from lungmech.pgd.indicator import indicator
 from lungmech.pgd.online import Online, online
 from lungmech.pgd.terms import separated_terms
 from lungmech.pgd.timeline import RampTimeline, SampledTimeline
 from lungmech.pgd.values import closed_form
 from lungmech.rom.basis import inner_product
 
-__all__ = ["PGDModel", "build", "load_fractions", "ramp_of"]
+__all__ = ["ESTIMATE", "PGDModel", "build", "load_fractions", "ramp_of"]
+
+ESTIMATE = 16  # the Sobol' points where an a priori PGD's indicator is evaluated, its estimate their largest
 
 
 def ramp_of(model: Model, stepping: Stepping) -> Callable[[float], float]:
@@ -99,7 +102,10 @@ class PGDModel:
     one-row decomposition and its timeline), and answers at the loads' own scale only; on an
     imaged body, its fit of the body's reference ξ(μ) is ``reference``
     (:mod:`lungmech.pgd.imaged`: its timeline then starts at t₀, where the image's fields move
-    with μ). Collective for :meth:`fields` only; a solve is evaluation on every rank."""
+    with μ). Every answer carries the model's estimate of its relative energy-norm error,
+    ``built["estimate"]``, the same at every μ: an a priori PGD's indicator at a sample of the
+    box, the largest (:mod:`lungmech.pgd.indicator`); a fitted one's held-out error.
+    Collective for :meth:`fields` only; a solve is evaluation on every rank."""
 
     def __init__(
         self,
@@ -219,6 +225,7 @@ class PGDModel:
             units=dict(UNITS),
             start=start,
             scale=factor if isinstance(scale, int | float) else np.asarray(scale, dtype=float).tolist(),
+            indicator=None if self.built.get("estimate") is None else float(self.built["estimate"]),
         )
 
     @functools.lru_cache(maxsize=8)  # noqa: B019  (the model lives as long as its answers are asked for)
@@ -399,6 +406,9 @@ def build(
         decomposition, rounds = pgd(problem, W, options)
         seconds["greedy"] = time.perf_counter() - tic
         tic = time.perf_counter()
+        estimates = indicator(model, decomposition, W, model.parameters.sample(ESTIMATE, seed=31))
+        seconds["indicator"] = time.perf_counter() - tic
+        tic = time.perf_counter()
         probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
         outputs = online(model, problem, decomposition.modes, probe)
         seconds["outputs"] = time.perf_counter() - tic
@@ -418,6 +428,8 @@ def build(
             "points": problem.curve.points,
             "degrees": problem.curve.degrees,
         },
+        "estimate": float(estimates.max()),  # every answer's indicator
+        "indicator_points": estimates.tolist(),
         "seconds": seconds,
     }
     return PGDModel(model, decomposition, outputs, stepping, probe_points, built), rounds
