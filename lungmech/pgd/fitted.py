@@ -75,8 +75,8 @@ def fitted(
     state, of the strain energy (their held-out errors against the number of terms) and, on an
     imaged body, of its reference ξ(μ) (:mod:`lungmech.pgd.imaged`). ``paths`` solves the full
     load paths (default: one after another on ``full``). Refused in one line before any solve
-    where it cannot answer: no parameter, loads on several ramps or not at rest at the start.
-    Collective."""
+    where it cannot answer: no parameter, loads not at rest at the start (but on an imaged
+    body), a scalar load 0 at the path's end. Collective."""
     model, stepping = full.model, full.stepping
     if not model.parameters.names:
         raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
