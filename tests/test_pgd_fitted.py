@@ -199,6 +199,12 @@ def test_bad_inputs_of_a_fitted_pgd_get_one_line(tmp_path, capsys):
     assert "PGD samples must be" in capsys.readouterr().err
     assert main(["pgd", "build", str(scene_file), "--cache", str(folder / "c"), "-o", out, "-q"]) != 0
     assert "give --samples for a PGD fitted to them" in capsys.readouterr().err
+    resting = folder / "not-at-rest.toml"
+    if MPI.COMM_WORLD.rank == 0:
+        resting.write_text(LUNG.format(low=0.6).replace("values = [0.0, 1.0]", "values = [0.5, 1.0]"))
+    MPI.COMM_WORLD.barrier()
+    assert main(["pgd", "build", str(resting), "--samples", "8", "-o", out, "-q"]) != 0
+    assert "a fitted PGD's path starts at rest, or on an imaged body" in capsys.readouterr().err
     with pytest.raises(ParameterError, match="at least 8 samples"):
         fit(np.ones((1, 6, 1)), np.ones((6, 1)), [[Axis(Parameter("a", "material.E", 0.5, (0.0, 1.0)), 2)]])
     assert not Path(out).exists()
