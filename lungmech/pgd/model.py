@@ -83,13 +83,14 @@ def load_fractions(model: Model, stepping: Stepping) -> Callable[[float], np.nda
     """t ↦ r(t)/r(T) of each scalar load (a pressure, in the order of ``model.scalar_loads()``),
     its value at t that fraction of its value at the path's end T; refused in one line where a
     scalar load is 0 at T."""
-    ramps = [load.ramp for load in model.loads if is_pressure(load)]
-    for load, ramp in zip([load for load in model.loads if is_pressure(load)], ramps):
-        if ramp(stepping.end) == 0.0:
+    pressures = [load for load in model.loads if is_pressure(load)]
+    ends = [load.ramp(stepping.end) for load in pressures]  # r(T), once: an answer asks at every output time
+    for load, end in zip(pressures, ends):
+        if end == 0.0:
             raise ParameterError(
                 f"PGD: load '{load.label}' is 0 at the path's end (t = {stepping.end:g} s): a PGD reads its loads there"
             )
-    return lambda t: np.array([ramp(t) / ramp(stepping.end) for ramp in ramps])
+    return lambda t: np.array([load.ramp(t) / end for load, end in zip(pressures, ends)])
 
 
 class PGDModel:
