@@ -23,9 +23,13 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import ufl
 from dolfinx import fem
+from ufl.algorithms import expand_derivatives
+from ufl.algorithms.analysis import has_exact_type
+from ufl.differentiation import CoefficientDerivative
 
 from lungmech import jit
 from lungmech.fem.quantities import assemble_owned, vector_integral
+from lungmech.fem.stacked import StackedSpace, stacked_form, units
 from lungmech.parallel.linalg import gram
 from lungmech.parallel.owned import owned_size
 
@@ -44,7 +48,14 @@ class Integral:
     affine: bool = False
 
 
-Bilinear = Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr], ufl.Form]  # form(l, r), linear in each
+class Bilinear(Protocol):
+    """A form a(l, r; w) linear in each of two vectors l and r (and in the test function w: the
+    model's own where ``test`` is None), none of whose integrals a unit l or r zeroes as a whole
+    (:func:`lungmech.fem.stacked.stacked_form`)."""
+
+    def __call__(
+        self, left: ufl.core.expr.Expr, right: ufl.core.expr.Expr, test: ufl.core.expr.Expr | None = None
+    ) -> ufl.Form: ...
 
 
 class Integration(Protocol):
@@ -78,12 +89,16 @@ class Integration(Protocol):
 
 
 class FullIntegration:
-    """Integrals over the whole mesh, columns as the owned dofs of the model's space."""
+    """Integrals over the whole mesh, columns as the owned dofs of the model's space. The
+    columns of a form linear in a constant are assembled together, over a test space of as
+    many copies of the model's element (:mod:`lungmech.fem.stacked`): one pass over the mesh
+    for all of them (on a lung's balanced weight, 4.5 to 7 times faster than one per column)."""
 
     def __init__(self, model: Model) -> None:
-        self.mesh, space = model.geometry.mesh, model.space
-        self._vector = fem.Function(space).x
-        self._owned = owned_size(space)
+        self.mesh, self.space = model.geometry.mesh, model.space
+        self._vector = fem.Function(self.space).x
+        self._owned = owned_size(self.space)
+        self._stacks: dict[int, StackedSpace] = {}
 
     def vector(self, name: str, expr: ufl.core.expr.Expr, measure: ufl.Measure) -> Callable[[], np.ndarray]:
         return vector_integral(expr, measure, self.mesh)
@@ -93,31 +108,43 @@ class FullIntegration:
         return lambda: assemble_owned(compiled, self._vector, self._owned)
 
     def columns(self, name: str, form: ufl.Form, constant: fem.Constant) -> Callable[[], np.ndarray]:
-        column = self.column(name, form)
-        return lambda: each_unit(constant, column)
+        (test,) = form.arguments()
+        plain = _replaceable(form)
+        return self._stacked(
+            lambda unit, copy: ufl.replace(plain, {constant: unit} | ({} if copy is None else {test: copy})),
+            constant.ufl_shape,
+        )
 
     def bilinear_columns(
         self, name: str, form: Bilinear, left: fem.Constant, right: fem.Constant
     ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
-        # two sets of unit evaluations: one merged form would cost every evaluation both terms
-        both = form(left, right)
-        over_right, over_left = self.columns(name, both, right), self.columns(name, both, left)
+        # two stacked assemblies: one merged form would cost every column both terms
+        over_right = self._stacked(lambda unit, copy: form(left, unit, copy), right.ufl_shape)
+        over_left = self._stacked(lambda unit, copy: form(unit, right, copy), left.ufl_shape)
         return lambda: (over_right(), over_left())
 
+    def _stacked(
+        self, form_of: Callable[[ufl.core.expr.Expr, ufl.core.expr.Expr | None], ufl.Form], shape: tuple[int, ...]
+    ) -> Callable[[], np.ndarray]:
+        """The columns Σ_k a(e_k; w_k) of ``form_of(e_k, w_k)`` (w_k None: the model's own test
+        function), e_k the unit tensors of ``shape``, in one assembly."""
+        copies = int(np.prod(shape, dtype=int))
+        if copies == 1:
+            column = self.column("", form_of(units(shape)[0], None))
+            return lambda: column()[:, None]
+        if copies not in self._stacks:
+            self._stacks[copies] = StackedSpace(self.space, copies)
+        stack = self._stacks[copies]
+        compiled = jit.form(stacked_form(stack, form_of, shape))
+        return lambda: stack.columns(compiled)
 
-def each_unit(constant: fem.Constant, evaluate: Callable[[], np.ndarray]) -> np.ndarray:
-    """``evaluate()`` with ``constant`` set to each unit vector in turn (flattened order), as
-    columns side by side; ``constant`` keeps its value."""
-    kept = np.array(constant.value, copy=True)
-    units = np.eye(kept.size)
-    try:
-        columns = []
-        for unit in units:
-            constant.value = unit.reshape(kept.shape)
-            columns.append(evaluate())
-    finally:
-        constant.value = kept
-    return np.column_stack(columns)
+
+def _replaceable(form: ufl.Form) -> ufl.Form:
+    """``form`` with its derivatives in a coefficient applied (UFL replaces nothing under one),
+    the others (of variables) kept."""
+    if any(has_exact_type(integral.integrand(), CoefficientDerivative) for integral in form.integrals()):
+        return expand_derivatives(form)
+    return form
 
 
 class StateDependent:

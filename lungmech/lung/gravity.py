@@ -166,8 +166,8 @@ class _BalancingPressure:
         # columns); ∂A/∂x_G (6 × 9 × 3 numbers, contracted in numpy)
         self.left, self.right = fem.Constant(mesh, np.zeros(6)), fem.Constant(mesh, np.zeros(9))
 
-        def contraction_u(left: Expr, right: Expr) -> ufl.Form:
-            return ufl.derivative(ufl.dot(left, response * right) * surface, model.state, w)
+        def contraction_u(left: Expr, right: Expr, test: Expr | None = None) -> ufl.Form:
+            return ufl.derivative(ufl.dot(left, response * right) * surface, model.state, w if test is None else test)
 
         self.contraction_u = contraction_u
         self.response_centre = ufl.diff(response, centre)

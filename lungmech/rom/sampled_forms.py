@@ -25,7 +25,7 @@ from dolfinx.fem.petsc import create_matrix as create_petsc_matrix
 from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.fem.quantities import vector_integral
-from lungmech.fem.state_dependent import Bilinear, FullIntegration, Integral, each_unit
+from lungmech.fem.state_dependent import Bilinear, FullIntegration, Integral
 from lungmech.parallel.linalg import gram
 from lungmech.rom.ecsw import NO_CELLS, Sample, flattened, over_cells
 from lungmech.rom.exact import affine
@@ -274,8 +274,7 @@ class SampledIntegration:
 
         # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
         def compute() -> Arrays:
-            full = FullIntegration(self.model).column(name, form)
-            return (gram(self.basis, each_unit(constant, full), self.comm),)
+            return (gram(self.basis, FullIntegration(self.model).columns(name, form, constant)(), self.comm),)
 
         (constant_columns,) = self._whole("columns", name, compute)
         return lambda: constant_columns
