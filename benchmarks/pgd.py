@@ -4,6 +4,7 @@ of the same scene.
     python benchmarks/pgd.py                 # both cases at full size (a few minutes)
     python benchmarks/pgd.py --ranks 2       # the same on two ranks (rows kept beside one rank's)
     python benchmarks/pgd.py --quick         # coarse meshes, few points, no hyper-reduced breath (the suite's case)
+    python benchmarks/pgd.py --replot        # the plot drawn again from the results (no solve)
 
 Four cases, each a scene built here:
 
@@ -32,13 +33,15 @@ measure) and the relative energy-norm error (the energy product at the defaults)
 median; online milliseconds per point (``solve(μ, times=[T])``: volume, strain energy, probes),
 median. Also the anchor's error over its whole box, on a grid (the plot's map).
 
-Writes results/pgd.md, results/pgd.csv and results/pgd.png.
+Writes results/pgd.md, results/pgd.csv and results/pgd.png, and what the plot needs beside the
+table in results/pgd_plot.json (for --replot).
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import sys
 import tempfile
@@ -426,7 +429,8 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
     right.set_xlabel("online time per point [ms]")
     right.set_ylabel("largest relative energy-norm error [-]")
     right.grid(alpha=0.3, which="both")
-    right.legend(fontsize=7, loc="best")
+    # below the axes: a row per model and rank count (26 in the full run) would hide the points
+    right.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     # a colour per sample size, a line style per choice of intervals ("breath, 32 solves, intervals 2,2,2, 1 rank(s)")
     sizes = sorted({label.split(" solves")[0] for label in curves})
     choices = sorted(
@@ -441,21 +445,31 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
     third.set_title("the fitted PGD: choosing its terms and intervals", fontsize=10)
     third.grid(alpha=0.3, which="both")
     if curves:
-        third.legend(fontsize=7, loc="best")
+        third.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # the legends below the axes kept
     plt.close(fig)
+
+
+def _mapped(saved: dict | None) -> dict | None:
+    """The anchor's error map as :func:`plot` takes it, from its JSON (lists)."""
+    return None if saved is None else {k: v if k == "names" else np.asarray(v) for k, v in saved.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="coarse meshes, 8 points, a 3 × 4 map")
     parser.add_argument("--ranks", type=int, default=1, help="run on this many ranks (mpiexec)")
+    parser.add_argument("--replot", action="store_true", help="draw the plot again from the results (no solve)")
     args = parser.parse_args()
+    stem = "pgd_quick" if args.quick else "pgd"
+    if args.replot:
+        drawn = json.loads((RESULTS / f"{stem}_plot.json").read_text())
+        plot(read_results(RESULTS / f"{stem}.csv"), _mapped(drawn["map"]), drawn["curves"], RESULTS / f"{stem}.png")
+        return
     machine.relaunch(args.ranks, __file__, COMMAND)
     comm = MPI.COMM_WORLD
     command = "python benchmarks/pgd.py " + os.environ.get(COMMAND, " ".join(sys.argv[1:]))
-    stem = "pgd_quick" if args.quick else "pgd"
     with tempfile.TemporaryDirectory() as work:
         folder = Path(comm.bcast(work if comm.rank == 0 else None))
         curves: dict = {}
@@ -467,6 +481,9 @@ def main() -> None:
         kept = [r for r in (read_results(path) if path.exists() else []) if r.get("ranks") != comm.size]
         rows = kept + [r | {"command": command.strip()} for r in rows]
         write_results(RESULTS, stem, rows, markdown(rows, command.strip()))
+        # what the plot needs beside the table, for --replot
+        drawn = {"map": None if mapped is None else {k: np.asarray(v).tolist() for k, v in mapped.items()}}
+        (RESULTS / f"{stem}_plot.json").write_text(json.dumps(drawn | {"curves": curves}))
         plot(rows, mapped, curves, RESULTS / f"{stem}.png")
         print((RESULTS / f"{stem}.md").read_text())
 
