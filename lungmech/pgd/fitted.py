@@ -46,7 +46,7 @@ from lungmech.pgd.axes import DEGREE, Axis, full_turn
 from lungmech.pgd.decomposition import Decomposition
 from lungmech.pgd.fitting import FIT, Fit, fit
 from lungmech.pgd.greedy import Options
-from lungmech.pgd.model import PGDModel, load_fractions
+from lungmech.pgd.model import PGDModel, answerable, load_fractions
 from lungmech.pgd.online import online
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product, zero_imposed
@@ -75,11 +75,10 @@ def fitted(
     state, of the strain energy (their held-out errors against the number of terms) and, on an
     imaged body, of its reference ξ(μ) (:mod:`lungmech.pgd.imaged`). ``paths`` solves the full
     load paths (default: one after another on ``full``). Refused in one line before any solve
-    where it cannot answer: no parameter, loads not at rest at the start (but on an imaged
+    where it cannot answer: no parameter, a shape coefficient, loads not at rest at the start (but on an imaged
     body), a scalar load 0 at the path's end. Collective."""
     model, stepping = full.model, full.stepping
-    if not model.parameters.names:
-        raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
+    answerable(model)
     imaged = isinstance(full.start, InverseMotion)
     if not imaged:
         _from_rest(model, stepping)

@@ -34,6 +34,7 @@ from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS, Solution, Step, checked_times, output_times, stack
 from lungmech.fem.quantities import Probe
 from lungmech.fem.sensitivity import ValueDerivatives, value_derivatives
+from lungmech.fem.shape import KIND as SHAPE
 from lungmech.fem.solver import Stepping, StepReport
 from lungmech.fem.start import StartReport
 from lungmech.parallel.owned import owned_size
@@ -379,6 +380,20 @@ def _one_factor(scale: float | Sequence[float], loads: int) -> float:
     return float(factors[0])
 
 
+def answerable(model: Model) -> None:
+    """Refuse, in one line, a model whose parameters a PGD does not answer: none, or a shape
+    coefficient (it moves the body the outputs are measured on; a PGD's volume and strain
+    energy are functions of its terms alone, on the template)."""
+    if not model.parameters.names:
+        raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
+    shaped = [p.name for p in model.parameters if p.kind == SHAPE]
+    if shaped:
+        raise ParameterError(
+            f"PGD: the shape coefficients ({', '.join(shaped)}) move the body whose volume and energy a PGD reports "
+            "on its template, which it does not follow yet: build a reduced model of the population (lungmech rom build)"
+        )
+
+
 def build(
     model: Model,
     stepping: Stepping,
@@ -389,11 +404,10 @@ def build(
     """The :class:`PGDModel` of ``model`` over its parameters' box along ``stepping``: its terms
     at the path's end, the greedy (``options``) on ``intervals`` per axis, and the online
     outputs (``probe_points`` located on the mesh as it is); with the greedy's rounds.
-    Refused in one line before any work where it cannot answer (no parameter, loads on several
+    Refused in one line before any work where it cannot answer (no parameter, a shape coefficient, loads on several
     ramps or not at rest at the start) and as :func:`~lungmech.pgd.terms.separated_terms`
     refuses. Collective."""
-    if not model.parameters.names:
-        raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
+    answerable(model)
     ramp_of(model, stepping)
     options = options or Options()
     axes = [Axis(parameter, intervals) for parameter in model.parameters]
