@@ -464,7 +464,12 @@ def main() -> None:
     args = parser.parse_args()
     stem = "pgd_quick" if args.quick else "pgd"
     if args.replot:
-        drawn = json.loads((RESULTS / f"{stem}_plot.json").read_text())
+        saved = RESULTS / f"{stem}_plot.json"
+        if not saved.is_file():
+            sys.exit(
+                f"pgd.py: --replot: {saved} not found: a run writes it (python benchmarks/pgd.py{' --quick' * args.quick})"
+            )
+        drawn = json.loads(saved.read_text())
         plot(read_results(RESULTS / f"{stem}.csv"), _mapped(drawn["map"]), drawn["curves"], RESULTS / f"{stem}.png")
         return
     machine.relaunch(args.ranks, __file__, COMMAND)

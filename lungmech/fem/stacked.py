@@ -23,7 +23,7 @@ from dolfinx import fem, la
 
 from lungmech.parallel.owned import owned_size
 
-__all__ = ["StackedSpace", "units"]
+__all__ = ["StackedSpace", "stacked_form", "units"]
 
 
 class StackedSpace:
@@ -32,9 +32,7 @@ class StackedSpace:
     of them, on ``space``'s owned dofs (:meth:`columns`)."""
 
     def __init__(self, space: fem.FunctionSpace, copies: int) -> None:
-        mesh = space.mesh
-        self.copies = copies
-        self.space = fem.functionspace(mesh, basix.ufl.mixed_element([space.ufl_element()] * copies))
+        self.space = fem.functionspace(space.mesh, basix.ufl.mixed_element([space.ufl_element()] * copies))
         self.tests: Sequence[ufl.core.expr.Expr] = ufl.TestFunctions(self.space)
         self._vector = fem.Function(self.space).x
         # a dof of the model's space and its copies share their cell and their place in it

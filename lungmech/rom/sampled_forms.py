@@ -272,7 +272,7 @@ class SampledIntegration:
         if name == "residual" or not self.integrals[name].affine:
             return self.forms.columns(form, self._families(name), constant)
 
-        # an affine integral's derivative is a constant in the state: once per unit, on the whole mesh
+        # an affine integral's derivative is a constant in the state: its columns once, on the whole mesh
         def compute() -> Arrays:
             return (gram(self.basis, FullIntegration(self.model).columns(name, form, constant)(), self.comm),)
 
