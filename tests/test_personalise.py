@@ -251,7 +251,8 @@ def test_a_model_files_recipe_is_refused_beside_other_physics_or_another_recipe(
     pair = ["--expiration", str(tmp_path / "first-exp.npz"), "--inspiration", str(tmp_path / "first-insp.npz")]
     for extra, said in (
         (["--scene", str(other)], "was built for other physics than this scene's: material.c2"),
-        (["--size", "6"], "leave out --size, --training, --tau"),
+        (["--size", "6"], "leave out --method, --size, --training, --tau"),
+        (["--method", "pgd"], "--model gives the patient's model its recipe (method, basis size, training, τ)"),
     ):
         assert main(["personalise", *pair, "--model", str(model), *extra, "-o", str(tmp_path / "no"), "-q"]) == 2
         err = capsys.readouterr().err

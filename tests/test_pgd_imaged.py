@@ -118,6 +118,18 @@ def test_the_file_answers_without_fields_and_a_priori_is_refused(imaged, capsys)
     assert "is not separated a priori; give --samples" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_its_file_is_a_recipe_of_a_patients_pgd(imaged):
+    """``personalise --model`` reads a fitted PGD's recipe: a PGD of at most its --modes terms
+    (the default 20) fitted to its 16 breaths, on the file's own scene."""
+    from lungmech.app.recipe import recipe_scene
+
+    folder, out, _, _ = imaged
+    with recipe_scene(out, None) as (recipe, scene):
+        assert (recipe.method, recipe.size, recipe.training, recipe.tau) == ("pgd", 20, 16, None)
+        assert [p.name for p in scene.parameters] == ["stiffness", "breath"] and scene.inverse is not None
+
+
 @pytest.mark.mpi
 def test_an_imaged_fit_on_two_ranks_answers_as_one_ranks(tmp_path_factory):
     """The same sample fitted on the world's ranks and on this rank alone: the probes (u = w − ξ)

@@ -18,6 +18,7 @@ from lungmech.app import reduce
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
 from lungmech.app.pgd import build as build_file
+from lungmech.app.recipe import recipe_scene
 from lungmech.app.run import build_model, full_order_model
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.solver import Stepping
@@ -197,6 +198,9 @@ def test_a_pgd_file_is_refused_on_another_mesh_or_physics(beam, tmp_path):
     finer = scenes.load(written(tmp, cells=10, name="finer.toml"))
     with pytest.raises(ModelFileError, match=r"other physics than this scene's: geometry.cells: \[8.0, 3.0, 3.0\]"):
         reduce.reduced_order(path)(finer, MPI.COMM_WORLD)
+    with pytest.raises(ModelFileError, match="is an a priori PGD; a patient's model is fitted to its own breaths"):
+        with recipe_scene(path, None):
+            pass
     with pytest.raises(ModelFileError, match="another mesh"):  # (given as its own scene: the mesh is checked)
         reduce.reduced_order(path, inside=True)(finer, MPI.COMM_WORLD)
     other = scenes.load(written(tmp, tip=900.0, name="other.toml"))

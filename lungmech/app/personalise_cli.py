@@ -76,8 +76,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     command.add_argument(
         "--model",
-        help="a reduced model file (lungmech trade's model.npz, or lungmech rom build's): the patient's model is "
-        "built by its recipe (basis size, training breaths, ECSW τ) on its scene (or on --scene, of the same physics); "
+        help="a reduced model file (lungmech trade's model.npz, lungmech rom build's, or a fitted lungmech pgd "
+        "build's): the patient's model is built by its recipe (POD: basis size, training breaths, ECSW τ; PGD: most "
+        "terms, training breaths) on its scene (or on --scene, of the same physics); "
         "a population's model (its scene names shape modes; rom build --probes surface) is used as it is, no model "
         "of the patient's own built: the patient's shape from the registration, projected on its modes",
     )
@@ -90,7 +91,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     command.add_argument(
         "--method",
         choices=("pod", "pgd"),
-        default="pod",
         help="the patient's model: pod (a POD basis, Galerkin or ECSW at --tau) or pgd (a PGD fitted to the training "
         "breaths, its breath and the lung's reference answered by evaluation; default pod)",
     )
@@ -144,10 +144,10 @@ def run(args: argparse.Namespace) -> int:
     if args.model is not None and args.tolerance is not None:
         raise ParameterError("--model and --tolerance each give the patient's model its recipe: give one")
     for option, value in (("--model", args.model), ("--tolerance", args.tolerance)):
-        if value is not None and any(v is not None for v in (args.size, args.training, args.tau)):
+        if value is not None and any(v is not None for v in (args.method, args.size, args.training, args.tau)):
             raise ParameterError(
-                f"{option} gives the patient's model its recipe (basis size, training, τ): leave out --size, "
-                "--training, --tau"
+                f"{option} gives the patient's model its recipe (method, basis size, training, τ): leave out "
+                "--method, --size, --training, --tau"
             )
     recipe: dict = {}
     if args.training is not None:
@@ -160,11 +160,9 @@ def run(args: argparse.Namespace) -> int:
     if args.method == "pgd":
         if args.tau is not None:
             raise ParameterError("--tau is the ECSW tolerance of a POD model: a PGD (--method pgd) has none")
-        if args.model is not None or args.tolerance is not None:
-            raise ParameterError("--method pgd fits the patient's own PGD: leave out --model and --tolerance")
         recipe = {"training": 24, "size": 20, "tau": None} | recipe
     setting = Setting(
-        method=args.method,
+        method=args.method or "pod",
         estimate=tuple(name.strip() for name in args.estimate.split(",") if name.strip()) if args.estimate else (),
         inspiration=args.at,
         level=args.level,
@@ -184,7 +182,9 @@ def run(args: argparse.Namespace) -> int:
     ) as (read, scene):
         population = read is not None and is_population(scene)
         if read is not None:
-            setting = replace(setting, size=read.size, training=read.training, tau=read.tau, recipe=read.source)
+            setting = replace(
+                setting, method=read.method, size=read.size, training=read.training, tau=read.tau, recipe=read.source
+            )
         if args.cohort is not None:
             return _cohort(args, comm, scene_path if given or not args.model else None, setting)
         report = _one(args, comm, scene, setting, args.model if population else None)

@@ -3,9 +3,11 @@
 A reduced model is built for one mesh, and a patient's lung is a new mesh (the reference lung
 registered onto its image), so ``lungmech personalise --model FILE`` does not reuse the file's
 basis: it reads how the file was made — a POD basis of ``size`` vectors from ``training`` full
-breaths, hyper-reduced by ECSW at τ (or not) — and on which scene (its physics, its reference
-lung at its mesh size h), and builds the same for the patient. The file is what ``lungmech
-trade`` chose for a tolerance (its ``model.npz``), or any ``lungmech rom build`` of the scene.
+breaths, hyper-reduced by ECSW at τ (or not); or a PGD of at most ``size`` terms fitted to
+``training`` full breaths — and on which scene (its physics, its reference lung at its mesh
+size h), and builds the same for the patient. The file is what ``lungmech trade`` chose for a
+tolerance (its ``model.npz``), any ``lungmech rom build`` of the scene, or its ``lungmech pgd
+build --samples``.
 
 ``--tolerance TOL`` takes the recipe that ``lungmech trade``, run once on the bundled lung
 (``make bench-trade``: its scene ``lung_breathing_parameters``, the physics and mesh of
@@ -15,9 +17,10 @@ written from that run's ``trade.json`` by :func:`measured_recipes` (``python -m
 lungmech.app.recipe benchmarks/results/trade.json``; a test keeps the two equal). The
 patient's own model is then checked at 3 points, as any.
 
-Refused in one line: a file that is not a reduced model, a basis kind other than POD (the
-patient's model is trained on its own breaths), a file built for other physics than the
-scene given beside it, and a tolerance no measured recipe met.
+Refused in one line: a file that is not a reduced model, a basis kind other than POD or a
+fitted PGD (the patient's model is trained on its own breaths: an a priori PGD is not, and
+answers no imaged lung), a file built for other physics than the scene given beside it, and a
+tolerance no measured recipe met.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from lungmech.app.model_file import embedded_scene
 from lungmech.app.reduce import check_physics
 from lungmech.app.scene import Scene, physics
 from lungmech.errors import ModelFileError, ParameterError
+from lungmech.pgd.store import is_pgd
 from lungmech.rom import store
 
 __all__ = ["MEASURED", "Recipe", "measured_recipes", "recipe_for", "recipe_scene"]
@@ -44,16 +48,15 @@ MEASURED = Path(__file__).resolve().parents[1] / "scenes" / "lung_breathing_para
 
 @dataclass(frozen=True)
 class Recipe:
-    """How a reduced model was made: a POD basis of ``size`` vectors from ``training`` full
-    solves, ECSW at ``tau`` (None: Galerkin on the whole mesh), read from ``source``."""
+    """How a reduced model was made, read from ``source``: by ``method`` "pod", a POD basis of
+    ``size`` vectors from ``training`` full solves, ECSW at ``tau`` (None: Galerkin on the whole
+    mesh); by "pgd", a PGD of at most ``size`` terms fitted to ``training`` full solves."""
 
     size: int
     training: int
     tau: float | None
     source: str
-
-    def describe(self) -> dict:
-        return {"basis_size": self.size, "training": self.training, "tau": self.tau, "from": self.source}
+    method: str = "pod"
 
 
 @contextlib.contextmanager
@@ -67,22 +70,35 @@ def recipe_scene(
     if not path.is_file():
         raise ModelFileError(f"model file '{path}' not found")
     content = store.read_on_root(path, comm)
-    metadata = content[0]
-    record = metadata.get("extra", {}).get("reduced")
-    if record is None or not record.get("training"):
-        raise ModelFileError(f"'{path}' is not a reduced model built from training solves (lungmech rom build, trade)")
-    if metadata["kind"] != "pod":
-        raise ModelFileError(
-            f"'{path}' holds a {metadata['kind']} basis; a patient's model is a POD of its own breaths: give a POD model"
-        )
-    hyper = record.get("hyper") or {}
-    recipe = Recipe(int(metadata["size"]), len(record["training"]), hyper.get("tolerance"), str(path))
+    recipe = _recipe(path, content[0])
     with embedded_scene(path, comm, content=content) as built:
         if scene is None:
             yield recipe, built
             return
         check_physics(path, physics(built), scene)
     yield recipe, scene
+
+
+def _recipe(path: Path, metadata: dict) -> Recipe:
+    """The recipe of the model file ``path`` from its ``metadata``, or its refusal in one line."""
+    if is_pgd(metadata):
+        built = metadata["extra"]["pgd"]["built"]
+        if not built.get("samples"):
+            raise ModelFileError(
+                f"'{path}' is an a priori PGD; a patient's model is fitted to its own breaths: give a PGD built with "
+                "--samples (lungmech pgd build), or --method pgd"
+            )
+        return Recipe(int(built["options"]["max_terms"]), int(built["samples"]), None, str(path), "pgd")
+    record = metadata.get("extra", {}).get("reduced")
+    if record is None or not record.get("training"):
+        raise ModelFileError(f"'{path}' is not a reduced model built from training solves (lungmech rom build, trade)")
+    if metadata["kind"] != "pod":
+        raise ModelFileError(
+            f"'{path}' holds a {metadata['kind']} basis; a patient's model is a POD or a PGD of its own breaths: give "
+            "a POD model, or a fitted PGD"
+        )
+    hyper = record.get("hyper") or {}
+    return Recipe(int(metadata["size"]), len(record["training"]), hyper.get("tolerance"), str(path))
 
 
 def measured_recipes(trade: dict) -> dict:
