@@ -18,7 +18,7 @@ from lungmech.app import answers, trade_report
 from lungmech.app import scene as scenes
 from lungmech.app.answers import Task
 from lungmech.app.cache import Cache
-from lungmech.app.field_errors import Transfer, energy_norm_allowed
+from lungmech.app.field_errors import Transfer, Transfers, energy_norm_allowed
 from lungmech.app.ladder import Discretisation
 from lungmech.app.run import full_order_model
 from lungmech.app.trade import Candidate, Family, trade
@@ -80,6 +80,20 @@ def test_a_coarser_remesh_of_a_curved_body_reaches_the_finer_ones_boundary():
     coarse, fine = (Model(sphere(MPI.COMM_WORLD, 0.5, 1.0, size), NeoHookean.from_young(E, NU)) for size in (0.5, 0.2))
     carried = Transfer(coarse, fine)(interpolant(coarse, lambda x: A @ x))
     assert np.allclose(carried, interpolant(fine, lambda x: A @ x), rtol=0.0, atol=1e-12)
+
+
+@pytest.mark.mpi
+def test_a_source_numbered_as_one_before_takes_its_transfer():
+    """Onto one target: a second model of the same mesh and element (built again) takes the
+    first one's transfer, and carries its own state as a transfer of its own would; another
+    element or another mesh gets a transfer of its own (any number of ranks)."""
+    onto = Transfers(model((3, 3, 3), degree=2))
+    first, again = model((2, 2, 2)), model((2, 2, 2))
+    assert onto(again) is onto(first)
+    state = interpolant(again, quadratic)
+    assert np.array_equal(onto(again)(state), Transfer(again, onto.target)(state))
+    assert onto(model((2, 2, 2), degree=2)) is not onto(first)
+    assert onto(model((2, 2, 3))) is not onto(first)
 
 
 def test_the_energy_norm_at_rest_is_the_linear_elastic_energy():

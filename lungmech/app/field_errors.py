@@ -49,7 +49,7 @@ from lungmech.parallel.owned import owned_size, owned_values
 from lungmech.rom.basis import inner_product, require_positive_definite
 from lungmech.trade.convergence import Convergence, order_of_differences
 
-__all__ = ["FieldErrors", "Transfer", "energy_errors", "energy_norm_allowed"]
+__all__ = ["FieldErrors", "Transfer", "Transfers", "energy_errors", "energy_norm_allowed"]
 
 
 class Transfer:
@@ -105,6 +105,28 @@ class Transfer:
         return source.geometry.mesh.comm.allreduce(int(np.sum(np.abs(carried - 1.0) > 1e-8)), op=MPI.SUM)
 
 
+class Transfers:
+    """Transfers onto one ``target``, made once per source mesh and element: a source numbered
+    as one before it (the same fingerprint, the same canonical index of every owned dof on every
+    rank: a model file of the same mesh, loaded again) takes that source's transfer, whose point
+    search is most of its cost. Collective."""
+
+    def __init__(self, target: Model) -> None:
+        self.target = target
+        self._made: dict[str, tuple[np.ndarray, Transfer]] = {}  # by the source's fingerprint
+
+    def __call__(self, source: Model) -> Transfer:
+        """The transfer of ``source``'s states onto the target."""
+        where = layout(source.space)
+        known = self._made.get(where.fingerprint)
+        alike = known is not None and np.array_equal(known[0], where.index)
+        if known is not None and where.comm.allreduce(alike, op=MPI.LAND):
+            return known[1]
+        transfer = Transfer(source, self.target)
+        self._made[where.fingerprint] = (where.index, transfer)
+        return transfer
+
+
 @dataclass(frozen=True)
 class FieldErrors:
     """A trade's energy-norm errors: per candidate name, one relative error per point (nan where
@@ -148,8 +170,9 @@ def energy_errors(
     by a later call at the same points and times (a reduced model is solved once, whatever mesh
     it is judged on). Collective on the cache's communicator."""
     comm = cache.comm
-    tasks = _Tasks(str(scene_path), scene, tuple(float(t) for t in times), cache, solved if solved is not None else {})
     target = full_order_model(at(scene, reference, cache, comm), comm, start="inverse_motion").model
+    known = solved if solved is not None else {}
+    tasks = _Tasks(str(scene_path), scene, tuple(float(t) for t in times), cache, known, Transfers(target))
     energy_norm_allowed(target)
     norm = _EnergyNorm(inner_product(target, "energy"), comm)
     try:
@@ -168,7 +191,7 @@ def energy_errors(
             if full and Discretisation(**request["discretisation"]) == reference:
                 errors[name] = np.array([relative(x, x, s) for x, s in zip(ends, scales, strict=True)])
                 continue
-            fields = tasks.carried(request, points, target)
+            fields = tasks.carried(request, points)
             errors[name] = np.array([relative(x, x_ref, s) for x, x_ref, s in zip(fields, ends, scales, strict=True)])
             if name in ladder:
                 levels[name] = fields  # kept for the observed order only
@@ -206,6 +229,7 @@ class _Tasks:
     times: tuple[float, ...]
     cache: Cache
     solved: dict[str, tuple[Model, list[np.ndarray | None]]]  # a model file's states, by its path
+    transfers: Transfers  # onto the reference
 
     def kept(
         self, where: Layout, point: dict[str, float], discretisation: Discretisation
@@ -224,8 +248,8 @@ class _Tasks:
             None if arrays is None else arrays["end"]
         )
 
-    def carried(self, request: dict, points: Sequence[dict[str, float]], target: Model) -> list[np.ndarray | None]:
-        """A candidate's last states at ``points``, on the ``target``'s space (None: it failed)."""
+    def carried(self, request: dict, points: Sequence[dict[str, float]]) -> list[np.ndarray | None]:
+        """A candidate's last states at ``points``, on the reference's space (None: it failed)."""
         comm = self.cache.comm
         states: list[np.ndarray | None] = []
         if request["kind"] == "full":
@@ -236,7 +260,7 @@ class _Tasks:
             states = [self.kept(where, point, discretisation)[1] for point in points]
         else:
             source, states = self.solved.get(request["path"]) or self._solved(request["path"], points)
-        transfer = Transfer(source, target)
+        transfer = self.transfers(source)
         return [None if state is None else transfer(state) for state in states]
 
     def _solved(self, path: str, points: Sequence[dict[str, float]]) -> tuple[Model, list[np.ndarray | None]]:

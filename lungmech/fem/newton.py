@@ -23,6 +23,7 @@ from lungmech.errors import Interrupted, SolverError
 from lungmech.fem import convergence, limits, linear
 from lungmech.fem.linearised_pressure import LinearisedPressure
 from lungmech.fem.preconditioners import available_layout, iterative_layout
+from lungmech.fem.residual import residual as lifted_where_needed
 from lungmech.fem.solver_interface import NewtonResult, StepsModelState
 from lungmech.fem.solver_options import (
     SETTINGS_ERRORS,
@@ -110,6 +111,8 @@ class NewtonSolver(StepsModelState):
             layout[1](self.problem.solver.getKSP(), self.problem.A)
         self._residuals: list[float] = []
         snes = self.problem.solver
+        vector, (_, args, kargs) = cast(_Function, snes.getFunction())
+        snes.setFunction(lifted_where_needed, vector, args=args, kargs=kargs)  # type: ignore[arg-type]  # petsc4py passes args and kargs on; its stub says a 3-argument callback
         # Callbacks PETSc holds capture no `self`: Python's collector cannot see PETSc's references,
         # so a solver in such a cycle would never be freed (nor its mesh and its MPI communicators).
         residuals = self._residuals
