@@ -142,7 +142,7 @@ class PGDModel:
         with model.kept_state():
             model.reset()
             self._rest = model.state.x.array[: self._owned].copy()  # what the modes add to
-        self._start = StartReport("rest", "the unloaded state").measured(online.volume.c0)  # its volume
+        self._start = StartReport("rest", "the unloaded state")
         self._values = _Entries(model, online.entries)
         self._last = dict(model.parameter_values), 1.0  # the parameters and load factor of the last answer
         with model.kept_state():
@@ -150,6 +150,7 @@ class PGDModel:
             self._labels = tuple(model.scalar_loads())
             self._energy = closed_form(model, decomposition.axes, self._values.read)
             self._loads = closed_form(model, decomposition.axes, lambda: np.array(list(model.scalar_loads().values())))
+            self._shape = closed_form(model, decomposition.axes, self._shape_values)
 
     @property
     def size(self) -> int:
@@ -180,18 +181,20 @@ class PGDModel:
         wanted = self.times if times is None else self._times(tuple(times))
         model, stepping, start = self.model, self.stepping, self._start
         self._last = values, factor
-        if self._energy is not None and self._loads is not None and not sensitivities:
+        if self._energy is not None and self._loads is not None and self._shape is not None and not sensitivities:
             c, loads = self._energy(values), dict(zip(self._labels, factor * self._loads(values)))
-            point = _Point(self, values, c, loads, None)  # the fem model is not set: see fields
+            point = _Point(self, values, c, loads, self._shape(values), None)  # the fem model is not set: see fields
         else:
             if model.time != stepping.end or model.scaling != (factor, None):
                 model.set_time(stepping.end, load_factor=factor)  # the loads at t are r(t)/r(T) of these
             model.set_parameters(values)  # (at that time)
             derivatives = value_derivatives(model) if sensitivities else None
-            point = _Point(self, values, self._values.read(), model.scalar_loads(), derivatives)
+            point = _Point(self, values, self._values.read(), model.scalar_loads(), self._shape_values(), derivatives)
         if self.reference is not None:  # the image on its reference at μ, and its volume there
-            imaged = self.online.volume(point.state(float(stepping.start), factor))
+            imaged = self.online.volume_at(point.state(float(stepping.start), factor), point.a)
             start = self.reference.start(values).measured(imaged)
+        else:  # the body at rest: of the shape at μ over a shape map
+            start = start.measured(self.online.volume_at(np.zeros(self.size), point.a))
         if on_step is not None:  # the start, as every model shows it first
             at_start = float(stepping.start)
             on_step(
@@ -234,6 +237,10 @@ class PGDModel:
     def _times(self, times: tuple[float, ...]) -> np.ndarray:
         """The output times asked for, checked (:func:`~lungmech.fem.parametric.checked_times`)."""
         return checked_times(times, self.stepping)
+
+    def _shape_values(self) -> np.ndarray:
+        """The shape coefficients a the fem model's parameters set now (none: no shape map)."""
+        return np.zeros(0) if self.model.shape is None else self.model.shape.values()
 
     def fields(self, state: np.ndarray, time: float) -> None:
         """The fem model's state Q ``state`` at ``time``, its parameters and load factor the last
@@ -282,8 +289,9 @@ class _Point:
     """One solve's evaluation at μ: q(μ), the terms' products, so that the state at time t is
     z = s R (q ∘ τ(t)) (s the load factor, τ the owner's timeline); the strain energy's A(c) for
     the values ``c`` of its entries (a linear model) or the owner's fit of it; the scalar
-    ``loads`` at the path's end T, at t r(t)/r(T) of them; with ``derivatives`` (the model's
-    value derivatives, its parameters set at μ), ∂q/∂μ and ∂A/∂μ."""
+    ``loads`` at the path's end T, at t r(t)/r(T) of them; the shape coefficients ``a`` (none:
+    no shape map); with ``derivatives`` (the model's value derivatives, its parameters set at
+    μ), ∂q/∂μ, ∂A/∂μ and da/dμ."""
 
     def __init__(
         self,
@@ -291,6 +299,7 @@ class _Point:
         values: Mapping[str, float],
         c: np.ndarray,
         loads: dict[str, float],
+        a: np.ndarray,
         derivatives: ValueDerivatives | None,
     ) -> None:
         model, d, self.online = owner.model, owner.decomposition, owner.online
@@ -304,12 +313,14 @@ class _Point:
         units = d.units(values) if self.energy is None else np.zeros(0)
         weights = self.online.weights(units) if self.energy is None else np.ones(1)
         self.operator = self.online.operator(c, weights) if self.energy is None else None
-        self.loads = loads
+        self.loads, self.a = loads, a
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
         if derivatives is not None:
             self.slopes = d.product_derivatives(values)
             n = self.slopes.shape[1]
+            coefficients = () if model.shape is None else model.shape.coefficients
+            self.da = np.array([derivatives.constants.get(c, np.zeros(n)) for c in coefficients]).reshape(-1, n)
             dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
             energy = self.online.energy
             self.operator_slopes = np.einsum("k,ei,kemn->imn", weights, dc[self.online.entries], energy[:, 1:])
@@ -333,7 +344,8 @@ class _Point:
     def outputs(self, t: float, factor: float = 1.0) -> dict[str, object]:
         """The outputs at time ``t``, with the load ``factor``."""
         z = self.state(t, factor)
-        found: dict[str, object] = {"volume": self.online.volume(z), "strain_energy": self._strain_energy(t, z)}
+        volume = self.online.volume_at(z, self.a)
+        found: dict[str, object] = {"volume": volume, "strain_energy": self._strain_energy(t, z)}
         if self.points:
             moved = self.online.probes @ z
             found["probes"] = (moved if self.xi is None else moved - self.xi).reshape(self.points, -1)
@@ -352,7 +364,8 @@ class _Point:
         else:
             fitted, timeline = self.energy
             energy = fitted.factor_derivatives(self.values, timeline.at(t))[0]
-        found: dict[str, object] = {"volume": self.online.volume.gradient(z) @ dz, "strain_energy": energy}
+        volume = self.online.volume_derivatives(z, self.a, dz, self.da)
+        found: dict[str, object] = {"volume": volume, "strain_energy": energy}
         if self.points:
             moved = self.online.probes @ dz
             found["probes"] = (moved if self.xi_slopes is None else moved - self.xi_slopes).reshape(
@@ -380,17 +393,24 @@ def _one_factor(scale: float | Sequence[float], loads: int) -> float:
     return float(factors[0])
 
 
-def answerable(model: Model) -> None:
-    """Refuse, in one line, a model whose parameters a PGD does not answer: none, or a shape
-    coefficient (it moves the body the outputs are measured on; a PGD's volume and strain
-    energy are functions of its terms alone, on the template)."""
+def answerable(model: Model, fitted: bool = False, imaged: bool = False) -> None:
+    """Refuse, in one line, a model whose parameters a PGD does not answer: none; a shape
+    coefficient a priori (it moves the body, so the operators the terms are separated on move
+    with it other than affinely); a shape coefficient of an imaged body (its reference's volume
+    is not followed over the shape yet). A fitted PGD of a body that rests on its mesh follows
+    the shape: its volume a cubic of (z, a)."""
     if not model.parameters.names:
         raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
-    shaped = [p.name for p in model.parameters if p.kind == SHAPE]
-    if shaped:
+    shaped = ", ".join(p.name for p in model.parameters if p.kind == SHAPE)
+    if shaped and not fitted:
         raise ParameterError(
-            f"PGD: the shape coefficients ({', '.join(shaped)}) move the body whose volume and energy a PGD reports "
-            "on its template, which it does not follow yet: build a reduced model of the population (lungmech rom build)"
+            f"PGD: the shape coefficients ({shaped}) move the body, and with it the operators the terms are separated "
+            "on: give --samples for a PGD fitted to full solves, or build a reduced model (lungmech rom build)"
+        )
+    if shaped and imaged:
+        raise ParameterError(
+            f"PGD: the shape coefficients ({shaped}) of an imaged body ([inverse]) move its reference, which a fitted "
+            "PGD does not follow over the shape yet: build a reduced model of the population (lungmech rom build)"
         )
 
 

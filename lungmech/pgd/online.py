@@ -1,7 +1,8 @@
 """The outputs of a PGD model's state u = u_rest + Q z as exact functions of the modes'
 coefficients z, made once offline (:class:`Online`):
 
-* the volume ∫ det F dX, a cubic of z (:func:`lungmech.rom.exact.cubic`);
+* the volume ∫ det F dX, a cubic of z (:func:`lungmech.rom.exact.cubic`); over a population's
+  shape map, a cubic of (z, a) together, a the shape coefficients (:mod:`lungmech.rom.shaped`);
 * the probes' displacements, linear in z;
 * the strain energy ½ zᵀ A(μ) z of a linear model, A(μ) = Σₖ wₖ(μ) (A₀ₖ + Σₑ cₑ(μ) Aₑₖ): Aₑₖ = Qᵀ Kₑₖ Q
   the terms' operators projected, cₑ(μ) the values the model's parameters set and wₖ the
@@ -24,6 +25,7 @@ from lungmech.fem.quantities import Probe, strain_energy
 from lungmech.parallel.linalg import apply, gram
 from lungmech.pgd import chebyshev
 from lungmech.pgd import terms as separated
+from lungmech.rom import shaped
 from lungmech.rom.exact import Cubic, affine, cubic
 
 __all__ = ["Online", "online"]
@@ -38,13 +40,15 @@ class Online:
     point and component, × m), ``energy`` (J: for each degree k of the curve's series, A₀ₖ then
     each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices into
     :func:`lungmech.pgd.terms.values`), ``curve`` the axis of the series
-    (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree)."""
+    (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree); ``shape``: the number of shape
+    coefficients a after z among the volume's coordinates (0: no shape map)."""
 
     volume: Cubic
     probes: np.ndarray
     energy: np.ndarray
     entries: np.ndarray
     curve: int = -1
+    shape: int = 0
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Its arrays by name, for a model file."""
@@ -54,17 +58,30 @@ class Online:
             "energy": self.energy,
             "entries": self.entries,
             "curve": np.array([self.curve]),
+            "shape": np.array([self.shape]),
         }
 
     @classmethod
     def of(cls, arrays: Mapping[str, np.ndarray]) -> Online:
-        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree)."""
+        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree; without
+        a shape: none)."""
         volume = Cubic.of(tuple(arrays[f"volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
         energy = arrays["energy"]
         curve = int(arrays["curve"][0]) if "curve" in arrays else -1
-        return cls(
-            volume, arrays["probes"], energy if energy.ndim == 4 else energy[None], arrays["entries"].astype(int), curve
-        )
+        shape = int(arrays["shape"][0]) if "shape" in arrays else 0
+        entries = arrays["entries"].astype(int)
+        return cls(volume, arrays["probes"], energy if energy.ndim == 4 else energy[None], entries, curve, shape)
+
+    def volume_at(self, z: np.ndarray, a: np.ndarray) -> float:
+        """The volume at the state Q z and the shape a (m³)."""
+        return self.volume(np.concatenate([z, a]) if self.shape else z)
+
+    def volume_derivatives(self, z: np.ndarray, a: np.ndarray, dz: np.ndarray, da: np.ndarray) -> np.ndarray:
+        """d(volume)/dμ from dz/dμ (m × parameters) and da/dμ (shape × parameters)."""
+        if not self.shape:
+            return self.volume.gradient(z) @ dz
+        gradient = self.volume.gradient(np.concatenate([z, a]))
+        return gradient[: len(z)] @ dz + gradient[len(z) :] @ da
 
     def weights(self, units: np.ndarray, derivative: int = 0) -> np.ndarray:
         """Tₖ (or its ``derivative`` in the unit coordinate) of the curve's axis at the point of
@@ -107,13 +124,19 @@ def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, pro
     with model.kept_state():
         model.reset()
         rest = model.state.x.array.copy()
-    volume = cubic(model, ufl.det(model.F) * model.dx, rest, modes)
+    if model.shape is not None and problem is not None:
+        raise ParameterError("PGD: a priori terms over a shape map are not separated (its operators move with a)")
+    if model.shape is not None:  # in (z, a)
+        volume = shaped.volume(model, ufl.det(model.F) * model.dx, rest, modes)
+    else:
+        volume = cubic(model, ufl.det(model.F) * model.dx, rest, modes)
     if probe is not None:
         _, probes = affine(model, lambda: probe(model.displacement()), rest, modes)
     else:
         probes = np.zeros((0, m))
     if problem is None:
-        return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int))
+        shape = 0 if model.shape is None else len(model.shape.modes)
+        return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int), shape=shape)
     degrees = 1 if problem.curve is None else problem.curve.degrees
     matrices = {(t.degree, t.entry): t.matrix for t in problem.operator}  # a term dropped as 0: a zero block
     entries = np.array(sorted({t.entry for t in problem.operator if t.entry is not None}), dtype=int)
