@@ -189,6 +189,10 @@ def test_the_fit_recovers_a_separated_function_and_holds_out_samples():
     assert np.abs(found.at(bases) - data).max() < 1e-9 * np.abs(data).max()
     chosen = fit(data, units, [axes], replace(FIT, max_terms=4, tolerance=1e-6))  # above the penalty's 2e-7
     assert chosen.separated.terms == 2 and chosen.held_out[1] < 1e-5
+    # data that do not move (an imaged body resting as imaged: its reference ξ = 0): no term, exact
+    still = fit(np.zeros_like(data), units, [axes])
+    assert still.separated.terms == 0 and still.held_out == [0.0]
+    assert np.array_equal(still.separated.at(bases), np.zeros_like(data))
 
 
 def test_bad_inputs_of_a_fitted_pgd_get_one_line(tmp_path, capsys):

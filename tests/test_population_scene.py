@@ -160,45 +160,58 @@ def test_a_bad_population_scene_gets_one_line(population, change, message, capsy
     assert len(err) == 1 and re.search(message, err[0]), err
 
 
-def test_a_pgd_over_shape_coefficients_is_fitted_or_refused_in_one_line(population, capsys):
-    """A priori, refused before any work: the shape moves the operators the terms are separated
-    on (and the PGD's volume and strain energy would be the template's); fitted on an imaged
-    body too: its reference's volume is not followed over the shape."""
+def test_a_pgd_over_shape_coefficients_a_priori_is_refused_in_one_line(population, capsys):
+    """Refused before any work: the shape moves the operators the terms are separated on (and
+    the PGD's volume and strain energy would be the template's)."""
     path, _ = population
     out = path.with_name("pgd.npz")
     assert main(["pgd", "build", str(path), "-o", str(out), "--modes", "4", "-q"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the shape coefficients (a1, a2)" in err[0] and "give --samples" in err[0], err
-    imaged = write_once(path.with_name("imaged.toml"), BOX.replace("[output]", "[inverse]\ntolerance = 1e-9\n[output]"))
-    assert main(["pgd", "build", str(imaged), "-o", str(out), "--samples", "8", "-q"]) != 0
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "of an imaged body ([inverse]) move its reference" in err[0], err
     assert not out.exists()
 
 
+IMAGED = {  # the block as imaged under its loads (ramped from 1 to 2): its reference ξ(μ) moves with the shape
+    "[output]": "[inverse]\ntolerance = 1e-9\n[output]",
+    "value = 40.0\n": "value = 40.0\nramp = { times = [0.0, 1.0], values = [1.0, 2.0] }\n",
+    "-30.0]\n": "-30.0]\nramp = { times = [0.0, 1.0], values = [1.0, 2.0] }\n",
+}
+
+
 @pytest.mark.slow
-def test_a_fitted_pgd_follows_the_shape(population, tmp_path):
+@pytest.mark.parametrize("imaged", [False, True], ids=["at rest on its mesh", "imaged"])
+def test_a_fitted_pgd_follows_the_shape(population, tmp_path, imaged):
     """`pgd build --samples` over the shape box → `rom solve --set` at a shape it was not fitted
-    at: the full run's start volume (the shape's own, exactly: a cubic in a), its deformed
-    volume, strain energy and probe within the fit's error (before the volume followed the
-    shape: 1.95 m³ where the full model gives 2.15); d(volume)/da the PGD's own central
-    differences; its file answers as the model it saved."""
+    at: the full run's start volume (the shape's own: a cubic in a), its deformed volume,
+    strain energy and probe within the fit's error (before the volume followed the shape: 1.95
+    m³ where the full model gives 2.15); on an imaged block, its reference volume too; d(volume)/da
+    the PGD's own central differences."""
     from lungmech.app import reduce
 
     path, _ = population
+    if imaged:
+        text = BOX
+        for old, new in IMAGED.items():
+            assert old in text
+            text = text.replace(old, new)
+        path = write_once(path.with_name("imaged.toml"), text)
     model = tmp_path / "pgd.npz"
     assert main(["pgd", "build", str(path), "-o", str(model), "--samples", "24", "-q"]) == 0
     point = ["--set", "a1=0.9", "--set", "a2=-1.3"]
     assert main(["run", str(path), "-o", str(tmp_path / "full"), *point, "-q"]) == 0
     assert main(["rom", "solve", str(model), "-o", str(tmp_path / "pgd"), *point, "-q"]) == 0
     pgd, full = (json.loads((tmp_path / name / "summary.json").read_text()) for name in ("pgd", "full"))
-    assert pgd["start_volume"] == pytest.approx(full["start_volume"], rel=1e-12)
+    assert pgd["start_volume"] == pytest.approx(full["start_volume"], rel=1e-9)  # (the full start: w to 1e-9)
+    # measured: 2.4e-4 of the change, 2.7e-6, 5.6e-5 of the motion (24 solves: 15 terms, held out 3.6e-4);
+    # imaged, 7.5e-4, 9e-6, 2.8e-5 and the reference volume 1.4e-4 of its distance from the image's
     change = full["deformed_volume"] - full["start_volume"]
-    # measured: 2.4e-4 of the change, 2.7e-6 and 5.6e-5 of the motion (24 solves: 15 terms, held out 3.6e-4)
-    assert abs(pgd["deformed_volume"] - full["deformed_volume"]) <= 2e-3 * abs(change), (pgd, full)
+    assert abs(pgd["deformed_volume"] - full["deformed_volume"]) <= 3e-3 * abs(change), (pgd, full)
     assert pgd["strain_energy"] == pytest.approx(full["strain_energy"], rel=1e-4)
     motion = np.abs(full["probes"]["displacement"]).max()
     assert np.abs(np.subtract(pgd["probes"]["displacement"], full["probes"]["displacement"])).max() <= 1e-3 * motion
+    if imaged:
+        apart = full["reference_volume"] - full["start_volume"]
+        assert abs(pgd["reference_volume"] - full["reference_volume"]) <= 1e-3 * abs(apart)
     loaded = reduce.load(model)
     mu = {"a1": 0.9, "a2": -1.3}
     found = loaded.solve(mu, sensitivities=True)
@@ -206,4 +219,31 @@ def test_a_fitted_pgd_follows_the_shape(population, tmp_path):
         h = 1e-5
         ahead, behind = (loaded.solve(mu | {name: mu[name] + s}).outputs["volume"] for s in (h, -h))
         assert found.sensitivities["volume"][-1, j] == pytest.approx((ahead[-1] - behind[-1]) / (2 * h), rel=1e-6)
-    assert found.start.details["volume"] == pytest.approx(full["start_volume"], rel=1e-12)
+    assert found.start.details["volume"] == pytest.approx(full["start_volume"], rel=1e-9)
+
+
+@pytest.mark.mpi
+def test_a_fitted_pgd_over_the_shape_on_two_ranks_answers_as_one_ranks(population):
+    """The imaged block's PGD fitted on the world's ranks and on this rank alone: the start,
+    reference and deformed volumes and the probe at random shapes agree to 1e-9 of their size
+    (the volumes' cubics in (z, a) assembled on a distributed template)."""
+    from dataclasses import replace
+
+    from lungmech.pgd.fitted import fitted
+    from lungmech.pgd.fitting import FIT
+
+    path, _ = population
+    text = BOX
+    for old, new in IMAGED.items():
+        text = text.replace(old, new)
+    scene = scenes.load(write_once(path.with_name("imaged.toml"), text))
+    found = {}
+    for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
+        full = full_order_model(scene, comm, start="inverse_motion")
+        found[name] = fitted(full, 12, 2, replace(FIT, max_terms=6), scene.output.probes)[0]
+    for point in found["self"].parameters.sample(4, seed=9):
+        a, b = found["world"].solve(point), found["self"].solve(point)
+        for key in ("volume", "reference_volume"):
+            assert a.start.details[key] == pytest.approx(b.start.details[key], rel=1e-9)
+        assert np.abs(a.outputs["volume"] - b.outputs["volume"]).max() <= 1e-9 * np.abs(b.outputs["volume"]).max()
+        assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()

@@ -113,6 +113,28 @@ def test_a_new_patient_is_personalised_on_the_populations_model(population, tmp_
     assert "offline" in report["seconds"] and report["seconds"]["offline"] == 0.0  # nothing built for the patient
 
 
+@pytest.mark.slow
+def test_a_new_patient_on_a_populations_pgd_gets_an_interval_that_holds_the_truth(population, tmp_path):
+    """The population's model a PGD fitted to 16 full solves over its 5 parameters (`pgd build
+    --samples 16 --probes surface`, the shape coefficients among them): a coarse fit (its
+    held-out error about 0.1; 96 solves make it 9e-3 and the estimate 1.159), whose check at 3
+    points widens the interval by its error: the truth inside, the shape the registration's."""
+    scene, _, (expiration, inspiration) = population
+    model = tmp_path / "pgd.npz"
+    build = ["pgd", "build", str(scene), "-o", str(model), "--probes", "surface", "--samples", "16", "-q"]
+    assert main(build) == 0
+    out = tmp_path / "patient"
+    argv = ["personalise", "--model", str(model), "--expiration", str(expiration), "--inspiration", str(inspiration)]
+    assert main([*argv, "--estimate", "breath", "--resamples", "0", "-o", str(out), "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    breath = report["parameters"]["breath"]
+    assert breath["interval"][0] < TRUTH["breath"] < breath["interval"][1], breath
+    assert breath["model_bias_unit_box"] > 0 and breath["value"] == pytest.approx(TRUTH["breath"], rel=0.1)
+    assert report["model"]["method"] == "pgd" and report["model"]["population"] == str(model)
+    sigma = np.array([4.04e-3, 2.00e-3])  # m: the modes' spreads (the first test's measure)
+    assert np.linalg.norm((np.array(report["registration"][0]["shape_coefficients"]) - SHAPE) * sigma) < 0.002
+
+
 def test_a_population_model_without_surface_probes_is_refused():
     """A model file over a population whose probes are not its template's surface nodes (in
     their order) cannot be fitted to a patient's surface: refused, naming the file and the fix."""

@@ -143,6 +143,24 @@ def setup(args: argparse.Namespace) -> tuple[MPI.Comm, Scene, str, Path]:
     return comm, scenes.load(args.scene), args.scene, Path(args.scene)
 
 
+def probes_option(command: argparse.ArgumentParser) -> None:
+    """``--probes scene|surface``: a model file's probes (``rom build``, ``pgd build``)."""
+    command.add_argument(
+        "--probes",
+        choices=("scene", "surface"),
+        default="scene",
+        help="the model's probes: the scene's (default), or its mesh's surface nodes (on a population's scene, "
+        "its template's): a model lungmech personalise --model fits a patient's images with",
+    )
+
+
+def with_probes(args: argparse.Namespace, scene: Scene, comm: MPI.Comm) -> Scene:
+    """``scene`` with the probes ``--probes`` asks for (:func:`probes_option`)."""
+    from lungmech.app.template import with_surface_probes
+
+    return with_surface_probes(scene, comm) if args.probes == "surface" else scene
+
+
 def ensemble_options(command: argparse.ArgumentParser, what: str, cache: bool = True) -> None:
     """Where ``what`` (many independent solves) run: --group-size, --engine, --workers,
     --worker-ranks, and (``cache``) --cache, where their answers are kept."""

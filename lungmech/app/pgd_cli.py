@@ -7,7 +7,7 @@ import argparse
 import contextlib
 from pathlib import Path
 
-from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, setup
+from lungmech.app.arguments import check_ensemble, ensemble_of, ensemble_options, probes_option, setup, with_probes
 
 COMMANDS = ("pgd",)
 
@@ -48,6 +48,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     build.add_argument("--seed", type=int, default=0, help="the Sobol' sample's seed, with --samples (default 0)")
     ensemble_options(build, "the full solves of --samples")
+    probes_option(build)
     build.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
@@ -57,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
 
     comm, scene, name, _ = setup(args)
     check_ensemble(args, comm)
+    scene = with_probes(args, scene, comm)
     if comm.rank == 0:
         print(f"lungmech: building the PGD model of {name}", flush=True)
     given = args.engine is not None or args.group_size is not None

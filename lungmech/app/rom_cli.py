@@ -15,8 +15,10 @@ from lungmech.app.arguments import (
     ensemble_of,
     ensemble_options,
     logging_comm,
+    probes_option,
     scales,
     setup,
+    with_probes,
 )
 from lungmech.errors import ParameterError
 
@@ -101,13 +103,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "the groups or workers below (default 1)",
     )
     ensemble_options(build, "the training's full solves")
-    build.add_argument(
-        "--probes",
-        choices=("scene", "surface"),
-        default="scene",
-        help="the model's probes: the scene's (default), or its mesh's surface nodes (on a population's scene, "
-        "its template's): a model lungmech personalise --model fits a patient's images with",
-    )
+    probes_option(build)
     build.add_argument("-q", "--quiet", action="store_true", help="no per-step progress")
     solve = actions.add_parser("solve", help="solve a scene with a reduced model (same outputs as run)")
     solve.add_argument("model", help="reduced model file (.npz) from 'lungmech rom build'")
@@ -128,12 +124,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def build(args: argparse.Namespace) -> int:
-    from lungmech.app.template import with_surface_probes
-
     comm, scene, name, path = setup(args)
     check_ensemble(args, comm)
-    if args.probes == "surface":
-        scene = with_surface_probes(scene, comm)
+    scene = with_probes(args, scene, comm)
     if comm.rank == 0:
         print(f"lungmech: building a {args.basis} reduced model of {name}", flush=True)
     given = args.engine is not None or args.group_size is not None

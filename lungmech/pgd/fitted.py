@@ -75,11 +75,11 @@ def fitted(
     state, of the strain energy (their held-out errors against the number of terms) and, on an
     imaged body, of its reference ξ(μ) (:mod:`lungmech.pgd.imaged`). ``paths`` solves the full
     load paths (default: one after another on ``full``). Refused in one line before any solve
-    where it cannot answer: no parameter, a shape coefficient of an imaged body, loads not at rest at the start
-    (but on an imaged body), a scalar load 0 at the path's end. Collective."""
+    where it cannot answer: no parameter, loads not at rest at the start (but on an imaged body), a scalar load
+    0 at the path's end. Collective."""
     model, stepping = full.model, full.stepping
+    answerable(model, fitted=True)
     imaged = isinstance(full.start, InverseMotion)
-    answerable(model, fitted=True, imaged=imaged)
     if not imaged:
         _from_rest(model, stepping)
     load_fractions(model, stepping)

@@ -108,6 +108,12 @@ def fit(
     count = data.shape[1]
     if count < 2 * HELD_OUT:
         raise ParameterError(f"PGD fit: at least {2 * HELD_OUT} samples are needed to hold some out (got {count})")
+    if not np.any(data):  # nothing moves (an imaged body that rests as imaged: ξ = 0): no term
+        axes = tuple(choices[0])
+        empty = Separated(
+            np.zeros((data.shape[0], 0)), [np.zeros((0, a.size)) for a in axes], np.zeros((0, data.shape[2]))
+        )
+        return Fit(empty, axes, [0.0], {_named(axes): [0.0]}, [0.0])
     order = np.random.default_rng(seed).permutation(count)
     held = np.sort(order[::HELD_OUT])
     kept = np.setdiff1d(np.arange(count), held)

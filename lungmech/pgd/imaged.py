@@ -16,6 +16,10 @@ the breath from t₀ on, where it is the image (w = 0) with x_ξ(μ)'s other fie
 * the reference volume ∫ det(I + ∇ξ) dx, a cubic in a (:func:`lungmech.rom.exact.cubic`);
 * the volume from the image, ∫ det(I + ∇w) dx, a cubic in z alone, as every model's.
 
+Over a population's shape map (an image of the template moved by s, :mod:`lungmech.rom.shaped`)
+each volume is a cubic in its coordinates and the shape coefficients together, and the image's
+own volume ∫ det(I + ∇s) dx̂ a cubic in the shape coefficients.
+
 :func:`reference` makes the :class:`Reference` of a fitted ξ; :meth:`Reference.hand_over`
 puts ξ(μ) into the breath's model for a full field.
 """
@@ -35,10 +39,11 @@ from lungmech.fem.quantities import Probe, strain_energy
 from lungmech.fem.start import StartReport
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.decomposition import Decomposition
+from lungmech.rom import shaped
 from lungmech.rom.exact import Cubic, affine, cubic
 from lungmech.rom.load_paths import LoadPath
 
-__all__ = ["Reference", "image_states", "reference", "start_energies"]
+__all__ = ["Reference", "constant", "image_states", "reference", "start_energies"]
 
 
 @dataclass(frozen=True)
@@ -46,15 +51,18 @@ class Reference:
     """ξ(μ) of an imaged body as a fitted ``decomposition`` of its inverse problem's state
     (modes: owned rows, relative to that model's rest state ``rest``, a full local array):
     ``probes`` ξ at the probe points, (p₀, P) with ξ = p₀ + P a (a row per point and component;
-    m), ``volume`` the reference volume, a cubic in a (m³; m³/m in 2-D), ``imaged_volume``
-    the image's (m³) and ``body`` what the body is called ("lung")."""
+    m), ``volume`` the reference volume, a cubic in a (m³; m³/m in 2-D), ``imaged`` the
+    image's volume and ``body`` what the body is called ("lung"). Over a shape map (``shape``
+    coefficients), ``volume`` is a cubic in (a, the shape coefficients) and ``imaged`` in the
+    shape coefficients; without, ``imaged`` is a constant."""
 
     decomposition: Decomposition
     rest: np.ndarray
     probes: tuple[np.ndarray, np.ndarray]
     volume: Cubic
-    imaged_volume: float
+    imaged: Cubic
     body: str = "body"
+    shape: int = 0
 
     def at_probes(self, mu: Mapping[str, float]) -> np.ndarray:
         """ξ at the probe points (a row per point and component; m)."""
@@ -65,11 +73,13 @@ class Reference:
         """dξ/dμ at the probe points (a row per point and component × parameters; m per unit)."""
         return self.probes[1] @ self.decomposition.factor_derivatives(mu)
 
-    def start(self, mu: Mapping[str, float]) -> StartReport:
-        """What the start is at ``mu``: the image on its fitted reference, with both volumes (m³)."""
+    def start(self, mu: Mapping[str, float], shape: np.ndarray) -> StartReport:
+        """What the start is at ``mu`` (and the ``shape`` coefficients it sets; none without a
+        shape map): the image on its fitted reference, with both volumes (m³)."""
+        factors = self.decomposition.factors(mu)
         details = {
-            "imaged_volume": self.imaged_volume,
-            "reference_volume": float(self.volume(self.decomposition.factors(mu))),
+            "imaged_volume": self.imaged(shape),
+            "reference_volume": self.volume(np.concatenate([factors, shape]) if self.shape else factors),
         }
         return StartReport(
             "imaged", f"the imaged {self.body} (its unloaded reference from the PGD's fit of it)", 0, details
@@ -90,10 +100,10 @@ class Reference:
         """Its small arrays by name, for a model file (the modes and the rest state go by the
         mesh's canonical order)."""
         p0, P = self.probes
-        c0, c1, c2, c3 = self.volume.arrays()
-        return {"reduced": self.decomposition.reduced, "probes0": p0, "probes": P} | {
-            f"volume/{name}": c for name, c in zip(("c0", "c1", "c2", "c3"), (c0, c1, c2, c3))
-        }
+        names = ("c0", "c1", "c2", "c3")
+        found = {"reduced": self.decomposition.reduced, "probes0": p0, "probes": P, "shape": np.array([self.shape])}
+        found |= {f"volume/{name}": c for name, c in zip(names, self.volume.arrays())}
+        return found | {f"imaged/{name}": c for name, c in zip(names, self.imaged.arrays())}
 
 
 def image_states(full: FullOrderModel, solved: Sequence[LoadPath]) -> np.ndarray:
@@ -142,9 +152,19 @@ def reference(full: FullOrderModel, decomposition: Decomposition, probe: Probe |
         inverse.reset()
         rest = inverse.state.x.array.copy()
     modes = decomposition.modes
-    volume = cubic(inverse, fem.Constant(inverse.geometry.mesh, 1.0) * inverse.dx, rest, modes)
+    at_rest = fem.Constant(inverse.geometry.mesh, 1.0) * inverse.dx
+    if inverse.shape is None:
+        volume, imaged, shape = cubic(inverse, at_rest, rest, modes), constant(full.model.geometry.volume()), 0
+    else:  # on a template: in (a, the shape coefficients)
+        volume, imaged = shaped.volume(inverse, at_rest, rest, modes), shaped.mesh_volume(full.model)
+        shape = len(inverse.shape.modes)
     if probe is not None:  # u = −ξ in the inverse problem
         p0, P = affine(inverse, lambda: -probe(inverse.displacement()), rest, modes)
     else:
         p0, P = np.zeros(0), np.zeros((0, modes.shape[1]))
-    return Reference(decomposition, rest, (p0, P), volume, float(full.model.geometry.volume()), start.body)
+    return Reference(decomposition, rest, (p0, P), volume, imaged, start.body, shape)
+
+
+def constant(value: float) -> Cubic:
+    """``value`` as a cubic in no coordinate."""
+    return Cubic(float(value), np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0, 0)))

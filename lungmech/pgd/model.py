@@ -192,7 +192,7 @@ class PGDModel:
             point = _Point(self, values, self._values.read(), model.scalar_loads(), self._shape_values(), derivatives)
         if self.reference is not None:  # the image on its reference at μ, and its volume there
             imaged = self.online.volume_at(point.state(float(stepping.start), factor), point.a)
-            start = self.reference.start(values).measured(imaged)
+            start = self.reference.start(values, point.a).measured(imaged)
         else:  # the body at rest: of the shape at μ over a shape map
             start = start.measured(self.online.volume_at(np.zeros(self.size), point.a))
         if on_step is not None:  # the start, as every model shows it first
@@ -393,12 +393,11 @@ def _one_factor(scale: float | Sequence[float], loads: int) -> float:
     return float(factors[0])
 
 
-def answerable(model: Model, fitted: bool = False, imaged: bool = False) -> None:
+def answerable(model: Model, fitted: bool = False) -> None:
     """Refuse, in one line, a model whose parameters a PGD does not answer: none; a shape
     coefficient a priori (it moves the body, so the operators the terms are separated on move
-    with it other than affinely); a shape coefficient of an imaged body (its reference's volume
-    is not followed over the shape yet). A fitted PGD of a body that rests on its mesh follows
-    the shape: its volume a cubic of (z, a)."""
+    with it other than affinely). A fitted PGD follows the shape: its volumes cubics of their
+    coordinates and the shape coefficients together."""
     if not model.parameters.names:
         raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
     shaped = ", ".join(p.name for p in model.parameters if p.kind == SHAPE)
@@ -406,11 +405,6 @@ def answerable(model: Model, fitted: bool = False, imaged: bool = False) -> None
         raise ParameterError(
             f"PGD: the shape coefficients ({shaped}) move the body, and with it the operators the terms are separated "
             "on: give --samples for a PGD fitted to full solves, or build a reduced model (lungmech rom build)"
-        )
-    if shaped and imaged:
-        raise ParameterError(
-            f"PGD: the shape coefficients ({shaped}) of an imaged body ([inverse]) move its reference, which a fitted "
-            "PGD does not follow over the shape yet: build a reduced model of the population (lungmech rom build)"
         )
 
 

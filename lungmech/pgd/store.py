@@ -26,7 +26,7 @@ from lungmech.fem.solver import Stepping
 from lungmech.parallel.layout import layout
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
-from lungmech.pgd.imaged import Reference
+from lungmech.pgd.imaged import Reference, constant
 from lungmech.pgd.model import PGDModel
 from lungmech.pgd.online import Online
 from lungmech.pgd.timeline import SampledTimeline
@@ -75,11 +75,7 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
             "pgd/reference/modes": where.gather(reference.decomposition.modes),
             "pgd/reference/rest": where.gather(reference.rest[: reference.decomposition.modes.shape[0]]),
         }
-        record["image"] = {
-            "axes": [axis.intervals for axis in reference.decomposition.axes],
-            "imaged_volume": reference.imaged_volume,
-            "body": reference.body,
-        }
+        record["image"] = {"axes": [axis.intervals for axis in reference.decomposition.axes], "body": reference.body}
     store.write(path, model, basis, extra=(extra or {}) | {"pgd": record}, arrays=content | (arrays or {}))
 
 
@@ -173,10 +169,18 @@ def _reference(
     for axis, X in zip(axes, coefficients):
         if X.shape != (reduced.shape[1], axis.size) or reduced.shape[0] != modes.shape[1]:
             raise ValueError(f"reference axis {axis.parameter.name}: {X.shape}")
-    volume = Cubic.of(tuple(held[f"pgd/reference/volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
+    names = ("c0", "c1", "c2", "c3")
+    volume = Cubic.of(tuple(held[f"pgd/reference/volume/{name}"] for name in names))
+    if "imaged_volume" in image:  # written before the shape was followed: no shape map, the image's volume
+        imaged, shape = constant(image["imaged_volume"]), 0
+    else:
+        imaged = Cubic.of(tuple(held[f"pgd/reference/imaged/{name}"] for name in names))
+        shape = int(held["pgd/reference/shape"][0])
+    if volume.c1.shape != (modes.shape[1] + shape,) or imaged.c1.shape != (shape,):
+        raise ValueError(f"reference volumes {volume.c1.shape} and {imaged.c1.shape}, {shape} shape coefficients")
     probes = (held["pgd/reference/probes0"], held["pgd/reference/probes"])
     decomposition = Decomposition(axes, modes, reduced, coefficients)
-    return Reference(decomposition, rest.x.array.copy(), probes, volume, float(image["imaged_volume"]), image["body"])
+    return Reference(decomposition, rest.x.array.copy(), probes, volume, imaged, image["body"], shape)
 
 
 def _check_shapes(d: Decomposition, online: Online) -> None:
