@@ -40,7 +40,6 @@ table in results/pgd_plot.json (for --replot).
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import os
 import sys
@@ -408,9 +407,18 @@ def markdown(rows: list[dict], command: str) -> str:
 
 
 def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> None:
-    """Left: the anchor PGD's energy-norm error over its box. Middle: error against online time.
-    Right: the fitted PGD's held-out error against its number of terms."""
-    fig, (left, right, third) = plt.subplots(1, 3, figsize=(16, 4.4))
+    """Left: the anchor PGD's energy-norm error over its box. Middle: error against online time,
+    a marker per case and model (filled: one rank, hollow: two). Right: the fitted PGD's held-out
+    error against its number of terms, a colour per case and sample, a line per choice of
+    intervals. The legends in a row of their own below, so that the axes keep their size."""
+    from matplotlib.lines import Line2D
+
+    fig = plt.figure(figsize=(17, 6.6))
+    grid = fig.add_gridspec(2, 3, height_ratios=(1.0, 0.42), hspace=0.3, wspace=0.42)
+    left, right, third = (fig.add_subplot(grid[0, k]) for k in range(3))
+    keys_below, curves_below = fig.add_subplot(grid[1, 1]), fig.add_subplot(grid[1, 2])
+    for spare in (fig.add_subplot(grid[1, 0]), keys_below, curves_below):
+        spare.axis("off")
     if mapped is not None:
         image = left.pcolormesh(
             mapped["y"], mapped["x"], np.log10(np.maximum(mapped["errors"], 1e-16)), shading="nearest"
@@ -421,34 +429,60 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
         left.set_ylabel(f"{mapped['names'][0]} [Pa]")
         left.set_title("the anchor plate's PGD over its box", fontsize=10)
     measured = [r for r in rows if isinstance(r.get("energy error max"), float)]
-    colours = plt.get_cmap("tab20").colors  # a colour and a marker of its own for each of up to 20 rows
-    for r, marker, colour in zip(measured, itertools.cycle("os^vD<>ph*"), itertools.cycle(colours)):
-        label = f"{r['case']}, {r['ranks']} rank(s): {r['model']}"
-        right.loglog(r["online [ms]"], r["energy error max"], marker, color=colour, label=label)
+    kinds = list(dict.fromkeys(_kind(r) for r in measured))  # a case's model, whatever its terms on each run
+    colours = plt.get_cmap("tab20").colors
+    for r in measured:
+        k = kinds.index(_kind(r))
+        marker, colour = "os^vD<>ph*"[k % 10], colours[k % 20]
+        face = colour if int(r["ranks"]) == 1 else "none"
+        right.loglog(r["online [ms]"], r["energy error max"], marker, color=colour, markerfacecolor=face, ms=7)
     right.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     right.set_xlabel("online time per point [ms]")
     right.set_ylabel("largest relative energy-norm error [-]")
+    right.set_title("error against online time (filled: 1 rank, hollow: 2)", fontsize=10)
     right.grid(alpha=0.3, which="both")
-    # below the axes: a row per model and rank count (26 in the full run) would hide the points
-    right.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
-    # a colour per sample size, a line style per choice of intervals ("breath, 32 solves, intervals 2,2,2, 1 rank(s)")
-    sizes = sorted({label.split(" solves")[0] for label in curves})
-    choices = sorted(
-        {label.split("intervals ")[1].split(", ")[0] for label in curves}, key=lambda k: [int(x) for x in k.split(",")]
-    )
+    handles = [
+        Line2D([], [], marker="os^vD<>ph*"[k % 10], color=colours[k % 20], ls="", label=kind)
+        for k, kind in enumerate(kinds)
+    ]
+    keys_below.legend(handles=handles, fontsize=7.5, loc="upper center", ncol=2, frameon=False)
+    # a colour per case and sample size, a line style per intervals an axis ("intervals 2,2,2": 2)
+    sizes = list(dict.fromkeys(label.split(" solves")[0] for label in curves))
+    choices = sorted({_intervals(label) for label in curves})
+    styles = ["-", "--", ":", "-."]
     for label, curve in curves.items():
         colour = plt.get_cmap("tab10").colors[sizes.index(label.split(" solves")[0]) % 10]
-        style = ["-", "--", ":", "-."][choices.index(label.split("intervals ")[1].split(", ")[0]) % 4]
-        third.semilogy(np.arange(1, len(curve) + 1), curve, style, marker=".", color=colour, label=label)
+        style = styles[choices.index(_intervals(label)) % 4]
+        third.semilogy(np.arange(1, len(curve) + 1), curve, style, marker=".", ms=3, color=colour)
     third.set_xlabel("separated terms [-]")
     third.set_ylabel("held-out relative energy-norm error, max [-]")
-    third.set_title("the fitted PGD: choosing its terms and intervals", fontsize=10)
+    ranks = sorted({label.rsplit(", ", 1)[1] for label in curves})
+    third.set_title(f"the fitted PGD: choosing its terms and intervals ({', '.join(ranks)})", fontsize=10)
     third.grid(alpha=0.3, which="both")
     if curves:
-        third.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120, bbox_inches="tight")  # the legends below the axes kept
+        handles = [
+            Line2D([], [], color=plt.get_cmap("tab10").colors[i % 10], label=f"{size} solves")
+            for i, size in enumerate(sizes)
+        ]
+        handles += [
+            Line2D([], [], color="k", ls=styles[i % 4], label=f"{choice} interval(s) an axis")
+            for i, choice in enumerate(choices)
+        ]
+        curves_below.legend(handles=handles, fontsize=7.5, loc="upper center", ncol=2, frameon=False)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
+
+
+def _intervals(label: str) -> int:
+    """The intervals an axis of a curve's label ("…, intervals 2,2,2, 1 rank(s)": 2)."""
+    return int(label.split("intervals ")[1].split(",")[0])
+
+
+def _kind(row: dict) -> str:
+    """A row's case and model without its terms ("breath: PGD fitted, 32 solves")."""
+    model = str(row["model"]).split(" (")[0]
+    solves = int(float(row["full solves offline"])) if row.get("full solves offline") not in (None, "") else 0
+    return f"{row['case']}: {model}" + (f", {solves} solves" if model.startswith("PGD fitted") else "")
 
 
 def _mapped(saved: dict | None) -> dict | None:
