@@ -23,8 +23,9 @@ from lungmech.app.run import build_model, full_order_model
 from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.solver import Stepping
 from lungmech.pgd.axes import Axis
+from lungmech.pgd.greedy import Options
 from lungmech.pgd.model import build
-from lungmech.pgd.terms import constants
+from lungmech.pgd.terms import constants, values
 from lungmech.pgd.values import closed_form
 
 # A steel-like beam 2 × 0.5 × 0.5 m clamped at x = 0, under its weight (turned by the pitch, over
@@ -116,6 +117,37 @@ def test_a_pgd_model_answers_as_the_full_model_at_random_points_of_its_box(beam)
             exact = b.sensitivities[name]
             assert relative(a.sensitivities[name], exact, np.abs(exact).max()) < SLOPES, name
         assert a.newton_iterations == 0 and a.start.kind == "rest"
+
+
+def test_each_answer_carries_the_indicator_at_its_point(beam):
+    """η(μ) of an answer, from the residual's Gram matrix (no assembly), is the full residual's
+    dual norm at the PGD's state (lungmech.pgd.indicator) at 5 Sobol' points: to round-off on a
+    PGD of 2 terms (η about 4e-3 and more), within 1e-9 on the converged one (η about 2e-7: the
+    Gram form's cancellation, measured 6e-10); the same at any output time and load factor
+    (the residual scales with the state); a model file keeps it."""
+    from lungmech.pgd.indicator import indicator
+    from lungmech.rom.basis import inner_product
+
+    folder, scene, pgd, _ = beam
+    points = pgd.parameters.sample(5, seed=6)
+    coarse, _ = build(build_model(scene), scene.stepping, options=Options(max_terms=2))
+    for model, rtol, atol in ((coarse, 1e-9, 0.0), (pgd, 0.0, 1e-9)):
+        W = inner_product(model.model, "energy")
+        try:
+            model.model.set_time(scene.stepping.end)
+            exact = indicator(model.model, model.decomposition, W, points)
+        finally:
+            W.destroy()
+        found = np.array([model.solve(point).indicator for point in points])
+        assert np.allclose(found, exact, rtol=rtol, atol=atol) and np.all(found > 0), (found, exact)
+        assert len(set(found.round(12))) == len(found)  # one per point, not one for all
+        assert model.solve(points[0], times=[0.5], scale=0.3).indicator == pytest.approx(found[0], rel=1e-12)
+    path = folder / "indicated.npz"
+    build_file(scene, path, modes=6)
+    loaded = reduce.load(path, fields=True)
+    assert loaded.online.residual.shape == pgd.online.residual.shape
+    found = np.array([loaded.solve(point).indicator for point in points])
+    assert np.allclose(found, exact, rtol=0.0, atol=1e-9), (found, exact)
 
 
 def test_its_path_and_load_factor_are_the_linear_models(beam):
@@ -211,12 +243,14 @@ def test_a_pgd_file_is_refused_on_another_mesh_or_physics(beam, tmp_path):
 @pytest.mark.mpi
 def test_a_build_on_every_rank_equals_the_serial_one(beam):
     """The scene's PGD model distributed and on each rank alone (COMM_SELF): the same outputs
-    and derivatives at random points, to 1e-9."""
+    and derivatives at random points, to 1e-9; the indicator, near its round-off floor
+    (about 2e-7 here), to 1e-9 too."""
     _, scene, pgd, _ = beam
     alone, _ = build(build_model(scene, MPI.COMM_SELF), scene.stepping, scene.output.probes)
     assert alone.decomposition.terms == pgd.decomposition.terms
     for point in pgd.parameters.sample(4, seed=9):
         a, b = pgd.solve(point, sensitivities=True), alone.solve(point, sensitivities=True)
+        assert a.indicator == pytest.approx(b.indicator, rel=0.0, abs=1e-9) and a.indicator > 0
         for name in ("volume", "strain_energy", "probes"):
             assert relative(a.outputs[name], b.outputs[name], np.abs(b.outputs[name]).max()) < 1e-9, name
             exact = b.sensitivities[name]
@@ -226,24 +260,32 @@ def test_a_build_on_every_rank_equals_the_serial_one(beam):
 def test_the_values_in_closed_form_are_the_models_and_refused_where_none_holds(beam):
     """The moduli (linear in E) and the end pressure (its value) in closed form equal the model's
     own at random points, so an answer need not set the fem model (the same answer as with its
-    sensitivities, which does); gravity turned by the pitch has one, by pitch and roll none."""
+    sensitivities, which does); gravity turned by the pitch has one, by pitch and roll one with
+    a term in their products (cos p sin r), a Lamé constant of the Poisson ratio none."""
     _, scene, pgd, _ = beam
     assert pgd._energy is not None and pgd._loads is not None
     for point in pgd.parameters.sample(5, seed=31):
         quick, set_model = pgd.solve(point), pgd.solve(point, sensitivities=True)
         for name in ("strain_energy", "loads/tip", "volume"):
             assert np.allclose(quick.outputs[name], set_model.outputs[name], rtol=1e-12, atol=0), name
-    for model, held in ((build_model(scene), True), (beam_model_with_roll(scene), False)):
+    for model, pairs in ((build_model(scene), 0), (with_parameter(scene, "roll", "loads.gravity.roll", [-30, 30]), 1)):
         model.set_time(1.0)  # the loads at the path's end (0 at its start)
         weight = [c for c in constants(model) if np.size(c.value) == 3]  # ρg, turned by the posture
         axes = tuple(Axis(p, 8) for p in model.parameters)
-        form = closed_form(model, axes, lambda: np.concatenate([np.ravel(c.value) for c in weight]))  # noqa: B023
-        assert (form is not None) == held  # the pitch alone: cos and sin; with the roll: their products
+        read = lambda: np.concatenate([np.ravel(c.value) for c in weight])  # noqa: B023, E731
+        form = closed_form(model, axes, read)
+        assert form is not None and len(form.pairs) == pairs  # the pitch alone: cos and sin; with the roll, products
+        for point in model.parameters.sample(6, seed=5):
+            model.set_parameters(point)
+            assert np.allclose(form(point), read(), rtol=0.0, atol=1e-12 * np.abs(read()).max())
+    model = with_parameter(scene, "nu", "material.nu", [0.1, 0.45])
+    axes = tuple(Axis(p, 8) for p in model.parameters)
+    assert closed_form(model, axes, lambda: values(model)) is None  # λ = Eν/((1+ν)(1−2ν))
 
 
-def beam_model_with_roll(scene):
-    """The scene's model with the roll a parameter too (gravity turned by pitch and roll)."""
+def with_parameter(scene, name, target, box):
+    """The scene's model with one more parameter (the roll: gravity turned by pitch and roll)."""
     table = dict(scene.table) | {
-        "parameters": dict(scene.table["parameters"]) | {"roll": {"target": "loads.gravity.roll", "range": [-30, 30]}}
+        "parameters": dict(scene.table["parameters"]) | {name: {"target": target, "range": box}}
     }
     return build_model(scenes.parse(table, folder=Path(scene.source).parent))

@@ -230,7 +230,7 @@ class PGDModel:
             units=dict(UNITS),
             start=start,
             scale=factor if isinstance(scale, int | float) else np.asarray(scale, dtype=float).tolist(),
-            indicator=None if self.built.get("estimate") is None else float(self.built["estimate"]),
+            indicator=point.indicator if point.indicator is not None else self.built.get("estimate"),
         )
 
     @functools.lru_cache(maxsize=8)  # noqa: B019  (the model lives as long as its answers are asked for)
@@ -313,6 +313,9 @@ class _Point:
         units = d.units(values) if self.energy is None else np.zeros(0)
         weights = self.online.weights(units) if self.energy is None else np.ones(1)
         self.operator = self.online.operator(c, weights) if self.energy is None else None
+        # a linear model's η at μ, from z at the path's end (τ = 1 there): the answer at t and s
+        # is a multiple of it, as is its residual
+        self.indicator = None if self.energy is not None else self.online.indicator(c, weights, self.reduced @ self.q)
         self.loads, self.a = loads, a
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
@@ -439,7 +442,7 @@ def build(
         seconds["indicator"] = time.perf_counter() - tic
         tic = time.perf_counter()
         probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
-        outputs = online(model, problem, decomposition.modes, probe)
+        outputs = online(model, problem, decomposition.modes, probe, W)
         seconds["outputs"] = time.perf_counter() - tic
     finally:
         problem.destroy()

@@ -7,19 +7,31 @@ coefficients z, made once offline (:class:`Online`):
 * the strain energy ½ zᵀ A(μ) z of a linear model, A(μ) = Σₖ wₖ(μ) (A₀ₖ + Σₑ cₑ(μ) Aₑₖ): Aₑₖ = Qᵀ Kₑₖ Q
   the terms' operators projected, cₑ(μ) the values the model's parameters set and wₖ the
   Chebyshev polynomials of a curve's parameter (one 1 without a curve,
-  :mod:`lungmech.pgd.terms`); checked against the model's own ∫ψ dX at a random point.
+  :mod:`lungmech.pgd.terms`); checked against the model's own ∫ψ dX at a random point;
+* a linear model's error indicator at every μ (:mod:`lungmech.pgd.indicator`'s η, without an
+  assembly): the residual R = Σₖ wₖ [(K₀ₖ + Σₑ cₑ Kₑₖ) Q z − (f₀ₖ + Σₑ cₑ fₑₖ)] is Σ θ_b v_b, θ
+  the products wₖ cₑ zᵢ and wₖ cₑ, v_b the columns Kₑₖ Q and −fₑₖ, so that
+  ‖R‖²_{W⁻¹} = θᵀ G θ with G = Vᵀ W⁻¹ V made once offline, and η = √(θᵀ G θ) / ‖z‖ (the
+  modes W-orthonormal). G is kept up to :data:`RESIDUAL_SIZE` columns; beyond, an answer
+  carries the estimate made at a sample of the box.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import cast
+
+from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 import ufl
 
 from lungmech.errors import ParameterError
+from lungmech.fem.linear import factorised
 from lungmech.fem.model import Model
 from lungmech.fem.quantities import Probe, strain_energy
 from lungmech.parallel.linalg import apply, gram
@@ -32,6 +44,7 @@ __all__ = ["Online", "online"]
 
 ENERGY_CHECK = 1e-9  # the quadratic form's strain energy against the model's own, relative
 INDEPENDENT = 1e-14  # the projected operators' singular values below this fraction of the largest are round-off
+RESIDUAL_SIZE = 600  # the residual's Gram matrix up to this many columns (2.9 MB; its product a point ≤ 0.1 ms)
 
 
 @dataclass(frozen=True)
@@ -41,7 +54,8 @@ class Online:
     each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices into
     :func:`lungmech.pgd.terms.values`), ``curve`` the axis of the series
     (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree); ``shape``: the number of shape
-    coefficients a after z among the volume's coordinates (0: no shape map)."""
+    coefficients a after z among the volume's coordinates (0: no shape map); ``residual`` the
+    residual's Gram matrix G (module docstring; 0 × 0: none kept)."""
 
     volume: Cubic
     probes: np.ndarray
@@ -49,6 +63,7 @@ class Online:
     entries: np.ndarray
     curve: int = -1
     shape: int = 0
+    residual: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Its arrays by name, for a model file."""
@@ -59,6 +74,7 @@ class Online:
             "entries": self.entries,
             "curve": np.array([self.curve]),
             "shape": np.array([self.shape]),
+            "residual": self.residual,
         }
 
     @classmethod
@@ -70,7 +86,26 @@ class Online:
         curve = int(arrays["curve"][0]) if "curve" in arrays else -1
         shape = int(arrays["shape"][0]) if "shape" in arrays else 0
         entries = arrays["entries"].astype(int)
-        return cls(volume, arrays["probes"], energy if energy.ndim == 4 else energy[None], entries, curve, shape)
+        residual = arrays["residual"] if "residual" in arrays else np.zeros((0, 0))
+        energy = energy if energy.ndim == 4 else energy[None]
+        return cls(volume, arrays["probes"], energy, entries, curve, shape, residual)
+
+    def indicator(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> float | None:
+        """η at the state Q z with the values ``c`` of :attr:`entries` and the curve's
+        ``weights`` (module docstring); None where no Gram matrix is kept."""
+        if not self.residual.size:
+            return None
+        mixed = np.outer(weights, np.concatenate([[1.0], c])).ravel()
+        kept, G = self._residual_kept
+        theta = np.concatenate([np.outer(mixed, z).ravel(), mixed])[kept]
+        size = float(np.linalg.norm(z))
+        return math.sqrt(max(float(theta @ G @ theta), 0.0)) / size if size > 0 else math.inf
+
+    @functools.cached_property
+    def _residual_kept(self) -> tuple[np.ndarray, np.ndarray]:
+        """The Gram matrix's columns that are not 0 (a value's absent block) and G on them."""
+        kept = np.flatnonzero(np.abs(self.residual).max(axis=0) > 0)
+        return kept, self.residual[np.ix_(kept, kept)]
 
     def volume_at(self, z: np.ndarray, a: np.ndarray) -> float:
         """The volume at the state Q z and the shape a (m³)."""
@@ -113,12 +148,15 @@ class Online:
         return U[:, kept] * S[kept], Vt[kept]
 
 
-def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, probe: Probe | None) -> Online:
-    """The :class:`Online` outputs of ``model``'s states Q z (``modes`` Q, owned rows) from the
-    rest state, with the terms' operators of ``problem`` (None: a nonlinear model, whose strain
-    energy is no quadratic form; a fitted PGD fits it, :mod:`lungmech.pgd.fitted`); the strain
-    energy's form checked against the model's own at a random point. Collective; the model's
-    state and parameters are kept."""
+def online(
+    model: Model, problem: separated.Terms | None, modes: np.ndarray, probe: Probe | None, W: PETSc.Mat | None = None
+) -> Online:
+    """The :class:`Online` outputs of ``model``'s states Q z (``modes`` Q, owned rows,
+    orthonormal in the energy product ``W``) from the rest state, with the terms' operators of
+    ``problem`` (None: a nonlinear model, whose strain energy is no quadratic form; a fitted
+    PGD fits it, :mod:`lungmech.pgd.fitted`) and, given ``W``, the residual's Gram matrix; the
+    strain energy's form checked against the model's own at a random point. Collective; the
+    model's state and parameters are kept."""
     comm = model.geometry.mesh.comm
     m = modes.shape[1]
     with model.kept_state():
@@ -139,15 +177,49 @@ def online(model: Model, problem: separated.Terms | None, modes: np.ndarray, pro
         return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int), shape=shape)
     degrees = 1 if problem.curve is None else problem.curve.degrees
     matrices = {(t.degree, t.entry): t.matrix for t in problem.operator}  # a term dropped as 0: a zero block
-    entries = np.array(sorted({t.entry for t in problem.operator if t.entry is not None}), dtype=int)
+    moved = [t.entry for t in problem.operator if t.entry is not None]
+    moved += [t.entry for t in problem.load if t.entry is not None]
+    entries = np.array(sorted(set(moved)), dtype=int)  # (a load's alone: a zero block of the energy)
     energy = np.zeros((degrees, 1 + len(entries), m, m))
     for k in range(degrees):
         for i, e in enumerate([None, *entries]):
             if (k, e) in matrices:
                 energy[k, i] = gram(modes, apply(matrices[k, e], modes, comm), comm)
-    found = Online(volume, probes, energy, entries, -1 if problem.curve is None else problem.curve.axis)
+    residual = np.zeros((0, 0)) if W is None else _residual_gram(problem, modes, W, entries, degrees)
+    found = Online(volume, probes, energy, entries, -1 if problem.curve is None else problem.curve.axis, 0, residual)
     _check_energy(model, found, modes)
     return found
+
+
+def _residual_gram(
+    problem: separated.Terms, modes: np.ndarray, W: PETSc.Mat, entries: np.ndarray, degrees: int
+) -> np.ndarray:
+    """G = Vᵀ W⁻¹ V over the free rows (module docstring): for each degree k and value (None,
+    then ``entries``) the block of columns Kₑₖ Q, then one column −fₑₖ each; 0 × 0 beyond
+    :data:`RESIDUAL_SIZE` columns. Collective: one factorisation of W."""
+    m, blocks = modes.shape[1], degrees * (1 + len(entries))
+    if blocks * (m + 1) > RESIDUAL_SIZE:
+        return np.zeros((0, 0))
+    comm, at = problem.comm, {e: 1 + i for i, e in enumerate(entries.tolist())} | {None: 0}
+    V = np.zeros((modes.shape[0], blocks * (m + 1)))
+    for (k, e), matrix in {(t.degree, t.entry): t.matrix for t in problem.operator}.items():
+        b = k * (1 + len(entries)) + at[e]
+        V[:, b * m : (b + 1) * m] = apply(matrix, modes, comm)
+    for (k, e), vector in {(t.degree, t.entry): t.vector for t in problem.load}.items():
+        V[:, blocks * m + k * (1 + len(entries)) + at[e]] = -vector
+    V[np.setdiff1d(np.arange(V.shape[0]), problem.free)] = 0.0  # the imposed rows: the modes hold 0 there
+    solver = factorised(W)
+    x, rhs = cast(tuple[PETSc.Vec, PETSc.Vec], W.createVecs())
+    Z = np.empty_like(V)
+    try:
+        for j in range(V.shape[1]):
+            rhs.array[:] = V[:, j]
+            solver.solve(rhs, x)
+            Z[:, j] = x.array
+    finally:
+        for thing in (solver, x, rhs):
+            thing.destroy()
+    return comm.allreduce(V.T @ Z, op=MPI.SUM)
 
 
 def _check_energy(model: Model, found: Online, modes: np.ndarray) -> None:

@@ -92,11 +92,14 @@ class Curve:
 
 @dataclass(frozen=True)
 class LoadTerm:
-    """One separated load term: ``factors`` as :class:`Term`'s, ``vector`` its f_S (owned
-    entries, 0 where imposed)."""
+    """One separated load term: ``factors``, ``entry`` and ``degree`` as :class:`Term`'s,
+    ``vector`` its f_S (owned entries, 0 where imposed). Terms of one entry and degree share
+    its vector."""
 
     factors: tuple[np.ndarray, ...]
     vector: np.ndarray
+    entry: int | None = None
+    degree: int = 0
 
 
 @dataclass
@@ -427,14 +430,14 @@ def _assembled(
             operator.append(Term(along(ones, k), ops.K0, None, k))
             used.add(id(ops.K0))
         if k == 0 or assembler.norm(ops.f0) > 1e-13 * loudest:
-            load.append(LoadTerm(along(ones, k), ops.f0))
+            load.append(LoadTerm(along(ones, k), ops.f0, None, k))
         for e, factors in parts:
             K, f = ops.unit[e]
             if _frobenius(K) > 1e-13 * largest:
                 operator.append(Term(along(factors, k), K, e, k))
                 used.add(id(K))
             if assembler.norm(f) > 1e-13 * loudest:
-                load.append(LoadTerm(along(factors, k), f))
+                load.append(LoadTerm(along(factors, k), f, e, k))
     for ops in found:
         for K in (ops.K0, *(K for K, _ in ops.unit.values())):
             if id(K) not in used:

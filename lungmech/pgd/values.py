@@ -7,18 +7,22 @@ it moves with, each term in a small basis of that parameter:
     v(μ) = v₀ + Σⱼ aⱼ · fⱼ(μⱼ),   fⱼ = (μⱼ) for a quantity, (cos μⱼ, sin μⱼ) for an angle (degrees),
 
 fitted on each axis's nodes (the others at their defaults) and then **checked** at random points
-of the whole box against the model's own assignment, to 1e-10 of the values' size. Where the
-check fails — a value of a product of two parameters (gravity under pitch and roll), or of a
-function outside the basis (a Lamé constant of a Poisson ratio) — there is no closed form, and
-the caller sets the fem model's parameters instead.
+of the whole box against the model's own assignment, to 1e-10 of the values' size. Where that
+check fails, a value may be a product of two parameters (gravity under pitch and roll: cos p
+sin r): each pair of axes adds Bⱼₗ (Δfⱼ ⊗ Δfₗ), Δf = f(μ) − f(default), fitted on a 4 × 4
+grid of the two axes (zero where either is at its default, so the single axes' fit stands),
+and the whole is checked again. Where it still fails — a function outside the basis (a Lamé
+constant of a Poisson ratio) — there is no closed form, and the caller sets the fem model's
+parameters instead.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,11 +45,15 @@ def _basis(parameter: Parameter, mu: float) -> list[float]:
 
 @dataclass(frozen=True)
 class ClosedForm:
-    """v(μ) = ``base`` + Σⱼ ``coefficients[j]`` fⱼ(μⱼ) (values × basis size), over ``axes``."""
+    """v(μ) = ``base`` + Σⱼ ``coefficients[j]`` fⱼ(μⱼ) (values × basis size) + Σ over ``pairs``
+    (j, l, Bⱼₗ) Bⱼₗ (Δfⱼ ⊗ Δfₗ) (values × the two bases' sizes' product), over ``axes``;
+    ``origin[j]`` fⱼ at the default."""
 
     axes: tuple[Axis, ...]
     base: np.ndarray
     coefficients: tuple[np.ndarray, ...]
+    origin: tuple[np.ndarray, ...] = ()
+    pairs: tuple[tuple[int, int, np.ndarray], ...] = ()
 
     @functools.cached_property
     def _stacked(self) -> np.ndarray:
@@ -53,8 +61,11 @@ class ClosedForm:
         return np.hstack(self.coefficients) if self.coefficients else np.zeros((len(self.base), 0))
 
     def __call__(self, mu: Mapping[str, float]) -> np.ndarray:
-        f = [value for axis in self.axes for value in _basis(axis.parameter, float(mu[axis.parameter.name]))]
-        return self.base + self._stacked @ np.array(f)
+        f = [np.array(_basis(axis.parameter, float(mu[axis.parameter.name]))) for axis in self.axes]
+        found = self.base + self._stacked @ np.concatenate(f) if f else self.base.copy()
+        for j, l, B in self.pairs:
+            found = found + B @ np.outer(f[j] - self.origin[j], f[l] - self.origin[l]).ravel()
+        return found
 
 
 def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndarray]) -> ClosedForm | None:
@@ -66,22 +77,58 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
         model.set_parameters(defaults)
         at_defaults = np.asarray(read(), dtype=float)
         base, coefficients = at_defaults.copy(), []
-        for axis in axes:
+        origin = tuple(np.array(_basis(a.parameter, defaults[a.parameter.name])) for a in axes)
+        for axis, f0 in zip(axes, origin):
             parameter = axis.parameter
             rows, found = [], []
             for mu in axis.values:
                 model.set_parameters(defaults | {parameter.name: float(mu)})
-                rows.append(np.subtract(_basis(parameter, float(mu)), _basis(parameter, defaults[parameter.name])))
+                rows.append(np.subtract(_basis(parameter, float(mu)), f0))
                 found.append(np.asarray(read(), dtype=float) - at_defaults)
             a = np.linalg.lstsq(np.array(rows), np.array(found), rcond=None)[0].T  # values × basis
-            base -= a @ _basis(parameter, defaults[parameter.name])
+            base -= a @ f0
             coefficients.append(a)
-        form = ClosedForm(tuple(axes), base, tuple(coefficients))
+        form = ClosedForm(tuple(axes), base, tuple(coefficients), origin)
         size = max(float(np.abs(at_defaults).max(initial=0.0)), np.finfo(float).tiny)
-        for point in model.parameters.sample(8, seed=23):
-            model.set_parameters(point)
-            if np.abs(form(point) - np.asarray(read(), dtype=float)).max(initial=0.0) > CHECK * size:
-                return None
-        return form
+        if _holds(model, form, read, size):
+            return form
+        form = replace(form, pairs=_pairs(model, form, read, size))
+        return form if _holds(model, form, read, size) else None
     finally:
         model.set_parameters(kept)
+
+
+def _pairs(
+    model: Model, form: ClosedForm, read: Callable[[], np.ndarray], size: float
+) -> tuple[tuple[int, int, np.ndarray], ...]:
+    """Each pair of axes' Bⱼₗ, fitted to what the single axes leave on a 4 × 4 grid of theirs
+    (a pair whose values do not mix, below :data:`CHECK` of the values' ``size``: none)."""
+    defaults, axes, found = model.parameters.defaults, form.axes, []
+    for j, l in itertools.combinations(range(len(axes)), 2):
+        rows, left = [], []
+        for a in _four(axes[j]):
+            for b in _four(axes[l]):
+                point = defaults | {axes[j].parameter.name: a, axes[l].parameter.name: b}
+                model.set_parameters(point)
+                left.append(np.asarray(read(), dtype=float) - form(point))
+                fj, fl = (np.array(_basis(axes[i].parameter, v)) - form.origin[i] for i, v in ((j, a), (l, b)))
+                rows.append(np.outer(fj, fl).ravel())
+        B = np.linalg.lstsq(np.array(rows), np.array(left), rcond=None)[0].T
+        if np.abs(B).max(initial=0.0) > CHECK * size:
+            found.append((j, l, B))
+    return tuple(found)
+
+
+def _four(axis: Axis) -> np.ndarray:
+    """Four of an axis's nodes, its ends among them."""
+    values = np.asarray(axis.values)
+    return values[np.unique(np.linspace(0, len(values) - 1, 4).round().astype(int))]
+
+
+def _holds(model: Model, form: ClosedForm, read: Callable[[], np.ndarray], size: float) -> bool:
+    """Whether ``form`` is the model's own assignment at 8 random points, to :data:`CHECK`."""
+    for point in model.parameters.sample(8, seed=23):
+        model.set_parameters(point)
+        if np.abs(form(point) - np.asarray(read(), dtype=float)).max(initial=0.0) > CHECK * size:
+            return False
+    return True
