@@ -465,7 +465,7 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
             for i, size in enumerate(sizes)
         ]
         handles += [
-            Line2D([], [], color="k", ls=styles[i % 4], label=f"{choice} interval(s) an axis")
+            Line2D([], [], color="k", ls=styles[i % 4], label=f"{choice} interval(s) an axis (a periodic one ≥ 4)")
             for i, choice in enumerate(choices)
         ]
         curves_below.legend(handles=handles, fontsize=7.5, loc="upper center", ncol=2, frameon=False)
@@ -474,8 +474,9 @@ def plot(rows: list[dict], mapped: dict | None, curves: dict, path: Path) -> Non
 
 
 def _intervals(label: str) -> int:
-    """The intervals an axis of a curve's label ("…, intervals 2,2,2, 1 rank(s)": 2)."""
-    return int(label.split("intervals ")[1].split(",")[0])
+    """The intervals an axis of a curve's label, a periodic axis's at least 4 left aside ("…,
+    intervals 4,2,2, 1 rank(s)": 2): its fewest."""
+    return min(int(k) for k in label.split("intervals ")[1].split(", ")[0].split(","))
 
 
 def _kind(row: dict) -> str:

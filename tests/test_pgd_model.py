@@ -122,16 +122,17 @@ def test_a_pgd_model_answers_as_the_full_model_at_random_points_of_its_box(beam)
 def test_each_answer_carries_the_indicator_at_its_point(beam):
     """η(μ) of an answer, from the residual's Gram matrix (no assembly), is the full residual's
     dual norm at the PGD's state (lungmech.pgd.indicator) at 5 Sobol' points: to round-off on a
-    PGD of 2 terms (η about 4e-3 and more), within 1e-9 on the converged one (η about 2e-7: the
-    Gram form's cancellation, measured 6e-10); the same at any output time and load factor
-    (the residual scales with the state); a model file keeps it."""
+    PGD of 2 terms (η about 4e-3 and more), within 2e-9 on the converged one (η about 2e-7: the
+    Gram form's cancellation and its floor, measured 7.5e-10); the same at any output time and
+    load factor, with or without the fem model set (the residual scales with the state); a
+    model file keeps it."""
     from lungmech.pgd.indicator import indicator
     from lungmech.rom.basis import inner_product
 
     folder, scene, pgd, _ = beam
     points = pgd.parameters.sample(5, seed=6)
     coarse, _ = build(build_model(scene), scene.stepping, options=Options(max_terms=2))
-    for model, rtol, atol in ((coarse, 1e-9, 0.0), (pgd, 0.0, 1e-9)):
+    for model, rtol, atol in ((coarse, 1e-9, 0.0), (pgd, 0.0, 2e-9)):
         W = inner_product(model.model, "energy")
         try:
             model.model.set_time(scene.stepping.end)
@@ -142,12 +143,14 @@ def test_each_answer_carries_the_indicator_at_its_point(beam):
         assert np.allclose(found, exact, rtol=rtol, atol=atol) and np.all(found > 0), (found, exact)
         assert len(set(found.round(12))) == len(found)  # one per point, not one for all
         assert model.solve(points[0], times=[0.5], scale=0.3).indicator == pytest.approx(found[0], rel=1e-12)
+        set_model = model.solve(points[0], scale=0.3, sensitivities=True).indicator  # the values read at s = 0.3
+        assert set_model == pytest.approx(found[0], rel=1e-9, abs=atol)
     path = folder / "indicated.npz"
     build_file(scene, path, modes=6)
     loaded = reduce.load(path, fields=True)
     assert loaded.online.residual.shape == pgd.online.residual.shape
     found = np.array([loaded.solve(point).indicator for point in points])
-    assert np.allclose(found, exact, rtol=0.0, atol=1e-9), (found, exact)
+    assert np.allclose(found, exact, rtol=0.0, atol=2e-9), (found, exact)
 
 
 def test_its_path_and_load_factor_are_the_linear_models(beam):
@@ -243,14 +246,14 @@ def test_a_pgd_file_is_refused_on_another_mesh_or_physics(beam, tmp_path):
 @pytest.mark.mpi
 def test_a_build_on_every_rank_equals_the_serial_one(beam):
     """The scene's PGD model distributed and on each rank alone (COMM_SELF): the same outputs
-    and derivatives at random points, to 1e-9; the indicator, near its round-off floor
-    (about 2e-7 here), to 1e-9 too."""
+    and derivatives at random points, to 1e-9; the indicator (about 2e-7 here, near its
+    round-off floor) to 2e-9."""
     _, scene, pgd, _ = beam
     alone, _ = build(build_model(scene, MPI.COMM_SELF), scene.stepping, scene.output.probes)
     assert alone.decomposition.terms == pgd.decomposition.terms
     for point in pgd.parameters.sample(4, seed=9):
         a, b = pgd.solve(point, sensitivities=True), alone.solve(point, sensitivities=True)
-        assert a.indicator == pytest.approx(b.indicator, rel=0.0, abs=1e-9) and a.indicator > 0
+        assert a.indicator == pytest.approx(b.indicator, rel=0.0, abs=2e-9) and a.indicator > 0
         for name in ("volume", "strain_energy", "probes"):
             assert relative(a.outputs[name], b.outputs[name], np.abs(b.outputs[name]).max()) < 1e-9, name
             exact = b.sensitivities[name]

@@ -4,7 +4,8 @@ A reduced model is built for one mesh, and a patient's lung is a new mesh (the r
 registered onto its image), so ``lungmech personalise --model FILE`` does not reuse the file's
 basis: it reads how the file was made — a POD basis of ``size`` vectors from ``training`` full
 breaths, hyper-reduced by ECSW at τ (or not); or a PGD of at most ``size`` terms fitted to
-``training`` full breaths — and on which scene (its physics, its reference lung at its mesh
+``training`` full breaths (its splines' intervals and the fit's tolerance chosen for the
+patient as by default) — and on which scene (its physics, its reference lung at its mesh
 size h), and builds the same for the patient. The file is what ``lungmech trade`` chose for a
 tolerance (its ``model.npz``), any ``lungmech rom build`` of the scene, or its ``lungmech pgd
 build --samples``.
@@ -82,13 +83,16 @@ def recipe_scene(
 def _recipe(path: Path, metadata: dict) -> Recipe:
     """The recipe of the model file ``path`` from its ``metadata``, or its refusal in one line."""
     if is_pgd(metadata):
-        built = metadata["extra"]["pgd"]["built"]
+        built = metadata["extra"]["pgd"].get("built", {})
         if not built.get("samples"):
             raise ModelFileError(
                 f"'{path}' is an a priori PGD; a patient's model is fitted to its own breaths: give a PGD built with "
-                "--samples (lungmech pgd build), or --method pgd"
+                "--samples (lungmech pgd build), or leave out --model and give --method pgd"
             )
-        return Recipe(int(built["options"]["max_terms"]), int(built["samples"]), None, str(path), "pgd")
+        terms = built.get("options", {}).get("max_terms")
+        if terms is None:
+            raise ModelFileError(f"'{path}' is damaged: its PGD record has no most terms; rebuild it")
+        return Recipe(int(terms), int(built["samples"]), None, str(path), "pgd")
     record = metadata.get("extra", {}).get("reduced")
     if record is None or not record.get("training"):
         raise ModelFileError(f"'{path}' is not a reduced model built from training solves (lungmech rom build, trade)")

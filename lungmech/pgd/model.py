@@ -104,9 +104,10 @@ class PGDModel:
     one-row decomposition and its timeline), and answers at the loads' own scale only; on an
     imaged body, its fit of the body's reference ξ(μ) is ``reference``
     (:mod:`lungmech.pgd.imaged`: its timeline then starts at t₀, where the image's fields move
-    with μ). Every answer carries the model's estimate of its relative energy-norm error,
-    ``built["estimate"]``, the same at every μ: an a priori PGD's indicator at a sample of the
-    box, the largest (:mod:`lungmech.pgd.indicator`); a fitted one's held-out error.
+    with μ). Every answer carries the model's estimate of its relative energy-norm error: an
+    a priori PGD's indicator at μ, from its residual's factor (:mod:`lungmech.pgd.online`),
+    or where none is kept its indicator at a sample of the box, the largest,
+    ``built["estimate"]`` (:mod:`lungmech.pgd.indicator`); a fitted one's held-out error.
     Collective for :meth:`fields` only; a solve is evaluation on every rank."""
 
     def __init__(
@@ -144,11 +145,15 @@ class PGDModel:
             self._rest = model.state.x.array[: self._owned].copy()  # what the modes add to
         self._start = StartReport("rest", "the unloaded state")
         self._values = _Entries(model, online.entries)
+        # the values the strain energy's operators take (the others only the indicator's loads)
+        self._operated = np.abs(online.energy[:, 1:]).max(axis=(0, 2, 3), initial=0.0) > 0
         self._last = dict(model.parameter_values), 1.0  # the parameters and load factor of the last answer
+        operated = self._operated
         with model.kept_state():
             model.set_time(stepping.end)  # the scalar loads at the path's end, the load factor 1
             self._labels = tuple(model.scalar_loads())
-            self._energy = closed_form(model, decomposition.axes, self._values.read)
+            self._energy = closed_form(model, decomposition.axes, lambda: self._values.read()[operated])
+            self._loaded = closed_form(model, decomposition.axes, lambda: self._values.read()[~operated])
             self._loads = closed_form(model, decomposition.axes, lambda: np.array(list(model.scalar_loads().values())))
             self._shape = closed_form(model, decomposition.axes, self._shape_values)
 
@@ -182,14 +187,33 @@ class PGDModel:
         model, stepping, start = self.model, self.stepping, self._start
         self._last = values, factor
         if self._energy is not None and self._loads is not None and self._shape is not None and not sensitivities:
-            c, loads = self._energy(values), dict(zip(self._labels, factor * self._loads(values)))
-            point = _Point(self, values, c, loads, self._shape(values), None)  # the fem model is not set: see fields
+            c = np.zeros(len(self._operated))
+            c[self._operated] = self._energy(values)
+            if self._loaded is not None:  # the loads' values too: the indicator's (else the build's estimate)
+                c[~self._operated] = self._loaded(values)
+            loads = dict(zip(self._labels, factor * self._loads(values)))
+            indicated = c if self._loaded is not None else None
+            point = _Point(self, values, c, loads, self._shape(values), None, indicated)  # the fem model is not set
         else:
+            indicated = None
+            if factor != 1.0:  # the indicator's values at the loads' own scale (η is the same at any)
+                model.set_time(stepping.end)
+                model.set_parameters(values)
+                indicated = self._values.read()
             if model.time != stepping.end or model.scaling != (factor, None):
                 model.set_time(stepping.end, load_factor=factor)  # the loads at t are r(t)/r(T) of these
             model.set_parameters(values)  # (at that time)
             derivatives = value_derivatives(model) if sensitivities else None
-            point = _Point(self, values, self._values.read(), model.scalar_loads(), self._shape_values(), derivatives)
+            c = self._values.read()
+            point = _Point(
+                self,
+                values,
+                c,
+                model.scalar_loads(),
+                self._shape_values(),
+                derivatives,
+                c if factor == 1.0 else indicated,
+            )
         if self.reference is not None:  # the image on its reference at μ, and its volume there
             imaged = self.online.volume_at(point.state(float(stepping.start), factor), point.a)
             start = self.reference.start(values, point.a).measured(imaged)
@@ -291,7 +315,8 @@ class _Point:
     the values ``c`` of its entries (a linear model) or the owner's fit of it; the scalar
     ``loads`` at the path's end T, at t r(t)/r(T) of them; the shape coefficients ``a`` (none:
     no shape map); with ``derivatives`` (the model's value derivatives, its parameters set at
-    μ), ∂q/∂μ, ∂A/∂μ and da/dμ."""
+    μ), ∂q/∂μ, ∂A/∂μ and da/dμ; its ``indicator`` η(μ) from the values ``indicated`` at the
+    loads' own scale (None: the build's estimate answers for it)."""
 
     def __init__(
         self,
@@ -301,6 +326,7 @@ class _Point:
         loads: dict[str, float],
         a: np.ndarray,
         derivatives: ValueDerivatives | None,
+        indicated: np.ndarray | None = None,
     ) -> None:
         model, d, self.online = owner.model, owner.decomposition, owner.online
         self.reduced, self.q = d.reduced, d.products(values)
@@ -313,9 +339,13 @@ class _Point:
         units = d.units(values) if self.energy is None else np.zeros(0)
         weights = self.online.weights(units) if self.energy is None else np.ones(1)
         self.operator = self.online.operator(c, weights) if self.energy is None else None
-        # a linear model's η at μ, from z at the path's end (τ = 1 there): the answer at t and s
-        # is a multiple of it, as is its residual
-        self.indicator = None if self.energy is not None else self.online.indicator(c, weights, self.reduced @ self.q)
+        # a linear model's η at μ, from z at the path's end (τ = 1 there) and the values at the
+        # loads' own scale: the answer at t and s is a multiple of it, as is its residual
+        self.indicator = (
+            None
+            if self.energy is not None or indicated is None
+            else self.online.indicator(indicated, weights, self.reduced @ self.q)
+        )
         self.loads, self.a = loads, a
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
@@ -460,7 +490,7 @@ def build(
             "points": problem.curve.points,
             "degrees": problem.curve.degrees,
         },
-        "estimate": float(estimates.max()),  # every answer's indicator
+        "estimate": float(estimates.max()),  # an answer's indicator where the online one is not kept
         "indicator_points": estimates.tolist(),
         "seconds": seconds,
     }

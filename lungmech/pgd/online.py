@@ -12,8 +12,12 @@ coefficients z, made once offline (:class:`Online`):
   assembly): the residual R = Σₖ wₖ [(K₀ₖ + Σₑ cₑ Kₑₖ) Q z − (f₀ₖ + Σₑ cₑ fₑₖ)] is Σ θ_b v_b, θ
   the products wₖ cₑ zᵢ and wₖ cₑ, v_b the columns Kₑₖ Q and −fₑₖ, so that
   ‖R‖²_{W⁻¹} = θᵀ G θ with G = Vᵀ W⁻¹ V made once offline, and η = √(θᵀ G θ) / ‖z‖ (the
-  modes W-orthonormal). G is kept up to :data:`RESIDUAL_SIZE` columns; beyond, an answer
-  carries the estimate made at a sample of the box.
+  modes W-orthonormal). The small residual of a converged PGD is a difference of large
+  squares there: θᵀ G θ resolves it down to about 10⁻¹⁵ |θ|ᵀ|G||θ| (W⁻¹'s own round-off, its
+  solves not symmetric to the last digit, is of that order), and η is reported no lower than
+  that floor, never 0. G is kept up to :data:`RESIDUAL_SIZE` columns and
+  :data:`RESIDUAL_MEMORY` of work; beyond, an answer carries the estimate made at a sample of
+  the box.
 """
 
 from __future__ import annotations
@@ -45,6 +49,8 @@ __all__ = ["Online", "online"]
 ENERGY_CHECK = 1e-9  # the quadratic form's strain energy against the model's own, relative
 INDEPENDENT = 1e-14  # the projected operators' singular values below this fraction of the largest are round-off
 RESIDUAL_SIZE = 600  # the residual's Gram matrix up to this many columns (2.9 MB; its product a point ≤ 0.1 ms)
+RESIDUAL_MEMORY = 2**28  # bytes a rank may hold for V and W⁻¹ V while G is made (owned rows × columns × 16)
+RESOLVED = 1e-15  # θᵀ G θ below this fraction of |θ|ᵀ|G||θ| is round-off
 
 
 @dataclass(frozen=True)
@@ -96,16 +102,18 @@ class Online:
         if not self.residual.size:
             return None
         mixed = np.outer(weights, np.concatenate([[1.0], c])).ravel()
-        kept, G = self._residual_kept
+        kept, G, absolute = self._residual_kept
         theta = np.concatenate([np.outer(mixed, z).ravel(), mixed])[kept]
+        floor = RESOLVED * float(np.abs(theta) @ absolute @ np.abs(theta))
         size = float(np.linalg.norm(z))
-        return math.sqrt(max(float(theta @ G @ theta), 0.0)) / size if size > 0 else math.inf
+        return math.sqrt(max(float(theta @ G @ theta), floor)) / size if size > 0 else math.inf
 
     @functools.cached_property
-    def _residual_kept(self) -> tuple[np.ndarray, np.ndarray]:
-        """The Gram matrix's columns that are not 0 (a value's absent block) and G on them."""
+    def _residual_kept(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The Gram matrix's columns that are not 0 (a value's absent block), G and |G| on them."""
         kept = np.flatnonzero(np.abs(self.residual).max(axis=0) > 0)
-        return kept, self.residual[np.ix_(kept, kept)]
+        G = self.residual[np.ix_(kept, kept)]
+        return kept, G, np.abs(G)
 
     def volume_at(self, z: np.ndarray, a: np.ndarray) -> float:
         """The volume at the state Q z and the shape a (m³)."""
@@ -162,8 +170,6 @@ def online(
     with model.kept_state():
         model.reset()
         rest = model.state.x.array.copy()
-    if model.shape is not None and problem is not None:
-        raise ParameterError("PGD: a priori terms over a shape map are not separated (its operators move with a)")
     if model.shape is not None:  # in (z, a)
         volume = shaped.volume(model, ufl.det(model.F) * model.dx, rest, modes)
     else:
@@ -196,11 +202,12 @@ def _residual_gram(
 ) -> np.ndarray:
     """G = Vᵀ W⁻¹ V over the free rows (module docstring): for each degree k and value (None,
     then ``entries``) the block of columns Kₑₖ Q, then one column −fₑₖ each; 0 × 0 beyond
-    :data:`RESIDUAL_SIZE` columns. Collective: one factorisation of W."""
-    m, blocks = modes.shape[1], degrees * (1 + len(entries))
-    if blocks * (m + 1) > RESIDUAL_SIZE:
+    :data:`RESIDUAL_SIZE` columns or :data:`RESIDUAL_MEMORY`. Collective: one factorisation of W."""
+    m, blocks, comm = modes.shape[1], degrees * (1 + len(entries)), problem.comm
+    n = blocks * (m + 1)
+    if n > RESIDUAL_SIZE or comm.allreduce(16 * modes.shape[0] * n, op=MPI.MAX) > RESIDUAL_MEMORY:
         return np.zeros((0, 0))
-    comm, at = problem.comm, {e: 1 + i for i, e in enumerate(entries.tolist())} | {None: 0}
+    at = {e: 1 + i for i, e in enumerate(entries.tolist())} | {None: 0}
     V = np.zeros((modes.shape[0], blocks * (m + 1)))
     for (k, e), matrix in {(t.degree, t.entry): t.matrix for t in problem.operator}.items():
         b = k * (1 + len(entries)) + at[e]

@@ -111,6 +111,8 @@ def load_pgd(path: str | Path, model: Model, stepping: Stepping, content: tuple[
             {name[len("pgd/online/") :]: a for name, a in held.items() if name.startswith("pgd/online/")}
         )
         _check_shapes(decomposition, online)
+        if online.shape != (0 if model.shape is None else len(model.shape.modes)):
+            raise ValueError(f"{online.shape} shape coefficients in the volume, the model's {model.shape}")
         timeline, energy = _fitted(held, record, model, stepping, decomposition.terms)
         reference = _reference(held, arrays, record, model)
     except (KeyError, ValueError) as error:
@@ -191,3 +193,8 @@ def _check_shapes(d: Decomposition, online: Online) -> None:
     for axis, X in zip(d.axes, d.coefficients):
         if X.shape != (n, axis.size):
             raise ValueError(f"axis {axis.parameter.name}: {X.shape}, expected {(n, axis.size)}")
+    if online.volume.c1.shape != (m + online.shape,):
+        raise ValueError(f"volume in {online.volume.c1.shape} coordinates, {m} modes and {online.shape} shape")
+    columns = online.energy.shape[0] * online.energy.shape[1] * (m + 1)
+    if online.residual.size and online.residual.shape != (columns, columns):
+        raise ValueError(f"residual's Gram matrix {online.residual.shape}, expected {columns} columns")

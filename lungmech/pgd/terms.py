@@ -98,8 +98,8 @@ class LoadTerm:
 
     factors: tuple[np.ndarray, ...]
     vector: np.ndarray
-    entry: int | None = None
-    degree: int = 0
+    entry: int | None
+    degree: int
 
 
 @dataclass

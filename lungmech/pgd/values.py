@@ -114,7 +114,7 @@ def _pairs(
                 fj, fl = (np.array(_basis(axes[i].parameter, v)) - form.origin[i] for i, v in ((j, a), (l, b)))
                 rows.append(np.outer(fj, fl).ravel())
         B = np.linalg.lstsq(np.array(rows), np.array(left), rcond=None)[0].T
-        if np.abs(B).max(initial=0.0) > CHECK * size:
+        if np.abs(np.array(rows) @ B.T).max(initial=0.0) > CHECK * size:  # what it adds on the grid
             found.append((j, l, B))
     return tuple(found)
 
