@@ -82,11 +82,10 @@ def test_a_coarser_remesh_of_a_curved_body_reaches_the_finer_ones_boundary():
     assert np.allclose(carried, interpolant(fine, lambda x: A @ x), rtol=0.0, atol=1e-12)
 
 
-@pytest.mark.mpi
 def test_a_source_numbered_as_one_before_takes_its_transfer():
     """Onto one target: a second model of the same mesh and element (built again) takes the
     first one's transfer, and carries its own state as a transfer of its own would; another
-    element or another mesh gets a transfer of its own (any number of ranks)."""
+    element or another mesh gets a transfer of its own (on two ranks too: tests/test_mpi.py)."""
     onto = Transfers(model((3, 3, 3), degree=2))
     first, again = model((2, 2, 2)), model((2, 2, 2))
     assert onto(again) is onto(first)

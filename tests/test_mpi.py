@@ -847,3 +847,19 @@ def test_the_imaged_problem_at_every_mu_same_on_all_ranks_as_on_one():
 
     parallel, serial = answer(MPI.COMM_WORLD), answer(MPI.COMM_SELF)
     assert np.allclose(parallel, serial, rtol=1e-8, atol=1e-12)
+
+
+def test_newtons_residual_is_dolfinxs_on_two_ranks(monkeypatch):
+    """The lifting left out where every condition holds, decided on all ranks at once
+    (tests/test_residual.py)."""
+    import test_residual
+
+    test_residual.test_the_path_is_dolfinxs_to_the_bit_and_most_liftings_are_left_out(monkeypatch)
+
+
+def test_a_field_errors_transfer_is_shared_on_two_ranks():
+    """A source numbered alike takes the transfer made before on every rank or on none
+    (tests/test_field_errors.py)."""
+    import test_field_errors
+
+    test_field_errors.test_a_source_numbered_as_one_before_takes_its_transfer()

@@ -12,6 +12,7 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
+import test_population_scene as shaped
 from trades import written as sphere
 
 from lungmech.app import reduce
@@ -247,3 +248,25 @@ def test_a_fitted_pgd_takes_part_in_a_trade(tmp_path):
     assert abs(errors["sphere-pgd.npz"] - errors["full P1 h"]) <= 1.5e-2
     trained = reduce.load(pgd).built["training"]
     assert not [point for point in found.points.points if point in trained]
+
+
+@pytest.mark.mpi
+def test_a_fitted_pgd_over_the_shape_on_two_ranks_answers_as_one_ranks(tmp_path):
+    """The imaged block's PGD fitted on the world's ranks and on this rank alone: the start,
+    reference and deformed volumes and the probe at random shapes agree to 1e-9 of their size
+    (the volumes' cubics in (z, a) assembled on a distributed template)."""
+    path, _ = shaped.population.__wrapped__(tmp_path)  # the block over two shape modes
+    text = shaped.BOX
+    for old, new in shaped.IMAGED.items():
+        text = text.replace(old, new)
+    scene = scenes.load(shaped.write_once(path.with_name("imaged.toml"), text))
+    found = {}
+    for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
+        full = full_order_model(scene, comm, start="inverse_motion")
+        found[name] = fitted(full, 12, 2, replace(FIT, max_terms=6), scene.output.probes)[0]
+    for point in found["self"].parameters.sample(4, seed=9):
+        a, b = found["world"].solve(point), found["self"].solve(point)
+        for key in ("volume", "reference_volume"):
+            assert a.start.details[key] == pytest.approx(b.start.details[key], rel=1e-9)
+        assert np.abs(a.outputs["volume"] - b.outputs["volume"]).max() <= 1e-9 * np.abs(b.outputs["volume"]).max()
+        assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()

@@ -220,30 +220,3 @@ def test_a_fitted_pgd_follows_the_shape(population, tmp_path, imaged):
         ahead, behind = (loaded.solve(mu | {name: mu[name] + s}).outputs["volume"] for s in (h, -h))
         assert found.sensitivities["volume"][-1, j] == pytest.approx((ahead[-1] - behind[-1]) / (2 * h), rel=1e-6)
     assert found.start.details["volume"] == pytest.approx(full["start_volume"], rel=1e-9)
-
-
-@pytest.mark.mpi
-def test_a_fitted_pgd_over_the_shape_on_two_ranks_answers_as_one_ranks(population):
-    """The imaged block's PGD fitted on the world's ranks and on this rank alone: the start,
-    reference and deformed volumes and the probe at random shapes agree to 1e-9 of their size
-    (the volumes' cubics in (z, a) assembled on a distributed template)."""
-    from dataclasses import replace
-
-    from lungmech.pgd.fitted import fitted
-    from lungmech.pgd.fitting import FIT
-
-    path, _ = population
-    text = BOX
-    for old, new in IMAGED.items():
-        text = text.replace(old, new)
-    scene = scenes.load(write_once(path.with_name("imaged.toml"), text))
-    found = {}
-    for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
-        full = full_order_model(scene, comm, start="inverse_motion")
-        found[name] = fitted(full, 12, 2, replace(FIT, max_terms=6), scene.output.probes)[0]
-    for point in found["self"].parameters.sample(4, seed=9):
-        a, b = found["world"].solve(point), found["self"].solve(point)
-        for key in ("volume", "reference_volume"):
-            assert a.start.details[key] == pytest.approx(b.start.details[key], rel=1e-9)
-        assert np.abs(a.outputs["volume"] - b.outputs["volume"]).max() <= 1e-9 * np.abs(b.outputs["volume"]).max()
-        assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()

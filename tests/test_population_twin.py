@@ -113,7 +113,7 @@ def test_a_new_patient_is_personalised_on_the_populations_model(population, tmp_
     assert "offline" in report["seconds"] and report["seconds"]["offline"] == 0.0  # nothing built for the patient
 
 
-@pytest.mark.slow
+@pytest.mark.long  # 27 s: make test-long (the PGD over the shape: tests/test_population_scene.py)
 def test_a_new_patient_on_a_populations_pgd_gets_an_interval_that_holds_the_truth(population, tmp_path):
     """The population's model a PGD fitted to 16 full solves over its 5 parameters (`pgd build
     --samples 16 --probes surface`, the shape coefficients among them): a coarse fit (its
