@@ -263,7 +263,7 @@ def test_a_fitted_pgd_over_the_shape_on_two_ranks_answers_as_one_ranks(tmp_path)
     found = {}
     for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
         full = full_order_model(scene, comm, start="inverse_motion")
-        found[name] = fitted(full, 12, 2, replace(FIT, max_terms=6), scene.output.probes)[0]
+        found[name] = fitted(full, 8, 2, replace(FIT, max_terms=6), scene.output.probes)[0]
     for point in found["self"].parameters.sample(4, seed=9):
         a, b = found["world"].solve(point), found["self"].solve(point)
         for key in ("volume", "reference_volume"):

@@ -179,7 +179,11 @@ IMAGED = {  # the block as imaged under its loads (ramped from 1 to 2): its refe
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("imaged", [False, True], ids=["at rest on its mesh", "imaged"])
+@pytest.mark.parametrize(
+    "imaged",
+    [False, pytest.param(True, marks=pytest.mark.long)],  # imaged: 15 s, make test-long (2 ranks: test_pgd_fitted)
+    ids=["at rest on its mesh", "imaged"],
+)
 def test_a_fitted_pgd_follows_the_shape(population, tmp_path, imaged):
     """`pgd build --samples` over the shape box → `rom solve --set` at a shape it was not fitted
     at: the full run's start volume (the shape's own: a cubic in a), its deformed volume,
