@@ -76,6 +76,10 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
     try:
         model.set_parameters(defaults)
         at_defaults = np.asarray(read(), dtype=float)
+        if not at_defaults.size:  # no value (no shape map, no load-only value): nothing to fit or check
+            return ClosedForm(
+                tuple(axes), at_defaults, tuple(np.zeros((0, len(_basis(a.parameter, 0.0)))) for a in axes)
+            )
         base, coefficients = at_defaults.copy(), []
         origin = tuple(np.array(_basis(a.parameter, defaults[a.parameter.name])) for a in axes)
         for axis, f0 in zip(axes, origin):
