@@ -863,3 +863,14 @@ def test_a_field_errors_transfer_is_shared_on_two_ranks():
     import test_field_errors
 
     test_field_errors.test_a_source_numbered_as_one_before_takes_its_transfer()
+
+
+def test_each_rank_gets_the_values_at_its_own_points_on_two_ranks():
+    """Points one rank asks at and another's cells hold come back to it in its order
+    (tests/test_points.py); a remeshed sphere's energy errors carried onto its reference
+    (tests/test_field_errors.py)."""
+    import test_field_errors
+    import test_points
+
+    test_points.asked_and_answered(MPI.COMM_WORLD)
+    test_field_errors.test_a_coarser_remesh_of_a_curved_body_reaches_the_finer_ones_boundary()

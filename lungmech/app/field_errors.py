@@ -46,6 +46,7 @@ from lungmech.fem.model import Model
 from lungmech.parallel.layout import Layout, field_dofs, layout
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size, owned_values
+from lungmech.parallel.points import PointValues
 from lungmech.rom.basis import inner_product, require_positive_definite
 from lungmech.trade.convergence import Convergence, order_of_differences
 
@@ -54,18 +55,19 @@ __all__ = ["FieldErrors", "Transfer", "Transfers", "energy_errors", "energy_norm
 
 class Transfer:
     """States of the ``source`` model's space carried onto the ``target`` model's, field by field
-    (the target's fields, matched by name), by non-matching interpolation. Collective."""
+    (the target's fields, matched by name): each target field's values at its dofs' points, the
+    source's field evaluated there (:class:`~lungmech.parallel.points.PointValues`: the target's
+    interpolation, for elements whose dofs are point values: Lagrange, DG). Collective."""
 
     def __init__(self, source: Model, target: Model) -> None:
         offered = dict(zip(source.field_dofs(), field_dofs(source.space), strict=True))
         self._source, self._target = fem.Function(source.space), fem.Function(target.space)
-        mesh = target.geometry.mesh
-        cell_map = mesh.topology.index_map(mesh.topology.dim)
-        cells = np.arange(cell_map.size_local + cell_map.num_ghosts, dtype=np.int32)
         fields = list(zip(target.field_dofs(), field_dofs(target.space), strict=True))
-        for name, _ in fields:
+        for name, (space, _) in fields:
             if name not in offered:
                 raise ParameterError(f"the candidate has no field '{name}' to compare with the reference's")
+            if not space.element.interpolation_ident:
+                raise ParameterError(f"the reference's field '{name}' is not valued at points: it cannot be carried")
         largest = _largest_cell(source)
         # Points outside the source are searched for within the padding, at a cost that grows
         # with it: the least that covers the target (a nested mesh: none; a remesh: its gap).
@@ -73,10 +75,12 @@ class Transfer:
             self._fields = []
             for name, (space, dofs) in fields:
                 from_space, from_dofs = offered[name]
-                data = fem.create_interpolation_data(space, from_space, cells, float(padding))
+                owned = space.dofmap.index_map.size_local
+                points = space.tabulate_dof_coordinates()[:owned]
+                at = PointValues(source.geometry.mesh, points, float(padding))
                 giver = self._source if from_space is source.space else fem.Function(from_space)
                 taker = self._target if space is target.space else fem.Function(space)
-                self._fields.append((giver, from_dofs, taker, dofs, cells, data))
+                self._fields.append((giver, from_dofs, taker, dofs, owned * space.dofmap.index_map_bs, at))
             if not (missed := self._missed(source)):
                 return
         raise LungmechError(
@@ -89,11 +93,11 @@ class Transfer:
         self._source.x.array[: state.size] = state
         self._source.x.scatter_forward()
         self._target.x.array[:] = 0.0
-        for source, from_dofs, target, dofs, cells, data in self._fields:
+        for source, from_dofs, target, dofs, owned, values_at in self._fields:
             if source is not self._source:  # a field of a mixed space: its collapsed copy
                 source.x.array[:] = self._source.x.array[from_dofs]
             target.x.array[:] = 0.0
-            target.interpolate_nonmatching(source, cells, data)
+            target.x.array[:owned] = values_at(source).ravel()
             target.x.scatter_forward()
             if target is not self._target:
                 self._target.x.array[dofs] = target.x.array
