@@ -24,7 +24,9 @@ from lungmech.app.trade import Candidate, trade
 from lungmech.parallel.ensemble import Groups
 from lungmech.rom import store
 
-BUILD = ["--build", "--taus", "1e-2,1e-4", "--size", "6", "--samples", "4"]
+# the reference the scene's mesh refined once (h/2): half the time of h/4, whose orders of
+# convergence tests/test_field_errors.py and tests/test_trade.py check
+BUILD = ["--build", "--taus", "1e-2,1e-4", "--size", "6", "--samples", "4", "--levels", "1"]
 
 
 def traded(scene: Path, out: Path, cache: Path, tolerance: float, *extra: str) -> tuple[int, dict, list[dict]]:
@@ -46,11 +48,11 @@ def test_a_loose_tolerance_chooses_a_hyper_reduced_model(tmp_path, capsys):
 
 
 @pytest.mark.serial
-@pytest.mark.long  # (the loose trade again first: 100 s in all) the choice: tests/test_trade_choice.py; solves kept: tests/test_training_paths.py
+@pytest.mark.long  # (the loose trade again first: 50 s in all) the choice: tests/test_trade_choice.py; solves kept: tests/test_training_paths.py
 def test_a_tight_tolerance_chooses_a_full_model_from_the_solves_and_models_kept(tmp_path, capsys):
     scene, cache, loose, errors = loosely(tmp_path, capsys)
     # a tolerance only the finer full models meet: a full model, every solve and model kept
-    tight = 0.5 * (errors["full P1 h/2"] + errors["full P2 h"])
+    tight = 0.5 * (errors["full P1 h"] + errors["full P2 h"])
     assert tight < min(errors[name] for name in errors if not name.startswith("full P"))
     code, again, table = traded(scene, tmp_path / "tight", cache, tight, *BUILD)
     assert code == 0, capsys.readouterr().err
@@ -65,7 +67,7 @@ def test_a_tight_tolerance_chooses_a_full_model_from_the_solves_and_models_kept(
     assert not (tmp_path / "tight" / "model.npz").exists()
     assert len(list((cache / "models").iterdir())) == 1  # built once
     assert [m["errors"] for m in again["models"]] == [m["errors"] for m in loose["models"]]
-    assert again["full_solves"] == {"solved": 0, "kept": 18}
+    assert again["full_solves"] == {"solved": 0, "kept": 15}
     out = capsys.readouterr().out
     assert f"* {chosen['model']['name']}" in out and f"choice: {chosen['model']['name']}" in out
 
@@ -76,11 +78,11 @@ def loosely(tmp_path: Path, capsys) -> tuple[Path, Path, dict, dict[str, float]]
     scene, cache = written(tmp_path), tmp_path / "cache"
     code, loose, table = traded(scene, tmp_path / "loose", cache, 5e-2, *BUILD)
     assert code == 0, capsys.readouterr().err
-    assert loose["reference"] == "full P1 h/4" and len(loose["points"]) == 3
+    assert loose["reference"] == "full P1 h/2" and len(loose["points"]) == 3
     assert [p["kind"] for p in loose["points"]].count("corner") == 2
     assert loose["failure_bound_95"] == pytest.approx(1 - 0.05 ** (1 / 3))
-    assert set(loose["convergence"]) == {"volume", "probes"} and loose["convergence"]["volume"]["observed"] > 0
-    assert loose["full_solves"] == {"solved": 18, "kept": 0}  # a new cache: 6 full models (2h too) × 3 points
+    assert loose["convergence"] == {}  # (no full P1 model between h and the reference: no order observed)
+    assert loose["full_solves"] == {"solved": 15, "kept": 0}  # a new cache: 5 full models (2h too) × 3 points
     by_name = {row["model"]: row for row in table}
     assert {"POD Galerkin", "POD ECSW τ=0.01", "POD ECSW τ=0.0001", "full P1 h", "full P2 h", "full P2–P1 h"} <= set(
         by_name
@@ -96,7 +98,7 @@ def loosely(tmp_path: Path, capsys) -> tuple[Path, Path, dict, dict[str, float]]
     # a reduced model of the scene's mesh answers that mesh's problem: its error against the
     # finer reference is the full model's on that mesh, to its own reduction error
     assert errors["POD Galerkin"] == pytest.approx(errors["full P1 h"], rel=0.05)
-    assert errors["full P1 h/2"] < errors["full P1 h"]
+    assert errors["full P2 h"] < errors["full P1 h"]
     reduced_against(loose, by_name, tmp_path / "loose" / "model.npz", scene)
     # the built models record their cost, and no test point is one they were trained on
     galerkin = by_name["POD Galerkin"]
