@@ -26,7 +26,7 @@ from lungmech.pgd.axes import Axis
 from lungmech.pgd.greedy import Options
 from lungmech.pgd.model import build
 from lungmech.pgd.terms import constants, values
-from lungmech.pgd.values import closed_form
+from lungmech.pgd.values import closed_form, joined
 
 # A steel-like beam 2 × 0.5 × 0.5 m clamped at x = 0, under its weight (turned by the pitch, over
 # a full turn) and a dead pressure on its free end; E over a factor 10: displacements of mm.
@@ -264,9 +264,10 @@ def test_the_values_in_closed_form_are_the_models_and_refused_where_none_holds(b
     """The moduli (linear in E) and the end pressure (its value) in closed form equal the model's
     own at random points, so an answer need not set the fem model (the same answer as with its
     sensitivities, which does); gravity turned by the pitch has one, by pitch and roll one with
-    a term in their products (cos p sin r), a Lamé constant of the Poisson ratio none."""
+    a term in their products (cos p sin r), a Lamé constant of the Poisson ratio none. Forms
+    joined into one give each one's values, stacked."""
     _, scene, pgd, _ = beam
-    assert pgd._energy is not None and pgd._loads is not None
+    assert pgd._closed is not None
     for point in pgd.parameters.sample(5, seed=31):
         quick, set_model = pgd.solve(point), pgd.solve(point, sensitivities=True)
         for name in ("strain_energy", "loads/tip", "volume"):
@@ -278,9 +279,15 @@ def test_the_values_in_closed_form_are_the_models_and_refused_where_none_holds(b
         read = lambda: np.concatenate([np.ravel(c.value) for c in weight])  # noqa: B023, E731
         form = closed_form(model, axes, read)
         assert form is not None and len(form.pairs) == pairs  # the pitch alone: cos and sin; with the roll, products
+        stiffness = lambda: np.array([model.parameter_values["E"]])  # noqa: B023, E731  (no pair: zeros in the joined one's)
+        moduli, nothing = (closed_form(model, axes, r) for r in (stiffness, lambda: np.zeros(0)))
+        assert moduli is not None and nothing is not None and not moduli.pairs
+        together, ends = joined([moduli, nothing, form])
+        assert ends == [len(moduli.base), len(moduli.base), len(moduli.base) + len(form.base)]
         for point in model.parameters.sample(6, seed=5):
             model.set_parameters(point)
             assert np.allclose(form(point), read(), rtol=0.0, atol=1e-12 * np.abs(read()).max())
+            assert np.allclose(together(point), np.concatenate([moduli(point), form(point)]), rtol=1e-14, atol=0)
     model = with_parameter(scene, "nu", "material.nu", [0.1, 0.45])
     axes = tuple(Axis(p, 8) for p in model.parameters)
     assert closed_form(model, axes, lambda: values(model)) is None  # λ = Eν/((1+ν)(1−2ν))

@@ -61,16 +61,21 @@ class Decomposition:
         """Each axis's splines as cubics per interval (intervals × 4 × terms)."""
         return [axis.polynomials(X.T) for axis, X in zip(self.axes, self.coefficients)]
 
-    def _at(self, mu: Mapping[str, float], derivative: int = 0) -> list[np.ndarray]:
-        """λₖʲ(sⱼ) (or its ``derivative`` in s), one array of the terms per axis."""
+    def _at(self, mu: Mapping[str, float], derivative: int = 0, units: np.ndarray | None = None) -> list[np.ndarray]:
+        """λₖʲ(sⱼ) (or its ``derivative`` in s), one array of the terms per axis; ``units`` the
+        point's :meth:`units` where already known."""
         return [
             horner(P, axis.coordinate(float(s)), derivative)
-            for axis, P, s in zip(self.axes, self._polynomials, self.units(mu))
+            for axis, P, s in zip(self.axes, self._polynomials, self.units(mu) if units is None else units)
         ]
 
-    def products(self, mu: Mapping[str, float]) -> np.ndarray:
-        """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term."""
-        return np.prod(self._at(mu), axis=0) if self.axes else np.ones(self.terms)
+    def products(self, mu: Mapping[str, float], units: np.ndarray | None = None) -> np.ndarray:
+        """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term; ``units`` the point's :meth:`units` where
+        already known."""
+        q = np.ones(self.terms)
+        for factor in self._at(mu, units=units):
+            q *= factor
+        return q
 
     def factors(self, mu: Mapping[str, float], tau: float | np.ndarray = 1.0) -> np.ndarray:
         """The space modes' coefficients at ``mu``: R (q(μ) ∘ τ) (m), ``tau`` the terms' factors

@@ -33,7 +33,7 @@ from lungmech.fem.loads import is_pressure
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS, Solution, Step, checked_times, output_times, stack
 from lungmech.fem.quantities import Probe
-from lungmech.fem.sensitivity import ValueDerivatives, value_derivatives
+from lungmech.fem.sensitivity import value_derivatives
 from lungmech.fem.shape import KIND as SHAPE
 from lungmech.fem.solver import Stepping, StepReport
 from lungmech.fem.start import StartReport
@@ -45,9 +45,10 @@ from lungmech.pgd.greedy import Options, Round, pgd
 from lungmech.pgd.imaged import Reference
 from lungmech.pgd.indicator import indicator
 from lungmech.pgd.online import Online, online
+from lungmech.pgd.point import Point
 from lungmech.pgd.terms import separated_terms
 from lungmech.pgd.timeline import RampTimeline, SampledTimeline
-from lungmech.pgd.values import closed_form
+from lungmech.pgd.values import closed_form, joined
 from lungmech.rom.basis import inner_product
 
 __all__ = ["ESTIMATE", "PGDModel", "build", "load_fractions", "ramp_of"]
@@ -152,10 +153,16 @@ class PGDModel:
         with model.kept_state():
             model.set_time(stepping.end)  # the scalar loads at the path's end, the load factor 1
             self._labels = tuple(model.scalar_loads())
-            self._energy = closed_form(model, decomposition.axes, lambda: self._values.read()[operated])
-            self._loaded = closed_form(model, decomposition.axes, lambda: self._values.read()[~operated])
-            self._loads = closed_form(model, decomposition.axes, lambda: np.array(list(model.scalar_loads().values())))
-            self._shape = closed_form(model, decomposition.axes, self._shape_values)
+            reads = (
+                lambda: self._values.read()[operated],
+                lambda: np.array(list(model.scalar_loads().values())),
+                self._shape_values,
+                lambda: self._values.read()[~operated],  # the loads' own values: the indicator's alone
+            )
+            forms = [closed_form(model, decomposition.axes, read) for read in reads]
+        # an answer without setting the fem model needs the first three; the fourth gives its
+        # indicator (without it, the build's estimate answers for it)
+        self._closed = None if None in forms[:3] else joined([form for form in forms if form is not None])
 
     @property
     def size(self) -> int:
@@ -186,14 +193,18 @@ class PGDModel:
         wanted = self.times if times is None else self._times(tuple(times))
         model, stepping, start = self.model, self.stepping, self._start
         self._last = values, factor
-        if self._energy is not None and self._loads is not None and self._shape is not None and not sensitivities:
+        if self._closed is not None and not sensitivities:  # the fem model is not set
+            form, ends = self._closed
+            found = form(values)
+            parts = [found[a:b] for a, b in zip([0, *ends[:-1]], ends)]
             c = np.zeros(len(self._operated))
-            c[self._operated] = self._energy(values)
-            if self._loaded is not None:  # the loads' values too: the indicator's (else the build's estimate)
-                c[~self._operated] = self._loaded(values)
-            loads = dict(zip(self._labels, factor * self._loads(values)))
-            indicated = c if self._loaded is not None else None
-            point = _Point(self, values, c, loads, self._shape(values), None, indicated)  # the fem model is not set
+            c[self._operated] = parts[0]
+            loads = dict(zip(self._labels, factor * parts[1]))
+            indicated = None
+            if len(parts) > 3:
+                c[~self._operated] = parts[3]
+                indicated = c
+            point = Point(self, values, c, loads, parts[2], None, indicated)
         else:
             indicated = None
             if factor != 1.0:  # the indicator's values at the loads' own scale (η is the same at any)
@@ -205,7 +216,7 @@ class PGDModel:
             model.set_parameters(values)  # (at that time)
             derivatives = value_derivatives(model) if sensitivities else None
             c = self._values.read()
-            point = _Point(
+            point = Point(
                 self,
                 values,
                 c,
@@ -217,8 +228,10 @@ class PGDModel:
         if self.reference is not None:  # the image on its reference at μ, and its volume there
             imaged = self.online.volume_at(point.state(float(stepping.start), factor), point.a)
             start = self.reference.start(values, point.a).measured(imaged)
-        else:  # the body at rest: of the shape at μ over a shape map
+        elif self.online.shape:  # the body at rest: of the shape at μ over a shape map
             start = start.measured(self.online.volume_at(np.zeros(self.size), point.a))
+        else:  # (the same at every μ)
+            start = self._rest_report
         if on_step is not None:  # the start, as every model shows it first
             at_start = float(stepping.start)
             on_step(
@@ -226,7 +239,7 @@ class PGDModel:
                     "start",
                     stepping.start,
                     None,
-                    lambda: point.outputs(at_start, factor),
+                    lambda: point.outputs(at_start, point.state(at_start, factor)),
                     lambda: point.state(at_start, factor),
                     start=start,
                 )
@@ -234,8 +247,8 @@ class PGDModel:
         rows, states, derived = [], [], []
         previous = stepping.start
         for t in wanted:
-            rows.append(point.outputs(float(t), factor))
             states.append(point.state(float(t), factor))
+            rows.append(point.outputs(float(t), states[-1]))
             if sensitivities:
                 derived.append(point.derivatives(float(t), factor))
             if on_step is not None and t > stepping.start:
@@ -261,6 +274,11 @@ class PGDModel:
     def _times(self, times: tuple[float, ...]) -> np.ndarray:
         """The output times asked for, checked (:func:`~lungmech.fem.parametric.checked_times`)."""
         return checked_times(times, self.stepping)
+
+    @functools.cached_property
+    def _rest_report(self) -> StartReport:
+        """The start's report of a body at rest with no shape map: its volume, at every μ."""
+        return self._start.measured(self.online.volume_at(np.zeros(self.size), np.zeros(0)))
 
     def _shape_values(self) -> np.ndarray:
         """The shape coefficients a the fem model's parameters set now (none: no shape map)."""
@@ -307,106 +325,6 @@ class _Entries:
     def read(self) -> np.ndarray:
         """c_e for each entry, now."""
         return np.array([np.ravel(c.value)[i] for c, i in self._picks], dtype=float)
-
-
-class _Point:
-    """One solve's evaluation at μ: q(μ), the terms' products, so that the state at time t is
-    z = s R (q ∘ τ(t)) (s the load factor, τ the owner's timeline); the strain energy's A(c) for
-    the values ``c`` of its entries (a linear model) or the owner's fit of it; the scalar
-    ``loads`` at the path's end T, at t r(t)/r(T) of them; the shape coefficients ``a`` (none:
-    no shape map); with ``derivatives`` (the model's value derivatives, its parameters set at
-    μ), ∂q/∂μ, ∂A/∂μ and da/dμ; its ``indicator`` η(μ) from the values ``indicated`` at the
-    loads' own scale (None: the build's estimate answers for it)."""
-
-    def __init__(
-        self,
-        owner: PGDModel,
-        values: Mapping[str, float],
-        c: np.ndarray,
-        loads: dict[str, float],
-        a: np.ndarray,
-        derivatives: ValueDerivatives | None,
-        indicated: np.ndarray | None = None,
-    ) -> None:
-        model, d, self.online = owner.model, owner.decomposition, owner.online
-        self.reduced, self.q = d.reduced, d.products(values)
-        self.timeline, self.energy, self.values = owner.timeline, owner.energy, values
-        self.fractions = owner.fractions
-        # ξ at the probes on an imaged body, and its slopes: u = w − ξ
-        reference = owner.reference if owner.reference is not None and len(owner.probe_points) else None
-        self.xi = None if reference is None else reference.at_probes(values)
-        self.xi_slopes = None if reference is None or derivatives is None else reference.probe_derivatives(values)
-        units = d.units(values) if self.energy is None else np.zeros(0)
-        weights = self.online.weights(units) if self.energy is None else np.ones(1)
-        self.operator = self.online.operator(c, weights) if self.energy is None else None
-        # a linear model's η at μ, from z at the path's end (τ = 1 there) and the values at the
-        # loads' own scale: the answer at t and s is a multiple of it, as is its residual
-        self.indicator = (
-            None
-            if self.energy is not None or indicated is None
-            else self.online.indicator(indicated, weights, self.reduced @ self.q)
-        )
-        self.loads, self.a = loads, a
-        self.points = len(owner.probe_points)
-        self.derivatives_at_end = derivatives
-        if derivatives is not None:
-            self.slopes = d.product_derivatives(values)
-            n = self.slopes.shape[1]
-            coefficients = () if model.shape is None else model.shape.coefficients
-            self.da = np.array([derivatives.constants.get(c, np.zeros(n)) for c in coefficients]).reshape(-1, n)
-            dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
-            energy = self.online.energy
-            self.operator_slopes = np.einsum("k,ei,kemn->imn", weights, dc[self.online.entries], energy[:, 1:])
-            if self.online.curve >= 0:  # the series' own slope, dTₖ/dσ dσ/dμ
-                j = self.online.curve
-                parameter = d.axes[j].parameter
-                dw = self.online.weights(units, 1) / parameter.unit_derivative(values[parameter.name])
-                self.operator_slopes[j] += self.online.operator(c, dw)
-
-    def state(self, t: float, factor: float = 1.0) -> np.ndarray:
-        """z = s R (q ∘ τ(t))."""
-        return factor * (self.reduced @ (self.q * self.timeline.at(t)))
-
-    def _strain_energy(self, t: float, z: np.ndarray) -> float:
-        if self.energy is None:
-            assert self.operator is not None  # (a linear model's)
-            return 0.5 * float(z @ self.operator @ z)
-        fitted, timeline = self.energy
-        return float(fitted.factors(self.values, timeline.at(t))[0])
-
-    def outputs(self, t: float, factor: float = 1.0) -> dict[str, object]:
-        """The outputs at time ``t``, with the load ``factor``."""
-        z = self.state(t, factor)
-        volume = self.online.volume_at(z, self.a)
-        found: dict[str, object] = {"volume": volume, "strain_energy": self._strain_energy(t, z)}
-        if self.points:
-            moved = self.online.probes @ z
-            found["probes"] = (moved if self.xi is None else moved - self.xi).reshape(self.points, -1)
-        found["loads"] = {label: f * value for (label, value), f in zip(self.loads.items(), self.fractions(t))}
-        return found
-
-    def derivatives(self, t: float, factor: float) -> dict[str, object]:
-        """d(outputs)/dμ at time ``t``: dz/dμ = s R (∂q/∂μ ∘ τ(t)); the strain energy's, of a
-        linear model, zᵀ A dz/dμ + ½ zᵀ (∂A/∂μ) z, else its fit's."""
-        assert self.derivatives_at_end is not None  # (made with derivatives)
-        tau = self.timeline.at(t)
-        z, dz = self.state(t, factor), factor * (self.reduced @ (self.slopes * np.reshape(tau, (-1, 1))))
-        if self.energy is None:
-            assert self.operator is not None  # (a linear model's)
-            energy = z @ self.operator @ dz + 0.5 * np.einsum("m,imn,n->i", z, self.operator_slopes, z)
-        else:
-            fitted, timeline = self.energy
-            energy = fitted.factor_derivatives(self.values, timeline.at(t))[0]
-        volume = self.online.volume_derivatives(z, self.a, dz, self.da)
-        found: dict[str, object] = {"volume": volume, "strain_energy": energy}
-        if self.points:
-            moved = self.online.probes @ dz
-            found["probes"] = (moved if self.xi_slopes is None else moved - self.xi_slopes).reshape(
-                self.points, -1, dz.shape[1]
-            )
-        loads = self.derivatives_at_end.loads.items()
-        found["loads"] = {label: f * d for (label, d), f in zip(loads, self.fractions(t))}
-        return found
 
 
 def _returning(value: object) -> Callable[[], Any]:

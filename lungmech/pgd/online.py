@@ -101,26 +101,26 @@ class Online:
         ``weights`` (module docstring); None where no Gram matrix is kept."""
         if not self.residual.size:
             return None
-        blocks, modes, G, scales = self._residual_kept
-        values = np.concatenate([[1.0], c])
-        mixed = values[blocks % len(values)] * weights[blocks // len(values)]
-        theta = mixed * np.append(z, 1.0)[modes]  # θ on the kept columns: wₖ cₑ zᵢ, or wₖ cₑ for a load's
+        value, degree, moded, modes, G, scales = self._residual_kept
+        theta = np.concatenate([[1.0], c])[value] * weights[degree]  # θ on the kept columns: wₖ cₑ zᵢ,
+        theta[moded] *= z[modes]  # or wₖ cₑ for a load's
         floor = RESOLVED * float(np.abs(theta) @ scales) ** 2  # |θ|ᵀ|G||θ| ≤ (Σ |θ_b| √G_bb)²
-        size = float(np.linalg.norm(z))
+        size = math.sqrt(float(z @ z))
         return math.sqrt(max(float(theta @ G @ theta), floor)) / size if size > 0 else math.inf
 
     @functools.cached_property
-    def _residual_kept(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The Gram matrix's columns that are not 0 (a value's absent block): each one's block
-        (degree · values + value) and mode (m: a load's column), G on them and √G_bb."""
-        m = self.energy.shape[-1]
+    def _residual_kept(self) -> tuple[np.ndarray, ...]:
+        """The Gram matrix's columns that are not 0 (a value's absent block): each one's value
+        (0: the constant part, e + 1: entry e) and degree, the kept columns of a mode and that
+        mode (the others are the loads'), G on them and √G_bb."""
+        m, n = self.energy.shape[-1], 1 + len(self.entries)
         count = self.energy.shape[0] * self.energy.shape[1]
         kept = np.flatnonzero(np.abs(self.residual).max(axis=0) > 0)
         loads = kept >= count * m
         blocks = np.where(loads, kept - count * m, kept // m)
-        modes = np.where(loads, m, kept % m)
+        moded = np.flatnonzero(~loads)
         G = self.residual[np.ix_(kept, kept)]
-        return blocks, modes, G, np.sqrt(np.maximum(np.diag(G), 0.0))
+        return blocks % n, blocks // n, moded, kept[moded] % m, G, np.sqrt(np.maximum(np.diag(G), 0.0))
 
     def volume_at(self, z: np.ndarray, a: np.ndarray) -> float:
         """The volume at the state Q z and the shape a (m³)."""

@@ -28,7 +28,11 @@ class RampTimeline:
     end: float
 
     def at(self, t: float) -> float:
-        return self.ramp(t) / self.ramp(self.end)
+        return self.ramp(t) / self._at_end
+
+    @functools.cached_property
+    def _at_end(self) -> float:
+        return self.ramp(self.end)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,16 +30,21 @@ from lungmech.fem.model import Model
 from lungmech.fem.parameters import ANGLES, Parameter
 from lungmech.pgd.axes import Axis
 
-__all__ = ["ClosedForm", "closed_form"]
+__all__ = ["ClosedForm", "closed_form", "joined"]
 
 CHECK = 1e-10  # the largest mismatch at the check's points, relative to the values' size
 
 
-def _basis(parameter: Parameter, mu: float) -> list[float]:
-    """fⱼ(μ): (μ) for a quantity, (cos μ, sin μ) for an angle in degrees."""
-    if parameter.target.rsplit(".", 1)[-1] in ANGLES:
-        angle = math.radians(mu)
-        return [math.cos(angle), math.sin(angle)]
+def _is_angle(parameter: Parameter) -> bool:
+    """Whether ``parameter`` is an angle (degrees), whose basis is (cos μ, sin μ)."""
+    return parameter.target.rsplit(".", 1)[-1] in ANGLES
+
+
+def _basis(angle: bool, mu: float) -> list[float]:
+    """fⱼ(μ): (μ) for a quantity, (cos μ, sin μ) for an ``angle`` in degrees."""
+    if angle:
+        radians = math.radians(mu)
+        return [math.cos(radians), math.sin(radians)]
     return [mu]
 
 
@@ -60,12 +65,45 @@ class ClosedForm:
         """Every axis's coefficients side by side (values × all bases): one product a point."""
         return np.hstack(self.coefficients) if self.coefficients else np.zeros((len(self.base), 0))
 
+    @functools.cached_property
+    def _readers(self) -> tuple[tuple[str, bool], ...]:
+        """Each axis's parameter name and whether it is an angle."""
+        return tuple((axis.parameter.name, _is_angle(axis.parameter)) for axis in self.axes)
+
+    @functools.cached_property
+    def _slices(self) -> tuple[slice, ...]:
+        """Each axis's basis in the stacked f."""
+        ends = np.cumsum([0] + [2 if angle else 1 for _, angle in self._readers])
+        return tuple(slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:]))
+
     def __call__(self, mu: Mapping[str, float]) -> np.ndarray:
-        f = [np.array(_basis(axis.parameter, float(mu[axis.parameter.name]))) for axis in self.axes]
-        found = self.base + self._stacked @ np.concatenate(f) if f else self.base.copy()
+        f: list[float] = []
+        for name, angle in self._readers:
+            f += _basis(angle, float(mu[name]))
+        stacked = np.array(f)
+        found = self.base + self._stacked @ stacked
         for j, l, B in self.pairs:
-            found = found + B @ np.outer(f[j] - self.origin[j], f[l] - self.origin[l]).ravel()
+            fj, fl = (stacked[self._slices[i]] - self.origin[i] for i in (j, l))
+            found += B @ (fj[:, None] * fl).ravel()
         return found
+
+
+def joined(forms: Sequence[ClosedForm]) -> tuple[ClosedForm, list[int]]:
+    """One :class:`ClosedForm` whose values are ``forms``' stacked (one evaluation of the bases
+    for them all: the bulk of a closed form's time is its call's), and where each form's values
+    end in them. The forms share their axes; a pair one lacks is zero in its rows."""
+    axes = forms[0].axes
+    origin = next((form.origin for form in forms if form.origin), ())
+    base = np.concatenate([form.base for form in forms])
+    coefficients = tuple(np.vstack([form.coefficients[j] for form in forms]) for j in range(len(axes)))
+    keys = sorted({(j, l) for form in forms for j, l, _ in form.pairs})
+    pairs = []
+    for j, l in keys:
+        width = (2 if _is_angle(axes[j].parameter) else 1) * (2 if _is_angle(axes[l].parameter) else 1)
+        own = [{(a, b): B for a, b, B in form.pairs}.get((j, l), np.zeros((len(form.base), width))) for form in forms]
+        pairs.append((j, l, np.vstack(own)))
+    ends = np.cumsum([len(form.base) for form in forms]).tolist()
+    return ClosedForm(axes, base, coefficients, origin, tuple(pairs)), ends
 
 
 def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndarray]) -> ClosedForm | None:
@@ -78,16 +116,16 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
         at_defaults = np.asarray(read(), dtype=float)
         if not at_defaults.size:  # no value (no shape map, no load-only value): nothing to fit or check
             return ClosedForm(
-                tuple(axes), at_defaults, tuple(np.zeros((0, len(_basis(a.parameter, 0.0)))) for a in axes)
+                tuple(axes), at_defaults, tuple(np.zeros((0, len(_basis(_is_angle(a.parameter), 0.0)))) for a in axes)
             )
         base, coefficients = at_defaults.copy(), []
-        origin = tuple(np.array(_basis(a.parameter, defaults[a.parameter.name])) for a in axes)
+        origin = tuple(np.array(_basis(_is_angle(a.parameter), defaults[a.parameter.name])) for a in axes)
         for axis, f0 in zip(axes, origin):
             parameter = axis.parameter
             rows, found = [], []
             for mu in axis.values:
                 model.set_parameters(defaults | {parameter.name: float(mu)})
-                rows.append(np.subtract(_basis(parameter, float(mu)), f0))
+                rows.append(np.subtract(_basis(_is_angle(parameter), float(mu)), f0))
                 found.append(np.asarray(read(), dtype=float) - at_defaults)
             a = np.linalg.lstsq(np.array(rows), np.array(found), rcond=None)[0].T  # values × basis
             base -= a @ f0
@@ -115,7 +153,9 @@ def _pairs(
                 point = defaults | {axes[j].parameter.name: a, axes[l].parameter.name: b}
                 model.set_parameters(point)
                 left.append(np.asarray(read(), dtype=float) - form(point))
-                fj, fl = (np.array(_basis(axes[i].parameter, v)) - form.origin[i] for i, v in ((j, a), (l, b)))
+                fj, fl = (
+                    np.array(_basis(_is_angle(axes[i].parameter), v)) - form.origin[i] for i, v in ((j, a), (l, b))
+                )
                 rows.append(np.outer(fj, fl).ravel())
         B = np.linalg.lstsq(np.array(rows), np.array(left), rcond=None)[0].T
         if np.abs(np.array(rows) @ B.T).max(initial=0.0) > CHECK * size:  # what it adds on the grid
