@@ -67,9 +67,11 @@ test-serial: $(STAMP)
 test-quick: $(STAMP)
 	$(PY) -m pytest -m "not long and not slow" -n 2 --dist worksteal -q -p no:cacheprovider tests
 
-# The cases too long for the suite's budget (registrations of realistic lungs at 1 mm voxels).
+# The cases too long for the suite's budget (registrations of realistic lungs at 1 mm voxels),
+# on one rank and, those marked mpi too, on two.
 test-long: $(STAMP)
 	$(PY) -m pytest -m long -n 2 --durations=12 tests
+	bash .ci/test-mpi $(MPIEXEC) $(PY) "long and mpi" $$(grep -l 'mark\.mpi' tests/test_*.py | xargs grep -l 'mark\.long')
 
 # The mpi tests on two ranks (each compares a 2-rank result with one rank's), in groups of
 # files (.ci/test-mpi says why). make test runs these; test-mpi-all adds every test not slow

@@ -182,7 +182,7 @@ def test_a_new_patient_on_two_ranks_is_estimated_as_on_one(population, tmp_path)
     assert breaths[1] == pytest.approx(breaths[0], rel=5e-3), breaths
 
 
-@pytest.mark.slow
+@pytest.mark.long  # 16 s on 2 ranks: make test-long (a cohort a patient a rank: tests/test_personalise.py)
 @pytest.mark.mpi
 def test_a_cohort_on_a_populations_model_runs_a_patient_a_group(population, tmp_path):
     """A cohort of two patients on the population's model, under mpiexec with --group-size 1 (a
