@@ -118,9 +118,10 @@ def assert_same_answer(a, b, size: float) -> None:
 @pytest.mark.slow
 def test_the_lung_with_balanced_gravity_at_several_mu():
     """The poromechanical lung, suction and weight balanced by the pleura, at the defaults and at
-    two corners of its box: the fixed point's reference and breath, from the fixed mesh."""
+    a corner of its box (the posture turned): the fixed point's reference and breath, from the
+    fixed mesh."""
     moved, kept = two_ways(imaged_lung, Stepping(end=2.0, max_step=0.5), probes=[[0.05, 0.0, 0.16]])
-    for mu in ({}, {"stiffness": 100.0, "breath": 1.4, "posture": -90.0}, {"stiffness": 400.0, "breath": 0.6}):
+    for mu in ({}, {"stiffness": 100.0, "breath": 1.4, "posture": -90.0}):
         assert_same_answer(moved.solve(mu), kept.solve(mu), 0.24)
 
 

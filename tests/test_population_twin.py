@@ -152,7 +152,7 @@ def test_a_population_model_without_surface_probes_is_refused():
     check_probes(SimpleNamespace(probe_points=((0, 0, 0), (0.1, 0, 0))), surface, "p.npz")
 
 
-@pytest.mark.slow
+@pytest.mark.long  # 46 s on 2 ranks with its population: make test-long (a patient's own model: tests/test_personalise.py)
 @pytest.mark.mpi
 def test_a_new_patient_on_two_ranks_is_estimated_as_on_one(population, tmp_path):
     """``personalise --model`` on a distributed template (registration, projection, surface fit,

@@ -17,6 +17,8 @@ so refining keeps every assembly already made.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.polynomial import chebyshev
 
@@ -39,6 +41,8 @@ def coefficients(samples: np.ndarray) -> np.ndarray:
 def polynomials(sigma: float | np.ndarray, count: int, derivative: int = 0) -> np.ndarray:
     """Tₖ(2σ − 1), k < ``count`` (or their ``derivative``-th derivative in σ), at each
     ``sigma``: len(σ) × count."""
+    if not derivative and isinstance(sigma, float):  # one σ, an answer's: Tₖ(cos θ) = cos kθ, one array call
+        return np.cos(math.acos(min(max(2.0 * sigma - 1.0, -1.0), 1.0)) * np.arange(count))[None, :]
     x = 2.0 * np.atleast_1d(np.asarray(sigma, dtype=float)) - 1.0
     if not derivative:  # Tₖ(cos θ) = cos kθ: two array calls, an answer's microseconds (a recurrence's loop took 35)
         return np.cos(np.outer(np.arccos(np.clip(x, -1.0, 1.0)), np.arange(count)))

@@ -22,6 +22,8 @@ from lungmech.pgd.axes import Axis, horner
 
 __all__ = ["Decomposition"]
 
+_POWERS = np.arange(4.0)
+
 
 @dataclass
 class Decomposition:
@@ -71,11 +73,26 @@ class Decomposition:
 
     def products(self, mu: Mapping[str, float], units: np.ndarray | None = None) -> np.ndarray:
         """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term; ``units`` the point's :meth:`units` where
-        already known."""
-        q = np.ones(self.terms)
-        for factor in self._at(mu, units=units):
-            q *= factor
-        return q
+        already known. Every axis's cubic at once (:func:`~lungmech.pgd.axes.horner`'s, on the
+        axes' intervals stacked): an answer's microseconds."""
+        if not self.axes:
+            return np.ones(self.terms)
+        stacked, first, counts = self._stacked
+        rows, t = [], []
+        for axis, s, start, n in zip(self.axes, self.units(mu) if units is None else units, first, counts):
+            s = axis.coordinate(float(s))
+            i = min(int(s * n), n - 1)
+            rows.append(start + i)
+            t.append(s - (i + 0.5) / n)
+        powers = np.array(t)[:, None, None] ** _POWERS  # (1, t, t², t³) of each axis
+        return np.multiply.reduce((powers @ stacked[rows])[:, 0], axis=0)
+
+    @functools.cached_property
+    def _stacked(self) -> tuple[np.ndarray, list[int], list[int]]:
+        """Every axis's :attr:`_polynomials` one after the other (intervals × 4 × terms), where
+        each axis's begin and how many intervals it has."""
+        counts = [len(P) for P in self._polynomials]
+        return np.concatenate(self._polynomials), np.cumsum([0, *counts[:-1]]).tolist(), counts
 
     def factors(self, mu: Mapping[str, float], tau: float | np.ndarray = 1.0) -> np.ndarray:
         """The space modes' coefficients at ``mu``: R (q(μ) ∘ τ) (m), ``tau`` the terms' factors

@@ -239,7 +239,7 @@ class PGDModel:
                     "start",
                     stepping.start,
                     None,
-                    lambda: point.outputs(at_start, point.state(at_start, factor)),
+                    lambda: point.outputs(at_start, point.state(at_start, factor), factor),
                     lambda: point.state(at_start, factor),
                     start=start,
                 )
@@ -248,7 +248,7 @@ class PGDModel:
         previous = stepping.start
         for t in wanted:
             states.append(point.state(float(t), factor))
-            rows.append(point.outputs(float(t), states[-1]))
+            rows.append(point.outputs(float(t), states[-1], factor))
             if sensitivities:
                 derived.append(point.derivatives(float(t), factor))
             if on_step is not None and t > stepping.start:

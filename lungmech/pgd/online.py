@@ -149,6 +149,23 @@ class Online:
         into, combinations = self._combinations
         return ((mixed @ into) @ combinations).reshape(m, m)
 
+    def quadratic(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> float:
+        """zᵀ A(c) z (:meth:`operator`) without A: Σⱼ βⱼ zᵀCⱼz over the operators' independent
+        combinations Cⱼ, each on its upper triangle (half the products)."""
+        into, upper, (j, k) = self._upper
+        mixed = (weights @ into).reshape(len(c) + 1, -1)  # (1 + entries) × combinations: Σₖ wₖ, then the values
+        return float((mixed[0] + c @ mixed[1:]) @ (upper @ (z[j] * z[k])))
+
+    @functools.cached_property
+    def _upper(self) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The combinations Cⱼ on the pairs j ≤ k of their (symmetric) indices, an off-diagonal
+        pair's twice: (into, degrees × (values · combinations); combinations × pairs; the pairs)."""
+        into, combinations = self._combinations
+        m = self.energy.shape[-1]
+        j, k = np.triu_indices(m)
+        twice = np.where(j < k, 2.0, 1.0)
+        return into.reshape(self.energy.shape[0], -1), combinations.reshape(-1, m, m)[:, j, k] * twice, (j, k)
+
     @functools.cached_property
     def _combinations(self) -> tuple[np.ndarray, np.ndarray]:
         """The operators Aₑₖ (degrees · (1 + entries) of them) as combinations of fewer, an SVD's

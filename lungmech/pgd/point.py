@@ -46,18 +46,19 @@ class Point:
         self.xi = None if reference is None else reference.at_probes(values)
         self.xi_slopes = None if reference is None or derivatives is None else reference.probe_derivatives(values)
         weights = self.online.weights(units) if self.energy is None else np.ones(1)
-        self.operator = self.online.operator(c, weights) if self.energy is None else None
-        # a linear model's η at μ, from z at the path's end (τ = 1 there) and the values at the
-        # loads' own scale: the answer at t and s is a multiple of it, as is its residual
+        # A linear model's state at t and s is s ρ(t) z_T, z_T its state at the path's end (τ = 1
+        # there): its strain energy (s ρ(t))² ½ z_Tᵀ A z_T, and its η at μ that of z_T with the
+        # values at the loads' own scale (its residual a multiple of z_T's)
+        end = self.reduced @ self.q
+        self.energy_at_end = 0.0 if self.energy is not None else 0.5 * self.online.quadratic(c, weights, end)
         self.indicator = (
-            None
-            if self.energy is not None or indicated is None
-            else self.online.indicator(indicated, weights, self.reduced @ self.q)
+            None if self.energy is not None or indicated is None else self.online.indicator(indicated, weights, end)
         )
         self.loads, self.a = loads, a
         self.points = len(owner.probe_points)
         self.derivatives_at_end = derivatives
         if derivatives is not None:
+            self.operator = self.online.operator(c, weights) if self.energy is None else None
             self.slopes = d.product_derivatives(values)
             n = self.slopes.shape[1]
             coefficients = () if model.shape is None else model.shape.coefficients
@@ -75,17 +76,16 @@ class Point:
         """z = s R (q ∘ τ(t))."""
         return factor * (self.reduced @ (self.q * self.timeline.at(t)))
 
-    def _strain_energy(self, t: float, z: np.ndarray) -> float:
-        if self.energy is None:
-            assert self.operator is not None  # (a linear model's)
-            return 0.5 * float(z @ self.operator @ z)
+    def _strain_energy(self, t: float, factor: float) -> float:
+        if self.energy is None:  # (a linear model's timeline: its loads' one ramp, ρ(t) = τ(t))
+            return (factor * float(self.timeline.at(t))) ** 2 * self.energy_at_end
         fitted, timeline = self.energy
         return float(fitted.factors(self.values, timeline.at(t))[0])
 
-    def outputs(self, t: float, z: np.ndarray) -> dict[str, object]:
-        """The outputs at time ``t``, the state there z (:meth:`state`)."""
+    def outputs(self, t: float, z: np.ndarray, factor: float = 1.0) -> dict[str, object]:
+        """The outputs at time ``t``, the state there z (:meth:`state`), the load ``factor``."""
         volume = self.online.volume_at(z, self.a)
-        found: dict[str, object] = {"volume": volume, "strain_energy": self._strain_energy(t, z)}
+        found: dict[str, object] = {"volume": volume, "strain_energy": self._strain_energy(t, factor)}
         if self.points:
             moved = self.online.probes @ z
             found["probes"] = (moved if self.xi is None else moved - self.xi).reshape(self.points, -1)
