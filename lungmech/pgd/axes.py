@@ -21,7 +21,9 @@ from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.parameters import ANGLES, Parameter
 
-__all__ = ["Axis", "full_turn", "horner"]
+__all__ = ["Axis", "full_turn", "horner", "taylor"]
+
+_POWERS = np.arange(4.0)  # t⁰ … t³
 
 DEGREE = 3  # cubic: C² modes
 POINTS = 4  # Gauss points per interval
@@ -96,7 +98,7 @@ class Axis:
         """The splines of ``coefficients`` (size, ...) as one cubic per interval, in powers of
         the distance t from its midpoint: (intervals, 4, ...), value Σₖ Pₖ tᵏ (their Taylor
         coefficients there: exact for a cubic; a midpoint is never a knot, where the third
-        derivative jumps). What an online evaluation reads (:func:`horner`)."""
+        derivative jumps). What an online evaluation reads (:func:`horner`, :func:`taylor`)."""
         middle = (np.arange(self.intervals) + 0.5) / self.intervals
         return np.stack(
             [self.spline(coefficients, k)(middle) / factorial for k, factorial in enumerate((1.0, 1.0, 2.0, 6.0))],
@@ -131,8 +133,14 @@ def horner(polynomials: np.ndarray, s: float, derivative: int = 0) -> np.ndarray
     spline call costs tens."""
     intervals = polynomials.shape[0]
     i = min(int(s * intervals), intervals - 1)
-    t = s - (i + 0.5) / intervals
-    P = polynomials[i]
-    if derivative:
-        return P[1] + t * (2.0 * P[2] + t * 3.0 * P[3])
-    return P[0] + t * (P[1] + t * (P[2] + t * P[3]))
+    return taylor(polynomials[[i]], np.array([s - (i + 0.5) / intervals]), derivative)[0]
+
+
+def taylor(polynomials: np.ndarray, t: np.ndarray, derivative: int = 0) -> np.ndarray:
+    """Σₖ Pₖ tᵏ (or its first ``derivative`` in t) for each row: ``polynomials`` (rows × 4 × ...)
+    intervals' cubics of :meth:`Axis.polynomials`, ``t`` (rows) the distance from each one's
+    midpoint. One batched product for every row (several axes' intervals at once)."""
+    t = np.asarray(t, dtype=float)[:, None, None]
+    powers = np.concatenate([0.0 * t, t**0, 2.0 * t, 3.0 * t**2], axis=2) if derivative else t**_POWERS
+    rows = polynomials.reshape(len(polynomials), 4, -1)
+    return (powers @ rows)[:, 0].reshape(len(polynomials), *polynomials.shape[2:])

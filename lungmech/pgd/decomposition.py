@@ -18,11 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lungmech.errors import ParameterError
-from lungmech.pgd.axes import Axis, horner
+from lungmech.pgd.axes import Axis, taylor
 
 __all__ = ["Decomposition"]
-
-_POWERS = np.arange(4.0)
 
 
 @dataclass
@@ -63,20 +61,12 @@ class Decomposition:
         """Each axis's splines as cubics per interval (intervals × 4 × terms)."""
         return [axis.polynomials(X.T) for axis, X in zip(self.axes, self.coefficients)]
 
-    def _at(self, mu: Mapping[str, float], derivative: int = 0, units: np.ndarray | None = None) -> list[np.ndarray]:
-        """λₖʲ(sⱼ) (or its ``derivative`` in s), one array of the terms per axis; ``units`` the
-        point's :meth:`units` where already known."""
-        return [
-            horner(P, axis.coordinate(float(s)), derivative)
-            for axis, P, s in zip(self.axes, self._polynomials, self.units(mu) if units is None else units)
-        ]
-
-    def products(self, mu: Mapping[str, float], units: np.ndarray | None = None) -> np.ndarray:
-        """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term; ``units`` the point's :meth:`units` where
-        already known. Every axis's cubic at once (:func:`~lungmech.pgd.axes.horner`'s, on the
-        axes' intervals stacked): an answer's microseconds."""
+    def _at(self, mu: Mapping[str, float], derivative: int = 0, units: np.ndarray | None = None) -> np.ndarray:
+        """λₖʲ(sⱼ) (or its ``derivative`` in s), axes × terms; ``units`` the point's
+        :meth:`units` where already known. Every axis's cubic at once, on the axes' intervals
+        stacked (:func:`~lungmech.pgd.axes.taylor`): an answer's microseconds."""
         if not self.axes:
-            return np.ones(self.terms)
+            return np.zeros((0, self.terms))
         stacked, first, counts = self._stacked
         rows, t = [], []
         for axis, s, start, n in zip(self.axes, self.units(mu) if units is None else units, first, counts):
@@ -84,8 +74,12 @@ class Decomposition:
             i = min(int(s * n), n - 1)
             rows.append(start + i)
             t.append(s - (i + 0.5) / n)
-        powers = np.array(t)[:, None, None] ** _POWERS  # (1, t, t², t³) of each axis
-        return np.multiply.reduce((powers @ stacked[rows])[:, 0], axis=0)
+        return taylor(stacked[rows], np.array(t), derivative)
+
+    def products(self, mu: Mapping[str, float], units: np.ndarray | None = None) -> np.ndarray:
+        """qₖ(μ) = Πⱼ λₖʲ(μⱼ), one per separated term; ``units`` the point's :meth:`units` where
+        already known."""
+        return np.multiply.reduce(self._at(mu, units=units), axis=0) if self.axes else np.ones(self.terms)
 
     @functools.cached_property
     def _stacked(self) -> tuple[np.ndarray, list[int], list[int]]:
