@@ -128,8 +128,9 @@ def test_its_answers_and_their_derivatives_in_the_jumps_position(jump):
     ≤ 1.3e-3, 2.2e-3 of the largest), the volume within 5e-2 of its change (2e-6 m³ of the
     phantom's 3e-3 m³, the small difference of two larger ones: 2.1e-2 measured); the strain
     energy's derivative in α — which the Chebyshev series' own slope carries — that of its own
-    values by central differences, to 1e-6; the energy's quadratic form zᵀA(c)z, read without A
-    (:meth:`lungmech.pgd.online.Online.quadratic`), that of A itself."""
+    values by central differences, to 1e-6; the energy's quadratic form zᵀA(c)z and the volume's
+    powers, read without A from one product of the pairs zⱼzₖ
+    (:meth:`lungmech.pgd.online.Online.energy_and_volume`), those of A and of the volume's cubic."""
     _, found, full = jump
     for point in found.parameters.sample(4, seed=5):
         a, b = found.solve(point, sensitivities=True), full.solve(point)
@@ -144,11 +145,15 @@ def test_its_answers_and_their_derivatives_in_the_jumps_position(jump):
         index = list(found.parameters.names).index("alpha")
         derivative = np.asarray(a.sensitivities["strain_energy"])[..., index]
         assert np.abs(derivative - slope).max() <= 1e-6 * np.abs(slope).max()
-    # zᵀA(c)z from the combinations' upper triangles, as from the operator A itself
+    # zᵀA(c)z from the combinations' upper triangles, as from the operator A itself; the volume
+    # at s z, Σᵢ sⁱ powersᵢ, as the cubic's
     online, rng = found.online, np.random.default_rng(3)
     for _ in range(3):
         c, w, z = (rng.standard_normal(n) for n in (len(online.entries), len(online.energy), found.size))
-        assert online.quadratic(c, w, z) == pytest.approx(z @ online.operator(c, w) @ z, rel=1e-12)
+        quadratic, powers = online.energy_and_volume(c, w, z)
+        assert quadratic == pytest.approx(z @ online.operator(c, w) @ z, rel=1e-12)
+        for s in (0.3, 1.0, -2.0):
+            assert np.polynomial.polynomial.polyval(s, powers) == pytest.approx(online.volume(s * z), rel=1e-12)
 
 
 def test_a_moving_jumps_pgd_file_answers_as_the_model_it_saved(jump, tmp_path):

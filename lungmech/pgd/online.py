@@ -149,22 +149,34 @@ class Online:
         into, combinations = self._combinations
         return ((mixed @ into) @ combinations).reshape(m, m)
 
-    def quadratic(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> float:
-        """zᵀ A(c) z (:meth:`operator`) without A: Σⱼ βⱼ zᵀCⱼz over the operators' independent
-        combinations Cⱼ, each on its upper triangle (half the products)."""
-        into, upper, (j, k) = self._upper
+    def energy_and_volume(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """(zᵀ A(c) z, the volume's powers (c₀, c₁·z, ½ C₂[z, z], ⅙ C₃[z, z, z])), so that the
+        volume at the state s z is Σᵢ sⁱ powersᵢ (a linear model's state at any time a multiple
+        of that at the path's end), without A (:meth:`operator`): one product of the pairs
+        zⱼzₖ, j ≤ k, with the operators' independent combinations Cⱼ (zᵀ A z = Σⱼ βⱼ zᵀCⱼz) and
+        the volume's C₃ and C₂ on the same pairs, stacked. A body without a shape map."""
+        into, stacked, (j, k) = self._stacked
+        found = stacked @ (z[j] * z[k])
         mixed = (weights @ into).reshape(len(c) + 1, -1)  # (1 + entries) × combinations: Σₖ wₖ, then the values
-        return float((mixed[0] + c @ mixed[1:]) @ (upper @ (z[j] * z[k])))
+        n = mixed.shape[1]
+        energy = float((mixed[0] + c @ mixed[1:]) @ found[:n])
+        volume = self.volume
+        return energy, np.array([volume.c0, volume.c1 @ z, 0.5 * found[-1], (found[n:-1] @ z) / 6])
 
     @functools.cached_property
-    def _upper(self) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The combinations Cⱼ on the pairs j ≤ k of their (symmetric) indices, an off-diagonal
-        pair's twice: (into, degrees × (values · combinations); combinations × pairs; the pairs)."""
+    def _stacked(self) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The combinations Cⱼ on the volume's pairs j ≤ k (``Cubic.pairs``), an off-diagonal
+        pair's twice, then the volume's C₃ and C₂ there: (into, degrees × (values ·
+        combinations); (combinations + m + 1) × pairs; the pairs)."""
+        if self.shape:
+            raise ValueError("energy_and_volume is for a body without a shape map")  # (a lungmech error)
         into, combinations = self._combinations
         m = self.energy.shape[-1]
-        j, k = np.triu_indices(m)
+        j, k = self.volume.pairs
         twice = np.where(j < k, 2.0, 1.0)
-        return into.reshape(self.energy.shape[0], -1), combinations.reshape(-1, m, m)[:, j, k] * twice, (j, k)
+        second, third = self.volume.on_pairs
+        stacked = np.vstack([combinations.reshape(-1, m, m)[:, j, k] * twice, third.T, second[None]])
+        return into.reshape(self.energy.shape[0], -1), stacked, (j, k)
 
     @functools.cached_property
     def _combinations(self) -> tuple[np.ndarray, np.ndarray]:

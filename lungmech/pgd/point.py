@@ -50,7 +50,10 @@ class Point:
         # there): its strain energy (s ρ(t))² ½ z_Tᵀ A z_T, and its η at μ that of z_T with the
         # values at the loads' own scale (its residual a multiple of z_T's)
         end = self.reduced @ self.q
-        self.energy_at_end = 0.0 if self.energy is not None else 0.5 * self.online.quadratic(c, weights, end)
+        self.energy_at_end, self.volume_powers = 0.0, None
+        if self.energy is None and not self.online.shape:  # the volume at t, s ρ(t) z_T, a cubic in s ρ(t)
+            quadratic, self.volume_powers = self.online.energy_and_volume(c, weights, end)
+            self.energy_at_end = 0.5 * quadratic
         self.indicator = (
             None if self.energy is not None or indicated is None else self.online.indicator(indicated, weights, end)
         )
@@ -84,7 +87,12 @@ class Point:
 
     def outputs(self, t: float, z: np.ndarray, factor: float = 1.0) -> dict[str, object]:
         """The outputs at time ``t``, the state there z (:meth:`state`), the load ``factor``."""
-        volume = self.online.volume_at(z, self.a)
+        if self.volume_powers is None:
+            volume = self.online.volume_at(z, self.a)
+        else:
+            c0, c1, c2, c3 = self.volume_powers
+            x = factor * float(self.timeline.at(t))
+            volume = float(c0 + x * (c1 + x * (c2 + x * c3)))
         found: dict[str, object] = {"volume": volume, "strain_energy": self._strain_energy(t, factor)}
         if self.points:
             moved = self.online.probes @ z

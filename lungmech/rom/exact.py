@@ -56,29 +56,30 @@ class Cubic:
 
     def __call__(self, z: np.ndarray) -> float:
         pairs = self._pairs(z)
-        second, third = self._upper
+        second, third = self.on_pairs
         return float(self.c0 + self.c1 @ z + pairs @ (0.5 * second + (third @ z) / 6))
 
     def gradient(self, z: np.ndarray) -> np.ndarray:
         """∂f/∂z = c₁ + C₂z + ½ C₃[·, z, z]."""
-        return self.c1 + self.c2 @ z + 0.5 * (self._pairs(z) @ self._upper[1])
+        return self.c1 + self.c2 @ z + 0.5 * (self._pairs(z) @ self.on_pairs[1])
 
     def _pairs(self, z: np.ndarray) -> np.ndarray:
         """zⱼ zₖ for j ≤ k."""
-        j, k = self._indices
+        j, k = self.pairs
         return z[j] * z[k]
 
     @functools.cached_property
-    def _indices(self) -> tuple[np.ndarray, np.ndarray]:
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The index pairs j ≤ k (NumPy's ``triu_indices``) :attr:`on_pairs` is on."""
         return np.triu_indices(len(self.c1))
 
     @functools.cached_property
-    def _upper(self) -> tuple[np.ndarray, np.ndarray]:
-        """C₂ and C₃ on the pairs j ≤ k of their (symmetric) last two indices, an off-diagonal
-        pair's twice: zᵀC₂z = Σ_{j≤k} C₂ⱼₖ' zⱼzₖ and C₃[·, z, z] likewise (pairs × m), with half
-        the products and memory of the full C₃ — read whole at every answer, the bulk of one
-        at fifty modes."""
-        j, k = self._indices
+    def on_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """C₂ and C₃ on the :attr:`pairs` j ≤ k of their (symmetric) last two indices, an
+        off-diagonal pair's twice: zᵀC₂z = Σ_{j≤k} C₂ⱼₖ' zⱼzₖ and C₃[·, z, z] likewise (pairs × m),
+        with half the products and memory of the full C₃ — read whole at every answer, the bulk
+        of one at fifty modes."""
+        j, k = self.pairs
         twice = np.where(j < k, 2.0, 1.0)
         return twice * self.c2[j, k], twice[:, None] * np.moveaxis(self.c3, 0, -1)[j, k]
 
