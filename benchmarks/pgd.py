@@ -237,7 +237,7 @@ A_PRIORI = {  # the a priori PGD's terms at most and splines' intervals (None: l
     "lung": ((10, None), (10, None)),
     "jump": ((50, 4), (8, 4)),
 }
-FITTED = {"jump": ((128,), ()), "breath": ((32, 64, 128), (16,))}  # the fitted PGD's sample sizes: full size, --quick
+FITTED = {"jump": ((128,), ()), "breath": ((32, 64, 128), (8,))}  # the fitted PGD's sample sizes: full size, --quick
 
 
 def scene_of(folder: Path, name: str, quick: bool) -> scenes.Scene:
