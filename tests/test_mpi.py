@@ -874,3 +874,24 @@ def test_each_rank_gets_the_values_at_its_own_points_on_two_ranks():
 
     test_points.asked_and_answered(MPI.COMM_WORLD)
     test_field_errors.test_a_coarser_remesh_of_a_curved_body_reaches_the_finer_ones_boundary()
+
+
+def test_an_a_priori_pgd_over_the_shape_on_two_ranks_is_the_serial_one(tmp_path):
+    """The linear block over its two shape coefficients and its stiffness (tests/test_pgd_shape.py),
+    its PGD built a priori distributed and on each rank alone (6 terms): the curves' points and
+    degrees the same, and at random points the volume and the probe to 1e-9 of their size."""
+    from test_pgd_shape import linear_scene
+
+    from lungmech.app.run import build_model
+    from lungmech.pgd import Options
+    from lungmech.pgd.model import build
+
+    scene = scenes.load(linear_scene(tmp_path)[0])
+    found = {}
+    for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
+        found[name] = build(build_model(scene, comm), scene.stepping, scene.output.probes, 4, Options(max_terms=6))[0]
+    assert found["world"].built["curves"] == found["self"].built["curves"]
+    for point in found["self"].parameters.sample(4, seed=9):
+        a, b = found["world"].solve(point), found["self"].solve(point)
+        for key in ("volume", "probes"):
+            assert np.abs(a.outputs[key] - b.outputs[key]).max() <= 1e-9 * np.abs(b.outputs[key]).max(), key

@@ -31,7 +31,7 @@ from lungmech.lung.gravity import Gravity
 from lungmech.mesh import box
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
-from lungmech.pgd import Axis, Options, chebyshev, effectivity, indicator, pgd, separated_terms
+from lungmech.pgd import Axis, Options, assembly, chebyshev, effectivity, indicator, pgd, separated_terms
 from lungmech.pgd.model import build
 from lungmech.rom.basis import inner_product
 
@@ -101,7 +101,7 @@ def test_the_moving_jump_a_priori_is_within_1e_2_of_the_full_model_at_50_random_
     max ≤ 1e-2 (measured 7.4e-3); the jump's position is a curve of 17 to 33 points; the
     indicator's effectivity there, and every answer's estimate."""
     scene, found, _ = jump
-    curve = found.built["curve"]
+    (curve,) = found.built["curves"]
     assert curve["parameter"] == "alpha" and curve["points"] in (17, 33) and 4 <= curve["degrees"] < curve["points"]
     model = found.model
     model.set_time(scene.stepping.end)
@@ -164,7 +164,7 @@ def test_a_moving_jumps_pgd_file_answers_as_the_model_it_saved(jump, tmp_path):
     assert main(["pgd", "build", str(scene.source), "-o", str(path), "--modes", "3", "--intervals", "4"]) == 0
     loaded = reduce.load(path)
     made, _ = build(build_model(scene), scene.stepping, scene.output.probes, 4, Options(max_terms=3))
-    assert loaded.online.curve == list(loaded.parameters.names).index("alpha") and loaded.online.energy.shape[0] > 4
+    assert loaded.online.curves == (list(loaded.parameters.names).index("alpha"),) and loaded.online.energy.shape[0] > 4
     for point in loaded.parameters.sample(3, seed=8):
         a, b = loaded.solve(point, sensitivities=True), made.solve(point, sensitivities=True)
         for name in ("volume", "strain_energy", "probes"):
@@ -202,7 +202,7 @@ def test_the_series_is_the_models_residual_at_every_node():
     model = bar(parameters)
     axes = tuple(Axis(p, 3) for p in parameters)
     terms = separated_terms(model, axes)
-    assert terms.curve is not None and terms.curve.axis == 2 and terms.curve.entries
+    assert len(terms.curves) == 1 and terms.curves[0].axis == 2 and terms.curves[0].entries
     rng = np.random.default_rng(3)
     owned = owned_size(model.space)
     u = np.zeros(owned)
@@ -217,7 +217,7 @@ def test_the_series_is_the_models_residual_at_every_node():
         assert np.linalg.norm(found - exact) <= 1e-9 * np.linalg.norm(exact)
     terms.destroy()
     plain = separated_terms(bar(parameters[:1]), (Axis(parameters[0], 3),))
-    assert plain.curve is None
+    assert plain.curves == ()
     plain.destroy()
 
 
@@ -234,16 +234,34 @@ def test_chebyshev_series_interpolate_and_differentiate_exactly():
     assert np.abs(a[6:]).max() < 1e-13  # degree 5: nothing beyond
 
 
-def test_jumps_it_cannot_separate_are_refused_in_one_line():
-    """Two moving jumps (the residual not affine in two parameters' values), and a jump too sharp
-    for 65 Chebyshev points over its range."""
-    two = [
-        *jump_at(0.1),
-        Parameter("other", "material.E", 30.0, (20.0, 40.0), region=HalfSpace((0.0, 1.0, 0.0), "shift", 0.05)),
-        Parameter("shift", "interface", 0.1, (0.05, 0.15)),
-    ]
-    with pytest.raises(ParameterError, match="several parameters.*cut, shift"):
-        separated_terms(bar(two), tuple(Axis(p, 2) for p in two))
+@pytest.mark.slow
+def test_two_moving_jumps_are_one_tensor_series_and_sharp_ones_are_refused_in_one_line(monkeypatch):
+    """Two moving jumps (the residual not affine in two parameters' values): a curve each, the
+    operators the tensor product of their series, checked against the model's own residual at
+    a random point (separated_terms refuses otherwise). Refused in one line: two jumps whose
+    grid would pass its limit (:data:`lungmech.pgd.assembly.GRID`, lowered here), and one jump
+    too sharp for 65 points over its range."""
+
+    def two(width: float) -> list[Parameter]:
+        return [
+            *jump_at(width),
+            Parameter("other", "material.E", 30.0, (20.0, 40.0), region=HalfSpace((0.0, 1.0, 0.0), "shift", width)),
+            Parameter("shift", "interface", 0.1, (0.05, 0.15)),
+        ]
+
+    wide = two(0.3)
+    terms = separated_terms(bar(wide), tuple(Axis(p, 2) for p in wide))
+    try:
+        assert [c.axis for c in terms.curves] == [2, 4] and all(c.points >= 9 for c in terms.curves)
+        assert max(t.degree for t in terms.operator) < np.prod([c.degrees for c in terms.curves])
+        assert all(c.degrees > 1 for c in terms.curves)
+    finally:
+        terms.destroy()
+    monkeypatch.setattr(assembly, "GRID", 100)  # (the refusal's point, without a thousand assemblies first)
+    with pytest.raises(
+        ParameterError, match=r"dependence on cut, shift needs more than 100 assemblies \(17 × 17 points\)"
+    ):
+        separated_terms(bar(wide), tuple(Axis(p, 2) for p in wide))
     sharp = jump_at(0.002, range_=(0.1, 0.9))
     with pytest.raises(ParameterError, match="not a smooth enough function of parameter 'cut'"):
         separated_terms(bar(sharp, cells=(40, 1, 1)), tuple(Axis(p, 2) for p in sharp))
@@ -262,7 +280,7 @@ def test_a_moving_jumps_pgd_on_two_ranks_is_the_serial_one():
         decomposition, rounds = pgd(terms, W, Options(max_terms=4, tolerance=1e-8))
         points = Parameters(parameters).sample(3, seed=1)
         sizes = [float(norms(decomposition.state(p)[:, None], W, comm)[0]) for p in points]
-        found.append(np.array([terms.curve.degrees, *(r.potential for r in rounds), *sizes]))
+        found.append(np.array([terms.curves[0].degrees, *(r.potential for r in rounds), *sizes]))
         W.destroy()
         terms.destroy()
     assert np.allclose(found[0], found[1], rtol=1e-9, atol=0.0)

@@ -160,14 +160,15 @@ def test_a_bad_population_scene_gets_one_line(population, change, message, capsy
     assert len(err) == 1 and re.search(message, err[0]), err
 
 
-def test_a_pgd_over_shape_coefficients_a_priori_is_refused_in_one_line(population, capsys):
-    """Refused before any work: the shape moves the operators the terms are separated on (and
-    the PGD's volume and strain energy would be the template's)."""
+def test_a_nonlinear_pgd_over_shape_coefficients_a_priori_is_refused_in_one_line(population, capsys):
+    """The neo-Hookean block under its follower pressure: refused before the terms' assemblies
+    (its residual is not affine in the state), nothing written. (The linear block's a priori
+    PGD over the shape: tests/test_pgd_shape.py.)"""
     path, _ = population
     out = path.with_name("pgd.npz")
     assert main(["pgd", "build", str(path), "-o", str(out), "--modes", "4", "-q"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "the shape coefficients (a1, a2)" in err[0] and "give --samples" in err[0], err
+    assert len(err) == 1 and "not affine in the state" in err[0] and "give --samples" in err[0], err
     assert not out.exists()
 
 

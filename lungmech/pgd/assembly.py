@@ -8,6 +8,8 @@ Chebyshev series of those operators in that parameter's unit coordinate σ
 (:mod:`lungmech.pgd.chebyshev`): assembled at the Chebyshev–Lobatto points, 9, 17, 33 or 65 of
 them, nested, until the series' last two coefficients fall below :data:`CURVE` of its largest
 (measured on the residual of a random state), and kept to the last coefficient above it.
+Values moved by several parameters, each its own (a population's shape coefficients), give
+the series' tensor product, each parameter's points refined until its own tail is below.
 
 :func:`check_affine` holds the result to the model's own residual at a random point and state,
 so that a model outside these forms is refused, not approximated.
@@ -15,6 +17,8 @@ so that a model outside these forms is refused, not approximated.
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -33,11 +37,12 @@ from lungmech.parallel.linalg import apply
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd import chebyshev
 
-__all__ = ["AFFINE", "CURVE", "Assembler", "Operators", "check_affine", "series"]
+__all__ = ["AFFINE", "CURVE", "Assembler", "Operators", "check_affine", "check_linear", "series"]
 
 AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the operators'
 CURVE = 1e-11  # a curve's series: its last two coefficients below this fraction of the largest, and kept above it
 POINTS = (9, 17, 33, 65)  # the Chebyshev-Lobatto points a curve is assembled at, nested, fewest first
+GRID = 1089  # the most points of several curves' tensor grid (33 × 33), each 2 + the varying values' assemblies
 
 
 @dataclass
@@ -116,57 +121,111 @@ class Assembler:
 
 
 def series(
-    assembler: Assembler, base_at: Callable[[float], np.ndarray], varying: Sequence[int], name: str
-) -> tuple[list[Operators], int]:
-    """The operators' Chebyshev coefficients along a curve (module docstring), ``base_at(σ)``
-    the values at the curve's unit coordinate σ (the varying ones 0), and the number of points
-    assembled. Refused in one line where 65 points do not resolve it (a jump narrower than
-    the parameter's range can follow); ``name`` the parameter's."""
+    assembler: Assembler,
+    base_at: Callable[[tuple[float, ...]], np.ndarray],
+    varying: Sequence[int],
+    names: Sequence[str],
+) -> tuple[list[Operators], tuple[int, ...], tuple[int, ...]]:
+    """The operators' Chebyshev coefficients along the curves of the parameters ``names``
+    (module docstring; several: their tensor product, :mod:`lungmech.pgd.chebyshev`),
+    ``base_at(σ)`` the values at the curves' unit coordinates σ (the varying ones 0): the
+    coefficients in C order of their multi-indices, each parameter's number of coefficients
+    kept and of points assembled. A parameter's points are refined while its series' tail
+    (the largest over the others' coefficients) is above :data:`CURVE`. Refused in one line
+    where 65 points do not resolve a parameter (a jump narrower than its range can follow), or
+    where the grid would pass :data:`GRID` points."""
     u = assembler.random_state(seed=19)
-    at: dict[float, Operators] = {}
+    at: dict[tuple[float, ...], Operators] = {}
+    levels = [0] * len(names)
     try:
-        for points in POINTS:
-            sigma = chebyshev.lobatto(points)
-            for s in sigma:
-                if float(s) not in at:
-                    at[float(s)] = assembler.operators(base_at(float(s)), varying)
-            samples = np.array([at[float(s)].residuals(u, assembler.comm) for s in sigma])  # P × groups × owned
-            sizes = np.sqrt(assembler.comm.allreduce(np.sum(chebyshev.coefficients(samples) ** 2, axis=2), op=MPI.SUM))
-            if max(chebyshev.tail(column) for column in sizes.T) <= CURVE:
-                return _combined([at[float(s)] for s in sigma], sizes), points
-        raise ParameterError(
-            f"PGD: the residual is not a smooth enough function of parameter {name!r} "
-            f"({POINTS[-1]} Chebyshev points leave {max(chebyshev.tail(c) for c in sizes.T):.1e} of it): "
-            "widen the jump it moves or narrow its range"
-        )
+        while True:
+            grids = [chebyshev.lobatto(POINTS[level]) for level in levels]
+            shape = tuple(len(grid) for grid in grids)
+            if math.prod(shape) > GRID:
+                raise ParameterError(
+                    f"PGD: the residual's dependence on {', '.join(names)} needs more than {GRID} assemblies "
+                    f"({' × '.join(map(str, shape))} points): narrow their ranges, or give fewer of them"
+                )
+            keys = [tuple(float(s) for s in point) for point in itertools.product(*grids)]
+            for key in keys:
+                if key not in at:
+                    at[key] = assembler.operators(base_at(key), varying)
+            samples = np.array([at[key].residuals(u, assembler.comm) for key in keys]).reshape(*shape, -1, u.size)
+            for axis in range(len(shape)):
+                samples = chebyshev.coefficients(samples, axis)
+            sizes = np.sqrt(assembler.comm.allreduce(np.sum(samples**2, axis=-1), op=MPI.SUM))  # grid × groups
+            profiles = [_profile(sizes, axis) for axis in range(len(shape))]  # coefficients × groups, a parameter
+            tails = [max(chebyshev.tail(column) for column in profile.T) for profile in profiles]
+            unresolved = [axis for axis, tail in enumerate(tails) if tail > CURVE]
+            if not unresolved:
+                kept = tuple(_kept(profile) for profile in profiles)
+                grid = np.empty(shape, dtype=object)
+                for index, key in zip(np.ndindex(*shape), keys):
+                    grid[index] = at[key]
+                return _combined(grid, kept), kept, shape
+            for axis in unresolved:
+                if levels[axis] + 1 == len(POINTS):
+                    raise ParameterError(
+                        f"PGD: the residual is not a smooth enough function of parameter {names[axis]!r} "
+                        f"({POINTS[-1]} Chebyshev points leave {tails[axis]:.1e} of it): "
+                        "widen the jump it moves or narrow its range"
+                    )
+                levels[axis] += 1
     finally:
         for operators in at.values():
             operators.destroy()
 
 
-def _combined(samples: list[Operators], sizes: np.ndarray) -> list[Operators]:
-    """The coefficients Σₚ Cₖₚ (operators at point p) for every k up to the last whose size
-    (``sizes``: coefficients × groups) is above :data:`CURVE` of its group's largest."""
-    largest = sizes.max(axis=0)
-    kept = 1 + int(np.max(np.flatnonzero(np.any(sizes > CURVE * largest, axis=1)), initial=0))
-    C = chebyshev.coefficients(np.eye(len(samples)))[:kept]  # Cₖₚ
+def _profile(sizes: np.ndarray, axis: int) -> np.ndarray:
+    """The coefficients' sizes along one parameter's ``axis``, the largest over the others'
+    (``sizes``: grid × groups): coefficients × groups."""
+    others = tuple(i for i in range(sizes.ndim - 1) if i != axis)
+    return np.max(sizes, axis=others) if others else sizes
 
-    def mixed(matrices: list[PETSc.Mat], row: np.ndarray) -> PETSc.Mat:
+
+def _kept(profile: np.ndarray) -> int:
+    """The number of coefficients up to the last whose size is above :data:`CURVE` of its
+    group's largest (``profile``: coefficients × groups)."""
+    largest = profile.max(axis=0)
+    return 1 + int(np.max(np.flatnonzero(np.any(profile > CURVE * largest, axis=1)), initial=0))
+
+
+def _combined(grid: np.ndarray, kept: tuple[int, ...]) -> list[Operators]:
+    """The coefficients A_k = Σ_p Π_i C_{k_i p_i} (operators at grid point p), k < ``kept``, in C
+    order: one parameter's axis after the other (the grid's ``Operators``, an object array, are
+    the caller's; the partial sums between axes are made and destroyed here)."""
+    current = grid
+    for axis, count in enumerate(kept):
+        C = chebyshev.coefficients(np.eye(current.shape[axis]))[:count]  # Cₖₚ
+        moved = np.moveaxis(current, axis, 0)
+        found = np.empty((count, *moved.shape[1:]), dtype=object)
+        for index in np.ndindex(*moved.shape[1:]):
+            column = list(moved[(slice(None), *index)])
+            for k, row in enumerate(C):
+                found[(k, *index)] = _mixed(column, row)
+        if current is not grid:
+            for operators in current.ravel():
+                operators.destroy()
+        current = np.moveaxis(found, 0, axis)
+    return list(current.ravel())
+
+
+def _mixed(samples: list[Operators], row: np.ndarray) -> Operators:
+    """Σₚ rowₚ samplesₚ (every operator and vector)."""
+
+    def matrix(matrices: list[PETSc.Mat]) -> PETSc.Mat:
         A = matrices[0].copy()
         A.scale(row[0])
         for c, K in zip(row[1:], matrices[1:]):
             A.axpy(c, K, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # one form's assemblies: one pattern; the stubs say int
         return A
 
-    found = []
-    for row in C:
-        unit = {
-            e: (mixed([s.unit[e][0] for s in samples], row), sum(c * s.unit[e][1] for c, s in zip(row, samples)))
-            for e in samples[0].unit
-        }
-        f0 = sum(c * s.f0 for c, s in zip(row, samples))
-        found.append(Operators(mixed([s.K0 for s in samples], row), np.asarray(f0), unit))
-    return found
+    unit = {
+        e: (matrix([s.unit[e][0] for s in samples]), sum(c * s.unit[e][1] for c, s in zip(row, samples)))
+        for e in samples[0].unit
+    }
+    f0 = sum(c * s.f0 for c, s in zip(row, samples))
+    return Operators(matrix([s.K0 for s in samples]), np.asarray(f0), unit)
 
 
 def check_affine(assembler: Assembler, values: np.ndarray, weights: np.ndarray, found: list[Operators]) -> None:
@@ -181,10 +240,24 @@ def check_affine(assembler: Assembler, values: np.ndarray, weights: np.ndarray, 
         c = np.array([1.0, *(values[e] for e in operators.unit)])
         expected += w * (c @ operators.residuals(u, assembler.comm))
     expected = expected[assembler.free]
-    size, mismatch = assembler.norm(expected), assembler.norm(found_residual - expected)
+    _refuse_beyond(
+        assembler.norm(found_residual - expected), assembler.norm(expected), "the state and the parameters' values"
+    )
+
+
+def check_linear(assembler: Assembler, values: np.ndarray) -> None:
+    """R(2u) − 2R(u) + R(0) = 0 at a random state u, the constants at ``values``: a residual
+    not affine in the state (a nonlinear law, a follower load) refused in one line before the
+    terms' assemblies."""
+    u = assembler.random_state(seed=23)
+    zero, once, twice = (assembler.residual(values, scale * u) for scale in (0.0, 1.0, 2.0))
+    _refuse_beyond(assembler.norm(twice - 2.0 * once + zero), assembler.norm(twice - zero), "the state")
+
+
+def _refuse_beyond(mismatch: float, size: float, what: str) -> None:
     if not mismatch <= AFFINE * size:
         how = f"mismatch {mismatch / size:.1e} of its size" if np.isfinite(mismatch) else "not a finite number"
         raise ParameterError(
-            f"PGD: the residual is not affine in the state and the parameters' values ({how} at a random point): "
-            "this PGD separates linear models"
+            f"PGD: the residual is not affine in {what} ({how} at a random point): this PGD separates linear models; "
+            "give --samples for a PGD fitted to full solves"
         )

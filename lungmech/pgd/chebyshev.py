@@ -13,16 +13,23 @@ coefficients that fall geometrically: the last ones measure the interpolant's er
 its derivative, at every σ — not only at the PGD's quadrature nodes — so an answer's strain
 energy and its derivatives in μ come from the same series. The points are nested (P = 2ⁱ + 1),
 so refining keeps every assembly already made.
+
+Several such parameters (a population's shape coefficients: the map's det G and G⁻¹ are rational
+in each) give the tensor product: K(σ₁, …, σ_d) ≈ Σ_k Π_i T_{k_i}(2σ_i − 1) A_k over the
+multi-indices k, their coefficients those of the interpolant on the points' tensor grid, one
+axis after the other (:func:`coefficients` with ``axis``); :func:`tensor` gives the products at
+a point, flattened in C order (the last parameter's k fastest).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.polynomial import chebyshev
 
-__all__ = ["coefficients", "lobatto", "polynomials", "tail"]
+__all__ = ["coefficients", "lobatto", "polynomials", "tail", "tensor"]
 
 
 def lobatto(points: int) -> np.ndarray:
@@ -30,12 +37,12 @@ def lobatto(points: int) -> np.ndarray:
     return 0.5 * (1.0 - np.cos(np.pi * np.arange(points) / (points - 1)))
 
 
-def coefficients(samples: np.ndarray) -> np.ndarray:
-    """The Chebyshev coefficients of the interpolant through ``samples`` (P × ...: its values
-    at :func:`lobatto` (P)): C @ samples, P × ...."""
-    points = samples.shape[0]
+def coefficients(samples: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The Chebyshev coefficients of the interpolant through ``samples`` along ``axis`` (its
+    values at :func:`lobatto` (P) there): C applied along that axis, the shape kept."""
+    points = samples.shape[axis]
     vandermonde = chebyshev.chebvander(2.0 * lobatto(points) - 1.0, points - 1)  # well conditioned here
-    return np.tensordot(np.linalg.inv(vandermonde), samples, axes=1)
+    return np.moveaxis(np.tensordot(np.linalg.inv(vandermonde), np.moveaxis(samples, axis, 0), axes=1), 0, axis)
 
 
 def polynomials(sigma: float | np.ndarray, count: int, derivative: int = 0) -> np.ndarray:
@@ -55,3 +62,13 @@ def tail(sizes: np.ndarray) -> float:
     (norms, in order of k) against the largest."""
     largest = float(np.max(sizes))
     return float(np.max(sizes[-2:])) / largest if largest > 0 else 0.0
+
+
+def tensor(sigmas: Sequence[float], counts: Sequence[int], along: int | None = None) -> np.ndarray:
+    """Π_i T_{k_i}(2σ_i − 1) for every multi-index k < ``counts`` (C order, flattened), or its
+    derivative in σ of parameter number ``along``; one 1 for no parameter."""
+    found = None
+    for i, (sigma, count) in enumerate(zip(sigmas, counts)):
+        factor = polynomials(float(sigma), count, int(i == along))[0]
+        found = factor if found is None else np.multiply.outer(found, factor).ravel()
+    return np.ones(1) if found is None else found

@@ -78,7 +78,7 @@ def fitted(
     where it cannot answer: no parameter, loads not at rest at the start (but on an imaged body), a scalar load
     0 at the path's end. Collective."""
     model, stepping = full.model, full.stepping
-    answerable(model, fitted=True)
+    answerable(model)
     imaged = isinstance(full.start, InverseMotion)
     if not imaged:
         _from_rest(model, stepping)

@@ -34,7 +34,6 @@ from lungmech.fem.model import Model
 from lungmech.fem.parametric import UNITS, Solution, Step, checked_times, output_times, stack
 from lungmech.fem.quantities import Probe
 from lungmech.fem.sensitivity import value_derivatives
-from lungmech.fem.shape import KIND as SHAPE
 from lungmech.fem.solver import Stepping, StepReport
 from lungmech.fem.start import StartReport
 from lungmech.parallel.owned import owned_size
@@ -344,19 +343,13 @@ def _one_factor(scale: float | Sequence[float], loads: int) -> float:
     return float(factors[0])
 
 
-def answerable(model: Model, fitted: bool = False) -> None:
-    """Refuse, in one line, a model whose parameters a PGD does not answer: none; a shape
-    coefficient a priori (it moves the body, so the operators the terms are separated on move
-    with it other than affinely). A fitted PGD follows the shape: its volumes cubics of their
-    coordinates and the shape coefficients together."""
+def answerable(model: Model) -> None:
+    """Refuse, in one line, a model whose parameters a PGD cannot separate: none. (A shape
+    coefficient moves the body, and the operators with it: the a priori PGD takes it as a
+    curve, :mod:`lungmech.pgd.terms`; a fitted PGD's volumes are cubics of their coordinates
+    and the shape coefficients together.)"""
     if not model.parameters.names:
         raise ParameterError("PGD: the model has no parameters to separate: give the scene [parameters]")
-    shaped = ", ".join(p.name for p in model.parameters if p.kind == SHAPE)
-    if shaped and not fitted:
-        raise ParameterError(
-            f"PGD: the shape coefficients ({shaped}) move the body, and with it the operators the terms are separated "
-            "on: give --samples for a PGD fitted to full solves, or build a reduced model (lungmech rom build)"
-        )
 
 
 def build(
@@ -369,7 +362,7 @@ def build(
     """The :class:`PGDModel` of ``model`` over its parameters' box along ``stepping``: its terms
     at the path's end, the greedy (``options``) on ``intervals`` per axis, and the online
     outputs (``probe_points`` located on the mesh as it is); with the greedy's rounds.
-    Refused in one line before any work where it cannot answer (no parameter, a shape coefficient, loads on several
+    Refused in one line before any work where it cannot answer (no parameter, loads on several
     ramps or not at rest at the start) and as :func:`~lungmech.pgd.terms.separated_terms`
     refuses. Collective."""
     answerable(model)
@@ -401,13 +394,10 @@ def build(
         "rounds": [asdict(r) for r in rounds],
         "operator_terms": len(problem.operator),
         "load_terms": len(problem.load),
-        "curve": None
-        if problem.curve is None
-        else {
-            "parameter": axes[problem.curve.axis].parameter.name,
-            "points": problem.curve.points,
-            "degrees": problem.curve.degrees,
-        },
+        "curves": [
+            {"parameter": axes[curve.axis].parameter.name, "points": curve.points, "degrees": curve.degrees}
+            for curve in problem.curves
+        ],
         "estimate": float(estimates.max()),  # an answer's indicator where the online one is not kept
         "indicator_points": estimates.tolist(),
         "seconds": seconds,

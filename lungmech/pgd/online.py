@@ -6,8 +6,8 @@ coefficients z, made once offline (:class:`Online`):
 * the probes' displacements, linear in z;
 * the strain energy ½ zᵀ A(μ) z of a linear model, A(μ) = Σₖ wₖ(μ) (A₀ₖ + Σₑ cₑ(μ) Aₑₖ): Aₑₖ = Qᵀ Kₑₖ Q
   the terms' operators projected, cₑ(μ) the values the model's parameters set and wₖ the
-  Chebyshev polynomials of a curve's parameter (one 1 without a curve,
-  :mod:`lungmech.pgd.terms`); checked against the model's own ∫ψ dX at a random point;
+  Chebyshev polynomials of the curves' parameters, their products over several (one 1 without a
+  curve, :mod:`lungmech.pgd.terms`); checked against the model's own ∫ψ dX at a random point;
 * a linear model's error indicator at every μ (:mod:`lungmech.pgd.indicator`'s η, without an
   assembly): the residual R = Σₖ wₖ [(K₀ₖ + Σₑ cₑ Kₑₖ) Q z − (f₀ₖ + Σₑ cₑ fₑₖ)] is Σ θ_b v_b, θ
   the products wₖ cₑ zᵢ and wₖ cₑ, v_b the columns Kₑₖ Q and −fₑₖ, so that
@@ -56,18 +56,19 @@ RESOLVED = 1e-15  # θᵀ G θ below this fraction of |θ|ᵀ|G||θ| is round-of
 @dataclass(frozen=True)
 class Online:
     """The outputs of u = Q z as functions of z: ``volume`` (m³), ``probes`` (m: a row per
-    point and component, × m), ``energy`` (J: for each degree k of the curve's series, A₀ₖ then
-    each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices into
-    :func:`lungmech.pgd.terms.values`), ``curve`` the axis of the series
-    (:class:`lungmech.pgd.terms.Curve`; -1: none, one degree); ``shape``: the number of shape
-    coefficients a after z among the volume's coordinates (0: no shape map); ``residual`` the
-    residual's Gram matrix G (module docstring; 0 × 0: none kept)."""
+    point and component, × m), ``energy`` (J: for each multi-index k of the curves' series, A₀ₖ
+    then each entry's Aₑₖ; degrees × (1 + entries) × m × m) for the values ``entries`` (indices
+    into :func:`lungmech.pgd.terms.values`), ``curves`` the axes of the series and ``degrees``
+    each one's number of coefficients (:class:`lungmech.pgd.terms.Curve`; none: one degree);
+    ``shape``: the number of shape coefficients a after z among the volume's coordinates (0: no
+    shape map); ``residual`` the residual's Gram matrix G (module docstring; 0 × 0: none kept)."""
 
     volume: Cubic
     probes: np.ndarray
     energy: np.ndarray
     entries: np.ndarray
-    curve: int = -1
+    curves: tuple[int, ...] = ()
+    degrees: tuple[int, ...] = ()
     shape: int = 0
     residual: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
@@ -78,23 +79,25 @@ class Online:
             "probes": self.probes,
             "energy": self.energy,
             "entries": self.entries,
-            "curve": np.array([self.curve]),
+            "curve": np.array(self.curves or (-1,)),
+            "curve_degrees": np.array(self.degrees, dtype=int),
             "shape": np.array([self.shape]),
             "residual": self.residual,
         }
 
     @classmethod
     def of(cls, arrays: Mapping[str, np.ndarray]) -> Online:
-        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree; without
-        a shape: none)."""
+        """The :class:`Online` of its :meth:`arrays` (a file without a curve: one degree; with one
+        curve and no degrees, that curve's all; without a shape: none)."""
         volume = Cubic.of(tuple(arrays[f"volume/{name}"] for name in ("c0", "c1", "c2", "c3")))
         energy = arrays["energy"]
-        curve = int(arrays["curve"][0]) if "curve" in arrays else -1
+        energy = energy if energy.ndim == 4 else energy[None]
+        curves = tuple(int(a) for a in arrays.get("curve", ()) if a >= 0)
+        degrees = tuple(int(n) for n in arrays.get("curve_degrees", (len(energy),) if curves else ()))
         shape = int(arrays["shape"][0]) if "shape" in arrays else 0
         entries = arrays["entries"].astype(int)
         residual = arrays["residual"] if "residual" in arrays else np.zeros((0, 0))
-        energy = energy if energy.ndim == 4 else energy[None]
-        return cls(volume, arrays["probes"], energy, entries, curve, shape, residual)
+        return cls(volume, arrays["probes"], energy, entries, curves, degrees, shape, residual)
 
     def indicator(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> float | None:
         """η at the state Q z with the values ``c`` of :attr:`entries` and the curve's
@@ -133,12 +136,14 @@ class Online:
         gradient = self.volume.gradient(np.concatenate([z, a]))
         return gradient[: len(z)] @ dz + gradient[len(z) :] @ da
 
-    def weights(self, units: np.ndarray, derivative: int = 0) -> np.ndarray:
-        """Tₖ (or its ``derivative`` in the unit coordinate) of the curve's axis at the point of
-        unit coordinates ``units``, one per degree."""
-        if self.curve < 0:
-            return np.full(1, 0.0 if derivative else 1.0)
-        return chebyshev.polynomials(float(units[self.curve]), len(self.energy), derivative)[0]
+    def weights(self, units: np.ndarray, along: int | None = None) -> np.ndarray:
+        """Π T_{kⱼ} over the curves' axes j at the point of unit coordinates ``units``, one per
+        multi-index k (:func:`lungmech.pgd.chebyshev.tensor`), or its derivative in the unit
+        coordinate of axis ``along`` (0 off the curves)."""
+        if along is not None and along not in self.curves:
+            return np.zeros(len(self.energy))
+        at = None if along is None else self.curves.index(along)
+        return chebyshev.tensor([units[j] for j in self.curves], self.degrees, at)
 
     def operator(self, c: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """A(c) = Σₖ wₖ (A₀ₖ + Σₑ cₑ Aₑₖ) (m × m), ``c`` the values of :attr:`entries`, ``weights``
@@ -149,34 +154,36 @@ class Online:
         into, combinations = self._combinations
         return ((mixed @ into) @ combinations).reshape(m, m)
 
-    def energy_and_volume(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> tuple[float, np.ndarray]:
+    def energy_and_volume(self, c: np.ndarray, weights: np.ndarray, z: np.ndarray) -> tuple[float, np.ndarray | None]:
         """(zᵀ A(c) z, the volume's powers (c₀, c₁·z, ½ C₂[z, z], ⅙ C₃[z, z, z])), so that the
         volume at the state s z is Σᵢ sⁱ powersᵢ (a linear model's state at any time a multiple
         of that at the path's end), without A (:meth:`operator`): one product of the pairs
         zⱼzₖ, j ≤ k, with the operators' independent combinations Cⱼ (zᵀ A z = Σⱼ βⱼ zᵀCⱼz) and
-        the volume's C₃ and C₂ on the same pairs, stacked. A body without a shape map."""
+        the volume's C₃ and C₂ on the same pairs, stacked. Over a shape map the powers are None:
+        the volume is a cubic of (z, a), a fixed along the path (:meth:`volume_at`)."""
         into, stacked, (j, k) = self._stacked
         found = stacked @ (z[j] * z[k])
         mixed = (weights @ into).reshape(len(c) + 1, -1)  # (1 + entries) × combinations: Σₖ wₖ, then the values
         n = mixed.shape[1]
         energy = float((mixed[0] + c @ mixed[1:]) @ found[:n])
+        if self.shape:
+            return energy, None
         volume = self.volume
         return energy, np.array([volume.c0, volume.c1 @ z, 0.5 * found[-1], (found[n:-1] @ z) / 6])
 
     @functools.cached_property
     def _stacked(self) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The combinations Cⱼ on the volume's pairs j ≤ k (``Cubic.pairs``), an off-diagonal
-        pair's twice, then the volume's C₃ and C₂ there: (into, degrees × (values ·
-        combinations); (combinations + m + 1) × pairs; the pairs)."""
-        if self.shape:
-            raise ValueError("energy_and_volume is for a body without a shape map")  # (a lungmech error)
+        """The combinations Cⱼ on the pairs j ≤ k, an off-diagonal pair's twice, then (without a
+        shape map) the volume's C₃ and C₂ there (``Cubic.on_pairs``): (into, degrees × (values ·
+        combinations); (combinations [+ m + 1]) × pairs; the pairs)."""
         into, combinations = self._combinations
         m = self.energy.shape[-1]
-        j, k = self.volume.pairs
-        twice = np.where(j < k, 2.0, 1.0)
-        second, third = self.volume.on_pairs
-        stacked = np.vstack([combinations.reshape(-1, m, m)[:, j, k] * twice, third.T, second[None]])
-        return into.reshape(self.energy.shape[0], -1), stacked, (j, k)
+        j, k = np.triu_indices(m) if self.shape else self.volume.pairs
+        rows = [combinations.reshape(-1, m, m)[:, j, k] * np.where(j < k, 2.0, 1.0)]
+        if not self.shape:
+            second, third = self.volume.on_pairs
+            rows += [third.T, second[None]]
+        return into.reshape(self.energy.shape[0], -1), np.vstack(rows), (j, k)
 
     @functools.cached_property
     def _combinations(self) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +224,7 @@ def online(
     if problem is None:
         shape = 0 if model.shape is None else len(model.shape.modes)
         return Online(volume, probes, np.zeros((0, 1, m, m)), np.zeros(0, dtype=int), shape=shape)
-    degrees = 1 if problem.curve is None else problem.curve.degrees
+    degrees = math.prod(curve.degrees for curve in problem.curves)  # (the multi-indices' count)
     matrices = {(t.degree, t.entry): t.matrix for t in problem.operator}  # a term dropped as 0: a zero block
     moved = [t.entry for t in problem.operator if t.entry is not None]
     moved += [t.entry for t in problem.load if t.entry is not None]
@@ -228,7 +235,10 @@ def online(
             if (k, e) in matrices:
                 energy[k, i] = gram(modes, apply(matrices[k, e], modes, comm), comm)
     residual = np.zeros((0, 0)) if W is None else _residual_gram(problem, modes, W, entries, degrees)
-    found = Online(volume, probes, energy, entries, -1 if problem.curve is None else problem.curve.axis, 0, residual)
+    curves = tuple(curve.axis for curve in problem.curves), tuple(curve.degrees for curve in problem.curves)
+    found = Online(
+        volume, probes, energy, entries, *curves, 0 if model.shape is None else len(model.shape.modes), residual
+    )
     _check_energy(model, found, modes)
     return found
 

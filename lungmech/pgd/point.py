@@ -51,7 +51,7 @@ class Point:
         # values at the loads' own scale (its residual a multiple of z_T's)
         end = self.reduced @ self.q
         self.energy_at_end, self.volume_powers = 0.0, None
-        if self.energy is None and not self.online.shape:  # the volume at t, s ρ(t) z_T, a cubic in s ρ(t)
+        if self.energy is None:  # (its volume at t, at s ρ(t) z_T, a cubic in s ρ(t) without a shape map)
             quadratic, self.volume_powers = self.online.energy_and_volume(c, weights, end)
             self.energy_at_end = 0.5 * quadratic
         self.indicator = (
@@ -69,10 +69,9 @@ class Point:
             dc = np.concatenate([np.reshape(derivatives.constants[k], (-1, n)) for k in separated.constants(model)])
             energy = self.online.energy
             self.operator_slopes = np.einsum("k,ei,kemn->imn", weights, dc[self.online.entries], energy[:, 1:])
-            if self.online.curve >= 0:  # the series' own slope, dTₖ/dσ dσ/dμ
-                j = self.online.curve
+            for j in self.online.curves:  # the series' own slope, ∂(Π T_{kᵢ})/∂σⱼ dσⱼ/dμⱼ
                 parameter = d.axes[j].parameter
-                dw = self.online.weights(units, 1) / parameter.unit_derivative(values[parameter.name])
+                dw = self.online.weights(units, j) / parameter.unit_derivative(values[parameter.name])
                 self.operator_slopes[j] += self.online.operator(c, dw)
 
     def state(self, t: float, factor: float = 1.0) -> np.ndarray:

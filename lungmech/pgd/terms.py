@@ -20,13 +20,16 @@ integrals over the box need. Affinity is checked, not assumed: at a random point
 and a random state the assembled residual must equal the terms' to 1e-9 of its size.
 Imposed displacements must be zero (the modes vanish there); K₀ carries 1 on their diagonal.
 
-A value the residual is not affine in — the position s of a stiffness jump, inside a tanh —
-moved by one parameter μⱼ (its **curve**) is taken as it is: every operator above is assembled
-at Chebyshev–Lobatto points of μⱼ's axis and written as a Chebyshev series in it
-(:mod:`lungmech.pgd.chebyshev`, :mod:`lungmech.pgd.assembly`), so each term gains a factor Tₖ
-on axis j:
+A value the residual is not affine in — the position s of a stiffness jump, inside a tanh; a
+population's shape coefficient aᵢ, in det G and G⁻¹ — moved by one parameter μⱼ (its **curve**)
+is taken as it is: every operator above is assembled at Chebyshev–Lobatto points of μⱼ's axis
+and written as a Chebyshev series in it (:mod:`lungmech.pgd.chebyshev`,
+:mod:`lungmech.pgd.assembly`), so each term gains a factor Tₖ on axis j:
 
-    K(c; μⱼ) = Σₖ Tₖ(σⱼ) (K₀ₖ + Σ_e c_e K_eₖ),   σⱼ the unit coordinate of μⱼ.
+    K(c; μⱼ) = Σₖ Tₖ(σⱼ) (K₀ₖ + Σ_e c_e K_eₖ),   σⱼ the unit coordinate of μⱼ;
+
+several parameters' curves give the series' tensor product, a factor T_{kⱼ} on each of their
+axes (k a multi-index).
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.parallel.linalg import apply
 from lungmech.pgd import chebyshev
-from lungmech.pgd.assembly import AFFINE, Assembler, check_affine, series
+from lungmech.pgd.assembly import AFFINE, Assembler, check_affine, check_linear, series
 from lungmech.pgd.axes import Axis
 
 __all__ = [
@@ -69,8 +72,9 @@ RANK = 1e-13  # singular values of a two-parameter value below this fraction of 
 class Term:
     """One separated operator term: ``factors[j]`` its function of axis j at that axis's
     nodes, ``matrix`` its K_T, ``entry`` the value c_e it comes from (the index into
-    :func:`values`; None for K₀, the fixed values'), ``degree`` k of its Chebyshev factor Tₖ on
-    the curve's axis (0 without a curve). Terms of one entry and degree share its matrix."""
+    :func:`values`; None for K₀, the fixed values'), ``degree`` the multi-index k of its
+    Chebyshev factors T_{kⱼ} on the curves' axes, flattened in C order (0 without a curve).
+    Terms of one entry and degree share its matrix."""
 
     factors: tuple[np.ndarray, ...]
     matrix: PETSc.Mat
@@ -82,7 +86,7 @@ class Term:
 class Curve:
     """The values ``entries`` (indices into :func:`values`) the residual is not affine in, all
     moved by axis ``axis``: the terms carry Tₖ(σ) on it, k < ``degrees``, from ``points``
-    assemblies (module docstring)."""
+    Chebyshev–Lobatto points of it (module docstring)."""
 
     axis: int
     entries: tuple[int, ...]
@@ -106,14 +110,15 @@ class LoadTerm:
 class Terms:
     """R(u; μ) = Σ_T κ_T(μ) K_T u − Σ_S φ_S(μ) f_S over ``axes``: ``operator`` the K_T terms,
     ``load`` the f_S terms; ``free`` the owned entries not imposed (the modes live there);
-    ``curve`` the values the terms interpolate (None: the residual is affine in every value)."""
+    ``curves`` the values the terms interpolate, an axis each (none: the residual is affine in
+    every value)."""
 
     axes: tuple[Axis, ...]
     operator: list[Term]
     load: list[LoadTerm]
     free: np.ndarray
     comm: MPI.Comm
-    curve: Curve | None = None
+    curves: tuple[Curve, ...] = ()
 
     @functools.cached_property
     def symmetric(self) -> bool:
@@ -171,14 +176,15 @@ def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
     held = constants(model)
     with kept(model, held):
         default = values_at(model, held, model.parameter_values)
+        check_linear(Assembler(model, held, set_values), default)
         _no_field_moves(model, axes)
         along, moved = _sweeps(model, held, axes)
-        curve = _curved(model, held, axes, default, along, moved)
-        curved = () if curve is None else curve[1]
+        curves = _curved(model, held, axes, default, along, moved)
+        curved = [e for _, entries in curves for e in entries]
         entries = _factors(axes, along, moved, curved, _grids(model, held, axes))
         _check_separated(model, held, axes, default, entries, curved)
         varying = sorted({e for e, _ in entries})
-        return _assembled(model, held, default, varying, entries, axes, curve)
+        return _assembled(model, held, default, varying, entries, axes, curves)
 
 
 def constants(model: Model) -> list[fem.Constant]:
@@ -264,10 +270,10 @@ def _curved(
     default: np.ndarray,
     along: list[np.ndarray],
     moved: list[np.ndarray],
-) -> tuple[int, tuple[int, ...]] | None:
-    """(the axis, the values) of the values the residual is not affine in, each alone, at a
-    random state and point: R at 0.3 of a value's range against 0.7 R(low) + 0.3 R(high). Refused in
-    one line where two parameters, or one value's two, move such values."""
+) -> list[tuple[int, tuple[int, ...]]]:
+    """(an axis, its values) for each axis moving values the residual is not affine in, each
+    alone, at a random state and point: R at 0.3 of a value's range against 0.7 R(low) +
+    0.3 R(high). Refused in one line where two parameters move one such value."""
     assembler = Assembler(model, constants, set_values)
     u = assembler.random_state(seed=17)
     generic = values_at(model, constants, model.parameters.sample(1, seed=13)[0])  # (at the defaults a jump may be 0)
@@ -291,12 +297,7 @@ def _curved(
                 f"PGD: the residual is not affine in a value that {names} move together; one parameter's is separated"
             )
         curved.setdefault(by[0], []).append(e)
-    if len(curved) > 1:
-        names = ", ".join(axes[j].parameter.name for j in curved)
-        raise ParameterError(
-            f"PGD: the residual is not affine in values of several parameters ({names}); one parameter's is separated"
-        )
-    return next(((j, tuple(entries)) for j, entries in curved.items()), None)
+    return [(j, tuple(curved[j])) for j in sorted(curved)]
 
 
 def _factors(
@@ -387,39 +388,42 @@ def _assembled(
     varying: list[int],
     parts: list[tuple[int, tuple[np.ndarray, ...]]],
     axes: Sequence[Axis],
-    curve: tuple[int, tuple[int, ...]] | None,
+    curves: list[tuple[int, tuple[int, ...]]],
 ) -> Terms:
     """K₀, f₀ (the fixed values at theirs, the varying at 0) and each part's K_e, f_e — along
-    the curve, their Chebyshev series, each coefficient k a term with Tₖ on the curve's axis —
-    checked against the model's own residual."""
+    the curves, their Chebyshev series, each coefficient k a term with T_{kⱼ} on each curve's
+    axis j — checked against the model's own residual."""
     assembler = Assembler(model, constants, set_values)
     base = default.copy()
     base[varying] = 0.0
     point = model.parameters.sample(1, seed=7)[0]
-    if curve is None:
-        found, points, weights = [assembler.operators(base, varying)], 1, np.ones(1)
+    on = [j for j, _ in curves]  # the curves' axes
+    parameters = [axes[j].parameter for j in on]
+    degrees: tuple[int, ...] = ()
+    points: tuple[int, ...] = ()
+    if not curves:
+        found = [assembler.operators(base, varying)]
     else:
-        j, curved = curve
-        parameter = axes[j].parameter
+        curved = [e for _, entries in curves for e in entries]
         defaults = model.parameters.defaults
 
-        def base_at(sigma: float) -> np.ndarray:
+        def base_at(sigmas: tuple[float, ...]) -> np.ndarray:
             at = base.copy()
-            at[list(curved)] = values_at(model, constants, defaults | {parameter.name: parameter.from_unit(sigma)})[
-                list(curved)
-            ]
+            where = defaults | {p.name: p.from_unit(sigma) for p, sigma in zip(parameters, sigmas)}
+            at[curved] = values_at(model, constants, where)[curved]
             return at
 
-        found, points = series(assembler, base_at, varying, parameter.name)
-        weights = chebyshev.polynomials(parameter.to_unit(point[parameter.name]), len(found))[0]
+        found, degrees, points = series(assembler, base_at, varying, [p.name for p in parameters])
+    weights = chebyshev.tensor([p.to_unit(point[p.name]) for p in parameters], degrees)
     check_affine(assembler, values_at(model, constants, point), weights, found)
 
     def along(factors: tuple[np.ndarray, ...], k: int) -> tuple[np.ndarray, ...]:
-        """A part's factors with Tₖ on the curve's axis."""
-        if curve is None:
-            return factors
-        t = chebyshev.polynomials(axes[curve[0]].nodes, k + 1)[:, k]
-        return tuple(f * t if i == curve[0] else f for i, f in enumerate(factors))
+        """A part's factors with T_{kⱼ} on each curve's axis j (k flattened)."""
+        multi = dict(zip(on, np.unravel_index(k, degrees))) if curves else {}
+        return tuple(
+            f * chebyshev.polynomials(axes[i].nodes, int(multi[i]) + 1)[:, -1] if i in multi else f
+            for i, f in enumerate(factors)
+        )
 
     ones = tuple(np.ones(len(axis.nodes)) for axis in axes)
     largest = max(_frobenius(K) for ops in found for K in (ops.K0, *(K for K, _ in ops.unit.values())))
@@ -442,8 +446,8 @@ def _assembled(
         for K in (ops.K0, *(K for K, _ in ops.unit.values())):
             if id(K) not in used:
                 K.destroy()
-    axis = None if curve is None else Curve(curve[0], curve[1], len(found), points)
-    return Terms(tuple(axes), operator, load, assembler.free, model.geometry.mesh.comm, axis)
+    made = tuple(Curve(j, entries, n, P) for (j, entries), n, P in zip(curves, degrees, points))
+    return Terms(tuple(axes), operator, load, assembler.free, model.geometry.mesh.comm, made)
 
 
 def _asymmetry(matrix: PETSc.Mat) -> float:

@@ -118,7 +118,7 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
             return ClosedForm(
                 tuple(axes), at_defaults, tuple(np.zeros((0, len(_basis(_is_angle(a.parameter), 0.0)))) for a in axes)
             )
-        base, coefficients = at_defaults.copy(), []
+        base, coefficients, size = at_defaults.copy(), [], float(np.abs(at_defaults).max())
         origin = tuple(np.array(_basis(_is_angle(a.parameter), defaults[a.parameter.name])) for a in axes)
         for axis, f0 in zip(axes, origin):
             parameter = axis.parameter
@@ -127,11 +127,12 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
                 model.set_parameters(defaults | {parameter.name: float(mu)})
                 rows.append(np.subtract(_basis(_is_angle(parameter), float(mu)), f0))
                 found.append(np.asarray(read(), dtype=float) - at_defaults)
+            size = max(size, float(np.abs(np.array(found) + at_defaults).max()))  # (a shape's a: 0 at the defaults)
             a = np.linalg.lstsq(np.array(rows), np.array(found), rcond=None)[0].T  # values × basis
             base -= a @ f0
             coefficients.append(a)
         form = ClosedForm(tuple(axes), base, tuple(coefficients), origin)
-        size = max(float(np.abs(at_defaults).max(initial=0.0)), np.finfo(float).tiny)
+        size = max(size, np.finfo(float).tiny)  # the values' size over the axes' nodes
         if _holds(model, form, read, size):
             return form
         form = replace(form, pairs=_pairs(model, form, read, size))
