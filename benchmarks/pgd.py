@@ -144,9 +144,11 @@ range = [-90.0, 90.0]
 probes = [[0.06, 0.0, 0.12]]
 """
 
-SHAPE = LUNG.replace('builder = "lung_phantom"', 'builder = "lung_phantom"\nshape_modes = "modes.npz"').split(
-    "[parameters.pitch]"
-)[0] + """[parameters.a1]
+SHAPE = (
+    LUNG.replace('builder = "lung_phantom"', 'builder = "lung_phantom"\nshape_modes = "modes.npz"').split(
+        "[parameters.pitch]"
+    )[0]
+    + """[parameters.a1]
 target = "shape.mode_1"
 range = [-2.0, 2.0]
 [parameters.a2]
@@ -155,6 +157,7 @@ range = [-2.0, 2.0]
 [output]
 probes = [[0.06, 0.0, 0.12]]
 """
+)
 BREATH = """
 title = "a gentle breath of the lung phantom over three parameters (poromechanics)"
 [geometry]
@@ -385,7 +388,8 @@ def measure(
             summary["offline_seconds"]["terms"] + summary["offline_seconds"]["greedy"]
         )
 
-    if not (quick and name in ("shape", "breath")):  # (--quick: the breath's nonlinear hyper-reduction takes 47 s; the shape's is tested in the suite)
+    # --quick leaves out the breath's nonlinear hyper-reduction (47 s) and the shape's (the suite tests it)
+    if not (quick and name in ("shape", "breath")):
         say(f"{name}: the hyper-reduced model (8 full solves)")
         tic = time.perf_counter()
         reduce.build(
