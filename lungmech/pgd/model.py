@@ -228,7 +228,7 @@ class PGDModel:
             imaged = self.online.volume_at(point.state(float(stepping.start), factor), point.a)
             start = self.reference.start(values, point.a).measured(imaged)
         elif self.online.shape:  # the body at rest: of the shape at μ over a shape map
-            start = start.measured(self.online.volume_at(np.zeros(self.size), point.a))
+            start = start.measured(self.online.rest_volume(point.a))
         else:  # (the same at every μ)
             start = self._rest_report
         if on_step is not None:  # the start, as every model shows it first
@@ -277,7 +277,7 @@ class PGDModel:
     @functools.cached_property
     def _rest_report(self) -> StartReport:
         """The start's report of a body at rest with no shape map: its volume, at every μ."""
-        return self._start.measured(self.online.volume_at(np.zeros(self.size), np.zeros(0)))
+        return self._start.measured(self.online.rest_volume(np.zeros(0)))
 
     def _shape_values(self) -> np.ndarray:
         """The shape coefficients a the fem model's parameters set now (none: no shape map)."""

@@ -129,6 +129,17 @@ class Online:
         """The volume at the state Q z and the shape a (m³)."""
         return self.volume(np.concatenate([z, a]) if self.shape else z)
 
+    def rest_volume(self, a: np.ndarray) -> float:
+        """The volume at rest (z = 0) at the shape a (m³): the volume's cubic on a alone."""
+        return self._at_rest(a) if self.shape else self.volume.c0
+
+    @functools.cached_property
+    def _at_rest(self) -> Cubic:
+        """The volume's cubic restricted to the shape coefficients a (its last :attr:`shape`
+        coordinates)."""
+        m, volume = len(self.volume.c1) - self.shape, self.volume
+        return Cubic(volume.c0, volume.c1[m:], volume.c2[m:, m:], volume.c3[m:, m:, m:])
+
     def volume_derivatives(self, z: np.ndarray, a: np.ndarray, dz: np.ndarray, da: np.ndarray) -> np.ndarray:
         """d(volume)/dμ from dz/dμ (m × parameters) and da/dμ (shape × parameters)."""
         if not self.shape:
