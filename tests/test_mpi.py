@@ -879,7 +879,8 @@ def test_each_rank_gets_the_values_at_its_own_points_on_two_ranks():
 def test_an_a_priori_pgd_over_the_shape_on_two_ranks_is_the_serial_one(tmp_path):
     """The linear block over its two shape coefficients and its stiffness (tests/test_pgd_shape.py),
     its PGD built a priori distributed and on each rank alone (6 terms): the curves' points and
-    degrees the same, and at random points the volume and the probe to 1e-9 of their size."""
+    degrees the same, and at random points the start volume to 1e-12, the volume's change and
+    the probe to 1e-9 of their size."""
     from test_pgd_shape import linear_scene
 
     from lungmech.app.run import build_model
@@ -893,5 +894,8 @@ def test_an_a_priori_pgd_over_the_shape_on_two_ranks_is_the_serial_one(tmp_path)
     assert found["world"].built["curves"] == found["self"].built["curves"]
     for point in found["self"].parameters.sample(4, seed=9):
         a, b = found["world"].solve(point), found["self"].solve(point)
-        for key in ("volume", "probes"):
-            assert np.abs(a.outputs[key] - b.outputs[key]).max() <= 1e-9 * np.abs(b.outputs[key]).max(), key
+        rest = b.start.details["volume"]
+        assert a.start.details["volume"] == pytest.approx(rest, rel=1e-12)
+        change = b.outputs["volume"] - rest
+        assert np.abs(a.outputs["volume"] - rest - change).max() <= 1e-9 * np.abs(change).max()
+        assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()

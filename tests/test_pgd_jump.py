@@ -20,7 +20,7 @@ from lungmech.app import reduce
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
 from lungmech.app.run import build_model, full_order_model
-from lungmech.errors import ParameterError
+from lungmech.errors import ModelFileError, ParameterError
 from lungmech.fem.constraints import clamp
 from lungmech.fem.laws import LinearElastic
 from lungmech.fem.model import Model
@@ -152,13 +152,15 @@ def test_its_answers_and_their_derivatives_in_the_jumps_position(jump):
         c, w, z = (rng.standard_normal(n) for n in (len(online.entries), len(online.energy), found.size))
         quadratic, powers = online.energy_and_volume(c, w, z)
         assert quadratic == pytest.approx(z @ online.operator(c, w) @ z, rel=1e-12)
-        for s in (0.3, 1.0, -2.0):
-            assert np.polynomial.polynomial.polyval(s, powers) == pytest.approx(online.volume(s * z), rel=1e-12)
+        for s in (0.3, 1.0, -2.0):  # (the change from rest: the volume itself is mostly c₀)
+            change = online.volume(s * z) - online.volume.c0
+            assert np.polynomial.polynomial.polyval(s, powers) - powers[0] == pytest.approx(change, rel=1e-10)
 
 
 def test_a_moving_jumps_pgd_file_answers_as_the_model_it_saved(jump, tmp_path):
     """`lungmech pgd build` of the scene (3 terms, 4 intervals) loaded from its file answers as the same build
-    made in Python, the strain energy's Chebyshev series and its curve's axis included."""
+    made in Python, the strain energy's Chebyshev series and its curve's axis included; the file
+    with its curve's degrees altered is refused in one line."""
     scene, _, _ = jump
     path = Path(MPI.COMM_WORLD.bcast(str(tmp_path))) / "jump.npz"
     assert main(["pgd", "build", str(scene.source), "-o", str(path), "--modes", "3", "--intervals", "4"]) == 0
@@ -170,6 +172,17 @@ def test_a_moving_jumps_pgd_file_answers_as_the_model_it_saved(jump, tmp_path):
         for name in ("volume", "strain_energy", "probes"):
             assert np.allclose(a.outputs[name], b.outputs[name], rtol=1e-12, atol=0.0), name
             assert np.allclose(a.sensitivities[name], b.sensitivities[name], rtol=1e-10, atol=1e-300), name
+    # its curve's degrees altered (one fewer than the energy's series has): refused on load, in one line
+    damaged = path.with_name("damaged.npz")
+    if MPI.COMM_WORLD.rank == 0:
+        with np.load(path) as arrays:
+            kept = dict(arrays)
+        key = next(k for k in kept if k.endswith("curve_degrees"))
+        kept[key] = kept[key] - 1
+        np.savez(damaged, **kept)
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(ModelFileError, match="was changed after lungmech wrote it"):  # (its digest; then its shapes)
+        reduce.load(damaged)
 
 
 def bar(parameters: list[Parameter], comm=MPI.COMM_WORLD, cells=(8, 2, 2)) -> Model:
@@ -203,11 +216,21 @@ def test_the_series_is_the_models_residual_at_every_node():
     axes = tuple(Axis(p, 3) for p in parameters)
     terms = separated_terms(model, axes)
     assert len(terms.curves) == 1 and terms.curves[0].axis == 2 and terms.curves[0].entries
+    assert_the_models_residual(model, terms, axes)
+    terms.destroy()
+    plain = separated_terms(bar(parameters[:1]), (Axis(parameters[0], 3),))
+    assert plain.curves == ()
+    plain.destroy()
+
+
+def assert_the_models_residual(model: Model, terms, axes: tuple[Axis, ...], points: int = 4) -> None:
+    """The terms' residual at random nodes of the box's grid, for a random u, against the one
+    the model assembles there, to 1e-9."""
     rng = np.random.default_rng(3)
     owned = owned_size(model.space)
     u = np.zeros(owned)
     u[terms.free] = rng.standard_normal(len(terms.free))
-    for _ in range(4):
+    for _ in range(points):
         index = [int(rng.integers(len(axis.nodes))) for axis in axes]
         model.set_parameters({a.parameter.name: float(a.values[i]) for a, i in zip(axes, index)})
         model.state.x.array[:owned] = u
@@ -215,10 +238,6 @@ def test_the_series_is_the_models_residual_at_every_node():
         exact = assemble_owned(jit.form(model.residual), fem.Function(model.space).x, owned)[terms.free]
         found = terms.residual(u, index)[terms.free]
         assert np.linalg.norm(found - exact) <= 1e-9 * np.linalg.norm(exact)
-    terms.destroy()
-    plain = separated_terms(bar(parameters[:1]), (Axis(parameters[0], 3),))
-    assert plain.curves == ()
-    plain.destroy()
 
 
 def test_chebyshev_series_interpolate_and_differentiate_exactly():
@@ -237,10 +256,11 @@ def test_chebyshev_series_interpolate_and_differentiate_exactly():
 @pytest.mark.slow
 def test_two_moving_jumps_are_one_tensor_series_and_sharp_ones_are_refused_in_one_line(monkeypatch):
     """Two moving jumps (the residual not affine in two parameters' values): a curve each, the
-    operators the tensor product of their series, checked against the model's own residual at
-    a random point (separated_terms refuses otherwise). Refused in one line: two jumps whose
-    grid would pass its limit (:data:`lungmech.pgd.assembly.GRID`, lowered here), and one jump
-    too sharp for 65 points over its range."""
+    operators the tensor product of their series, several degrees each, the terms' residual
+    the model's own at random nodes of the box's grid (both jumps off their Chebyshev points).
+    Refused in one line: two jumps whose grid would pass its limit
+    (:data:`lungmech.pgd.assembly.GRID`, lowered here), and one jump too sharp for 65 points
+    over its range."""
 
     def two(width: float) -> list[Parameter]:
         return [
@@ -250,11 +270,11 @@ def test_two_moving_jumps_are_one_tensor_series_and_sharp_ones_are_refused_in_on
         ]
 
     wide = two(0.3)
-    terms = separated_terms(bar(wide), tuple(Axis(p, 2) for p in wide))
+    model, axes = bar(wide), tuple(Axis(p, 2) for p in wide)
+    terms = separated_terms(model, axes)
     try:
-        assert [c.axis for c in terms.curves] == [2, 4] and all(c.points >= 9 for c in terms.curves)
-        assert max(t.degree for t in terms.operator) < np.prod([c.degrees for c in terms.curves])
-        assert all(c.degrees > 1 for c in terms.curves)
+        assert [c.axis for c in terms.curves] == [2, 4] and all(c.degrees > 1 for c in terms.curves)
+        assert_the_models_residual(model, terms, axes, points=6)
     finally:
         terms.destroy()
     monkeypatch.setattr(assembly, "GRID", 100)  # (the refusal's point, without a thousand assemblies first)

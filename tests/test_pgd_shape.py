@@ -60,8 +60,9 @@ def block(tmp_path_factory):
 def test_the_shape_a_priori_is_the_full_model_at_random_points(block):
     """Each shape coefficient a curve of 9 to 33 points; the relative energy-norm error at 20
     random points ≤ 1e-4 (measured 6.0e-5 with 20 modes), the indicator's effectivity there
-    within [1/3, 3]; the volume within 1e-3 of its change and the probe within 1e-3 of its
-    motion at 3 of them."""
+    within [1/3, 3]; the volume within 1e-3 of its change, the probe within 1e-3 of its motion
+    and the strain energy within 1e-3 at 3 of them; the energy's quadratic form, read without
+    its operator, the operator's."""
     scene, found, _ = block
     curves = found.built["curves"]
     assert [c["parameter"] for c in curves] == ["a1", "a2"] and all(9 <= c["points"] <= 33 for c in curves)
@@ -89,6 +90,13 @@ def test_the_shape_a_priori_is_the_full_model_at_random_points(block):
         assert abs(a.outputs["volume"][-1] - b.outputs["volume"][-1]) <= 1e-3 * change
         motion = np.abs(b.outputs["probes"]).max()
         assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-3 * motion
+        assert a.outputs["strain_energy"][-1] == pytest.approx(b.outputs["strain_energy"][-1], rel=1e-3)
+    # over a shape map the energy's quadratic form is on z alone (the volume's cubic on (z, a))
+    online, rng = found.online, np.random.default_rng(3)
+    assert online.shape == 2 and online.volume.c1.shape == (found.size + 2,)
+    c, w, z = (rng.standard_normal(n) for n in (len(online.entries), len(online.energy), found.size))
+    quadratic, powers = online.energy_and_volume(c, w, z)
+    assert quadratic == pytest.approx(z @ online.operator(c, w) @ z, rel=1e-12) and powers is None
 
 
 @pytest.mark.slow

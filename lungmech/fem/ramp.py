@@ -42,6 +42,8 @@ class Ramp:
     def __call__(self, t: float) -> float:
         # np.interp's, without its arrays: a PGD's answer asks a ramp several times a point
         times, values = self.times, self.values
+        if t != t:  # NaN, as np.interp gives it
+            return float("nan")
         i = bisect.bisect_right(times, t)
         if i == 0 or i == len(times):
             return float(values[0] if i == 0 else values[-1])

@@ -43,6 +43,7 @@ AFFINE = 1e-9  # the largest relative mismatch of the assembled residual and the
 CURVE = 1e-11  # a curve's series: its last two coefficients below this fraction of the largest, and kept above it
 POINTS = (9, 17, 33, 65)  # the Chebyshev-Lobatto points a curve is assembled at, nested, fewest first
 GRID = 1089  # the most points of several curves' tensor grid (33 × 33), each 2 + the varying values' assemblies
+MEMORY = 2**33  # bytes of operators a rank may hold for a series: the grid's and the coefficients' (8 GiB)
 
 
 @dataclass
@@ -111,6 +112,12 @@ class Assembler:
         bare.destroy()
         return Operators(K0, f0, unit)
 
+    def jacobian(self) -> PETSc.Mat:
+        """The Jacobian as the constants are now (the caller destroys it)."""
+        K = assemble_matrix(self._jacobian, bcs=self.model.bcs)
+        K.assemble()
+        return K
+
     def _at(self, values: np.ndarray, diagonal: float) -> tuple[PETSc.Mat, np.ndarray]:
         self._set(self.constants, values)
         K = assemble_matrix(self._jacobian, bcs=self.model.bcs, diag=diagonal)
@@ -133,7 +140,8 @@ def series(
     kept and of points assembled. A parameter's points are refined while its series' tail
     (the largest over the others' coefficients) is above :data:`CURVE`. Refused in one line
     where 65 points do not resolve a parameter (a jump narrower than its range can follow), or
-    where the grid would pass :data:`GRID` points."""
+    where the grid would pass :data:`GRID` points or hold more than :data:`MEMORY` bytes of
+    operators on a rank (the grid's, and as many coefficients at most)."""
     u = assembler.random_state(seed=19)
     at: dict[tuple[float, ...], Operators] = {}
     levels = [0] * len(names)
@@ -141,16 +149,13 @@ def series(
         while True:
             grids = [chebyshev.lobatto(POINTS[level]) for level in levels]
             shape = tuple(len(grid) for grid in grids)
-            if math.prod(shape) > GRID:
-                raise ParameterError(
-                    f"PGD: the residual's dependence on {', '.join(names)} needs more than {GRID} assemblies "
-                    f"({' × '.join(map(str, shape))} points): narrow their ranges, or give fewer of them"
-                )
             keys = [tuple(float(s) for s in point) for point in itertools.product(*grids)]
+            _affordable(assembler, names, shape, at, 2 + len(varying))
             for key in keys:
                 if key not in at:
                     at[key] = assembler.operators(base_at(key), varying)
-            samples = np.array([at[key].residuals(u, assembler.comm) for key in keys]).reshape(*shape, -1, u.size)
+            samples = np.array([at[key].residuals(u, assembler.comm) for key in keys])
+            samples = samples.reshape(*shape, 1 + len(varying), u.size)  # (u.size: 0 on a rank owning no dof)
             for axis in range(len(shape)):
                 samples = chebyshev.coefficients(samples, axis)
             sizes = np.sqrt(assembler.comm.allreduce(np.sum(samples**2, axis=-1), op=MPI.SUM))  # grid × groups
@@ -176,6 +181,31 @@ def series(
             operators.destroy()
 
 
+def _affordable(assembler: Assembler, names: Sequence[str], shape: tuple[int, ...], at: dict, matrices: int) -> None:
+    """Refuse, in one line, a grid of ``shape`` past :data:`GRID` points, or whose operators
+    (``matrices`` a point, as many again for the coefficients at most) would pass
+    :data:`MEMORY` bytes on some rank, measured on an operator already made (or one made
+    now)."""
+    points = math.prod(shape)
+    how = f"({' × '.join(map(str, shape))} points)"
+    if points > GRID:
+        raise ParameterError(
+            f"PGD: the residual's dependence on {', '.join(names)} needs more than {GRID} assemblies {how}: "
+            "narrow their ranges, or give fewer of them"
+        )
+    one = next(iter(at.values())).K0 if at else assembler.jacobian()
+    nonzeros = one.getInfo()["nz_allocated"]
+    if not at:
+        one.destroy()
+    needed = assembler.comm.allreduce(2 * points * matrices * nonzeros * 12, op=MPI.MAX)  # (a value, a column index)
+    if needed > MEMORY:
+        raise ParameterError(
+            f"PGD: the operators' series in {', '.join(names)} {how} would hold {needed / 2**30:.1f} GiB on a rank "
+            f"(at most {MEMORY / 2**30:.0f}): narrow their ranges, run on more ranks or a coarser mesh, "
+            "or give --samples for a PGD fitted to full solves"
+        )
+
+
 def _profile(sizes: np.ndarray, axis: int) -> np.ndarray:
     """The coefficients' sizes along one parameter's ``axis``, the largest over the others'
     (``sizes``: grid × groups): coefficients × groups."""
@@ -199,13 +229,20 @@ def _combined(grid: np.ndarray, kept: tuple[int, ...]) -> list[Operators]:
         C = chebyshev.coefficients(np.eye(current.shape[axis]))[:count]  # Cₖₚ
         moved = np.moveaxis(current, axis, 0)
         found = np.empty((count, *moved.shape[1:]), dtype=object)
-        for index in np.ndindex(*moved.shape[1:]):
-            column = list(moved[(slice(None), *index)])
-            for k, row in enumerate(C):
-                found[(k, *index)] = _mixed(column, row)
-        if current is not grid:
-            for operators in current.ravel():
-                operators.destroy()
+        try:
+            for index in np.ndindex(*moved.shape[1:]):
+                column = list(moved[(slice(None), *index)])
+                for k, row in enumerate(C):
+                    found[(k, *index)] = _mixed(column, row)
+        except BaseException:
+            for operators in found.ravel():
+                if operators is not None:
+                    operators.destroy()
+            raise
+        finally:
+            if current is not grid:
+                for operators in current.ravel():
+                    operators.destroy()
         current = np.moveaxis(found, 0, axis)
     return list(current.ravel())
 
@@ -241,7 +278,9 @@ def check_affine(assembler: Assembler, values: np.ndarray, weights: np.ndarray, 
         expected += w * (c @ operators.residuals(u, assembler.comm))
     expected = expected[assembler.free]
     _refuse_beyond(
-        assembler.norm(found_residual - expected), assembler.norm(expected), "the state and the parameters' values"
+        assembler.norm(found_residual - expected),
+        assembler.norm(expected),
+        "the separated terms' (its values not affine in the parameters, nor a smooth series of them)",
     )
 
 
@@ -251,13 +290,16 @@ def check_linear(assembler: Assembler, values: np.ndarray) -> None:
     terms' assemblies."""
     u = assembler.random_state(seed=23)
     zero, once, twice = (assembler.residual(values, scale * u) for scale in (0.0, 1.0, 2.0))
-    _refuse_beyond(assembler.norm(twice - 2.0 * once + zero), assembler.norm(twice - zero), "the state")
+    _refuse_beyond(
+        assembler.norm(twice - 2.0 * once + zero),
+        assembler.norm(twice - zero),
+        "affine in the state: this PGD separates linear models; give --samples for a PGD fitted to full solves",
+    )
 
 
 def _refuse_beyond(mismatch: float, size: float, what: str) -> None:
+    """Refuse, in one line, a residual off by more than :data:`AFFINE` of its ``size``: it is
+    not ``what``."""
     if not mismatch <= AFFINE * size:
-        how = f"mismatch {mismatch / size:.1e} of its size" if np.isfinite(mismatch) else "not a finite number"
-        raise ParameterError(
-            f"PGD: the residual is not affine in {what} ({how} at a random point): this PGD separates linear models; "
-            "give --samples for a PGD fitted to full solves"
-        )
+        how = f"mismatch {mismatch / size:.1e} of its size at a random point" if np.isfinite(mismatch) else "not finite"
+        raise ParameterError(f"PGD: the residual ({how}) is not {what}")

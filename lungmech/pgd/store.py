@@ -13,6 +13,7 @@ loaded on a model of the image's motion.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -195,6 +196,11 @@ def _check_shapes(d: Decomposition, online: Online) -> None:
             raise ValueError(f"axis {axis.parameter.name}: {X.shape}, expected {(n, axis.size)}")
     if online.volume.c1.shape != (m + online.shape,):
         raise ValueError(f"volume in {online.volume.c1.shape} coordinates, {m} modes and {online.shape} shape")
+    operated = online.energy.shape[0]  # (0: a fitted PGD's, its strain energy fitted)
+    if len(online.curves) != len(online.degrees) or (operated and math.prod(online.degrees) != operated):
+        raise ValueError(f"curves {online.curves} of degrees {online.degrees}, energy {online.energy.shape}")
+    if any(not 0 <= j < len(d.axes) for j in online.curves):
+        raise ValueError(f"curves on axes {online.curves}, {len(d.axes)} axes")
     columns = online.energy.shape[0] * online.energy.shape[1] * (m + 1)
     if online.residual.size and online.residual.shape != (columns, columns):
         raise ValueError(f"residual's Gram matrix {online.residual.shape}, expected {columns} columns")

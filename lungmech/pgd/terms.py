@@ -415,7 +415,12 @@ def _assembled(
 
         found, degrees, points = series(assembler, base_at, varying, [p.name for p in parameters])
     weights = chebyshev.tensor([p.to_unit(point[p.name]) for p in parameters], degrees)
-    check_affine(assembler, values_at(model, constants, point), weights, found)
+    try:
+        check_affine(assembler, values_at(model, constants, point), weights, found)
+    except BaseException:
+        for operators in found:
+            operators.destroy()
+        raise
 
     def along(factors: tuple[np.ndarray, ...], k: int) -> tuple[np.ndarray, ...]:
         """A part's factors with T_{kⱼ} on each curve's axis j (k flattened)."""

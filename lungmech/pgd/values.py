@@ -7,7 +7,8 @@ it moves with, each term in a small basis of that parameter:
     v(μ) = v₀ + Σⱼ aⱼ · fⱼ(μⱼ),   fⱼ = (μⱼ) for a quantity, (cos μⱼ, sin μⱼ) for an angle (degrees),
 
 fitted on each axis's nodes (the others at their defaults) and then **checked** at random points
-of the whole box against the model's own assignment, to 1e-10 of the values' size. Where that
+of the whole box against the model's own assignment, each value to 1e-10 of its size over the
+axes' nodes. Where that
 check fails, a value may be a product of two parameters (gravity under pitch and roll: cos p
 sin r): each pair of axes adds Bⱼₗ (Δfⱼ ⊗ Δfₗ), Δf = f(μ) − f(default), fitted on a 4 × 4
 grid of the two axes (zero where either is at its default, so the single axes' fit stands),
@@ -118,7 +119,7 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
             return ClosedForm(
                 tuple(axes), at_defaults, tuple(np.zeros((0, len(_basis(_is_angle(a.parameter), 0.0)))) for a in axes)
             )
-        base, coefficients, size = at_defaults.copy(), [], float(np.abs(at_defaults).max())
+        base, coefficients, sizes = at_defaults.copy(), [], np.abs(at_defaults)
         origin = tuple(np.array(_basis(_is_angle(a.parameter), defaults[a.parameter.name])) for a in axes)
         for axis, f0 in zip(axes, origin):
             parameter = axis.parameter
@@ -127,25 +128,27 @@ def closed_form(model: Model, axes: tuple[Axis, ...], read: Callable[[], np.ndar
                 model.set_parameters(defaults | {parameter.name: float(mu)})
                 rows.append(np.subtract(_basis(_is_angle(parameter), float(mu)), f0))
                 found.append(np.asarray(read(), dtype=float) - at_defaults)
-            size = max(size, float(np.abs(np.array(found) + at_defaults).max()))  # (a shape's a: 0 at the defaults)
+            sizes = np.maximum(
+                sizes, np.abs(np.array(found) + at_defaults).max(axis=0)
+            )  # (a shape's a: 0 at the defaults)
             a = np.linalg.lstsq(np.array(rows), np.array(found), rcond=None)[0].T  # values × basis
             base -= a @ f0
             coefficients.append(a)
         form = ClosedForm(tuple(axes), base, tuple(coefficients), origin)
-        size = max(size, np.finfo(float).tiny)  # the values' size over the axes' nodes
-        if _holds(model, form, read, size):
+        sizes = np.maximum(sizes, np.finfo(float).tiny)  # each value's size over the axes' nodes
+        if _holds(model, form, read, sizes):
             return form
-        form = replace(form, pairs=_pairs(model, form, read, size))
-        return form if _holds(model, form, read, size) else None
+        form = replace(form, pairs=_pairs(model, form, read, sizes))
+        return form if _holds(model, form, read, sizes) else None
     finally:
         model.set_parameters(kept)
 
 
 def _pairs(
-    model: Model, form: ClosedForm, read: Callable[[], np.ndarray], size: float
+    model: Model, form: ClosedForm, read: Callable[[], np.ndarray], sizes: np.ndarray
 ) -> tuple[tuple[int, int, np.ndarray], ...]:
     """Each pair of axes' Bⱼₗ, fitted to what the single axes leave on a 4 × 4 grid of theirs
-    (a pair whose values do not mix, below :data:`CHECK` of the values' ``size``: none)."""
+    (a pair whose values do not mix, below :data:`CHECK` of each value's size: none)."""
     defaults, axes, found = model.parameters.defaults, form.axes, []
     for j, l in itertools.combinations(range(len(axes)), 2):
         rows, left = [], []
@@ -159,7 +162,7 @@ def _pairs(
                 )
                 rows.append(np.outer(fj, fl).ravel())
         B = np.linalg.lstsq(np.array(rows), np.array(left), rcond=None)[0].T
-        if np.abs(np.array(rows) @ B.T).max(initial=0.0) > CHECK * size:  # what it adds on the grid
+        if np.any(np.abs(np.array(rows) @ B.T) > CHECK * sizes):  # what it adds on the grid
             found.append((j, l, B))
     return tuple(found)
 
@@ -170,10 +173,14 @@ def _four(axis: Axis) -> np.ndarray:
     return values[np.unique(np.linspace(0, len(values) - 1, 4).round().astype(int))]
 
 
-def _holds(model: Model, form: ClosedForm, read: Callable[[], np.ndarray], size: float) -> bool:
-    """Whether ``form`` is the model's own assignment at 8 random points, to :data:`CHECK`."""
+def _holds(model: Model, form: ClosedForm, read: Callable[[], np.ndarray], sizes: np.ndarray) -> bool:
+    """Whether ``form`` is the model's own assignment at 8 random points, each value to
+    :data:`CHECK` of its size ``sizes``."""
     for point in model.parameters.sample(8, seed=23):
         model.set_parameters(point)
-        if np.abs(form(point) - np.asarray(read(), dtype=float)).max(initial=0.0) > CHECK * size:
+        found = np.asarray(read(), dtype=float)
+        if np.any(
+            np.abs(form(point) - found) > CHECK * np.maximum(sizes, np.abs(found))
+        ):  # (a pair's product: 0 on the axes)
             return False
     return True
