@@ -5,6 +5,7 @@ Run under ``mpiexec -n 2`` by ``make test``; on one rank they skip (a result com
 
 import json
 import tomllib
+from pathlib import Path
 
 from mpi4py import MPI
 
@@ -899,3 +900,34 @@ def test_an_a_priori_pgd_over_the_shape_on_two_ranks_is_the_serial_one(tmp_path)
         change = b.outputs["volume"] - rest
         assert np.abs(a.outputs["volume"] - rest - change).max() <= 1e-9 * np.abs(change).max()
         assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()
+
+
+@pytest.mark.mpi
+def test_a_nonlinear_a_priori_pgd_on_two_ranks_is_the_serial_one(tmp_path):
+    """The neo-Hookean block at finite strain (tests/test_pgd_newton.py), its Newton–PGD built
+    distributed and on each rank alone, its iterations to 1e-8: the same iterations, and at
+    random points the volume's change, the probe and the strain energy to 1e-8 of their size
+    (measured: 2e-9; the alternating directions' stopping decisions may differ by round-off,
+    and the iterations then meet within their own tolerance)."""
+    from test_pgd_newton import block
+
+    from lungmech.app.run import build_model
+    from lungmech.pgd import Options
+    from lungmech.pgd.newton import Newton, build_nonlinear
+
+    folder = Path(MPI.COMM_WORLD.bcast(str(tmp_path)))
+    scene = scenes.load(block(folder))
+    found = {}
+    for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
+        model = build_model(scene, comm)
+        found[name] = build_nonlinear(
+            model, scene.stepping, scene.output.probes, 1, Options(max_terms=8), Newton(tolerance=1e-8)
+        )[0]
+    assert found["world"].built["newton_iterations"] == found["self"].built["newton_iterations"]
+    for point in found["self"].parameters.sample(4, seed=9):
+        a, b = found["world"].solve(point), found["self"].solve(point)
+        rest = b.start.details["volume"]
+        change = b.outputs["volume"] - rest
+        assert np.abs(a.outputs["volume"] - rest - change).max() <= 1e-8 * np.abs(change).max()
+        for name in ("probes", "strain_energy"):
+            assert np.abs(a.outputs[name] - b.outputs[name]).max() <= 1e-8 * np.abs(b.outputs[name]).max()

@@ -98,27 +98,27 @@ def lung(tmp_path_factory):
     return folder, reduce.load(out, fields=True), full_order_model(scenes.load(scene_file))
 
 
-def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
-    """The issue's measure: the relative energy-norm error of the state against the full model's,
-    the largest over 50 random points of the box (not the sample's) and both output times,
-    ≤ 1e-2 (measured here: 7e-5); the volume's over its change, the probe's over its motion and
-    the strain energy's within 1e-3."""
-    _, pgd, full = lung
+def against_full(pgd, full, count: int, seed: int = 2026) -> tuple[np.ndarray, np.ndarray, list]:
+    """A PGD model's answers at ``count`` random points of the box against the full model's:
+    the relative energy-norm errors of the state at every output time, and per point the
+    largest of the volume's error over its change, the probe's over its motion and the strain
+    energy's over its largest; with the PGD's answers."""
     model = full.model
     W = inner_product(model, "energy")
     owned = owned_size(model.space)
     with model.kept_state():
         model.reset()
         rest = model.state.x.array[:owned].copy()
-    rng = np.random.default_rng(MPI.COMM_WORLD.bcast(2026))
-    errors, outputs = [], []
-    for unit in rng.random((50, 3)):
+    rng = np.random.default_rng(MPI.COMM_WORLD.bcast(seed))
+    errors, outputs, answers = [], [], []
+    for unit in rng.random((count, len(full.parameters.names))):
         point = full.parameters.from_unit(unit)
         a, b = pgd.solve(point), full.solve(point)
+        answers.append(a)
         assert np.array_equal(a.times, b.times)
         for i in range(len(a.times)):
             exact = b.states[i][:owned] - rest
-            error = b.states[i][:owned] - pgd.reconstruct(a, i)  # both hold the rest state's porosity
+            error = b.states[i][:owned] - pgd.reconstruct(a, i)  # both hold the rest state (a porosity)
             errors.append(
                 float(
                     norms(error[:, None], W, model.geometry.mesh.comm)[0]
@@ -126,16 +126,32 @@ def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
                 )
             )
         change = np.abs(b.outputs["volume"] - a.start.details["volume"]).max()
-        outputs.append(np.abs(a.outputs["volume"] - b.outputs["volume"]).max() / change)
-        outputs.append(np.abs(a.outputs["probes"] - b.outputs["probes"]).max() / np.abs(b.outputs["probes"]).max())
         outputs.append(
-            np.abs(a.outputs["strain_energy"] - b.outputs["strain_energy"]).max() / b.outputs["strain_energy"].max()
+            max(
+                np.abs(a.outputs["volume"] - b.outputs["volume"]).max() / change,
+                np.abs(a.outputs["probes"] - b.outputs["probes"]).max() / np.abs(b.outputs["probes"]).max(),
+                np.abs(a.outputs["strain_energy"] - b.outputs["strain_energy"]).max()
+                / b.outputs["strain_energy"].max(),
+            )
         )
-        assert np.allclose(a.outputs["loads/pleural"], b.outputs["loads/pleural"], rtol=1e-12)
+        for label in b.outputs:
+            if label.startswith("loads/"):
+                assert np.allclose(a.outputs[label], b.outputs[label], rtol=1e-12)
     W.destroy()
+    return np.array(errors), np.array(outputs), answers
+
+
+def test_the_fitted_lung_answers_as_its_full_model_at_50_random_points(lung):
+    """The issue's measure: the relative energy-norm error of the state against the full model's,
+    the largest over 50 random points of the box (not the sample's) and both output times,
+    ≤ 1e-2 (measured here: 7e-5); the volume's over its change, the probe's over its motion and
+    the strain energy's within 1e-3."""
+    _, pgd, full = lung
+    errors, outputs, answers = against_full(pgd, full, 50)
     assert max(errors) <= 1e-2, max(errors)
     assert max(outputs) <= 1e-3, max(outputs)
     # every answer's indicator: the held-out error, within a factor 3 of the largest here
+    a = answers[-1]
     assert a.indicator == pgd.built["estimate"] and max(errors) / 3 <= a.indicator <= 3 * max(errors)
 
 

@@ -2,7 +2,9 @@
 model file.
 
 :func:`build` makes the scene's model, its PGD over the scene's [parameters] box along its load
-path — a priori (:func:`lungmech.pgd.model.build`: a linear model), or with ``samples``
+path — a priori (:func:`lungmech.pgd.model.build` for a linear model;
+:func:`lungmech.pgd.newton.build_nonlinear`, Newton on the parameters' Gauss grid, for a
+nonlinear one), or with ``samples``
 fitted to that many full solves (:func:`lungmech.pgd.fitted.fitted`: any model; the solves run
 on an ensemble and are kept in lungmech's cache, as ``rom build``'s training) — and writes it with the scene and every file it reads
 (:mod:`lungmech.app.model_file`), like ``rom build``'s files, so that ``lungmech rom solve
@@ -32,12 +34,15 @@ from lungmech.pgd.fitted import fitted
 from lungmech.pgd.fitting import FIT
 from lungmech.pgd.greedy import Options
 from lungmech.pgd.model import build as pgd_build
+from lungmech.pgd.newton import INTERVALS as NEWTON_INTERVALS
+from lungmech.pgd.newton import QUADRATURE, Newton, build_nonlinear
 from lungmech.pgd.store import write_pgd
+from lungmech.pgd.terms import affine_in_state
 from lungmech.rom import store
 
 __all__ = ["INTERVALS", "build"]
 
-INTERVALS = 32  # a priori: the splines' own error is the PGD's (2e-6 on the beam of the docs)
+INTERVALS = 32  # a priori, a linear model: the splines' own error is the PGD's (2e-6 on the beam of the docs)
 
 
 def build(
@@ -51,18 +56,21 @@ def build(
     seed: int = 0,
     ensemble: Ensemble | None = None,
     cache: str | Path | None = None,
+    quadrature: int = QUADRATURE,
 ) -> dict:
     """Build the PGD model of ``scene`` and save it to ``path`` (.npz); returns its summary.
 
     At most ``modes`` separated terms u ≈ Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ), the greedy stopping when a new
     term's amplitude falls below ``tolerance`` of the whole's; each parameter's modes are cubic
-    splines on ``intervals`` intervals (default :data:`INTERVALS`; fitted, chosen on held-out
+    splines on ``intervals`` intervals (default :data:`INTERVALS`; a nonlinear model's
+    :data:`lungmech.pgd.newton.INTERVALS`, its residual assembled at the axes' Gauss grid, or
+    at ``quadrature`` Sobol' points where the grid has more; fitted, chosen on held-out
     samples, :data:`lungmech.pgd.fitted.INTERVALS`). With ``samples``, the terms are fitted to the full
     model's solves at that many Sobol' points (``seed``) of the box, run on ``ensemble`` and kept
     in ``cache`` (:func:`lungmech.app.reduce.training_solves`), their number chosen on held-out
     samples up to ``modes`` (an imaged body's [inverse] too: its reference fitted beside the
     breath). Refused in one line before any work for a scene the PGD does not yet answer (a
-    priori: an imaged body, a nonlinear law) and where ``path`` is
+    priori: an imaged body, a load that depends on the state) and where ``path`` is
     not the user's to replace (:mod:`lungmech.parallel.destination`). Collective."""
     checks.integer("PGD modes", modes, minimum=1)
     if intervals is not None:
@@ -73,6 +81,7 @@ def build(
     elif ensemble is not None or cache is not None:
         raise ParameterError("PGD: an ensemble or a cache runs full solves: give --samples for a PGD fitted to them")
     options = Options(max_terms=modes, tolerance=tolerance)
+    newton = Newton(quadrature=quadrature, seed=seed)  # (checked before any work; a linear model's greedy needs none)
     if scene.inverse is not None and samples is None:
         raise ParameterError(
             "PGD: the scene's [inverse] (an imaged body, its reference found at every μ) is not separated a priori; "
@@ -85,7 +94,11 @@ def build(
         if samples is None:
             model = build_model(scene, comm)
             built = time.perf_counter() - tic
-            found, rounds = pgd_build(model, scene.stepping, scene.output.probes, intervals or INTERVALS, options)
+            if affine_in_state(model):
+                found, rounds = pgd_build(model, scene.stepping, scene.output.probes, intervals or INTERVALS, options)
+            else:
+                how = intervals or NEWTON_INTERVALS
+                found, rounds = build_nonlinear(model, scene.stepping, scene.output.probes, how, options, newton)
         else:
             full, where = training_model(scene, comm)
             model, built, rounds = full.model, time.perf_counter() - tic, []
@@ -115,5 +128,8 @@ def build(
         "converged": bool(last is not None and not last.added),
         "samples": samples,
         "held_out": None if held_out is None else min(held_out),
+        "newton_iterations": found.built.get("newton_iterations"),  # a nonlinear model's, a priori
+        "quadrature": found.built.get("quadrature"),
+        "estimate": found.built.get("estimate"),
         "path": str(Path(path).resolve()),
     }

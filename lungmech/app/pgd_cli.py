@@ -28,8 +28,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "--intervals",
         type=int,
         default=None,
-        help="cubic-spline intervals on each parameter's axis (default 32; with --samples, the best of 1, 2, 4 and 8 "
-        "on the held-out solves)",
+        help="cubic-spline intervals on each parameter's axis (default 32; a nonlinear model a priori, 2; with "
+        "--samples, the best of 1, 2, 4 and 8 on the held-out solves)",
     )
     build.add_argument(
         "--tolerance",
@@ -44,9 +44,18 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="fit the terms to the full model's solves at this many Sobol' points of the box (any model: "
         "nonlinear laws, follower pressures); the number of terms, up to --modes, is chosen on a held-out "
-        "quarter of them (default: a priori, no full solve, for a linear model)",
+        "quarter of them (default: a priori, no full solve)",
     )
-    build.add_argument("--seed", type=int, default=0, help="the Sobol' sample's seed, with --samples (default 0)")
+    build.add_argument(
+        "--quadrature",
+        type=int,
+        default=512,
+        help="a priori, a nonlinear model (Newton on the box): the most residual assemblies an iteration — the "
+        "parameters' Gauss grid where it has no more points, else this many Sobol' points (default 512)",
+    )
+    build.add_argument(
+        "--seed", type=int, default=0, help="the Sobol' sample's seed (--samples, --quadrature; default 0)"
+    )
     ensemble_options(build, "the full solves of --samples")
     probes_option(build)
     build.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
@@ -74,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             ensemble=ensemble,
             cache=args.cache,
+            quadrature=args.quadrature,
         )
     if comm.rank == 0 and summary["samples"] is not None:
         seconds = ", ".join(f"{k} {v:.1f} s" for k, v in summary["offline_seconds"].items())
@@ -90,9 +100,15 @@ def run(args: argparse.Namespace) -> int:
             if summary["converged"]
             else f"at --modes {args.modes} (the last term's amplitude {summary['last_amplitude']:.1e}, relative)"
         )
+        newton = ""
+        if summary["newton_iterations"] is not None:
+            newton = (
+                f"Newton on {summary['quadrature']} points of the box, {', '.join(map(str, summary['newton_iterations']))} "
+                f"iterations at the output times; indicator {summary['estimate']:.1e} (the largest at 16 points); "
+            )
         print(
             f"lungmech: {summary['terms']} separated terms on {summary['modes']} space modes over "
-            f"{', '.join(summary['parameters'])} ({summary['dofs']} dofs; stopped {stopped}; {seconds}); "
+            f"{', '.join(summary['parameters'])} ({summary['dofs']} dofs; {newton}stopped {stopped}; {seconds}); "
             f"saved to {Path(args.output).resolve()}"
         )
     return 0

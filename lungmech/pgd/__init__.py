@@ -1,6 +1,7 @@
 """Proper Generalised Decomposition: a model's solution over its whole parameter box, built a
-priori (no full-order snapshot), as u(x, μ) ≈ Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ), or fitted to full solves for
-a model the a priori one does not separate (:mod:`lungmech.pgd.fitted`).
+priori (no full-order snapshot), as u(x, μ) ≈ Σₖ ūₖ(x) Πⱼ λₖʲ(μⱼ) — a nonlinear model's by
+Newton iterations on residual assemblies (:mod:`lungmech.pgd.newton`) —, or fitted to full
+solves for a model the a priori one does not take (:mod:`lungmech.pgd.fitted`).
 
 ``separated_terms`` reads a linear model's residual as separated terms from its own forms and
 parameter assignment (:mod:`lungmech.pgd.terms`); ``pgd`` builds the terms greedily with an

@@ -68,16 +68,27 @@ class Operators:
 
 class Assembler:
     """Assembles ``model``'s Jacobian and residual with its ``constants`` set to given values
-    (flattened, as :func:`lungmech.pgd.terms.values`); ``free`` the owned entries not imposed."""
+    (flattened, as :func:`lungmech.pgd.terms.values`); ``free`` the owned entries not imposed.
+    ``linearised``: its residual is the model's linearisation at its rest state u₀ (a
+    porosity, say), R(u₀; c) + K(u₀; c) u, and its operators are assembled there — the linear
+    problem a nonlinear model's Newton–PGD takes as its preconditioner (:mod:`lungmech.pgd.newton`)."""
 
-    def __init__(self, model: Model, constants: Sequence[fem.Constant], set_values: Callable) -> None:
+    def __init__(
+        self, model: Model, constants: Sequence[fem.Constant], set_values: Callable, linearised: bool = False
+    ) -> None:
         self.model, self.constants, self._set = model, list(constants), set_values
+        self.linearised = linearised
         self.comm = model.geometry.mesh.comm
         self._jacobian, self._residual = jit.form(model.jacobian), jit.form(model.residual)
         self.owned = owned_size(model.space)
         self._work = fem.Function(model.space).x
         self.imposed = model.constrained_dofs()
         self.free = np.setdiff1d(np.arange(self.owned), self.imposed)
+        self._rest = np.zeros(len(model.state.x.array))
+        if linearised:
+            with model.kept_state():
+                model.reset()
+                self._rest = model.state.x.array.copy()
 
     def random_state(self, seed: int) -> np.ndarray:
         """A random u on the free entries (0 on the imposed), different on each rank."""
@@ -86,19 +97,28 @@ class Assembler:
         return u
 
     def residual(self, values: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """R(u; c) on the free entries, the constants at ``values``."""
+        """R(u; c) on the free entries, the constants at ``values`` (``linearised``: R(u₀; c) +
+        K(u₀; c) u)."""
         self._set(self.constants, values)
-        self.model.state.x.array[: self.owned] = u
+        self.model.state.x.array[:] = self._rest
+        if not self.linearised:
+            self.model.state.x.array[: self.owned] = u
         self.model.state.x.scatter_forward()
-        return assemble_owned(self._residual, self._work, self.owned)[self.free]
+        found = assemble_owned(self._residual, self._work, self.owned)
+        if self.linearised:
+            K = self.jacobian()
+            found += apply(K, u[:, None], self.comm)[:, 0]
+            K.destroy()
+        return found[self.free]
 
     def norm(self, vector: np.ndarray) -> float:
         """The Euclidean norm of a distributed vector (owned entries)."""
         return float(np.sqrt(self.comm.allreduce(float(vector @ vector), op=MPI.SUM)))
 
     def operators(self, base: np.ndarray, varying: Sequence[int]) -> Operators:
-        """K₀, f₀ at ``base`` (the varying values 0 there) and each varying value's K_e, f_e."""
-        self.model.state.x.array[:] = 0.0
+        """K₀, f₀ at ``base`` (the varying values 0 there) and each varying value's K_e, f_e
+        (at rest, linearised; else at u = 0)."""
+        self.model.state.x.array[:] = self._rest
         self.model.state.x.scatter_forward()
         K0, f0 = self._at(base, 1.0)
         bare, _ = self._at(base, 0.0)
@@ -287,7 +307,9 @@ def check_affine(assembler: Assembler, values: np.ndarray, weights: np.ndarray, 
 def check_linear(assembler: Assembler, values: np.ndarray) -> None:
     """R(2u) − 2R(u) + R(0) = 0 at a random state u, the constants at ``values``: a residual
     not affine in the state (a nonlinear law, a follower load) refused in one line before the
-    terms' assemblies."""
+    terms' assemblies (a ``linearised`` one is affine)."""
+    if assembler.linearised:
+        return
     u = assembler.random_state(seed=23)
     zero, once, twice = (assembler.residual(values, scale * u) for scale in (0.0, 1.0, 2.0))
     _refuse_beyond(

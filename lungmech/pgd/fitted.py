@@ -29,6 +29,8 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 
+from mpi4py import MPI
+
 import numpy as np
 
 from lungmech import checks
@@ -52,7 +54,7 @@ from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product, zero_imposed
 from lungmech.rom.load_paths import Paths, relative_to, serial
 
-__all__ = ["INTERVALS", "SINGULAR", "fitted"]
+__all__ = ["INTERVALS", "SINGULAR", "choices", "energy_fit", "fitted"]
 
 SINGULAR = 1e-12  # the terms' space parts: directions below this fraction of the largest are dropped
 INTERVALS = (1, 2, 4, 8)  # the splines' intervals a fit chooses from, on held-out samples
@@ -87,7 +89,7 @@ def fitted(
     box = model.parameters
     held = box.values(fixed or {})  # (unknown names refused)
     held = {name: held[name] for name in fixed or {}}
-    choices = _choices(box, INTERVALS if intervals is None else (intervals,))
+    candidates = choices(box, INTERVALS if intervals is None else (intervals,))
     options = options or FIT
     comm = model.geometry.mesh.comm
     tic = time.perf_counter()
@@ -113,8 +115,8 @@ def fitted(
         energies = np.column_stack([imaged_pgd.start_energies(full, solved), energies])
     data = np.column_stack([state[:owned] - start[:owned] for path in states for state in path])
     units = np.array([box.to_unit(point) for point in points])
-    decomposition, state = _separated(model, data, samples, units, choices, options, seed)
-    energy = fit(comm.bcast(energies[None] if comm.rank == 0 else None), units, choices, options, seed)  # 1 × N × nt
+    decomposition, state = _separated(model, data, samples, units, candidates, options, seed)
+    energy, separated_energy = energy_fit(comm, energies, units, candidates, options, seed, stepping.start, times)
     fits = {"state": state, "strain_energy": energy}
     reference = None
     if imaged:
@@ -124,7 +126,7 @@ def fitted(
             inverse.reset()
             rest = inverse.state.x.array[: owned_size(inverse.space)].copy()
         xi = np.column_stack([path.inverse - rest for path in solved if path.inverse is not None])
-        found_xi, fits["reference"] = _separated(inverse, xi, samples, units, choices, options, seed)
+        found_xi, fits["reference"] = _separated(inverse, xi, samples, units, candidates, options, seed)
     seconds["fit"] = time.perf_counter() - tic
     tic = time.perf_counter()
     probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
@@ -132,9 +134,6 @@ def fitted(
     if imaged:
         reference = imaged_pgd.reference(full, found_xi, probe)
     seconds["outputs"] = time.perf_counter() - tic
-    separated_energy = Decomposition(
-        energy.axes, np.ones((1, 1)), energy.separated.amplitudes, energy.separated.coefficients
-    )
     built = {
         "method": "fitted to full solves",
         "samples": samples,
@@ -162,10 +161,28 @@ def fitted(
         probe_points,
         built,
         timeline=SampledTimeline(stepping.start, times, state.separated.timeline),
-        energy=(separated_energy, SampledTimeline(stepping.start, times, energy.separated.timeline)),
+        energy=separated_energy,
         reference=reference,
     )
     return found, fits
+
+
+def energy_fit(
+    comm: MPI.Comm,
+    energies: np.ndarray,
+    units: np.ndarray,
+    choices: Sequence[Sequence[Axis]],
+    options: Options,
+    seed: int,
+    start: float,
+    times: np.ndarray,
+) -> tuple[Fit, tuple[Decomposition, SampledTimeline]]:
+    """The strain energy's separated fit (:func:`~lungmech.pgd.fitting.fit`) to its values
+    ``energies`` (J, N points × output ``times``; rank 0's) at the points' ``units``: the fit,
+    and as a PGD model holds it, a one-mode decomposition and its timeline. Collective."""
+    found = fit(comm.bcast(energies[None] if comm.rank == 0 else None), units, choices, options, seed)  # 1 × N × nt
+    separated = Decomposition(found.axes, np.ones((1, 1)), found.separated.amplitudes, found.separated.coefficients)
+    return found, (separated, SampledTimeline(start, times, found.separated.timeline))
 
 
 def _separated(
@@ -211,7 +228,7 @@ def _from_rest(model: Model, stepping: Stepping) -> None:
             )
 
 
-def _choices(parameters: Parameters, intervals: Sequence[int]) -> list[tuple[Axis, ...]]:
+def choices(parameters: Parameters, intervals: Sequence[int]) -> list[tuple[Axis, ...]]:
     """The parameters' axes at each of ``intervals`` (a periodic axis at 4 at least), each
     choice once, fewest coefficients first."""
     for k in intervals:

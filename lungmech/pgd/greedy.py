@@ -28,7 +28,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import cast
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -36,12 +35,10 @@ from petsc4py import PETSc
 import numpy as np
 
 from lungmech import checks
-from lungmech.errors import ParameterError
-from lungmech.fem.linear import factorised
 from lungmech.parallel.linalg import apply, gram, norms
 from lungmech.pgd.axes import Axis
 from lungmech.pgd.decomposition import Decomposition
-from lungmech.pgd.modes import Modes, rms, solve_small
+from lungmech.pgd.modes import Modes, combined_solve, kron_sum, rms, solve_small
 from lungmech.pgd.terms import Terms
 
 __all__ = ["Options", "Round", "change", "pgd"]
@@ -173,24 +170,10 @@ def _space(problem: Terms, KU: np.ndarray, lam: list[np.ndarray], old: list[np.n
     """The space step: (Σ_T α_T K_T) ū = Σ_S β_S f_S − Σ_T K_T U γ_T."""
     axes, F = problem.axes, problem.operator_factors
     alpha = _means(axes, F, [l * l for l in lam])
-    A = problem.operator[0].matrix.duplicate()
-    A.zeroEntries()
-    for term, a in zip(problem.operator, alpha):
-        A.axpy(float(a), term.matrix, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
     rhs = problem.loads @ _means(axes, problem.load_factors, lam)
     if KU.shape[1]:
         rhs -= KU @ _crossed(axes, F, lam, old).ravel()
-    solver = factorised(A)
-    u, b = cast(tuple[PETSc.Vec, PETSc.Vec], A.createVecs())  # (right, left)
-    b.array[:] = rhs
-    solver.solve(b, u)
-    reason = int(solver.getConvergedReason())  # type: ignore[call-overload]  # an int at run time; the stubs say a class
-    solution = u.array.copy()
-    for thing in (solver, A, b, u):
-        thing.destroy()
-    if reason < 0:
-        raise ParameterError(f"PGD: the space step's linear solve failed (PETSc reason {reason})")
-    return solution
+    return combined_solve([term.matrix for term in problem.operator], alpha, rhs)
 
 
 def _axis(
@@ -236,7 +219,7 @@ def _update_space(problem: Terms, found: Modes) -> np.ndarray:
     """Every term's space coefficients R at once, the splines fixed:
     Σ_T Σₗ P_T[k, l] (Qᵀ K_T Q) Rₗ = Σ_S p_S[k] Qᵀ f_S for each term k (m × n)."""
     lam, m, n = found.values(), found.Q.shape[1], found.count
-    M = _kron_sum([_products(found, term.factors, lam) for term in problem.operator], found.reduced_operators())
+    M = kron_sum([_products(found, term.factors, lam) for term in problem.operator], found.reduced_operators())
     rhs = np.zeros(n * m)
     for load, F in zip(problem.load, _reduced_loads(problem, found)):
         rhs += np.kron(_loads(found, load.factors, lam), F)
@@ -248,7 +231,7 @@ def _update_axis(problem: Terms, found: Modes, j: int) -> np.ndarray:
     Σ_T Σₗ (Rₖᵀ Qᵀ K_T Q Rₗ) Π_{i≠j} ⟨κ_Tⁱ λₖⁱ, λₗⁱ⟩ M_Tʲ xₗ = Σ_S (Rₖᵀ Qᵀ f_S) Π_{i≠j} ⟨φ_Sⁱ, λₖⁱ⟩ m_Sʲ."""
     axis, lam, R = found.axes[j], found.values(), found.R
     B, w = axis.basis, axis.weights
-    M = _kron_sum(
+    M = kron_sum(
         [
             (R.T @ A @ R) * _products(found, t.factors, lam, skip=j)
             for t, A in zip(problem.operator, found.reduced_operators())
@@ -260,15 +243,6 @@ def _update_axis(problem: Terms, found: Modes, j: int) -> np.ndarray:
         g = (R.T @ F) * _loads(found, load.factors, lam, skip=j)
         rhs += np.kron(g, B.T @ (w * load.factors[j]))
     return solve_small(M, rhs, problem.symmetric).reshape(found.count, axis.size)
-
-
-def _kron_sum(left: Sequence[np.ndarray], right: Sequence[np.ndarray]) -> np.ndarray:
-    """Σ_T left_T ⊗ right_T (:func:`numpy.kron`'s layout) as one matrix product over the terms T:
-    a sum of Kronecker products costs a term's worth of memory traffic each, this one BLAS call."""
-    L, Rt = np.asarray(left), np.asarray(right)
-    (count, n, _), m = L.shape, Rt.shape[1]
-    M = L.reshape(count, n * n).T @ Rt.reshape(count, m * m)  # [k l, a b]
-    return M.reshape(n, n, m, m).transpose(0, 2, 1, 3).reshape(n * m, n * m)
 
 
 def change(axes: Sequence[Axis], comm: MPI.Comm, before: tuple, now: tuple) -> float:

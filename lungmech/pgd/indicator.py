@@ -48,10 +48,12 @@ def indicator(
     found = []
     try:
         with model.kept_state():
+            model.reset()
+            rest = model.state.x.array[:owned].copy()  # what the terms add to (a porosity at rest, say)
             for point in points:
                 u = decomposition.state(point)
                 model.set_parameters(point)
-                model.state.x.array[:owned] = u
+                model.state.x.array[:owned] = rest + u
                 model.state.x.scatter_forward()
                 r.array[:] = assemble_owned(residual, work, owned)
                 r.array[imposed] = 0.0

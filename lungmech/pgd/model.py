@@ -186,7 +186,7 @@ class PGDModel:
         factor = _one_factor(scale, len(self.model.loads))
         if self.energy is not None and factor != 1.0:
             raise ParameterError(
-                f"a PGD fitted to full solves answers the loads at the scene's own scale (got a load factor {factor:g}): "
+                f"a PGD fitted, or of a nonlinear model, answers the loads at the scene's own scale (got a load factor {factor:g}): "
                 "put the loads' amplitude in [parameters] to vary it"
             )
         wanted = self.times if times is None else self._times(tuple(times))
@@ -304,7 +304,7 @@ class PGDModel:
     def describe(self) -> dict[str, object]:
         """What answers: the decomposition's size; no solver."""
         d = self.decomposition
-        how = "fitted to full solves" if self.energy is not None else "a priori"
+        how = self.built.get("method", "fitted to full solves" if self.energy is not None else "a priori")
         return {
             "solver": f"PGD evaluation ({d.size} space modes, {d.terms} separated terms, {how})",
             "linear_solver": None,

@@ -51,7 +51,7 @@ def write_pgd(path: str | Path, found: PGDModel, extra: dict | None = None, arra
     ``arrays`` beside it."""
     model, d = found.model, found.decomposition
     weights = np.linalg.norm(d.reduced, axis=1)  # each space mode's share of the terms
-    method = "a posteriori PGD" if found.energy is not None else "a priori PGD"
+    method = "a priori PGD" if found.energy is None or found.built.get("newton_iterations") else "a posteriori PGD"
     basis = Basis(d.modes, weights, KIND, "energy", layout(model.space).fingerprint, {"method": method})
     record = {
         "axes": [{"parameter": axis.parameter.name, "intervals": axis.intervals} for axis in d.axes],

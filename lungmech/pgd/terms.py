@@ -54,6 +54,7 @@ from lungmech.pgd.axes import Axis
 
 __all__ = [
     "Curve",
+    "affine_in_state",
     "LoadTerm",
     "Term",
     "Terms",
@@ -159,32 +160,53 @@ class Terms:
             term.matrix.destroy()
 
 
-def separated_terms(model: Model, axes: Sequence[Axis]) -> Terms:
+def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False) -> Terms:
     """The separated terms of ``model``'s residual at its current time over ``axes`` (one per
-    parameter of the model, in its order). Refused in one line where the model is not linear
-    and affine in its values, where a parameter sets a field or moves three or more values
-    together, or where an imposed displacement is not zero. Collective."""
+    parameter of the model, in its order) — or, ``linearised``, of its linearisation at rest
+    R(0; c) + K(0; c) u, for a nonlinear model. Refused in one line where the model (or its
+    linearisation) is not linear and affine in its values, where a parameter sets a field or
+    moves three or more values together, or where an imposed displacement is not zero.
+    Collective."""
     if [axis.parameter.name for axis in axes] != list(model.parameters.names):
         raise ParameterError(
             f"PGD: one axis per parameter of the model, in its order ({', '.join(model.parameters.names)})"
         )
-    if model.state_dependent:
-        raise ParameterError("PGD: a load depends on the state (balanced gravity): the residual is not affine in it")
+    if model.state_dependent:  # (its tangent's coupling, left out, makes the Newton–PGD diverge)
+        raise ParameterError(
+            "PGD: a load depends on the state (balanced gravity), which a priori PGD does not separate; "
+            "give --samples for a PGD fitted to full solves"
+        )
     for imposed in model.imposed:
         if np.any(imposed.base != 0.0):
             raise ParameterError("PGD: an imposed displacement is not zero; only zero ones are separated")
     held = constants(model)
     with kept(model, held):
         default = values_at(model, held, model.parameter_values)
-        check_linear(Assembler(model, held, set_values), default)
+        assembler = Assembler(model, held, set_values, linearised)
+        check_linear(assembler, default)
         _no_field_moves(model, axes)
         along, moved = _sweeps(model, held, axes)
-        curves = _curved(model, held, axes, default, along, moved)
+        curves = _curved(model, assembler, held, axes, default, along, moved)
         curved = [e for _, entries in curves for e in entries]
         entries = _factors(axes, along, moved, curved, _grids(model, held, axes))
         _check_separated(model, held, axes, default, entries, curved)
         varying = sorted({e for e, _ in entries})
-        return _assembled(model, held, default, varying, entries, axes, curves)
+        return _assembled(model, assembler, held, default, varying, entries, axes, curves)
+
+
+def affine_in_state(model: Model) -> bool:
+    """Whether ``model``'s residual is affine in its state (a linear model, the a priori
+    greedy's; else the Newton–PGD's), checked as :func:`separated_terms` checks it; a load
+    that depends on the state (balanced gravity) is not. Collective."""
+    if model.state_dependent:
+        return False
+    held = constants(model)
+    with kept(model, held):
+        try:
+            check_linear(Assembler(model, held, set_values), values_at(model, held, model.parameter_values))
+        except ParameterError:
+            return False
+    return True
 
 
 def constants(model: Model) -> list[fem.Constant]:
@@ -265,6 +287,7 @@ def _sweeps(
 
 def _curved(
     model: Model,
+    assembler: Assembler,
     constants: list[fem.Constant],
     axes: Sequence[Axis],
     default: np.ndarray,
@@ -274,7 +297,6 @@ def _curved(
     """(an axis, its values) for each axis moving values the residual is not affine in, each
     alone, at a random state and point: R at 0.3 of a value's range against 0.7 R(low) +
     0.3 R(high). Refused in one line where two parameters move one such value."""
-    assembler = Assembler(model, constants, set_values)
     u = assembler.random_state(seed=17)
     generic = values_at(model, constants, model.parameters.sample(1, seed=13)[0])  # (at the defaults a jump may be 0)
     curved: dict[int, list[int]] = {}
@@ -383,6 +405,7 @@ def _check_separated(
 
 def _assembled(
     model: Model,
+    assembler: Assembler,
     constants: list[fem.Constant],
     default: np.ndarray,
     varying: list[int],
@@ -393,7 +416,6 @@ def _assembled(
     """K₀, f₀ (the fixed values at theirs, the varying at 0) and each part's K_e, f_e — along
     the curves, their Chebyshev series, each coefficient k a term with T_{kⱼ} on each curve's
     axis j — checked against the model's own residual."""
-    assembler = Assembler(model, constants, set_values)
     base = default.copy()
     base[varying] = 0.0
     point = model.parameters.sample(1, seed=7)[0]

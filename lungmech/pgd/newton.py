@@ -1,0 +1,303 @@
+"""The a priori PGD of a nonlinear model — a hyperelastic law, a follower pressure — by Newton
+linearisation on a sample of the box: assemblies at its points, no full solve.
+
+Its residual R(u; μ) is known only where it is assembled, so the box's integral of the
+Galerkin PGD, ∫_B ⟨R(u(μ); μ), δu(μ)⟩ dμ = 0, is taken as the mean over N Sobol' points μ_q
+(the ``quadrature``). Each iteration assembles the residual at the current terms' state there,
+r_q = R(u(μ_q); μ_q), and finds the next terms as the sampled Galerkin PGD
+(:mod:`lungmech.pgd.sampled`) of
+
+    K̄(μ) u⁺(μ) = K̄(μ) u(μ) − R(u(μ); μ),
+
+K̄(μ) the residual's tangent at rest — separated from the model's own forms like a linear
+model's operator (:func:`~lungmech.pgd.terms.separated_terms`, ``linearised``), one
+factorisation a new term's space step: a modified Newton whose fixed point is the sampled
+Galerkin PGD of R itself, whatever K̄. The first iteration from rest is the linear PGD of the
+tangent problem; each next starts from the last one's terms (updated, then enriched while a new
+term matters). The path is followed output time after output time, each time's iterations
+starting from the last time's terms, until the terms change by less than ``tolerance`` of
+themselves in the sample's mean energy norm.
+
+The answer at output time tᵢ is its own terms' (Q shared): u(μ, tᵢ) = Q Rᵢ qᵢ(μ), kept as one
+decomposition whose terms each belong to one time (their timeline 1 there, 0 at the others;
+:class:`~lungmech.pgd.timeline.SampledTimeline`). The strain energy, no quadratic form of a
+nonlinear state, is assembled at the sample's states and fitted by separated terms on the
+state's own splines (:func:`~lungmech.pgd.fitted.energy_fit`; finer ones would follow the
+grid's points and wander between them), as a fitted PGD's is from its full solves.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+
+from petsc4py import PETSc
+
+import numpy as np
+from dolfinx import fem
+
+from lungmech import checks, jit
+from lungmech.errors import ParameterError
+from lungmech.fem.model import Model
+from lungmech.fem.parametric import output_times
+from lungmech.fem.quantities import Probe, assemble_owned, strain_energy
+from lungmech.fem.solver import Stepping
+from lungmech.parallel.owned import owned_size
+from lungmech.pgd import chebyshev
+from lungmech.pgd.axes import DEGREE, Axis, full_turn
+from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.fitted import energy_fit
+from lungmech.pgd.fitting import FIT
+from lungmech.pgd.greedy import Options, Round
+from lungmech.pgd.indicator import indicator
+from lungmech.pgd.model import ESTIMATE, PGDModel, answerable, load_fractions, ramp_of
+from lungmech.pgd.modes import Modes
+from lungmech.pgd.online import online
+from lungmech.pgd.sampled import Operator, Sample, mean_square, solve
+from lungmech.pgd.terms import Terms, constants, kept, separated_terms, values_at
+from lungmech.pgd.timeline import SampledTimeline
+from lungmech.rom.basis import inner_product
+
+__all__ = ["QUADRATURE", "Newton", "build_nonlinear"]
+
+QUADRATURE = 512  # the most residual assemblies an iteration, by default
+STALLED = 10  # iterations after which a Newton–PGD that stopped coming closer gives up
+INTERVALS = 2  # the splines' intervals by default: 8 Gauss points an axis
+
+
+@dataclass(frozen=True)
+class Newton:
+    """The Newton–PGD's ``quadrature``: the most residual assemblies an iteration — the axes'
+    tensor Gauss grid where it has no more points, else that many Sobol' points (``seed``);
+    the terms' relative change at which an output time has converged (``tolerance``) and the
+    ``iterations`` it may take."""
+
+    quadrature: int = QUADRATURE
+    seed: int = 0
+    tolerance: float = 1e-5
+    iterations: int = 60
+
+    def __post_init__(self) -> None:
+        checks.integer("PGD quadrature", self.quadrature, minimum=8)
+        checks.integer("PGD seed", self.seed, minimum=0)
+        checks.real("PGD Newton tolerance", self.tolerance, positive=True)
+        checks.integer("PGD Newton iterations", self.iterations, minimum=1)
+
+
+def build_nonlinear(
+    model: Model,
+    stepping: Stepping,
+    probe_points: Sequence[Sequence[float]] = (),
+    intervals: int = INTERVALS,
+    options: Options | None = None,
+    newton: Newton = Newton(),
+) -> tuple[PGDModel, list[Round]]:
+    """The a priori :class:`PGDModel` of a nonlinear ``model`` over its parameters' box along
+    ``stepping`` (module docstring): splines on ``intervals`` intervals, the greedy's
+    ``options`` at every iteration, ``newton``'s sample and stopping; with every round of the
+    greedy. Refused in one line before any work where it cannot answer (no parameter, loads on
+    several ramps, a load that depends on the state), and where the iterations do not converge.
+    Collective."""
+    answerable(model)
+    ramp_of(model, stepping)
+    load_fractions(model, stepping)
+    options = options or Options()
+    axes = [
+        Axis(parameter, max(intervals, DEGREE + 1) if full_turn(parameter) else intervals)
+        for parameter in model.parameters
+    ]
+    sample = Sample.tensor(axes)
+    if len(sample.units) > newton.quadrature:
+        sample = Sample.of(
+            axes,
+            np.array(
+                [model.parameters.to_unit(p) for p in model.parameters.sample(newton.quadrature, seed=newton.seed)]
+            ),
+        )
+    units = sample.units
+    points = [model.parameters.from_unit(unit) for unit in units]
+    times = output_times(model, stepping)
+    comm = model.geometry.mesh.comm
+    tic = time.perf_counter()
+    model.set_time(
+        stepping.start
+    )  # the loads 0: the material's tangent (a follower pressure's own may make it indefinite)
+    tangent = separated_terms(model, axes, linearised=True)
+    W = inner_product(model, "energy")
+    seconds = {"terms": time.perf_counter() - tic}
+    try:
+        tic = time.perf_counter()
+        operator = _operator(model, tangent, points, units)  # (at the start, as the terms)
+        found = Modes(axes, operator.matrices, owned_size(model.space), comm)
+        march = _March(model, points)
+        blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
+        rounds: list[Round] = []
+        iterations: list[int] = []
+        for t in times:
+            model.set_time(float(t))
+            done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
+            if not done:
+                how = (
+                    f"the terms still changed by {steps[-1]:.1e} of themselves"
+                    if np.isfinite(steps[-1])
+                    else "its residual was not finite: a state beyond the law's range"
+                )
+                raise ParameterError(
+                    f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations "
+                    f"({how}): the loads take the body too far "
+                    "from its tangent at rest (large rotations, say); give --samples for a PGD fitted to full solves"
+                )
+            iterations.append(len(steps))
+            blocks.append((found.R.copy(), [X.copy() for X in found.X]))
+        seconds["newton"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        decomposition, timeline = _joined(found, blocks, times, stepping.start)
+        last = Decomposition(tuple(axes), found.Q.copy(), *blocks[-1])
+        energies = march.energies(found.Q, blocks, sample, times)
+        energy, separated_energy = energy_fit(
+            comm, energies, units, [tuple(axes)], FIT, newton.seed, stepping.start, times
+        )
+        seconds["energy"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        model.set_time(stepping.end)
+        estimates = indicator(model, last, W, model.parameters.sample(ESTIMATE, seed=31))
+        seconds["indicator"] = time.perf_counter() - tic
+    finally:
+        tangent.destroy()
+        W.destroy()
+    tic = time.perf_counter()
+    probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
+    outputs = online(model, None, decomposition.modes, probe)
+    seconds["outputs"] = time.perf_counter() - tic
+    built = {
+        "method": f"a priori, Newton on {len(units)} points of the box",
+        "intervals": [axis.intervals for axis in axes],
+        "options": asdict(options),
+        "newton": asdict(newton),
+        "newton_iterations": iterations,
+        "quadrature": len(units),  # the residual's points an iteration
+        "training": points,  # the residuals' points (a trade's validation points avoid them)
+        "rounds": [asdict(r) for r in rounds],
+        "operator_terms": len(tangent.operator),
+        "energy_held_out": energy.held_out,
+        "estimate": float(estimates.max()),
+        "indicator_points": estimates.tolist(),
+        "seconds": seconds,
+    }
+    found_model = PGDModel(
+        model, decomposition, outputs, stepping, probe_points, built, timeline=timeline, energy=separated_energy
+    )
+    return found_model, rounds
+
+
+def _converged(
+    march: _March,
+    operator: Operator,
+    sample: Sample,
+    found: Modes,
+    W: PETSc.Mat,
+    options: Options,
+    newton: Newton,
+    rounds: list[Round],
+) -> tuple[bool, list[float]]:
+    """Newton–PGD iterations at the model's current time until the terms change by less than
+    ``newton.tolerance`` of themselves, or stop coming closer (after :data:`STALLED`
+    iterations, the last few's smallest change not below half the earlier ones'); (converged,
+    each iteration's change)."""
+    steps: list[float] = []
+    for _ in range(newton.iterations):
+        Z = found.R @ sample.products(found)  # the state's coordinates at the points (m × N)
+        r = march.residuals(found.Q @ Z)
+        rounds.extend(solve(operator, sample, operator.apply_sampled(found, Z) - r, found, W, options))
+        now = found.R @ sample.products(found)
+        before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
+        size = mean_square(sample, found)
+        steps.append(float(np.sqrt((sample.weights @ np.sum((now - before) ** 2, axis=0)) / size)) if size else 0.0)
+        if steps[-1] <= newton.tolerance:
+            return True, steps
+        recent = STALLED // 2
+        if not np.isfinite(steps[-1]) or (len(steps) >= STALLED and min(steps[-recent:]) > 0.5 * min(steps[:-recent])):
+            return False, steps
+    return False, steps
+
+
+class _March:
+    """The model's residual and strain energy at the sample's ``points``, its state the rest
+    plus a given displacement of its modes' space."""
+
+    def __init__(self, model: Model, points: Sequence[Mapping[str, float]]) -> None:
+        self.model, self.points = model, list(points)
+        self.owned = owned_size(model.space)
+        self._imposed = model.constrained_dofs()
+        self._residual = jit.form(model.residual)
+        self._work = fem.Function(model.space).x
+        self._held = constants(model)
+        with model.kept_state():
+            model.reset()
+            self.rest = model.state.x.array[: self.owned].copy()
+
+    def _at(self, point: Mapping[str, float], u: np.ndarray) -> None:
+        model = self.model
+        model.set_parameters(point)
+        model.state.x.array[: self.owned] = self.rest + u
+        model.state.x.scatter_forward()
+
+    def residuals(self, U: np.ndarray) -> np.ndarray:
+        """R(u_rest + U_q; μ_q) at the model's current time (owned entries × N, 0 where imposed)."""
+        found = np.empty((self.owned, len(self.points)))
+        with kept(self.model, self._held):
+            for q, point in enumerate(self.points):
+                self._at(point, U[:, q])
+                found[:, q] = assemble_owned(self._residual, self._work, self.owned)
+        found[self._imposed] = 0.0
+        return found
+
+    def energies(
+        self, Q: np.ndarray, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], sample: Sample, times: np.ndarray
+    ) -> np.ndarray:
+        """The strain energy (J) at each point and output time of the blocks' states (N × times)."""
+        energy = strain_energy(self.model)
+        found = np.empty((len(self.points), len(times)))
+        with kept(self.model, self._held):
+            for i, ((R, X), t) in enumerate(zip(blocks, times)):
+                self.model.set_time(float(t))
+                Lam = np.multiply.reduce([Xj @ B.T for Xj, B in zip(X, sample.bases)], axis=0)
+                U = Q[:, : len(R)] @ (R @ Lam)
+                for q, point in enumerate(self.points):
+                    self._at(point, U[:, q])
+                    found[q, i] = energy()
+        return found
+
+
+def _operator(model: Model, tangent: Terms, points: Sequence[Mapping[str, float]], units: np.ndarray) -> Operator:
+    """The tangent at rest at the points: each distinct matrix of ``tangent`` once, its factor
+    the value it multiplies (1 for K₀) times its Chebyshev factors on the curves' axes."""
+    held = constants(model)
+    with kept(model, held):
+        values = np.array([values_at(model, held, dict(point)) for point in points])
+    on = [curve.axis for curve in tangent.curves]
+    counts = [curve.degrees for curve in tangent.curves]
+    series = np.array([chebyshev.tensor(units[q, on].tolist(), counts) for q in range(len(points))])
+    matrices, kappa, seen = [], [], set()
+    for term in tangent.operator:
+        if id(term.matrix) in seen:  # a value's several separated parts share its matrix
+            continue
+        seen.add(id(term.matrix))
+        matrices.append(term.matrix)
+        base = np.ones(len(points)) if term.entry is None else values[:, term.entry]
+        kappa.append(base * series[:, term.degree])
+    return Operator(matrices, np.array(kappa), tangent.symmetric)
+
+
+def _joined(
+    found: Modes, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], times: np.ndarray, start: float
+) -> tuple[Decomposition, SampledTimeline]:
+    """One decomposition of every time's terms (Q the last one's; an earlier time's R padded
+    with zero rows), each term on at its own time alone."""
+    m = found.Q.shape[1]
+    reduced = np.hstack([np.vstack([R, np.zeros((m - len(R), R.shape[1]))]) for R, _ in blocks])
+    coefficients = [np.vstack([X[j] for _, X in blocks]) for j in range(len(found.axes))]
+    owner = np.concatenate([np.full(R.shape[1], i) for i, (R, _) in enumerate(blocks)])
+    values = (owner[:, None] == np.arange(len(times))[None, :]).astype(float)
+    return Decomposition(found.axes, found.Q.copy(), reduced, coefficients), SampledTimeline(start, times, values)

@@ -1,0 +1,205 @@
+"""The PGD of a linear problem whose right-hand side is known at a sample of the box only: the
+step of a nonlinear model's Newton–PGD (:mod:`lungmech.pgd.newton`).
+
+The problem is the Galerkin one over space and the sample μ_q (weights w_q, summing to 1: the
+axes' tensor Gauss rule, or equal weights at a Sobol' sample):
+
+    Σ_q w_q ⟨K(μ_q) u(μ_q) − b_q, δu(μ_q)⟩ = 0   for every δu,   K(μ) = Σᵢ κᵢ(μ) Kᵢ,
+
+the box's integral taken as the sample's weighted sum; K(μ) separated (:class:`Operator`), the
+b_q any vectors. The answer is kept as the a priori greedy's (:class:`~lungmech.pgd.modes.Modes`:
+u(μ) = Q R q(μ), Q orthonormal in W), and its steps are that greedy's (:mod:`lungmech.pgd.greedy`)
+with the sample's sums where the axes' products were, Λₖ_q = qₖ(μ_q):
+
+- **space**: (Σᵢ αᵢ Kᵢ) ū = Σ_q w_q λ_q b_q − Σᵢ Kᵢ U γᵢ, αᵢ = Σ_q w_q κᵢ_q λ_q²,
+  γᵢₖ = Σ_q w_q κᵢ_q λ_q Λₖ_q;
+- **axis j**: λ_q = Bʲ_q xʲ p_q (Bʲ_q the axis's splines at μ_qj, p_q the other axes' product):
+  [Σ_q w_q p_q² (Σᵢ κᵢ_q ūᵀKᵢū) Bʲ_q Bʲ_qᵀ] xʲ = Σ_q w_q p_q Bʲ_q (ūᵀb_q − Σᵢ κᵢ_q ūᵀKᵢ U Λ_q);
+- **update** of every term, ``sweeps`` times: R from Σᵢ Pᵢ ⊗ (QᵀKᵢQ), Pᵢ = Λ diag(w κᵢ) Λᵀ;
+  then each axis's splines of every term at once.
+
+A solve starts from the terms it is given (a Newton iteration's, so that the next needs only
+its change): they are first updated for the new b, then terms are added while a new one's
+amplitude is above ``tolerance`` of the whole's.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from petsc4py import PETSc
+
+import numpy as np
+
+from lungmech.parallel.linalg import apply, gram, norms
+from lungmech.pgd.axes import Axis
+from lungmech.pgd.greedy import Options, Round, change
+from lungmech.pgd.modes import Modes, combined_solve, kron_sum, rms, solve_small
+
+__all__ = ["Operator", "Sample", "solve"]
+
+RIDGE = 1e-12  # an axis's Galerkin matrix: this fraction of its mean diagonal added (a spline no sample sees)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """The box's points μ_q as unit coordinates ``units`` (N × axes), their ``weights`` w_q
+    (summing to 1) and each axis's splines there, ``bases[j]`` (N × axis j's size)."""
+
+    axes: tuple[Axis, ...]
+    units: np.ndarray
+    weights: np.ndarray
+    bases: tuple[np.ndarray, ...]
+
+    @classmethod
+    def of(cls, axes: Sequence[Axis], units: np.ndarray) -> Sample:
+        """Equal weights at the points ``units`` (a Sobol' sample's)."""
+        units = np.asarray(units, dtype=float)
+        bases = tuple(axis.at(units[:, j]) for j, axis in enumerate(axes))
+        return cls(tuple(axes), units, np.full(len(units), 1.0 / len(units)), bases)
+
+    @classmethod
+    def tensor(cls, axes: Sequence[Axis]) -> Sample:
+        """The tensor product of the axes' Gauss rules (:mod:`lungmech.pgd.axes`): the box's
+        integral of products of the splines, exact, as the a priori greedy's."""
+        units = np.array(list(itertools.product(*(axis.nodes for axis in axes))))
+        weights = np.array([np.prod(w) for w in itertools.product(*(axis.weights for axis in axes))])
+        bases = tuple(axis.at(units[:, j]) for j, axis in enumerate(axes))
+        return cls(tuple(axes), units, weights, bases)
+
+    def values(self, found: Modes) -> list[np.ndarray]:
+        """Each axis's splines of the terms at the points (terms × N)."""
+        return [X @ B.T for X, B in zip(found.X, self.bases)]
+
+    def products(self, found: Modes) -> np.ndarray:
+        """Λₖ_q = qₖ(μ_q) (terms × N)."""
+        return np.multiply.reduce(self.values(found), axis=0) if self.axes else np.ones((found.count, 1))
+
+
+@dataclass(frozen=True)
+class Operator:
+    """K(μ_q) = Σᵢ κᵢ_q Kᵢ: the ``matrices`` Kᵢ, their factors ``kappa`` (matrices × N) and
+    whether every Kᵢ is ``symmetric``."""
+
+    matrices: list[PETSc.Mat]
+    kappa: np.ndarray
+    symmetric: bool
+
+    def apply_sampled(self, found: Modes, Z: np.ndarray) -> np.ndarray:
+        """K(μ_q) Q z_q for each column z_q of ``Z`` (m × N): owned entries × N, from the K Q kept."""
+        return sum((KQ @ Z) * k for KQ, k in zip(found.KQ, self.kappa))
+
+
+def solve(
+    operator: Operator, sample: Sample, b: np.ndarray, found: Modes, W: PETSc.Mat, options: Options
+) -> list[Round]:
+    """Update ``found`` (its matrices ``operator.matrices``) to the sampled Galerkin PGD of
+    K(μ) u = b (``b``: owned entries × N) (module docstring); one :class:`Round` per term tried.
+    Collective."""
+    rounds: list[Round] = []
+    for _ in range(options.sweeps if found.count else 0):
+        _update(operator, sample, b, found)
+    while found.count < options.max_terms:
+        u, x, iterations, converged = _new_term(operator, sample, b, found, options)
+        lam = np.multiply.reduce([B @ xj for B, xj in zip(sample.bases, x)], axis=0)
+        amplitude = float(norms(u[:, None], W, found.comm)[0]) * float(np.sqrt(sample.weights @ lam**2))
+        whole = float(np.sqrt(mean_square(sample, found) + amplitude**2))
+        if amplitude <= options.tolerance * whole or whole == 0.0:
+            potential = _potential(operator, sample, b, found)
+            rounds.append(Round(amplitude / whole if whole else 0.0, iterations, converged, False, False, potential))
+            break
+        new = found.add(u, x, W)
+        for _ in range(options.sweeps):
+            _update(operator, sample, b, found)
+        rounds.append(
+            Round(amplitude / whole, iterations, converged, True, new, _potential(operator, sample, b, found))
+        )
+    return rounds
+
+
+def mean_square(sample: Sample, found: Modes) -> float:
+    """Σ_q w_q ‖Q R Λ_q‖²_W (Q W-orthonormal: ‖R Λ_q‖²)."""
+    if not found.count:
+        return 0.0
+    Z = found.R @ sample.products(found)
+    return float(sample.weights @ np.sum(Z**2, axis=0))
+
+
+def _new_term(
+    operator: Operator, sample: Sample, b: np.ndarray, found: Modes, options: Options
+) -> tuple[np.ndarray, list[np.ndarray], int, bool]:
+    """(ū, its splines per axis, iterations, converged): alternating directions for one term,
+    the others fixed."""
+    comm, w, kappa = found.comm, sample.weights, operator.kappa
+    old = sample.products(found)  # Λ (terms × N)
+    KU = [KQ @ found.R for KQ in found.KQ]  # Kᵢ U (owned × terms)
+    rng = np.random.default_rng(found.count)  # the same on every rank
+    x = [rng.uniform(0.5, 1.5, axis.size) for axis in sample.axes]
+    parts = [B @ xj for B, xj in zip(sample.bases, x)]
+    before = None
+    for iteration in range(1, options.iterations + 1):
+        lam = np.multiply.reduce(parts, axis=0)
+        rhs = b @ (w * lam)
+        for KUi, k in zip(KU, kappa):
+            rhs -= KUi @ (old @ (w * k * lam))
+        u = combined_solve(operator.matrices, kappa @ (w * lam**2), rhs)
+        Ku = np.column_stack([apply(K, u[:, None], comm)[:, 0] for K in operator.matrices])
+        uKu = gram(u[:, None], Ku, comm)[0]  # ūᵀKᵢū
+        uKU = gram(u[:, None], np.hstack(KU), comm)[0].reshape(len(KU), found.count) if found.count else None
+        alpha = uKu @ kappa  # ūᵀK(μ_q)ū
+        beta = gram(u[:, None], b, comm)[0]  # ūᵀb_q
+        if uKU is not None:
+            beta = beta - np.sum(kappa * (uKU @ old), axis=0)
+        for j, (axis, B) in enumerate(zip(sample.axes, sample.bases)):
+            p = np.multiply.reduce([v for i, v in enumerate(parts) if i != j], axis=0) if len(parts) > 1 else 1.0
+            M = B.T @ ((w * p**2 * alpha)[:, None] * B)
+            x[j] = solve_small(_ridged(M), B.T @ (w * p * beta), True)
+            if j < len(sample.axes) - 1:  # unit mean square: the amplitude is the space part's and the last axis's
+                x[j] /= max(rms(axis, x[j]), 1e-300)
+            parts[j] = B @ x[j]
+        now = (u, [xj.copy() for xj in x])
+        if before is not None and change(sample.axes, comm, before, now) <= options.fixed_point:
+            return u, x, iteration, True
+        before = now
+    return u, x, options.iterations, False
+
+
+def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> None:
+    """Every term's space coefficients R, then each axis's splines of every term, for ``b``."""
+    w, kappa, n, m = sample.weights, operator.kappa, found.count, found.Q.shape[1]
+    A = found.reduced_operators()
+    Qb = found.reduced(b)  # m × N
+    Lam = sample.products(found)
+    M = kron_sum([(Lam * (w * k)) @ Lam.T for k in kappa], A)
+    rhs = ((Qb * w) @ Lam.T).T.ravel()  # [k, a]: Σ_q w_q Λₖ_q (Qᵀb_q)_a
+    found.R = solve_small(M, rhs, operator.symmetric).reshape(n, m).T
+    Y = found.R.T @ Qb  # Rₖᵀ Qᵀ b_q (terms × N)
+    C = np.array([found.R.T @ Ai @ found.R for Ai in A])  # Rₖᵀ Qᵀ Kᵢ Q Rₗ
+    G = np.einsum("iq,ikl->qkl", kappa, C)
+    for j, B in enumerate(sample.bases):
+        values = sample.values(found)
+        p = (
+            np.multiply.reduce([v for i, v in enumerate(values) if i != j], axis=0)
+            if len(values) > 1
+            else np.ones_like(Lam)
+        )
+        H = w[:, None, None] * G * p.T[:, :, None] * p.T[:, None, :]  # N × terms × terms
+        M = kron_sum(H, B[:, :, None] * B[:, None, :])  # Σ_q H_q ⊗ Bʲ_q Bʲ_qᵀ
+        rhs = ((w * p * Y) @ B).ravel()  # [k, a]: Σ_q w_q pₖ_q Yₖ_q Bʲ_qa
+        found.X[j] = solve_small(_ridged(M), rhs, operator.symmetric).reshape(n, B.shape[1])
+
+
+def _ridged(M: np.ndarray) -> np.ndarray:
+    """M plus :data:`RIDGE` of its mean diagonal on the diagonal."""
+    return M + RIDGE * max(float(np.mean(np.abs(np.diag(M)))), 1e-300) * np.eye(len(M))
+
+
+def _potential(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> float:
+    """Σ_q w_q (½ ⟨K(μ_q) u_q, u_q⟩ − ⟨b_q, u_q⟩) of the terms so far (the step's quadratic)."""
+    if not found.count:
+        return 0.0
+    Z = found.R @ sample.products(found)  # m × N
+    quadratic = sum(k * np.einsum("aq,ab,bq->q", Z, Ai, Z) for k, Ai in zip(operator.kappa, found.reduced_operators()))
+    return float(sample.weights @ (0.5 * quadratic - np.sum(found.reduced(b) * Z, axis=0)))
