@@ -19,7 +19,7 @@ from test_pgd_fitted import against_full, written
 from lungmech.app import reduce
 from lungmech.app import scene as scenes
 from lungmech.app.cli import main
-from lungmech.app.run import full_order_model
+from lungmech.app.run import build_model, full_order_model
 from lungmech.errors import ParameterError
 from lungmech.fem.constraints import clamp
 from lungmech.fem.laws import LinearElastic
@@ -31,8 +31,9 @@ from lungmech.fem.stepping import Stepping
 from lungmech.lung.gravity import Gravity
 from lungmech.mesh import box
 from lungmech.pgd import Options
+from lungmech.pgd.axes import Axis
 from lungmech.pgd.model import build as linear_build
-from lungmech.pgd.newton import Newton, build_nonlinear
+from lungmech.pgd.newton import QUADRATURE, Newton, build_nonlinear, quadrature
 
 # The tests' parametric neo-Hookean block (tests/fem.py), pulled at its free end by a follower
 # pressure up to 18 % strain, over its stiffness (a factor 4, log) and the pull's amplitude; 135 dofs.
@@ -115,13 +116,22 @@ def test_on_a_linear_model_newton_is_the_linear_greedy():
     assert relative_errors(model, last, points).max() <= 2e-3
 
 
-def test_a_block_at_finite_strain(tmp_path):
+@pytest.mark.parametrize(
+    ("intervals", "points", "measured"),
+    [(2, QUADRATURE, "1.2e-4"), (4, 64, "2.2e-5")],
+    ids=["the Gauss grid (64 points)", "64 Sobol' points (the grid has 256)"],
+)
+def test_a_block_at_finite_strain(tmp_path, intervals, points, measured):
     """The neo-Hookean block: at 6 random points and both output times within 1e-3 of its full
-    model (state in the energy norm, volume, probe and strain energy); the derivatives in μ
-    are the splines' own (against central differences of the PGD, 1e-5)."""
+    model (state in the energy norm, volume, probe and strain energy; measured: ``measured``),
+    on the axes' Gauss grid or on Sobol' points where the grid is larger than the quadrature
+    asked; the derivatives in μ are the splines' own (against central differences of the PGD,
+    1e-5)."""
     scene = scenes.load(block(tmp_path))
     full = full_order_model(scene)
-    pgd, _ = build_nonlinear(full.model, scene.stepping, scene.output.probes, 2, Options(max_terms=12))
+    newton = Newton(quadrature=points)
+    pgd, _ = build_nonlinear(full.model, scene.stepping, scene.output.probes, intervals, Options(max_terms=12), newton)
+    assert pgd.built["quadrature"] == min(points, (4 * intervals) ** 2)
     errors, outputs, _ = against_full(pgd, full, 6, seed=3)
     assert max(errors) <= 1e-3, max(errors)
     assert max(outputs) <= 1e-3, max(outputs)
@@ -134,12 +144,30 @@ def test_a_block_at_finite_strain(tmp_path):
         assert np.allclose(found[..., j], (ahead - behind) / (2 * h), rtol=1e-5, atol=1e-12)
 
 
+def test_the_quadrature_is_the_axes_gauss_grid_or_sobol_points(tmp_path):
+    """The box's quadrature: the tensor product of the axes' Gauss rules (weights summing to 1,
+    exact for a product of degree-7 polynomials on each axis), or the model's own Sobol' points
+    with equal weights where that grid has more points than asked."""
+    model = build_model(scenes.load(block(tmp_path)))
+    axes = [Axis(parameter, 2) for parameter in model.parameters]
+    grid = quadrature(model, axes, Newton())
+    assert grid.units.shape == (64, 2) and grid.weights.sum() == pytest.approx(1.0, rel=1e-14)
+    assert grid.weights @ (grid.units[:, 0] ** 7 * grid.units[:, 1] ** 4) == pytest.approx(1 / 40, rel=1e-13)
+    sobol = quadrature(model, axes, Newton(quadrature=32, seed=5))
+    expected = [model.parameters.to_unit(p) for p in model.parameters.sample(32, seed=5)]
+    assert np.allclose(sobol.units, expected) and np.all(sobol.weights == 1 / 32)
+
+
 def test_bad_inputs_of_a_nonlinear_pgd_get_one_line(tmp_path, capsys):
-    """Iterations that do not converge, and a quadrature of too few points, are refused in one
-    line; the model file is not written."""
+    """Iterations that do not converge, their step halved down to 1/16 of the path (from the
+    first output time, 0.5 s), and a quadrature of too few points, are refused in one line; the
+    model file is not written."""
     scene = scenes.load(block(tmp_path))
     full = full_order_model(scene)
-    with pytest.raises(ParameterError, match="did not converge at t = 0.5 s in 1 iterations"):
+    with pytest.raises(
+        ParameterError,
+        match=r"did not converge at t = 0.0625 s in 1 iterations .*, its step from 0 s halved to 0.0625 s",
+    ):
         build_nonlinear(full.model, scene.stepping, (), 1, Options(max_terms=4), Newton(iterations=1))
     out = tmp_path / "block.npz"
     assert main(["pgd", "build", str(block(tmp_path)), "--quadrature", "4", "-o", str(out)]) != 0

@@ -46,6 +46,12 @@ class Modes:
         """The number of separated terms n."""
         return self.R.shape[1]
 
+    def copy(self) -> Modes:
+        """The terms as they are now, apart from these (the matrices shared)."""
+        found = Modes(self.axes, self.matrices, len(self.Q), self.comm)
+        found.Q, found.R, found.X, found.KQ = self.Q.copy(), self.R.copy(), [X.copy() for X in self.X], list(self.KQ)
+        return found
+
     def decomposition(self) -> Decomposition:
         return Decomposition(self.axes, self.Q.copy(), self.R.copy(), [X.copy() for X in self.X])
 

@@ -1,11 +1,13 @@
 """The a priori PGD of a nonlinear model — a hyperelastic law, a follower pressure — by Newton
-linearisation on a sample of the box: assemblies at its points, no full solve.
+linearisation over the box: residual assemblies at a quadrature's points, no full solve.
 
 Its residual R(u; μ) is known only where it is assembled, so the box's integral of the
-Galerkin PGD, ∫_B ⟨R(u(μ); μ), δu(μ)⟩ dμ = 0, is taken as the mean over N Sobol' points μ_q
-(the ``quadrature``). Each iteration assembles the residual at the current terms' state there,
-r_q = R(u(μ_q); μ_q), and finds the next terms as the sampled Galerkin PGD
-(:mod:`lungmech.pgd.sampled`) of
+Galerkin PGD, ∫_B ⟨R(u(μ); μ), δu(μ)⟩ dμ = 0, is taken by a quadrature μ_q, w_q
+(:func:`quadrature`): the tensor product of the axes' Gauss rules — exact for products of the
+splines, as the linear greedy's integrals are — or, where it has more points than
+``Newton.quadrature``, that many Sobol' points with equal weights. Each iteration assembles the
+residual at the current terms' state there, r_q = R(u(μ_q); μ_q), and finds the next terms as
+the sampled Galerkin PGD (:mod:`lungmech.pgd.sampled`) of
 
     K̄(μ) u⁺(μ) = K̄(μ) u(μ) − R(u(μ); μ),
 
@@ -16,7 +18,10 @@ Galerkin PGD of R itself, whatever K̄. The first iteration from rest is the lin
 tangent problem; each next starts from the last one's terms (updated, then enriched while a new
 term matters). The path is followed output time after output time, each time's iterations
 starting from the last time's terms, until the terms change by less than ``tolerance`` of
-themselves in the sample's mean energy norm.
+themselves in the quadrature's mean energy norm. A time whose iterations fail — a residual
+not finite, or :data:`STALLED` iterations that stopped coming closer — is approached again
+from the last time reached, its step halved, down to :data:`SMALLEST` of the path (a
+continuation, as a full solve's cut-back).
 
 The answer at output time tᵢ is its own terms' (Q shared): u(μ, tᵢ) = Q Rᵢ qᵢ(μ), kept as one
 decomposition whose terms each belong to one time (their timeline 1 there, 0 at the others;
@@ -59,10 +64,11 @@ from lungmech.pgd.terms import Terms, constants, kept, separated_terms, values_a
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product
 
-__all__ = ["QUADRATURE", "Newton", "build_nonlinear"]
+__all__ = ["QUADRATURE", "Newton", "build_nonlinear", "quadrature"]
 
 QUADRATURE = 512  # the most residual assemblies an iteration, by default
-STALLED = 10  # iterations after which a Newton–PGD that stopped coming closer gives up
+STALLED = 20  # iterations after which a Newton–PGD that stopped coming closer gives up
+SMALLEST = 1 / 16  # a failed step is halved down to this fraction of the path, no further
 INTERVALS = 2  # the splines' intervals by default: 8 Gauss points an axis
 
 
@@ -107,22 +113,14 @@ def build_nonlinear(
         Axis(parameter, max(intervals, DEGREE + 1) if full_turn(parameter) else intervals)
         for parameter in model.parameters
     ]
-    sample = Sample.tensor(axes)
-    if len(sample.units) > newton.quadrature:
-        sample = Sample.of(
-            axes,
-            np.array(
-                [model.parameters.to_unit(p) for p in model.parameters.sample(newton.quadrature, seed=newton.seed)]
-            ),
-        )
+    sample = quadrature(model, axes, newton)
     units = sample.units
     points = [model.parameters.from_unit(unit) for unit in units]
     times = output_times(model, stepping)
     comm = model.geometry.mesh.comm
     tic = time.perf_counter()
-    model.set_time(
-        stepping.start
-    )  # the loads 0: the material's tangent (a follower pressure's own may make it indefinite)
+    # the tangent with the loads 0: the material's (a follower pressure's own may make it indefinite)
+    model.set_time(stepping.start)
     tangent = separated_terms(model, axes, linearised=True)
     W = inner_product(model, "energy")
     seconds = {"terms": time.perf_counter() - tic}
@@ -134,9 +132,16 @@ def build_nonlinear(
         blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
         rounds: list[Round] = []
         iterations: list[int] = []
-        for t in times:
-            model.set_time(float(t))
+        pending, reached = [float(t) for t in times], float(stepping.start)
+        while pending:  # output time after output time, a step halved where its iterations fail
+            t = pending[0]
+            model.set_time(t)
+            saved = found.copy()
             done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
+            if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
+                found = saved
+                pending.insert(0, 0.5 * (reached + t))
+                continue
             if not done:
                 how = (
                     f"the terms still changed by {steps[-1]:.1e} of themselves"
@@ -144,12 +149,15 @@ def build_nonlinear(
                     else "its residual was not finite: a state beyond the law's range"
                 )
                 raise ParameterError(
-                    f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations "
-                    f"({how}): the loads take the body too far "
-                    "from its tangent at rest (large rotations, say); give --samples for a PGD fitted to full solves"
+                    f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
+                    f"its step from {reached:g} s halved to {t - reached:g} s: the loads take the body too far from its tangent at rest "
+                    "(large rotations, say); give --samples for a PGD fitted to full solves"
                 )
-            iterations.append(len(steps))
-            blocks.append((found.R.copy(), [X.copy() for X in found.X]))
+            pending.pop(0)
+            reached = t
+            if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
+                iterations.append(len(steps))
+                blocks.append((found.R.copy(), [X.copy() for X in found.X]))
         seconds["newton"] = time.perf_counter() - tic
         tic = time.perf_counter()
         decomposition, timeline = _joined(found, blocks, times, stepping.start)
@@ -189,6 +197,16 @@ def build_nonlinear(
         model, decomposition, outputs, stepping, probe_points, built, timeline=timeline, energy=separated_energy
     )
     return found_model, rounds
+
+
+def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
+    """The box's quadrature (module docstring): the axes' tensor Gauss grid, or where it has more
+    than ``newton.quadrature`` points, that many of the model's Sobol' points (``newton.seed``)."""
+    grid = Sample.tensor(axes)
+    if len(grid.units) <= newton.quadrature:
+        return grid
+    points = model.parameters.sample(newton.quadrature, seed=newton.seed)
+    return Sample.of(axes, np.array([model.parameters.to_unit(point) for point in points]))
 
 
 def _converged(
