@@ -129,35 +129,8 @@ def build_nonlinear(
         operator = _operator(model, tangent, points, units)  # (at the start, as the terms)
         found = Modes(axes, operator.matrices, owned_size(model.space), comm)
         march = _March(model, points)
-        blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
         rounds: list[Round] = []
-        iterations: list[int] = []
-        pending, reached = [float(t) for t in times], float(stepping.start)
-        while pending:  # output time after output time, a step halved where its iterations fail
-            t = pending[0]
-            model.set_time(t)
-            saved = found.copy()
-            done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
-            if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
-                found = saved
-                pending.insert(0, 0.5 * (reached + t))
-                continue
-            if not done:
-                how = (
-                    f"the terms still changed by {steps[-1]:.1e} of themselves"
-                    if np.isfinite(steps[-1])
-                    else "its residual was not finite: a state beyond the law's range"
-                )
-                raise ParameterError(
-                    f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
-                    f"its step from {reached:g} s halved to {t - reached:g} s: the loads take the body too far from its tangent at rest "
-                    "(large rotations, say); give --samples for a PGD fitted to full solves"
-                )
-            pending.pop(0)
-            reached = t
-            if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
-                iterations.append(len(steps))
-                blocks.append((found.R.copy(), [X.copy() for X in found.X]))
+        found, blocks, iterations = _marched(march, operator, sample, found, W, options, newton, rounds, stepping)
         seconds["newton"] = time.perf_counter() - tic
         tic = time.perf_counter()
         decomposition, timeline = _joined(found, blocks, times, stepping.start)
@@ -207,6 +180,52 @@ def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
         return grid
     points = model.parameters.sample(newton.quadrature, seed=newton.seed)
     return Sample.of(axes, np.array([model.parameters.to_unit(point) for point in points]))
+
+
+def _marched(
+    march: _March,
+    operator: Operator,
+    sample: Sample,
+    found: Modes,
+    W: PETSc.Mat,
+    options: Options,
+    newton: Newton,
+    rounds: list[Round],
+    stepping: Stepping,
+) -> tuple[Modes, list[tuple[np.ndarray, list[np.ndarray]]], list[int]]:
+    """The path followed output time after output time (module docstring), a step halved where
+    its iterations fail: the terms at the end, each output time's (R, X) and its iterations.
+    Refused in one line where a step of :data:`SMALLEST` of the path fails. Collective."""
+    times = output_times(march.model, stepping)
+    blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
+    iterations: list[int] = []
+    pending, reached = [float(t) for t in times], float(stepping.start)
+    while pending:
+        t = pending[0]
+        march.model.set_time(t)
+        saved = found.copy()
+        done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
+        if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
+            found = saved
+            pending.insert(0, 0.5 * (reached + t))
+            continue
+        if not done:
+            how = (
+                f"the terms still changed by {steps[-1]:.1e} of themselves"
+                if np.isfinite(steps[-1])
+                else "its residual was not finite: a state beyond the law's range"
+            )
+            raise ParameterError(
+                f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
+                f"its step from {reached:g} s halved to {t - reached:g} s: the loads take the body too far from "
+                "its tangent at rest (large rotations, say); give --samples for a PGD fitted to full solves"
+            )
+        pending.pop(0)
+        reached = t
+        if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
+            iterations.append(len(steps))
+            blocks.append((found.R.copy(), [X.copy() for X in found.X]))
+    return found, blocks, iterations
 
 
 def _converged(
