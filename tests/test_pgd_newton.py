@@ -147,7 +147,8 @@ def test_a_block_at_finite_strain(tmp_path, intervals, points, measured):
 def test_the_quadrature_is_the_axes_gauss_grid_or_sobol_points(tmp_path):
     """The box's quadrature: the tensor product of the axes' Gauss rules (weights summing to 1,
     exact for a product of degree-7 polynomials on each axis), or the model's own Sobol' points
-    with equal weights where that grid has more points than asked."""
+    with equal weights where that grid has more points than asked — refused in one line where
+    they are too few to determine an axis's splines."""
     model = build_model(scenes.load(block(tmp_path)))
     axes = [Axis(parameter, 2) for parameter in model.parameters]
     grid = quadrature(model, axes, Newton())
@@ -156,6 +157,9 @@ def test_the_quadrature_is_the_axes_gauss_grid_or_sobol_points(tmp_path):
     sobol = quadrature(model, axes, Newton(quadrature=32, seed=5))
     expected = [model.parameters.to_unit(p) for p in model.parameters.sample(32, seed=5)]
     assert np.allclose(sobol.units, expected) and np.all(sobol.weights == 1 / 32)
+    fine = [Axis(parameter, 8) for parameter in model.parameters]  # 11 splines an axis
+    with pytest.raises(ParameterError, match="8 Sobol' points do not determine the 11 splines of axis 'stiffness'"):
+        quadrature(model, fine, Newton(quadrature=8))
 
 
 def test_bad_inputs_of_a_nonlinear_pgd_get_one_line(tmp_path, capsys):

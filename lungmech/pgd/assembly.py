@@ -107,8 +107,10 @@ class Assembler:
         found = assemble_owned(self._residual, self._work, self.owned)
         if self.linearised:
             K = self.jacobian()
-            found += apply(K, u[:, None], self.comm)[:, 0]
-            K.destroy()
+            try:
+                found += apply(K, u[:, None], self.comm)[:, 0]
+            finally:
+                K.destroy()
         return found[self.free]
 
     def norm(self, vector: np.ndarray) -> float:

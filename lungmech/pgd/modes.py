@@ -122,17 +122,22 @@ def combined_solve(matrices: Sequence[PETSc.Mat], coefficients: np.ndarray, rhs:
     """(Σᵢ αᵢ Kᵢ) u = rhs (owned entries) by a direct factorisation: a PGD's space step, the
     matrices one form's assemblies (one pattern). Collective."""
     A = matrices[0].duplicate()
-    A.zeroEntries()
-    for K, a in zip(matrices, coefficients):
-        A.axpy(float(a), K, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
-    solver = factorised(A)
-    u, b = cast(tuple[PETSc.Vec, PETSc.Vec], A.createVecs())  # (right, left)
-    b.array[:] = rhs
-    solver.solve(b, u)
-    reason = int(solver.getConvergedReason())  # type: ignore[call-overload]  # an int at run time; the stubs say a class
-    solution = u.array.copy()
-    for thing in (solver, A, b, u):
-        thing.destroy()
+    made: list = [A]
+    try:
+        A.zeroEntries()
+        for K, a in zip(matrices, coefficients):
+            A.axpy(float(a), K, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)  # type: ignore[arg-type]  # an enum member; the stubs say int
+        solver = factorised(A)
+        made.append(solver)
+        u, b = cast(tuple[PETSc.Vec, PETSc.Vec], A.createVecs())  # (right, left)
+        made += [u, b]
+        b.array[:] = rhs
+        solver.solve(b, u)
+        reason = int(solver.getConvergedReason())  # type: ignore[call-overload]  # an int at run time; the stubs say a class
+        solution = u.array.copy()
+    finally:
+        for thing in made:
+            thing.destroy()
     if reason < 0:
         raise ParameterError(f"PGD: the space step's linear solve failed (PETSc reason {reason})")
     return solution

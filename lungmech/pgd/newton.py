@@ -37,6 +37,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
@@ -122,9 +123,10 @@ def build_nonlinear(
     # the tangent with the loads 0: the material's (a follower pressure's own may make it indefinite)
     model.set_time(stepping.start)
     tangent = separated_terms(model, axes, linearised=True)
-    W = inner_product(model, "energy")
+    W: PETSc.Mat | None = None
     seconds = {"terms": time.perf_counter() - tic}
     try:
+        W = inner_product(model, "energy")
         tic = time.perf_counter()
         operator = _operator(model, tangent, points, units)  # (at the start, as the terms)
         found = Modes(axes, operator.matrices, owned_size(model.space), comm)
@@ -146,7 +148,8 @@ def build_nonlinear(
         seconds["indicator"] = time.perf_counter() - tic
     finally:
         tangent.destroy()
-        W.destroy()
+        if W is not None:
+            W.destroy()
     tic = time.perf_counter()
     probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
     outputs = online(model, None, decomposition.modes, probe)
@@ -179,7 +182,14 @@ def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
     if len(grid.units) <= newton.quadrature:
         return grid
     points = model.parameters.sample(newton.quadrature, seed=newton.seed)
-    return Sample.of(axes, np.array([model.parameters.to_unit(point) for point in points]))
+    sample = Sample.of(axes, np.array([model.parameters.to_unit(point) for point in points]))
+    for axis, B in zip(axes, sample.bases):
+        if np.linalg.matrix_rank(B) < axis.size:  # some spline's coefficient would be the ridge's choice
+            raise ParameterError(
+                f"PGD: {newton.quadrature} Sobol' points do not determine the {axis.size} splines of axis "
+                f"{axis.parameter.name!r} ({axis.intervals} intervals): raise --quadrature or lower --intervals"
+            )
+    return sample
 
 
 def _marched(
@@ -203,10 +213,11 @@ def _marched(
     while pending:
         t = pending[0]
         march.model.set_time(t)
-        saved = found.copy()
+        saved, tried = found.copy(), len(rounds)
         done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
         if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
             found = saved
+            del rounds[tried:]  # (the failed attempt's)
             pending.insert(0, 0.5 * (reached + t))
             continue
         if not done:
@@ -215,10 +226,15 @@ def _marched(
                 if np.isfinite(steps[-1])
                 else "its residual was not finite: a state beyond the law's range"
             )
+            why = (
+                f"all {options.max_terms} terms (--modes) in use: raise it, or "
+                if found.count >= options.max_terms and np.isfinite(steps[-1])
+                else "the loads take the body too far from its tangent at rest (large rotations, say); "
+            )
             raise ParameterError(
                 f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
-                f"its step from {reached:g} s halved to {t - reached:g} s: the loads take the body too far from "
-                "its tangent at rest (large rotations, say); give --samples for a PGD fitted to full solves"
+                f"its step from {reached:g} s halved to {t - reached:g} s: {why}"
+                "give --samples for a PGD fitted to full solves"
             )
         pending.pop(0)
         reached = t
@@ -246,6 +262,8 @@ def _converged(
     for _ in range(newton.iterations):
         Z = found.R @ sample.products(found)  # the state's coordinates at the points (m × N)
         r = march.residuals(found.Q @ Z)
+        if not found.comm.allreduce(bool(np.isfinite(r).all()), op=MPI.LAND):  # a state beyond the law's range
+            return False, [*steps, np.inf]
         rounds.extend(solve(operator, sample, operator.apply_sampled(found, Z) - r, found, W, options))
         now = found.R @ sample.products(found)
         before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
