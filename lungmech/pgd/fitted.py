@@ -54,7 +54,7 @@ from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product, zero_imposed
 from lungmech.rom.load_paths import Paths, relative_to, serial
 
-__all__ = ["INTERVALS", "SINGULAR", "choices", "energy_fit", "fitted"]
+__all__ = ["INTERVALS", "SINGULAR", "energy_fit", "fitted"]
 
 SINGULAR = 1e-12  # the terms' space parts: directions below this fraction of the largest are dropped
 INTERVALS = (1, 2, 4, 8)  # the splines' intervals a fit chooses from, on held-out samples
@@ -89,7 +89,7 @@ def fitted(
     box = model.parameters
     held = box.values(fixed or {})  # (unknown names refused)
     held = {name: held[name] for name in fixed or {}}
-    candidates = choices(box, INTERVALS if intervals is None else (intervals,))
+    candidates = _choices(box, INTERVALS if intervals is None else (intervals,))
     options = options or FIT
     comm = model.geometry.mesh.comm
     tic = time.perf_counter()
@@ -228,7 +228,7 @@ def _from_rest(model: Model, stepping: Stepping) -> None:
             )
 
 
-def choices(parameters: Parameters, intervals: Sequence[int]) -> list[tuple[Axis, ...]]:
+def _choices(parameters: Parameters, intervals: Sequence[int]) -> list[tuple[Axis, ...]]:
     """The parameters' axes at each of ``intervals`` (a periodic axis at 4 at least), each
     choice once, fewest coefficients first."""
     for k in intervals:

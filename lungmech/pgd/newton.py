@@ -132,7 +132,8 @@ def build_nonlinear(
         found = Modes(axes, operator.matrices, owned_size(model.space), comm)
         march = _March(model, points)
         rounds: list[Round] = []
-        found, blocks, iterations = _marched(march, operator, sample, found, W, options, newton, rounds, stepping)
+        iteration = _Iteration(march, operator, sample, W, options, newton)
+        found, blocks, iterations = iteration.marched(found, rounds, stepping)
         seconds["newton"] = time.perf_counter() - tic
         tic = time.perf_counter()
         decomposition, timeline = _joined(found, blocks, times, stepping.start)
@@ -192,89 +193,93 @@ def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
     return sample
 
 
-def _marched(
-    march: _March,
-    operator: Operator,
-    sample: Sample,
-    found: Modes,
-    W: PETSc.Mat,
-    options: Options,
-    newton: Newton,
-    rounds: list[Round],
-    stepping: Stepping,
-) -> tuple[Modes, list[tuple[np.ndarray, list[np.ndarray]]], list[int]]:
-    """The path followed output time after output time (module docstring), a step halved where
-    its iterations fail: the terms at the end, each output time's (R, X) and its iterations.
-    Refused in one line where a step of :data:`SMALLEST` of the path fails. Collective."""
-    times = output_times(march.model, stepping)
-    blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
-    iterations: list[int] = []
-    pending, reached = [float(t) for t in times], float(stepping.start)
-    while pending:
-        t = pending[0]
-        march.model.set_time(t)
-        saved, tried = found.copy(), len(rounds)
-        done, steps = _converged(march, operator, sample, found, W, options, newton, rounds)
-        if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
-            found = saved
-            del rounds[tried:]  # (the failed attempt's)
-            pending.insert(0, 0.5 * (reached + t))
-            continue
-        if not done:
-            how = (
-                f"the terms still changed by {steps[-1]:.1e} of themselves"
-                if np.isfinite(steps[-1])
-                else "its residual was not finite: a state beyond the law's range"
-            )
-            why = (
-                f"all {options.max_terms} terms (--modes) in use: raise it, or "
-                if found.count >= options.max_terms and np.isfinite(steps[-1])
-                else "the loads take the body too far from its tangent at rest (large rotations, say); "
-            )
-            raise ParameterError(
-                f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
-                f"its step from {reached:g} s halved to {t - reached:g} s: {why}"
-                "give --samples for a PGD fitted to full solves"
-            )
-        pending.pop(0)
-        reached = t
-        if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
-            iterations.append(len(steps))
-            blocks.append((found.R.copy(), [X.copy() for X in found.X]))
-    return found, blocks, iterations
+@dataclass(frozen=True)
+class _Iteration:
+    """What every Newton–PGD iteration works with: the residual's ``march``, the tangent
+    ``operator`` at the ``sample``'s points, the energy product ``W``, the greedy's ``options``
+    and ``newton``'s stopping."""
 
+    march: _March
+    operator: Operator
+    sample: Sample
+    W: PETSc.Mat
+    options: Options
+    newton: Newton
 
-def _converged(
-    march: _March,
-    operator: Operator,
-    sample: Sample,
-    found: Modes,
-    W: PETSc.Mat,
-    options: Options,
-    newton: Newton,
-    rounds: list[Round],
-) -> tuple[bool, list[float]]:
-    """Newton–PGD iterations at the model's current time until the terms change by less than
-    ``newton.tolerance`` of themselves, or stop coming closer (after :data:`STALLED`
-    iterations, the last few's smallest change not below half the earlier ones'); (converged,
-    each iteration's change)."""
-    steps: list[float] = []
-    for _ in range(newton.iterations):
-        Z = found.R @ sample.products(found)  # the state's coordinates at the points (m × N)
-        r = march.residuals(found.Q @ Z)
-        if not found.comm.allreduce(bool(np.isfinite(r).all()), op=MPI.LAND):  # a state beyond the law's range
-            return False, [*steps, np.inf]
-        rounds.extend(solve(operator, sample, operator.apply_sampled(found, Z) - r, found, W, options))
-        now = found.R @ sample.products(found)
-        before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
-        size = mean_square(sample, found)
-        steps.append(float(np.sqrt((sample.weights @ np.sum((now - before) ** 2, axis=0)) / size)) if size else 0.0)
-        if steps[-1] <= newton.tolerance:
-            return True, steps
-        recent = STALLED // 2
-        if not np.isfinite(steps[-1]) or (len(steps) >= STALLED and min(steps[-recent:]) > 0.5 * min(steps[:-recent])):
-            return False, steps
-    return False, steps
+    def marched(
+        self, found: Modes, rounds: list[Round], stepping: Stepping
+    ) -> tuple[Modes, list[tuple[np.ndarray, list[np.ndarray]]], list[int]]:
+        """The path followed output time after output time (module docstring), a step halved
+        where its iterations fail: the terms at the end, each output time's (R, X) and its
+        iterations. Refused in one line where a step of :data:`SMALLEST` of the path fails.
+        Collective."""
+        times = output_times(self.march.model, stepping)
+        blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
+        iterations: list[int] = []
+        pending, reached = [float(t) for t in times], float(stepping.start)
+        while pending:
+            t = pending[0]
+            self.march.model.set_time(t)
+            saved, tried = found.copy(), len(rounds)
+            done, steps = self.converged(found, rounds)
+            if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
+                found = saved
+                del rounds[tried:]  # (the failed attempt's)
+                pending.insert(0, 0.5 * (reached + t))
+                continue
+            if not done:
+                self._refuse(t, reached, steps, found)
+            pending.pop(0)
+            reached = t
+            if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
+                iterations.append(len(steps))
+                blocks.append((found.R.copy(), [X.copy() for X in found.X]))
+        return found, blocks, iterations
+
+    def converged(self, found: Modes, rounds: list[Round]) -> tuple[bool, list[float]]:
+        """Newton–PGD iterations at the model's current time until the terms change by less
+        than ``newton.tolerance`` of themselves, or stop coming closer (after :data:`STALLED`
+        iterations, the last few's smallest change not below half the earlier ones'); (converged,
+        each iteration's change)."""
+        sample, operator = self.sample, self.operator
+        steps: list[float] = []
+        for _ in range(self.newton.iterations):
+            Z = found.R @ sample.products(found)  # the state's coordinates at the points (m × N)
+            r = self.march.residuals(found.Q @ Z)
+            if not found.comm.allreduce(bool(np.isfinite(r).all()), op=MPI.LAND):  # a state beyond the law's range
+                return False, [*steps, np.inf]
+            b = operator.apply_sampled(found, Z) - r
+            rounds.extend(solve(operator, sample, b, found, self.W, self.options))
+            now = found.R @ sample.products(found)
+            before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
+            size = mean_square(sample, found)
+            steps.append(float(np.sqrt((sample.weights @ np.sum((now - before) ** 2, axis=0)) / size)) if size else 0.0)
+            if steps[-1] <= self.newton.tolerance:
+                return True, steps
+            recent = STALLED // 2
+            if not np.isfinite(steps[-1]) or (
+                len(steps) >= STALLED and min(steps[-recent:]) > 0.5 * min(steps[:-recent])
+            ):
+                return False, steps
+        return False, steps
+
+    def _refuse(self, t: float, reached: float, steps: list[float], found: Modes) -> None:
+        """The one line of a time whose step, halved to its smallest, still fails."""
+        how = (
+            f"the terms still changed by {steps[-1]:.1e} of themselves"
+            if np.isfinite(steps[-1])
+            else "its residual was not finite: a state beyond the law's range"
+        )
+        why = (
+            f"all {self.options.max_terms} terms (--modes) in use: raise it, or "
+            if found.count >= self.options.max_terms and np.isfinite(steps[-1])
+            else "the loads take the body too far from its tangent at rest (large rotations, say); "
+        )
+        raise ParameterError(
+            f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
+            f"its step from {reached:g} s halved to {t - reached:g} s: {why}"
+            "give --samples for a PGD fitted to full solves"
+        )
 
 
 class _March:
