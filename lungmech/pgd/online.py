@@ -194,7 +194,9 @@ class Online:
         if not self.shape:
             second, third = self.volume.on_pairs
             rows += [third.T, second[None]]
-        return into.reshape(self.energy.shape[0], -1), np.vstack(rows), (j, k)
+        # row-major, so the product reads its rows contiguously: stacked from a transpose it
+        # came out column-major, and a 50-mode answer's product took 15.5 µs, not 12
+        return into.reshape(self.energy.shape[0], -1), np.ascontiguousarray(np.vstack(rows)), (j, k)
 
     @functools.cached_property
     def _combinations(self) -> tuple[np.ndarray, np.ndarray]:
