@@ -15,7 +15,7 @@ LOCK    ?= requirements/lock.txt
 # apiece, 27 s in a run of the suite): let them keep their bytecode (__pycache__, ignored by git).
 unexport PYTHONDONTWRITEBYTECODE
 
-.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi test-mpi-all bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin bench-population bench-twin-population bench-pgd clean
+.PHONY: demo docs docs-check test test-quick test-latest test-long lock lint test-serial test-mpi test-mpi-all bench bench-quick bench-rom bench-rom-imaged bench-rom-bases bench-ecsw bench-registration bench-layout bench-rom-parameters bench-ensemble bench-trade bench-greedy-batch bench-threads bench-twin bench-population bench-twin-population bench-pgd bench-pgd-tangent clean
 
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	DOLFINX=$(DOLFINX) LOCK=$(LOCK) bash .ci/make-venv $(VENV)
@@ -150,6 +150,10 @@ bench-twin-population: $(STAMP)
 # The a priori PGD beside the full and a hyper-reduced model: NeuROM's anchor plate and a lung phantom.
 bench-pgd: $(STAMP)
 	$(PY) benchmarks/pgd.py
+
+# Why a lung balanced under its weight takes the fitted PGD: Newton at points of the box with fixed tangents.
+bench-pgd-tangent: $(STAMP)
+	$(PY) benchmarks/pgd_tangent.py
 
 clean:
 	rm -rf results benchmarks/results

@@ -35,6 +35,7 @@ QUICK = {
     "population": (["--quick"], "population_quick"),
     "twin_population": (["--quick"], "twin_population_quick"),
     "pgd": (["--quick"], "pgd_quick"),
+    "pgd_tangent": (["--quick"], "pgd_tangent_quick"),
 }
 
 

@@ -171,10 +171,12 @@ def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False
         raise ParameterError(
             f"PGD: one axis per parameter of the model, in its order ({', '.join(model.parameters.names)})"
         )
-    if model.state_dependent:  # (its tangent's coupling, left out, makes the Newton–PGD diverge)
+    if (
+        model.state_dependent
+    ):  # (benchmarks/pgd_tangent.py: on the lung, no tangent fixed over the box converges everywhere)
         raise ParameterError(
-            "PGD: a load depends on the state (balanced gravity), which a priori PGD does not separate; "
-            "give --samples for a PGD fitted to full solves"
+            "PGD: a load depends on the state (balanced gravity): its tangent moves with the state, which "
+            "the a priori PGD's one tangent for the whole box cannot follow; give --samples for a PGD fitted to full solves"
         )
     for imposed in model.imposed:
         if np.any(imposed.base != 0.0):
