@@ -903,31 +903,38 @@ def test_an_a_priori_pgd_over_the_shape_on_two_ranks_is_the_serial_one(tmp_path)
 
 
 @pytest.mark.mpi
-def test_a_nonlinear_a_priori_pgd_on_two_ranks_is_the_serial_one(tmp_path):
-    """The neo-Hookean block at finite strain (tests/test_pgd_newton.py), its Newton–PGD built
-    distributed and on each rank alone, its iterations to 1e-8: the same iterations, and at
-    random points the volume's change, the probe and the strain energy to 1e-8 of their size
-    (measured: 2e-9; the alternating directions' stopping decisions may differ by round-off,
-    and the iterations then meet within their own tolerance)."""
-    from test_pgd_newton import block
+@pytest.mark.parametrize(("written", "terms", "tolerance"), [("block", 8, 1e-8), ("balanced", 20, 1e-5)])
+def test_a_nonlinear_a_priori_pgd_on_two_ranks_is_the_serial_one(tmp_path, written, terms, tolerance):
+    """The neo-Hookean block at finite strain and the lung balanced under its weight (whose
+    iterations take each point's tangent on the modes' span; tests/test_pgd_newton.py), each
+    Newton–PGD built distributed and on each rank alone: at random points the volume's change,
+    the probe and the strain energy within the iterations' own tolerance of their size. The
+    block's iterations to 1e-8: the same iterations, within 1e-8 (measured: 2e-9; the
+    alternating directions' stopping decisions may differ by round-off, and the iterations then
+    meet within their tolerance). The balanced lung's to 1e-5 (its 20 terms reach no tighter),
+    its last iteration on either side of that and its terms' round-off amplified by the
+    tangents at the points' states: within 1e-3 (measured: 2.3e-5 to 1.5e-4)."""
+    import test_pgd_newton
 
     from lungmech.app.run import build_model
     from lungmech.pgd import Options
     from lungmech.pgd.newton import Newton, build_nonlinear
 
     folder = Path(MPI.COMM_WORLD.bcast(str(tmp_path)))
-    scene = scenes.load(block(folder))
+    scene = scenes.load(getattr(test_pgd_newton, written)(folder))
     found = {}
     for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
         model = build_model(scene, comm)
         found[name] = build_nonlinear(
-            model, scene.stepping, scene.output.probes, 1, Options(max_terms=8), Newton(tolerance=1e-8)
+            model, scene.stepping, scene.output.probes, 1, Options(max_terms=terms), Newton(tolerance=tolerance)
         )[0]
-    assert found["world"].built["newton_iterations"] == found["self"].built["newton_iterations"]
+    if written == "block":  # (the balanced lung's last iteration may fall on either side of 1e-5)
+        assert found["world"].built["newton_iterations"] == found["self"].built["newton_iterations"]
+    bound = tolerance if written == "block" else 100 * tolerance
     for point in found["self"].parameters.sample(4, seed=9):
         a, b = found["world"].solve(point), found["self"].solve(point)
         rest = b.start.details["volume"]
         change = b.outputs["volume"] - rest
-        assert np.abs(a.outputs["volume"] - rest - change).max() <= 1e-8 * np.abs(change).max()
+        assert np.abs(a.outputs["volume"] - rest - change).max() <= bound * np.abs(change).max()
         for name in ("probes", "strain_energy"):
-            assert np.abs(a.outputs[name] - b.outputs[name]).max() <= 1e-8 * np.abs(b.outputs[name]).max()
+            assert np.abs(a.outputs[name] - b.outputs[name]).max() <= bound * np.abs(b.outputs[name]).max()

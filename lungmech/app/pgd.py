@@ -70,7 +70,7 @@ def build(
     in ``cache`` (:func:`lungmech.app.reduce.training_solves`), their number chosen on held-out
     samples up to ``modes`` (an imaged body's [inverse] too: its reference fitted beside the
     breath). Refused in one line before any work for a scene the PGD does not yet answer (a
-    priori: an imaged body, a load that depends on the state) and where ``path`` is
+    priori: an imaged body) and where ``path`` is
     not the user's to replace (:mod:`lungmech.parallel.destination`). Collective."""
     checks.integer("PGD modes", modes, minimum=1)
     if intervals is not None:

@@ -25,6 +25,7 @@ from lungmech import jit
 from lungmech.fem.linear import factorised
 from lungmech.fem.model import Model
 from lungmech.fem.quantities import assemble_owned
+from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.decomposition import Decomposition
@@ -41,6 +42,7 @@ def indicator(
     owned = owned_size(model.space)
     imposed = model.constrained_dofs()
     residual = jit.form(model.residual)
+    coupled = StateDependent(model)  # a state-dependent load's θ = Θ(u), from each answer's state
     work = fem.Function(model.space).x
     solver = factorised(W)
     z, r = cast(tuple[PETSc.Vec, PETSc.Vec], W.createVecs())  # (right, left)
@@ -55,6 +57,7 @@ def indicator(
                 model.set_parameters(point)
                 model.state.x.array[:owned] = rest + u
                 model.state.x.scatter_forward()
+                coupled.update()
                 r.array[:] = assemble_owned(residual, work, owned)
                 r.array[imposed] = 0.0
                 solver.solve(r, z)

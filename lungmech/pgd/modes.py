@@ -109,7 +109,7 @@ def solve_small(M: np.ndarray, rhs: np.ndarray, symmetric: bool = False) -> np.n
         return np.linalg.lstsq(M, rhs, rcond=None)[0]
 
 
-def kron_sum(left: Sequence[np.ndarray], right: Sequence[np.ndarray]) -> np.ndarray:
+def kron_sum(left: Sequence[np.ndarray] | np.ndarray, right: Sequence[np.ndarray] | np.ndarray) -> np.ndarray:
     """Σ_T left_T ⊗ right_T (:func:`numpy.kron`'s layout) as one matrix product over the terms T:
     a sum of Kronecker products costs a term's worth of memory traffic each, this one BLAS call."""
     L, Rt = np.asarray(left), np.asarray(right)

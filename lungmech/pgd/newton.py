@@ -16,7 +16,23 @@ model's operator (:func:`~lungmech.pgd.terms.separated_terms`, ``linearised``), 
 factorisation a new term's space step: a modified Newton whose fixed point is the sampled
 Galerkin PGD of R itself, whatever K̄. The first iteration from rest is the linear PGD of the
 tangent problem; each next starts from the last one's terms (updated, then enriched while a new
-term matters). The path is followed output time after output time, each time's iterations
+term matters).
+
+A load that depends on the state (balanced gravity: its coefficients θ = Θ(u), set from each
+point's state before its residual) moves the tangent with the state, and no tangent held over
+the box converges there (``benchmarks/pgd_tangent.py``). Its iterations assemble, beside each
+point's residual, its tangent at that point's state on the span of the space modes Q,
+Qᵀ J_q Q (J_q with the load's coupling U Vᵀ, :mod:`lungmech.fem.state_dependent`): the
+updates of the terms then take that tangent — a Newton step on the modes' span — and only a
+new term's space part takes K̄ (:class:`~lungmech.pgd.sampled.Operator`'s correction). An
+iteration adds at most ``Newton.enrich`` terms once some exist, as a Krylov method adds one
+direction an iteration: the terms are kept for the directions the true problem needs (a
+first linear solve free to fill the budget took all 40 terms on the balanced lung, and the
+iterations then diverged). Such iterations assemble a Jacobian at every point too: on the
+breath of ``benchmarks/pgd.py``, which needs none of this, they made a build several times
+slower for no accuracy, so a model without such a load keeps the tangent at rest.
+
+The path is followed output time after output time, each time's iterations
 starting from the last time's terms, until the terms change by less than ``tolerance`` of
 themselves in the quadrature's mean energy norm. A time whose iterations fail — a residual
 not finite, or :data:`STALLED` iterations that stopped coming closer — is approached again
@@ -35,13 +51,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
 from dolfinx import fem
+from dolfinx.fem.petsc import assemble_matrix
 
 from lungmech import checks, jit
 from lungmech.errors import ParameterError
@@ -49,6 +66,8 @@ from lungmech.fem.model import Model
 from lungmech.fem.parametric import output_times
 from lungmech.fem.quantities import Probe, assemble_owned, strain_energy
 from lungmech.fem.solver import Stepping
+from lungmech.fem.state_dependent import StateDependent
+from lungmech.parallel.linalg import apply, gram
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd import chebyshev
 from lungmech.pgd.axes import DEGREE, Axis, full_turn
@@ -71,6 +90,7 @@ QUADRATURE = 512  # the most residual assemblies an iteration, by default
 STALLED = 20  # iterations after which a Newton–PGD that stopped coming closer gives up
 SMALLEST = 1 / 16  # a failed step is halved down to this fraction of the path, no further
 INTERVALS = 2  # the splines' intervals by default: 8 Gauss points an axis
+ENRICH = 3  # with the tangents at the points' states, the most terms an iteration adds (once some exist)
 
 
 @dataclass(frozen=True)
@@ -78,18 +98,21 @@ class Newton:
     """The Newton–PGD's ``quadrature``: the most residual assemblies an iteration — the axes'
     tensor Gauss grid where it has no more points, else that many Sobol' points (``seed``);
     the terms' relative change at which an output time has converged (``tolerance``) and the
-    ``iterations`` it may take."""
+    ``iterations`` it may take; with the tangents at the points' states (a load that depends
+    on the state), the most terms an iteration adds to those it starts from (``enrich``)."""
 
     quadrature: int = QUADRATURE
     seed: int = 0
     tolerance: float = 1e-5
     iterations: int = 60
+    enrich: int = ENRICH
 
     def __post_init__(self) -> None:
         checks.integer("PGD quadrature", self.quadrature, minimum=8)
         checks.integer("PGD seed", self.seed, minimum=0)
         checks.real("PGD Newton tolerance", self.tolerance, positive=True)
         checks.integer("PGD Newton iterations", self.iterations, minimum=1)
+        checks.integer("PGD Newton enrichment", self.enrich, minimum=1)
 
 
 def build_nonlinear(
@@ -104,7 +127,7 @@ def build_nonlinear(
     ``stepping`` (module docstring): splines on ``intervals`` intervals, the greedy's
     ``options`` at every iteration, ``newton``'s sample and stopping; with every round of the
     greedy. Refused in one line before any work where it cannot answer (no parameter, loads on
-    several ramps, a load that depends on the state), and where the iterations do not converge.
+    several ramps), and where the iterations do not converge.
     Collective."""
     answerable(model)
     ramp_of(model, stepping)
@@ -132,7 +155,7 @@ def build_nonlinear(
         found = Modes(axes, operator.matrices, owned_size(model.space), comm)
         march = _March(model, points)
         rounds: list[Round] = []
-        iteration = _Iteration(march, operator, sample, W, options, newton)
+        iteration = _Iteration(march, operator, sample, W, options, newton, bool(model.state_dependent))
         found, blocks, iterations = iteration.marched(found, rounds, stepping)
         seconds["newton"] = time.perf_counter() - tic
         tic = time.perf_counter()
@@ -156,7 +179,8 @@ def build_nonlinear(
     outputs = online(model, None, decomposition.modes, probe)
     seconds["outputs"] = time.perf_counter() - tic
     built = {
-        "method": f"a priori, Newton on {len(units)} points of the box",
+        "method": f"a priori, Newton on {len(units)} points of the box"
+        + (", the tangents at their states" if model.state_dependent else ""),
         "intervals": [axis.intervals for axis in axes],
         "options": asdict(options),
         "newton": asdict(newton),
@@ -197,7 +221,8 @@ def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
 class _Iteration:
     """What every Newton–PGD iteration works with: the residual's ``march``, the tangent
     ``operator`` at the ``sample``'s points, the energy product ``W``, the greedy's ``options``
-    and ``newton``'s stopping."""
+    and ``newton``'s stopping and enrichment; ``at_states``: the updates take each point's
+    tangent at its state on the modes' span (module docstring)."""
 
     march: _March
     operator: Operator
@@ -205,6 +230,7 @@ class _Iteration:
     W: PETSc.Mat
     options: Options
     newton: Newton
+    at_states: bool = False
 
     def marched(
         self, found: Modes, rounds: list[Round], stepping: Stepping
@@ -245,11 +271,15 @@ class _Iteration:
         steps: list[float] = []
         for _ in range(self.newton.iterations):
             Z = found.R @ sample.products(found)  # the state's coordinates at the points (m × N)
-            r = self.march.residuals(found.Q @ Z)
-            if not found.comm.allreduce(bool(np.isfinite(r).all()), op=MPI.LAND):  # a state beyond the law's range
+            on_span = found.Q if self.at_states and found.count else None
+            r, tangents = self.march.residuals(found.Q @ Z, on_span)
+            finite = np.isfinite(r).all() and (tangents is None or np.isfinite(tangents).all())
+            if not found.comm.allreduce(bool(finite), op=MPI.LAND):  # a state beyond the law's range
                 return False, [*steps, np.inf]
             b = operator.apply_sampled(found, Z) - r
-            rounds.extend(solve(operator, sample, b, found, self.W, self.options))
+            step = operator if tangents is None else self._at_states(tangents, found, Z)
+            most = None if tangents is None else self.newton.enrich
+            rounds.extend(solve(step, sample, b, found, self.W, self.options, most))
             now = found.R @ sample.products(found)
             before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
             size = mean_square(sample, found)
@@ -262,6 +292,13 @@ class _Iteration:
             ):
                 return False, steps
         return False, steps
+
+    def _at_states(self, tangents: np.ndarray, found: Modes, Z: np.ndarray) -> Operator:
+        """The operator whose updates take each point's tangent Qᵀ J_q Q on the span of Q
+        (:class:`~lungmech.pgd.sampled.Operator`'s correction D_q = Qᵀ J_q Q − Qᵀ K̄(μ_q) Q)."""
+        rest = np.einsum("iq,iab->qab", self.operator.kappa, np.array(found.reduced_operators()))
+        correction = tangents - rest
+        return replace(self.operator, correction=correction, shift=np.einsum("qab,bq->aq", correction, Z))
 
     def _refuse(self, t: float, reached: float, steps: list[float], found: Modes) -> None:
         """The one line of a time whose step, halved to its smallest, still fails."""
@@ -283,14 +320,17 @@ class _Iteration:
 
 
 class _March:
-    """The model's residual and strain energy at the sample's ``points``, its state the rest
-    plus a given displacement of its modes' space."""
+    """The model's residual, its tangent on the modes' span and its strain energy at the
+    sample's ``points``, its state the rest plus a given displacement of its modes' space (a
+    state-dependent load's coefficients θ = Θ(u) set from that state)."""
 
     def __init__(self, model: Model, points: Sequence[Mapping[str, float]]) -> None:
         self.model, self.points = model, list(points)
         self.owned = owned_size(model.space)
+        self.comm = model.geometry.mesh.comm
         self._imposed = model.constrained_dofs()
-        self._residual = jit.form(model.residual)
+        self._residual, self._jacobian = jit.form(model.residual), jit.form(model.jacobian)
+        self._coupled = StateDependent(model)
         self._work = fem.Function(model.space).x
         self._held = constants(model)
         with model.kept_state():
@@ -302,16 +342,35 @@ class _March:
         model.set_parameters(point)
         model.state.x.array[: self.owned] = self.rest + u
         model.state.x.scatter_forward()
+        self._coupled.update()
 
-    def residuals(self, U: np.ndarray) -> np.ndarray:
-        """R(u_rest + U_q; μ_q) at the model's current time (owned entries × N, 0 where imposed)."""
+    def residuals(self, U: np.ndarray, Q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """R(u_rest + U_q; μ_q) at the model's current time (owned entries × N, 0 where imposed)
+        and, given space modes ``Q``, the tangent there on their span, Qᵀ J_q Q (N × m × m; J_q
+        with a state-dependent load's coupling U Vᵀ, :mod:`lungmech.fem.state_dependent`)."""
         found = np.empty((self.owned, len(self.points)))
+        tangents = None if Q is None else np.empty((len(self.points), Q.shape[1], Q.shape[1]))
         with kept(self.model, self._held):
             for q, point in enumerate(self.points):
                 self._at(point, U[:, q])
                 found[:, q] = assemble_owned(self._residual, self._work, self.owned)
+                if Q is not None and tangents is not None:
+                    tangents[q] = gram(Q, self._tangent_on(Q), self.comm)
         found[self._imposed] = 0.0
-        return found
+        return found, tangents
+
+    def _tangent_on(self, Q: np.ndarray) -> np.ndarray:
+        """J Q at the model's state (owned rows; the imposed rows the modes' zero)."""
+        J = assemble_matrix(self._jacobian, bcs=self.model.bcs)
+        try:
+            J.assemble()
+            JQ = apply(J, Q, self.comm)
+        finally:
+            J.destroy()
+        if self._coupled:
+            U, V = self._coupled.low_rank()
+            JQ += U @ gram(V, Q, self.comm)
+        return JQ
 
     def energies(
         self, Q: np.ndarray, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], sample: Sample, times: np.ndarray

@@ -20,7 +20,10 @@ with the sample's sums where the axes' products were, Λₖ_q = qₖ(μ_q):
 
 A solve starts from the terms it is given (a Newton iteration's, so that the next needs only
 its change): they are first updated for the new b, then terms are added while a new one's
-amplitude is above ``tolerance`` of the whole's.
+amplitude is above ``tolerance`` of the whole's. An :class:`Operator` with a correction D_q on
+the first m₀ modes has its updates take K(μ_q) + Q₀ D_q Q₀ᵀ (a Newton–PGD's tangent at each
+point's state on the modes' span): M gains Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q, the axes' Galerkin
+matrices Rᵀ D_q R, and Qᵀb_q its shift.
 """
 
 from __future__ import annotations
@@ -81,27 +84,57 @@ class Sample:
 @dataclass(frozen=True)
 class Operator:
     """K(μ_q) = Σᵢ κᵢ_q Kᵢ: the ``matrices`` Kᵢ, their factors ``kappa`` (matrices × N) and
-    whether every Kᵢ is ``symmetric``."""
+    whether every Kᵢ is ``symmetric``. With a ``correction`` (N × m₀ × m₀), the updates take
+    the operator K(μ_q) + Q₀ D_q Q₀ᵀ instead, Q₀ the first m₀ space modes: a Newton–PGD's
+    tangent at each point's own state on the span it has (D_q = Q₀ᵀ (J_q − K(μ_q)) Q₀), and its
+    right-hand side's part there b_q + Q₀ s_q (``shift``, s_q = D_q z_q, m₀ × N: the linearised
+    problem J_q (u⁺ − u) = −r_q written as K(μ_q) u⁺ = b_q); a new term's space part takes K."""
 
     matrices: list[PETSc.Mat]
     kappa: np.ndarray
     symmetric: bool
+    correction: np.ndarray | None = None
+    shift: np.ndarray | None = None
 
     def apply_sampled(self, found: Modes, Z: np.ndarray) -> np.ndarray:
         """K(μ_q) Q z_q for each column z_q of ``Z`` (m × N): owned entries × N, from the K Q kept."""
         return sum((KQ @ Z) * k for KQ, k in zip(found.KQ, self.kappa))
 
+    def corrections(self, m: int) -> np.ndarray | None:
+        """D_q on all m space modes (N × m × m; 0 beyond the m₀ it was made on), or None."""
+        if self.correction is None:
+            return None
+        n, m0, _ = self.correction.shape
+        padded = np.zeros((n, m, m))
+        padded[:, :m0, :m0] = self.correction
+        return padded
+
+    def reduced_rhs(self, found: Modes, b: np.ndarray) -> np.ndarray:
+        """Qᵀ b_q, plus the ``shift`` on the first m₀ modes (m × N)."""
+        Qb = found.reduced(b)
+        if self.shift is not None:
+            Qb[: len(self.shift)] += self.shift
+        return Qb
+
 
 def solve(
-    operator: Operator, sample: Sample, b: np.ndarray, found: Modes, W: PETSc.Mat, options: Options
+    operator: Operator,
+    sample: Sample,
+    b: np.ndarray,
+    found: Modes,
+    W: PETSc.Mat,
+    options: Options,
+    most: int | None = None,
 ) -> list[Round]:
     """Update ``found`` (its matrices ``operator.matrices``) to the sampled Galerkin PGD of
-    K(μ) u = b (``b``: owned entries × N) (module docstring); one :class:`Round` per term tried.
+    K(μ) u = b (``b``: owned entries × N) (module docstring), adding at most ``most`` terms to
+    those it has (None: as many as the tolerance asks); one :class:`Round` per term tried.
     Collective."""
     rounds: list[Round] = []
     for _ in range(options.sweeps if found.count else 0):
         _update(operator, sample, b, found)
-    while found.count < options.max_terms:
+    limit = options.max_terms if most is None else min(options.max_terms, found.count + most)
+    while found.count < limit:
         u, x, iterations, converged = _new_term(operator, sample, b, found, options)
         lam = np.multiply.reduce([B @ xj for B, xj in zip(sample.bases, x)], axis=0)
         amplitude = float(norms(u[:, None], W, found.comm)[0]) * float(np.sqrt(sample.weights @ lam**2))
@@ -170,14 +203,20 @@ def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> 
     """Every term's space coefficients R, then each axis's splines of every term, for ``b``."""
     w, kappa, n, m = sample.weights, operator.kappa, found.count, found.Q.shape[1]
     A = found.reduced_operators()
-    Qb = found.reduced(b)  # m × N
+    D = operator.corrections(m)  # the tangent at each point's state on the span it has
+    Qb = operator.reduced_rhs(found, b)  # m × N
     Lam = sample.products(found)
     M = kron_sum([(Lam * (w * k)) @ Lam.T for k in kappa], A)
+    if D is not None:  # Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q
+        M += kron_sum(w[:, None, None] * Lam.T[:, :, None] * Lam.T[:, None, :], D)
     rhs = ((Qb * w) @ Lam.T).T.ravel()  # [k, a]: Σ_q w_q Λₖ_q (Qᵀb_q)_a
-    found.R = solve_small(M, rhs, operator.symmetric).reshape(n, m).T
+    symmetric = operator.symmetric and D is None
+    found.R = solve_small(M, rhs, symmetric).reshape(n, m).T
     Y = found.R.T @ Qb  # Rₖᵀ Qᵀ b_q (terms × N)
     C = np.array([found.R.T @ Ai @ found.R for Ai in A])  # Rₖᵀ Qᵀ Kᵢ Q Rₗ
     G = np.einsum("iq,ikl->qkl", kappa, C)
+    if D is not None:
+        G += np.einsum("ak,qab,bl->qkl", found.R, D, found.R)
     for j, B in enumerate(sample.bases):
         values = sample.values(found)
         p = (
@@ -188,7 +227,7 @@ def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> 
         H = w[:, None, None] * G * p.T[:, :, None] * p.T[:, None, :]  # N × terms × terms
         M = kron_sum(H, B[:, :, None] * B[:, None, :])  # Σ_q H_q ⊗ Bʲ_q Bʲ_qᵀ
         rhs = ((w * p * Y) @ B).ravel()  # [k, a]: Σ_q w_q pₖ_q Yₖ_q Bʲ_qa
-        found.X[j] = solve_small(_ridged(M), rhs, operator.symmetric).reshape(n, B.shape[1])
+        found.X[j] = solve_small(_ridged(M), rhs, symmetric).reshape(n, B.shape[1])
 
 
 def _ridged(M: np.ndarray) -> np.ndarray:
@@ -202,4 +241,7 @@ def _potential(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) 
         return 0.0
     Z = found.R @ sample.products(found)  # m × N
     quadratic = sum(k * np.einsum("aq,ab,bq->q", Z, Ai, Z) for k, Ai in zip(operator.kappa, found.reduced_operators()))
-    return float(sample.weights @ (0.5 * quadratic - np.sum(found.reduced(b) * Z, axis=0)))
+    D = operator.corrections(len(Z))
+    if D is not None:
+        quadratic = quadratic + np.einsum("aq,qab,bq->q", Z, D, Z)
+    return float(sample.weights @ (0.5 * quadratic - np.sum(operator.reduced_rhs(found, b) * Z, axis=0)))

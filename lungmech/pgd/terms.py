@@ -163,20 +163,18 @@ class Terms:
 def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False) -> Terms:
     """The separated terms of ``model``'s residual at its current time over ``axes`` (one per
     parameter of the model, in its order) — or, ``linearised``, of its linearisation at rest
-    R(0; c) + K(0; c) u, for a nonlinear model. Refused in one line where the model (or its
-    linearisation) is not linear and affine in its values, where a parameter sets a field or
-    moves three or more values together, or where an imposed displacement is not zero.
-    Collective."""
+    R(0; c) + K(0; c) u, for a nonlinear model (a state-dependent load's coefficients θ held
+    as they are). Refused in one line where the model (or its linearisation) is not linear and
+    affine in its values, where a parameter sets a field or moves three or more values
+    together, or where an imposed displacement is not zero. Collective."""
     if [axis.parameter.name for axis in axes] != list(model.parameters.names):
         raise ParameterError(
             f"PGD: one axis per parameter of the model, in its order ({', '.join(model.parameters.names)})"
         )
-    if (
-        model.state_dependent
-    ):  # (benchmarks/pgd_tangent.py: on the lung, no tangent fixed over the box converges everywhere)
+    if model.state_dependent and not linearised:  # (a Newton–PGD takes it: build_nonlinear)
         raise ParameterError(
-            "PGD: a load depends on the state (balanced gravity): its tangent moves with the state, which "
-            "the a priori PGD's one tangent for the whole box cannot follow; give --samples for a PGD fitted to full solves"
+            "PGD: a load depends on the state (balanced gravity), so the residual is not affine in the state: "
+            "its a priori PGD is the Newton–PGD's (lungmech pgd build makes that one)"
         )
     for imposed in model.imposed:
         if np.any(imposed.base != 0.0):
