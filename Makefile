@@ -151,7 +151,7 @@ bench-twin-population: $(STAMP)
 bench-pgd: $(STAMP)
 	$(PY) benchmarks/pgd.py
 
-# Why a lung balanced under its weight takes the fitted PGD: Newton at points of the box with fixed tangents.
+# Why the a priori PGD of a balanced lung takes each point's tangent: Newton at points of the box with fixed tangents.
 bench-pgd-tangent: $(STAMP)
 	$(PY) benchmarks/pgd_tangent.py
 

@@ -1,5 +1,5 @@
-"""Why the a priori PGD leaves a lung balanced under its weight to the PGD fitted to full solves:
-Newton at single points of the box, with the tangents a Newton–PGD could hold fixed.
+"""Why the a priori PGD of a lung balanced under its weight takes each point's tangent at its
+state: Newton at single points of the box, with the tangents a Newton–PGD could hold fixed.
 
     python benchmarks/pgd_tangent.py           # mesh 0.03, 16 load steps, three points (a minute)
     python benchmarks/pgd_tangent.py --quick   # mesh 0.04, 4 load steps, the softest point (the suite's case)
@@ -58,21 +58,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from machine import provenance, write_results  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
-from pgd import BREATH  # noqa: E402  (the nonlinear lung of the PGD benchmark)
+from pgd import BREATH, WEIGHT  # noqa: E402  (the nonlinear lung of the PGD benchmark, and its weight)
 
 RESULTS = machine.RESULTS
-WEIGHT = """
-[[loads]]
-type = "gravity"
-name = "gravity"
-density = 315.0
-acceleration = [0.0, 0.0, -9.81]
-balanced_on = ["pleura", "diaphragm", "mediastinum"]
-ramp = { times = [0.0, 1.0], values = [0.0, 1.0] }
-[parameters.posture]
-target = "loads.gravity.pitch"
-range = [-90.0, 0.0]
-"""
 POINTS = {  # the points of the box (a parameter not named: its default)
     "default": {},
     "soft, deep": {"alpha": 100.0, "c1": 100.0, "breath": 1.4, "posture": -90.0},
