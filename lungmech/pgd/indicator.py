@@ -29,6 +29,7 @@ from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.terms import constants, kept
 
 __all__ = ["effectivity", "indicator"]
 
@@ -49,7 +50,7 @@ def indicator(
     values = dict(model.parameter_values)
     found = []
     try:
-        with model.kept_state():
+        with model.kept_state(), kept(model, constants(model)):  # (θ too)
             model.reset()
             rest = model.state.x.array[:owned].copy()  # what the terms add to (a porosity at rest, say)
             for point in points:

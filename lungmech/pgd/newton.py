@@ -26,9 +26,9 @@ Qᵀ J_q Q (J_q with the load's coupling U Vᵀ, :mod:`lungmech.fem.state_depend
 updates of the terms then take that tangent — a Newton step on the modes' span — and only a
 new term's space part takes K̄ (:class:`~lungmech.pgd.sampled.Operator`'s correction). An
 iteration adds at most ``Newton.enrich`` terms once some exist, as a Krylov method adds one
-direction an iteration: the terms are kept for the directions the true problem needs (a
-first linear solve free to fill the budget took all 40 terms on the balanced lung, and the
-iterations then diverged). Such iterations assemble a Jacobian at every point too: on the
+direction an iteration: the terms are kept for the directions the true problem needs (left
+free, the iterations spent all 40 terms of the balanced lung's budget and then diverged);
+a new term's right-hand side is what the updates left on the modes' span. Such iterations assemble a Jacobian at every point too: on the
 breath of ``benchmarks/pgd.py``, which needs none of this, they made a build several times
 slower for no accuracy, so a model without such a load keeps the tangent at rest.
 
@@ -307,10 +307,15 @@ class _Iteration:
             if np.isfinite(steps[-1])
             else "its residual was not finite: a state beyond the law's range"
         )
+        far = (
+            "the tangents at the points' states did not bring the terms to rest; "
+            if self.at_states
+            else "the loads take the body too far from its tangent at rest (large rotations, say); "
+        )
         why = (
             f"all {self.options.max_terms} terms (--modes) in use: raise it, or "
             if found.count >= self.options.max_terms and np.isfinite(steps[-1])
-            else "the loads take the body too far from its tangent at rest (large rotations, say); "
+            else far
         )
         raise ParameterError(
             f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "

@@ -21,9 +21,10 @@ with the sample's sums where the axes' products were, Λₖ_q = qₖ(μ_q):
 A solve starts from the terms it is given (a Newton iteration's, so that the next needs only
 its change): they are first updated for the new b, then terms are added while a new one's
 amplitude is above ``tolerance`` of the whole's. An :class:`Operator` with a correction D_q on
-the first m₀ modes has its updates take K(μ_q) + Q₀ D_q Q₀ᵀ (a Newton–PGD's tangent at each
-point's state on the modes' span): M gains Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q, the axes' Galerkin
-matrices Rᵀ D_q R, and Qᵀb_q its shift.
+the first m₀ modes has its updates take K(μ_q) + (W Q₀) D_q (W Q₀)ᵀ (a Newton–PGD's tangent at
+each point's state on the modes' span): M gains Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q, the axes' Galerkin
+matrices Rᵀ D_q R, and Qᵀb_q its shift; a new term then takes b plus what the corrected
+updates left on that span, W Q₀ (s_q − D_q z_q).
 """
 
 from __future__ import annotations
@@ -85,10 +86,12 @@ class Sample:
 class Operator:
     """K(μ_q) = Σᵢ κᵢ_q Kᵢ: the ``matrices`` Kᵢ, their factors ``kappa`` (matrices × N) and
     whether every Kᵢ is ``symmetric``. With a ``correction`` (N × m₀ × m₀), the updates take
-    the operator K(μ_q) + Q₀ D_q Q₀ᵀ instead, Q₀ the first m₀ space modes: a Newton–PGD's
-    tangent at each point's own state on the span it has (D_q = Q₀ᵀ (J_q − K(μ_q)) Q₀), and its
-    right-hand side's part there b_q + Q₀ s_q (``shift``, s_q = D_q z_q, m₀ × N: the linearised
-    problem J_q (u⁺ − u) = −r_q written as K(μ_q) u⁺ = b_q); a new term's space part takes K."""
+    the operator K(μ_q) + (W Q₀) D_q (W Q₀)ᵀ instead, Q₀ the first m₀ space modes (W-orthonormal,
+    so that its projection on them is Q₀ᵀ K Q₀ + D_q): a Newton–PGD's tangent at each point's
+    own state on the span it has (D_q = Q₀ᵀ (J_q − K(μ_q)) Q₀), and the right-hand side
+    b_q + W Q₀ s_q (``shift``, s_q = D_q z_q, m₀ × N: the linearised problem J_q (u⁺ − u) = −r_q
+    on that span, written as K(μ_q) u⁺ = b_q); a new term's space part takes K, its right-hand
+    side what the updates left (:func:`_left_on_span`)."""
 
     matrices: list[PETSc.Mat]
     kappa: np.ndarray
@@ -135,7 +138,9 @@ def solve(
         _update(operator, sample, b, found)
     limit = options.max_terms if most is None else min(options.max_terms, found.count + most)
     while found.count < limit:
-        u, x, iterations, converged = _new_term(operator, sample, b, found, options)
+        u, x, iterations, converged = _new_term(
+            operator, sample, _left_on_span(operator, sample, b, found, W), found, options
+        )
         lam = np.multiply.reduce([B @ xj for B, xj in zip(sample.bases, x)], axis=0)
         amplitude = float(norms(u[:, None], W, found.comm)[0]) * float(np.sqrt(sample.weights @ lam**2))
         whole = float(np.sqrt(mean_square(sample, found) + amplitude**2))
@@ -158,6 +163,18 @@ def mean_square(sample: Sample, found: Modes) -> float:
         return 0.0
     Z = found.R @ sample.products(found)
     return float(sample.weights @ np.sum(Z**2, axis=0))
+
+
+def _left_on_span(operator: Operator, sample: Sample, b: np.ndarray, found: Modes, W: PETSc.Mat) -> np.ndarray:
+    """The right-hand side a new term takes: ``b``, plus under a correction W Q₀ (s_q − D_q z⁺_q),
+    z⁺ the terms' coordinates now, so that its K residual on the span of Q₀ is what the
+    corrected updates left (not their gap to K's own step there)."""
+    if operator.correction is None or operator.shift is None:
+        return b
+    m0 = len(operator.shift)
+    Z = (found.R @ sample.products(found))[:m0]
+    gap = operator.shift - np.einsum("qab,bq->aq", operator.correction, Z)
+    return b + apply(W, found.Q[:, :m0], found.comm) @ gap
 
 
 def _new_term(
@@ -216,7 +233,7 @@ def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> 
     C = np.array([found.R.T @ Ai @ found.R for Ai in A])  # Rₖᵀ Qᵀ Kᵢ Q Rₗ
     G = np.einsum("iq,ikl->qkl", kappa, C)
     if D is not None:
-        G += np.einsum("ak,qab,bl->qkl", found.R, D, found.R)
+        G += found.R.T @ D @ found.R  # Rₖᵀ D_q Rₗ, a batched product
     for j, B in enumerate(sample.bases):
         values = sample.values(found)
         p = (

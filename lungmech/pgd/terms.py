@@ -174,7 +174,7 @@ def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False
     if model.state_dependent and not linearised:  # (a Newton–PGD takes it: build_nonlinear)
         raise ParameterError(
             "PGD: a load depends on the state (balanced gravity), so the residual is not affine in the state: "
-            "its a priori PGD is the Newton–PGD's (lungmech pgd build makes that one)"
+            "its a priori PGD is the Newton–PGD's (lungmech.pgd.newton.build_nonlinear; lungmech pgd build makes it)"
         )
     for imposed in model.imposed:
         if np.any(imposed.base != 0.0):
