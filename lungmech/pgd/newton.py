@@ -28,9 +28,10 @@ new term's space part takes K̄ (:class:`~lungmech.pgd.sampled.Operator`'s corre
 iteration adds at most ``Newton.enrich`` terms once some exist, as a Krylov method adds one
 direction an iteration: the terms are kept for the directions the true problem needs (left
 free, the iterations spent all 40 terms of the balanced lung's budget and then diverged);
-a new term's right-hand side is what the updates left on the modes' span. Such iterations assemble a Jacobian at every point too: on the
-breath of ``benchmarks/pgd.py``, which needs none of this, they made a build several times
-slower for no accuracy, so a model without such a load keeps the tangent at rest.
+a new term's right-hand side is what the updates left on the modes' span. Such iterations
+assemble a Jacobian at every point too: on the breath of ``benchmarks/pgd.py``, which needs
+none of this, they made a build several times slower for no accuracy, so a model without
+such a load keeps the tangent at rest.
 
 The path is followed output time after output time, each time's iterations
 starting from the last time's terms, until the terms change by less than ``tolerance`` of
