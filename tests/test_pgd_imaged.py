@@ -3,7 +3,8 @@ and the lung's unloaded reference ξ(μ) fitted together, over two of the person
 parameters (its stiffness and the breath's depth; lying on its back). Its outputs are exact functions of
 its fitted state — the probes' displacement from the reference u = w − ξ, the volume, the
 reference volume —, its derivatives the splines' own; it answers as the full model does to the
-fit's error; written by ``pgd build --samples`` and answered from the file."""
+fit's error; written by ``pgd build --samples`` and answered from the file. The same PGD built
+a priori (lungmech.pgd.imaged_newton), no full solve, answers as the full model does to 1e-2."""
 
 from __future__ import annotations
 
@@ -21,8 +22,13 @@ from lungmech.app import scene as scenes
 from lungmech.app.cli import main
 from lungmech.app.run import full_order_model
 from lungmech.fem.parametric import Outputs
+from lungmech.parallel.linalg import norms
+from lungmech.parallel.owned import owned_size
 from lungmech.pgd.fitted import fitted
 from lungmech.pgd.fitting import FIT
+from lungmech.pgd.greedy import Options
+from lungmech.pgd.imaged_newton import build_imaged
+from lungmech.rom.basis import inner_product
 
 PROBES = [[0.05, 0.0, 0.1], [0.05, 0.02, 0.05]]  # m: inside the phantom's right lung
 POINTS = [
@@ -106,16 +112,55 @@ def test_its_derivatives_are_its_splines_own(imaged):
 
 
 @pytest.mark.slow
-def test_the_file_answers_without_fields_and_a_priori_is_refused(imaged, capsys):
+def test_the_file_answers_without_fields(imaged):
     """The file loaded as ``rom solve`` loads it answers as the one with fields; ``rom solve
-    --set`` answers from it; an imaged body is refused a priori in one line."""
+    --set`` answers from it."""
     folder, out, pgd, _ = imaged
     plain = reduce.load(out)
     a, b = plain.solve(POINTS[2]), pgd.solve(POINTS[2])
     assert np.array_equal(a.outputs["probes"], b.outputs["probes"])
     assert main(["rom", "solve", str(out), "--set", "breath=1.1", "-o", str(folder / "answer"), "-q"]) == 0
-    assert main(["pgd", "build", str(folder / "imaged.toml"), "-o", str(folder / "x.npz"), "-q"]) != 0
-    assert "is not separated a priori; give --samples" in capsys.readouterr().err
+
+
+A_PRIORI = ["--modes", "12", "--intervals", "1"]  # 12 terms on the axes' 4 × 4 Gauss points
+
+
+@pytest.mark.slow
+def test_a_priori_it_answers_as_the_full_model(imaged):
+    """Built a priori by the CLI, no full solve: the lung's reference ξ(μ) by a Newton–PGD of
+    its inverse problem, the breath from the image on it by another (lungmech.pgd.imaged_newton).
+    At the three points: at t₀ it is the image, the reference volume within 1e-4 of its change
+    from the image (measured: 1.0e-5 at most); at T the state within 1e-2 of the full model's in
+    the energy norm (4.0e-3), the volume change within 1e-2 of itself (3.1e-4), the probes'
+    displacement from the reference within 1e-2 of its size (5.1e-3); its estimate within a
+    factor 5 of its largest error (5.6e-3); ``rom solve --set`` answers from its file."""
+    folder, _, _, full = imaged
+    out = folder / "a-priori.npz"
+    assert main(["pgd", "build", str(folder / "imaged.toml"), *A_PRIORI, "-o", str(out), "-q"]) == 0
+    pgd = reduce.load(out, fields=True)
+    assert "the reference ξ(μ) by its own" in pgd.built["method"] and "samples" not in pgd.built
+    model = full.model
+    W = inner_product(model, "energy")
+    owned = owned_size(model.space)
+    with model.kept_state():
+        model.reset()
+        rest = model.state.x.array[:owned].copy()
+    errors = []
+    for point in POINTS:
+        a, b = pgd.solve(point, times=[0.0, 1.0]), full.solve(point, times=[0.0, 1.0])
+        assert a.start.details["from_image"] == pytest.approx(0.0, abs=1e-12)
+        reference, image = b.start.details["reference_volume"], b.start.details["imaged_volume"]
+        assert abs(a.start.details["reference_volume"] - reference) <= 1e-4 * abs(image - reference)
+        error, exact = b.states[1][:owned] - pgd.reconstruct(a, 1), b.states[1][:owned] - rest
+        errors.append(float(norms(error[:, None], W, MPI.COMM_WORLD)[0] / norms(exact[:, None], W, MPI.COMM_WORLD)[0]))
+        change = b.outputs["volume"][1] - b.outputs["volume"][0]
+        assert abs((a.outputs["volume"][1] - a.outputs["volume"][0]) - change) <= 1e-2 * abs(change)
+        probes = b.outputs["probes"]
+        assert np.abs(a.outputs["probes"] - probes).max() <= 1e-2 * np.abs(probes).max()
+    W.destroy()
+    assert max(errors) <= 1e-2, errors
+    assert max(errors) / 5 <= a.indicator <= 5 * max(errors)
+    assert main(["rom", "solve", str(out), "--set", "breath=0.7", "-o", str(folder / "a-priori"), "-q"]) == 0
 
 
 @pytest.mark.slow
@@ -131,16 +176,32 @@ def test_its_file_is_a_recipe_of_a_patients_pgd(imaged):
 
 
 @pytest.mark.mpi
-def test_an_imaged_fit_on_two_ranks_answers_as_one_ranks(tmp_path_factory):
-    """The same sample fitted on the world's ranks and on this rank alone: the probes (u = w − ξ)
-    and the reference volume at random points agree to 1e-9."""
+@pytest.mark.parametrize("how", ["fitted", "a priori"])
+def test_an_imaged_pgd_on_two_ranks_answers_as_one_ranks(tmp_path_factory, how):
+    """The same PGD built on the world's ranks and on this rank alone: the probes (u = w − ξ)
+    and the reference volume at random points agree to 1e-9 — but a priori the probes to 1e-4
+    of their size: the Newton–PGDs' iterations differ at round-off between rank counts, and so
+    do the fixed points they settle at, within their tolerance (measured: 8e-7 to 5.7e-6 over
+    two runs)."""
     folder = Path(MPI.COMM_WORLD.bcast(str(tmp_path_factory.mktemp("pgd-imaged-mpi"))))
     scene = scenes.load(written(folder))
     found = {}
     for name, comm in (("world", MPI.COMM_WORLD), ("self", MPI.COMM_SELF)):
         full = full_order_model(scene, comm, start="inverse_motion")
-        found[name] = fitted(full, 8, 1, replace(FIT, max_terms=6), PROBES)[0]
+        if how == "fitted":
+            found[name] = fitted(full, 8, 1, replace(FIT, max_terms=6), PROBES)[0]
+        else:
+            found[name] = build_imaged(full, PROBES, 1, Options(max_terms=12))[0]
+    tolerance = 1e-9 if how == "fitted" else 1e-4
     for point in found["self"].parameters.sample(3, seed=9):
         a, b = found["world"].solve(point, times=[0.0, 1.0]), found["self"].solve(point, times=[0.0, 1.0])
-        assert np.abs(a.outputs["probes"] - b.outputs["probes"]).max() <= 1e-9 * np.abs(b.outputs["probes"]).max()
+        difference = np.abs(a.outputs["probes"] - b.outputs["probes"]).max() / np.abs(b.outputs["probes"]).max()
+        print(
+            how,
+            "probes",
+            difference,
+            "reference",
+            a.start.details["reference_volume"] / b.start.details["reference_volume"] - 1,
+        )
+        assert difference <= tolerance
         assert a.start.details["reference_volume"] == pytest.approx(b.start.details["reference_volume"], rel=1e-9)

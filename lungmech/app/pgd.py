@@ -4,7 +4,8 @@ model file.
 :func:`build` makes the scene's model, its PGD over the scene's [parameters] box along its load
 path — a priori (:func:`lungmech.pgd.model.build` for a linear model;
 :func:`lungmech.pgd.newton.build_nonlinear`, Newton on the parameters' Gauss grid, for a
-nonlinear one), or with ``samples``
+nonlinear one; :func:`lungmech.pgd.imaged_newton.build_imaged` for an imaged body, its
+reference ξ(μ) and its breath each by Newton), or with ``samples``
 fitted to that many full solves (:func:`lungmech.pgd.fitted.fitted`: any model; the solves run
 on an ensemble and are kept in lungmech's cache, as ``rom build``'s training) — and writes it with the scene and every file it reads
 (:mod:`lungmech.app.model_file`), like ``rom build``'s files, so that ``lungmech rom solve
@@ -33,6 +34,7 @@ from lungmech.parallel.layout import layout
 from lungmech.pgd.fitted import fitted
 from lungmech.pgd.fitting import FIT
 from lungmech.pgd.greedy import Options
+from lungmech.pgd.imaged_newton import build_imaged
 from lungmech.pgd.model import build as pgd_build
 from lungmech.pgd.newton import INTERVALS as NEWTON_INTERVALS
 from lungmech.pgd.newton import QUADRATURE, Newton, build_nonlinear
@@ -69,9 +71,9 @@ def build(
     model's solves at that many Sobol' points (``seed``) of the box, run on ``ensemble`` and kept
     in ``cache`` (:func:`lungmech.app.reduce.training_solves`), their number chosen on held-out
     samples up to ``modes`` (an imaged body's [inverse] too: its reference fitted beside the
-    breath). Refused in one line before any work for a scene the PGD does not yet answer (a
-    priori: an imaged body) and where ``path`` is
-    not the user's to replace (:mod:`lungmech.parallel.destination`). Collective."""
+    breath; a priori, both by Newton: :mod:`lungmech.pgd.imaged_newton`). Refused in one line
+    before any work where ``path`` is not the user's to replace
+    (:mod:`lungmech.parallel.destination`). Collective."""
     checks.integer("PGD modes", modes, minimum=1)
     if intervals is not None:
         checks.integer("PGD intervals", intervals, minimum=1)
@@ -82,16 +84,16 @@ def build(
         raise ParameterError("PGD: an ensemble or a cache runs full solves: give --samples for a PGD fitted to them")
     options = Options(max_terms=modes, tolerance=tolerance)
     newton = Newton(quadrature=quadrature, seed=seed)  # (checked before any work; a linear model's greedy needs none)
-    if scene.inverse is not None and samples is None:
-        raise ParameterError(
-            "PGD: the scene's [inverse] (an imaged body, its reference found at every μ) is not separated a priori; "
-            "give --samples for a PGD fitted to full solves"
-        )
     solves = training_solves(scene, ensemble, cache, comm) if samples is not None else None
     path = store.suffixed(path)
     with output_file(path, comm, inputs=scene.inputs, ours=store.is_model) as staging:
         tic = time.perf_counter()
-        if samples is None:
+        if samples is None and scene.inverse is not None:  # its reference and its breath, each by Newton
+            full, _ = training_model(scene, comm)
+            model, built = full.model, time.perf_counter() - tic
+            how = intervals or NEWTON_INTERVALS
+            found, rounds = build_imaged(full, scene.output.probes, how, options, newton)
+        elif samples is None:
             model = build_model(scene, comm)
             built = time.perf_counter() - tic
             if affine_in_state(model):

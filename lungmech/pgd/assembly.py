@@ -71,10 +71,16 @@ class Assembler:
     (flattened, as :func:`lungmech.pgd.terms.values`); ``free`` the owned entries not imposed.
     ``linearised``: its residual is the model's linearisation at its rest state u₀ (a
     porosity, say), R(u₀; c) + K(u₀; c) u, and its operators are assembled there — the linear
-    problem a nonlinear model's Newton–PGD takes as its preconditioner (:mod:`lungmech.pgd.newton`)."""
+    problem a nonlinear model's Newton–PGD takes as its preconditioner (:mod:`lungmech.pgd.newton`);
+    or at the state ``at`` (local entries, ghosts too; an imaged body's image on its reference)."""
 
     def __init__(
-        self, model: Model, constants: Sequence[fem.Constant], set_values: Callable, linearised: bool = False
+        self,
+        model: Model,
+        constants: Sequence[fem.Constant],
+        set_values: Callable,
+        linearised: bool = False,
+        at: np.ndarray | None = None,
     ) -> None:
         self.model, self.constants, self._set = model, list(constants), set_values
         self.linearised = linearised
@@ -85,7 +91,9 @@ class Assembler:
         self.imposed = model.constrained_dofs()
         self.free = np.setdiff1d(np.arange(self.owned), self.imposed)
         self._rest = np.zeros(len(model.state.x.array))
-        if linearised:
+        if linearised and at is not None:
+            self._rest = at.copy()
+        elif linearised:
             with model.kept_state():
                 model.reset()
                 self._rest = model.state.x.array.copy()

@@ -29,16 +29,23 @@ from lungmech.fem.state_dependent import StateDependent
 from lungmech.parallel.linalg import norms
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd.decomposition import Decomposition
+from lungmech.pgd.march import Start
 from lungmech.pgd.terms import constants, kept
 
 __all__ = ["effectivity", "indicator"]
 
 
 def indicator(
-    model: Model, decomposition: Decomposition, W: PETSc.Mat, points: Sequence[Mapping[str, float]]
+    model: Model,
+    decomposition: Decomposition,
+    W: PETSc.Mat,
+    points: Sequence[Mapping[str, float]],
+    start: Start | None = None,
 ) -> np.ndarray:
     """η(μ) at each of ``points`` (module docstring), from ``model``'s own residual at its
-    current time. The model's parameters and state are left as they were. Collective."""
+    current time, the decomposition's state added to ``start``'s (default: the rest; an imaged
+    body's image on its reference ξ(μ), :mod:`lungmech.pgd.march`). The model's parameters and
+    state are left as they were. Collective."""
     comm = model.geometry.mesh.comm
     owned = owned_size(model.space)
     imposed = model.constrained_dofs()
@@ -56,7 +63,7 @@ def indicator(
             for point in points:
                 u = decomposition.state(point)
                 model.set_parameters(point)
-                model.state.x.array[:owned] = rest + u
+                model.state.x.array[:owned] = (rest if start is None else start(point)) + u
                 model.state.x.scatter_forward()
                 coupled.update()
                 r.array[:] = assemble_owned(residual, work, owned)

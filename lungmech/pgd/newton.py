@@ -25,13 +25,21 @@ point's residual, its tangent at that point's state on the span of the space mod
 Qᵀ J_q Q (J_q with the load's coupling U Vᵀ, :mod:`lungmech.fem.state_dependent`): the
 updates of the terms then take that tangent — a Newton step on the modes' span — and only a
 new term's space part takes K̄ (:class:`~lungmech.pgd.sampled.Operator`'s correction). An
-iteration adds at most ``Newton.enrich`` terms once some exist, as a Krylov method adds one
+iteration adds at most ``Newton.enrich`` terms, the first one too, as a Krylov method adds one
 direction an iteration: the terms are kept for the directions the true problem needs (left
-free, the iterations spent all 40 terms of the balanced lung's budget and then diverged);
+free, the iterations spent all 40 terms of the balanced lung's budget and then diverged; the
+first iteration's linear PGD of K̄ alone, left free, took terms that left the imaged lung of
+``tests/test_pgd_imaged.py`` at 5e-3 at 20 terms, against 2e-3 capped);
 a new term's right-hand side is what the updates left on the modes' span. Such iterations
 assemble a Jacobian at every point too: on the breath of ``benchmarks/pgd.py``, which needs
 none of this, they made a build several times slower for no accuracy, so a model without
 such a load keeps the tangent at rest.
+
+Where the points start elsewhere than at rest (an imaged body's breath: each from the image on
+its reference ξ(μ_q), :mod:`lungmech.pgd.imaged_newton`), K̄ is linearised at that start at
+the box's centre, its loads 0: the material's tangent at the prestressed image. The rest's —
+the image taken as unstressed — left an error of 3 % at the same 20 terms, and capped, its
+iterations diverged.
 
 The path is followed output time after output time, each time's iterations
 starting from the last time's terms, until the terms change by less than ``tolerance`` of
@@ -51,24 +59,20 @@ grid's points and wander between them), as a fitted PGD's is from its full solve
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 
 from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
-from dolfinx import fem
-from dolfinx.fem.petsc import assemble_matrix
 
-from lungmech import checks, jit
+from lungmech import checks
 from lungmech.errors import ParameterError
 from lungmech.fem.model import Model
 from lungmech.fem.parametric import output_times
-from lungmech.fem.quantities import Probe, assemble_owned, strain_energy
+from lungmech.fem.quantities import Probe
 from lungmech.fem.solver import Stepping
-from lungmech.fem.state_dependent import StateDependent
-from lungmech.parallel.linalg import apply, gram
 from lungmech.parallel.owned import owned_size
 from lungmech.pgd import chebyshev
 from lungmech.pgd.axes import DEGREE, Axis, full_turn
@@ -77,6 +81,7 @@ from lungmech.pgd.fitted import energy_fit
 from lungmech.pgd.fitting import FIT
 from lungmech.pgd.greedy import Options, Round
 from lungmech.pgd.indicator import indicator
+from lungmech.pgd.march import March, Start
 from lungmech.pgd.model import ESTIMATE, PGDModel, answerable, load_fractions, ramp_of
 from lungmech.pgd.modes import Modes
 from lungmech.pgd.online import online
@@ -85,7 +90,18 @@ from lungmech.pgd.terms import Terms, constants, kept, separated_terms, values_a
 from lungmech.pgd.timeline import SampledTimeline
 from lungmech.rom.basis import inner_product
 
-__all__ = ["QUADRATURE", "Newton", "build_nonlinear", "quadrature"]
+__all__ = [
+    "QUADRATURE",
+    "Marched",
+    "Newton",
+    "Path",
+    "axes_of",
+    "build_nonlinear",
+    "joined",
+    "newton_pgd",
+    "quadrature",
+    "states",
+]
 
 QUADRATURE = 512  # the most residual assemblies an iteration, by default
 STALLED = 20  # iterations after which a Newton–PGD that stopped coming closer gives up
@@ -134,62 +150,35 @@ def build_nonlinear(
     ramp_of(model, stepping)
     load_fractions(model, stepping)
     options = options or Options()
-    axes = [
-        Axis(parameter, max(intervals, DEGREE + 1) if full_turn(parameter) else intervals)
-        for parameter in model.parameters
-    ]
+    axes = axes_of(model, intervals)
     sample = quadrature(model, axes, newton)
-    units = sample.units
-    points = [model.parameters.from_unit(unit) for unit in units]
     times = output_times(model, stepping)
     comm = model.geometry.mesh.comm
-    tic = time.perf_counter()
-    # the tangent with the loads 0: the material's (a follower pressure's own may make it indefinite)
-    model.set_time(stepping.start)
-    tangent = separated_terms(model, axes, linearised=True)
-    W: PETSc.Mat | None = None
-    seconds = {"terms": time.perf_counter() - tic}
+    W = inner_product(model, "energy")
     try:
-        W = inner_product(model, "energy")
+        model.set_time(stepping.start)  # the tangent with the loads 0 (module docstring)
+        path = Path(float(stepping.start), times, model.set_time)
+        marched = newton_pgd(model, sample, path, options, newton, W, at_states=bool(model.state_dependent))
+        found, blocks, seconds = marched.found, marched.blocks, marched.seconds
         tic = time.perf_counter()
-        operator = _operator(model, tangent, points, units)  # (at the start, as the terms)
-        found = Modes(axes, operator.matrices, owned_size(model.space), comm)
-        march = _March(model, points)
-        rounds: list[Round] = []
-        iteration = _Iteration(march, operator, sample, W, options, newton, bool(model.state_dependent))
-        found, blocks, iterations = iteration.marched(found, rounds, stepping)
-        seconds["newton"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        decomposition, timeline = _joined(found, blocks, times, stepping.start)
-        last = Decomposition(tuple(axes), found.Q.copy(), *blocks[-1])
-        energies = march.energies(found.Q, blocks, sample, times)
+        decomposition, timeline = joined(found, blocks, times, stepping.start)
+        energies = marched.march.energies(states(found.Q, blocks, sample), times)
         energy, separated_energy = energy_fit(
-            comm, energies, units, [tuple(axes)], FIT, newton.seed, stepping.start, times
+            comm, energies, sample.units, [tuple(axes)], FIT, newton.seed, stepping.start, times
         )
         seconds["energy"] = time.perf_counter() - tic
         tic = time.perf_counter()
         model.set_time(stepping.end)
+        last = Decomposition(tuple(axes), found.Q.copy(), *blocks[-1])
         estimates = indicator(model, last, W, model.parameters.sample(ESTIMATE, seed=31))
         seconds["indicator"] = time.perf_counter() - tic
     finally:
-        tangent.destroy()
-        if W is not None:
-            W.destroy()
+        W.destroy()
     tic = time.perf_counter()
     probe = Probe(model.geometry.mesh, probe_points) if len(probe_points) else None
     outputs = online(model, None, decomposition.modes, probe)
     seconds["outputs"] = time.perf_counter() - tic
-    built = {
-        "method": f"a priori, Newton on {len(units)} points of the box"
-        + (", the tangents at their states" if model.state_dependent else ""),
-        "intervals": [axis.intervals for axis in axes],
-        "options": asdict(options),
-        "newton": asdict(newton),
-        "newton_iterations": iterations,
-        "quadrature": len(units),  # the residual's points an iteration
-        "training": points,  # the residuals' points (a trade's validation points avoid them)
-        "rounds": [asdict(r) for r in rounds],
-        "operator_terms": len(tangent.operator),
+    built = marched.record(options, newton) | {
         "energy_held_out": energy.held_out,
         "estimate": float(estimates.max()),
         "indicator_points": estimates.tolist(),
@@ -198,7 +187,119 @@ def build_nonlinear(
     found_model = PGDModel(
         model, decomposition, outputs, stepping, probe_points, built, timeline=timeline, energy=separated_energy
     )
-    return found_model, rounds
+    return found_model, marched.rounds
+
+
+def axes_of(model: Model, intervals: int) -> list[Axis]:
+    """One axis per parameter of ``model``: cubic splines on ``intervals`` intervals (a full
+    turn on at least :data:`~lungmech.pgd.axes.DEGREE` + 1, periodic)."""
+    return [
+        Axis(parameter, max(intervals, DEGREE + 1) if full_turn(parameter) else intervals)
+        for parameter in model.parameters
+    ]
+
+
+@dataclass(frozen=True)
+class Path:
+    """The loads' path a Newton–PGD follows: from ``start`` through each of ``targets`` in turn
+    (the output times), ``drive`` setting the model's loads at a point of it (its time) and
+    ``describe`` saying where that is, for a message."""
+
+    start: float
+    targets: np.ndarray
+    drive: Callable[[float], None]
+    describe: Callable[[float], str] = lambda t: f"t = {t:g} s"
+
+
+@dataclass
+class Marched:
+    """A Newton–PGD's result: the terms at the path's end ``found``, each target's (R, X)
+    ``blocks`` and ``iterations``, every round of the greedy, the ``march`` that assembled its
+    residuals (for the energies at its points), its method's words, the tangent's number of
+    operator terms and the ``seconds`` each part took."""
+
+    found: Modes
+    blocks: list[tuple[np.ndarray, list[np.ndarray]]]
+    iterations: list[int]
+    rounds: list[Round]
+    march: March
+    method: str
+    operator_terms: int
+    seconds: dict[str, float]
+
+    def record(self, options: Options, newton: Newton) -> dict:
+        """How it was built, for a model's ``built``."""
+        return {
+            "method": self.method,
+            "intervals": [axis.intervals for axis in self.found.axes],
+            "options": asdict(options),
+            "newton": asdict(newton),
+            "newton_iterations": self.iterations,
+            "quadrature": len(self.march.points),  # the residual's points an iteration
+            "training": self.march.points,  # the residuals' points (a trade's validation points avoid them)
+            "rounds": [asdict(r) for r in self.rounds],
+            "operator_terms": self.operator_terms,
+        }
+
+
+def newton_pgd(
+    model: Model,
+    sample: Sample,
+    path: Path,
+    options: Options,
+    newton: Newton,
+    W: PETSc.Mat,
+    *,
+    at_states: bool,
+    start: Start | None = None,
+) -> Marched:
+    """The Newton–PGD of ``model``'s residual at the ``sample``'s points along ``path``, its
+    states ``start``'s plus the terms' (default: from rest), the terms W-orthonormal, the updates
+    taking the tangents at the points' states where ``at_states`` (module docstring). The model's
+    tangent at rest is separated as its loads are now (0: the material's). Refused in one line
+    where the iterations do not converge. Collective."""
+    axes, comm = list(sample.axes), model.geometry.mesh.comm
+    points = [model.parameters.from_unit(unit) for unit in sample.units]
+    tic = time.perf_counter()
+    tangent = separated_terms(model, axes, linearised=True, at=_centre(model, start))
+    seconds = {"terms": time.perf_counter() - tic}
+    try:
+        tic = time.perf_counter()
+        operator = _operator(model, tangent, points, sample.units)  # (at the start, as the terms)
+        found = Modes(axes, operator.matrices, owned_size(model.space), comm)
+        march = March(model, points, start)
+        rounds: list[Round] = []
+        iteration = _Iteration(march, operator, sample, W, options, newton, at_states)
+        found, blocks, iterations = iteration.marched(found, rounds, path)
+        seconds["newton"] = time.perf_counter() - tic
+    finally:
+        tangent.destroy()
+    method = f"a priori, Newton on {len(points)} points of the box" + (
+        ", the tangents at their states" if at_states else ""
+    )
+    return Marched(found, blocks, iterations, rounds, march, method, len(tangent.operator), seconds)
+
+
+def _centre(model: Model, start: Start | None) -> np.ndarray | None:
+    """``start``'s state at the box's centre (local entries, ghosts too; its other settings left
+    in the model), where the tangent a new term's space part takes is linearised; None: the rest."""
+    if start is None:
+        return None
+    centre = model.parameters.from_unit(np.full(len(model.parameters.names), 0.5))
+    owned = owned_size(model.space)
+    with model.kept_state():
+        model.state.x.array[:owned] = start(centre)
+        model.state.x.scatter_forward()
+        return model.state.x.array.copy()
+
+
+def states(Q: np.ndarray, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], sample: Sample) -> list[np.ndarray]:
+    """Each block's displacement at the sample's points, Q R (Πⱼ Xⱼ Bⱼᵀ) (owned entries × N)."""
+    found = []
+    for R, X in blocks:
+        products = np.multiply.reduce([Xj @ B.T for Xj, B in zip(X, sample.bases)], axis=0)
+        found.append(Q[:, : len(R)] @ (R @ products))
+    return found
 
 
 def quadrature(model: Model, axes: Sequence[Axis], newton: Newton) -> Sample:
@@ -225,7 +326,7 @@ class _Iteration:
     and ``newton``'s stopping and enrichment; ``at_states``: the updates take each point's
     tangent at its state on the modes' span (module docstring)."""
 
-    march: _March
+    march: March
     operator: Operator
     sample: Sample
     W: PETSc.Mat
@@ -234,31 +335,31 @@ class _Iteration:
     at_states: bool = False
 
     def marched(
-        self, found: Modes, rounds: list[Round], stepping: Stepping
+        self, found: Modes, rounds: list[Round], path: Path
     ) -> tuple[Modes, list[tuple[np.ndarray, list[np.ndarray]]], list[int]]:
-        """The path followed output time after output time (module docstring), a step halved
-        where its iterations fail: the terms at the end, each output time's (R, X) and its
-        iterations. Refused in one line where a step of :data:`SMALLEST` of the path fails.
-        Collective."""
-        times = output_times(self.march.model, stepping)
+        """``path`` followed target after target (module docstring), a step halved where its
+        iterations fail: the terms at the end, each target's (R, X) and its iterations.
+        Refused in one line where a step of :data:`SMALLEST` of the path fails. Collective."""
+        targets = path.targets
+        length = float(targets[-1]) - path.start
         blocks: list[tuple[np.ndarray, list[np.ndarray]]] = []
         iterations: list[int] = []
-        pending, reached = [float(t) for t in times], float(stepping.start)
+        pending, reached = [float(t) for t in targets], path.start
         while pending:
             t = pending[0]
-            self.march.model.set_time(t)
+            path.drive(t)
             saved, tried = found.copy(), len(rounds)
             done, steps = self.converged(found, rounds)
-            if not done and t - reached > SMALLEST * (stepping.end - stepping.start):
+            if not done and t - reached > SMALLEST * length:
                 found = saved
                 del rounds[tried:]  # (the failed attempt's)
                 pending.insert(0, 0.5 * (reached + t))
                 continue
             if not done:
-                self._refuse(t, reached, steps, found)
+                self._refuse(path, t, reached, steps, found)
             pending.pop(0)
             reached = t
-            if np.any(np.isclose(times, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
+            if np.any(np.isclose(targets, t, rtol=0.0, atol=1e-12 * max(1.0, abs(t)))):
                 iterations.append(len(steps))
                 blocks.append((found.R.copy(), [X.copy() for X in found.X]))
         return found, blocks, iterations
@@ -279,7 +380,7 @@ class _Iteration:
                 return False, [*steps, np.inf]
             b = operator.apply_sampled(found, Z) - r
             step = operator if tangents is None else self._at_states(tangents, found, Z)
-            most = None if tangents is None else self.newton.enrich
+            most = self.newton.enrich if self.at_states else None  # (module docstring)
             rounds.extend(solve(step, sample, b, found, self.W, self.options, most))
             now = found.R @ sample.products(found)
             before = np.vstack([Z, np.zeros((len(now) - len(Z), Z.shape[1]))])
@@ -301,8 +402,8 @@ class _Iteration:
         correction = tangents - rest
         return replace(self.operator, correction=correction, shift=np.einsum("qab,bq->aq", correction, Z))
 
-    def _refuse(self, t: float, reached: float, steps: list[float], found: Modes) -> None:
-        """The one line of a time whose step, halved to its smallest, still fails."""
+    def _refuse(self, path: Path, t: float, reached: float, steps: list[float], found: Modes) -> None:
+        """The one line of a target whose step, halved to its smallest, still fails."""
         how = (
             f"the terms still changed by {steps[-1]:.1e} of themselves"
             if np.isfinite(steps[-1])
@@ -318,81 +419,12 @@ class _Iteration:
             if found.count >= self.options.max_terms and np.isfinite(steps[-1])
             else far
         )
+        fraction = (t - reached) / (float(path.targets[-1]) - path.start)
         raise ParameterError(
-            f"PGD: the Newton–PGD did not converge at t = {t:g} s in {len(steps)} iterations ({how}), "
-            f"its step from {reached:g} s halved to {t - reached:g} s: {why}"
+            f"PGD: the Newton–PGD did not converge at {path.describe(t)} in {len(steps)} iterations ({how}), "
+            f"its step from {path.describe(reached)} halved to {fraction:.3g} of the path: {why}"
             "give --samples for a PGD fitted to full solves"
         )
-
-
-class _March:
-    """The model's residual, its tangent on the modes' span and its strain energy at the
-    sample's ``points``, its state the rest plus a given displacement of its modes' space (a
-    state-dependent load's coefficients θ = Θ(u) set from that state)."""
-
-    def __init__(self, model: Model, points: Sequence[Mapping[str, float]]) -> None:
-        self.model, self.points = model, list(points)
-        self.owned = owned_size(model.space)
-        self.comm = model.geometry.mesh.comm
-        self._imposed = model.constrained_dofs()
-        self._residual, self._jacobian = jit.form(model.residual), jit.form(model.jacobian)
-        self._coupled = StateDependent(model)
-        self._work = fem.Function(model.space).x
-        self._held = constants(model)
-        with model.kept_state():
-            model.reset()
-            self.rest = model.state.x.array[: self.owned].copy()
-
-    def _at(self, point: Mapping[str, float], u: np.ndarray) -> None:
-        model = self.model
-        model.set_parameters(point)
-        model.state.x.array[: self.owned] = self.rest + u
-        model.state.x.scatter_forward()
-        self._coupled.update()
-
-    def residuals(self, U: np.ndarray, Q: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """R(u_rest + U_q; μ_q) at the model's current time (owned entries × N, 0 where imposed)
-        and, given space modes ``Q``, the tangent there on their span, Qᵀ J_q Q (N × m × m; J_q
-        with a state-dependent load's coupling U Vᵀ, :mod:`lungmech.fem.state_dependent`)."""
-        found = np.empty((self.owned, len(self.points)))
-        tangents = None if Q is None else np.empty((len(self.points), Q.shape[1], Q.shape[1]))
-        with kept(self.model, self._held):
-            for q, point in enumerate(self.points):
-                self._at(point, U[:, q])
-                found[:, q] = assemble_owned(self._residual, self._work, self.owned)
-                if Q is not None and tangents is not None:
-                    tangents[q] = gram(Q, self._tangent_on(Q), self.comm)
-        found[self._imposed] = 0.0
-        return found, tangents
-
-    def _tangent_on(self, Q: np.ndarray) -> np.ndarray:
-        """J Q at the model's state (owned rows; the imposed rows the modes' zero)."""
-        J = assemble_matrix(self._jacobian, bcs=self.model.bcs)
-        try:
-            J.assemble()
-            JQ = apply(J, Q, self.comm)
-        finally:
-            J.destroy()
-        if self._coupled:
-            U, V = self._coupled.low_rank()
-            JQ += U @ gram(V, Q, self.comm)
-        return JQ
-
-    def energies(
-        self, Q: np.ndarray, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], sample: Sample, times: np.ndarray
-    ) -> np.ndarray:
-        """The strain energy (J) at each point and output time of the blocks' states (N × times)."""
-        energy = strain_energy(self.model)
-        found = np.empty((len(self.points), len(times)))
-        with kept(self.model, self._held):
-            for i, ((R, X), t) in enumerate(zip(blocks, times)):
-                self.model.set_time(float(t))
-                Lam = np.multiply.reduce([Xj @ B.T for Xj, B in zip(X, sample.bases)], axis=0)
-                U = Q[:, : len(R)] @ (R @ Lam)
-                for q, point in enumerate(self.points):
-                    self._at(point, U[:, q])
-                    found[q, i] = energy()
-        return found
 
 
 def _operator(model: Model, tangent: Terms, points: Sequence[Mapping[str, float]], units: np.ndarray) -> Operator:
@@ -415,7 +447,7 @@ def _operator(model: Model, tangent: Terms, points: Sequence[Mapping[str, float]
     return Operator(matrices, np.array(kappa), tangent.symmetric)
 
 
-def _joined(
+def joined(
     found: Modes, blocks: Sequence[tuple[np.ndarray, list[np.ndarray]]], times: np.ndarray, start: float
 ) -> tuple[Decomposition, SampledTimeline]:
     """One decomposition of every time's terms (Q the last one's; an earlier time's R padded

@@ -33,6 +33,7 @@ import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import numpy as np
@@ -137,7 +138,7 @@ def solve(
     for _ in range(options.sweeps if found.count else 0):
         _update(operator, sample, b, found)
     limit = options.max_terms if most is None else min(options.max_terms, found.count + most)
-    while found.count < limit:
+    while found.count < limit and _finite(found):  # (an update past the law's range: the caller sees it)
         u, x, iterations, converged = _new_term(
             operator, sample, _left_on_span(operator, sample, b, found, W), found, options
         )
@@ -155,6 +156,12 @@ def solve(
             Round(amplitude / whole, iterations, converged, True, new, _potential(operator, sample, b, found))
         )
     return rounds
+
+
+def _finite(found: Modes) -> bool:
+    """Whether the terms' reduced parts and splines are finite numbers (on every rank)."""
+    local = bool(np.isfinite(found.R).all() and all(np.isfinite(X).all() for X in found.X))
+    return bool(found.comm.allreduce(local, op=MPI.LAND))
 
 
 def mean_square(sample: Sample, found: Modes) -> float:

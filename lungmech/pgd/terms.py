@@ -160,11 +160,14 @@ class Terms:
             term.matrix.destroy()
 
 
-def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False) -> Terms:
+def separated_terms(
+    model: Model, axes: Sequence[Axis], linearised: bool = False, at: np.ndarray | None = None
+) -> Terms:
     """The separated terms of ``model``'s residual at its current time over ``axes`` (one per
     parameter of the model, in its order) — or, ``linearised``, of its linearisation at rest
     R(0; c) + K(0; c) u, for a nonlinear model (a state-dependent load's coefficients θ held
-    as they are). Refused in one line where the model (or its linearisation) is not linear and
+    as they are), or at the state ``at`` (local entries, ghosts too) with the model's other
+    coefficients as they are. Refused in one line where the model (or its linearisation) is not linear and
     affine in its values, where a parameter sets a field or moves three or more values
     together, or where an imposed displacement is not zero. Collective."""
     if [axis.parameter.name for axis in axes] != list(model.parameters.names):
@@ -182,7 +185,7 @@ def separated_terms(model: Model, axes: Sequence[Axis], linearised: bool = False
     held = constants(model)
     with kept(model, held):
         default = values_at(model, held, model.parameter_values)
-        assembler = Assembler(model, held, set_values, linearised)
+        assembler = Assembler(model, held, set_values, linearised, at)
         check_linear(assembler, default)
         _no_field_moves(model, axes)
         along, moved = _sweeps(model, held, axes)
