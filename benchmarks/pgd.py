@@ -7,7 +7,7 @@ of the same scene.
     python benchmarks/pgd.py --replot        # the plot drawn again from the results (no solve)
     python benchmarks/pgd.py --cases breath balanced   # those cases again, the others' rows kept
 
-Six cases, each a scene built here:
+Seven cases, each a scene built here:
 
 * **anchor**: the configuration of NeuROM's NN-PGD (Daby-Seesaram, Škardová, Genet): a 10 × 10
   plate with three holes, clamped on its top and bottom edges, plane strain, ν = 0.3, under its
@@ -31,6 +31,12 @@ Six cases, each a scene built here:
   over −90°–0° a fourth parameter: its PGD a priori (the Newton–PGD taking each point's tangent
   at its state on the modes' span; full size only, the suite tests it) beside its PGD fitted
   to 32 and 64 full solves (its hyper-reduced model is ``rom_real_time.py``'s).
+* **imaged**: the bundled breathing lung as imaged at end-expiration (``[inverse]``), upright,
+  breathing in from the image, its weight balanced, over its stiffness and the breath's depth:
+  its PGD a priori (:mod:`lungmech.pgd.imaged_newton`: its unloaded reference ξ(μ) by the
+  inverse problem's Newton–PGD, then the breath's from the image on it; full size only, the
+  suite tests it) beside its PGD fitted to 32 and 64 full solves; the full model on its image
+  (``start="inverse_motion"``), as its reduced models are.
 * **breath**: the nonlinear lung: the lung phantom's poromechanics with the lung skeleton's
   law, a follower pleural pressure ramped from rest, α and c1 over log ranges and the breath's
   depth. Its PGD a priori (:mod:`lungmech.pgd.newton`: Newton on the parameters' Gauss grid,
@@ -267,6 +273,59 @@ target = "loads.gravity.pitch"
 range = [-90.0, 0.0]
 """
 
+# the bundled breathing lung as imaged at end-expiration (lung_breathing_parameters.toml), upright:
+# its unloaded reference found at every μ ([inverse]), the breath in from the image, its weight
+# balanced (with its posture a third parameter over −90°–0° the breath's Newton–PGD diverges: the
+# guide's imaged lung a priori)
+IMAGED = """
+title = "the imaged lung phantom breathing in, over its stiffness and the breath's depth"
+[geometry]
+builder = "lung_phantom"
+side = "right"
+mesh_size = {h}
+[material]
+law = "lung_skeleton"
+alpha = 160.0
+gamma = 0.5
+c1 = 200.0
+c2 = 400.0
+[formulation]
+type = "poromechanics"
+kappa = 1.0e4
+phi_s0 = 0.3
+[[constraints]]
+type = "clamp"
+boundary = "hilum"
+[[loads]]
+type = "follower_pressure"
+name = "pleural"
+boundary = ["pleura", "diaphragm", "mediastinum"]
+value = -500.0
+ramp = {{ times = [0.0, 1.0], values = [1.0, 2.0] }}
+[[loads]]
+type = "gravity"
+name = "gravity"
+density = 315.0
+acceleration = [0.0, 0.0, -9.81]
+balanced_on = ["pleura", "diaphragm", "mediastinum"]
+ramp = {{ times = [0.0, 1.0], values = [1.0, 1.0] }}
+[inverse]
+tolerance = 1e-9
+[stepping]
+end = 1.0
+max_step = 0.25
+times = [0.5]
+[output]
+probes = [[0.05, 0.0, 0.1]]
+[parameters.stiffness]
+target = "material.c1"
+range = [100.0, 400.0]
+scale = "log"
+[parameters.breath]
+target = "loads.pleural.amplitude"
+range = [0.6, 1.4]
+"""
+
 CASES = {  # scene, mesh size, --quick's
     "anchor": (ANCHOR, 0.12, 0.5),
     "lung": (LUNG, 0.012, 0.04),
@@ -274,8 +333,15 @@ CASES = {  # scene, mesh size, --quick's
     "shape": (SHAPE, 0.02, 0.04),
     "breath": (BREATH, 0.02, 0.04),
     "balanced": (BREATH + WEIGHT.replace("{", "{{").replace("}", "}}"), 0.02, 0.04),
+    "imaged": (IMAGED, 0.02, 0.04),
 }
-QUICK_CASES = ("anchor", "lung", "jump", "shape", "breath")  # --quick: the balanced lung is the suite's own test
+QUICK_CASES = (
+    "anchor",
+    "lung",
+    "jump",
+    "shape",
+    "breath",
+)  # --quick: the balanced and imaged lungs are the suite's own tests
 A_PRIORI = {  # the a priori PGD's terms at most and splines' intervals (None: lungmech's default): full size, --quick
     "anchor": ((10, None), (10, None)),
     "lung": ((10, None), (10, None)),
@@ -283,11 +349,13 @@ A_PRIORI = {  # the a priori PGD's terms at most and splines' intervals (None: l
     "shape": ((20, 8), (8, 4)),
     "breath": ((20, 2), (12, 1)),  # nonlinear: Newton on the axes' Gauss grid, 8³ (4³) points
     "balanced": ((40, 1), (20, 1)),  # the tangents at the points' states: 4⁴ points
+    "imaged": ((40, 1), (12, 1)),  # its reference and its breath, each by Newton: 4² points
 }
 FITTED = {
     "jump": ((128,), ()),
     "breath": ((32, 64, 128), (8,)),
     "balanced": ((32, 64), ()),
+    "imaged": ((32, 64), ()),
 }  # the fitted PGD's sample sizes: full size, --quick
 
 
@@ -382,7 +450,8 @@ def measure(
 ) -> tuple[list[dict], dict | None]:
     comm = MPI.COMM_WORLD
     scene = scene_of(folder, name, quick)
-    full = full_order_model(scene, comm)
+    # an imaged body's on its image, as its reduced models (their states are its motion from the image)
+    full = full_order_model(scene, comm, start="inverse_motion" if scene.inverse else "imaged")
     box = full.parameters
     points = box.sample(8 if quick else 50, seed=11)
     say(f"{name}: {len(points)} full solves at the test points")
@@ -420,7 +489,7 @@ def measure(
     # --quick leaves out the breath's nonlinear hyper-reduction (47 s) and the shape's (the suite tests
     # it); the balanced lung's is the real-time lung's benchmark's (rom_real_time.py): here its NNLS
     # ran more than 20 minutes
-    if not (quick and name in ("shape", "breath")) and name != "balanced":
+    if not (quick and name in ("shape", "breath")) and name not in ("balanced", "imaged"):
         say(f"{name}: the hyper-reduced model (8 full solves)")
         tic = time.perf_counter()
         reduce.build(
@@ -459,7 +528,9 @@ def markdown(rows: list[dict], command: str) -> str:
         "whole build, in seconds (the a priori PGD's terms and greedy — a nonlinear model's Newton iterations — alone in brackets), its full solves "
         "included. The breath's a priori PGD iterates on residual assemblies at its parameters' Gauss grid; the balanced lung's "
         "(the breath under its weight, carried by a pleural pressure gradient that moves with the state, its posture a fourth "
-        "parameter) also on Jacobians there, each point's tangent at its state on the modes' span. The fitted PGD are fitted to their full solves (at most 40 terms; their number and the splines' "
+        "parameter) also on Jacobians there, each point's tangent at its state on the modes' span; the imaged lung's "
+        "(its reference found at every μ, the breath from the image) first its reference's, then its breath's. "
+        "The fitted PGD are fitted to their full solves (at most 40 terms; their number and the splines' "
         "intervals chosen on a held-out quarter of the solves).",
         "",
         "| case | ranks | dofs | model | full solves offline | offline [s] | online [ms] | nodal error max (median) "
