@@ -911,10 +911,10 @@ def test_a_nonlinear_a_priori_pgd_on_two_ranks_is_the_serial_one(tmp_path, writt
     the probe and the strain energy within the iterations' own tolerance of their size. The
     block's iterations to 1e-8: the same iterations, within 1e-8 (measured: 2e-9; the
     alternating directions' stopping decisions may differ by round-off, and the iterations then
-    meet within their tolerance). The balanced lung's to 1e-5 (its 20 terms reach no tighter):
-    its answers are settled to about their own error against the full model (1.8e-3), and a
-    round-off's difference takes either build to another answer that close; within 5e-3
-    (measured: 2.3e-5 to 1.8e-3, from run to run)."""
+    meet within their tolerance). The balanced lung's to 1e-5 (its 20 terms reach no tighter),
+    its updates least-squares steps under each point's tangent: within 1e-3 (measured over
+    four runs: the volume's change to 3.7e-9, the probe to 4.4e-7, the strain energy, a fit of
+    its assembled values, to 5.6e-5; with the Galerkin updates before, 2.3e-5 to 1.8e-3)."""
     import test_pgd_newton
 
     from lungmech.app.run import build_model
@@ -931,7 +931,7 @@ def test_a_nonlinear_a_priori_pgd_on_two_ranks_is_the_serial_one(tmp_path, writt
         )[0]
     if written == "block":  # (the balanced lung's last iteration may fall on either side of 1e-5)
         assert found["world"].built["newton_iterations"] == found["self"].built["newton_iterations"]
-    bound = tolerance if written == "block" else 5e-3
+    bound = tolerance if written == "block" else 1e-3
     for point in found["self"].parameters.sample(4, seed=9):
         a, b = found["world"].solve(point), found["self"].solve(point)
         rest = b.start.details["volume"]

@@ -22,9 +22,12 @@ A solve starts from the terms it is given (a Newton iteration's, so that the nex
 its change): they are first updated for the new b, then terms are added while a new one's
 amplitude is above ``tolerance`` of the whole's. An :class:`Operator` with a correction D_q on
 the first m₀ modes has its updates take K(μ_q) + (W Q₀) D_q (W Q₀)ᵀ (a Newton–PGD's tangent at
-each point's state on the modes' span): M gains Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q, the axes' Galerkin
-matrices Rᵀ D_q R, and Qᵀb_q its shift; a new term then takes b plus what the corrected
-updates left on that span, W Q₀ (s_q − D_q z_q).
+each point's state on the modes' span), T_q = QᵀK(μ_q)Q + D_q on the span, and Qᵀb_q its
+shift, c_q: with T_q not symmetric they minimise the sampled residual on the span,
+Σ_q w_q ‖T_q z_q − c_q‖², by alternating least squares — R from Σ_q w_q Λ_q Λ_qᵀ ⊗ T_qᵀT_q,
+then each axis's splines — where a Galerkin update's matrices are indefinite and its sweeps
+can diverge (:func:`_least_squares_update`); a new term then takes b plus what the
+corrected updates left on that span, W Q₀ (s_q − D_q z_q).
 """
 
 from __future__ import annotations
@@ -228,19 +231,18 @@ def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> 
     w, kappa, n, m = sample.weights, operator.kappa, found.count, found.Q.shape[1]
     A = found.reduced_operators()
     D = operator.corrections(m)  # the tangent at each point's state on the span it has
+    if D is not None:
+        _least_squares_update(operator, sample, b, found, np.einsum("iq,iab->qab", kappa, np.array(A)) + D)
+        return
     Qb = operator.reduced_rhs(found, b)  # m × N
     Lam = sample.products(found)
     M = kron_sum([(Lam * (w * k)) @ Lam.T for k in kappa], A)
-    if D is not None:  # Σ_q w_q Λ_q Λ_qᵀ ⊗ D_q
-        M += kron_sum(w[:, None, None] * Lam.T[:, :, None] * Lam.T[:, None, :], D)
     rhs = ((Qb * w) @ Lam.T).T.ravel()  # [k, a]: Σ_q w_q Λₖ_q (Qᵀb_q)_a
-    symmetric = operator.symmetric and D is None
+    symmetric = operator.symmetric
     found.R = solve_small(M, rhs, symmetric).reshape(n, m).T
     Y = found.R.T @ Qb  # Rₖᵀ Qᵀ b_q (terms × N)
     C = np.array([found.R.T @ Ai @ found.R for Ai in A])  # Rₖᵀ Qᵀ Kᵢ Q Rₗ
     G = np.einsum("iq,ikl->qkl", kappa, C)
-    if D is not None:
-        G += found.R.T @ D @ found.R  # Rₖᵀ D_q Rₗ, a batched product
     for j, B in enumerate(sample.bases):
         values = sample.values(found)
         p = (
@@ -252,6 +254,38 @@ def _update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes) -> 
         M = kron_sum(H, B[:, :, None] * B[:, None, :])  # Σ_q H_q ⊗ Bʲ_q Bʲ_qᵀ
         rhs = ((w * p * Y) @ B).ravel()  # [k, a]: Σ_q w_q pₖ_q Yₖ_q Bʲ_qa
         found.X[j] = solve_small(_ridged(M), rhs, symmetric).reshape(n, B.shape[1])
+
+
+def _least_squares_update(operator: Operator, sample: Sample, b: np.ndarray, found: Modes, T: np.ndarray) -> None:
+    """The update under a correction: every term's R, then each axis's splines of every term,
+    each minimising the sampled residual on the span, Σ_q w_q ‖T_q z_q − c_q‖², z_q = R Λ_q,
+    T_q = Qᵀ K(μ_q) Q + D_q the tangent at the point's state there (N × m × m) and c_q = Qᵀ b_q
+    + s_q (module docstring). Its normal equations are symmetric positive definite where the
+    Galerkin update's, with non-symmetric T_q, are neither: the Galerkin update's sweeps could
+    throw the terms off by orders of magnitude once the budget of terms filled (the imaged
+    lung over its posture, ``docs/guide/pgd.md``); these are steps of alternating least
+    squares, each not increasing the residual."""
+    w, n, m = sample.weights, found.count, found.Q.shape[1]
+    c = operator.reduced_rhs(found, b)  # m × N
+    Lam = sample.products(found)
+    TT = np.einsum("qba,qbc->qac", T, T)  # T_qᵀ T_q
+    M = kron_sum(w[:, None, None] * Lam.T[:, :, None] * Lam.T[:, None, :], TT)  # Σ_q w_q Λ_q Λ_qᵀ ⊗ T_qᵀT_q
+    rhs = ((np.einsum("qba,bq->aq", T, c) * w) @ Lam.T).T.ravel()  # Σ_q w_q Λ_q ⊗ T_qᵀ c_q
+    found.R = solve_small(_ridged(M), rhs, True).reshape(n, m).T
+    TR = T @ found.R  # T_q Rₖ (N × m × terms)
+    G = np.einsum("qan,qal->qnl", TR, TR)  # Rₖᵀ T_qᵀ T_q Rₗ
+    Y = np.einsum("qan,aq->nq", TR, c)  # Rₖᵀ T_qᵀ c_q
+    for j, B in enumerate(sample.bases):
+        values = sample.values(found)
+        p = (
+            np.multiply.reduce([v for i, v in enumerate(values) if i != j], axis=0)
+            if len(values) > 1
+            else np.ones_like(Lam)
+        )
+        H = w[:, None, None] * G * p.T[:, :, None] * p.T[:, None, :]
+        M = kron_sum(H, B[:, :, None] * B[:, None, :])
+        rhs = ((w * p * Y) @ B).ravel()
+        found.X[j] = solve_small(_ridged(M), rhs, True).reshape(n, B.shape[1])
 
 
 def _ridged(M: np.ndarray) -> np.ndarray:
