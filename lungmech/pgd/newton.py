@@ -23,8 +23,10 @@ point's state before its residual) moves the tangent with the state, and no tang
 the box converges there (``benchmarks/pgd_tangent.py``). Its iterations assemble, beside each
 point's residual, its tangent at that point's state on the span of the space modes Q,
 Qᵀ J_q Q (J_q with the load's coupling U Vᵀ, :mod:`lungmech.fem.state_dependent`): the
-updates of the terms then take that tangent — a Newton step on the modes' span — and only a
-new term's space part takes K̄ (:class:`~lungmech.pgd.sampled.Operator`'s correction). An
+updates of the terms then take that tangent — a Newton step on the modes' span, its sampled
+residual there minimised by alternating least squares (the tangents are not symmetric: the
+Galerkin updates diverged) — and only a new term's space part takes K̄
+(:class:`~lungmech.pgd.sampled.Operator`'s correction). An
 iteration adds at most ``Newton.enrich`` terms, the first one too, as a Krylov method adds one
 direction an iteration: the terms are kept for the directions the true problem needs (left
 free, the iterations spent all 40 terms of the balanced lung's budget and then diverged; the

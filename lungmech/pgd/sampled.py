@@ -25,8 +25,9 @@ the first m₀ modes has its updates take K(μ_q) + (W Q₀) D_q (W Q₀)ᵀ (a 
 each point's state on the modes' span), T_q = QᵀK(μ_q)Q + D_q on the span, and Qᵀb_q its
 shift, c_q: with T_q not symmetric they minimise the sampled residual on the span,
 Σ_q w_q ‖T_q z_q − c_q‖², by alternating least squares — R from Σ_q w_q Λ_q Λ_qᵀ ⊗ T_qᵀT_q,
-then each axis's splines — where a Galerkin update's matrices are indefinite and its sweeps
-can diverge (:func:`_least_squares_update`); a new term then takes b plus what the
+then each axis's splines — where a Galerkin update's matrices, not symmetric, came near
+singular (condition numbers of 10¹⁵) and its sweeps diverged (:func:`_least_squares_update`);
+a new term then takes b plus what the
 corrected updates left on that span, W Q₀ (s_q − D_q z_q).
 """
 
@@ -260,11 +261,11 @@ def _least_squares_update(operator: Operator, sample: Sample, b: np.ndarray, fou
     """The update under a correction: every term's R, then each axis's splines of every term,
     each minimising the sampled residual on the span, Σ_q w_q ‖T_q z_q − c_q‖², z_q = R Λ_q,
     T_q = Qᵀ K(μ_q) Q + D_q the tangent at the point's state there (N × m × m) and c_q = Qᵀ b_q
-    + s_q (module docstring). Its normal equations are symmetric positive definite where the
-    Galerkin update's, with non-symmetric T_q, are neither: the Galerkin update's sweeps could
-    throw the terms off by orders of magnitude once the budget of terms filled (the imaged
-    lung over its posture, ``docs/guide/pgd.md``); these are steps of alternating least
-    squares, each not increasing the residual."""
+    + s_q (module docstring). Its normal equations are symmetric and positive semi-definite
+    (ridged, as the axes' are); the Galerkin update's, with non-symmetric T_q, are not, and
+    its sweeps threw the terms off by orders of magnitude once the budget of terms filled (the
+    imaged lung over its posture, ``docs/guide/pgd.md``). These are steps of alternating
+    least squares, none increasing the residual."""
     w, n, m = sample.weights, found.count, found.Q.shape[1]
     c = operator.reduced_rhs(found, b)  # m × N
     Lam = sample.products(found)
